@@ -1,0 +1,138 @@
+"""The tracking contract: what a radar's tracker takes in and gives out (pure numpy).
+
+The engine hands each radar's validated plot batches to one :class:`Tracker`, in ``seq``
+order, and reads its tracks back as a :class:`TrackTable`.  Everything here works in data
+time (the plots' and batches' ``time_s``), never the wall clock.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from service.geo import Site
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class PlotColumns:
+    """One batch of one radar's plots, columnar, all arrays of equal length ``n``.
+
+    ``elevation_deg`` is NaN where the radar gave none; ``altitude_m`` is NaN where none was
+    given (a 2-D radar with neither: altitude 0 is assumed by the measurement model).
+    ``truth_id`` is for evaluation only: no algorithm may read it, trackers only carry it.
+    """
+
+    time_s: FloatArray
+    range_m: FloatArray
+    azimuth_deg: FloatArray
+    elevation_deg: FloatArray
+    altitude_m: FloatArray
+    truth_id: NDArray[np.object_]
+
+    def __len__(self) -> int:
+        return int(self.time_s.shape[0])
+
+    @staticmethod
+    def empty() -> PlotColumns:
+        f = np.empty(0)
+        return PlotColumns(f, f, f, f, f, np.empty(0, dtype=object))
+
+    def take(self, index: NDArray[np.intp] | NDArray[np.bool_]) -> PlotColumns:
+        return PlotColumns(
+            self.time_s[index],
+            self.range_m[index],
+            self.azimuth_deg[index],
+            self.elevation_deg[index],
+            self.altitude_m[index],
+            self.truth_id[index],
+        )
+
+    @staticmethod
+    def concat(parts: list[PlotColumns]) -> PlotColumns:
+        if not parts:
+            return PlotColumns.empty()
+        return PlotColumns(
+            np.concatenate([p.time_s for p in parts]),
+            np.concatenate([p.range_m for p in parts]),
+            np.concatenate([p.azimuth_deg for p in parts]),
+            np.concatenate([p.elevation_deg for p in parts]),
+            np.concatenate([p.altitude_m for p in parts]),
+            np.concatenate([p.truth_id for p in parts]),
+        )
+
+
+@dataclass(frozen=True)
+class TrackTable:
+    """A radar's tracks at one moment, columnar (row ``i`` is one track).
+
+    States are in ECEF as the radar sees them: its systematic errors are *not* removed.
+    ``covariance`` is the 6x6 covariance of ``[position, velocity]`` in ECEF.
+    """
+
+    track_id: NDArray[np.str_]
+    confirmed: NDArray[np.bool_]
+    time_s: FloatArray
+    position_ecef_m: FloatArray  # (n, 3)
+    velocity_ecef_mps: FloatArray  # (n, 3)
+    covariance: FloatArray  # (n, 6, 6)
+    plots: NDArray[np.int64]
+    truth_id: NDArray[np.object_]
+
+    def __len__(self) -> int:
+        return int(self.track_id.shape[0])
+
+    @staticmethod
+    def empty() -> TrackTable:
+        return TrackTable(
+            np.empty(0, dtype=str),
+            np.empty(0, dtype=bool),
+            np.empty(0),
+            np.empty((0, 3)),
+            np.empty((0, 3)),
+            np.empty((0, 6, 6)),
+            np.empty(0, dtype=np.int64),
+            np.empty(0, dtype=object),
+        )
+
+    def take(self, index: NDArray[np.intp] | NDArray[np.bool_]) -> TrackTable:
+        return TrackTable(
+            self.track_id[index],
+            self.confirmed[index],
+            self.time_s[index],
+            self.position_ecef_m[index],
+            self.velocity_ecef_mps[index],
+            self.covariance[index],
+            self.plots[index],
+            self.truth_id[index],
+        )
+
+
+class Tracker(ABC):
+    """Per-radar tracker: a sliding window of plots plus the tracks grown from it.
+
+    ``update`` is called once per accepted batch, in ``seq`` order, with the batch's plots
+    and the batch ``time_s`` (the time up to which the radar has reported).  It must be
+    deterministic given the sequence of calls.
+    """
+
+    def __init__(self, site: Site, window_s: float) -> None:
+        self.site = site
+        self.window_s = window_s
+
+    @abstractmethod
+    def update(self, plots: PlotColumns, time_s: float) -> None:
+        """Absorb one batch: update tracks, keep unused plots in the window, prune by data time."""
+
+    @abstractmethod
+    def tracks(self) -> TrackTable:
+        """All live tracks (tentative and confirmed) as of the last update."""
+
+    @property
+    @abstractmethod
+    def window_plots(self) -> int:
+        """Number of plots currently held in the sliding window."""
