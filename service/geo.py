@@ -125,7 +125,7 @@ def polar_jacobian(range_m: ArrayLike, azimuth_deg: ArrayLike, elevation_deg: Ar
     el = np.radians(np.asarray(elevation_deg, dtype=float))
     r, az, el = np.broadcast_arrays(r, az, el)
     sa, ca, se, ce = np.sin(az), np.cos(az), np.sin(el), np.cos(el)
-    jac = np.empty(r.shape + (3, 3))
+    jac = np.empty((*r.shape, 3, 3))
     jac[..., 0, 0] = ce * sa
     jac[..., 0, 1] = r * ce * ca
     jac[..., 0, 2] = -r * se * sa
@@ -168,13 +168,17 @@ class Site:
         """Inverse of Eq. (1): ``x = R^T (y - L)``."""
         return (np.asarray(ecef, dtype=float) - self.origin_ecef) @ self.rotation
 
-    def polar_to_ecef(self, range_m: ArrayLike, azimuth_deg: ArrayLike, elevation_deg: ArrayLike) -> FloatArray:
+    def polar_to_ecef(
+        self, range_m: ArrayLike, azimuth_deg: ArrayLike, elevation_deg: ArrayLike
+    ) -> FloatArray:
         return self.enu_to_ecef(polar_to_enu(range_m, azimuth_deg, elevation_deg))
 
     def ecef_to_polar(self, ecef: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
         return enu_to_polar(self.ecef_to_enu(ecef))
 
-    def elevation_for_altitude(self, range_m: ArrayLike, altitude_m: ArrayLike, azimuth_deg: ArrayLike) -> FloatArray:
+    def elevation_for_altitude(
+        self, range_m: ArrayLike, altitude_m: ArrayLike, azimuth_deg: ArrayLike
+    ) -> FloatArray:
         """Elevation (deg) at which a plot at ``range_m`` lies at ``altitude_m`` (WGS-84).
 
         For 2-D radars (contract: ``plots.altitude_m`` or altitude 0).  Starts from the

@@ -1,0 +1,1 @@
+"""FastAPI side port: the only package that imports fastapi."""

@@ -1,0 +1,325 @@
+"""``topofusion`` command line (CONTRACT.md §3).  Parsing stays here; entry points take config."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from service.settings import METHODS, Settings
+from service.transport.session import MODES, ZenohOptions
+
+log = logging.getLogger("topofusion")
+
+
+def _zenoh_flags(p: argparse.ArgumentParser, default_mode: str | None) -> None:
+    g = p.add_argument_group("zenoh")
+    g.add_argument("--mode", choices=MODES, default=default_mode, help="zenoh session mode")
+    g.add_argument("--listen", action="append", metavar="ENDPOINT", help="listen endpoint (repeatable)")
+    g.add_argument("--connect", action="append", metavar="ENDPOINT", help="connect endpoint (repeatable)")
+    g.add_argument("--zenoh-config", metavar="FILE", help="JSON5 zenoh config; the flags above override it")
+    g.add_argument("--prefix", help="key expression prefix (default: fusion)")
+
+
+def _service_flags(p: argparse.ArgumentParser) -> None:
+    _zenoh_flags(p, default_mode=None)
+    p.add_argument("--http-host", help="HTTP side port host (default 127.0.0.1)")
+    p.add_argument("--http-port", type=int, help="HTTP side port (default 8000; 0 picks a free port)")
+    p.add_argument("--sites", metavar="FILE", help="JSON file with a list of RadarSite")
+    p.add_argument("--method", choices=METHODS, help="correlation method (default svd-topology)")
+    p.add_argument("--window", type=float, metavar="S", help="sliding window, seconds of data time")
+    p.add_argument("--initiator", help="track initiator (default logic)")
+    p.add_argument("--log-level", help="logging level (default INFO)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="topofusion",
+        description="Radar track correlation under unknown sensor bias, over Eclipse Zenoh.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _service_flags(sub.add_parser("run", help="the long-running service"))
+    demo = sub.add_parser("demo", help="run plus a built-in simulator on an embedded Zenoh peer")
+    _service_flags(demo)
+    demo.add_argument("--scenario", default="demo", help="simulated scenario (default demo)")
+    demo.add_argument("--speed", type=float, default=1.0, help="simulation speed (x real time)")
+    demo.add_argument("--seed", type=int, default=0)
+
+    sim = sub.add_parser("simulate", help="publish a scenario's sites and plot batches over Zenoh")
+    _zenoh_flags(sim, default_mode="client")
+    sim.add_argument("--scenario", required=True, help="scenario name (see --list)")
+    sim.add_argument("--speed", type=float, default=1.0, help="x real time; 0 = as fast as possible")
+    sim.add_argument("--seed", type=int, default=0)
+    sim.add_argument("--duration", type=float, help="data seconds to simulate (default: the scenario's)")
+
+    from service import recording
+
+    rec = sub.add_parser("record", help="record samples under {prefix}/** into an MCAP file")
+    _zenoh_flags(rec, default_mode="client")
+    recording.add_record_arguments(rec)
+    rep = sub.add_parser("replay", help="republish an MCAP recording")
+    _zenoh_flags(rep, default_mode="client")
+    recording.add_replay_arguments(rep)
+
+    ev = sub.add_parser("evaluate", help="Monte Carlo evaluation: tables and PNG figures")
+    ev.add_argument("--out", default="evaluation", help="output folder (default ./evaluation)")
+    ev.add_argument("--runs", type=int, help="Monte Carlo runs per point (default: each study's full count)")
+    ev.add_argument("--seed", type=int, default=0)
+    ev.add_argument("--only", choices=("initiation", "correlation"), help="run one study only")
+
+    sch = sub.add_parser("schemas", help="write JSON Schemas of every payload into schemas/")
+    sch.add_argument("--out", default="schemas", help="output folder (default ./schemas)")
+    return parser
+
+
+def settings_from(args: argparse.Namespace) -> Settings:
+    """Settings from the environment, then flags on top (flags win)."""
+    overrides: dict[str, Any] = {}
+    for flag, key in [
+        ("mode", "zenoh_mode"),
+        ("listen", "zenoh_listen"),
+        ("connect", "zenoh_connect"),
+        ("zenoh_config", "zenoh_config"),
+        ("http_host", "http_host"),
+        ("http_port", "http_port"),
+        ("prefix", "prefix"),
+        ("sites", "sites"),
+        ("method", "method"),
+        ("window", "window_s"),
+        ("initiator", "initiator"),
+        ("log_level", "log_level"),
+    ]:
+        value = getattr(args, flag, None)
+        if value is not None:
+            overrides[key] = value
+    return Settings(**overrides)
+
+
+def zenoh_options(settings: Settings) -> ZenohOptions:
+    return ZenohOptions(
+        mode=settings.zenoh_mode,
+        listen=tuple(settings.zenoh_listen) if settings.zenoh_listen is not None else None,
+        connect=tuple(settings.zenoh_connect),
+        config_file=settings.zenoh_config,
+    )
+
+
+def engine_config(settings: Settings) -> Any:
+    from service.engine import EngineConfig, load_sites
+
+    sites = load_sites(settings.sites) if settings.sites else ()
+    return EngineConfig(
+        prefix=settings.prefix,
+        method=settings.method,
+        window_s=settings.window_s,
+        initiator=settings.initiator,
+        sites=sites,
+    )
+
+
+def _setup_logging(level: str) -> None:
+    logging.basicConfig(
+        level=level.upper(),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+
+
+def serve(settings: Settings, demo: argparse.Namespace | None = None) -> int:
+    """Run the service (and for ``demo`` the simulator) until SIGINT/SIGTERM."""
+    import uvicorn
+
+    from service.api.app import create_app
+    from service.transport.node import ServiceNode
+
+    config = engine_config(settings)
+    options = zenoh_options(settings)
+    extras = _DemoExtras(demo, settings.prefix) if demo is not None else None
+
+    def node_factory() -> ServiceNode:
+        return ServiceNode(config, options, queue_size=settings.queue_size)
+
+    app = create_app(
+        node_factory,
+        on_started=extras.start if extras else None,
+        on_stopping=extras.stop if extras else None,
+    )
+    server = uvicorn.Server(
+        uvicorn.Config(
+            app,
+            host=settings.http_host,
+            port=settings.http_port,
+            log_level=settings.log_level.lower(),
+            access_log=False,
+            lifespan="on",
+            timeout_graceful_shutdown=3,
+        )
+    )
+    log.info("HTTP side port on http://%s:%d (docs at /docs)", settings.http_host, settings.http_port)
+    server.run()
+    return 0 if getattr(app.state, "stopped", False) or not server.started else 1
+
+
+class _DemoExtras:
+    """The demo's simulator thread and its one-line progress report."""
+
+    def __init__(self, args: argparse.Namespace, prefix: str) -> None:
+        from service.scenarios.catalog import get_scenario
+
+        self.scenario = get_scenario(args.scenario)
+        self.speed = args.speed
+        self.seed = args.seed
+        self.prefix = prefix
+        self.stop_event = threading.Event()
+        self.threads: list[threading.Thread] = []
+
+    def start(self, node: Any) -> None:
+        from service.transport.publisher import publish_scenario
+
+        def simulate() -> None:
+            try:
+                publish_scenario(
+                    node.session, self.scenario, self.prefix, self.speed, self.seed, self.stop_event
+                )
+            except Exception:
+                if not self.stop_event.is_set():
+                    log.exception("simulator failed")
+
+        self.threads = [
+            threading.Thread(target=simulate, name="demo-simulator", daemon=True),
+            threading.Thread(target=self._progress, args=(node,), name="demo-progress", daemon=True),
+        ]
+        for t in self.threads:
+            t.start()
+        print(
+            f"demo: scenario {self.scenario.name!r} ({self.scenario.description}) at {self.speed}x; "
+            "Ctrl-C to stop",
+            file=sys.stderr,
+        )
+
+    def _progress(self, node: Any) -> None:
+        last_plots, last_t = 0, time.monotonic()
+        tty = sys.stderr.isatty()
+        while not self.stop_event.wait(1.0 if tty else 5.0):
+            st = node.status()
+            batches = sum(r["batches"] for r in st["radars"])
+            plots = sum(r["plots"] for r in st["radars"])
+            now = time.monotonic()
+            rate = (plots - last_plots) / max(now - last_t, 1e-6)
+            last_plots, last_t = plots, now
+            tracks = sum(r["tracks_confirmed"] for r in st["radars"])
+            line = (
+                f"batches {batches}  plots {plots} ({rate:,.0f}/s)  confirmed tracks {tracks}  "
+                f"pairs {st['pairs_confirmed']} confirmed / {st['pairs_tentative']} tentative  "
+                f"rejected {sum(st['rejected'].values())}  corr p50 {st['correlation']['p50_ms']:.1f} ms"
+            )
+            print(
+                ("\r" + line + "   ") if tty else line, end="" if tty else "\n", file=sys.stderr, flush=True
+            )
+
+    def stop(self, node: Any) -> None:
+        self.stop_event.set()
+        for t in self.threads:
+            t.join(timeout=3.0)
+        print(file=sys.stderr)
+
+
+def simulate_main(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from service.scenarios.catalog import get_scenario
+    from service.transport.publisher import publish_scenario
+    from service.transport.session import open_session
+
+    scenario = get_scenario(args.scenario)
+    if args.duration is not None:
+        scenario = replace(scenario, duration_s=args.duration)
+    settings = settings_from(argparse.Namespace(**{**vars(args), "mode": args.mode or "client"}))
+    stop = _stop_on_signals()
+    session = open_session(zenoh_options(settings))
+    try:
+        t0 = time.monotonic()
+        batches, plots = publish_scenario(session, scenario, settings.prefix, args.speed, args.seed, stop)
+        dt = time.monotonic() - t0
+        print(f"simulate: published {batches} batches, {plots} plots in {dt:.1f} s", file=sys.stderr)
+    finally:
+        session.close()
+    return 0
+
+
+def _stop_on_signals() -> threading.Event:
+    stop = threading.Event()
+
+    def handler(signum: int, frame: object) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    return stop
+
+
+def evaluate_main(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    sections = []
+    studies = [args.only] if args.only else ["initiation", "correlation"]
+    for name in studies:
+        module = __import__(f"service.evaluation.{name}", fromlist=["run"])
+        print(f"evaluate: {name} ...", file=sys.stderr)
+        sections.append(
+            module.run(out, runs=args.runs, seed=args.seed, progress=lambda m: print(m, file=sys.stderr))
+        )
+    report = out / "REPORT.md"
+    cmd = "topofusion evaluate " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else "topofusion evaluate"
+    report.write_text(f"# TopoFusion evaluation\n\nMade by `{cmd}`.\n\n" + "\n\n".join(sections) + "\n")
+    print(f"evaluate: wrote {report}", file=sys.stderr)
+    return 0
+
+
+def schemas_main(args: argparse.Namespace) -> int:
+    from service.schema_files import write_schemas
+
+    written = write_schemas(Path(args.out))
+    print(f"schemas: wrote {len(written)} files into {args.out}", file=sys.stderr)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        if args.command in ("run", "demo"):
+            settings = settings_from(args)
+            _setup_logging(settings.log_level)
+            return serve(settings, demo=args if args.command == "demo" else None)
+        _setup_logging(os.environ.get("TOPOFUSION_LOG_LEVEL", "INFO"))
+        if args.command == "simulate":
+            return simulate_main(args)
+        if args.command in ("record", "replay"):
+            from service import recording
+
+            settings = settings_from(argparse.Namespace(**{**vars(args), "mode": args.mode or "client"}))
+            args.prefix = settings.prefix
+            fn = recording.record_main if args.command == "record" else recording.replay_main
+            return int(fn(args, zenoh_options(settings)))
+        if args.command == "evaluate":
+            return evaluate_main(args)
+        if args.command == "schemas":
+            return schemas_main(args)
+    except ValidationError as exc:
+        print(f"topofusion: invalid setting: {exc}", file=sys.stderr)
+        return 2
+    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+        print(f"topofusion: {exc}", file=sys.stderr)
+        return 2
+    parser.error(f"unknown command {args.command}")
+    return 2

@@ -1,0 +1,289 @@
+"""Pydantic models of every payload in CONTRACT.md: the only wire definitions.
+
+Input models (``RadarSite``, ``PlotBatch``, ``AisBatch``) carry all of the contract's
+validation rules; :func:`rejection_reason` maps a pydantic error onto the contract's
+``Rejection.reason`` vocabulary so that one model gives both the JSON Schema and the checks.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+#: `{radar_id}` / `{source_id}` pattern of the contract.
+ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
+#: At most this many plots (or AIS reports) per batch.
+MAX_BATCH_ITEMS = 100_000
+#: Payloads above this many bytes are rejected (``too_large``) before parsing.  A full batch
+#: of 100 000 plots with truth ids is about 9 MB of JSON.
+MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
+
+RejectionReason = Literal[
+    "malformed_json",
+    "schema",
+    "unknown_radar",
+    "duplicate_seq",
+    "too_large",
+    "non_finite",
+    "out_of_range",
+    "internal",
+]
+
+SourceId = Annotated[str, Field(pattern=ID_PATTERN, description="matches [A-Za-z0-9_-]{1,64}")]
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+TimeS = Annotated[float, Field(allow_inf_nan=False, description="seconds since the Unix epoch, UTC")]
+Range = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+Azimuth = Annotated[float, Field(ge=0, lt=360, allow_inf_nan=False)]
+Elevation = Annotated[float, Field(ge=-90, le=90, allow_inf_nan=False)]
+Latitude = Annotated[float, Field(ge=-90, le=90, allow_inf_nan=False)]
+Longitude = Annotated[float, Field(ge=-180, le=180, allow_inf_nan=False)]
+Sigma = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+
+
+class WireModel(BaseModel):
+    """Base of input models: unknown fields are ignored (the contract may grow)."""
+
+    model_config = ConfigDict(extra="ignore", frozen=True)
+
+
+class RadarSite(WireModel):
+    """A radar's position and random (not systematic) 1-sigma errors."""
+
+    radar_id: SourceId
+    latitude_deg: Latitude
+    longitude_deg: Longitude
+    altitude_m: Finite = 0.0
+    range_sigma_m: Sigma = 200.0
+    azimuth_sigma_deg: Sigma = 0.2
+    elevation_sigma_deg: Sigma = 0.2
+    scan_period_s: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 4.0
+
+
+def _equal_lengths(columns: dict[str, Sequence[object] | None]) -> None:
+    lengths = {name: len(col) for name, col in columns.items() if col is not None}
+    if len(set(lengths.values())) > 1:
+        raise ValueError(f"columns must have equal lengths, got {lengths}")
+
+
+class PlotColumnsModel(WireModel):
+    """Columnar plots: one array per field, all of equal length."""
+
+    time_s: Annotated[list[TimeS], Field(max_length=MAX_BATCH_ITEMS)]
+    range_m: Annotated[list[Range], Field(max_length=MAX_BATCH_ITEMS)]
+    azimuth_deg: Annotated[list[Azimuth], Field(max_length=MAX_BATCH_ITEMS)]
+    elevation_deg: Annotated[list[Elevation], Field(max_length=MAX_BATCH_ITEMS)] | None = None
+    altitude_m: Annotated[list[Finite], Field(max_length=MAX_BATCH_ITEMS)] | None = None
+    truth_id: Annotated[list[str | None], Field(max_length=MAX_BATCH_ITEMS)] | None = Field(
+        default=None,
+        description="simulation only: carried to tracks for evaluation, never read by algorithms",
+    )
+
+    @model_validator(mode="after")
+    def _check_lengths(self) -> PlotColumnsModel:
+        _equal_lengths(
+            {
+                "time_s": self.time_s,
+                "range_m": self.range_m,
+                "azimuth_deg": self.azimuth_deg,
+                "elevation_deg": self.elevation_deg,
+                "altitude_m": self.altitude_m,
+                "truth_id": self.truth_id,
+            }
+        )
+        return self
+
+
+class PlotBatch(WireModel):
+    radar_id: SourceId
+    seq: Annotated[int, Field(ge=0)]
+    time_s: TimeS
+    plots: PlotColumnsModel
+
+
+class AisReportsModel(WireModel):
+    time_s: Annotated[list[TimeS], Field(max_length=MAX_BATCH_ITEMS)]
+    mmsi: Annotated[list[Annotated[str, Field(pattern=r"^[0-9]{1,9}$")]], Field(max_length=MAX_BATCH_ITEMS)]
+    latitude_deg: Annotated[list[Latitude], Field(max_length=MAX_BATCH_ITEMS)]
+    longitude_deg: Annotated[list[Longitude], Field(max_length=MAX_BATCH_ITEMS)]
+
+    @model_validator(mode="after")
+    def _check_lengths(self) -> AisReportsModel:
+        _equal_lengths(
+            {
+                "time_s": self.time_s,
+                "mmsi": self.mmsi,
+                "latitude_deg": self.latitude_deg,
+                "longitude_deg": self.longitude_deg,
+            }
+        )
+        return self
+
+
+class AisBatch(WireModel):
+    source_id: SourceId
+    seq: Annotated[int, Field(ge=0)]
+    time_s: TimeS
+    reports: AisReportsModel
+
+
+# -- output models -------------------------------------------------------------------------
+
+
+class OutModel(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class Track(OutModel):
+    track_id: str
+    status: Literal["tentative", "confirmed"]
+    time_s: float
+    latitude_deg: float
+    longitude_deg: float
+    altitude_m: float
+    position_ecef_m: tuple[float, float, float]
+    velocity_ecef_mps: tuple[float, float, float]
+    plots: int
+    truth_id: str | None = None
+
+
+class TrackBatch(OutModel):
+    radar_id: str
+    time_s: float
+    tracks: list[Track]
+
+
+class Pair(OutModel):
+    track_a: str
+    track_b: str
+    status: Literal["tentative", "confirmed"]
+    score: Annotated[float, Field(ge=0, le=1)]
+    statistic: float
+    rotation_weight: float
+    scale: float
+    neighbors: int
+    hits: int
+    first_time_s: float
+    last_time_s: float
+
+
+class PairSet(OutModel):
+    radar_a: str
+    radar_b: str
+    time_s: float
+    method: str
+    pairs: list[Pair]
+
+
+class Rejection(OutModel):
+    key: str
+    radar_id: str | None = None
+    reason: RejectionReason
+    detail: str
+    time_s: float | None = Field(default=None, description="batch data time when known, else receipt time")
+
+
+class ZenohInfo(OutModel):
+    mode: str
+    listen: list[str]
+    connect: list[str]
+
+
+class RadarStatus(OutModel):
+    radar_id: str
+    batches: int
+    plots: int
+    rejected: int
+    lost_batches: int
+    window_plots: int
+    tracks_confirmed: int
+    tracks_tentative: int
+    last_time_s: float | None
+
+
+class CorrelationTimings(OutModel):
+    updates: int
+    last_ms: float
+    p50_ms: float
+    p99_ms: float
+
+
+class Status(OutModel):
+    uptime_s: float
+    method: str
+    prefix: str
+    zenoh: ZenohInfo
+    radars: list[RadarStatus]
+    pairs_confirmed: int
+    pairs_tentative: int
+    correlation: CorrelationTimings
+    rejected: dict[str, int]
+    queue: dict[str, int] = Field(default_factory=dict, description="ingest queue depth, capacity, dropped")
+
+
+class RadarInfo(RadarSite):
+    """`GET /radars` entry: the site with its counters."""
+
+    batches: int = 0
+    plots: int = 0
+    rejected: int = 0
+    lost_batches: int = 0
+    last_time_s: float | None = None
+
+
+class BiasEstimate(OutModel):
+    radar_id: str
+    range_bias_m: float
+    azimuth_bias_deg: float
+    elevation_bias_deg: float
+    pairs_used: int
+    time_s: float
+
+
+# -- rejection reasons ---------------------------------------------------------------------
+
+_REASON_BY_ERROR: dict[str, RejectionReason] = {
+    "json_invalid": "malformed_json",
+    "json_type": "malformed_json",
+    "finite_number": "non_finite",
+    "greater_than": "out_of_range",
+    "greater_than_equal": "out_of_range",
+    "less_than": "out_of_range",
+    "less_than_equal": "out_of_range",
+    "too_long": "too_large",
+}
+_PRIORITY: tuple[RejectionReason, ...] = (
+    "malformed_json",
+    "too_large",
+    "non_finite",
+    "out_of_range",
+    "schema",
+)
+
+
+def rejection_reason(error: ValidationError) -> tuple[RejectionReason, str]:
+    """The contract reason for a validation error, and a short human detail."""
+    errors = error.errors(include_url=False)
+    reasons = [_REASON_BY_ERROR.get(e["type"], "schema") for e in errors]
+    best = min(reasons, key=_PRIORITY.index) if reasons else "schema"
+    first = next(e for e, r in zip(errors, reasons, strict=True) if r == best)
+    loc = ".".join(str(p) for p in first["loc"])
+    detail = f"{loc}: {first['msg']}" if loc else str(first["msg"])
+    if len(errors) > 1:
+        detail += f" (+{len(errors) - 1} more)"
+    return best, detail[:500]
+
+
+#: Every payload of the contract, by schema file stem.
+WIRE_MODELS: dict[str, type[BaseModel]] = {
+    "RadarSite": RadarSite,
+    "PlotBatch": PlotBatch,
+    "AisBatch": AisBatch,
+    "TrackBatch": TrackBatch,
+    "PairSet": PairSet,
+    "Rejection": Rejection,
+    "Status": Status,
+    "BiasEstimate": BiasEstimate,
+    "RadarInfo": RadarInfo,
+}

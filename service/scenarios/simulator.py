@@ -1,0 +1,224 @@
+"""A scanning multi-radar simulator with biased, noisy sensors (data time, seeded).
+
+Targets fly straight at constant velocity in a local east-north-up frame around the
+scenario centre; a target leaving the area is replaced by a new one entering it (new
+``truth_id``), so a scenario can run for ever.  Each radar's antenna turns clockwise from
+north once per ``scan_period_s``; a target at azimuth ``az`` is seen at
+``scan_start + az / 360 * period`` with probability ``pd``.  Its plot is the true polar
+position plus the radar's systematic bias plus Gaussian noise (the sigmas of its site).
+Uniform clutter is added per sector.  The scan is reported in ``sectors`` batches.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from service.geo import Site, ecef_to_geodetic, enu_rotation, geodetic_to_ecef
+
+
+@dataclass(frozen=True)
+class RadarSpec:
+    radar_id: str
+    latitude_deg: float
+    longitude_deg: float
+    altitude_m: float = 30.0
+    range_sigma_m: float = 200.0
+    azimuth_sigma_deg: float = 0.2
+    elevation_sigma_deg: float = 0.2
+    scan_period_s: float = 4.0
+    #: Systematic errors (unknown to the service): added to every plot.
+    range_bias_m: float = 0.0
+    azimuth_bias_deg: float = 0.0
+    elevation_bias_deg: float = 0.0
+    pd: float = 0.95
+    clutter_per_scan: float = 0.0
+    max_range_m: float = 350_000.0
+    sectors: int = 8
+    two_d: bool = False  # a 2-D radar sends altitude_m (e.g. Mode C) instead of elevation
+
+    def site(self) -> Site:
+        return Site(
+            self.radar_id,
+            self.latitude_deg,
+            self.longitude_deg,
+            self.altitude_m,
+            self.range_sigma_m,
+            self.azimuth_sigma_deg,
+            self.elevation_sigma_deg,
+            self.scan_period_s,
+        )
+
+    def site_message(self) -> dict[str, Any]:
+        return {
+            "radar_id": self.radar_id,
+            "latitude_deg": self.latitude_deg,
+            "longitude_deg": self.longitude_deg,
+            "altitude_m": self.altitude_m,
+            "range_sigma_m": self.range_sigma_m,
+            "azimuth_sigma_deg": self.azimuth_sigma_deg,
+            "elevation_sigma_deg": self.elevation_sigma_deg,
+            "scan_period_s": self.scan_period_s,
+        }
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    description: str
+    radars: tuple[RadarSpec, ...]
+    center_lat_deg: float
+    center_lon_deg: float
+    #: Half-width of the square area targets fly in (m, east and north of the centre).
+    half_width_m: float = 150_000.0
+    targets: int = 40
+    speed_mps: tuple[float, float] = (150.0, 260.0)
+    altitude_m: tuple[float, float] = (3_000.0, 11_000.0)
+    #: Duration in data seconds; ``None`` runs until stopped.
+    duration_s: float | None = 600.0
+    start_time_s: float = 1_763_769_600.0  # 2025-11-22T00:00:00Z
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class SimMessage:
+    """One message to publish: ``kind`` is ``site`` or ``plots``."""
+
+    time_s: float
+    kind: str
+    radar_id: str
+    body: dict[str, Any]
+
+
+class _Targets:
+    def __init__(self, sc: Scenario, rng: np.random.Generator) -> None:
+        self.sc = sc
+        self.rng = rng
+        self.count = 0
+        n = sc.targets
+        self.pos = np.zeros((n, 3))
+        self.vel = np.zeros((n, 3))
+        self.ids = np.empty(n, dtype=object)
+        self._spawn(np.arange(n), inside=True)
+
+    def _spawn(self, idx: np.ndarray, inside: bool) -> None:
+        sc, rng, k = self.sc, self.rng, len(idx)
+        if k == 0:
+            return
+        w = sc.half_width_m
+        heading = rng.uniform(0, 2 * np.pi, k)
+        speed = rng.uniform(*sc.speed_mps, k)
+        if inside:
+            xy = rng.uniform(-w, w, (k, 2))
+        else:  # enter on the edge, heading inwards
+            edge_angle = rng.uniform(0, 2 * np.pi, k)
+            xy = 0.98 * w * np.stack([np.sin(edge_angle), np.cos(edge_angle)], axis=1)
+            heading = edge_angle + np.pi + rng.uniform(-0.6, 0.6, k)
+        self.pos[idx, :2] = xy
+        self.pos[idx, 2] = rng.uniform(*sc.altitude_m, k)
+        self.vel[idx] = np.stack([speed * np.sin(heading), speed * np.cos(heading), np.zeros(k)], axis=1)
+        for j in idx:
+            self.count += 1
+            self.ids[j] = f"T{self.count}"
+
+    def advance(self, dt: float) -> None:
+        self.pos += self.vel * dt
+        out = np.any(np.abs(self.pos[:, :2]) > self.sc.half_width_m, axis=1)
+        self._spawn(np.flatnonzero(out), inside=False)
+
+
+def generate(sc: Scenario, seed: int = 0) -> Iterator[SimMessage]:
+    """Site messages, then plot batches in data-time order (deterministic for ``seed``)."""
+    rng = np.random.default_rng(seed)
+    targets = _Targets(sc, rng)
+    center = geodetic_to_ecef(sc.center_lat_deg, sc.center_lon_deg, 0.0)
+    rot = enu_rotation(sc.center_lat_deg, sc.center_lon_deg)
+    sites = {r.radar_id: r.site() for r in sc.radars}
+    seqs = {r.radar_id: 0 for r in sc.radars}
+    for r in sc.radars:
+        yield SimMessage(sc.start_time_s, "site", r.radar_id, r.site_message())
+    # All radars share one base step: the shortest sector duration.
+    step = min(r.scan_period_s / r.sectors for r in sc.radars)
+    t = 0.0
+    while sc.duration_s is None or t < sc.duration_s:
+        t_next = t + step
+        batches = []
+        for r in sc.radars:
+            sector_len = r.scan_period_s / r.sectors
+            # sectors of this radar that end within (t, t_next]
+            k0 = int(np.floor(t / sector_len + 1e-9))
+            k1 = int(np.floor(t_next / sector_len + 1e-9))
+            for k in range(k0, k1):
+                batches.append((round((k + 1) * sector_len, 9), r, k))
+        batches.sort(key=lambda b: (b[0], b[1].radar_id))
+        for end_time, r, k in batches:
+            body = _sector_batch(r, sites[r.radar_id], k, targets, center, rot, t, rng, sc.start_time_s)
+            seqs[r.radar_id] += 1
+            body["seq"] = seqs[r.radar_id]
+            yield SimMessage(sc.start_time_s + end_time, "plots", r.radar_id, body)
+        targets.advance(t_next - t)
+        t = t_next
+
+
+def _sector_batch(
+    r: RadarSpec,
+    site: Site,
+    k: int,
+    targets: _Targets,
+    center: np.ndarray,
+    rot: np.ndarray,
+    t_now: float,
+    rng: np.random.Generator,
+    t0: float,
+) -> dict[str, Any]:
+    period, sectors = r.scan_period_s, r.sectors
+    scan = k // sectors
+    j = k % sectors
+    az_lo, az_hi = 360.0 * j / sectors, 360.0 * (j + 1) / sectors
+    scan_start = scan * period
+    # true positions at the current step; refine each target to its detection time
+    ecef_now = targets.pos @ rot.T + center
+    rng_true, az_true, _ = site.ecef_to_polar(ecef_now)
+    t_det = scan_start + az_true / 360.0 * period
+    pos_det = targets.pos + targets.vel * (t_det - t_now)[:, None]
+    ecef = pos_det @ rot.T + center
+    rng_true, az_true, el_true = site.ecef_to_polar(ecef)
+    in_sector = (az_true >= az_lo) & (az_true < az_hi)
+    seen = in_sector & (rng_true <= r.max_range_m) & (el_true > 0.0) & (rng.random(len(az_true)) < r.pd)
+    idx = np.flatnonzero(seen)
+    n = len(idx)
+    rr = rng_true[idx] + r.range_bias_m + rng.normal(0, r.range_sigma_m, n)
+    aa = az_true[idx] + r.azimuth_bias_deg + rng.normal(0, r.azimuth_sigma_deg, n)
+    ee = el_true[idx] + r.elevation_bias_deg + rng.normal(0, r.elevation_sigma_deg, n)
+    tt = scan_start + az_true[idx] / 360.0 * period
+    truth: list[str | None] = [str(x) for x in targets.ids[idx]]
+    alt = ecef_to_geodetic(ecef[idx])[2]
+    nc = rng.poisson(r.clutter_per_scan / sectors) if r.clutter_per_scan > 0 else 0
+    if nc:
+        ca = rng.uniform(az_lo, az_hi, nc)
+        rr = np.concatenate([rr, rng.uniform(5_000.0, r.max_range_m, nc)])
+        aa = np.concatenate([aa, ca])
+        ee = np.concatenate([ee, rng.uniform(0.2, 6.0, nc)])
+        tt = np.concatenate([tt, scan_start + ca / 360.0 * period])
+        alt = np.concatenate([alt, rng.uniform(0.0, 12_000.0, nc)])
+        truth += [None] * nc
+    order = rng.permutation(len(rr))  # plots inside a batch need not be sorted
+    plots: dict[str, Any] = {
+        "time_s": [round(t0 + float(x), 4) for x in tt[order]],
+        "range_m": [round(float(x), 2) for x in rr[order]],
+        "azimuth_deg": [round(float(x) % 360.0, 5) for x in aa[order]],
+    }
+    if r.two_d:
+        plots["altitude_m"] = [round(float(x), 1) for x in alt[order]]
+    else:
+        plots["elevation_deg"] = [round(float(np.clip(x, -90, 90)), 5) for x in ee[order]]
+    plots["truth_id"] = [truth[i] for i in order]
+    return {
+        "radar_id": r.radar_id,
+        "seq": 0,
+        "time_s": round(t0 + (k + 1) * period / sectors, 6),
+        "plots": plots,
+    }

@@ -1,0 +1,163 @@
+"""JSON Schemas of every contract payload, and one example of each (``topofusion schemas``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from service.messages import WIRE_MODELS
+
+#: The contract's own examples (CONTRACT.md §1-2), one per payload.
+EXAMPLES: dict[str, Any] = {
+    "RadarSite": {
+        "radar_id": "A",
+        "latitude_deg": 31.20,
+        "longitude_deg": 118.50,
+        "altitude_m": 40.0,
+        "range_sigma_m": 200.0,
+        "azimuth_sigma_deg": 0.2,
+        "elevation_sigma_deg": 0.2,
+        "scan_period_s": 4.0,
+    },
+    "PlotBatch": {
+        "radar_id": "A",
+        "seq": 42,
+        "time_s": 1763769604.0,
+        "plots": {
+            "time_s": [1763769603.1, 1763769603.4],
+            "range_m": [152031.5, 98012.0],
+            "azimuth_deg": [41.25, 310.0],
+            "elevation_deg": [2.10, 1.35],
+        },
+    },
+    "AisBatch": {
+        "source_id": "coast-1",
+        "seq": 7,
+        "time_s": 1763769604.0,
+        "reports": {
+            "time_s": [1763769601.0, 1763769603.5],
+            "mmsi": ["412345678", "413000111"],
+            "latitude_deg": [30.61, 30.70],
+            "longitude_deg": [122.31, 122.45],
+        },
+    },
+    "TrackBatch": {
+        "radar_id": "A",
+        "time_s": 1763769604.0,
+        "tracks": [
+            {
+                "track_id": "A-17",
+                "status": "confirmed",
+                "time_s": 1763769603.4,
+                "latitude_deg": 31.9,
+                "longitude_deg": 119.1,
+                "altitude_m": 9100.0,
+                "position_ecef_m": [-2.7e6, 4.7e6, 3.3e6],
+                "velocity_ecef_mps": [120.0, -80.0, 0.5],
+                "plots": 12,
+                "truth_id": None,
+            }
+        ],
+    },
+    "PairSet": {
+        "radar_a": "A",
+        "radar_b": "B",
+        "time_s": 1763769604.0,
+        "method": "svd-topology",
+        "pairs": [
+            {
+                "track_a": "A-17",
+                "track_b": "B-4",
+                "status": "confirmed",
+                "score": 0.97,
+                "statistic": 1.21,
+                "rotation_weight": 0.999,
+                "scale": 1.0004,
+                "neighbors": 6,
+                "hits": 5,
+                "first_time_s": 1763769580.0,
+                "last_time_s": 1763769604.0,
+            }
+        ],
+    },
+    "Rejection": {
+        "key": "fusion/radar/A/plots",
+        "radar_id": "A",
+        "reason": "duplicate_seq",
+        "detail": "seq 41 <= last accepted 42",
+        "time_s": 1763769604.2,
+    },
+    "Status": {
+        "uptime_s": 12.5,
+        "method": "svd-topology",
+        "prefix": "fusion",
+        "zenoh": {"mode": "peer", "listen": ["tcp/127.0.0.1:7447"], "connect": []},
+        "radars": [
+            {
+                "radar_id": "A",
+                "batches": 30,
+                "plots": 15000,
+                "rejected": 0,
+                "lost_batches": 0,
+                "window_plots": 2000,
+                "tracks_confirmed": 48,
+                "tracks_tentative": 3,
+                "last_time_s": 1763769604.0,
+            }
+        ],
+        "pairs_confirmed": 40,
+        "pairs_tentative": 5,
+        "correlation": {"updates": 60, "last_ms": 3.2, "p50_ms": 2.9, "p99_ms": 7.5},
+        "rejected": {"duplicate_seq": 1},
+    },
+    "BiasEstimate": {
+        "radar_id": "A",
+        "range_bias_m": 98.0,
+        "azimuth_bias_deg": 0.11,
+        "elevation_bias_deg": 0.04,
+        "pairs_used": 35,
+        "time_s": 1763769604.0,
+    },
+    "RadarInfo": {
+        "radar_id": "A",
+        "latitude_deg": 31.20,
+        "longitude_deg": 118.50,
+        "altitude_m": 40.0,
+        "range_sigma_m": 200.0,
+        "azimuth_sigma_deg": 0.2,
+        "elevation_sigma_deg": 0.2,
+        "scan_period_s": 4.0,
+        "batches": 30,
+        "plots": 15000,
+        "rejected": 0,
+        "lost_batches": 0,
+        "last_time_s": 1763769604.0,
+    },
+}
+
+
+def schema_documents() -> dict[str, dict[str, Any]]:
+    """File name -> JSON document, for every schema and example."""
+    docs: dict[str, dict[str, Any]] = {}
+    for name, model in WIRE_MODELS.items():
+        schema = model.model_json_schema(mode="validation")
+        schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
+        schema["$id"] = f"{name}.schema.json"
+        docs[f"{name}.schema.json"] = schema
+        docs[f"examples/{name}.json"] = EXAMPLES[name]
+    return docs
+
+
+def render(doc: dict[str, Any]) -> str:
+    return json.dumps(doc, indent=2, sort_keys=True) + "\n"
+
+
+def write_schemas(out: Path) -> list[Path]:
+    written = []
+    for rel, doc in schema_documents().items():
+        path = out / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(render(doc), encoding="utf-8")
+        written.append(path)
+    return written

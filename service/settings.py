@@ -1,0 +1,48 @@
+"""One settings object (pydantic-settings); command-line flags override it (CONTRACT.md §3)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+from service.transport.session import DEFAULT_LISTEN
+
+METHODS = ("svd-topology", "basic-topology", "nearest", "gmm", "cfar")
+
+
+def _split(value: object) -> object:
+    if isinstance(value, str):
+        return [v.strip() for v in value.split(",") if v.strip()]
+    return value
+
+
+class Settings(BaseSettings):
+    """Every ``TOPOFUSION_*`` setting; errors name the offending variable."""
+
+    model_config = SettingsConfigDict(env_prefix="TOPOFUSION_", extra="ignore")
+
+    zenoh_mode: Literal["peer", "client", "router"] = "peer"
+    #: ``None`` means the mode's default (none for client, the contract's endpoint otherwise).
+    zenoh_listen: Annotated[list[str] | None, NoDecode] = None
+    zenoh_connect: Annotated[list[str], NoDecode] = Field(default_factory=list)
+    zenoh_config: Path | None = None
+    http_host: str = "127.0.0.1"
+    http_port: int = Field(default=8000, ge=0, le=65535)
+    prefix: str = Field(default="fusion", pattern=r"^[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*$")
+    sites: Path | None = None
+    method: Literal["svd-topology", "basic-topology", "nearest", "gmm", "cfar"] = "svd-topology"
+    window_s: float | None = Field(default=None, gt=0)
+    initiator: str = "logic"
+    #: Capacity of the queue between Zenoh callbacks and the worker (samples).
+    queue_size: int = Field(default=4096, ge=1)
+    log_level: str = "INFO"
+
+    _split_listen = field_validator("zenoh_listen", "zenoh_connect", mode="before")(_split)
+
+    def listen_endpoints(self) -> list[str]:
+        if self.zenoh_listen is not None:
+            return list(self.zenoh_listen)
+        return [] if self.zenoh_mode == "client" else [DEFAULT_LISTEN]

@@ -1,0 +1,1 @@
+"""Zenoh adapters: the only package that imports zenoh."""
