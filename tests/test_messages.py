@@ -1,0 +1,84 @@
+"""Wire models, rejection reasons and the committed JSON Schemas (CONTRACT.md §1)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jsonschema
+import pytest
+from pydantic import ValidationError
+
+from service.messages import WIRE_MODELS, AisBatch, PlotBatch, RadarSite, rejection_reason
+from service.schema_files import EXAMPLES, render, schema_documents
+
+SCHEMAS = Path(__file__).resolve().parents[1] / "schemas"
+
+
+def test_committed_schemas_match_the_models() -> None:
+    """`topofusion schemas` output is committed; a model change without regenerating fails here."""
+    for rel, doc in schema_documents().items():
+        path = SCHEMAS / rel
+        assert path.is_file(), f"{path} missing: run `topofusion schemas`"
+        assert path.read_text(encoding="utf-8") == render(doc), f"{rel} drifted: run `topofusion schemas`"
+
+
+@pytest.mark.parametrize("name", sorted(WIRE_MODELS))
+def test_every_example_validates_against_model_and_schema(name: str) -> None:
+    example = json.loads((SCHEMAS / "examples" / f"{name}.json").read_text())
+    WIRE_MODELS[name].model_validate(example)
+    schema = json.loads((SCHEMAS / f"{name}.schema.json").read_text())
+    jsonschema.validate(example, schema)
+
+
+def _plot_batch(**plots: object) -> dict[str, object]:
+    body = json.loads(json.dumps(EXAMPLES["PlotBatch"]))
+    body["plots"].update(plots)
+    return body
+
+
+@pytest.mark.parametrize(
+    ("payload", "reason"),
+    [
+        (b"{not json", "malformed_json"),
+        (b"\xff\xfe\x00", "malformed_json"),
+        (json.dumps({"radar_id": "A"}).encode(), "schema"),
+        (json.dumps(_plot_batch(range_m=[1.0])).encode(), "schema"),  # unequal columns
+        (json.dumps({**_plot_batch(), "radar_id": "bad id!"}).encode(), "schema"),
+        (json.dumps(_plot_batch(range_m=[1.0, -5.0])).encode(), "out_of_range"),
+        (json.dumps(_plot_batch(azimuth_deg=[360.0, 1.0])).encode(), "out_of_range"),
+        (json.dumps(_plot_batch(elevation_deg=[91.0, 1.0])).encode(), "out_of_range"),
+        (json.dumps(_plot_batch()).replace("152031.5", "NaN").encode(), "non_finite"),
+        (json.dumps(_plot_batch()).replace("152031.5", "Infinity").encode(), "non_finite"),
+        (json.dumps(_plot_batch()).replace("152031.5", "1e999").encode(), "non_finite"),
+        (
+            json.dumps(
+                _plot_batch(time_s=[1.0] * 100_001, range_m=[1.0] * 100_001, azimuth_deg=[1.0] * 100_001,
+                            elevation_deg=None)
+            ).encode(),
+            "too_large",
+        ),
+    ],
+)
+def test_rejection_reasons(payload: bytes, reason: str) -> None:
+    with pytest.raises(ValidationError) as info:
+        PlotBatch.model_validate_json(payload)
+    assert rejection_reason(info.value)[0] == reason
+
+
+def test_optional_columns_and_2d_radar() -> None:
+    body = _plot_batch(elevation_deg=None, altitude_m=[9000.0, 0.0], truth_id=["T1", None])
+    batch = PlotBatch.model_validate_json(json.dumps(body))
+    assert batch.plots.elevation_deg is None
+    assert batch.plots.altitude_m == [9000.0, 0.0]
+
+
+def test_ais_and_site_rules() -> None:
+    ais = json.loads(json.dumps(EXAMPLES["AisBatch"]))
+    AisBatch.model_validate(ais)
+    ais["reports"]["latitude_deg"] = [91.0, 0.0]
+    with pytest.raises(ValidationError) as info:
+        AisBatch.model_validate_json(json.dumps(ais))
+    assert rejection_reason(info.value)[0] == "out_of_range"
+    with pytest.raises(ValidationError):
+        RadarSite.model_validate({"radar_id": "A", "latitude_deg": 0, "longitude_deg": 200})
