@@ -1,0 +1,232 @@
+"""``topofusion record`` and ``topofusion replay``: argument parsing edges and entry points.
+
+The lead's ``service/cli.py`` adds the common Zenoh flags (``--mode`` defaulting to client,
+``--listen``, ``--connect``, ``--zenoh-config``, ``--prefix``) and calls these functions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import signal
+import sys
+import threading
+from collections.abc import Iterator
+from typing import Any
+
+from service.recording.reader import RecordingError
+from service.recording.recorder import DEFAULT_QUEUE_BYTES, DEFAULT_QUEUE_SAMPLES, record
+from service.recording.replay import ReplayOptions, replay
+from service.transport.session import ZenohOptions, open_session
+
+METHOD_NAMES = ("svd-topology", "basic-topology", "nearest", "gmm", "cfar")
+
+
+def _non_negative(text: str) -> float:
+    value = float(text)
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return value
+
+
+def _positive(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
+
+
+def add_record_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", required=True, metavar="FILE.mcap", help="MCAP file to write")
+    parser.add_argument("--key", metavar="EXPR", help="key expression to record (default {prefix}/**)")
+    parser.add_argument(
+        "--duration", type=_positive, metavar="S", help="stop after S seconds (default: at SIGINT/SIGTERM)"
+    )
+    parser.add_argument(
+        "--queue-samples", type=int, default=DEFAULT_QUEUE_SAMPLES, help="writer queue bound, samples"
+    )
+    parser.add_argument(
+        "--queue-bytes", type=int, default=DEFAULT_QUEUE_BYTES, help="writer queue bound, bytes"
+    )
+
+
+def add_replay_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "file", metavar="FILE.mcap", help="recording to replay (any MCAP file of the contract's shape)"
+    )
+    parser.add_argument(
+        "--speed",
+        type=_non_negative,
+        default=1.0,
+        metavar="X",
+        help="x the recorded timing; 0 = as fast as the receiver takes it (default 1)",
+    )
+    parser.add_argument("--key", metavar="EXPR", help="replay only keys intersecting EXPR")
+    parser.add_argument(
+        "--start", type=_non_negative, metavar="S", help="skip the first S seconds of the recording"
+    )
+    parser.add_argument(
+        "--end", type=_non_negative, metavar="S", help="stop S seconds after the recording's start"
+    )
+    parser.add_argument("--loop", action="store_true", help="start over at the end until stopped")
+    parser.add_argument(
+        "--all-keys",
+        action="store_true",
+        help="also replay the service's own outputs (tracks, pairs, errors, status); default: inputs only",
+    )
+    parser.add_argument(
+        "--progress",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="progress line on stderr (default: on long replays)",
+    )
+    off = parser.add_argument_group("offline replay (no Zenoh)")
+    off.add_argument("--offline", action="store_true", help="feed an in-process engine instead of publishing")
+    off.add_argument("--out", metavar="RESULT.json", help="offline result file (default: stdout)")
+    off.add_argument("--method", choices=METHOD_NAMES, help="correlation method (default svd-topology)")
+    off.add_argument("--window", type=_positive, metavar="S", help="sliding window, seconds of data time")
+    off.add_argument("--sites", metavar="FILE", help="JSON file with a list of RadarSite")
+
+
+@contextlib.contextmanager
+def _stop_on_signals(stop: threading.Event) -> Iterator[None]:
+    """SIGINT/SIGTERM set ``stop`` (main thread only; elsewhere the caller stops us)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous: dict[signal.Signals, Any] = {}
+
+    def handler(signum: int, _frame: object) -> None:
+        stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        previous[sig] = signal.signal(sig, handler)
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
+def _prefix(args: argparse.Namespace) -> str:
+    return str(getattr(args, "prefix", None) or "fusion")
+
+
+def record_main(
+    args: argparse.Namespace, zenoh_options: ZenohOptions, stop: threading.Event | None = None
+) -> int:
+    """Record until SIGINT/SIGTERM (or ``stop``) or ``--duration``; prints the report.
+
+    Exit status 0, or 1 when samples were dropped or the file could not be written.
+    """
+    prefix = _prefix(args)
+    key_expr = args.key or f"{prefix}/**"
+    stop = stop or threading.Event()
+    session = open_session(zenoh_options)
+    try:
+        print(f"recording {key_expr} to {args.out} (Ctrl-C to stop)", file=sys.stderr, flush=True)
+        with _stop_on_signals(stop):
+            report = record(
+                session,
+                args.out,
+                key_expr,
+                prefix,
+                duration_s=args.duration,
+                stop=stop,
+                max_queue_samples=getattr(args, "queue_samples", DEFAULT_QUEUE_SAMPLES),
+                max_queue_bytes=getattr(args, "queue_bytes", DEFAULT_QUEUE_BYTES),
+            )
+    finally:
+        session.close()
+    for line in report.lines():
+        print(line, file=sys.stderr if line.startswith(("WARNING", "ERROR")) else sys.stdout, flush=True)
+    return 1 if report.dropped or report.error else 0
+
+
+def _replay_options(args: argparse.Namespace) -> ReplayOptions:
+    return ReplayOptions(
+        speed=args.speed,
+        key_expr=args.key,
+        start_s=args.start,
+        end_s=args.end,
+        include_outputs=args.all_keys,
+        loop=args.loop,
+    )
+
+
+def _offline_engine(args: argparse.Namespace, prefix: str) -> Any:
+    from service.engine import Engine, EngineConfig, load_sites
+    from service.settings import Settings
+
+    overrides = {
+        key: value
+        for key, value in (("method", args.method), ("window_s", args.window), ("sites", args.sites))
+        if value is not None
+    }
+    settings = Settings(**overrides)  # environment (TOPOFUSION_*) under the flags, like `run`
+    sites = load_sites(settings.sites) if settings.sites is not None else ()
+    return Engine(
+        EngineConfig(
+            prefix=prefix,
+            method=settings.method,
+            window_s=settings.window_s,
+            initiator=settings.initiator,
+            sites=sites,
+        )
+    )
+
+
+def replay_main(
+    args: argparse.Namespace, zenoh_options: ZenohOptions, stop: threading.Event | None = None
+) -> int:
+    """Replay over Zenoh, or offline into an engine; 2 with a clear message on an unusable file."""
+    prefix = _prefix(args)
+    stop = stop or threading.Event()
+    try:
+        options = _replay_options(args)
+        if args.offline:
+            if args.loop or args.all_keys:
+                raise ValueError("--offline feeds the inputs once: --loop and --all-keys do not apply")
+            return _offline_main(args, prefix, options)
+        if args.out is not None:
+            raise ValueError("--out is for --offline (the result file); a Zenoh replay publishes instead")
+        from service.recording.publisher import ZenohReplayPublisher
+
+        session = open_session(zenoh_options)
+        try:
+            with _stop_on_signals(stop), ZenohReplayPublisher(session) as publish:
+                report = replay(args.file, publish, prefix, options, stop=stop, progress=args.progress)
+        finally:
+            session.close()
+    except (RecordingError, FileNotFoundError, IsADirectoryError, PermissionError, ValueError) as exc:
+        print(f"topofusion replay: {exc}", file=sys.stderr, flush=True)
+        return 2
+    for line in report.lines():
+        print(line, file=sys.stderr, flush=True)
+    return 0
+
+
+def _offline_main(args: argparse.Namespace, prefix: str, options: ReplayOptions) -> int:
+    from service.recording.offline import replay_offline, write_result
+
+    engine = _offline_engine(args, prefix)
+    result = replay_offline(args.file, engine, prefix, options)
+    if args.out:
+        write_result(result, args.out)
+    else:
+        json.dump(result.to_json(), sys.stdout, indent=1, sort_keys=True)
+        sys.stdout.write("\n")
+    confirmed = sum(p["status"] == "confirmed" for ps in result.pairs for p in ps["pairs"])
+    tracks = sum(t["status"] == "confirmed" for b in result.tracks for t in b["tracks"])
+    rate = result.messages / result.wall_s if result.wall_s > 0 else 0.0
+    print(
+        f"offline replay of {args.file}: {result.messages} messages ({result.plots} plots) in "
+        f"{result.wall_s:.2f} s ({rate:.0f} msg/s); {tracks} confirmed tracks, {confirmed} confirmed pairs"
+        + (f" -> {args.out}" if args.out else ""),
+        file=sys.stderr,
+        flush=True,
+    )
+    if result.damage:
+        print(f"WARNING: {result.damage}; replayed what it holds up to there", file=sys.stderr, flush=True)
+    return 0
