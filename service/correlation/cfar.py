@@ -21,7 +21,8 @@ jump to different-source distances.  Steps:
 4. least-squares range and azimuth bias from the confidential pairs, bias model of Eqs.
    (17)-(18): ``r_meas = r_true + dr``, ``theta_meas = theta_true + dtheta``;
 5. after compensation, a second association (2-D assignment with a chi-square and distance
-   gate, the paper's conclusion (3)) pairs the remaining tracks.
+   gate, the paper's conclusion (3)) pairs the remaining tracks; the bias is then re-estimated
+   from all final pairs (``CfarParams.refine_bias``; an addition to the paper).
 
 Equation numbers.  The extraction lost the displayed equations of Sections 2.1-2.4 and their
 numbers are not recoverable from the text; only Eqs. (17)-(18) (true position and the radar's
@@ -106,6 +107,13 @@ class CfarParams:
 
     min_confident_pairs: int = 1
     """Confidential pairs needed to estimate the bias; fewer: no decision."""
+
+    refine_bias: bool = True
+    """Re-estimate the bias (same least squares) from all final pairs after the second stage.
+    Confidential pairs are selected by distance, which favours pairs whose random error opposes
+    the bias and so biases the first estimate toward zero (about -0.02 deg of 0.5 deg in
+    simulation); the final pairs are not selected that way.  False: report the paper's
+    first-stage estimate."""
 
 
 @dataclass
@@ -375,6 +383,8 @@ def cfar_associate(
 
     index_ref = np.concatenate([ci, si]).astype(np.intp)
     index_radar = np.concatenate([cj, sj]).astype(np.intp)
+    if p.refine_bias:
+        bias = bias_least_squares(ref[index_ref], rad[index_radar])
     confident = np.concatenate([np.ones(ci.size, dtype=bool), np.zeros(si.size, dtype=bool)])
     order = np.argsort(index_ref, kind="stable")
     return CfarResult(
