@@ -1,0 +1,52 @@
+"""Per-radar tracking (pure numpy/scipy): measurement model, CV Kalman filter, M-of-N track
+manager, and the initiators of the Hough paper (see ``/work/shared/papers/README.md`` §2).
+
+Public API used by the engine::
+
+    tracker = make_tracker(site, window_s=None, initiator="logic", id_prefix="A")
+    tracker.update(plots, time_s)      # one accepted batch
+    tracker.tracks()                   # TrackTable of all live tracks (ECEF)
+    tracker.window_plots               # plots held in the sliding window
+"""
+
+from __future__ import annotations
+
+from service.geo import Site
+from service.tracking.base import PlotColumns, Tracker, TrackTable
+from service.tracking.initiators import INITIATORS, get_initiator
+from service.tracking.manager import TrackManager
+from service.tracking.params import TrackerParams
+
+#: Default sliding window in seconds of data time: three looks of a 4 s radar, what the
+#: ``logic`` initiator needs (three plots, allowing for the plots' spread within a scan).
+DEFAULT_WINDOW_S: float = 12.0
+
+__all__ = [
+    "DEFAULT_WINDOW_S",
+    "INITIATORS",
+    "PlotColumns",
+    "TrackManager",
+    "TrackTable",
+    "Tracker",
+    "TrackerParams",
+    "make_tracker",
+]
+
+
+def make_tracker(
+    site: Site,
+    window_s: float | None = None,
+    initiator: str = "logic",
+    id_prefix: str = "T",
+    params: TrackerParams | None = None,
+) -> TrackManager:
+    """A tracker for one radar.
+
+    ``window_s`` None: ``max(DEFAULT_WINDOW_S, 3 * site.scan_period_s)`` so that the window
+    always spans three looks.  ``initiator`` is one of :data:`INITIATORS` (``ValueError``
+    naming them otherwise).  Track ids are ``f"{id_prefix}-{n}"``, ``n`` from 1, never reused.
+    """
+    get_initiator(initiator)  # fail early with the list of names
+    if window_s is None:
+        window_s = max(DEFAULT_WINDOW_S, 3.0 * site.scan_period_s)
+    return TrackManager(site, float(window_s), initiator=initiator, id_prefix=id_prefix, params=params)

@@ -1,0 +1,77 @@
+"""One-to-one assignment of plots to tracks within a batch (global nearest neighbour).
+
+Costs are Mahalanobis distances ``d^2`` of gated (track, plot) candidates; a track left
+without a plot pays ``miss_cost`` (the gate), so the solution minimises
+``sum d^2 + miss_cost * (#unassigned tracks)`` (Blackman & Popoli 1999, Section 6.5).  Solved
+with ``scipy.optimize.linear_sum_assignment`` on the ambiguous part only: candidates whose
+track and plot both have a single candidate are their own connected component of the gating
+graph and are taken directly, which gives the same optimum as one big problem.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
+
+from service.geo import FloatArray
+
+IntArray = NDArray[np.intp]
+
+#: Stand-in for "not allowed" in the dense sub-problem (finite: LSA needs a feasible problem).
+_FORBIDDEN = 1e12
+
+
+def _dense_solve(
+    rows: IntArray, cols: IntArray, cost: FloatArray, miss_cost: float
+) -> tuple[IntArray, IntArray]:
+    """LSA on ``[C | diag(miss_cost)]`` over the rows/columns present; returns chosen pair indices."""
+    ur, ri = np.unique(rows, return_inverse=True)
+    uc, ci = np.unique(cols, return_inverse=True)
+    nr, nc = ur.shape[0], uc.shape[0]
+    mat = np.full((nr, nc + nr), _FORBIDDEN)
+    mat[ri, ci] = cost
+    mat[np.arange(nr), nc + np.arange(nr)] = miss_cost
+    r, c = linear_sum_assignment(mat)
+    real = c < nc
+    lookup = np.full((nr, nc), -1, dtype=np.intp)
+    lookup[ri, ci] = np.arange(rows.shape[0])
+    chosen = lookup[r[real], c[real]]
+    return chosen, np.asarray(r[real])
+
+
+def assign(rows: IntArray, cols: IntArray, cost: FloatArray, miss_cost: float) -> IntArray:
+    """Indices (into the candidate arrays) of the chosen one-to-one pairs.
+
+    ``rows``/``cols`` are the track/plot of each gated candidate (no duplicates), ``cost`` its
+    ``d^2`` (all ``<= miss_cost``).
+    """
+    if rows.shape[0] == 0:
+        return np.empty(0, dtype=np.intp)
+    _, r_inv, r_cnt = np.unique(rows, return_inverse=True, return_counts=True)
+    _, c_inv, c_cnt = np.unique(cols, return_inverse=True, return_counts=True)
+    single = (r_cnt[r_inv] == 1) & (c_cnt[c_inv] == 1)
+    direct = np.flatnonzero(single)
+    rest = np.flatnonzero(~single)
+    if rest.shape[0] == 0:
+        return direct
+    chosen, _ = _dense_solve(rows[rest], cols[rest], cost[rest], miss_cost)
+    return np.sort(np.concatenate([direct, rest[chosen]]))
+
+
+def assign_reference(
+    n_rows: int, n_cols: int, rows: IntArray, cols: IntArray, cost: FloatArray, miss_cost: float
+) -> IntArray:
+    """Plain reference: one dense LSA over every track and plot (for tests)."""
+    if rows.shape[0] == 0:
+        return np.empty(0, dtype=np.intp)
+    mat = np.full((n_rows, n_cols + n_rows), _FORBIDDEN)
+    index = np.full((n_rows, n_cols), -1, dtype=np.intp)
+    for k in range(rows.shape[0]):
+        mat[rows[k], cols[k]] = cost[k]
+        index[rows[k], cols[k]] = k
+    for r in range(n_rows):
+        mat[r, n_cols + r] = miss_cost
+    r_idx, c_idx = linear_sum_assignment(mat)
+    out = [int(index[r, c]) for r, c in zip(r_idx, c_idx, strict=True) if c < n_cols]
+    return np.sort(np.array(out, dtype=np.intp))

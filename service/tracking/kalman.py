@@ -1,0 +1,79 @@
+"""Constant-velocity Kalman filter over stacks of tracks (pure numpy, vectorised).
+
+State ``x = [e, n, u, ve, vn, vu]`` in the radar's ENU frame, covariance ``P`` 6x6.
+Transition ``F(dt) = [[I, dt I], [0, I]]``.  Process noise: continuous white-noise
+acceleration with spectral density ``q`` per axis (Bar-Shalom, Li, Kirubarajan, *Estimation
+with Applications to Tracking and Navigation*, 2001, Eq. 6.2.2-12):
+``Q(dt) = q [[|dt|^3/3 I, dt|dt|/2 I], [dt|dt|/2 I, |dt| I]]`` (``|dt|`` keeps ``Q`` positive
+semi-definite when a plot is older than the state).  Measurement ``z = H x + w`` with
+``H = [I 0]`` and ``w ~ N(0, R)`` from :mod:`service.tracking.measurement`.  The update uses
+the Joseph form ``P+ = (I - K H) P (I - K H)^T + K R K^T``, which stays symmetric PSD.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.geo import FloatArray
+
+_I3 = np.eye(3)
+
+
+def cv_transition(dt: FloatArray) -> FloatArray:
+    """``F(dt)`` for each ``dt``, shape ``(n, 6, 6)``."""
+    dt = np.asarray(dt, dtype=float)
+    f = np.broadcast_to(np.eye(6), (*dt.shape, 6, 6)).copy()
+    f[..., 0, 3] = dt
+    f[..., 1, 4] = dt
+    f[..., 2, 5] = dt
+    return f
+
+
+def cv_process_noise(dt: FloatArray, q: float) -> FloatArray:
+    """``Q(dt)`` of the CWNA model for each ``dt``, shape ``(n, 6, 6)``."""
+    dt = np.asarray(dt, dtype=float)
+    a = np.abs(dt)
+    out = np.zeros((*dt.shape, 6, 6))
+    pp = q * a**3 / 3.0
+    pv = q * dt * a / 2.0
+    vv = q * a
+    for k in range(3):
+        out[..., k, k] = pp
+        out[..., k, k + 3] = pv
+        out[..., k + 3, k] = pv
+        out[..., k + 3, k + 3] = vv
+    return out
+
+
+def predict(x: FloatArray, P: FloatArray, dt: FloatArray, q: float) -> tuple[FloatArray, FloatArray]:
+    """Predict states ``(n, 6)`` and covariances ``(n, 6, 6)`` over ``dt`` ``(n,)``."""
+    f = cv_transition(dt)
+    x_new = np.einsum("nij,nj->ni", f, x)
+    p_new = f @ P @ np.swapaxes(f, -1, -2) + cv_process_noise(dt, q)
+    return x_new, p_new
+
+
+def innovation(x: FloatArray, P: FloatArray, z: FloatArray, R: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Innovation ``y = z - H x`` and its covariance ``S = H P H^T + R``."""
+    return z - x[..., :3], P[..., :3, :3] + R
+
+
+def mahalanobis2(y: FloatArray, S: FloatArray) -> FloatArray:
+    """``y^T S^-1 y`` for stacks of 3-vectors and 3x3 matrices."""
+    return np.einsum("ni,ni->n", y, np.linalg.solve(S, y[..., None])[..., 0])
+
+
+def update(
+    x: FloatArray, P: FloatArray, z: FloatArray, R: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Kalman update of each state with its plot; returns ``(x+, P+, nis)`` (Joseph form)."""
+    y, S = innovation(x, P, z, R)
+    # K = P H^T S^-1, computed as (S^-1 H P)^T since S and P are symmetric.
+    K = np.swapaxes(np.linalg.solve(S, P[..., :3, :]), -1, -2)  # (n, 6, 3)
+    nis = np.einsum("ni,ni->n", y, np.linalg.solve(S, y[..., None])[..., 0])
+    x_new = x + np.einsum("nij,nj->ni", K, y)
+    ikh = np.broadcast_to(np.eye(6), P.shape).copy()
+    ikh[..., :, :3] -= K
+    p_new = ikh @ P @ np.swapaxes(ikh, -1, -2) + K @ R @ np.swapaxes(K, -1, -2)
+    p_new = 0.5 * (p_new + np.swapaxes(p_new, -1, -2))
+    return x_new, p_new, nis

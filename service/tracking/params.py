@@ -1,0 +1,173 @@
+"""Named, documented parameters of the per-radar tracker and its initiators.
+
+Every threshold used in ``service/tracking`` lives here, in frozen dataclasses, so that a
+result can always be traced back to one documented number.  Defaults suit a surveillance
+radar of the contract's kind (200 m / 0.2 deg, 4 s scan, air targets up to Mach 2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class MeasurementParams:
+    """Polar plot to ENU position (issue 3 item 1)."""
+
+    altitude_sigma_m: float = 100.0
+    """1-sigma error of a given (or assumed 0) altitude for 2-D radars; it is mapped into an
+    elevation sigma ``altitude_sigma_m / (r cos el)`` in place of the site's elevation sigma."""
+
+
+@dataclass(frozen=True)
+class FilterParams:
+    """Constant-velocity Kalman filter (issue 3 item 2)."""
+
+    process_noise_psd: float = 25.0
+    """Continuous white-noise acceleration spectral density q (m^2/s^3) per ENU axis.  The
+    discretised process noise over dt is ``q [[dt^3/3, dt^2/2], [dt^2/2, dt]]`` per axis
+    (Bar-Shalom, Li, Kirubarajan 2001, Eq. 6.2.2-12); q = 25 lets a target change speed by
+    about ``sqrt(q T)`` = 10 m/s per 4 s scan, covering gentle manoeuvres."""
+
+    gate_chi2: float = 16.27
+    """Association gate on the Mahalanobis distance ``y^T S^-1 y`` of a plot to a track's
+    prediction at the plot's own time; chi-square with 3 degrees of freedom at 99.9 %."""
+
+    coarse_gate_max_m: float = 20_000.0
+    """Cap (m) on the Euclidean pre-gate radius used for the KD-tree candidate search."""
+
+
+@dataclass(frozen=True)
+class ManagerParams:
+    """Track life cycle: M-of-N confirmation, deletion, expected-detection test."""
+
+    confirm_m: int = 4
+    """M of the M-of-N confirmation: a track is confirmed once it has ``confirm_m`` hits among
+    its last ``confirm_n`` looks (a look = a batch in which a detection was expected)."""
+
+    confirm_n: int = 5
+    """N of the M-of-N confirmation (at most 30)."""
+
+    confirmed_max_misses: int = 3
+    """A confirmed track is deleted after this many consecutive expected-but-missed looks."""
+
+    coast_scans: float = 3.5
+    """Any track not updated for ``coast_scans * scan_period_s`` of data time is deleted
+    (catches tracks that left the coverage, where no look is counted)."""
+
+    sector_margin_deg: float = 1.0
+    """A track only counts a miss when its predicted azimuth lies inside the azimuth arc the
+    batch's plots cover by at least this margin (sector batches, issue 3)."""
+
+    birth_velocity_sigma_mps: float = 1000.0
+    """Prior velocity sigma when a track is born from an initiator's plots (weak prior: the
+    velocity then comes from the plots)."""
+
+    birth_max_mean_nis: float = 12.0
+    """A candidate from any initiator is born only if the mean normalised innovation squared
+    of its plots after the second one stays below this (a consistency check of the CV fit)."""
+
+
+@dataclass(frozen=True)
+class LogicParams:
+    """The fast M/N logic initiator with velocity gates (3 plots, 3 looks)."""
+
+    min_dt_scans: float = 0.5
+    """Shortest time (in scan periods) between two plots of one candidate."""
+
+    max_dt_scans: float = 2.5
+    """Longest time (in scan periods) between two plots of one candidate (allows one miss)."""
+
+    min_speed_mps: float = 0.0
+    """Velocity gate, lower bound (m/s) on the two-point speed (with a 3-sigma allowance)."""
+
+    max_speed_mps: float = 700.0
+    """Velocity gate, upper bound (m/s) on the two-point speed (with a 3-sigma allowance)."""
+
+    max_accel_mps2: float = 5.0
+    """Acceleration allowance in the third-plot gate: adds ``(a dt^2 / 2)^2`` per axis."""
+
+    gate_chi2: float = 11.34
+    """Third-plot gate on the Mahalanobis distance to the straight-line prediction; chi-square
+    with 3 degrees of freedom at 99 %."""
+
+
+@dataclass(frozen=True)
+class HoughParams:
+    """Classic and probabilistic-grid Hough transforms (Hough paper Section 1, Eq. 2-6)."""
+
+    theta_bins: int = 180
+    """Number of normal-angle cells over [0, pi) in the (theta, rho) parameter space."""
+
+    rho_step_m: float = 400.0
+    """Size of a rho cell (m); the paper: pick it from the measurement error (Section 1)."""
+
+    cell_m: float = 200.0
+    """Size of a square cell of the probabilistic grid (Eq. 4) in the surveillance plane (m)."""
+
+    subsamples: int = 2
+    """Eq. (4) integrates the density over each cell; the midpoint rule on a
+    ``subsamples x subsamples`` lattice per cell is used."""
+
+    truncate_sigma: float = 3.0
+    """Eq. (2) is truncated outside this many sigma (the paper: 3-sigma region)."""
+
+    min_votes: float = 3.0
+    """A peak of the accumulator (votes, or summed probability for the PG form) must reach this
+    to start a preliminary track."""
+
+    member_sigma: float = 2.5
+    """A plot belongs to a peak's line if its distance to the line is within ``member_sigma``
+    times its own position sigma normal to the line (PG form) ..."""
+
+    member_band_m: float = 400.0
+    """... or, for the classic Hough, within this fixed half-band (m) of the line."""
+
+    min_plots: int = 3
+    """A preliminary track needs at least this many plots (not claimed by a stronger peak)."""
+
+    peak_neighbourhood: int = 3
+    """Peaks are local maxima over ``peak_neighbourhood x peak_neighbourhood`` cells."""
+
+
+@dataclass(frozen=True)
+class ClusterParams:
+    """Velocity fuzzy clustering (Hough paper Section 2, Eq. 7-10, Steps 1-8)."""
+
+    delta_v_mps: float = 100.0
+    """Speed resolution Delta v of Eq. (8) (m/s): the velocity difference two targets must show
+    to be told apart."""
+
+    lam: float = 4.0
+    """Threshold coefficient lambda of Eq. (8), scaling the diagonal (threshold) term."""
+
+    eta: float = 1.0
+    """Weighting exponent eta of Eq. (8) on location errors and plot distances."""
+
+    c: float = 2.0
+    """Fuzzy weighting exponent c > 1 of Eq. (9).  Note: within one column k of U_i the
+    denominator of Eq. (9) is common, so the Step 5 test ``u_ijk > u_ikk`` equals
+    ``d_ijk > d_ikk`` for every c > 1; c only changes the reported similarities."""
+
+    min_dt_s: float = 1e-4
+    """Pairs closer in time than this (the time-stamp resolution, 0.1 ms in the paper) give no
+    velocity (Eq. 7 needs t_i != t_j); such plots can still join through Step 7 merging."""
+
+    merge_overlap: int = 2
+    """Step 7: sets sharing at least this many plots are merged."""
+
+    min_plots: int = 3
+    """Step 8 outputs only sets of at least this many plots (each non-empty set of Step 5 has
+    at least three)."""
+
+
+@dataclass(frozen=True)
+class TrackerParams:
+    """All parameters of one radar's tracker."""
+
+    measurement: MeasurementParams = field(default_factory=MeasurementParams)
+    filter: FilterParams = field(default_factory=FilterParams)
+    manager: ManagerParams = field(default_factory=ManagerParams)
+    logic: LogicParams = field(default_factory=LogicParams)
+    hough: HoughParams = field(default_factory=HoughParams)
+    cluster: ClusterParams = field(default_factory=ClusterParams)
