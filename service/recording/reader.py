@@ -158,6 +158,7 @@ class RecordingReader:
     def _read_summary(self) -> Summary | None:
         """The file's summary when it is complete and indexed by chunk, else None."""
         try:
+            self._file.seek(0, io.SEEK_SET)
             summary = SeekingReader(self._file, record_size_limit=max(self.file_bytes, 1)).get_summary()
         except Exception:  # no footer: truncated / unfinished file -> linear scan
             return None
@@ -298,6 +299,7 @@ class RecordingReader:
                 yield m
             return
         kinds = {c.topic: c.kind for c in channels}
+        self._file.seek(0, io.SEEK_SET)
         reader = SeekingReader(self._file, validate_crcs=True, record_size_limit=max(self.file_bytes, 1))
         iterator = reader.iter_messages(
             topics=sorted(topics), log_time_order=True, starting_at=start_ns, ending_before=end_ns

@@ -75,6 +75,7 @@ class RecordingWriter:
         meta = {"prefix": prefix, "created_unix_s": f"{time.time():.3f}"}
         meta.update(metadata or {})
         self._writer.add_metadata(METADATA_NAME, meta)
+        self._stream.flush()  # the file is a recognisable MCAP from the first moment
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self._sequence: dict[int, int] = {}

@@ -75,3 +75,12 @@ def foreign_mcap(
                 channels[key] = w.register_channel(key, "json", schema_id)
             w.add_message(channels[key], log_time=log_time, data=payload, publish_time=log_time)
         w.finish()
+
+
+def wait_subscribed(session: Any, key: str, timeout: float = 10.0) -> None:
+    """Wait until some subscriber somewhere matches ``key`` (Zenoh matching status)."""
+    publisher = session.declare_publisher(key)
+    try:
+        wait_for(lambda: publisher.matching_status.matching, timeout=timeout)
+    finally:
+        publisher.undeclare()

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import pytest
@@ -18,8 +17,8 @@ from service.recording import (
     ReplayOptions,
     replay,
 )
-from service.recording.reader import select_channels
 from service.recording.keys import KeyFilter
+from service.recording.reader import select_channels
 
 T0 = 1_763_769_600 * 10**9
 
@@ -27,8 +26,12 @@ T0 = 1_763_769_600 * 10**9
 def _write_demo(path: Path, n: int = 50, **kwargs: object) -> list[tuple[str, bytes, int]]:
     sent = [(f"{PREFIX}/radar/A/site", site("A"), T0), (f"{PREFIX}/radar/B/site", site("B"), T0 + 1)]
     for i in range(n):
-        sent.append((f"{PREFIX}/radar/{'AB'[i % 2]}/plots", plots("AB"[i % 2], i // 2, 1e9 + i), T0 + 10**8 * (i + 1)))
-    sent.append((f"{PREFIX}/radar/A/tracks", b'{"radar_id":"A","time_s":1.0,"tracks":[]}', T0 + 10**8 * (n + 1)))
+        sent.append(
+            (f"{PREFIX}/radar/{'AB'[i % 2]}/plots", plots("AB"[i % 2], i // 2, 1e9 + i), T0 + 10**8 * (i + 1))
+        )
+    sent.append(
+        (f"{PREFIX}/radar/A/tracks", b'{"radar_id":"A","time_s":1.0,"tracks":[]}', T0 + 10**8 * (n + 1))
+    )
     sent.append((f"{PREFIX}/status", b"{}", T0 + 10**8 * (n + 2)))
     with RecordingWriter(path, PREFIX, **kwargs) as w:  # type: ignore[arg-type]
         for key, payload, t in sent:
@@ -59,9 +62,16 @@ def test_writer_follows_the_contract_shape(tmp_path: Path) -> None:
         assert schema_names[f"{PREFIX}/radar/A/tracks"] == "TrackBatch"
         assert schema_names[f"{PREFIX}/status"] == "Status"
         assert all(s.encoding == "jsonschema" for s in summary.schemas.values())
-        got = [(c.topic, m.data, m.log_time, m.publish_time) for _, c, m in reader.iter_messages(log_time_order=True)]
+        got = [
+            (c.topic, m.data, m.log_time, m.publish_time)
+            for _, c, m in reader.iter_messages(log_time_order=True)
+        ]
     assert [(k, p, t) for k, p, t, _ in got] == sent  # payload bytes unchanged, log time = receipt
     assert all(pt == t - 5 for _, _, t, pt in got)
+    with RecordingReader(path, PREFIX) as ours:
+        survey = ours.survey()
+        assert survey.indexed and ours.damage is None  # read through the index, not the fallback scan
+        assert survey.start_ns == T0 and sum((survey.message_counts or {}).values()) == len(sent)
 
 
 def test_log_time_is_made_non_decreasing(tmp_path: Path) -> None:
@@ -142,7 +152,9 @@ def test_a_truncated_recording_replays_what_it_holds_and_says_where(tmp_path: Pa
     assert 0 < len(got) < len(inputs)
     assert got == [k for k, _, _ in inputs[: len(got)]]  # a prefix of the recording, in order
     assert report.damage is not None
-    assert f"of {len(data) // 2 + 7}" in report.damage and "truncated record starting at byte" in report.damage
+    assert (
+        f"of {len(data) // 2 + 7}" in report.damage and "truncated record starting at byte" in report.damage
+    )
     assert any("WARNING" in line and "replayed what it holds" in line for line in report.lines())
 
 
@@ -182,3 +194,22 @@ def test_a_corrupt_chunk_in_the_middle_is_skipped_and_reported(tmp_path: Path) -
     # Messages after the damaged chunk are still there: more than a plain prefix of the input.
     assert got != inputs[: len(got)]
     assert report.damage is not None and f"chunk at byte {bad_chunk.chunk_start_offset}" in report.damage
+
+
+def test_a_corrupt_chunk_in_a_complete_file_stops_there_and_says_so(tmp_path: Path) -> None:
+    path = tmp_path / "rec.mcap"
+    sent = _write_demo(path, n=400, chunk_bytes=4096, compression=CompressionType.NONE)
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    bad_chunk = summary.chunk_indexes[3]
+    data = bytearray(path.read_bytes())
+    middle = bad_chunk.chunk_start_offset + bad_chunk.chunk_length // 2
+    data[middle : middle + 16] = b"\xff" * 16
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))  # footer and index intact: the indexed path
+    got: list[bytes] = []
+    report = replay(damaged, lambda m: got.append(m.payload), PREFIX, ReplayOptions(speed=0), progress=False)
+    inputs = [p for k, p, _ in sent if k.endswith(("/site", "/plots"))]
+    assert 0 < len(got) < len(inputs) and got == inputs[: len(got)]
+    assert report.damage is not None and "unreadable chunk after log time" in report.damage
