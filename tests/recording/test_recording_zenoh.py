@@ -28,7 +28,7 @@ from service.recording import (
     replay_main,
 )
 from service.recording.publisher import ZenohReplayPublisher
-from service.recording.recorder import Recorder, RecordReport, ReceivedSample, SampleQueue
+from service.recording.recorder import ReceivedSample, Recorder, RecordReport, SampleQueue
 from service.recording.replay import paced
 from service.transport.session import ZenohOptions, open_session
 
