@@ -1,0 +1,28 @@
+"""Track-to-track correlation between radars under unknown systematic errors (pure numpy/scipy).
+
+Methods (``METHODS``): ``svd-topology`` (default; Wu, Jiang, Ren 2011), ``basic-topology``
+(its stepwise-rotation baseline), ``nearest`` (chi-square nearest neighbour), ``gmm`` and
+``cfar``.  The engine owns one :class:`PairCorrelator` per radar pair and calls
+:meth:`PairCorrelator.update`; :func:`estimate_biases` registers all radars jointly.
+"""
+
+from service.correlation.base import Correlator, DecisionContext, Decisions, Reason, TrackSnapshot
+from service.correlation.correlator import METHODS, CorrelationParams, PairCorrelator, estimate_biases
+from service.correlation.pairs import PairBookParams, PairState
+from service.correlation.registration import BiasEstimate, RegistrationParams
+
+__all__ = [
+    "METHODS",
+    "BiasEstimate",
+    "CorrelationParams",
+    "Correlator",
+    "DecisionContext",
+    "Decisions",
+    "PairBookParams",
+    "PairCorrelator",
+    "PairState",
+    "Reason",
+    "RegistrationParams",
+    "TrackSnapshot",
+    "estimate_biases",
+]

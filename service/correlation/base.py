@@ -1,0 +1,199 @@
+"""The small contract every correlation method implements (pure numpy).
+
+A :class:`TrackSnapshot` is one radar's tracks brought to the common data time of an update
+(:func:`service.correlation.prediction.predict_snapshot`).  A :class:`Correlator` turns two
+snapshots into *single decisions* over candidate pairs (:class:`Decisions`): one row per
+candidate, with an accept flag, a cost for the one-to-one assignment and the method's
+statistics.  Everything over time (M-of-N book, registration) lives in
+:mod:`service.correlation.engine`, shared by all methods.
+
+Expected non-results are values: a candidate that cannot be decided (too few neighbours,
+degenerate fit, ...) carries a :class:`Reason` instead of raising.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+import numpy as np
+from numpy.typing import NDArray
+
+from service.geo import Site
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+BoolArray = NDArray[np.bool_]
+
+
+class Reason(IntEnum):
+    """Why a single decision came out as it did (0 = accepted)."""
+
+    ACCEPTED = 0
+    TOO_FEW_NEIGHBOURS = 1  # no decision: not enough (matched) neighbours for a fit
+    DEGENERATE_FIT = 2  # no decision: collinear / coincident points, singular covariance
+    ROTATION_WEIGHT = 3  # rejected: rotation weight below threshold (Section 1.5)
+    SCALE = 4  # rejected: similarity scale physically impossible
+    SHAPE_TEST = 5  # rejected: topology residuals fail the chi-square / F test (Section 1.4)
+    POSITION_TEST = 6  # rejected: reference position inconsistent with the neighbours' fit
+    VELOCITY_TEST = 7  # rejected: velocities inconsistent
+    GATE = 8  # rejected: chi-square gate of an absolute-position test
+    UNEQUAL_LENGTH = 9  # no decision: sequences of unequal length (basic method)
+    AMBIGUOUS = 10  # no decision: a competitor within the ambiguity margin
+    NOT_ASSIGNED = 11  # accepted but lost the one-to-one assignment
+
+    @property
+    def is_no_decision(self) -> bool:
+        return self in (
+            Reason.TOO_FEW_NEIGHBOURS,
+            Reason.DEGENERATE_FIT,
+            Reason.UNEQUAL_LENGTH,
+            Reason.AMBIGUOUS,
+        )
+
+
+#: Reasons meaning "could not decide" rather than "decided: not the same target".
+NO_DECISION_REASONS = np.array(
+    [Reason.TOO_FEW_NEIGHBOURS, Reason.DEGENERATE_FIT, Reason.UNEQUAL_LENGTH, Reason.AMBIGUOUS]
+)
+
+
+@dataclass(frozen=True)
+class TrackSnapshot:
+    """One source's tracks at the common data time of an update (row ``i`` = one track).
+
+    ``position``/``velocity`` are ECEF as the source reports them (biases not removed
+    unless ``compensated``); ``pos_cov``/``vel_cov`` are the 3x3 ECEF blocks of the
+    extrapolated covariance; ``enu`` and ``enu_velocity`` are the same states in the
+    source's own ENU frame (``site`` None: a bias-free reference source such as AIS, whose
+    ENU frame is that of the other side's site when one is needed).
+    """
+
+    track_id: NDArray[np.str_]
+    position: FloatArray
+    velocity: FloatArray
+    pos_cov: FloatArray
+    vel_cov: FloatArray
+    site: Site | None
+    enu: FloatArray
+    enu_velocity: FloatArray
+    compensated: bool = False
+
+    def __len__(self) -> int:
+        return int(self.track_id.shape[0])
+
+    def enu_cov(self) -> FloatArray:
+        """Position covariance in the source's own ENU frame, ``(n, 3, 3)``."""
+        if self.site is None:
+            return self.pos_cov
+        r = self.site.rotation
+        return np.einsum("ji,njk,kl->nil", r, self.pos_cov, r)
+
+    def enu_vel_cov(self) -> FloatArray:
+        if self.site is None:
+            return self.vel_cov
+        r = self.site.rotation
+        return np.einsum("ji,njk,kl->nil", r, self.vel_cov, r)
+
+
+@dataclass(frozen=True)
+class Decisions:
+    """Single decisions over candidate pairs ``(index_a[k], index_b[k])`` of one update.
+
+    ``cost`` orders accepted candidates for the one-to-one assignment (lower is better,
+    roughly a chi-square excess); ``statistic`` is the method's test statistic (for
+    ``svd-topology`` the F statistic, chi-square over its degrees of freedom).
+    """
+
+    index_a: IntArray
+    index_b: IntArray
+    accepted: BoolArray
+    reason: NDArray[np.int8]
+    cost: FloatArray
+    statistic: FloatArray
+    rotation_weight: FloatArray
+    scale: FloatArray
+    neighbors: NDArray[np.int64]
+    extras: dict[str, FloatArray] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.index_a.shape[0])
+
+    @staticmethod
+    def empty() -> Decisions:
+        return Decisions.build(np.empty(0, dtype=np.intp), np.empty(0, dtype=np.intp))
+
+    @staticmethod
+    def build(
+        index_a: IntArray,
+        index_b: IntArray,
+        accepted: BoolArray | None = None,
+        reason: NDArray[np.int8] | None = None,
+        cost: FloatArray | None = None,
+        statistic: FloatArray | None = None,
+        rotation_weight: FloatArray | None = None,
+        scale: FloatArray | None = None,
+        neighbors: NDArray[np.int64] | None = None,
+    ) -> Decisions:
+        n = int(index_a.shape[0])
+        return Decisions(
+            np.asarray(index_a, dtype=np.intp),
+            np.asarray(index_b, dtype=np.intp),
+            np.zeros(n, dtype=bool) if accepted is None else accepted,
+            np.zeros(n, dtype=np.int8) if reason is None else reason.astype(np.int8),
+            np.zeros(n) if cost is None else cost,
+            np.full(n, np.nan) if statistic is None else statistic,
+            np.full(n, np.nan) if rotation_weight is None else rotation_weight,
+            np.full(n, np.nan) if scale is None else scale,
+            np.zeros(n, dtype=np.int64) if neighbors is None else neighbors.astype(np.int64),
+        )
+
+    def take(self, index: IntArray | BoolArray) -> Decisions:
+        return Decisions(
+            self.index_a[index],
+            self.index_b[index],
+            self.accepted[index],
+            self.reason[index],
+            self.cost[index],
+            self.statistic[index],
+            self.rotation_weight[index],
+            self.scale[index],
+            self.neighbors[index],
+            {k: v[index] for k, v in self.extras.items()},
+        )
+
+
+@dataclass(frozen=True)
+class DecisionContext:
+    """What the stream knows beyond one snapshot, handed to a method on each update.
+
+    ``registered``: the snapshots are already bias-compensated with the current
+    registration (then absolute-position tests are meaningful); ``registration_cov``: the
+    extra covariance (ECEF, per track of A and of B) the registration's own uncertainty adds
+    to an absolute position difference; ``confirmed_a``/``confirmed_b``: index pairs of
+    currently confirmed pairs (for priors).
+    """
+
+    time_s: float
+    registered: bool = False
+    registration_cov_a: FloatArray | None = None
+    registration_cov_b: FloatArray | None = None
+    confirmed_a: IntArray = field(default_factory=lambda: np.empty(0, dtype=np.intp))
+    confirmed_b: IntArray = field(default_factory=lambda: np.empty(0, dtype=np.intp))
+
+
+class Correlator(ABC):
+    """One correlation method: two snapshots in, single decisions over candidates out.
+
+    Implementations are deterministic functions of their inputs and parameters; state over
+    time is kept by the caller.  ``requires_sites`` tells whether the method needs both
+    sources to be radars with a site (topology methods do).
+    """
+
+    name: str = ""
+    requires_sites: bool = True
+
+    @abstractmethod
+    def decide(self, a: TrackSnapshot, b: TrackSnapshot, context: DecisionContext) -> Decisions:
+        """Single decisions for every candidate pair of this update."""

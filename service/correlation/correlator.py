@@ -1,0 +1,196 @@
+"""``PairCorrelator``: one radar pair's correlation over time, the same for every method.
+
+Per :meth:`PairCorrelator.update` (all in data time, deterministic):
+
+1. Both track tables are brought to the update time (:mod:`.prediction`: confirmed tracks,
+   constant velocity, ``F P F^T + Q``).
+2. Once the pair is *registered* (enough confirmed pairs, :mod:`.registration`), both
+   snapshots are bias-compensated with the current estimate before any test; the topology
+   match then sees almost no residual rotation, and absolute chi-square tests become valid.
+   (Only for ``svd-topology``; ``basic-topology`` and ``nearest`` run as published.)
+3. The method's single decisions (:class:`~.base.Correlator`); candidates that are
+   currently confirmed pairs get a cost bonus ``confirmed_bonus`` (history as a prior).
+4. One-to-one assignment with an ambiguity margin (:mod:`.assignment`).
+5. The M-of-N book (:mod:`.pairs`).
+6. Confirmed pairs feed the registration memory, and the pair's own two-radar bias solution
+   is refreshed for the next update.
+
+What the stream adds over one snapshot: velocities in the tests (two close aircraft rarely
+share a velocity), M-of-N accumulation, registration from confirmed pairs (bias-compensated
+association of tracks with too few neighbours; compensation removes the rotation the
+topology fit must otherwise find), and the confirmed-pair prior in the assignment.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from service.correlation.assignment import assign_unambiguous
+from service.correlation.base import Correlator, DecisionContext, Decisions
+from service.correlation.basic_topology import BasicTopologyCorrelator, BasicTopologyParams
+from service.correlation.external import CfarCorrelator, GmmCorrelator
+from service.correlation.nearest import NearestCorrelator, NearestParams
+from service.correlation.pairs import PairBook, PairBookParams, PairState
+from service.correlation.prediction import PredictionParams, predict_snapshot
+from service.correlation.registration import (
+    BiasEstimate,
+    BiasSolution,
+    RegistrationMemory,
+    RegistrationParams,
+    compensate,
+    solve_biases,
+    to_estimates,
+)
+from service.correlation.svd_topology import SvdTopologyCorrelator, SvdTopologyParams
+from service.geo import Site
+from service.tracking.base import TrackTable
+
+METHODS: tuple[str, ...] = ("svd-topology", "basic-topology", "nearest", "gmm", "cfar")
+
+
+@dataclass(frozen=True)
+class CorrelationParams:
+    """Everything a :class:`PairCorrelator` uses, per stage."""
+
+    prediction: PredictionParams = field(default_factory=PredictionParams)
+    book: PairBookParams = field(default_factory=PairBookParams)
+    registration: RegistrationParams = field(default_factory=RegistrationParams)
+    svd: SvdTopologyParams = field(default_factory=SvdTopologyParams)
+    basic: BasicTopologyParams = field(default_factory=BasicTopologyParams)
+    nearest: NearestParams = field(default_factory=NearestParams)
+    #: Ambiguity margin of the one-to-one assignment (chi-square units; 6 ~ likelihood ratio 20).
+    ambiguity_margin: float = 6.0
+    #: Cost bonus for a candidate that is a currently confirmed pair (hysteresis from history).
+    confirmed_bonus: float = 3.0
+    #: Bias-compensate before deciding once registered (svd-topology only).
+    use_registration: bool = True
+
+
+def make_correlator(method: str, params: CorrelationParams) -> Correlator:
+    if method == "svd-topology":
+        return SvdTopologyCorrelator(params.svd)
+    if method == "basic-topology":
+        return BasicTopologyCorrelator(params.basic)
+    if method == "nearest":
+        return NearestCorrelator(params.nearest)
+    if method == "gmm":
+        return GmmCorrelator()
+    if method == "cfar":
+        return CfarCorrelator()
+    raise ValueError(f"unknown correlation method {method!r}; expected one of {', '.join(METHODS)}")
+
+
+class PairCorrelator:
+    """Live correlation of radar ``site_a`` with ``site_b`` (None: a bias-free reference source)."""
+
+    def __init__(
+        self, method: str, site_a: Site, site_b: Site | None, params: CorrelationParams | None = None
+    ) -> None:
+        if method not in METHODS:
+            raise ValueError(f"unknown correlation method {method!r}; expected one of {', '.join(METHODS)}")
+        self.method = method
+        self.params = params or CorrelationParams()
+        self.correlator = make_correlator(method, self.params)
+        if site_b is None and self.correlator.requires_sites:
+            raise ValueError(
+                f"method {method!r} needs two radar sites; a reference source needs 'nearest' or 'cfar'"
+            )
+        self.site_a = site_a
+        self.site_b = site_b
+        self.book = PairBook(self.params.book)
+        self.memory = RegistrationMemory(site_a, site_b)
+        self.solution: BiasSolution | None = None
+        self.last_update_ms: float = 0.0
+        self.last_decisions: Decisions = Decisions.empty()
+        self.time_s: float = float("nan")
+        self.updates = 0
+
+    @property
+    def registered(self) -> bool:
+        return (
+            self.params.use_registration
+            and self.method == "svd-topology"
+            and self.solution is not None
+            and min(self.solution.pairs_used.values()) >= self.params.registration.min_pairs
+        )
+
+    def update(self, tracks_a: TrackTable, tracks_b: TrackTable, time_s: float) -> None:
+        """One correlation update at data time ``time_s``."""
+        t0 = time.perf_counter()
+        prm = self.params
+        raw_a = predict_snapshot(tracks_a, self.site_a, time_s, prm.prediction)
+        raw_b = predict_snapshot(tracks_b, self.site_b, time_s, prm.prediction)
+        a, b = raw_a, raw_b
+        ctx_kw: dict[str, object] = {}
+        if self.registered and self.solution is not None:
+            ba, pa = self.solution.of(self.site_a.site_id)
+            bb, pb = self.solution.of(self.site_b.site_id if self.site_b else None)
+            a, extra_a = compensate(raw_a, ba, pa)
+            b, extra_b = compensate(raw_b, bb, pb)
+            ctx_kw = {"registered": True, "registration_cov_a": extra_a, "registration_cov_b": extra_b}
+        conf = self.book.confirmed
+        ctx = DecisionContext(time_s=time_s, **ctx_kw)  # type: ignore[arg-type]
+        dec = self.correlator.decide(a, b, ctx)
+        cost = dec.cost.copy()
+        if len(dec) and conf.any():
+            keys = np.char.add(np.char.add(a.track_id[dec.index_a], "\x1f"), b.track_id[dec.index_b])
+            ckeys = np.char.add(np.char.add(self.book.track_a[conf], "\x1f"), self.book.track_b[conf])
+            cost = np.where(np.isin(keys, ckeys), cost - prm.confirmed_bonus, cost)
+        chosen, ambiguous = assign_unambiguous(
+            dec.index_a, dec.index_b, cost, dec.accepted, prm.ambiguity_margin
+        )
+        sel = dec.take(chosen)
+        self.book.update(
+            time_s,
+            np.asarray(tracks_a.track_id).astype(str),
+            np.asarray(tracks_b.track_id).astype(str),
+            a.track_id[sel.index_a],
+            b.track_id[sel.index_b],
+            sel.statistic,
+            sel.rotation_weight,
+            sel.scale,
+            sel.neighbors,
+        )
+        # Registration rows from the confirmed pairs (raw, uncompensated positions).
+        conf = self.book.confirmed
+        sort_a = np.argsort(raw_a.track_id)
+        sort_b = np.argsort(raw_b.track_id)
+        ta, tb = self.book.track_a[conf], self.book.track_b[conf]
+        pa_idx = np.searchsorted(raw_a.track_id, ta, sorter=sort_a)
+        pb_idx = np.searchsorted(raw_b.track_id, tb, sorter=sort_b)
+        pa_idx = sort_a[np.minimum(pa_idx, max(len(sort_a) - 1, 0))] if len(sort_a) else pa_idx
+        pb_idx = sort_b[np.minimum(pb_idx, max(len(sort_b) - 1, 0))] if len(sort_b) else pb_idx
+        if len(sort_a) and len(sort_b):
+            ok = (raw_a.track_id[pa_idx] == ta) & (raw_b.track_id[pb_idx] == tb)
+            if ok.any():
+                self.memory.add(time_s, raw_a, raw_b, pa_idx[ok], pb_idx[ok], prm.registration)
+        if self.method == "svd-topology" and prm.use_registration and len(self.memory.time):
+            self.solution = solve_biases([self.memory], time_s, prm.registration)
+        self.last_decisions = dec
+        self.last_ambiguous = int(ambiguous.sum())
+        self.time_s = time_s
+        self.updates += 1
+        self.last_update_ms = (time.perf_counter() - t0) * 1e3
+
+    def pairs(self) -> list[PairState]:
+        """Current pair book sorted by (track_a, track_b)."""
+        return self.book.states()
+
+
+def estimate_biases(
+    correlators: Sequence[PairCorrelator], time_s: float, params: RegistrationParams | None = None
+) -> list[BiasEstimate]:
+    """Joint bias least squares over every radar pair's remembered confirmed pairs.
+
+    See :mod:`service.correlation.registration` for the model and what is observable: the
+    weak prior makes unobservable components shrink to zero (minimum-norm-like) instead of
+    diverging; with two radars the relative effect is determined, the split can be
+    prior-driven for poorly spread geometry.  Radars without confirmed pairs are omitted.
+    """
+    prm = params or (correlators[0].params.registration if correlators else RegistrationParams())
+    mems = [c.memory for c in correlators if len(c.memory.time)]
+    return to_estimates(solve_biases(mems, time_s, prm), time_s)

@@ -1,0 +1,57 @@
+"""Small batched linear algebra that never raises: closed-form 2x2 / 3x3 inverses with a rank flag."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.correlation.base import BoolArray, FloatArray
+
+#: A covariance whose determinant is below this fraction of (trace/d)^d is called singular.
+SINGULAR_RTOL = 1e-10
+
+
+def inv3(s: FloatArray) -> tuple[FloatArray, BoolArray]:
+    """Inverse of a stack of 3x3 matrices ``(..., 3, 3)`` and a flag ``ok`` (non-singular, finite).
+
+    Singular entries get a zero inverse and ``ok = False`` (callers turn that into "no decision").
+    """
+    a = s[..., 0, 0]
+    b = s[..., 0, 1]
+    c = s[..., 0, 2]
+    d = s[..., 1, 0]
+    e = s[..., 1, 1]
+    f = s[..., 1, 2]
+    g = s[..., 2, 0]
+    h = s[..., 2, 1]
+    i = s[..., 2, 2]
+    co = np.empty_like(s)
+    co[..., 0, 0] = e * i - f * h
+    co[..., 0, 1] = -(b * i - c * h)
+    co[..., 0, 2] = b * f - c * e
+    co[..., 1, 0] = -(d * i - f * g)
+    co[..., 1, 1] = a * i - c * g
+    co[..., 1, 2] = -(a * f - c * d)
+    co[..., 2, 0] = d * h - e * g
+    co[..., 2, 1] = -(a * h - b * g)
+    co[..., 2, 2] = a * e - b * d
+    det = a * co[..., 0, 0] + b * co[..., 1, 0] + c * co[..., 2, 0]
+    scale = np.abs(a + e + i) / 3.0
+    ok = np.isfinite(det) & (det > SINGULAR_RTOL * scale**3) & (scale > 0)
+    safe = np.where(ok, det, 1.0)
+    return np.where(ok[..., None, None], co / safe[..., None, None], 0.0), ok
+
+
+def quad3(r: FloatArray, s_inv: FloatArray) -> FloatArray:
+    """``r^T S^-1 r`` for stacks ``r (..., 3)``, ``s_inv (..., 3, 3)``."""
+    return np.einsum("...i,...ij,...j->...", r, s_inv, r)
+
+
+def mahalanobis2_h(
+    dx: FloatArray, dy: FloatArray, sxx: FloatArray, sxy: FloatArray, syy: FloatArray
+) -> FloatArray:
+    """Horizontal 2-D Mahalanobis distance squared with a closed-form 2x2 inverse (inf if singular)."""
+    det = sxx * syy - sxy * sxy
+    ok = det > SINGULAR_RTOL * ((sxx + syy) / 2.0) ** 2
+    safe = np.where(ok, det, 1.0)
+    q = (syy * dx * dx - 2.0 * sxy * dx * dy + sxx * dy * dy) / safe
+    return np.where(ok, q, np.inf)

@@ -1,0 +1,207 @@
+"""The pair book: single decisions accumulated over time into tentative and confirmed pairs.
+
+M-of-N scoring (the "计分法" the SVD paper combines its single decisions with, Section 2,
+after He et al. 2007): each update, every pair of the book scores a hit if it was among the
+update's chosen single decisions, a miss otherwise.
+
+* A new chosen pair enters as ``tentative``.
+* A tentative pair becomes ``confirmed`` once it has ``confirm_hits`` hits in the last
+  ``window`` updates and neither of its tracks is in another confirmed pair (conflicts
+  among pairs confirming in the same update are settled by a one-to-one assignment on the
+  score), so each track is in at most one confirmed pair.
+* A tentative pair with no hit in the last ``window`` updates is dropped; a confirmed pair
+  is dropped after ``drop_misses`` consecutive misses (it "stops passing"), or at once when
+  one of its tracks has vanished from the input.
+
+``score = hits in the window / window``.  Stored columnar (numpy), updated with set
+operations on string keys: no Python loop over pairs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
+
+from service.correlation.base import FloatArray
+
+
+@dataclass(frozen=True)
+class PairBookParams:
+    """M-of-N confirmation logic."""
+
+    #: N: number of recent updates the score looks at (<= 32).
+    window: int = 6
+    #: M: hits within the window needed to confirm.
+    confirm_hits: int = 3
+    #: Consecutive misses after which a confirmed pair is dropped.
+    drop_misses: int = 4
+
+
+@dataclass
+class PairState:
+    """One pair of the book, as published in ``PairSet`` (CONTRACT.md)."""
+
+    track_a: str
+    track_b: str
+    status: str
+    score: float
+    statistic: float
+    rotation_weight: float
+    scale: float
+    neighbors: int
+    hits: int
+    first_time_s: float
+    last_time_s: float
+
+
+_SEP = "\x1f"
+
+
+def _keys(a: NDArray[np.str_], b: NDArray[np.str_]) -> NDArray[np.str_]:
+    return np.char.add(np.char.add(a.astype(str), _SEP), b.astype(str))
+
+
+def _popcount(x: NDArray[np.uint32]) -> NDArray[np.int64]:
+    return np.bitwise_count(x).astype(np.int64)
+
+
+class PairBook:
+    """Columnar M-of-N book for one radar pair."""
+
+    _float_cols = ("statistic", "rotation_weight", "scale", "first_time_s", "last_time_s")
+
+    def __init__(self, params: PairBookParams | None = None) -> None:
+        self.params = params or PairBookParams()
+        if not 1 <= self.params.window <= 32:
+            raise ValueError("window must be within 1..32")
+        self.track_a = np.empty(0, dtype=str)
+        self.track_b = np.empty(0, dtype=str)
+        self.history = np.empty(0, dtype=np.uint32)
+        self.hits = np.empty(0, dtype=np.int64)
+        self.misses = np.empty(0, dtype=np.int64)
+        self.confirmed = np.empty(0, dtype=bool)
+        self.neighbors = np.empty(0, dtype=np.int64)
+        self.cols: dict[str, FloatArray] = {c: np.empty(0) for c in self._float_cols}
+
+    def __len__(self) -> int:
+        return int(self.track_a.shape[0])
+
+    @property
+    def score(self) -> FloatArray:
+        mask = np.uint32((1 << self.params.window) - 1) if self.params.window < 32 else np.uint32(0xFFFFFFFF)
+        return _popcount(self.history & mask) / float(self.params.window)
+
+    def _keep(self, keep: NDArray[np.bool_]) -> None:
+        self.track_a = self.track_a[keep]
+        self.track_b = self.track_b[keep]
+        self.history = self.history[keep]
+        self.hits = self.hits[keep]
+        self.misses = self.misses[keep]
+        self.confirmed = self.confirmed[keep]
+        self.neighbors = self.neighbors[keep]
+        self.cols = {k: v[keep] for k, v in self.cols.items()}
+
+    def update(
+        self,
+        time_s: float,
+        present_a: NDArray[np.str_],
+        present_b: NDArray[np.str_],
+        chosen_a: NDArray[np.str_],
+        chosen_b: NDArray[np.str_],
+        statistic: FloatArray,
+        rotation_weight: FloatArray,
+        scale: FloatArray,
+        neighbors: NDArray[np.int64],
+    ) -> None:
+        """Score one update: ``chosen_*`` are this update's one-to-one single decisions."""
+        prm = self.params
+        book_keys = _keys(self.track_a, self.track_b)
+        new_keys = _keys(chosen_a, chosen_b)
+        hit = np.isin(book_keys, new_keys)
+        self.history = (self.history << np.uint32(1)) | hit.astype(np.uint32)
+        self.hits = self.hits + hit
+        self.misses = np.where(hit, 0, self.misses + 1)
+        # Refresh statistics of the hit pairs.
+        if hit.any():
+            pos = np.searchsorted(new_keys, book_keys[hit], sorter=np.argsort(new_keys))
+            src = np.argsort(new_keys)[pos]
+            self.cols["statistic"][hit] = statistic[src]
+            self.cols["rotation_weight"][hit] = rotation_weight[src]
+            self.cols["scale"][hit] = scale[src]
+            self.cols["last_time_s"][hit] = time_s
+            self.neighbors[hit] = neighbors[src]
+        # Append the new pairs.
+        fresh = ~np.isin(new_keys, book_keys)
+        nf = int(fresh.sum())
+        if nf:
+            self.track_a = np.concatenate([self.track_a, chosen_a[fresh].astype(str)])
+            self.track_b = np.concatenate([self.track_b, chosen_b[fresh].astype(str)])
+            self.history = np.concatenate([self.history, np.ones(nf, dtype=np.uint32)])
+            self.hits = np.concatenate([self.hits, np.ones(nf, dtype=np.int64)])
+            self.misses = np.concatenate([self.misses, np.zeros(nf, dtype=np.int64)])
+            self.confirmed = np.concatenate([self.confirmed, np.zeros(nf, dtype=bool)])
+            self.neighbors = np.concatenate([self.neighbors, neighbors[fresh].astype(np.int64)])
+            add = {
+                "statistic": statistic[fresh],
+                "rotation_weight": rotation_weight[fresh],
+                "scale": scale[fresh],
+                "first_time_s": np.full(nf, time_s),
+                "last_time_s": np.full(nf, time_s),
+            }
+            self.cols = {k: np.concatenate([v, add[k]]) for k, v in self.cols.items()}
+        # Drop.
+        score = self.score
+        gone = ~np.isin(self.track_a, present_a) | ~np.isin(self.track_b, present_b)
+        stale_tent = ~self.confirmed & (score <= 0)
+        stale_conf = self.confirmed & (self.misses >= prm.drop_misses)
+        self._keep(~(gone | stale_tent | stale_conf))
+        # Confirm.
+        score = self.score
+        busy_a = self.track_a[self.confirmed]
+        busy_b = self.track_b[self.confirmed]
+        ready = (
+            ~self.confirmed
+            & (score * prm.window >= prm.confirm_hits - 1e-9)
+            & ~np.isin(self.track_a, busy_a)
+            & ~np.isin(self.track_b, busy_b)
+        )
+        idx = np.flatnonzero(ready)
+        if idx.size:
+            ua, ra = np.unique(self.track_a[idx], return_inverse=True)
+            ub, rb = np.unique(self.track_b[idx], return_inverse=True)
+            if ua.size == idx.size and ub.size == idx.size:
+                self.confirmed[idx] = True
+            else:
+                # Prefer higher score, then more recent hit, then lower statistic.
+                val = score[idx] * 1e3 - np.nan_to_num(self.cols["statistic"][idx], nan=1e2).clip(0, 1e2)
+                mat = np.full((ua.size, ub.size), -1e12)
+                mat[ra, rb] = val
+                r, c = linear_sum_assignment(mat, maximize=True)
+                ok = mat[r, c] > -1e12
+                sel = np.zeros((ua.size, ub.size), dtype=bool)
+                sel[r[ok], c[ok]] = True
+                self.confirmed[idx[sel[ra, rb]]] = True
+
+    def states(self) -> list[PairState]:
+        """The book as :class:`PairState` rows sorted by (track_a, track_b)."""
+        order = np.lexsort((self.track_b, self.track_a))
+        score = self.score
+        return [
+            PairState(
+                track_a=str(self.track_a[i]),
+                track_b=str(self.track_b[i]),
+                status="confirmed" if self.confirmed[i] else "tentative",
+                score=float(score[i]),
+                statistic=float(self.cols["statistic"][i]),
+                rotation_weight=float(self.cols["rotation_weight"][i]),
+                scale=float(self.cols["scale"][i]),
+                neighbors=int(self.neighbors[i]),
+                hits=int(self.hits[i]),
+                first_time_s=float(self.cols["first_time_s"][i]),
+                last_time_s=float(self.cols["last_time_s"][i]),
+            )
+            for i in order
+        ]

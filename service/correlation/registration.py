@@ -1,0 +1,243 @@
+"""Sensor registration: per-radar range, azimuth and elevation bias by least squares.
+
+Model (SVD paper Eq. 2, and the AIS/CFAR paper's registration step): radar ``s`` measures
+polar ``(r, theta, phi) + b_s + noise`` with the systematic error ``b_s = (dr, dtheta,
+dphi)``; to first order its reported ECEF position is ``y_s = x + G_s b_s`` with
+``G_s = R_s J_s`` (``J_s`` the polar Jacobian of Eq. 2 at the measured polar coordinates,
+``R_s`` the ENU-to-ECEF rotation of Eq. 1).  A confirmed pair of tracks of radars ``a`` and
+``b`` gives ``d = y_a - y_b = G_a b_a - G_b b_b + n``, ``Cov(n) = P_a + P_b``.  All pairs of
+all radar pairs are stacked into one weighted least-squares problem in the biases of every
+radar (a bias-free reference source such as AIS has ``b = 0``), with a weak Gaussian prior
+``b ~ N(0, diag(prior^2))`` (Tikhonov): where the geometry determines a bias component the
+data dominate, where it does not (e.g. elevation biases, seen only through nearly equal
+vertical offsets ``r_a dphi_a - r_b dphi_b``; or anything when all pairs lie along one line)
+the estimate shrinks towards zero -- the minimum-norm answer -- rather than blowing up.  The
+posterior covariance ``H^-1`` says which is which (:func:`solve_biases`).  Two robust
+iterations drop pairs whose residual chi-square exceeds ``outlier_chi2``.
+
+With two radars the *differential* effect ``G_a b_a - G_b b_b`` is always well determined
+(it is what the data measure), so bias-compensating both radars with the estimate removes
+the relative bias even where the split between the radars is prior-driven.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from service.correlation.base import FloatArray, TrackSnapshot
+from service.correlation.linalg import inv3, quad3
+from service.geo import Site, polar_jacobian
+
+
+@dataclass(frozen=True)
+class RegistrationParams:
+    """Bias least squares."""
+
+    #: Prior 1-sigma of a range bias (m); weak, only regularises unobservable components.
+    prior_range_m: float = 3_000.0
+    #: Prior 1-sigma of an azimuth bias (deg).
+    prior_azimuth_deg: float = 3.0
+    #: Prior 1-sigma of an elevation bias (deg).
+    prior_elevation_deg: float = 3.0
+    #: Pairs whose residual chi-square (3 dof) exceeds this are dropped as outliers (99.9 %).
+    outlier_chi2: float = 16.3
+    #: Data time (s) confirmed pairs are remembered for (biases vary slowly).
+    memory_s: float = 120.0
+    #: Cap on remembered pair rows per radar pair (oldest dropped first).
+    max_rows: int = 20_000
+    #: Minimum confirmed pairs before a correlator uses its registration.
+    min_pairs: int = 6
+
+
+@dataclass(frozen=True)
+class BiasEstimate:
+    """One radar's estimated systematic errors (``GET /biases``)."""
+
+    radar_id: str
+    range_bias_m: float
+    azimuth_bias_deg: float
+    elevation_bias_deg: float
+    pairs_used: int
+    time_s: float
+
+
+@dataclass(frozen=True)
+class BiasSolution:
+    """Joint solution: biases ``(n_radars, 3)`` in (m, rad, rad), posterior covariance, rows used."""
+
+    radar_ids: tuple[str, ...]
+    bias: FloatArray
+    covariance: FloatArray  # (3 n, 3 n)
+    pairs_used: dict[str, int]
+
+    def std(self) -> FloatArray:
+        return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None)).reshape(-1, 3)
+
+    def of(self, radar_id: str | None) -> tuple[FloatArray, FloatArray]:
+        """Bias vector and its 3x3 covariance for one radar (zeros for unknown / reference)."""
+        if radar_id is None or radar_id not in self.radar_ids:
+            return np.zeros(3), np.zeros((3, 3))
+        k = self.radar_ids.index(radar_id)
+        return self.bias[k], self.covariance[3 * k : 3 * k + 3, 3 * k : 3 * k + 3]
+
+
+def bias_jacobian(site: Site, position: FloatArray) -> FloatArray:
+    """``G = R J`` of each ECEF position (n, 3) for that site's polar biases, ``(n, 3, 3)``."""
+    r, az, el = site.ecef_to_polar(position)
+    return np.einsum("ij,njk->nik", site.rotation, polar_jacobian(r, az, el))
+
+
+@dataclass
+class RegistrationMemory:
+    """Recent confirmed-pair rows of one radar pair (raw, uncompensated positions)."""
+
+    site_a: Site
+    site_b: Site | None
+    time: FloatArray = field(default_factory=lambda: np.empty(0))
+    g_a: FloatArray = field(default_factory=lambda: np.empty((0, 3, 3)))
+    g_b: FloatArray = field(default_factory=lambda: np.empty((0, 3, 3)))
+    d: FloatArray = field(default_factory=lambda: np.empty((0, 3)))
+    s: FloatArray = field(default_factory=lambda: np.empty((0, 3, 3)))
+
+    def add(
+        self,
+        time_s: float,
+        a: TrackSnapshot,
+        b: TrackSnapshot,
+        ia: np.ndarray,
+        ib: np.ndarray,
+        params: RegistrationParams,
+    ) -> None:
+        ga = bias_jacobian(self.site_a, a.position[ia])
+        gb = (
+            bias_jacobian(self.site_b, b.position[ib])
+            if self.site_b is not None
+            else np.zeros((len(ib), 3, 3))
+        )
+        self.time = np.concatenate([self.time, np.full(len(ia), time_s)])
+        self.g_a = np.concatenate([self.g_a, ga])
+        self.g_b = np.concatenate([self.g_b, gb])
+        self.d = np.concatenate([self.d, a.position[ia] - b.position[ib]])
+        self.s = np.concatenate([self.s, a.pos_cov[ia] + b.pos_cov[ib]])
+        keep = self.time >= time_s - params.memory_s
+        if keep.sum() > params.max_rows:
+            keep &= np.arange(len(keep)) >= len(keep) - params.max_rows
+        self.time, self.g_a, self.g_b = self.time[keep], self.g_a[keep], self.g_b[keep]
+        self.d, self.s = self.d[keep], self.s[keep]
+
+    def current(self, time_s: float) -> np.ndarray:
+        """Mask of rows within memory (data time) of ``time_s``."""
+        return self.time <= time_s
+
+
+def solve_biases(
+    memories: Sequence[RegistrationMemory], time_s: float, params: RegistrationParams | None = None
+) -> BiasSolution | None:
+    """Joint robust weighted least squares over all memories; None when there are no rows."""
+    prm = params or RegistrationParams()
+    ids = sorted({m.site_a.site_id for m in memories} | {m.site_b.site_id for m in memories if m.site_b})
+    if not ids:
+        return None
+    col = {rid: k for k, rid in enumerate(ids)}
+    n = 3 * len(ids)
+    prior = np.tile(
+        [
+            1.0 / prm.prior_range_m**2,
+            1.0 / np.radians(prm.prior_azimuth_deg) ** 2,
+            1.0 / np.radians(prm.prior_elevation_deg) ** 2,
+        ],
+        len(ids),
+    )
+    rows = [(m, m.current(time_s) & (m.time >= time_s - prm.memory_s)) for m in memories]
+    if sum(int(r.sum()) for _, r in rows) == 0:
+        return None
+    weights = [(m, r, inv3(m.s[r])) for m, r in rows]
+    keep = [ok for _, _, (_, ok) in weights]
+    bias = np.zeros(n)
+    cov = np.diag(1.0 / prior)
+    for _ in range(3):
+        h = np.diag(prior)
+        g = np.zeros(n)
+        for (m, r, (w, _)), kp in zip(weights, keep, strict=True):
+            ka = 3 * col[m.site_a.site_id]
+            wk = w * kp[:, None, None]
+            ga, gb, d = m.g_a[r], m.g_b[r], m.d[r]
+            h[ka : ka + 3, ka : ka + 3] += np.einsum("kji,kjl,klm->im", ga, wk, ga)
+            g[ka : ka + 3] += np.einsum("kji,kjl,kl->i", ga, wk, d)
+            if m.site_b is not None:
+                kb = 3 * col[m.site_b.site_id]
+                cross = np.einsum("kji,kjl,klm->im", ga, wk, gb)
+                h[ka : ka + 3, kb : kb + 3] -= cross
+                h[kb : kb + 3, ka : ka + 3] -= cross.T
+                h[kb : kb + 3, kb : kb + 3] += np.einsum("kji,kjl,klm->im", gb, wk, gb)
+                g[kb : kb + 3] -= np.einsum("kji,kjl,kl->i", gb, wk, d)
+        cov = np.linalg.inv(h)
+        bias = cov @ g
+        new_keep = []
+        for (m, r, (w, ok)), _kp in zip(weights, keep, strict=True):
+            ka = 3 * col[m.site_a.site_id]
+            pred = np.einsum("kij,j->ki", m.g_a[r], bias[ka : ka + 3])
+            if m.site_b is not None:
+                kb = 3 * col[m.site_b.site_id]
+                pred = pred - np.einsum("kij,j->ki", m.g_b[r], bias[kb : kb + 3])
+            new_keep.append(ok & (quad3(m.d[r] - pred, w) <= prm.outlier_chi2))
+        if all(np.array_equal(a, b) for a, b in zip(new_keep, keep, strict=True)):
+            break
+        keep = new_keep
+    used: dict[str, int] = dict.fromkeys(ids, 0)
+    for (m, _, _), kp in zip(weights, keep, strict=True):
+        used[m.site_a.site_id] += int(kp.sum())
+        if m.site_b is not None:
+            used[m.site_b.site_id] += int(kp.sum())
+    return BiasSolution(tuple(ids), bias.reshape(-1, 3), cov, used)
+
+
+def compensate(
+    snapshot: TrackSnapshot, bias: FloatArray, bias_cov: FloatArray
+) -> tuple[TrackSnapshot, FloatArray]:
+    """Remove an estimated bias from a radar snapshot; also the per-track covariance it adds.
+
+    Positions: ``y - G b``.  Velocities: an azimuth bias rotates the radar's whole picture,
+    so ENU velocities are rotated back by ``-dtheta`` (clockwise azimuth convention).
+    """
+    if snapshot.site is None or len(snapshot) == 0:
+        return snapshot, np.zeros((len(snapshot), 3, 3))
+    site = snapshot.site
+    g = bias_jacobian(site, snapshot.position)
+    pos = snapshot.position - g @ bias
+    dth = -bias[1]
+    c, s = np.cos(dth), np.sin(dth)
+    ev = snapshot.enu_velocity
+    enu_v = np.stack([ev[:, 0] * c + ev[:, 1] * s, -ev[:, 0] * s + ev[:, 1] * c, ev[:, 2]], axis=1)
+    extra = g @ bias_cov @ np.swapaxes(g, 1, 2)
+    out = TrackSnapshot(
+        track_id=snapshot.track_id,
+        position=pos,
+        velocity=enu_v @ site.rotation.T,
+        pos_cov=snapshot.pos_cov,
+        vel_cov=snapshot.vel_cov,
+        site=site,
+        enu=site.ecef_to_enu(pos),
+        enu_velocity=enu_v,
+        compensated=True,
+    )
+    return out, extra
+
+
+def to_estimates(solution: BiasSolution | None, time_s: float) -> list[BiasEstimate]:
+    if solution is None:
+        return []
+    return [
+        BiasEstimate(
+            radar_id=rid,
+            range_bias_m=float(solution.bias[k, 0]),
+            azimuth_bias_deg=float(np.degrees(solution.bias[k, 1])),
+            elevation_bias_deg=float(np.degrees(solution.bias[k, 2])),
+            pairs_used=int(solution.pairs_used[rid]),
+            time_s=float(time_s),
+        )
+        for k, rid in enumerate(solution.radar_ids)
+    ]

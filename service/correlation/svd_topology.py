@@ -1,0 +1,395 @@
+"""SVD topology-sequence correlation (method ``svd-topology``; Wu, Jiang, Ren 2011).
+
+One *single decision* per candidate pair (reference track ``i`` of A, ``j`` of B), batched
+over all candidates of an update:
+
+1. Topology sequences in each radar's own ENU frame (Section 2 step 1,
+   :mod:`service.correlation.topology`); A's is rotated into B's orientation with the known
+   ``M0 = R_B^-1 R_A`` of Eq. (3), so the remaining rotation is the bias part only.
+2. Robust neighbour pairing (the paper leaves it open; sequences can differ in length):
+   (a) rotation-tolerant mutual nearest neighbour on the vectors ``z_i = x_i - x_0``
+   (radial mismatch plus the tangential mismatch beyond ``pairing_rotation_tolerance_deg``);
+   (b) similarity fit; (c) mutual nearest neighbour again with the fitted transform under a
+   chi-square gate; (d) elements whose residual fails ``element_gate_chi2`` are trimmed and
+   the fit repeated.
+3. Similarity fit of the paired neighbour vectors, Eq. (7), by :mod:`service.correlation.umeyama`
+   (``rotation_model = "yaw"``: rotation about the vertical, 5 parameters; ``"full"``: the
+   paper's 3-D rotation, 7 parameters).
+4. Validity (Section 1.5): ``weight(M) >= 0.92``.  The paper's ``M`` is the whole A-to-B
+   rotation; here ``M0`` is known exactly from the sites, so the check is applied to the
+   fitted bias rotation ``M_fit`` (the part that can be wrong); ``|c - 1| <=
+   max_scale_deviation``.  With ``constrained_fit`` (default) the yaw and scale are fitted
+   within these bounds in the first place (constrained least squares).
+5. Covariance after the transform (Section 1.6).  The paper prints ``c^2 M^T P M``; for a
+   vector mapped by ``y = c M x`` the covariance is ``c^2 M P M^T`` (``Cov(Ax) = A Cov(x)
+   A^T``), which is what is used.  The residual of element ``k`` has ``S_k = c^2 M P_A,k M^T
+   + P_B,k`` (the reference's own noise is common to all elements and absorbed by ``t``).
+6. Matching test (Section 1.4; the paper defers to its reference [9]).  Two parts:
+   *shape*: ``chi2_shape = sum_k r_k^T S_k^-1 r_k`` over the ``m`` paired neighbours is
+   chi-square with ``nu = 3 m - p`` degrees of freedom (``p = 5`` yaw, ``7`` full: the
+   fitted parameters), accepted at level ``alpha_shape``;
+   *position*: in topology-vector coordinates both references sit at the origin, so the
+   fitted translation ``t`` is the A reference's position predicted from the neighbours
+   minus the B reference's: Eq. (4) says it must be small.  ``chi2_ref = t^T S_ref^-1 t``
+   with ``S_ref = S_0 + h S_bar`` (``h`` = leverage of the origin in the fit), 3 dof,
+   accepted at ``alpha_position``.  This is what tells two close targets apart.
+   With velocities (the stream), ``v_B - c M v_A`` adds a 3-dof velocity term.
+   ``statistic`` is the F statistic ``F = (chi2_shape + chi2_ref) / (nu + 3)``, which under
+   the hypothesis is ``F(nu + 3, inf)``-distributed: the residual variance of the fit over
+   the variance expected from the radars' random errors.
+7. Accepted candidates go to a one-to-one assignment with an ambiguity margin
+   (:mod:`service.correlation.assignment`), done by the caller.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+from service.correlation.base import (
+    BoolArray,
+    Correlator,
+    DecisionContext,
+    Decisions,
+    FloatArray,
+    Reason,
+    TrackSnapshot,
+)
+from service.correlation.candidates import CandidateParams, candidate_pairs
+from service.correlation.linalg import inv3, mahalanobis2_h, quad3
+from service.correlation.nearest import chi2_pairs
+from service.correlation.topology import TopologyParams, gather_points, neighbourhoods
+from service.correlation.umeyama import (
+    SimilarityFit,
+    rotation_weight,
+    umeyama_batch,
+    yaw_matrix,
+    yaw_similarity_batch,
+)
+
+
+@dataclass(frozen=True)
+class SvdTopologyParams:
+    """Every threshold of the SVD topology match."""
+
+    topology: TopologyParams = field(default_factory=TopologyParams)
+    candidates: CandidateParams = field(default_factory=CandidateParams)
+    #: ``"yaw"`` (rotation about the local vertical: what an azimuth bias produces) or ``"full"``
+    #: (the paper's unconstrained 3-D rotation, ill-conditioned for near-horizontal vectors).
+    rotation_model: str = "yaw"
+    #: Section 1.5: minimum diagonal weight of the A-to-B rotation (0.92 ~ 6.5 deg in total).
+    min_rotation_weight: float = 0.92
+    #: Largest ``|c - 1|`` physically possible: a range bias ``dr`` scales cross-range
+    #: neighbour vectors by about ``dr / r`` (2 km at 100 km: 0.02).  With ``constrained_fit``
+    #: the yaw fit's scale is clipped to it; otherwise (and for ``"full"``) a larger fitted
+    #: ``|c - 1|`` rejects the candidate.
+    max_scale_deviation: float = 0.03
+    #: Largest yaw (differential azimuth bias, deg) physically possible between the radars.
+    max_bias_rotation_deg: float = 5.0
+    #: Yaw model: fit the similarity *within* the physical bounds above (constrained least
+    #: squares) instead of fitting freely and rejecting out-of-bound fits.  With 2-5
+    #: neighbours at <= 10 km and ~700 m relative noise the free yaw is uncertain by several
+    #: degrees, so the paper's reject-after-fit (Section 1.5) loses many true pairs; the
+    #: constrained fit keeps the check's intent (only physically possible transforms) and lets
+    #: the chi-square test judge the residual.
+    constrained_fit: bool = True
+    #: Minimum paired neighbours for a decision (2 suffices for the yaw model's 5 parameters,
+    #: the full model needs 3 non-collinear).
+    min_matched: int = 2
+    #: Minimum paired neighbours as a fraction of the shorter sequence.
+    min_match_fraction: float = 0.5
+    #: Rotation the first pairing tolerates for free (beyond it, tangential mismatch counts).
+    pairing_rotation_tolerance_deg: float = 6.0
+    #: Gate (m) of the first, rotation-tolerant pairing.
+    pairing_gate_m: float = 4_000.0
+    #: Chi-square (2 dof, horizontal) gate of the re-pairing with the fitted transform (99.9 %).
+    repair_gate_chi2: float = 13.8
+    #: Chi-square (3 dof) an element may reach before it is trimmed as mispaired (99.9 %).
+    element_gate_chi2: float = 16.3
+    #: False-rejection probability of the shape test.
+    alpha_shape: float = 0.01
+    #: False-rejection probability of the position (+ velocity) test.
+    alpha_position: float = 0.01
+    #: Use track velocities (the stream's tracks) in the position test.
+    use_velocity: bool = True
+    #: When the radars are registered, candidates the topology cannot decide (too few
+    #: neighbours) are decided by the bias-compensated chi-square test (stage 2).
+    registered_fallback: bool = True
+    #: ... and topology-accepted candidates must also pass it at this (loose) level.
+    registered_consistency_alpha: float = 1e-4
+
+
+@dataclass(frozen=True)
+class SvdMatchResult:
+    """Single decisions of :func:`svd_match`, one entry per candidate."""
+
+    accepted: BoolArray
+    reason: NDArray[np.int8]
+    chi2_shape: FloatArray
+    dof_shape: NDArray[np.int64]
+    chi2_ref: FloatArray
+    dof_ref: NDArray[np.int64]
+    statistic: FloatArray
+    cost: FloatArray
+    rotation_weight: FloatArray
+    scale: FloatArray
+    yaw_rad: FloatArray
+    matched: NDArray[np.int64]
+
+
+def _mutual_nearest(cost: FloatArray, gate: float) -> NDArray[np.intp]:
+    """For cost (P, Ka, Kb): B index paired with each A element by mutual nearest neighbour, -1 if none."""
+    p, ka, kb = cost.shape
+    if ka == 0 or kb == 0:
+        return np.full((p, ka), -1, dtype=np.intp)
+    jb = np.argmin(cost, axis=2)
+    ia_of_b = np.argmin(cost, axis=1)
+    back = np.take_along_axis(ia_of_b, jb, axis=1)
+    best = np.take_along_axis(cost, jb[..., None], axis=2)[..., 0]
+    ok = (back == np.arange(ka)[None, :]) & (best <= gate)
+    return np.where(ok, jb, -1).astype(np.intp)
+
+
+def _fit(
+    x: FloatArray, y: FloatArray, w: FloatArray, prm: SvdTopologyParams
+) -> tuple[SimilarityFit, FloatArray]:
+    if prm.rotation_model == "full":
+        fit = umeyama_batch(x, y, w, min_points=3)
+        yaw = np.arctan2(fit.rotation[:, 1, 0], fit.rotation[:, 0, 0])
+        return fit, yaw
+    if prm.constrained_fit:
+        return yaw_similarity_batch(
+            x, y, w, 2, np.radians(prm.max_bias_rotation_deg), prm.max_scale_deviation
+        )
+    return yaw_similarity_batch(x, y, w, min_points=2)
+
+
+def svd_match(
+    pa: FloatArray,
+    ca: FloatArray,
+    ma: BoolArray,
+    pb: FloatArray,
+    cb: FloatArray,
+    mb: BoolArray,
+    m0: FloatArray,
+    params: SvdTopologyParams | None = None,
+    velocity: tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None = None,
+    prior_yaw_rad: float = 0.0,
+) -> SvdMatchResult:
+    """Batched single decisions for P candidates.
+
+    ``pa (P, K+1, 3)``: the A reference (index 0) and its neighbours in A's ENU frame,
+    ``ca`` their covariances, ``ma`` the mask; likewise ``pb``, ``cb``, ``mb`` in B's frame.
+    ``m0``: Eq. (3) ``R_B^-1 R_A``.  ``velocity``: optional ``(v_a, P_va, v_b, P_vb)`` of the
+    references in their own ENU frames.  ``prior_yaw_rad``: a rotation applied to A before
+    pairing (e.g. a registration estimate); included in the weight check.
+    """
+    prm = params or SvdTopologyParams()
+    n_par = 7 if prm.rotation_model == "full" else 5
+    min_matched = max(prm.min_matched, 3 if prm.rotation_model == "full" else 2)
+    rot0 = yaw_matrix(np.array(prior_yaw_rad)) @ m0
+    pa_r = pa @ rot0.T
+    ca_r = rot0 @ ca @ rot0.T
+    za = (pa_r - pa_r[:, :1, :])[:, 1:]
+    zb = (pb - pb[:, :1, :])[:, 1:]
+    man, mbn = ma[:, 1:], mb[:, 1:]
+    can, cbn = ca_r[:, 1:], cb[:, 1:]
+    n_a = man.sum(axis=1)
+    n_b = mbn.sum(axis=1)
+    valid_pair = man[:, :, None] & mbn[:, None, :]
+
+    # 2(a) rotation-tolerant first pairing on the horizontal components.
+    ra = np.hypot(za[..., 0], za[..., 1])
+    rb = np.hypot(zb[..., 0], zb[..., 1])
+    tha = np.arctan2(za[..., 0], za[..., 1])
+    thb = np.arctan2(zb[..., 0], zb[..., 1])
+    dth = np.abs(np.angle(np.exp(1j * (tha[:, :, None] - thb[:, None, :]))))
+    tol = np.radians(prm.pairing_rotation_tolerance_deg)
+    tang = np.maximum(dth - tol, 0.0) * 0.5 * (ra[:, :, None] + rb[:, None, :])
+    cost0 = np.hypot(ra[:, :, None] - rb[:, None, :], tang)
+    pair = _mutual_nearest(np.where(valid_pair, cost0, np.inf), prm.pairing_gate_m)
+
+    def paired(pr: NDArray[np.intp]) -> tuple[FloatArray, FloatArray, FloatArray]:
+        safe = np.maximum(pr, 0)
+        y = np.take_along_axis(zb, safe[..., None], axis=1)
+        cy = np.take_along_axis(cbn, safe[..., None, None], axis=1)
+        return y, cy, (pr >= 0).astype(float)
+
+    # 2(b-c) fit (reference included, it anchors the hypothesis) and re-pair with the fit.
+    zeros = np.zeros((za.shape[0], 1, 3))
+    ones = np.ones((za.shape[0], 1))
+    y, _, w = paired(pair)
+    fit, _ = _fit(
+        np.concatenate([zeros, za], 1),
+        np.concatenate([zeros, y], 1),
+        np.concatenate([ones, w], 1),
+        prm,
+    )
+    xt = fit.apply(za)
+    xt = np.where(np.isfinite(xt), xt, za)
+    d = xt[:, :, None, :2] - zb[:, None, :, :2]
+    sxx = can[:, :, None, 0, 0] + cbn[:, None, :, 0, 0]
+    sxy = can[:, :, None, 0, 1] + cbn[:, None, :, 0, 1]
+    syy = can[:, :, None, 1, 1] + cbn[:, None, :, 1, 1]
+    cost1 = mahalanobis2_h(d[..., 0], d[..., 1], sxx, sxy, syy)
+    pair1 = _mutual_nearest(np.where(valid_pair, cost1, np.inf), prm.repair_gate_chi2)
+    pair = np.where(np.isfinite(fit.scale)[:, None], pair1, pair)
+
+    # 3 + 2(d): neighbours-only fit, element chi-square, trim, refit.
+    y, cy, w = paired(pair)
+    for it in range(3):
+        fit, yaw = _fit(za, y, w, prm)
+        c = np.where(np.isfinite(fit.scale), fit.scale, 1.0)
+        rm = fit.rotation
+        r = y - fit.apply(za)
+        s_k = (c**2)[:, None, None, None] * np.einsum("pij,pkjl,pml->pkim", rm, can, rm) + cy  # Section 1.6
+        s_inv, s_ok = inv3(s_k)
+        q_k = np.where(w > 0, quad3(np.where(np.isfinite(r), r, 0.0), s_inv), 0.0)
+        w_new = w * (q_k <= prm.element_gate_chi2)
+        if it == 2 or np.array_equal(w_new, w):
+            break
+        w = w_new
+    m = (w > 0).sum(axis=1)
+    sing = np.any((w > 0) & ~s_ok, axis=1)
+    chi2_shape = (q_k * (w > 0)).sum(axis=1)
+    dof_shape = np.maximum(3 * m - n_par, 1)
+
+    # 6. position test on the translation t (Eq. 4), with the leverage of the origin.
+    wsum = np.maximum(w.sum(axis=1), 1.0)
+    xbar = np.einsum("pk,pkd->pd", w, za) / wsum[:, None]
+    spread = np.einsum("pk,pk->p", w, ((za - xbar[:, None, :])[..., :2] ** 2).sum(-1))
+    tiny = np.finfo(float).tiny
+    h = 1.0 / wsum + np.where(
+        spread > tiny, (xbar[:, :2] ** 2).sum(-1) / np.where(spread > tiny, spread, 1.0), 0.0
+    )
+    s_bar = np.einsum("pk,pkij->pij", w, s_k) / wsum[:, None, None]
+    s_0 = (c**2)[:, None, None] * rm @ ca_r[:, 0] @ np.swapaxes(rm, 1, 2) + cb[:, 0]
+    s_ref_inv, ref_ok = inv3(s_0 + h[:, None, None] * s_bar)
+    t = np.where(np.isfinite(fit.translation), fit.translation, 0.0)
+    chi2_ref = quad3(t, s_ref_inv)
+    dof_ref = np.full(len(m), 3, dtype=np.int64)
+    chi2_vel = np.zeros(len(m))
+    vel_ok = np.ones(len(m), dtype=bool)
+    if velocity is not None and prm.use_velocity:
+        va, cva, vb, cvb = velocity
+        va_r = va @ rot0.T
+        cva_r = rot0 @ cva @ rot0.T
+        rv = vb - c[:, None] * np.einsum("pij,pj->pi", rm, va_r)
+        sv_inv, sv_ok = inv3((c**2)[:, None, None] * rm @ cva_r @ np.swapaxes(rm, 1, 2) + cvb)
+        chi2_vel = np.where(sv_ok, quad3(rv, sv_inv), 0.0)
+        vel_ok = chi2_vel <= chi2.ppf(1.0 - prm.alpha_position, 3)
+        dof_ref = dof_ref + 3 * sv_ok
+    # Section 1.5 on the unknown part of the rotation: M0 of Eq. (3) is known exactly from the
+    # sites, so the check asks whether the fitted bias rotation (times any prior) is near I.
+    weight = rotation_weight(rm @ yaw_matrix(np.array(prior_yaw_rad)))
+
+    few = (
+        (m < min_matched)
+        | (np.minimum(n_a, n_b) < min_matched)
+        | (m < prm.min_match_fraction * np.minimum(n_a, n_b))
+    )
+    degenerate = ~fit.valid | sing | ~ref_ok | ~np.all(np.isfinite(fit.translation), axis=1)
+    bad_weight = weight < prm.min_rotation_weight
+    bad_scale = np.abs(c - 1.0) > prm.max_scale_deviation * (1.0 + 1e-9)
+    bad_shape = chi2_shape > chi2.ppf(1.0 - prm.alpha_shape, dof_shape)
+    bad_pos = chi2_ref > chi2.ppf(1.0 - prm.alpha_position, 3)
+    reason = np.select(
+        [few, degenerate, bad_weight, bad_scale, bad_shape, bad_pos, ~vel_ok],
+        [
+            Reason.TOO_FEW_NEIGHBOURS,
+            Reason.DEGENERATE_FIT,
+            Reason.ROTATION_WEIGHT,
+            Reason.SCALE,
+            Reason.SHAPE_TEST,
+            Reason.POSITION_TEST,
+            Reason.VELOCITY_TEST,
+        ],
+        default=Reason.ACCEPTED,
+    ).astype(np.int8)
+    no_dec = few | degenerate
+    total = chi2_shape + chi2_ref + chi2_vel
+    statistic = np.where(no_dec, np.nan, total / (dof_shape + dof_ref))
+    cost = np.where(no_dec, np.inf, (chi2_ref + chi2_vel - dof_ref) + (chi2_shape - dof_shape))
+    return SvdMatchResult(
+        accepted=reason == Reason.ACCEPTED,
+        reason=reason,
+        chi2_shape=np.where(no_dec, np.nan, chi2_shape),
+        dof_shape=dof_shape.astype(np.int64),
+        chi2_ref=np.where(no_dec, np.nan, chi2_ref + chi2_vel),
+        dof_ref=dof_ref.astype(np.int64),
+        statistic=statistic,
+        cost=cost,
+        rotation_weight=np.where(degenerate, np.nan, weight),
+        scale=np.where(degenerate, np.nan, c),
+        yaw_rad=np.where(degenerate, np.nan, yaw + prior_yaw_rad),
+        matched=m.astype(np.int64),
+    )
+
+
+class SvdTopologyCorrelator(Correlator):
+    """Method ``svd-topology``: the topology match above, plus, once registered, stage 2."""
+
+    name = "svd-topology"
+    requires_sites = True
+
+    def __init__(self, params: SvdTopologyParams | None = None) -> None:
+        self.params = params or SvdTopologyParams()
+
+    def decide(self, a: TrackSnapshot, b: TrackSnapshot, context: DecisionContext) -> Decisions:
+        prm = self.params
+        if a.site is None or b.site is None:
+            raise ValueError("svd-topology needs two radar sites")
+        ia, ib, _ = candidate_pairs(a.position, b.position, prm.candidates.gate_m)
+        if len(ia) == 0:
+            return Decisions.empty()
+        nbr_a = neighbourhoods(a.enu, prm.topology)
+        nbr_b = neighbourhoods(b.enu, prm.topology)
+        pa, ca, ma = gather_points(a.enu, a.enu_cov(), nbr_a, ia)
+        pb, cb, mb = gather_points(b.enu, b.enu_cov(), nbr_b, ib)
+        m0 = b.site.rotation.T @ a.site.rotation  # Eq. (3)
+        vel = (a.enu_velocity[ia], a.enu_vel_cov()[ia], b.enu_velocity[ib], b.enu_vel_cov()[ib])
+        res = svd_match(pa, ca, ma, pb, cb, mb, m0, prm, velocity=vel)
+        accepted = res.accepted.copy()
+        reason = res.reason.copy()
+        cost = res.cost.copy()
+        statistic = res.statistic.copy()
+        stage = np.where(accepted, 1.0, 0.0)
+        if context.registered:
+            q_pos, q_vel, ok = chi2_pairs(
+                a, b, ia, ib, context.registration_cov_a, context.registration_cov_b
+            )
+            q = q_pos + (q_vel if prm.use_velocity else 0.0)
+            dof = 3 + (3 if prm.use_velocity else 0)
+            if prm.registered_consistency_alpha > 0:
+                inconsistent = accepted & (~ok | (q > chi2.ppf(1.0 - prm.registered_consistency_alpha, dof)))
+                accepted &= ~inconsistent
+                reason = np.where(inconsistent, np.int8(Reason.GATE), reason)
+            if prm.registered_fallback:
+                undecided = np.isin(reason, [Reason.TOO_FEW_NEIGHBOURS, Reason.DEGENERATE_FIT])
+                passed = undecided & ok & (q <= chi2.ppf(1.0 - prm.alpha_position, dof))
+                accepted |= passed
+                reason = np.where(
+                    passed,
+                    np.int8(Reason.ACCEPTED),
+                    np.where(undecided & ~passed & ok, np.int8(Reason.GATE), reason),
+                )
+                cost = np.where(passed, q - dof, cost)
+                statistic = np.where(passed, q / dof, statistic)
+                stage = np.where(passed, 2.0, stage)
+        dec = Decisions.build(
+            ia,
+            ib,
+            accepted=accepted,
+            reason=reason.astype(np.int8),
+            cost=cost,
+            statistic=statistic,
+            rotation_weight=res.rotation_weight,
+            scale=res.scale,
+            neighbors=res.matched,
+        )
+        dec.extras["stage"] = stage
+        dec.extras["yaw_rad"] = res.yaw_rad
+        return dec

@@ -1,0 +1,91 @@
+"""Topology sequences: each track's neighbours, in its own radar's frame (SVD paper Section 2 step 1).
+
+The paper's topology sequence of a reference track is the list of vectors ``z_i = x_i - x_0``
+from it to its neighbours within 10 km, sorted by increasing azimuth (Section 1.2).  The
+10 km sphere assumes dense traffic; en-route aircraft are often 20-50 km apart.  The
+neighbourhood here is *adaptive*: every neighbour within ``radius_m``, and if that gives
+fewer than ``min_neighbours``, the nearest ones out to ``max_radius_m``.  The similarity
+model of Eq. (6) stays valid over such distances because the Jacobians of Eq. (2) change
+little over a few tens of km at ranges of 100 km and more (the translation of Eq. (4) grows
+linearly with the neighbourhood size; the fit absorbs its constant part).
+
+Neighbours are found with one ``cKDTree.query`` for all tracks (k nearest with a distance
+bound), returned as a padded index array (``-1`` = none).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from service.correlation.base import FloatArray
+
+
+@dataclass(frozen=True)
+class TopologyParams:
+    """Neighbourhood of a reference track."""
+
+    #: The paper's neighbourhood radius (10 km, Section 1.2): every neighbour inside is used.
+    radius_m: float = 10_000.0
+    #: Adaptive extension: with fewer than this many neighbours within ``radius_m`` ...
+    min_neighbours: int = 4
+    #: ... take the nearest ones out to this radius (``radius_m`` disables the extension).
+    max_radius_m: float = 60_000.0
+    #: Cap on the sequence length (the nearest are kept); bounds the work per candidate.
+    max_neighbours: int = 10
+
+
+def neighbourhoods(enu: FloatArray, params: TopologyParams | None = None) -> NDArray[np.intp]:
+    """Padded neighbour indices ``(n, max_neighbours)``, nearest first, ``-1`` where none."""
+    p = params or TopologyParams()
+    n = enu.shape[0]
+    kmax = int(p.max_neighbours)
+    if n < 2 or kmax < 1:
+        return np.full((n, max(kmax, 0)), -1, dtype=np.intp)
+    k = min(kmax + 1, n)
+    bound = max(p.max_radius_m, p.radius_m)
+    dist, idx = cKDTree(enu).query(enu, k=k, distance_upper_bound=bound)
+    dist = np.atleast_2d(dist)[:, 1:]  # column 0 is the track itself (distance 0)
+    idx = np.atleast_2d(idx)[:, 1:]
+    rank = np.arange(dist.shape[1])[None, :]
+    keep = np.isfinite(dist) & ((dist <= p.radius_m) | (rank < p.min_neighbours))
+    out = np.where(keep, idx, -1).astype(np.intp)
+    if out.shape[1] < kmax:
+        out = np.concatenate([out, np.full((n, kmax - out.shape[1]), -1, dtype=np.intp)], axis=1)
+    return out
+
+
+def sort_by_azimuth(z: FloatArray, mask: NDArray[np.bool_]) -> NDArray[np.intp]:
+    """Order (P, K) putting valid vectors by increasing azimuth (clockwise from north), padding last."""
+    az = np.mod(np.arctan2(z[..., 0], z[..., 1]), 2 * np.pi)
+    return np.argsort(np.where(mask, az, np.inf), axis=-1, kind="stable")
+
+
+def topology_sequences(
+    enu: FloatArray, params: TopologyParams | None = None
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Every track's topology sequence ``z_i = x_i - x_0`` sorted by azimuth: ``(n, K, 3)`` and mask."""
+    nb = neighbourhoods(enu, params)
+    mask = nb >= 0
+    z = np.where(mask[..., None], enu[np.maximum(nb, 0)] - enu[:, None, :], 0.0)
+    order = sort_by_azimuth(z, mask)
+    return np.take_along_axis(z, order[..., None], axis=1), np.take_along_axis(mask, order, axis=1)
+
+
+def gather_points(
+    enu: FloatArray, cov: FloatArray, nbr: NDArray[np.intp], ref: NDArray[np.intp]
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    """Points of candidate references ``ref`` and their neighbours: ``(P, K+1, 3)``, covs, mask.
+
+    Index 0 is the reference itself, 1.. its neighbours (padding masked out, zero-filled,
+    covariance identity so that nothing singular reaches the linear algebra).
+    """
+    idx = np.concatenate([ref[:, None], nbr[ref]], axis=1)
+    mask = idx >= 0
+    safe = np.maximum(idx, 0)
+    pts = np.where(mask[..., None], enu[safe], 0.0)
+    cv = np.where(mask[..., None, None], cov[safe], np.eye(3))
+    return pts, cv, mask
