@@ -46,7 +46,7 @@ def log_closeness(t: FloatArray, x: FloatArray, delta: FloatArray, p: ClusterPar
     valid = upper & (np.abs(dt) >= p.min_dt_s)
     v = dx / np.where(valid, dt, 1.0)[..., None]  # Eq. (7)
     dist = np.linalg.norm(dx, axis=-1)
-    dist = np.maximum(dist, np.finfo(float).tiny)
+    dist = np.maximum(dist, 1e-6)  # floor (m): coincident plots, avoids 0 / 0
     eta = p.eta
     # j != k term: |v_ij - v_ik|^2 (d_i d_j d_k)^eta / (|x_ij|^eta |x_ik|^eta)
     dv2 = np.sum((v[:, :, None, :] - v[:, None, :, :]) ** 2, axis=-1)  # [i, j, k]
@@ -136,8 +136,8 @@ def velocity_cluster_reference(
         vij, vik = vel(i, j), vel(i, k)
         if vij is None or vik is None:
             return -np.inf
-        dij = max(float(np.linalg.norm(xx[i] - xx[j])), np.finfo(float).tiny)
-        dik = max(float(np.linalg.norm(xx[i] - xx[k])), np.finfo(float).tiny)
+        dij = max(float(np.linalg.norm(xx[i] - xx[j])), 1e-6)
+        dik = max(float(np.linalg.norm(xx[i] - xx[k])), 1e-6)
         if j != k:
             num = float(np.sum((vij - vik) ** 2)) * (dd[i] * dd[j] * dd[k]) ** p.eta
             return -num / (dij**p.eta * dik**p.eta)
@@ -152,7 +152,7 @@ def velocity_cluster_reference(
                 continue
             e = np.array(col) / (p.c - 1.0)
             top = np.max(e)
-            u = np.exp(e - top) / np.sum(np.exp(e - top))  # Eq. (9)
+            u = e - (top + np.log(np.sum(np.exp(e - top))))  # log of Eq. (9), no underflow
             u_kk = u[rows.index(k)]
             js = {j for j, uj in zip(rows, u, strict=True) if j != k and uj > u_kk}
             if js:

@@ -17,14 +17,16 @@ J^T`` the plot's position covariance.  This is exact to first order in the error
 hundred metres at tens of kilometres) and works for any sensor whose plots carry a covariance
 (monostatic or bistatic), which is what the paper's "location error" already assumes.
 
-Peaks are local maxima at or above ``min_votes``.  A peak's preliminary track is the plots
-close to its line (classic: a fixed half-band; PG: ``member_sigma`` times each plot's own
-sigma normal to the line, so accurate plots get tight bands).  Peaks are taken strongest
-first and a plot joins at most one preliminary track.
+Lines are extracted sequentially (the usual way to stop one target's plots feeding several
+peaks): the strongest peak at or above ``min_votes`` gives a line, its preliminary track is
+the plots close to it (classic: a fixed half-band; PG: ``member_sigma`` times each plot's own
+sigma normal to the line, so accurate plots get tight bands), those plots are removed and the
+accumulator is rebuilt from the rest, up to ``max_lines`` times.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,9 +61,11 @@ def accumulate(points: FloatArray, weights: FloatArray, centre: FloatArray, p: H
     rho = rel[:, 0, None] * np.cos(theta) + rel[:, 1, None] * np.sin(theta)  # (n, theta_bins)
     ri = np.rint((rho - rho0) / p.rho_step_m).astype(np.intp)
     flat = np.arange(p.theta_bins)[None, :] * n_rho + ri
-    votes = np.bincount(
-        flat.ravel(), weights=np.repeat(weights, p.theta_bins), minlength=p.theta_bins * n_rho
-    ).reshape(p.theta_bins, n_rho).astype(float)
+    votes = (
+        np.bincount(flat.ravel(), weights=np.repeat(weights, p.theta_bins), minlength=p.theta_bins * n_rho)
+        .reshape(p.theta_bins, n_rho)
+        .astype(float)
+    )
     return Accumulator(votes, theta, rho0, p.rho_step_m, centre)
 
 
@@ -75,15 +79,25 @@ def peaks(acc: Accumulator, p: HoughParams) -> tuple[IntArray, IntArray, FloatAr
     return ti[order], ri[order], h[order]
 
 
-def _claim(member: np.ndarray, min_plots: int) -> Groups:
-    """Strongest peak first: a peak keeps its not-yet-claimed members if enough remain."""
-    claimed = np.zeros(member.shape[1], dtype=bool)
+def _sequential(
+    n: int, min_plots: int, max_lines: int, line_members: Callable[[IntArray], IntArray | None]
+) -> Groups:
+    """Sequential extraction: strongest line of the remaining plots, remove its plots, repeat.
+
+    ``line_members(remaining)`` returns the members (indices into all plots) of the strongest
+    peak of the accumulator built from ``remaining`` plots, or None when no peak is left.
+    The loop runs over extracted lines (a handful), never over plots.
+    """
+    remaining = np.arange(n)
     out: list[IntArray] = []
-    for row in member:  # loop over peaks (lines), not plots
-        new = row & ~claimed
-        if int(new.sum()) >= min_plots:
-            out.append(np.flatnonzero(new))
-            claimed |= new
+    for _ in range(max_lines):
+        if remaining.shape[0] < min_plots:
+            break
+        members = line_members(remaining)
+        if members is None or members.shape[0] < min_plots:
+            break
+        out.append(members)
+        remaining = np.setdiff1d(remaining, members)
     return Groups.from_lists(out)
 
 
@@ -96,17 +110,21 @@ def classic_hough(xy: FloatArray, p: HoughParams) -> Groups:
     if xy.shape[0] < p.min_plots:
         return Groups.empty()
     centre = _centre(xy)
-    acc = accumulate(xy, np.ones(xy.shape[0]), centre, p)
-    ti, ri, _ = peaks(acc, p)
-    th, rh = acc.line(ti, ri)
-    rel = xy - centre
-    dist = np.abs(rel[None, :, 0] * np.cos(th)[:, None] + rel[None, :, 1] * np.sin(th)[:, None] - rh[:, None])
-    return _claim(dist <= p.member_band_m, p.min_plots)
+
+    def members(rem: IntArray) -> IntArray | None:
+        acc = accumulate(xy[rem], np.ones(rem.shape[0]), centre, p)
+        ti, ri, _ = peaks(acc, p)
+        if ti.shape[0] == 0:
+            return None
+        th, rh = acc.line(ti[:1], ri[:1])
+        rel = xy[rem] - centre
+        dist = np.abs(rel[:, 0] * np.cos(th[0]) + rel[:, 1] * np.sin(th[0]) - rh[0])
+        return rem[dist <= p.member_band_m]
+
+    return _sequential(xy.shape[0], p.min_plots, p.max_lines, members)
 
 
-def probability_grid(
-    xy: FloatArray, cov: FloatArray, p: HoughParams
-) -> tuple[FloatArray, FloatArray]:
+def probability_grid(xy: FloatArray, cov: FloatArray, p: HoughParams) -> tuple[FloatArray, FloatArray]:
     """Eq. (2)-(6): summed cell probabilities; returns (cell centres (m, 2), probabilities (m,)).
 
     Only non-empty cells are returned (a sparse form of the matrix P of Eq. 6).
@@ -159,18 +177,21 @@ def pg_hough(xy: FloatArray, cov: FloatArray, p: HoughParams) -> Groups:
     """Probabilistic-grid Hough transform: preliminary tracks (Table 1 baseline, stage 1)."""
     if xy.shape[0] < p.min_plots:
         return Groups.empty()
-    centres, prob = probability_grid(xy, cov, p)
     centre = _centre(xy)
-    acc = accumulate(centres, prob, centre, p)
-    ti, ri, _ = peaks(acc, p)
-    th, rh = acc.line(ti, ri)
-    rel = xy - centre
-    cth, sth = np.cos(th), np.sin(th)
-    dist = np.abs(rel[None, :, 0] * cth[:, None] + rel[None, :, 1] * sth[:, None] - rh[:, None])
-    # Each plot's sigma along the line normal n = (cos, sin): sqrt(n^T C n).
-    var_n = (
-        cov[None, :, 0, 0] * cth[:, None] ** 2
-        + 2 * cov[None, :, 0, 1] * (cth * sth)[:, None]
-        + cov[None, :, 1, 1] * sth[:, None] ** 2
-    )
-    return _claim(dist <= p.member_sigma * np.sqrt(var_n), p.min_plots)
+
+    def members(rem: IntArray) -> IntArray | None:
+        centres, prob = probability_grid(xy[rem], cov[rem], p)  # Eq. (2)-(6) of remaining plots
+        acc = accumulate(centres, prob, centre, p)
+        ti, ri, _ = peaks(acc, p)
+        if ti.shape[0] == 0:
+            return None
+        th, rh = acc.line(ti[:1], ri[:1])
+        c, s = float(np.cos(th[0])), float(np.sin(th[0]))
+        rel = xy[rem] - centre
+        dist = np.abs(rel[:, 0] * c + rel[:, 1] * s - rh[0])
+        cv = cov[rem]
+        # Each plot's sigma along the line normal n = (cos, sin): sqrt(n^T C n).
+        var_n = cv[:, 0, 0] * c * c + 2 * cv[:, 0, 1] * c * s + cv[:, 1, 1] * s * s
+        return rem[dist <= p.member_sigma * np.sqrt(var_n)]
+
+    return _sequential(xy.shape[0], p.min_plots, p.max_lines, members)

@@ -129,6 +129,9 @@ class HoughParams:
     peak_neighbourhood: int = 3
     """Peaks are local maxima over ``peak_neighbourhood x peak_neighbourhood`` cells."""
 
+    max_lines: int = 200
+    """At most this many lines are extracted per call (sequential extraction)."""
+
 
 @dataclass(frozen=True)
 class ClusterParams:

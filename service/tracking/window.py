@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 
 from service.tracking.base import PlotColumns
@@ -10,37 +12,61 @@ from service.tracking.base import PlotColumns
 class PlotWindow:
     """Plots of one radar not (yet) used by a track, over the last ``window_s`` of data time.
 
-    Appending keeps arrival order; pruning drops every plot older than
-    ``newest_time - window_s``, where ``newest_time`` is the latest batch ``time_s`` seen
-    (the radar's own data clock, never the wall clock).
+    Pruning drops every plot older than ``newest_time - window_s``, where ``newest_time`` is
+    the latest batch ``time_s`` seen (the radar's own data clock, never the wall clock).
+
+    Batches are kept as chunks and joined only when :attr:`plots` is read, so appending a
+    batch costs O(batch), not O(window): raw ingest stays fast however long the window.
     """
 
     def __init__(self, window_s: float) -> None:
         if not window_s > 0:
             raise ValueError(f"window_s must be > 0, got {window_s!r}")
         self.window_s = float(window_s)
-        self._plots = PlotColumns.empty()
+        self._chunks: deque[PlotColumns] = deque()
+        self._count = 0
+        self._joined: PlotColumns | None = PlotColumns.empty()
         self.newest_time_s = -np.inf
 
     def __len__(self) -> int:
-        return len(self._plots)
+        return self._count
 
     @property
     def plots(self) -> PlotColumns:
-        return self._plots
+        """All plots in the window, in arrival order."""
+        if self._joined is None:
+            self._joined = PlotColumns.concat(list(self._chunks))
+            self._chunks = deque([self._joined]) if len(self._joined) else deque()
+        return self._joined
 
     def extend(self, plots: PlotColumns, time_s: float) -> None:
         """Add a batch's plots and advance the data clock to ``time_s``, then prune."""
         if len(plots):
-            self._plots = PlotColumns.concat([self._plots, plots])
+            self._chunks.append(plots)
+            self._count += len(plots)
+            self._joined = None
         self.newest_time_s = max(self.newest_time_s, float(time_s))
         self.prune()
 
     def replace(self, plots: PlotColumns) -> None:
         """Keep exactly ``plots`` (e.g. after an initiator consumed some of them)."""
-        self._plots = plots
+        self._chunks = deque([plots]) if len(plots) else deque()
+        self._count = len(plots)
+        self._joined = plots
 
     def prune(self) -> None:
-        keep = self._plots.time_s >= self.newest_time_s - self.window_s
-        if not np.all(keep):
-            self._plots = self._plots.take(keep)
+        cutoff = self.newest_time_s - self.window_s
+        changed = False
+        kept: deque[PlotColumns] = deque()
+        for chunk in self._chunks:
+            if chunk.time_s.size and chunk.time_s.min() < cutoff:
+                keep = chunk.time_s >= cutoff
+                self._count -= int(np.count_nonzero(~keep))
+                changed = True
+                if keep.any():
+                    kept.append(chunk.take(keep))
+            else:
+                kept.append(chunk)
+        if changed:
+            self._chunks = kept
+            self._joined = None

@@ -1,0 +1,148 @@
+"""Initiators on hand-built cases, and vectorised forms against plain references."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.tracking.clustering import velocity_cluster, velocity_cluster_reference
+from service.tracking.groups import Groups
+from service.tracking.hough import classic_hough, pg_hough
+from service.tracking.initiators import cluster_groups, location_error
+from service.tracking.logic import logic_initiate, resolve_conflicts
+from service.tracking.measurement import Measurements
+from service.tracking.params import ClusterParams, HoughParams, LogicParams, TrackerParams
+
+HP = HoughParams(
+    rho_step_m=80.0, cell_m=20.0, min_votes=5.0, member_sigma=3.0, member_band_m=80.0, min_plots=5
+)
+CP = ClusterParams(delta_v_mps=30.0, lam=1.0, eta=1.0, merge_overlap=3, min_plots=5)
+SIG = 30.0
+
+
+def _plane(points: list[tuple[np.ndarray, np.ndarray]], rng: np.random.Generator):
+    xy = np.concatenate([p for p, _ in points])
+    t = np.concatenate([q for _, q in points])
+    xy = xy + rng.normal(0, SIG, xy.shape)
+    cov = np.tile(np.eye(2) * SIG**2, (xy.shape[0], 1, 1))
+    lab = np.concatenate([np.full(q.shape[0], k) for k, (_, q) in enumerate(points)])
+    return xy, cov, t, lab
+
+
+def _line(x0, y0, vx, vy, t0, t1, dt=0.5):
+    t = np.arange(t0, t1 + 1e-9, dt)
+    return np.stack([x0 + vx * (t - t0), y0 + vy * (t - t0)], axis=1), t
+
+
+def _labels(groups: Groups, lab: np.ndarray) -> list[set[int]]:
+    return [set(np.unique(lab[g]).tolist()) for g in groups.to_lists()]
+
+
+def _vc(xy, cov, t, hp=HP):
+    prelim = pg_hough(xy, cov, hp)
+    return prelim, cluster_groups(prelim, t, xy, location_error(cov), TrackerParams(cluster=CP))
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known limit of Steps 5-7 as published: A_ik sets with k on the other target absorb it "
+    "through the Step 7 merge (see report); the logic initiator splits this case",
+)
+def test_two_targets_on_one_line_at_different_times_are_split_by_velocity_clustering() -> None:
+    rng = np.random.default_rng(3)
+    xy, cov, t, lab = _plane([_line(0, 0, 300, 0, 0, 10), _line(0, 0, 300, 0, 10, 20)], rng)
+    prelim, vc = _vc(xy, cov, t)
+    assert prelim.count == 1 and _labels(prelim, lab) == [{0, 1}]  # Hough alone: one line
+    assert sorted(map(sorted, _labels(vc, lab))) == [[0], [1]]
+    assert classic_hough(xy, HP).count == 1
+
+
+def test_crossing_targets_give_two_tracks() -> None:
+    rng = np.random.default_rng(4)
+    xy, cov, t, lab = _plane([_line(0, 0, 300, 100, 0, 10), _line(0, 1000, 300, -100, 0, 10)], rng)
+    _, vc = _vc(xy, cov, t)
+    labels = _labels(vc, lab)
+    assert len(labels) == 2
+    for g in vc.to_lists():  # each track mostly one target
+        assert np.max(np.bincount(lab[g])) >= 0.8 * g.shape[0]
+
+
+def test_clutter_only_gives_no_track_hough_velocity() -> None:
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(0, 3_000, (60, 2))
+    t = rng.uniform(0, 20, 60)
+    cov = np.tile(np.eye(2) * SIG**2, (60, 1, 1))
+    _, vc = _vc(xy, cov, t)
+    assert vc.count == 0
+
+
+def _meas3(xyz: np.ndarray, t: np.ndarray, sig: float) -> Measurements:
+    return Measurements(t, xyz, np.tile(np.eye(3) * sig**2, (t.shape[0], 1, 1)))
+
+
+def test_logic_crossing_targets_and_clutter_only() -> None:
+    rng = np.random.default_rng(6)
+    scan = 4.0
+    t = np.array([0.0, 4.0, 8.0])
+    a = np.stack([-1200 + 300 * t, 0 * t, 5000 + 0 * t], axis=1)
+    b = np.stack([0 * t, -1500 + 300 * t, 5000 + 0 * t], axis=1)  # crosses a's path at t = 5 s
+    xyz = np.concatenate([a, b]) + rng.normal(0, 50, (6, 3))
+    g = logic_initiate(_meas3(xyz, np.concatenate([t, t]), 50.0), LogicParams(), scan)
+    assert sorted(sorted(x.tolist()) for x in g.to_lists()) == [[0, 1, 2], [3, 4, 5]]
+    # Clutter only: 30 plots per scan over 200 km x 200 km x 10 km, 3 scans -> nothing.
+    n = 90
+    cl = np.stack([rng.uniform(-1e5, 1e5, n), rng.uniform(-1e5, 1e5, n), rng.uniform(0, 1e4, n)], axis=1)
+    tc = np.repeat([0.0, 4.0, 8.0], 30)
+    assert logic_initiate(_meas3(cl, tc, 200.0), LogicParams(), scan).count == 0
+
+
+def test_logic_two_targets_on_one_line_at_different_times() -> None:
+    t = np.array([0.0, 4.0, 8.0])
+    a = np.stack([300 * t, 0 * t, 0 * t + 3000], axis=1)
+    b = np.stack([300 * (t + 12.0), 0 * t, 0 * t + 3000], axis=1)  # same line, 12 s later
+    g = logic_initiate(
+        _meas3(np.concatenate([a, b]), np.concatenate([t, t + 12.0]), 30.0), LogicParams(), 4.0
+    )
+    assert sorted(sorted(x.tolist()) for x in g.to_lists()) == [[0, 1, 2], [3, 4, 5]]
+
+
+def test_velocity_cluster_matches_reference() -> None:
+    rng = np.random.default_rng(7)
+    for trial in range(6):
+        xy, _cov, t, _ = _plane([_line(0, 0, 300, 0, 0, 6, 1.0), _line(0, 500, 250, 0, 0, 6, 1.0)], rng)
+        extra = rng.uniform(0, 2000, (4, 2))
+        xy = np.concatenate([xy, extra])
+        t = np.concatenate([t, rng.uniform(0, 6, 4)])
+        delta = np.full(t.shape[0], SIG * np.sqrt(2)) * rng.uniform(0.8, 1.2, t.shape[0])
+        p = ClusterParams(
+            delta_v_mps=40.0, lam=1.0 + trial % 3, eta=1.0 + 0.5 * (trial % 2), merge_overlap=2 + trial % 2
+        )
+        fast = sorted(tuple(x.tolist()) for x in velocity_cluster(t, xy, delta, p))
+        ref = sorted(tuple(x.tolist()) for x in velocity_cluster_reference(t, xy, delta, p))
+        assert fast == ref
+
+
+def test_resolve_conflicts_matches_sequential_greedy() -> None:
+    rng = np.random.default_rng(8)
+    for _ in range(20):
+        members = rng.integers(0, 30, (40, 3))
+        cost = rng.random(40)
+        got = set(resolve_conflicts(members, cost, 30).tolist())
+        used: set[int] = set()
+        want = set()
+        for k in np.lexsort((np.arange(40), cost)):
+            if not used & set(members[k].tolist()):
+                want.add(int(k))
+                used |= set(members[k].tolist())
+        assert got == want
+
+
+@pytest.mark.xfail(
+    strict=True, reason="goal not reached: Table 1 accuracy >= 98 % / false <= 5 % (see report)"
+)
+def test_table1_goal_hough_velocity_clustering() -> None:
+    from service.evaluation.initiation import run_table1
+
+    rows = {r.method: r for r in run_table1(runs=4, seed=0)}
+    vc = rows["Hough + velocity clustering"]
+    assert vc.accuracy >= 98.0 and vc.false_ratio <= 5.0
