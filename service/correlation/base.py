@@ -88,13 +88,13 @@ class TrackSnapshot:
         if self.site is None:
             return self.pos_cov
         r = self.site.rotation
-        return np.einsum("ji,njk,kl->nil", r, self.pos_cov, r)
+        return r.T @ self.pos_cov @ r
 
     def enu_vel_cov(self) -> FloatArray:
         if self.site is None:
             return self.vel_cov
         r = self.site.rotation
-        return np.einsum("ji,njk,kl->nil", r, self.vel_cov, r)
+        return r.T @ self.vel_cov @ r
 
 
 @dataclass(frozen=True)

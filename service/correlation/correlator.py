@@ -84,6 +84,21 @@ def make_correlator(method: str, params: CorrelationParams) -> Correlator:
     raise ValueError(f"unknown correlation method {method!r}; expected one of {', '.join(METHODS)}")
 
 
+def _lookup_pairs(
+    ids_a: np.ndarray, ids_b: np.ndarray, pair_a: np.ndarray, pair_b: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Row indices in ``ids_a``/``ids_b`` of the pairs ``(pair_a, pair_b)`` present in both."""
+    if len(ids_a) == 0 or len(ids_b) == 0 or len(pair_a) == 0:
+        e = np.empty(0, dtype=np.intp)
+        return e, e.copy()
+    sa = np.argsort(ids_a)
+    sb = np.argsort(ids_b)
+    ia = sa[np.minimum(np.searchsorted(ids_a, pair_a, sorter=sa), len(sa) - 1)]
+    ib = sb[np.minimum(np.searchsorted(ids_b, pair_b, sorter=sb), len(sb) - 1)]
+    ok = (ids_a[ia] == pair_a) & (ids_b[ib] == pair_b)
+    return ia[ok].astype(np.intp), ib[ok].astype(np.intp)
+
+
 class PairCorrelator:
     """Live correlation of radar ``site_a`` with ``site_b`` (None: a bias-free reference source)."""
 
@@ -133,7 +148,10 @@ class PairCorrelator:
             b, extra_b = compensate(raw_b, bb, pb)
             ctx_kw = {"registered": True, "registration_cov_a": extra_a, "registration_cov_b": extra_b}
         conf = self.book.confirmed
-        ctx = DecisionContext(time_s=time_s, **ctx_kw)  # type: ignore[arg-type]
+        ca_idx, cb_idx = _lookup_pairs(
+            a.track_id, b.track_id, self.book.track_a[conf], self.book.track_b[conf]
+        )
+        ctx = DecisionContext(time_s=time_s, confirmed_a=ca_idx, confirmed_b=cb_idx, **ctx_kw)  # type: ignore[arg-type]
         dec = self.correlator.decide(a, b, ctx)
         cost = dec.cost.copy()
         if len(dec) and conf.any():
@@ -157,17 +175,11 @@ class PairCorrelator:
         )
         # Registration rows from the confirmed pairs (raw, uncompensated positions).
         conf = self.book.confirmed
-        sort_a = np.argsort(raw_a.track_id)
-        sort_b = np.argsort(raw_b.track_id)
-        ta, tb = self.book.track_a[conf], self.book.track_b[conf]
-        pa_idx = np.searchsorted(raw_a.track_id, ta, sorter=sort_a)
-        pb_idx = np.searchsorted(raw_b.track_id, tb, sorter=sort_b)
-        pa_idx = sort_a[np.minimum(pa_idx, max(len(sort_a) - 1, 0))] if len(sort_a) else pa_idx
-        pb_idx = sort_b[np.minimum(pb_idx, max(len(sort_b) - 1, 0))] if len(sort_b) else pb_idx
-        if len(sort_a) and len(sort_b):
-            ok = (raw_a.track_id[pa_idx] == ta) & (raw_b.track_id[pb_idx] == tb)
-            if ok.any():
-                self.memory.add(time_s, raw_a, raw_b, pa_idx[ok], pb_idx[ok], prm.registration)
+        pa_idx, pb_idx = _lookup_pairs(
+            raw_a.track_id, raw_b.track_id, self.book.track_a[conf], self.book.track_b[conf]
+        )
+        if len(pa_idx):
+            self.memory.add(time_s, raw_a, raw_b, pa_idx, pb_idx, prm.registration)
         if self.method == "svd-topology" and prm.use_registration and len(self.memory.time):
             self.solution = solve_biases([self.memory], time_s, prm.registration)
         self.last_decisions = dec

@@ -43,7 +43,7 @@ def inv3(s: FloatArray) -> tuple[FloatArray, BoolArray]:
 
 def quad3(r: FloatArray, s_inv: FloatArray) -> FloatArray:
     """``r^T S^-1 r`` for stacks ``r (..., 3)``, ``s_inv (..., 3, 3)``."""
-    return np.einsum("...i,...ij,...j->...", r, s_inv, r)
+    return (r * (s_inv @ r[..., None])[..., 0]).sum(-1)
 
 
 def mahalanobis2_h(

@@ -47,7 +47,10 @@ class RegistrationParams:
     #: Data time (s) confirmed pairs are remembered for (biases vary slowly).
     memory_s: float = 120.0
     #: Cap on remembered pair rows per radar pair (oldest dropped first).
-    max_rows: int = 20_000
+    max_rows: int = 4_000
+    #: At most this many confirmed pairs (evenly spread) are remembered per update: rows of
+    #: one update share the biases, more add little information but cost time.
+    max_rows_per_update: int = 300
     #: Minimum confirmed pairs before a correlator uses its registration.
     min_pairs: int = 6
 
@@ -87,7 +90,7 @@ class BiasSolution:
 def bias_jacobian(site: Site, position: FloatArray) -> FloatArray:
     """``G = R J`` of each ECEF position (n, 3) for that site's polar biases, ``(n, 3, 3)``."""
     r, az, el = site.ecef_to_polar(position)
-    return np.einsum("ij,njk->nik", site.rotation, polar_jacobian(r, az, el))
+    return site.rotation @ polar_jacobian(r, az, el)
 
 
 @dataclass
@@ -111,6 +114,9 @@ class RegistrationMemory:
         ib: np.ndarray,
         params: RegistrationParams,
     ) -> None:
+        if len(ia) > params.max_rows_per_update:
+            pick = np.linspace(0, len(ia) - 1, params.max_rows_per_update).round().astype(int)
+            ia, ib = ia[pick], ib[pick]
         ga = bias_jacobian(self.site_a, a.position[ia])
         gb = (
             bias_jacobian(self.site_b, b.position[ib])
@@ -165,24 +171,26 @@ def solve_biases(
             ka = 3 * col[m.site_a.site_id]
             wk = w * kp[:, None, None]
             ga, gb, d = m.g_a[r], m.g_b[r], m.d[r]
-            h[ka : ka + 3, ka : ka + 3] += np.einsum("kji,kjl,klm->im", ga, wk, ga)
-            g[ka : ka + 3] += np.einsum("kji,kjl,kl->i", ga, wk, d)
+            gat_w = np.swapaxes(ga, 1, 2) @ wk
+            h[ka : ka + 3, ka : ka + 3] += (gat_w @ ga).sum(0)
+            g[ka : ka + 3] += (gat_w @ d[..., None]).sum(0)[:, 0]
             if m.site_b is not None:
                 kb = 3 * col[m.site_b.site_id]
-                cross = np.einsum("kji,kjl,klm->im", ga, wk, gb)
+                gbt_w = np.swapaxes(gb, 1, 2) @ wk
+                cross = (gat_w @ gb).sum(0)
                 h[ka : ka + 3, kb : kb + 3] -= cross
                 h[kb : kb + 3, ka : ka + 3] -= cross.T
-                h[kb : kb + 3, kb : kb + 3] += np.einsum("kji,kjl,klm->im", gb, wk, gb)
-                g[kb : kb + 3] -= np.einsum("kji,kjl,kl->i", gb, wk, d)
+                h[kb : kb + 3, kb : kb + 3] += (gbt_w @ gb).sum(0)
+                g[kb : kb + 3] -= (gbt_w @ d[..., None]).sum(0)[:, 0]
         cov = np.linalg.inv(h)
         bias = cov @ g
         new_keep = []
         for (m, r, (w, ok)), _kp in zip(weights, keep, strict=True):
             ka = 3 * col[m.site_a.site_id]
-            pred = np.einsum("kij,j->ki", m.g_a[r], bias[ka : ka + 3])
+            pred = m.g_a[r] @ bias[ka : ka + 3]
             if m.site_b is not None:
                 kb = 3 * col[m.site_b.site_id]
-                pred = pred - np.einsum("kij,j->ki", m.g_b[r], bias[kb : kb + 3])
+                pred = pred - m.g_b[r] @ bias[kb : kb + 3]
             new_keep.append(ok & (quad3(m.d[r] - pred, w) <= prm.outlier_chi2))
         if all(np.array_equal(a, b) for a, b in zip(new_keep, keep, strict=True)):
             break

@@ -120,6 +120,11 @@ class SvdTopologyParams:
     registered_fallback: bool = True
     #: ... and topology-accepted candidates must also pass it at this (loose) level.
     registered_consistency_alpha: float = 1e-4
+    #: Once registered, a currently confirmed pair that passes the bias-compensated
+    #: chi-square test (position + velocity, at ``alpha_position``) is maintained by that
+    #: test alone, without re-fitting its topology every update (stage 3).  Its competitors
+    #: still get the full topology test, and the assignment's ambiguity margin still applies.
+    maintain_confirmed: bool = True
 
 
 @dataclass(frozen=True)
@@ -204,9 +209,9 @@ def svd_match(
     # 2(a) rotation-tolerant first pairing on the horizontal components.
     ra = np.hypot(za[..., 0], za[..., 1])
     rb = np.hypot(zb[..., 0], zb[..., 1])
-    tha = np.arctan2(za[..., 0], za[..., 1])
-    thb = np.arctan2(zb[..., 0], zb[..., 1])
-    dth = np.abs(np.angle(np.exp(1j * (tha[:, :, None] - thb[:, None, :]))))
+    dot = za[:, :, None, 0] * zb[:, None, :, 0] + za[:, :, None, 1] * zb[:, None, :, 1]
+    crs = za[:, :, None, 0] * zb[:, None, :, 1] - za[:, :, None, 1] * zb[:, None, :, 0]
+    dth = np.abs(np.arctan2(crs, dot))  # angle between the horizontal vectors
     tol = np.radians(prm.pairing_rotation_tolerance_deg)
     tang = np.maximum(dth - tol, 0.0) * 0.5 * (ra[:, :, None] + rb[:, None, :])
     cost0 = np.hypot(ra[:, :, None] - rb[:, None, :], tang)
@@ -245,7 +250,9 @@ def svd_match(
         c = np.where(np.isfinite(fit.scale), fit.scale, 1.0)
         rm = fit.rotation
         r = y - fit.apply(za)
-        s_k = (c**2)[:, None, None, None] * np.einsum("pij,pkjl,pml->pkim", rm, can, rm) + cy  # Section 1.6
+        s_k = (c**2)[:, None, None, None] * (
+            rm[:, None] @ can @ np.swapaxes(rm, 1, 2)[:, None]
+        ) + cy  # Section 1.6
         s_inv, s_ok = inv3(s_k)
         q_k = np.where(w > 0, quad3(np.where(np.isfinite(r), r, 0.0), s_inv), 0.0)
         w_new = w * (q_k <= prm.element_gate_chi2)
@@ -277,7 +284,7 @@ def svd_match(
         va, cva, vb, cvb = velocity
         va_r = va @ rot0.T
         cva_r = rot0 @ cva @ rot0.T
-        rv = vb - c[:, None] * np.einsum("pij,pj->pi", rm, va_r)
+        rv = vb - c[:, None] * (rm @ va_r[..., None])[..., 0]
         sv_inv, sv_ok = inv3((c**2)[:, None, None] * rm @ cva_r @ np.swapaxes(rm, 1, 2) + cvb)
         chi2_vel = np.where(sv_ok, quad3(rv, sv_inv), 0.0)
         vel_ok = chi2_vel <= chi2.ppf(1.0 - prm.alpha_position, 3)
@@ -343,42 +350,69 @@ class SvdTopologyCorrelator(Correlator):
         if a.site is None or b.site is None:
             raise ValueError("svd-topology needs two radar sites")
         ia, ib, _ = candidate_pairs(a.position, b.position, prm.candidates.gate_m)
-        if len(ia) == 0:
+        n = len(ia)
+        if n == 0:
             return Decisions.empty()
-        nbr_a = neighbourhoods(a.enu, prm.topology)
-        nbr_b = neighbourhoods(b.enu, prm.topology)
-        pa, ca, ma = gather_points(a.enu, a.enu_cov(), nbr_a, ia)
-        pb, cb, mb = gather_points(b.enu, b.enu_cov(), nbr_b, ib)
-        m0 = b.site.rotation.T @ a.site.rotation  # Eq. (3)
-        vel = (a.enu_velocity[ia], a.enu_vel_cov()[ia], b.enu_velocity[ib], b.enu_vel_cov()[ib])
-        res = svd_match(pa, ca, ma, pb, cb, mb, m0, prm, velocity=vel)
-        accepted = res.accepted.copy()
-        reason = res.reason.copy()
-        cost = res.cost.copy()
-        statistic = res.statistic.copy()
-        stage = np.where(accepted, 1.0, 0.0)
+        dof = 3 + (3 if prm.use_velocity else 0)
+        q = np.full(n, np.nan)
+        ok = np.zeros(n, dtype=bool)
+        run = np.ones(n, dtype=bool)
         if context.registered:
+            # Stage 2 gate first: on compensated positions (+ velocities) a candidate failing the
+            # loose consistency test could not be accepted anyway, so it skips the topology fit.
             q_pos, q_vel, ok = chi2_pairs(
                 a, b, ia, ib, context.registration_cov_a, context.registration_cov_b
             )
             q = q_pos + (q_vel if prm.use_velocity else 0.0)
-            dof = 3 + (3 if prm.use_velocity else 0)
             if prm.registered_consistency_alpha > 0:
-                inconsistent = accepted & (~ok | (q > chi2.ppf(1.0 - prm.registered_consistency_alpha, dof)))
-                accepted &= ~inconsistent
-                reason = np.where(inconsistent, np.int8(Reason.GATE), reason)
-            if prm.registered_fallback:
-                undecided = np.isin(reason, [Reason.TOO_FEW_NEIGHBOURS, Reason.DEGENERATE_FIT])
-                passed = undecided & ok & (q <= chi2.ppf(1.0 - prm.alpha_position, dof))
-                accepted |= passed
-                reason = np.where(
-                    passed,
-                    np.int8(Reason.ACCEPTED),
-                    np.where(undecided & ~passed & ok, np.int8(Reason.GATE), reason),
-                )
-                cost = np.where(passed, q - dof, cost)
-                statistic = np.where(passed, q / dof, statistic)
-                stage = np.where(passed, 2.0, stage)
+                run = ok & (q <= chi2.ppf(1.0 - prm.registered_consistency_alpha, dof))
+        maintained = np.zeros(n, dtype=bool)
+        if context.registered and prm.maintain_confirmed and len(context.confirmed_a):
+            nb = max(len(b), 1)
+            is_conf = np.isin(ia * nb + ib, context.confirmed_a * nb + context.confirmed_b)
+            maintained = is_conf & ok & (q <= chi2.ppf(1.0 - prm.alpha_position, dof))
+            run &= ~maintained
+        sub = np.flatnonzero(run)
+        nbr_a = neighbourhoods(a.enu, prm.topology)
+        nbr_b = neighbourhoods(b.enu, prm.topology)
+        pa, ca, ma = gather_points(a.enu, a.enu_cov(), nbr_a, ia[sub])
+        pb, cb, mb = gather_points(b.enu, b.enu_cov(), nbr_b, ib[sub])
+        m0 = b.site.rotation.T @ a.site.rotation  # Eq. (3)
+        vel = (
+            a.enu_velocity[ia[sub]],
+            a.enu_vel_cov()[ia[sub]],
+            b.enu_velocity[ib[sub]],
+            b.enu_vel_cov()[ib[sub]],
+        )
+        res = svd_match(pa, ca, ma, pb, cb, mb, m0, prm, velocity=vel)
+
+        def full(x: np.ndarray, fill: float) -> np.ndarray:
+            out = np.full(n, fill, dtype=x.dtype)
+            out[sub] = x
+            return out
+
+        accepted = full(res.accepted, False)
+        reason = full(res.reason, Reason.GATE)
+        cost = full(res.cost, np.inf)
+        statistic = full(res.statistic, np.nan)
+        stage = np.where(accepted, 1.0, 0.0)
+        if context.registered and prm.registered_fallback:
+            undecided = np.isin(reason, [Reason.TOO_FEW_NEIGHBOURS, Reason.DEGENERATE_FIT])
+            passed = undecided & ok & (q <= chi2.ppf(1.0 - prm.alpha_position, dof))
+            accepted |= passed
+            reason = np.where(
+                passed,
+                np.int8(Reason.ACCEPTED),
+                np.where(undecided & ~passed & ok, np.int8(Reason.GATE), reason),
+            )
+            cost = np.where(passed, q - dof, cost)
+            statistic = np.where(passed, q / dof, statistic)
+            stage = np.where(passed, 2.0, stage)
+        accepted |= maintained
+        reason = np.where(maintained, np.int8(Reason.ACCEPTED), reason)
+        cost = np.where(maintained, q - dof, cost)
+        statistic = np.where(maintained, q / dof, statistic)
+        stage = np.where(maintained, 3.0, stage)
         dec = Decisions.build(
             ia,
             ib,
@@ -386,10 +420,10 @@ class SvdTopologyCorrelator(Correlator):
             reason=reason.astype(np.int8),
             cost=cost,
             statistic=statistic,
-            rotation_weight=res.rotation_weight,
-            scale=res.scale,
-            neighbors=res.matched,
+            rotation_weight=full(res.rotation_weight, np.nan),
+            scale=full(res.scale, np.nan),
+            neighbors=full(res.matched, 0),
         )
         dec.extras["stage"] = stage
-        dec.extras["yaw_rad"] = res.yaw_rad
+        dec.extras["yaw_rad"] = full(res.yaw_rad, np.nan)
         return dec

@@ -35,7 +35,7 @@ class TopologyParams:
     #: ... take the nearest ones out to this radius (``radius_m`` disables the extension).
     max_radius_m: float = 60_000.0
     #: Cap on the sequence length (the nearest are kept); bounds the work per candidate.
-    max_neighbours: int = 10
+    max_neighbours: int = 8
 
 
 def neighbourhoods(enu: FloatArray, params: TopologyParams | None = None) -> NDArray[np.intp]:

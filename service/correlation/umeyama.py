@@ -46,8 +46,7 @@ class SimilarityFit:
     def apply(self, x: FloatArray) -> FloatArray:
         """Transform points ``x`` (P, K, 3): ``c M x + t``."""
         return (
-            self.scale[:, None, None] * np.einsum("pij,pkj->pki", self.rotation, x)
-            + self.translation[:, None, :]
+            self.scale[:, None, None] * (x @ np.swapaxes(self.rotation, 1, 2)) + self.translation[:, None, :]
         )
 
 
@@ -72,20 +71,20 @@ def umeyama_batch(
     p, k, _ = x.shape
     w = np.ones((p, k)) if w is None else np.asarray(w, dtype=float)
     wn, mx, my, xc, yc, _ = _weighted_moments(x, y, w)
-    var_x = np.einsum("pk,pkd,pkd->p", wn, xc, xc)
-    var_y = np.einsum("pk,pkd,pkd->p", wn, yc, yc)
-    sigma = np.einsum("pk,pki,pkj->pij", wn, yc, xc)  # Section 1.3 step 1
+    var_x = (wn * (xc * xc).sum(-1)).sum(-1)
+    var_y = (wn * (yc * yc).sum(-1)).sum(-1)
+    sigma = np.swapaxes(wn[..., None] * yc, 1, 2) @ xc  # Section 1.3 step 1
     u, d, vt = np.linalg.svd(sigma)  # step 2
     s = np.ones((p, 3))
     # Step 3, with Umeyama's rank-2 rule: for a rank-deficient Sigma use det(U) det(V).
     s[:, 2] = np.where(np.linalg.det(u) * np.linalg.det(vt) < 0, -1.0, 1.0)
-    rot = np.einsum("pij,pj,pjk->pik", u, s, vt)  # step 4: M = U S V^T
+    rot = (u * s[:, None, :]) @ vt  # step 4: M = U S V^T
     tr_ds = (d * s).sum(axis=1)
     npts = (w > 0).sum(axis=1)
     floor = np.finfo(float).tiny
     valid = (npts >= min_points) & (var_x > floor) & (d[:, 1] > RANK_RTOL * np.maximum(d[:, 0], floor))
     c = np.where(valid, tr_ds / np.where(var_x > floor, var_x, 1.0), np.nan)
-    t = my - c[:, None] * np.einsum("pij,pj->pi", rot, mx)
+    t = my - c[:, None] * (rot @ mx[..., None])[..., 0]
     e2 = var_y - tr_ds**2 / np.where(var_x > floor, var_x, 1.0)
     return SimilarityFit(rot, c, t, np.maximum(e2, 0.0), valid)
 
@@ -151,7 +150,7 @@ def yaw_similarity_batch(
     a = np.einsum("pk,pk->p", wn, xc[..., 0] * yc[..., 0] + xc[..., 1] * yc[..., 1])
     b = np.einsum("pk,pk->p", wn, xc[..., 0] * yc[..., 1] - xc[..., 1] * yc[..., 0])
     var_xh = np.einsum("pk,pk->p", wn, xc[..., 0] ** 2 + xc[..., 1] ** 2)
-    var_y = np.einsum("pk,pkd,pkd->p", wn, yc, yc)
+    var_y = (wn * (yc * yc).sum(-1)).sum(-1)
     yaw_hat = np.arctan2(b, a)
     yaw = yaw_hat if max_yaw_rad is None else np.clip(yaw_hat, -max_yaw_rad, max_yaw_rad)
     npts = (w > 0).sum(axis=1)
@@ -163,10 +162,10 @@ def yaw_similarity_batch(
         c = np.clip(c, 1.0 - max_scale_deviation, 1.0 + max_scale_deviation)
     c = np.where(valid, c, np.nan)
     rot = yaw_matrix(yaw)
-    t = my - c[:, None] * np.einsum("pij,pj->pi", rot, mx)
+    t = my - c[:, None] * (rot @ mx[..., None])[..., 0]
     fit = SimilarityFit(rot, c, t, np.full(p, np.nan), valid)
     resid = y - fit.apply(x)
-    e2 = np.einsum("pk,pkd,pkd->p", wn, resid, resid)
+    e2 = (wn * (resid * resid).sum(-1)).sum(-1)
     return SimilarityFit(rot, c, t, np.where(np.isfinite(e2), e2, var_y), valid), yaw
 
 

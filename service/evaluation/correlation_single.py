@@ -108,7 +108,7 @@ def two_reference_batch(
     setting: Setting,
     neighbours: int = 6,
 ) -> MatchBatch:
-    """Fig. 2 trials: references T1, T2 ``spacing_m`` apart plus ``neighbours`` others; 4 candidates per trial.
+    """Fig. 2 trials: references T1, T2 ``spacing_m`` apart plus ``neighbours`` others; 4 candidates each.
 
     Candidate ``4 t + 2 i + j`` is (A's T_i, B's T_j).
     """
@@ -181,7 +181,7 @@ def time_per_match(
         one = [batch.take(np.array([i])) for i in range(reps)]
         for name, fn in (
             ("svd-topology", lambda x: svd_match(x.pa, x.ca, x.ma, x.pb, x.cb, x.mb, x.m0, svd)),
-            ("basic-topology", lambda x: basic_match(x.pa, x.ca, x.ma, x.pb, x.cb, x.mb, x.m0, basic)),
+            ("basic-topology", lambda x, p=basic: basic_match(x.pa, x.ca, x.ma, x.pb, x.cb, x.mb, x.m0, p)),
         ):
             fn(one[0])
             t0 = time.perf_counter()

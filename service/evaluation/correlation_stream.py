@@ -58,7 +58,7 @@ class StreamScenario:
     extra: dict[str, float] = field(default_factory=dict)
 
 
-def _targets(rng: np.random.Generator, sc: StreamScenario, a: Site) -> tuple[np.ndarray, np.ndarray]:
+def make_targets(rng: np.random.Generator, sc: StreamScenario, a: Site) -> tuple[np.ndarray, np.ndarray]:
     """Initial ENU (radar A frame) positions and velocities of all targets."""
     centre = np.array([100_000.0, 0.0])
     n1, n2 = sc.sparse_targets, sc.cluster_targets
@@ -75,7 +75,7 @@ def _targets(rng: np.random.Generator, sc: StreamScenario, a: Site) -> tuple[np.
     return pos, vel
 
 
-class _RadarTracks:
+class RadarTrackSim:
     """One radar's simulated tracker output."""
 
     def __init__(
@@ -172,10 +172,10 @@ def run_stream(
     sc = sc or StreamScenario()
     rng = np.random.default_rng(seed)
     a, b = make_sites()
-    pos0, vel = _targets(rng, sc, a)
+    pos0, vel = make_targets(rng, sc, a)
     n = pos0.shape[0]
-    ra = _RadarTracks(rng, a, sc.bias_a, n, sc)
-    rb = _RadarTracks(rng, b, sc.bias_b, n, sc)
+    ra = RadarTrackSim(rng, a, sc.bias_a, n, sc)
+    rb = RadarTrackSim(rng, b, sc.bias_b, n, sc)
     tables = []
     for k in range(sc.scans):
         t0 = k * sc.scan_period_s
