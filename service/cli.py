@@ -76,7 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--seed", type=int, default=0)
     ev.add_argument("--only", choices=("initiation", "correlation"), help="run one study only")
 
-    sub.add_parser("healthcheck", help="exit 0 if the local service answers GET /healthz (container HEALTHCHECK)")
+    sub.add_parser(
+        "healthcheck", help="exit 0 if the local service answers GET /healthz (container HEALTHCHECK)"
+    )
     sch = sub.add_parser("schemas", help="write JSON Schemas of every payload into schemas/")
     sch.add_argument("--out", default="schemas", help="output folder (default ./schemas)")
     return parser
@@ -166,8 +168,14 @@ def serve(settings: Settings, demo: argparse.Namespace | None = None) -> int:
         )
     )
     log.info("HTTP side port on http://%s:%d (docs at /docs)", settings.http_host, settings.http_port)
+    # uvicorn handles SIGINT/SIGTERM itself, then re-raises the signal to the handlers it found:
+    # make those no-ops so that a graceful shutdown ends with exit status 0.
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, frame: None)
     server.run()
-    return 0 if getattr(app.state, "stopped", False) or not server.started else 1
+    if not server.started:
+        return 1  # start-up failed (e.g. port in use or Zenoh refused): uvicorn logged why
+    return 0
 
 
 class _DemoExtras:
@@ -207,22 +215,27 @@ class _DemoExtras:
             file=sys.stderr,
         )
 
+    def _line(self, node: Any, rate: float) -> str:
+        st = node.status()
+        batches = sum(r["batches"] for r in st["radars"])
+        plots = sum(r["plots"] for r in st["radars"])
+        tracks = sum(r["tracks_confirmed"] for r in st["radars"])
+        return (
+            f"batches {batches}  plots {plots} ({rate:,.0f}/s)  confirmed tracks {tracks}  "
+            f"pairs {st['pairs_confirmed']} confirmed / {st['pairs_tentative']} tentative  "
+            f"rejected {sum(st['rejected'].values())}  corr p50 {st['correlation']['p50_ms']:.1f} ms"
+        )
+
     def _progress(self, node: Any) -> None:
-        last_plots, last_t = 0, time.monotonic()
+        """One live line on a terminal (rewritten in place), a line every 5 s in a log."""
         tty = sys.stderr.isatty()
+        last_plots, last_t = 0, time.monotonic()
         while not self.stop_event.wait(1.0 if tty else 5.0):
-            st = node.status()
-            batches = sum(r["batches"] for r in st["radars"])
-            plots = sum(r["plots"] for r in st["radars"])
+            plots = sum(r["plots"] for r in node.snapshot.radar_rows)
             now = time.monotonic()
             rate = (plots - last_plots) / max(now - last_t, 1e-6)
             last_plots, last_t = plots, now
-            tracks = sum(r["tracks_confirmed"] for r in st["radars"])
-            line = (
-                f"batches {batches}  plots {plots} ({rate:,.0f}/s)  confirmed tracks {tracks}  "
-                f"pairs {st['pairs_confirmed']} confirmed / {st['pairs_tentative']} tentative  "
-                f"rejected {sum(st['rejected'].values())}  corr p50 {st['correlation']['p50_ms']:.1f} ms"
-            )
+            line = self._line(node, rate)
             print(
                 ("\r" + line + "   ") if tty else line, end="" if tty else "\n", file=sys.stderr, flush=True
             )
@@ -231,7 +244,7 @@ class _DemoExtras:
         self.stop_event.set()
         for t in self.threads:
             t.join(timeout=3.0)
-        print(file=sys.stderr)
+        print(f"\ndemo: stopped; {self._line(node, 0.0)}", file=sys.stderr, flush=True)
 
 
 def simulate_main(args: argparse.Namespace) -> int:

@@ -14,7 +14,6 @@ not freeze the picture); its late batches are still tracked when they come.
 from __future__ import annotations
 
 import heapq
-import json
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterable
@@ -33,6 +32,7 @@ from service.messages import (
     PlotBatch,
     RadarSite,
     RejectionReason,
+    dump_json,
     rejection_reason,
 )
 from service.tracking.base import PlotColumns, Tracker, TrackTable
@@ -180,7 +180,8 @@ class Engine:
         self.radars: dict[str, RadarState] = {}
         self.ais: dict[str, AisState] = {}
         self.rejected: Counter[str] = Counter()
-        self._heap: list[tuple[float, str, int]] = []  # heads of radars' pending queues
+        self._heap: list[tuple[float, str, int]] = []
+        self._first_clock = np.inf  # heads of radars' pending queues
         self._correlation = _CorrelationStage(self.config)
         self.version = 0  # bumps on every state change; snapshots are cached by it
         self._snapshot: Snapshot | None = None
@@ -231,7 +232,7 @@ class Engine:
             "detail": rej.detail,
             "time_s": receive_time_s if receive_time_s is not None else time.time(),
         }
-        return Outgoing(self.keys.errors, json.dumps(body).encode())
+        return Outgoing(self.keys.errors, dump_json(body))
 
     @staticmethod
     def _parse(model: type[Any], payload: bytes, source_id: str) -> Any:
@@ -294,6 +295,11 @@ class Engine:
         if not clocks:
             return -np.inf
         newest = max(clocks)
+        # A radar whose site is known but which has not reported yet holds the others back
+        # from the first data time seen, within the same lag bound.
+        if any(s.last_time_s is None and s.tracker is not None for s in self.radars.values()):
+            self._first_clock = min(self._first_clock, *clocks)
+            clocks.append(self._first_clock)
         live = [c for c in clocks if c >= newest - self.config.max_lag_s]
         return min(live)
 
@@ -306,7 +312,15 @@ class Engine:
             if state.pending:
                 head = state.pending[0]
                 heapq.heappush(self._heap, (head[0], radar_id, head[1]))
-            out.extend(self._process(radar_id, state, plots, clock))
+            try:
+                out.extend(self._process(radar_id, state, plots, clock))
+            except Exception as exc:  # a bug costs this batch's outputs, never the service
+                detail = f"processing failed: {type(exc).__name__}: {exc}"
+                out.append(
+                    self._reject(
+                        self.keys.plots(radar_id), RejectionError("internal", detail, radar_id), clock
+                    )
+                )
         return out
 
     def _process(self, radar_id: str, state: RadarState, plots: PlotColumns, clock: float) -> list[Outgoing]:
@@ -314,14 +328,10 @@ class Engine:
         state.tracker.update(plots, clock)
         state.released_time_s = clock
         tracks = state.tracker.tracks()
-        out = [
-            Outgoing(self.keys.tracks(radar_id), json.dumps(track_batch(radar_id, clock, tracks)).encode())
-        ]
+        out = [Outgoing(self.keys.tracks(radar_id), dump_json(track_batch(radar_id, clock, tracks)))]
         for pair_set in self._correlation.update(radar_id, clock, self.radars):
             out.append(
-                Outgoing(
-                    self.keys.pairs(pair_set["radar_a"], pair_set["radar_b"]), json.dumps(pair_set).encode()
-                )
+                Outgoing(self.keys.pairs(pair_set["radar_a"], pair_set["radar_b"]), dump_json(pair_set))
             )
         self._changed()
         return out
@@ -444,9 +454,9 @@ def pair_set(radar_a: str, radar_b: str, time_s: float, method: str, pairs: Iter
                 "track_b": p.track_b,
                 "status": p.status,
                 "score": float(p.score),
-                "statistic": float(p.statistic),
-                "rotation_weight": float(p.rotation_weight),
-                "scale": float(p.scale),
+                "statistic": _finite_or_none(p.statistic),
+                "rotation_weight": _finite_or_none(p.rotation_weight),
+                "scale": _finite_or_none(p.scale),
                 "neighbors": int(p.neighbors),
                 "hits": int(p.hits),
                 "first_time_s": float(p.first_time_s),
@@ -455,6 +465,11 @@ def pair_set(radar_a: str, radar_b: str, time_s: float, method: str, pairs: Iter
             for p in pairs
         ],
     }
+
+
+def _finite_or_none(x: float) -> float | None:
+    """JSON has no NaN: a quantity the decision did not produce is ``null``."""
+    return float(x) if np.isfinite(x) else None
 
 
 def bias_dict(b: Any) -> dict[str, Any]:

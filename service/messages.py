@@ -7,6 +7,7 @@ validation rules; :func:`rejection_reason` maps a pydantic error onto the contra
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from typing import Annotated, Literal
 
@@ -159,9 +160,12 @@ class Pair(OutModel):
     track_b: str
     status: Literal["tentative", "confirmed"]
     score: Annotated[float, Field(ge=0, le=1)]
-    statistic: float
-    rotation_weight: float
-    scale: float
+    statistic: float | None = Field(description="test statistic of the method; null if none was computed")
+    rotation_weight: float | None = Field(
+        description="weight of the fitted rotation (SVD paper §1.5); null when the decision fitted no "
+        "rotation (e.g. bias-compensated chi-square association of a track with too few neighbours)"
+    )
+    scale: float | None = Field(description="scale of the fitted similarity; null when none was fitted")
     neighbors: int
     hits: int
     first_time_s: float
@@ -239,6 +243,11 @@ class BiasEstimate(OutModel):
     elevation_bias_deg: float
     pairs_used: int
     time_s: float
+
+
+def dump_json(obj: object) -> bytes:
+    """Compact, strict JSON for the wire: a NaN or infinity is a bug, never a payload."""
+    return json.dumps(obj, allow_nan=False, separators=(",", ":")).encode()
 
 
 # -- rejection reasons ---------------------------------------------------------------------

@@ -64,6 +64,15 @@ def client(router: str) -> Iterator[zenoh.Session]:
         session.close()
 
 
+def wait_subscribed(session: zenoh.Session, key: str, timeout: float = 10.0) -> None:
+    """Wait until a subscriber matching ``key`` is known to ``session`` (a put before that is lost)."""
+    publisher = session.declare_publisher(key)
+    try:
+        wait_for(lambda: publisher.matching_status, timeout=timeout)
+    finally:
+        publisher.undeclare()
+
+
 def put_json(session: zenoh.Session, key: str, body: Any) -> None:
     payload = body if isinstance(body, bytes) else json.dumps(body).encode()
     session.put(key, payload, encoding=zenoh.Encoding.APPLICATION_JSON)

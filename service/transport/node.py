@@ -2,8 +2,8 @@
 
 Threads (DESIGN.md "Data flow and threads"):
 
-* Zenoh's threads run the subscriber callbacks, which only put ``(key, bytes, time)`` on a
-  bounded queue.  When the queue is full the callback waits (up to ``put_timeout_s``), which
+* Zenoh's network thread runs the subscriber callbacks (directly, so that samples keep their
+  wire order across keys), which only put ``(key, bytes, time)`` on a bounded queue.  When the queue is full the callback waits (up to ``put_timeout_s``), which
   stalls Zenoh's reader and pushes back to publishers using ``CongestionControl.BLOCK``;
   only if that wait times out is a sample dropped, and every drop is counted (``/status``
   ``queue.dropped``, metric ``topofusion_queue_dropped_total``) and logged.
@@ -26,6 +26,7 @@ import zenoh
 
 from service.engine import Engine, EngineConfig, Outgoing, Snapshot
 from service.keys import Keys
+from service.messages import dump_json
 from service.transport.session import ZenohOptions, open_session
 
 log = logging.getLogger(__name__)
@@ -100,10 +101,19 @@ class ServiceNode:
         if self._session is None:
             self._session = open_session(self.zenoh_options)
         s = self._session
+        # Direct (not "indirect") callbacks: zenoh-python otherwise runs each subscriber's
+        # callback on its own thread, and a site could then reach the queue after the plots
+        # that followed it on the wire.  Run on Zenoh's network thread, the callbacks keep the
+        # wire order across keys, and a full queue pushes back on the link itself.
         self._declared = [
-            s.declare_subscriber(f"{self.keys.prefix}/radar/*/site", self._on_sample),
-            s.declare_subscriber(f"{self.keys.prefix}/radar/*/plots", self._on_sample),
-            s.declare_subscriber(self.keys.ais_inputs, self._on_sample),
+            s.declare_subscriber(key, zenoh.handlers.Callback(self._on_sample, indirect=False))
+            for key in (
+                f"{self.keys.prefix}/radar/*/site",
+                f"{self.keys.prefix}/radar/*/plots",
+                self.keys.ais_inputs,
+            )
+        ]
+        self._declared += [
             s.declare_queryable(self.keys.status, self._on_status_query),
             s.declare_queryable(self.keys.pairs_all, self._on_pairs_query),
         ]
@@ -154,16 +164,14 @@ class ServiceNode:
             log.error("ingest queue full for %.1f s: dropped a sample on %s", self.put_timeout_s, item[0])
 
     def _on_status_query(self, query: zenoh.Query) -> None:
-        query.reply(
-            self.keys.status, json.dumps(self.status()).encode(), encoding=zenoh.Encoding.APPLICATION_JSON
-        )
+        query.reply(self.keys.status, dump_json(self.status()), encoding=zenoh.Encoding.APPLICATION_JSON)
 
     def _on_pairs_query(self, query: zenoh.Query) -> None:
         wanted = query.key_expr
         for ps in self.snapshot.pair_sets(status="all"):
             key = self.keys.pairs(ps["radar_a"], ps["radar_b"])
             if wanted.intersects(zenoh.KeyExpr(key)):
-                query.reply(key, json.dumps(ps).encode(), encoding=zenoh.Encoding.APPLICATION_JSON)
+                query.reply(key, dump_json(ps), encoding=zenoh.Encoding.APPLICATION_JSON)
 
     # -- worker ------------------------------------------------------------------------------
     def _run(self) -> None:

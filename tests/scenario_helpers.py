@@ -1,0 +1,27 @@
+"""Simulated input streams for tests (the real simulator, short scenarios)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+from service.keys import Keys
+from service.scenarios.catalog import get_scenario
+from service.scenarios.simulator import generate
+
+
+def scenario_messages(
+    name: str = "two-radar",
+    duration_s: float = 60.0,
+    seed: int = 1,
+    prefix: str = "fusion",
+    **changes: object,
+) -> list[tuple[str, bytes]]:
+    """``(key, payload)`` of a scenario's sites and batches, in data-time order."""
+    sc = replace(get_scenario(name), duration_s=duration_s, **changes)  # type: ignore[arg-type]
+    keys = Keys(prefix)
+    out = []
+    for m in generate(sc, seed):
+        key = keys.site(m.radar_id) if m.kind == "site" else keys.plots(m.radar_id)
+        out.append((key, json.dumps(m.body).encode()))
+    return out

@@ -1,0 +1,124 @@
+"""The service as an operator runs it: `topofusion run` / `demo` in a subprocess with contract flags."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import httpx
+
+from service.transport.session import ZenohOptions, open_session
+from tests.conftest import free_port, put_json, wait_for, wait_subscribed
+from tests.scenario_helpers import scenario_messages
+
+TOPOFUSION = str(Path(sys.executable).parent / "topofusion")
+
+
+@contextmanager
+def process(args: list[str]) -> Iterator[subprocess.Popen[str]]:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    env = {k: v for k, v in env.items() if not k.startswith("TOPOFUSION_")}
+    proc = subprocess.Popen(
+        [TOPOFUSION, *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
+    )
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()  # only reached when a test failed before stopping it
+            proc.wait(timeout=10)
+
+
+def _http_ready(url: str) -> bool:
+    try:
+        return httpx.get(url + "/readyz", timeout=1).status_code == 200
+    except httpx.HTTPError:
+        return False
+
+
+def _stop(proc: subprocess.Popen[str], sig: signal.Signals) -> tuple[int, float, str]:
+    t0 = time.monotonic()
+    proc.send_signal(sig)
+    out, _ = proc.communicate(timeout=15)
+    return proc.returncode, time.monotonic() - t0, out
+
+
+def test_run_command_ingests_over_zenoh_and_stops_on_sigterm() -> None:
+    zport, hport = free_port(), free_port()
+    listen = f"tcp/127.0.0.1:{zport}"
+    url = f"http://127.0.0.1:{hport}"
+    args = ["run", "--mode", "peer", "--listen", listen, "--http-port", str(hport), "--prefix", "fusion"]
+    with process(args) as proc:
+        wait_for(lambda: _http_ready(url) or proc.poll() is not None, timeout=30)
+        assert proc.poll() is None, proc.stdout.read() if proc.stdout else ""
+        stream = scenario_messages("two-radar", duration_s=20.0)
+        n_batches = sum(k.endswith("/plots") for k, _ in stream)
+        session = open_session(ZenohOptions(mode="client", connect=(listen,)))
+        try:
+            wait_subscribed(session, "fusion/radar/A/plots")
+            wait_subscribed(session, "fusion/radar/A/site")
+            for key, payload in stream:
+                put_json(session, key, payload)
+            put_json(session, "fusion/radar/A/plots", b"not json")
+
+            def counted() -> bool:
+                st = httpx.get(url + "/status", timeout=2).json()
+                return sum(r["batches"] for r in st["radars"]) == n_batches and st["rejected"]
+
+            try:
+                wait_for(counted, timeout=30)
+            except AssertionError:
+                raise AssertionError(httpx.get(url + "/status", timeout=2).text) from None
+            status = httpx.get(url + "/status", timeout=2).json()
+            assert status["zenoh"] == {"mode": "peer", "listen": [listen], "connect": []}
+            assert status["rejected"] == {"malformed_json": 1}
+            replies = list(session.get("fusion/status"))
+            assert json.loads(replies[0].ok.payload.to_bytes())["radars"][0]["batches"] > 0
+        finally:
+            session.close()
+        code, took, out = _stop(proc, signal.SIGTERM)
+    assert code == 0, out
+    assert took < 5.0, f"took {took:.1f} s to stop"
+    assert "Traceback" not in out, out
+
+
+def test_demo_runs_the_simulator_and_stops_on_sigint() -> None:
+    hport = free_port()
+    url = f"http://127.0.0.1:{hport}"
+    args = ["demo", "--listen", f"tcp/127.0.0.1:{free_port()}", "--http-port", str(hport), "--speed", "8"]
+    with process(args) as proc:
+        wait_for(lambda: _http_ready(url) or proc.poll() is not None, timeout=30)
+        assert proc.poll() is None
+
+        def picture() -> bool:
+            st = httpx.get(url + "/status", timeout=2).json()
+            confirmed = sum(r["tracks_confirmed"] for r in st["radars"])
+            return confirmed >= 20 and st["pairs_confirmed"] >= 5
+
+        wait_for(picture, timeout=60, interval=0.5)
+        code, took, out = _stop(proc, signal.SIGINT)
+    assert code == 0, out
+    assert took < 5.0
+    assert "batches" in out and "confirmed tracks" in out  # the progress line
+    assert "Traceback" not in out, out
+
+
+def test_bad_settings_exit_with_a_clear_error() -> None:
+    env = {**os.environ, "TOPOFUSION_HTTP_PORT": "not-a-port"}
+    res = subprocess.run([TOPOFUSION, "run"], capture_output=True, text=True, env=env, timeout=30)
+    assert res.returncode == 2
+    assert "http_port" in res.stderr.lower()
+    res = subprocess.run(
+        [TOPOFUSION, "run", "--sites", "/nonexistent/sites.json", "--http-port", "0"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert res.returncode == 2 and "sites file not found" in res.stderr

@@ -1,0 +1,202 @@
+"""The engine: validation, rejection without side effects, data-time ordering (service/engine.py)."""
+
+from __future__ import annotations
+
+import json
+import random
+from typing import Any
+
+import numpy as np
+import pytest
+
+from service.engine import Engine, EngineConfig
+from service.tracking.base import PlotColumns
+from service.tracking.window import PlotWindow
+from tests.scenario_helpers import scenario_messages
+
+CONFIG = EngineConfig()
+
+
+def run(messages: list[tuple[str, bytes]], config: EngineConfig = CONFIG) -> tuple[Engine, list[Any]]:
+    engine = Engine(config)
+    out = []
+    for key, payload in messages:
+        out.extend(engine.ingest(key, payload, receive_time_s=0.0))
+    out.extend(engine.flush())
+    return engine, out
+
+
+def results(engine: Engine) -> dict[str, Any]:
+    snap = engine.snapshot()
+    return {
+        "tracks": snap.track_batches("all"),
+        "pairs": snap.pair_sets(status="all"),
+        "biases": snap.biases(),
+    }
+
+
+@pytest.fixture(scope="module")
+def stream() -> list[tuple[str, bytes]]:
+    return scenario_messages("two-radar", duration_s=60.0)
+
+
+@pytest.fixture(scope="module")
+def baseline(stream: list[tuple[str, bytes]]) -> tuple[Engine, list[Any]]:
+    return run(stream)
+
+
+def test_stream_produces_tracks_and_outputs(baseline: tuple[Engine, list[Any]]) -> None:
+    engine, out = baseline
+    status = engine.snapshot().status_core()
+    assert [r["radar_id"] for r in status["radars"]] == ["A", "B"]
+    for r in status["radars"]:
+        assert r["batches"] == 120 and r["lost_batches"] == 0 and r["rejected"] == 0
+        assert r["tracks_confirmed"] > 0
+    assert status["rejected"] == {}
+    keys = {o.key for o in out}
+    assert {"fusion/radar/A/tracks", "fusion/radar/B/tracks", "fusion/pairs/A/B"} <= keys
+
+
+def _hostile(stream: list[tuple[str, bytes]]) -> list[tuple[str, bytes]]:
+    """Every rejection reason of the contract, as messages a radar or an attacker could send."""
+    plots_a = next(json.loads(p) for k, p in stream if k.endswith("A/plots"))
+    first_seq = plots_a["seq"]
+
+    def mutate(**changes: Any) -> bytes:
+        body = json.loads(json.dumps(plots_a))
+        for k, v in changes.items():
+            if k in body["plots"]:
+                body["plots"][k] = v
+            else:
+                body[k] = v
+        return json.dumps(body).encode()
+
+    n = len(plots_a["plots"]["time_s"])
+    return [
+        ("fusion/radar/A/plots", b"{definitely not json"),
+        ("fusion/radar/A/plots", b"\x00\xff\xfe"),
+        ("fusion/radar/A/plots", mutate(radar_id="B")),  # body id != key id
+        ("fusion/radar/A/plots", mutate(range_m=[1.0] * (n + 1))),  # unequal columns
+        ("fusion/radar/Z/plots", mutate(radar_id="Z")),  # no site for Z
+        ("fusion/radar/A/plots", mutate(seq=first_seq)),  # replay of an accepted seq
+        ("fusion/radar/A/plots", mutate(seq=10**9, range_m=[float("nan")] * n)),
+        ("fusion/radar/A/plots", mutate(seq=10**9, range_m=[-1.0] * n)),
+        ("fusion/radar/A/plots", b" " * (17 * 1024 * 1024)),
+        (
+            "fusion/radar/A/site",
+            json.dumps({"radar_id": "A", "latitude_deg": 95, "longitude_deg": 0}).encode(),
+        ),
+        ("fusion/ais/coast-1/reports", b"[]"),
+    ]
+
+
+def test_hostile_messages_are_rejected_whole_and_change_nothing(
+    stream: list[tuple[str, bytes]], baseline: tuple[Engine, list[Any]]
+) -> None:
+    hostile = _hostile(stream)
+    mixed: list[tuple[str, bytes]] = []
+    # put the hostile messages after the first accepted A batch, one between each valid message
+    first_a = next(i for i, (k, _) in enumerate(stream) if k.endswith("A/plots"))
+    mixed = stream[: first_a + 1]
+    rest = stream[first_a + 1 :]
+    for i, msg in enumerate(rest):
+        if i < len(hostile):
+            mixed.append(hostile[i])
+        mixed.append(msg)
+    engine, out = run(mixed)
+    base_engine, base_out = baseline
+    assert results(engine) == results(base_engine)
+    valid_out = [o for o in out if o.key != "fusion/errors"]
+    assert valid_out == base_out
+    errors = [json.loads(o.payload) for o in out if o.key == "fusion/errors"]
+    assert len(errors) == len(hostile)
+    assert {e["reason"] for e in errors} == {
+        "malformed_json",
+        "schema",
+        "unknown_radar",
+        "duplicate_seq",
+        "non_finite",
+        "out_of_range",
+        "too_large",
+    }
+    rejected = engine.snapshot().status_core()["rejected"]
+    assert sum(rejected.values()) == len(hostile)
+    assert engine.radars["A"].batches == base_engine.radars["A"].batches
+    assert "Z" not in engine.radars and "coast-1" not in engine.ais
+
+
+def _interleave(stream: list[tuple[str, bytes]], seed: int) -> list[tuple[str, bytes]]:
+    """Another arrival order: sites first, each radar's batches in order, radars interleaved at random."""
+    rng = random.Random(seed)
+    queues: dict[str, list[tuple[str, bytes]]] = {}
+    out = [m for m in stream if m[0].endswith("/site")]
+    for key, payload in stream:
+        if key.endswith("/plots"):
+            queues.setdefault(key.split("/")[2], []).append((key, payload))
+    while queues:
+        rid = rng.choice(sorted(queues))
+        out.append(queues[rid].pop(0))
+        if not queues[rid]:
+            del queues[rid]
+    return out
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_results_do_not_depend_on_arrival_interleaving(
+    stream: list[tuple[str, bytes]], baseline: tuple[Engine, list[Any]], seed: int
+) -> None:
+    shuffled = _interleave(stream, seed)
+    assert shuffled != stream
+    engine, out = run(shuffled)
+    assert results(engine) == results(baseline[0])
+    assert out == baseline[1]
+
+
+def test_sequence_gaps_count_lost_batches(stream: list[tuple[str, bytes]]) -> None:
+    dropped = {i for i, (k, _) in enumerate(stream) if k.endswith("B/plots")}
+    dropped = set(sorted(dropped)[10:13])  # three consecutive B batches never arrive
+    engine, _ = run([m for i, m in enumerate(stream) if i not in dropped])
+    assert engine.radars["B"].lost_batches == 3
+    assert engine.radars["A"].lost_batches == 0
+
+
+def test_plots_before_site_are_unknown_radar_then_accepted(stream: list[tuple[str, bytes]]) -> None:
+    sites = [m for m in stream if m[0].endswith("/site")]
+    plots = [m for m in stream if m[0].endswith("/plots")]
+    engine = Engine(CONFIG)
+    out = engine.ingest(*plots[0])
+    assert json.loads(out[0].payload)["reason"] == "unknown_radar"
+    for m in sites:
+        engine.ingest(*m)
+    engine.ingest(*plots[0])
+    assert engine.radars[plots[0][0].split("/")[2]].batches == 1
+
+
+def test_silent_radar_stops_holding_back_the_others(stream: list[tuple[str, bytes]]) -> None:
+    # B goes silent after 5 s of data time; A's batches must still be processed.
+    engine = Engine(EngineConfig(max_lag_s=10.0))
+    for key, payload in stream:
+        body = json.loads(payload)
+        if key.endswith("B/plots") and body["time_s"] > 1_763_769_605.0:
+            continue
+        engine.ingest(key, payload)
+    a, b = engine.radars["A"], engine.radars["B"]
+    assert b.released_time_s is not None and b.released_time_s <= 1_763_769_605.0
+    assert a.released_time_s is not None and a.released_time_s >= a.last_time_s - 1e-9  # nothing held
+
+
+def test_plot_window_keeps_data_time_span() -> None:
+    window = PlotWindow(window_s=10.0)
+    for t in range(0, 30, 2):
+        n = 3
+        cols = PlotColumns(
+            np.full(n, float(t)),
+            np.full(n, 1e4),
+            np.zeros(n),
+            np.zeros(n),
+            np.full(n, np.nan),
+            np.array([None] * n, dtype=object),
+        )
+        window.extend(cols, time_s=t + 1.0)
+    assert window.plots.time_s.min() >= 29.0 - 10.0
+    assert len(window) == 3 * 5 == len(window.plots)  # newest 29: cutoff 19 keeps t = 20, 22, .., 28

@@ -1,0 +1,93 @@
+"""The running service in-process: real Zenoh (router + clients) and real HTTP."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import zenoh
+
+from service.engine import EngineConfig
+from tests.conftest import put_json, running_service, wait_for, wait_subscribed
+from tests.scenario_helpers import scenario_messages
+
+
+def _radar(status: dict[str, Any], rid: str) -> dict[str, Any]:
+    return next(r for r in status["radars"] if r["radar_id"] == rid)
+
+
+def test_ingest_over_zenoh_reported_by_http_queryables_and_metrics(
+    router: str, client: zenoh.Session
+) -> None:
+    stream = scenario_messages("two-radar", duration_s=40.0)
+    errors: list[dict[str, Any]] = []
+    tracks_seen: set[str] = set()
+    sub_err = client.declare_subscriber(
+        "fusion/errors", lambda s: errors.append(json.loads(s.payload.to_bytes()))
+    )
+    sub_trk = client.declare_subscriber("fusion/radar/*/tracks", lambda s: tracks_seen.add(str(s.key_expr)))
+    with running_service(router) as svc:
+        assert svc.http.get("/healthz").json() == {"status": "ok"}
+        assert svc.http.get("/readyz").json() == {"status": "ready"}
+        wait_subscribed(client, "fusion/radar/A/plots")
+        wait_subscribed(client, "fusion/radar/A/site")
+        for key, payload in stream:
+            put_json(client, key, payload)
+        n_plots = sum(len(json.loads(p)["plots"]["time_s"]) for k, p in stream if k.endswith("/plots"))
+        n_batches = sum(k.endswith("/plots") for k, _ in stream)
+
+        def all_in() -> bool:
+            st = svc.http.get("/status").json()
+            return sum(r["batches"] for r in st["radars"]) == n_batches
+
+        wait_for(all_in, timeout=30)
+        status = svc.http.get("/status").json()
+        assert sum(r["plots"] for r in status["radars"]) == n_plots
+        assert status["prefix"] == "fusion" and status["method"] == "svd-topology"
+        assert status["queue"]["dropped"] == 0
+        assert _radar(status, "A")["tracks_confirmed"] > 0
+
+        # the status queryable answers the same counters
+        replies = list(client.get("fusion/status"))
+        assert len(replies) == 1 and replies[0].ok is not None
+        q_status = json.loads(replies[0].ok.payload.to_bytes())
+        assert _radar(q_status, "A")["plots"] == _radar(status, "A")["plots"]
+
+        radars = svc.http.get("/radars").json()
+        assert [r["radar_id"] for r in radars] == ["A", "B"]
+        assert radars[0]["latitude_deg"] == 31.2 and radars[0]["batches"] > 0
+
+        trk = svc.http.get("/radars/A/tracks").json()
+        assert trk["radar_id"] == "A" and trk["tracks"]
+        assert all(t["status"] == "confirmed" for t in trk["tracks"])
+        assert svc.http.get("/radars/A/tracks", params={"status": "all"}).status_code == 200
+        assert svc.http.get("/radars/nope/tracks").status_code == 404
+        assert svc.http.get("/radars/A/tracks", params={"status": "bogus"}).status_code == 422
+        wait_for(lambda: {"fusion/radar/A/tracks", "fusion/radar/B/tracks"} <= tracks_seen)
+
+        pairs = svc.http.get("/pairs", params={"radar_a": "B", "radar_b": "A", "status": "all"}).json()
+        assert [(p["radar_a"], p["radar_b"]) for p in pairs] == [("A", "B")]
+        replies = list(client.get("fusion/pairs/**"))
+        assert [str(r.ok.key_expr) for r in replies if r.ok] == ["fusion/pairs/A/B"]
+        assert isinstance(svc.http.get("/biases").json(), list)
+
+        metrics = svc.http.get("/metrics").text
+        assert f'topofusion_plots_total{{radar="A"}} {float(_radar(status, "A")["plots"])}' in metrics
+        assert "topofusion_queue_dropped_total 0.0" in metrics
+
+        # a hostile message between valid ones: rejected, published, counted; nothing lost
+        put_json(client, "fusion/radar/A/plots", b"{oops")
+        wait_for(lambda: errors)
+        assert errors[0]["reason"] == "malformed_json" and errors[0]["radar_id"] == "A"
+        wait_for(lambda: svc.http.get("/status").json()["rejected"] == {"malformed_json": 1})
+        assert 'topofusion_rejected_total{reason="malformed_json"} 1.0' in svc.http.get("/metrics").text
+    sub_err.undeclare()
+    sub_trk.undeclare()
+
+
+def test_lifespan_opens_and_closes_the_node(router: str) -> None:
+    with running_service(router, EngineConfig(prefix="other")) as svc:
+        node = svc.node
+        assert node.ready
+        assert svc.http.get("/status").json()["prefix"] == "other"
+    assert not node.ready  # session closed and worker joined by the lifespan's shutdown
