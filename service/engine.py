@@ -412,10 +412,11 @@ class _CorrelationStage:
                 continue
             self.next_due[key] = time_s + self.config.correlation_interval_s
             a, b = radars[key[0]], radars[key[1]]
+            assert a.tracker is not None and b.tracker is not None
+            assert a.geometry is not None and b.geometry is not None
             corr = self.correlators.get(key)
             if corr is None:
                 corr = self.correlators[key] = PairCorrelator(self.config.method, a.geometry, b.geometry)
-            assert a.tracker is not None and b.tracker is not None
             corr.update(a.tracker.tracks(), b.tracker.tracks(), time_s)
             self.last_time[key] = time_s
             self.updates += 1
