@@ -87,6 +87,12 @@ def add_replay_arguments(parser: argparse.ArgumentParser) -> None:
     off.add_argument("--method", choices=METHOD_NAMES, help="correlation method (default svd-topology)")
     off.add_argument("--window", type=_positive, metavar="S", help="sliding window, seconds of data time")
     off.add_argument("--sites", metavar="FILE", help="JSON file with a list of RadarSite")
+    off.add_argument(
+        "--compare",
+        action="store_true",
+        help="compare the confirmed tracks and pairs with the service's last outputs in the recording "
+        "(exit status 1 when they differ)",
+    )
 
 
 @contextlib.contextmanager
@@ -229,4 +235,20 @@ def _offline_main(args: argparse.Namespace, prefix: str, options: ReplayOptions)
     )
     if result.damage:
         print(f"WARNING: {result.damage}; replayed what it holds up to there", file=sys.stderr, flush=True)
+    if getattr(args, "compare", False):
+        from service.recording.offline import compare_with_recording
+
+        cmp = compare_with_recording(result, args.file, prefix)
+        verdict = "IDENTICAL" if cmp.identical else f"DIFFERENT ({len(cmp.differences)} differences)"
+        print(
+            f"compare with the recorded outputs: tracks {cmp.recorded_tracks} recorded / "
+            f"{cmp.replayed_tracks} replayed, pairs {cmp.recorded_pairs} recorded / "
+            f"{cmp.replayed_pairs} replayed: {verdict}",
+            file=sys.stderr,
+            flush=True,
+        )
+        for line in cmp.differences[:20]:
+            print(f"  {line}", file=sys.stderr)
+        if not cmp.identical:
+            return 1
     return 0

@@ -105,3 +105,71 @@ def replay_offline(
 
 def write_result(result: OfflineResult, out: str | Path) -> None:
     Path(out).write_text(json.dumps(result.to_json(), indent=1, sort_keys=True) + "\n", encoding="utf-8")
+
+
+@dataclass
+class Comparison:
+    """Confirmed tracks and pairs of a replay against the service's last outputs in a recording."""
+
+    recorded_tracks: int
+    replayed_tracks: int
+    recorded_pairs: int
+    replayed_pairs: int
+    differences: list[str]
+
+    @property
+    def identical(self) -> bool:
+        return not self.differences
+
+
+def recorded_final_outputs(path: str | Path, prefix: str = "fusion") -> dict[str, list[dict[str, Any]]]:
+    """The last ``TrackBatch`` per radar and ``PairSet`` per radar pair the service published."""
+    last: dict[str, dict[str, Any]] = {}
+    options = ReplayOptions(speed=0, include_outputs=True)
+    with RecordingReader(path, prefix) as reader:
+        plan = plan_replay(reader, prefix, options)
+        for message in reader.messages(plan.channels, plan.start_ns, plan.end_ns):
+            if message.kind in ("tracks", "pairs"):
+                last[message.key] = json.loads(message.payload)
+    tracks = [v for k, v in sorted(last.items()) if k.endswith("/tracks")]
+    pairs = [v for k, v in sorted(last.items()) if "/pairs/" in k]
+    return {"tracks": tracks, "pairs": pairs}
+
+
+def _confirmed_tracks(batches: list[dict[str, Any]]) -> dict[str, str]:
+    return {
+        t["track_id"]: json.dumps(t, sort_keys=True)
+        for b in batches
+        for t in b["tracks"]
+        if t["status"] == "confirmed"
+    }
+
+
+def _confirmed_pairs(sets: list[dict[str, Any]]) -> dict[tuple[str, str, str, str], str]:
+    return {
+        (s["radar_a"], s["radar_b"], p["track_a"], p["track_b"]): json.dumps(p, sort_keys=True)
+        for s in sets
+        for p in s["pairs"]
+        if p["status"] == "confirmed"
+    }
+
+
+def compare_with_recording(result: OfflineResult, path: str | Path, prefix: str = "fusion") -> Comparison:
+    """Exact comparison (every field, floats bit for bit) of confirmed tracks and pairs.
+
+    Meaningful when the recording holds the service's final outputs: stop the service (it
+    flushes and publishes its last tracks and pairs) before stopping the recorder.
+    """
+    recorded = recorded_final_outputs(path, prefix)
+    rec_t, rep_t = _confirmed_tracks(recorded["tracks"]), _confirmed_tracks(result.tracks)
+    rec_p, rep_p = _confirmed_pairs(recorded["pairs"]), _confirmed_pairs(result.pairs)
+    diffs: list[str] = []
+    for name, rec, rep in (("track", rec_t, rep_t), ("pair", rec_p, rep_p)):
+        for k in sorted(set(rec) - set(rep), key=str):
+            diffs.append(f"confirmed {name} {k} recorded but not replayed")
+        for k in sorted(set(rep) - set(rec), key=str):
+            diffs.append(f"confirmed {name} {k} replayed but not recorded")
+        for k in sorted(set(rec) & set(rep), key=str):
+            if rec[k] != rep[k]:  # type: ignore[index]
+                diffs.append(f"confirmed {name} {k} differs")
+    return Comparison(len(rec_t), len(rep_t), len(rec_p), len(rep_p), diffs)
