@@ -116,8 +116,15 @@ class PairBook:
         scale: FloatArray,
         neighbors: NDArray[np.int64],
     ) -> None:
-        """Score one update: ``chosen_*`` are this update's one-to-one single decisions."""
+        """Score one update: ``chosen_*`` are this update's one-to-one single decisions.
+
+        Non-finite statistics are stored as finite placeholders (statistic 0, weight and scale
+        1) so that every published field is valid JSON.
+        """
         prm = self.params
+        statistic = np.nan_to_num(np.asarray(statistic, dtype=float), nan=0.0, posinf=1e6, neginf=0.0)
+        rotation_weight = np.nan_to_num(np.asarray(rotation_weight, dtype=float), nan=1.0)
+        scale = np.nan_to_num(np.asarray(scale, dtype=float), nan=1.0)
         book_keys = _keys(self.track_a, self.track_b)
         new_keys = _keys(chosen_a, chosen_b)
         hit = np.isin(book_keys, new_keys)

@@ -100,7 +100,7 @@ class SvdTopologyParams:
     #: the full model needs 3 non-collinear).
     min_matched: int = 2
     #: Minimum paired neighbours as a fraction of the shorter sequence.
-    min_match_fraction: float = 0.5
+    min_match_fraction: float = 0.6
     #: Rotation the first pairing tolerates for free (beyond it, tangential mismatch counts).
     pairing_rotation_tolerance_deg: float = 6.0
     #: Gate (m) of the first, rotation-tolerant pairing.
@@ -420,8 +420,9 @@ class SvdTopologyCorrelator(Correlator):
             reason=reason.astype(np.int8),
             cost=cost,
             statistic=statistic,
-            rotation_weight=full(res.rotation_weight, np.nan),
-            scale=full(res.scale, np.nan),
+            # Stage 2/3 decisions fit no topology: after compensation the transform is the identity.
+            rotation_weight=np.where(stage >= 2, 1.0, full(res.rotation_weight, np.nan)),
+            scale=np.where(stage >= 2, 1.0, full(res.scale, np.nan)),
             neighbors=full(res.matched, 0),
         )
         dec.extras["stage"] = stage

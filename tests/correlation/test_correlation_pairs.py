@@ -1,0 +1,70 @@
+"""The M-of-N pair book."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.correlation.pairs import PairBook, PairBookParams
+
+
+def _upd(
+    book: PairBook, t: float, pairs: list[tuple[str, str]], present_a=("a1", "a2"), present_b=("b1", "b2")
+):
+    ca = np.array([p[0] for p in pairs], dtype=str)
+    cb = np.array([p[1] for p in pairs], dtype=str)
+    k = len(pairs)
+    book.update(
+        t,
+        np.array(present_a),
+        np.array(present_b),
+        ca,
+        cb,
+        np.ones(k),
+        np.ones(k),
+        np.ones(k),
+        np.full(k, 4, dtype=np.int64),
+    )
+
+
+def _status(book: PairBook) -> dict[tuple[str, str], str]:
+    return {(s.track_a, s.track_b): s.status for s in book.states()}
+
+
+def test_confirm_after_m_hits_and_drop_after_misses() -> None:
+    book = PairBook(PairBookParams(window=5, confirm_hits=3, drop_misses=2))
+    _upd(book, 1.0, [("a1", "b1")])
+    _upd(book, 2.0, [])
+    _upd(book, 3.0, [("a1", "b1")])
+    assert _status(book) == {("a1", "b1"): "tentative"}
+    _upd(book, 4.0, [("a1", "b1")])
+    assert _status(book) == {("a1", "b1"): "confirmed"}
+    s = book.states()[0]
+    assert s.hits == 3 and s.first_time_s == 1.0 and s.last_time_s == 4.0 and 0 < s.score <= 1
+    _upd(book, 5.0, [])
+    assert _status(book) == {("a1", "b1"): "confirmed"}
+    _upd(book, 6.0, [])
+    assert _status(book) == {}
+
+
+def test_one_confirmed_pair_per_track_and_vanished_tracks() -> None:
+    book = PairBook(PairBookParams(window=4, confirm_hits=2, drop_misses=3))
+    for t in range(3):
+        _upd(book, float(t), [("a1", "b1"), ("a2", "b2")])
+    # a1 now alternates to b2: its pair with b2 must wait until (a1, b1) and (a2, b2) are gone.
+    for t in range(3, 6):
+        _upd(book, float(t), [("a1", "b2")])
+    st = _status(book)
+    confirmed = [k for k, v in st.items() if v == "confirmed"]
+    assert len({a for a, _ in confirmed}) == len(confirmed)
+    assert len({b for _, b in confirmed}) == len(confirmed)
+    _upd(book, 7.0, [("a1", "b2")], present_a=("a1",), present_b=("b2",))
+    assert all(k == ("a1", "b2") for k in _status(book))
+
+
+def test_tentative_dropped_when_window_empty() -> None:
+    book = PairBook(PairBookParams(window=2, confirm_hits=2))
+    _upd(book, 0.0, [("a1", "b1")])
+    _upd(book, 1.0, [])
+    assert _status(book) == {("a1", "b1"): "tentative"}
+    _upd(book, 2.0, [])
+    assert _status(book) == {}

@@ -1,0 +1,101 @@
+"""Bias least squares: exact recovery without noise, joint solve over radar pairs, compensation."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.correlation.base import TrackSnapshot
+from service.correlation.registration import (
+    RegistrationMemory,
+    RegistrationParams,
+    compensate,
+    solve_biases,
+)
+from service.evaluation.correlation_scenario import make_sites, sample_references
+from service.geo import Site
+
+
+def _snapshot(
+    site: Site, truth: np.ndarray, bias: np.ndarray, rng: np.random.Generator, noise: float
+) -> TrackSnapshot:
+    r, az, el = site.ecef_to_polar(truth)
+    pos = site.polar_to_ecef(r + bias[0], az + np.degrees(bias[1]), el + np.degrees(bias[2]))
+    pos = pos + rng.normal(0, noise, pos.shape)
+    n = len(pos)
+    cov = np.broadcast_to(np.eye(3) * max(noise, 1.0) ** 2, (n, 3, 3)).copy()
+    return TrackSnapshot(
+        np.array([f"{site.site_id}{i}" for i in range(n)]),
+        pos,
+        np.zeros((n, 3)),
+        cov,
+        cov.copy(),
+        site,
+        site.ecef_to_enu(pos),
+        np.zeros((n, 3)),
+    )
+
+
+def test_recovers_biases_of_two_radars_without_noise() -> None:
+    rng = np.random.default_rng(0)
+    a, b = make_sites()
+    truth = sample_references(rng, a, b, 200)
+    ba = np.array([400.0, np.radians(0.5), np.radians(0.1)])
+    bb = np.array([-250.0, np.radians(-0.3), np.radians(-0.05)])
+    sa, sb = _snapshot(a, truth, ba, rng, 0.0), _snapshot(b, truth, bb, rng, 0.0)
+    mem = RegistrationMemory(a, b)
+    idx = np.arange(200)
+    prm = RegistrationParams(
+        max_rows_per_update=200, prior_range_m=1e6, prior_azimuth_deg=1e3, prior_elevation_deg=1e3
+    )
+    mem.add(0.0, sa, sb, idx, idx, prm)
+    sol = solve_biases([mem], 0.0, prm)
+    assert sol is not None
+    np.testing.assert_allclose(sol.bias[0], ba, rtol=0.02, atol=1e-5)
+    np.testing.assert_allclose(sol.bias[1], bb, rtol=0.02, atol=1e-5)
+
+
+def test_three_radars_joint_and_compensation() -> None:
+    rng = np.random.default_rng(1)
+    a, b = make_sites()
+    c = Site("C", 32.5, 119.0, 30.0)
+    truth = sample_references(rng, a, b, 300)
+    biases = {
+        "A": np.array([300.0, np.radians(0.4), 0.0]),
+        "B": np.array([-200.0, np.radians(-0.2), 0.0]),
+        "C": np.array([100.0, np.radians(0.3), 0.0]),
+    }
+    snaps = {s.site_id: _snapshot(s, truth, biases[s.site_id], rng, 30.0) for s in (a, b, c)}
+    idx = np.arange(300)
+    prm = RegistrationParams(max_rows_per_update=300)
+    mems = []
+    for s1, s2 in ((a, b), (a, c), (b, c)):
+        m = RegistrationMemory(s1, s2)
+        m.add(0.0, snaps[s1.site_id], snaps[s2.site_id], idx, idx, prm)
+        mems.append(m)
+    sol = solve_biases(mems, 0.0, prm)
+    assert sol is not None
+    for rid in "ABC":
+        est, _ = sol.of(rid)
+        assert abs(est[0] - biases[rid][0]) < 0.1 * abs(biases[rid][0])
+        assert abs(est[1] - biases[rid][1]) < 0.1 * abs(biases[rid][1])
+    comp, extra = compensate(snaps["A"], *sol.of("A"))
+    before = np.linalg.norm(snaps["A"].position - truth, axis=1).mean()
+    after = np.linalg.norm(comp.position - truth, axis=1).mean()
+    assert after < 0.2 * before and extra.shape == (300, 3, 3)
+
+
+def test_reference_source_fixed_at_zero() -> None:
+    rng = np.random.default_rng(2)
+    a, b = make_sites()
+    truth = sample_references(rng, a, b, 100)
+    sa = _snapshot(a, truth, np.array([500.0, np.radians(0.6), 0.0]), rng, 10.0)
+    ref = _snapshot(b, truth, np.zeros(3), rng, 10.0)
+    ref = TrackSnapshot(
+        ref.track_id, ref.position, ref.velocity, ref.pos_cov, ref.vel_cov, None, ref.position, ref.velocity
+    )
+    m = RegistrationMemory(a, None)
+    idx = np.arange(100)
+    m.add(0.0, sa, ref, idx, idx, RegistrationParams())
+    sol = solve_biases([m], 0.0)
+    assert sol is not None and sol.radar_ids == ("A",)
+    assert abs(sol.bias[0, 0] - 500.0) < 50.0 and abs(np.degrees(sol.bias[0, 1]) - 0.6) < 0.06
