@@ -22,13 +22,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from service.engine import EngineConfig, plot_columns  # noqa: E402
-from service.geo import Site  # noqa: E402
-from service.messages import PlotBatch, RadarSite  # noqa: E402
-from service.tracking.base import PlotColumns, Tracker, TrackTable  # noqa: E402
-from service.tracking.window import PlotWindow  # noqa: E402
-from service.transport.node import ServiceNode  # noqa: E402
-from service.transport.session import ZenohOptions, open_session  # noqa: E402
+from service.engine import EngineConfig, plot_columns
+from service.geo import Site
+from service.messages import PlotBatch, RadarSite
+from service.tracking.base import PlotColumns, Tracker, TrackTable
+from service.tracking.window import PlotWindow
+from service.transport.node import ServiceNode
+from service.transport.session import ZenohOptions, open_session
 
 PLOTS = 1000
 T0 = 1_763_769_600.0

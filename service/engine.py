@@ -8,7 +8,9 @@ then released in ``(time_s, radar_id, seq)`` order.  Tracking and correlation th
 the same sequence whatever the interleaving of radars on arrival, so a replay at any speed
 gives the same tracks and pairs as the live stream.  A radar whose data clock lags the newest
 one by more than :attr:`EngineConfig.max_lag_s` stops holding the others back (an outage must
-not freeze the picture); its late batches are still tracked when they come.
+not freeze the picture); its late batches are still tracked when they come.  AIS sources
+take part in the same ordering, so the reference tracks a radar is correlated with at an
+update are the same in every replay.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from __future__ import annotations
 import heapq
 import time
 from collections import Counter, deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,7 +26,7 @@ from typing import Any
 import numpy as np
 from pydantic import TypeAdapter, ValidationError
 
-from service.geo import Site, ecef_to_geodetic
+from service.geo import Site
 from service.keys import Keys
 from service.messages import (
     MAX_PAYLOAD_BYTES,
@@ -35,6 +37,9 @@ from service.messages import (
     dump_json,
     rejection_reason,
 )
+from service.pairing import CorrelationStage, Source
+from service.reference import ReferenceParams, ReferenceTracks
+from service.snapshot import Snapshot, track_batch
 from service.tracking.base import PlotColumns, Tracker, TrackTable
 
 TrackerFactory = Callable[[Site, "float | None", str, str], Tracker]
@@ -68,6 +73,8 @@ class EngineConfig:
     #: A radar lagging the newest data time by more than this no longer holds back the
     #: cross-radar release of batches (s of data time).
     max_lag_s: float = 30.0
+    #: How AIS reports become reference tracks.
+    reference: ReferenceParams = field(default_factory=ReferenceParams)
 
 
 @dataclass
@@ -87,12 +94,15 @@ class RadarState:
 
 @dataclass
 class AisState:
+    reference: ReferenceTracks
     last_seq: int | None = None
     batches: int = 0
     reports: int = 0
     rejected: int = 0
     lost_batches: int = 0
     last_time_s: float | None = None
+    released_time_s: float | None = None
+    pending: deque[tuple[float, int, AisBatch]] = field(default_factory=deque)
 
 
 class RejectionError(Exception):
@@ -169,7 +179,7 @@ def plot_columns(batch: PlotBatch) -> PlotColumns:
 
 
 class Engine:
-    """Per-radar windows and trackers, cross-radar correlation, rejection bookkeeping."""
+    """Per-radar windows and trackers, AIS references, cross-source correlation, rejections."""
 
     def __init__(
         self, config: EngineConfig | None = None, tracker_factory: TrackerFactory | None = None
@@ -180,9 +190,12 @@ class Engine:
         self.radars: dict[str, RadarState] = {}
         self.ais: dict[str, AisState] = {}
         self.rejected: Counter[str] = Counter()
-        self._heap: list[tuple[float, str, int]] = []
-        self._first_clock = np.inf  # heads of radars' pending queues
-        self._correlation = _CorrelationStage(self.config)
+        # heads of the sources' pending queues: (clock, kind, source id, seq); kind 0 AIS, 1 radar
+        self._heap: list[tuple[float, int, str, int]] = []
+        self._first_clock = np.inf
+        self._correlation = CorrelationStage(
+            self.config.method, self.config.correlation_interval_s, self.config.max_site_distance_m
+        )
         self.version = 0  # bumps on every state change; snapshots are cached by it
         self._snapshot: Snapshot | None = None
         for site in self.config.sites:
@@ -204,9 +217,10 @@ class Engine:
                 self._ingest_site(source_id, payload)
                 return []
             if what == "plots":
-                return self._ingest_plots(source_id, payload)
-            self._ingest_ais(source_id, payload)
-            return []
+                self._ingest_plots(source_id, payload)
+            else:
+                self._ingest_ais(source_id, payload)
+            return self._release(until=self._watermark())
         except RejectionError as rejection:
             return [self._reject(key, rejection, receive_time_s)]
         except Exception as exc:  # a bug must cost one message, never the service
@@ -220,10 +234,9 @@ class Engine:
     def _reject(self, key: str, rej: RejectionError, receive_time_s: float | None) -> Outgoing:
         self.rejected[rej.reason] += 1
         if rej.radar_id is not None:
-            if rej.radar_id in self.radars:
-                self.radars[rej.radar_id].rejected += 1
-            elif rej.radar_id in self.ais:
-                self.ais[rej.radar_id].rejected += 1
+            state = self.ais.get(rej.radar_id) if "/ais/" in key else self.radars.get(rej.radar_id)
+            if state is not None:
+                state.rejected += 1
         self._changed()
         body = {
             "key": key,
@@ -259,10 +272,10 @@ class Engine:
             )
         else:  # a moved or re-characterised radar: same tracks, new geometry for new plots
             state.tracker.site = state.geometry
-        self._correlation.site_changed(site.radar_id)
+        self._correlation.forget(site.radar_id)
         self._changed()
 
-    def _ingest_plots(self, radar_id: str, payload: bytes) -> list[Outgoing]:
+    def _ingest_plots(self, radar_id: str, payload: bytes) -> None:
         batch: PlotBatch = self._parse(PlotBatch, payload, radar_id)
         _check_body_id("radar_id", batch.radar_id, radar_id)
         state = self.radars.get(radar_id)
@@ -271,27 +284,31 @@ class Engine:
         plots = plot_columns(batch)
         _accept_seq(state, batch.seq, radar_id)  # accepted: from here on the batch changes state
         state.plots += len(plots)
-        clock = batch.time_s if state.last_time_s is None else max(state.last_time_s, batch.time_s)
-        state.last_time_s = clock
-        if not state.pending:
-            heapq.heappush(self._heap, (clock, radar_id, batch.seq))
-        state.pending.append((clock, batch.seq, plots))
-        self._changed()
-        return self._release(until=self._watermark())
+        self._enqueue(state, 1, radar_id, batch.seq, batch.time_s, plots)
 
     def _ingest_ais(self, source_id: str, payload: bytes) -> None:
         batch: AisBatch = self._parse(AisBatch, payload, source_id)
         _check_body_id("source_id", batch.source_id, source_id)
-        state = self.ais.get(source_id, AisState())
+        state = self.ais.get(source_id) or AisState(ReferenceTracks(self.config.reference))
         _accept_seq(state, batch.seq, source_id)
         self.ais[source_id] = state
         state.reports += len(batch.reports.time_s)
-        state.last_time_s = max(batch.time_s, state.last_time_s or -np.inf)
+        self._enqueue(state, 0, source_id, batch.seq, batch.time_s, batch)
+
+    def _enqueue(
+        self, state: RadarState | AisState, kind: int, source_id: str, seq: int, time_s: float, item: Any
+    ) -> None:
+        clock = max(time_s, state.last_time_s if state.last_time_s is not None else -np.inf)
+        state.last_time_s = clock
+        if not state.pending:
+            heapq.heappush(self._heap, (clock, kind, source_id, seq))
+        state.pending.append((clock, seq, item))
         self._changed()
 
     # -- data-time release ---------------------------------------------------------------
     def _watermark(self) -> float:
-        clocks = [s.last_time_s for s in self.radars.values() if s.last_time_s is not None]
+        states: list[RadarState | AisState] = [*self.radars.values(), *self.ais.values()]
+        clocks = [s.last_time_s for s in states if s.last_time_s is not None]
         if not clocks:
             return -np.inf
         newest = max(clocks)
@@ -300,40 +317,68 @@ class Engine:
         if any(s.last_time_s is None and s.tracker is not None for s in self.radars.values()):
             self._first_clock = min(self._first_clock, *clocks)
             clocks.append(self._first_clock)
-        live = [c for c in clocks if c >= newest - self.config.max_lag_s]
-        return min(live)
+        return min(c for c in clocks if c >= newest - self.config.max_lag_s)
 
     def _release(self, until: float) -> list[Outgoing]:
         out: list[Outgoing] = []
         while self._heap and self._heap[0][0] <= until:
-            _, radar_id, _ = heapq.heappop(self._heap)
-            state = self.radars[radar_id]
-            clock, _seq, plots = state.pending.popleft()
-            if state.pending:
-                head = state.pending[0]
-                heapq.heappush(self._heap, (head[0], radar_id, head[1]))
+            _, kind, source_id, _ = heapq.heappop(self._heap)
             try:
-                out.extend(self._process(radar_id, state, plots, clock))
+                if kind == 0:
+                    ais = self.ais[source_id]
+                    clock, batch = self._pop(ais, kind, source_id)
+                    self._process_ais(ais, batch, clock)
+                else:
+                    radar = self.radars[source_id]
+                    clock, plots = self._pop(radar, kind, source_id)
+                    out.extend(self._process(source_id, radar, plots, clock))
             except Exception as exc:  # a bug costs this batch's outputs, never the service
                 detail = f"processing failed: {type(exc).__name__}: {exc}"
-                out.append(
-                    self._reject(
-                        self.keys.plots(radar_id), RejectionError("internal", detail, radar_id), clock
-                    )
-                )
+                key = self.keys.ais(source_id) if kind == 0 else self.keys.plots(source_id)
+                out.append(self._reject(key, RejectionError("internal", detail, source_id), None))
         return out
 
+    def _pop(self, state: RadarState | AisState, kind: int, source_id: str) -> tuple[float, Any]:
+        """Take the head of a source's pending queue and put its next batch on the heap."""
+        clock, _seq, item = state.pending.popleft()
+        if state.pending:
+            head = state.pending[0]
+            heapq.heappush(self._heap, (head[0], kind, source_id, head[1]))
+        return clock, item
+
+    def _process_ais(self, state: AisState, batch: AisBatch, clock: float) -> None:
+        r = batch.reports
+        state.reference.add(
+            np.asarray(r.time_s, dtype=float),
+            np.asarray(r.mmsi, dtype=str),
+            np.asarray(r.latitude_deg, dtype=float),
+            np.asarray(r.longitude_deg, dtype=float),
+            clock,
+        )
+        state.released_time_s = clock
+        self._changed()
+
     def _process(self, radar_id: str, state: RadarState, plots: PlotColumns, clock: float) -> list[Outgoing]:
-        assert state.tracker is not None
+        assert state.tracker is not None and state.geometry is not None
         state.tracker.update(plots, clock)
         state.released_time_s = clock
         tracks = state.tracker.tracks()
         out = [Outgoing(self.keys.tracks(radar_id), dump_json(track_batch(radar_id, clock, tracks)))]
-        for pair_set in self._correlation.update(radar_id, clock, self.radars):
-            out.append(
-                Outgoing(self.keys.pairs(pair_set["radar_a"], pair_set["radar_b"]), dump_json(pair_set))
-            )
+        me = Source(radar_id, state.geometry, lambda t: tracks)
+        for ps in self._correlation.update(me, self._partners(radar_id), clock):
+            out.append(Outgoing(self.keys.pairs(ps["radar_a"], ps["radar_b"]), dump_json(ps)))
         self._changed()
+        return out
+
+    def _partners(self, radar_id: str) -> list[Source]:
+        """Every other radar with tracks and every AIS source with reports, in id order."""
+        out = []
+        for rid, r in sorted(self.radars.items()):
+            if rid != radar_id and r.tracker is not None and r.released_time_s is not None:
+                out.append(Source(rid, r.geometry, _tracks_of(r.tracker)))
+        for sid, a in sorted(self.ais.items()):
+            if a.released_time_s is not None:
+                out.append(Source(sid, None, a.reference.table))
         return out
 
     # -- snapshots -----------------------------------------------------------------------
@@ -344,168 +389,13 @@ class Engine:
     def snapshot(self) -> Snapshot:
         """An immutable view of the current state, cheap to take repeatedly."""
         if self._snapshot is None:
-            self._snapshot = Snapshot.of(self)
+            self._snapshot = self._build_snapshot()
         return self._snapshot
 
-
-def track_batch(radar_id: str, time_s: float, tracks: TrackTable, status: str = "all") -> dict[str, Any]:
-    """The contract's ``TrackBatch`` for a radar's tracks (``status``: confirmed, tentative, all)."""
-    if status == "confirmed":
-        tracks = tracks.take(tracks.confirmed)
-    elif status == "tentative":
-        tracks = tracks.take(~tracks.confirmed)
-    lat, lon, alt = ecef_to_geodetic(tracks.position_ecef_m)
-    rows = [
-        {
-            "track_id": str(tracks.track_id[i]),
-            "status": "confirmed" if tracks.confirmed[i] else "tentative",
-            "time_s": float(tracks.time_s[i]),
-            "latitude_deg": float(lat[i]),
-            "longitude_deg": float(lon[i]),
-            "altitude_m": float(alt[i]),
-            "position_ecef_m": [float(v) for v in tracks.position_ecef_m[i]],
-            "velocity_ecef_mps": [float(v) for v in tracks.velocity_ecef_mps[i]],
-            "plots": int(tracks.plots[i]),
-            "truth_id": tracks.truth_id[i],
-        }
-        for i in range(len(tracks))
-    ]
-    return {"radar_id": radar_id, "time_s": time_s, "tracks": rows}
-
-
-class _CorrelationStage:
-    """One ``PairCorrelator`` per radar pair, updated on a data-time schedule."""
-
-    def __init__(self, config: EngineConfig) -> None:
-        self.config = config
-        self.correlators: dict[tuple[str, str], Any] = {}
-        self.next_due: dict[tuple[str, str], float] = {}
-        self.last_time: dict[tuple[str, str], float] = {}
-        self.timings_ms: deque[float] = deque(maxlen=2048)
-        self.updates = 0
-        self.last_ms = 0.0
-        self.biases: list[dict[str, Any]] = []
-
-    def site_changed(self, radar_id: str) -> None:
-        for key in [k for k in self.correlators if radar_id in k]:
-            del self.correlators[key]
-            self.next_due.pop(key, None)
-            self.last_time.pop(key, None)
-
-    def update(self, radar_id: str, time_s: float, radars: dict[str, RadarState]) -> list[dict[str, Any]]:
-        from service.correlation import PairCorrelator, estimate_biases
-
-        me = radars[radar_id]
-        assert me.geometry is not None
-        results = []
-        for other_id, other in sorted(radars.items()):
-            if other_id == radar_id or other.tracker is None or other.released_time_s is None:
-                continue
-            assert other.geometry is not None
-            if (
-                np.linalg.norm(me.geometry.origin_ecef - other.geometry.origin_ecef)
-                > self.config.max_site_distance_m
-            ):
-                continue
-            key = (min(radar_id, other_id), max(radar_id, other_id))
-            if time_s < self.next_due.get(key, -np.inf):
-                continue
-            self.next_due[key] = time_s + self.config.correlation_interval_s
-            a, b = radars[key[0]], radars[key[1]]
-            assert a.tracker is not None and b.tracker is not None
-            assert a.geometry is not None and b.geometry is not None
-            corr = self.correlators.get(key)
-            if corr is None:
-                corr = self.correlators[key] = PairCorrelator(self.config.method, a.geometry, b.geometry)
-            corr.update(a.tracker.tracks(), b.tracker.tracks(), time_s)
-            self.last_time[key] = time_s
-            self.updates += 1
-            self.last_ms = float(corr.last_update_ms)
-            self.timings_ms.append(self.last_ms)
-            results.append(pair_set(key[0], key[1], time_s, self.config.method, corr.pairs()))
-        if results:
-            self.biases = [bias_dict(b) for b in estimate_biases(list(self.correlators.values()), time_s)]
-        return results
-
-    def pair_sets(self) -> list[dict[str, Any]]:
-        return [
-            pair_set(a, b, self.last_time.get((a, b), 0.0), self.config.method, c.pairs())
-            for (a, b), c in sorted(self.correlators.items())
-        ]
-
-    def timings(self) -> dict[str, Any]:
-        t = np.asarray(self.timings_ms) if self.timings_ms else np.zeros(1)
-        return {
-            "updates": self.updates,
-            "last_ms": round(self.last_ms, 3),
-            "p50_ms": round(float(np.percentile(t, 50)), 3),
-            "p99_ms": round(float(np.percentile(t, 99)), 3),
-        }
-
-
-def pair_set(radar_a: str, radar_b: str, time_s: float, method: str, pairs: Iterable[Any]) -> dict[str, Any]:
-    return {
-        "radar_a": radar_a,
-        "radar_b": radar_b,
-        "time_s": time_s,
-        "method": method,
-        "pairs": [
-            {
-                "track_a": p.track_a,
-                "track_b": p.track_b,
-                "status": p.status,
-                "score": float(p.score),
-                "statistic": _finite_or_none(p.statistic),
-                "rotation_weight": _finite_or_none(p.rotation_weight),
-                "scale": _finite_or_none(p.scale),
-                "neighbors": int(p.neighbors),
-                "hits": int(p.hits),
-                "first_time_s": float(p.first_time_s),
-                "last_time_s": float(p.last_time_s),
-            }
-            for p in pairs
-        ],
-    }
-
-
-def _finite_or_none(x: float) -> float | None:
-    """JSON has no NaN: a quantity the decision did not produce is ``null``."""
-    return float(x) if np.isfinite(x) else None
-
-
-def bias_dict(b: Any) -> dict[str, Any]:
-    return {
-        "radar_id": b.radar_id,
-        "range_bias_m": float(b.range_bias_m),
-        "azimuth_bias_deg": float(b.azimuth_bias_deg),
-        "elevation_bias_deg": float(b.elevation_bias_deg),
-        "pairs_used": int(b.pairs_used),
-        "time_s": float(b.time_s),
-    }
-
-
-def _filter_status(items: list[dict[str, Any]], status: str) -> list[dict[str, Any]]:
-    return items if status == "all" else [p for p in items if p["status"] == status]
-
-
-@dataclass(frozen=True)
-class Snapshot:
-    """Immutable state for readers (HTTP handlers, queryables) on other threads."""
-
-    tracks: dict[str, tuple[float, TrackTable]]
-    radar_rows: list[dict[str, Any]]
-    pair_sets_all: list[dict[str, Any]]
-    biases_all: list[dict[str, Any]]
-    correlation: dict[str, Any]
-    rejected: dict[str, int]
-    method: str
-    prefix: str
-
-    @staticmethod
-    def of(engine: Engine) -> Snapshot:
+    def _build_snapshot(self) -> Snapshot:
         tracks: dict[str, tuple[float, TrackTable]] = {}
         rows = []
-        for rid, s in sorted(engine.radars.items()):
+        for rid, s in sorted(self.radars.items()):
             table = s.tracker.tracks() if s.tracker is not None else TrackTable.empty()
             tracks[rid] = (s.released_time_s if s.released_time_s is not None else 0.0, table)
             rows.append(
@@ -525,65 +415,14 @@ class Snapshot:
         return Snapshot(
             tracks=tracks,
             radar_rows=rows,
-            pair_sets_all=engine._correlation.pair_sets(),
-            biases_all=list(engine._correlation.biases),
-            correlation=engine._correlation.timings(),
-            rejected=dict(sorted(engine.rejected.items())),
-            method=engine.config.method,
-            prefix=engine.config.prefix,
+            pair_sets_all=self._correlation.pair_sets(),
+            biases_all=list(self._correlation.biases),
+            correlation=self._correlation.timings(),
+            rejected=dict(sorted(self.rejected.items())),
+            method=self.config.method,
+            prefix=self.config.prefix,
         )
 
-    def radar_ids(self) -> list[str]:
-        return [r["radar_id"] for r in self.radar_rows]
 
-    def track_batch(self, radar_id: str, status: str = "confirmed") -> dict[str, Any] | None:
-        if radar_id not in self.tracks:
-            return None
-        time_s, table = self.tracks[radar_id]
-        return track_batch(radar_id, time_s, table, status)
-
-    def track_batches(self, status: str = "all") -> list[dict[str, Any]]:
-        return [b for rid in self.tracks if (b := self.track_batch(rid, status)) is not None]
-
-    def pair_sets(
-        self, radar_a: str | None = None, radar_b: str | None = None, status: str = "confirmed"
-    ) -> list[dict[str, Any]]:
-        wanted = {x for x in (radar_a, radar_b) if x is not None}
-        out = []
-        for ps in self.pair_sets_all:
-            if not wanted <= {ps["radar_a"], ps["radar_b"]}:
-                continue
-            out.append({**ps, "pairs": _filter_status(ps["pairs"], status)})
-        return out
-
-    def biases(self) -> list[dict[str, Any]]:
-        return list(self.biases_all)
-
-    def status_core(self) -> dict[str, Any]:
-        pairs = [p for ps in self.pair_sets_all for p in ps["pairs"]]
-        return {
-            "method": self.method,
-            "prefix": self.prefix,
-            "radars": [{k: v for k, v in r.items() if k != "site"} for r in self.radar_rows],
-            "pairs_confirmed": sum(p["status"] == "confirmed" for p in pairs),
-            "pairs_tentative": sum(p["status"] == "tentative" for p in pairs),
-            "correlation": self.correlation,
-            "rejected": self.rejected,
-        }
-
-    def status(self) -> dict[str, Any]:
-        """Status without process-level fields (the node adds uptime, zenoh and queue)."""
-        return {
-            "uptime_s": 0.0,
-            "zenoh": {"mode": "none", "listen": [], "connect": []},
-            **self.status_core(),
-        }
-
-    def radars(self) -> list[dict[str, Any]]:
-        return [
-            {
-                **r["site"],
-                **{k: r[k] for k in ("batches", "plots", "rejected", "lost_batches", "last_time_s")},
-            }
-            for r in self.radar_rows
-        ]
+def _tracks_of(tracker: Tracker) -> Callable[[float], TrackTable]:
+    return lambda time_s: tracker.tracks()

@@ -27,6 +27,10 @@ class Keys:
     def pairs(self, radar_a: str, radar_b: str) -> str:
         return f"{self.prefix}/pairs/{radar_a}/{radar_b}"
 
+    def input(self, kind: str, source_id: str) -> str:
+        """The input key of ``kind`` (``site``, ``plots`` or ``ais``) for a source."""
+        return {"site": self.site, "plots": self.plots, "ais": self.ais}[kind](source_id)
+
     @property
     def errors(self) -> str:
         return f"{self.prefix}/errors"

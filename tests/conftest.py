@@ -68,7 +68,7 @@ def wait_subscribed(session: zenoh.Session, key: str, timeout: float = 10.0) -> 
     """Wait until a subscriber matching ``key`` is known to ``session`` (a put before that is lost)."""
     publisher = session.declare_publisher(key)
     try:
-        wait_for(lambda: publisher.matching_status, timeout=timeout)
+        wait_for(lambda: publisher.matching_status.matching, timeout=timeout)
     finally:
         publisher.undeclare()
 

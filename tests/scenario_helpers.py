@@ -22,6 +22,5 @@ def scenario_messages(
     keys = Keys(prefix)
     out = []
     for m in generate(sc, seed):
-        key = keys.site(m.radar_id) if m.kind == "site" else keys.plots(m.radar_id)
-        out.append((key, json.dumps(m.body).encode()))
+        out.append((keys.input(m.kind, m.radar_id), json.dumps(m.body).encode()))
     return out

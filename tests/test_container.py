@@ -129,7 +129,9 @@ def test_compose_names_only_what_exists() -> None:
         endpoints = [env.get("TOPOFUSION_ZENOH_CONNECT", "")] + [
             svc["command"][i + 1] for i, a in enumerate(svc["command"]) if a == "--connect"
         ]
-        assert any(re.fullmatch(r"tcp/router:7447", e) for e in endpoints), f"{name} does not connect to router"
+        assert any(re.fullmatch(r"tcp/router:7447", e) for e in endpoints), (
+            f"{name} does not connect to router"
+        )
 
 
 def test_router_config_listens_where_services_connect() -> None:

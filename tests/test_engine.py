@@ -200,3 +200,21 @@ def test_plot_window_keeps_data_time_span() -> None:
         window.extend(cols, time_s=t + 1.0)
     assert window.plots.time_s.min() >= 29.0 - 10.0
     assert len(window) == 3 * 5 == len(window.plots)  # newest 29: cutoff 19 keeps t = 20, 22, .., 28
+
+
+def test_ais_reference_registers_a_biased_radar() -> None:
+    """A coastal radar (500 m / 0.5 deg bias) and an AIS receiver: cfar pairs and absolute biases."""
+    stream = scenario_messages("coastal", duration_s=400.0, seed=3)
+    engine, out = run(stream)
+    snap = engine.snapshot()
+    assert engine.ais["ais-1"].batches == 40
+    (ps,) = snap.pair_sets(status="confirmed")
+    assert (ps["radar_a"], ps["radar_b"], ps["method"]) == ("ais-1", "coast", "cfar")
+    tracks = {t["track_id"]: t["truth_id"] for t in snap.track_batch("coast", "all")["tracks"]}  # type: ignore[index]
+    pairs = ps["pairs"]
+    assert len(pairs) >= 15
+    correct = sum(tracks[p["track_b"]] == f"T{int(p['track_a']) - 412000000}" for p in pairs)
+    assert correct / len(pairs) >= 0.95
+    (bias,) = [b for b in snap.biases() if b["radar_id"] == "coast"]
+    assert abs(bias["range_bias_m"] - 500.0) < 50.0
+    assert abs(bias["azimuth_bias_deg"] - 0.5) < 0.05

@@ -45,7 +45,9 @@ def test_reference_points() -> None:
     rho = np.hypot(p0[:, 0], p0[:, 1])
     np.testing.assert_allclose(rho**2 / WGS84_A**2 + p0[:, 2] ** 2 / WGS84_B**2, 1.0, atol=1e-12)
     normal = geodetic_to_ecef(lat, 30.0, 1000.0) - p0
-    np.testing.assert_allclose(np.degrees(np.arctan2(normal[:, 2], np.hypot(normal[:, 0], normal[:, 1]))), lat)
+    np.testing.assert_allclose(
+        np.degrees(np.arctan2(normal[:, 2], np.hypot(normal[:, 0], normal[:, 1]))), lat
+    )
 
 
 def test_enu_rotation_is_orthonormal_with_east_north_up_columns() -> None:

@@ -53,8 +53,12 @@ def _plot_batch(**plots: object) -> dict[str, object]:
         (json.dumps(_plot_batch()).replace("152031.5", "1e999").encode(), "non_finite"),
         (
             json.dumps(
-                _plot_batch(time_s=[1.0] * 100_001, range_m=[1.0] * 100_001, azimuth_deg=[1.0] * 100_001,
-                            elevation_deg=None)
+                _plot_batch(
+                    time_s=[1.0] * 100_001,
+                    range_m=[1.0] * 100_001,
+                    azimuth_deg=[1.0] * 100_001,
+                    elevation_deg=None,
+                )
             ).encode(),
             "too_large",
         ),

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from service.scenarios.simulator import RadarSpec, Scenario
+from service.scenarios.simulator import AisSpec, RadarSpec, Scenario
 
 # Two radars ~200 km apart (SVD paper, Section 3: random errors 200 m / 0.2 deg, systematic
 # errors 100 m / 0.1 deg); targets over the common area between them.
@@ -46,6 +46,32 @@ SCENARIOS: dict[str, Scenario] = {
         half_width_m=120_000.0,
         targets=40,
         duration_s=600.0,
+    ),
+    "coastal": Scenario(
+        name="coastal",
+        description="a coastal radar with 500 m / 0.5 deg bias and an AIS receiver, 30 vessels",
+        radars=(
+            RadarSpec(
+                "coast",
+                30.60,
+                122.00,
+                altitude_m=100.0,
+                range_sigma_m=50.0,
+                azimuth_sigma_deg=0.1,
+                elevation_sigma_deg=0.1,
+                range_bias_m=500.0,
+                azimuth_bias_deg=0.5,
+                max_range_m=60_000.0,
+            ),
+        ),
+        ais=(AisSpec("ais-1", report_period_s=10.0, batch_period_s=10.0),),
+        center_lat_deg=30.60,
+        center_lon_deg=122.17,
+        half_width_m=20_000.0,
+        targets=30,
+        speed_mps=(3.0, 12.0),
+        altitude_m=(0.0, 0.0),
+        duration_s=900.0,
     ),
 }
 #: The scenario of ``topofusion demo`` (runs until stopped).

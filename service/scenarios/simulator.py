@@ -66,6 +66,16 @@ class RadarSpec:
 
 
 @dataclass(frozen=True)
+class AisSpec:
+    """An AIS receiver reporting the true position of every ``stride``-th target."""
+
+    source_id: str
+    report_period_s: float = 10.0
+    batch_period_s: float = 10.0
+    stride: int = 1
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     description: str
@@ -80,12 +90,14 @@ class Scenario:
     #: Duration in data seconds; ``None`` runs until stopped.
     duration_s: float | None = 600.0
     start_time_s: float = 1_763_769_600.0  # 2025-11-22T00:00:00Z
+    #: Cooperative reporters (AIS) of the targets' true positions.
+    ais: tuple[AisSpec, ...] = ()
     extra: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
 class SimMessage:
-    """One message to publish: ``kind`` is ``site`` or ``plots``."""
+    """One message to publish: ``kind`` is ``site``, ``plots`` or ``ais``."""
 
     time_s: float
     kind: str
@@ -159,6 +171,14 @@ def generate(sc: Scenario, seed: int = 0) -> Iterator[SimMessage]:
             seqs[r.radar_id] += 1
             body["seq"] = seqs[r.radar_id]
             yield SimMessage(sc.start_time_s + end_time, "plots", r.radar_id, body)
+        for a in sc.ais:
+            k0 = int(np.floor(t / a.batch_period_s + 1e-9))
+            k1 = int(np.floor(t_next / a.batch_period_s + 1e-9))
+            for k in range(k0, k1):
+                seqs[a.source_id] = seqs.get(a.source_id, 0) + 1
+                body = _ais_batch(a, targets, center, rot, t, (k + 1) * a.batch_period_s, sc.start_time_s)
+                body["seq"] = seqs[a.source_id]
+                yield SimMessage(body["time_s"], "ais", a.source_id, body)
         targets.advance(t_next - t)
         t = t_next
 
@@ -187,7 +207,11 @@ def _sector_batch(
     ecef = pos_det @ rot.T + center
     rng_true, az_true, el_true = site.ecef_to_polar(ecef)
     in_sector = (az_true >= az_lo) & (az_true < az_hi)
-    seen = in_sector & (rng_true <= r.max_range_m) & (el_true > 0.0) & (rng.random(len(az_true)) < r.pd)
+    # radio horizon, 4/3 earth: d_km = 4.12 (sqrt(h_radar_m) + sqrt(h_target_m))
+    h_target = np.maximum(targets.pos[:, 2], 0.0)
+    horizon_m = 4120.0 * (np.sqrt(max(r.altitude_m, 0.0)) + np.sqrt(h_target))
+    visible = (rng_true <= r.max_range_m) & (rng_true <= horizon_m)
+    seen = in_sector & visible & (rng.random(len(az_true)) < r.pd)
     idx = np.flatnonzero(seen)
     n = len(idx)
     rr = rng_true[idx] + r.range_bias_m + rng.normal(0, r.range_sigma_m, n)
@@ -221,4 +245,26 @@ def _sector_batch(
         "seq": 0,
         "time_s": round(t0 + (k + 1) * period / sectors, 6),
         "plots": plots,
+    }
+
+
+def _ais_batch(
+    a: AisSpec, targets: _Targets, center: np.ndarray, rot: np.ndarray, t_now: float, t_end: float, t0: float
+) -> dict[str, Any]:
+    """Reports of every ``stride``-th target at each report time in the batch period."""
+    idx = np.arange(0, len(targets.ids), a.stride)
+    times = np.arange(t_end - a.batch_period_s + a.report_period_s, t_end + 1e-9, a.report_period_s)
+    rows_t, rows_id, rows_lat, rows_lon = [], [], [], []
+    for tr in times:
+        enu = targets.pos[idx] + targets.vel[idx] * (tr - t_now)
+        lat, lon, _ = ecef_to_geodetic(enu @ rot.T + center)
+        rows_t += [round(t0 + float(tr), 3)] * len(idx)
+        rows_id += [f"{412000000 + int(str(targets.ids[i])[1:]):09d}" for i in idx]
+        rows_lat += [round(float(x), 7) for x in lat]
+        rows_lon += [round(float(x), 7) for x in lon]
+    return {
+        "source_id": a.source_id,
+        "seq": 0,
+        "time_s": round(t0 + t_end, 6),
+        "reports": {"time_s": rows_t, "mmsi": rows_id, "latitude_deg": rows_lat, "longitude_deg": rows_lon},
     }

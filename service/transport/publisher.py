@@ -55,7 +55,9 @@ def publish_scenario(
             delay = wall0 + (msg.time_s - data0) / speed - time.monotonic()
             if delay > 0 and stop.wait(delay):
                 break
-        session.put(keys.plots(msg.radar_id), payload, encoding=enc, congestion_control=block)
+        session.put(keys.input(msg.kind, msg.radar_id), payload, encoding=enc, congestion_control=block)
+        if msg.kind != "plots":
+            continue
         batches += 1
         plots += len(msg.body["plots"]["time_s"])
         if batches % SITE_REPEAT_BATCHES == 0:
