@@ -45,7 +45,7 @@ class RegistrationParams:
     #: Pairs whose residual chi-square (3 dof) exceeds this are dropped as outliers (99.9 %).
     outlier_chi2: float = 16.3
     #: Data time (s) confirmed pairs are remembered for (biases vary slowly).
-    memory_s: float = 120.0
+    memory_s: float = 300.0
     #: Cap on remembered pair rows per radar pair (oldest dropped first).
     max_rows: int = 4_000
     #: At most this many confirmed pairs (evenly spread) are remembered per update: rows of

@@ -45,7 +45,7 @@ class StreamScenario:
     box_m: float = 300_000.0
     cluster_targets: int = 20
     cluster_radius_m: float = 12_000.0
-    scans: int = 30
+    scans: int = 60
     scan_period_s: float = 4.0
     max_range_m: float = 250_000.0
     bias_a: RadarBias = RadarBias(500.0, 0.5, 0.1)
