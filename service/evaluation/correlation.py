@@ -16,7 +16,7 @@ errors 100 m / 0.1 deg (random signs per radar and component).
   span grows with the bias it must cover.
 * Bias sweep -- correct rate of one match (6 neighbours) as both radars' biases grow to
   2 km / 2 deg (the paper stops at 100 m / 0.1 deg).
-* Stream -- :mod:`.correlation_stream`: 30 scans of 60 en-route aircraft in 300 x 300 km
+* Stream -- :mod:`.correlation_stream`: 60 scans of 60 en-route aircraft in 300 x 300 km
   plus a 20-aircraft cluster, biases 500 m / 0.5 deg and -300 m / -0.4 deg, every method
   through :class:`service.correlation.PairCorrelator`; bias estimates vs truth.
 """
