@@ -205,7 +205,7 @@ def test_plot_window_keeps_data_time_span() -> None:
 def test_ais_reference_registers_a_biased_radar() -> None:
     """A coastal radar (500 m / 0.5 deg bias) and an AIS receiver: cfar pairs and absolute biases."""
     stream = scenario_messages("coastal", duration_s=400.0, seed=3)
-    engine, out = run(stream)
+    engine, _ = run(stream)
     snap = engine.snapshot()
     assert engine.ais["ais-1"].batches == 40
     (ps,) = snap.pair_sets(status="confirmed")

@@ -5,7 +5,8 @@ Threads (DESIGN.md "Data flow and threads"):
 * Zenoh's network thread runs the subscriber callbacks (directly, so that samples keep their
   wire order across keys), which only put ``(key, bytes, time)`` on a bounded queue.  When
   the queue is full the callback waits (up to ``put_timeout_s``), which stalls Zenoh's
-  reader and pushes back to publishers using ``CongestionControl.BLOCK``; only if that wait times out is a sample dropped, and every drop is counted (``/status``
+  reader and pushes back to publishers using ``CongestionControl.BLOCK``; only if that
+  wait times out is a sample dropped, and every drop is counted (``/status``
   ``queue.dropped``, metric ``topofusion_queue_dropped_total``) and logged.
 * One worker thread takes samples in arrival order, calls ``engine.ingest`` and publishes
   what it returns, then swaps in a new immutable :class:`~service.engine.Snapshot`.
