@@ -18,7 +18,6 @@ from mcap.writer import CompressionType
 from recording_helpers import PREFIX, foreign_mcap, wait_for, wait_subscribed
 
 from service.engine import Engine, EngineConfig
-from service.messages import RadarSite
 from service.recording import Recorder, add_replay_arguments, replay_main, replay_offline
 from service.scenarios.catalog import get_scenario
 from service.transport.node import ServiceNode
@@ -30,19 +29,9 @@ from service.transport.session import ZenohOptions, open_session
 SCENARIO = replace(get_scenario("three-radar"), duration_s=40.0, targets=12)
 SEED = 7
 LIVE_SPEED = 10.0  # the live run is paced, so that replay speeds mean something
-# Every service here also knows the sites from start-up (setting TOPOFUSION_SITES), so that the
-# site messages on the wire are no-ops.  Why: ServiceNode declares separate subscribers for
-# sites and plots, and zenoh-python runs each Python callback in its own thread, so a radar's
-# first plot batch can reach the engine before its site (rejected as unknown_radar) in one run
-# and not in another -- live or replayed alike.  The recorder uses one subscriber and keeps the
-# publisher's order; see docs/recording.md.
-SITES = tuple(RadarSite(**r.site_message()) for r in SCENARIO.radars)
-CONFIG = EngineConfig(prefix=PREFIX, sites=SITES)
-
-# The correlation numerics may emit numpy RuntimeWarnings on degenerate geometry; under the
-# suite's warnings-as-errors they would turn into engine "internal" rejections and change
-# what is compared.  This module checks replay determinism, not those warnings.
-pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
+# Sites travel on the wire like everything else: the node keeps the wire order across keys,
+# so a radar's site always reaches the engine before its first plots, live and replayed.
+CONFIG = EngineConfig(prefix=PREFIX)
 
 
 def canonical(items: list[dict[str, Any]]) -> list[str]:
@@ -151,9 +140,7 @@ def test_offline_replay_gives_the_live_tracks_and_pairs(
     parser.add_argument("--prefix", default=PREFIX)
     add_replay_arguments(parser)
     result = tmp_path / "result.json"
-    sites = tmp_path / "sites.json"
-    sites.write_text(json.dumps([site.model_dump() for site in SITES]))
-    args = parser.parse_args([str(live.recording), "--offline", "--out", str(result), "--sites", str(sites)])
+    args = parser.parse_args([str(live.recording), "--offline", "--out", str(result)])
     assert replay_main(args, ZenohOptions(mode="client", connect=(endpoint,))) == 0
     body = json.loads(result.read_text())
     assert body["replay"]["messages"] == live.inputs and body["replay"]["damage"] is None
