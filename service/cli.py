@@ -53,6 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--scenario", default="demo", help="simulated scenario (default demo)")
     demo.add_argument("--speed", type=float, default=1.0, help="simulation speed (x real time)")
     demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--start-time", type=float, help="data time of the first scan (default: now)")
 
     sim = sub.add_parser("simulate", help="publish a scenario's sites and plot batches over Zenoh")
     _zenoh_flags(sim, default_mode="client")
@@ -60,6 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--speed", type=float, default=1.0, help="x real time; 0 = as fast as possible")
     sim.add_argument("--seed", type=int, default=0)
     sim.add_argument("--duration", type=float, help="data seconds to simulate (default: the scenario's)")
+    sim.add_argument("--start-time", type=float, help="data time of the first scan (default: now)")
 
     from service import recording
 
@@ -182,9 +184,7 @@ class _DemoExtras:
     """The demo's simulator thread and its one-line progress report."""
 
     def __init__(self, args: argparse.Namespace, prefix: str) -> None:
-        from service.scenarios.catalog import get_scenario
-
-        self.scenario = get_scenario(args.scenario)
+        self.scenario = scenario_for(args)
         self.speed = args.speed
         self.seed = args.seed
         self.prefix = prefix
@@ -247,16 +247,25 @@ class _DemoExtras:
         print(f"\ndemo: stopped; {self._line(node, 0.0)}", file=sys.stderr, flush=True)
 
 
-def simulate_main(args: argparse.Namespace) -> int:
+def scenario_for(args: argparse.Namespace) -> Any:
+    """The named scenario, starting at ``--start-time`` (default: now, whole seconds)."""
     from dataclasses import replace
 
     from service.scenarios.catalog import get_scenario
+
+    scenario = get_scenario(args.scenario)
+    start = args.start_time if args.start_time is not None else float(int(time.time()))
+    scenario = replace(scenario, start_time_s=start)
+    if getattr(args, "duration", None) is not None:
+        scenario = replace(scenario, duration_s=args.duration)
+    return scenario
+
+
+def simulate_main(args: argparse.Namespace) -> int:
     from service.transport.publisher import publish_scenario
     from service.transport.session import open_session
 
-    scenario = get_scenario(args.scenario)
-    if args.duration is not None:
-        scenario = replace(scenario, duration_s=args.duration)
+    scenario = scenario_for(args)
     settings = settings_from(argparse.Namespace(**{**vars(args), "mode": args.mode or "client"}))
     stop = _stop_on_signals()
     session = open_session(zenoh_options(settings))
