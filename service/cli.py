@@ -150,8 +150,12 @@ def serve(settings: Settings, demo: argparse.Namespace | None = None) -> int:
     options = zenoh_options(settings)
     extras = _DemoExtras(demo, settings.prefix) if demo is not None else None
 
+    # Open Zenoh before the HTTP server, so that a refused endpoint is one clear error line.
+    node = ServiceNode(config, options, queue_size=settings.queue_size)
+    node.open()
+
     def node_factory() -> ServiceNode:
-        return ServiceNode(config, options, queue_size=settings.queue_size)
+        return node
 
     app = create_app(
         node_factory,
@@ -174,7 +178,10 @@ def serve(settings: Settings, demo: argparse.Namespace | None = None) -> int:
     # make those no-ops so that a graceful shutdown ends with exit status 0.
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda signum, frame: None)
-    server.run()
+    try:
+        server.run()
+    finally:
+        node.stop()  # idempotent: the lifespan stopped it unless uvicorn failed before it ran
     if not server.started:
         return 1  # start-up failed (e.g. port in use or Zenoh refused): uvicorn logged why
     return 0

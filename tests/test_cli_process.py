@@ -122,3 +122,20 @@ def test_bad_settings_exit_with_a_clear_error() -> None:
         timeout=30,
     )
     assert res.returncode == 2 and "sites file not found" in res.stderr
+
+
+def test_refused_zenoh_endpoint_is_one_clear_error() -> None:
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        res = subprocess.run(
+            [TOPOFUSION, "run", "--listen", f"tcp/127.0.0.1:{port}", "--http-port", "0"],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+    assert res.returncode == 2
+    assert "cannot open Zenoh session" in res.stderr and "Traceback" not in res.stderr

@@ -96,12 +96,16 @@ class ServiceNode:
             raise RuntimeError("node not started")
         return self._session
 
+    def open(self) -> None:
+        """Open the Zenoh session (if not given one); raises ``RuntimeError`` saying why not."""
+        if self._session is None:
+            self._session = open_session(self.zenoh_options)
+
     def start(self) -> None:
         if self._worker is not None:
             return
-        if self._session is None:
-            self._session = open_session(self.zenoh_options)
-        s = self._session
+        self.open()
+        s = self.session
         # Direct (not "indirect") callbacks: zenoh-python otherwise runs each subscriber's
         # callback on its own thread, and a site could then reach the queue after the plots
         # that followed it on the wire.  Run on Zenoh's network thread, the callbacks keep the
