@@ -57,7 +57,11 @@ class RegistrationParams:
 
 @dataclass(frozen=True)
 class BiasEstimate:
-    """One radar's estimated systematic errors (``GET /biases``)."""
+    """One radar's estimated systematic errors (``GET /biases``).
+
+    ``pairs_used``: confirmed pairs (over all radar pairs involving this radar) of the latest
+    update that entered the least squares; earlier remembered updates are used as well.
+    """
 
     radar_id: str
     range_bias_m: float
@@ -195,11 +199,15 @@ def solve_biases(
         if all(np.array_equal(a, b) for a, b in zip(new_keep, keep, strict=True)):
             break
         keep = new_keep
+    # pairs_used: confirmed pairs of the latest remembered update that survived the outlier
+    # test (the LS itself uses every remembered update's rows).
     used: dict[str, int] = dict.fromkeys(ids, 0)
-    for (m, _, _), kp in zip(weights, keep, strict=True):
-        used[m.site_a.site_id] += int(kp.sum())
+    for (m, r, _), kp in zip(weights, keep, strict=True):
+        t = m.time[r]
+        n_latest = int((kp & (t == t.max())).sum()) if t.size else 0
+        used[m.site_a.site_id] += n_latest
         if m.site_b is not None:
-            used[m.site_b.site_id] += int(kp.sum())
+            used[m.site_b.site_id] += n_latest
     return BiasSolution(tuple(ids), bias.reshape(-1, 3), cov, used)
 
 

@@ -254,9 +254,10 @@ def run(
             )
     md += [
         "",
-        "Range and azimuth biases are observable from two radars with spread geometry; elevation biases "
-        "are seen only through nearly equal vertical offsets of both radars and are weakly determined "
-        "(shrunk by the prior).",
+        "Range and azimuth biases are well observable from two radars with spread geometry; elevation "
+        "biases are seen only through the vertical offsets of both radars, where the random error is "
+        "largest, and are the least accurate.  *pairs* = confirmed pairs of the last update (the least "
+        "squares uses all remembered updates).",
         "",
         f"Figures: `correlation_fig1_correct_vs_neighbours.png`, `correlation_fig2_false_vs_spacing.png`, "
         f"`correlation_fig3_time_vs_bias.png`, `correlation_bias_sweep.png`.  Total time "
