@@ -38,6 +38,9 @@ def _service_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--method", choices=METHODS, help="correlation method (default svd-topology)")
     p.add_argument("--window", type=float, metavar="S", help="sliding window, seconds of data time")
     p.add_argument("--initiator", help="track initiator (default logic)")
+    p.add_argument(
+        "--radars", action="append", metavar="ID", help="radars this worker owns (repeatable; default all)"
+    )
     p.add_argument("--log-level", help="logging level (default INFO)")
 
 
@@ -101,6 +104,7 @@ def settings_from(args: argparse.Namespace) -> Settings:
         ("method", "method"),
         ("window", "window_s"),
         ("initiator", "initiator"),
+        ("radars", "radars"),
         ("log_level", "log_level"),
     ]:
         value = getattr(args, flag, None)
@@ -151,7 +155,7 @@ def serve(settings: Settings, demo: argparse.Namespace | None = None) -> int:
     extras = _DemoExtras(demo, settings.prefix) if demo is not None else None
 
     # Open Zenoh before the HTTP server, so that a refused endpoint is one clear error line.
-    node = ServiceNode(config, options, queue_size=settings.queue_size)
+    node = ServiceNode(config, options, queue_size=settings.queue_size, radars=tuple(settings.radars))
     node.open()
 
     def node_factory() -> ServiceNode:

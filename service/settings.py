@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -36,11 +37,23 @@ class Settings(BaseSettings):
     method: Literal["svd-topology", "basic-topology", "nearest", "gmm", "cfar"] = "svd-topology"
     window_s: float | None = Field(default=None, gt=0)
     initiator: str = "logic"
+    #: Radars this worker owns (comma separated ids); empty: every radar under the prefix.
+    #: Partitioning several workers by radar is configuration: each subscribes to its own
+    #: radars, and ``get {prefix}/pairs/**`` gathers every worker's pairs.
+    radars: Annotated[list[str], NoDecode] = Field(default_factory=list)
     #: Capacity of the queue between Zenoh callbacks and the worker (samples).
     queue_size: int = Field(default=4096, ge=1)
     log_level: str = "INFO"
 
-    _split_listen = field_validator("zenoh_listen", "zenoh_connect", mode="before")(_split)
+    _split_listen = field_validator("zenoh_listen", "zenoh_connect", "radars", mode="before")(_split)
+
+    @field_validator("radars")
+    @classmethod
+    def _radar_ids(cls, value: list[str]) -> list[str]:
+        bad = [r for r in value if not re.fullmatch(r"[A-Za-z0-9_-]{1,64}", r)]
+        if bad:
+            raise ValueError(f"radar ids must match [A-Za-z0-9_-]{{1,64}}: {bad}")
+        return value
 
     def listen_endpoints(self) -> list[str]:
         if self.zenoh_listen is not None:

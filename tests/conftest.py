@@ -86,12 +86,15 @@ class RunningService:
 
 
 @contextlib.contextmanager
-def running_service(router: str, config: EngineConfig | None = None) -> Iterator[RunningService]:
+def running_service(
+    router: str, config: EngineConfig | None = None, radars: tuple[str, ...] = ()
+) -> Iterator[RunningService]:
     """The real service in-process: a client session to ``router``, the worker, uvicorn on a free port."""
     holder: dict[str, ServiceNode] = {}
 
     def factory() -> ServiceNode:
-        holder["node"] = ServiceNode(config or EngineConfig(), ZenohOptions(mode="client", connect=(router,)))
+        options = ZenohOptions(mode="client", connect=(router,))
+        holder["node"] = ServiceNode(config or EngineConfig(), options, radars=radars)
         return holder["node"]
 
     app = create_app(factory)

@@ -91,3 +91,33 @@ def test_lifespan_opens_and_closes_the_node(router: str) -> None:
         assert node.ready
         assert svc.http.get("/status").json()["prefix"] == "other"
     assert not node.ready  # session closed and worker joined by the lifespan's shutdown
+
+
+def test_workers_partitioned_by_radar_answer_together(router: str, client: zenoh.Session) -> None:
+    """Two workers own disjoint radars; `get pairs/**` and `get status` gather both."""
+    stream = scenario_messages("three-radar", duration_s=30.0, targets=20)
+    with running_service(router, radars=("A", "B")) as w1, running_service(router, radars=("C",)) as w2:
+        for rid in ("A", "C"):
+            wait_subscribed(client, f"fusion/radar/{rid}/plots")
+        for key, payload in stream:
+            put_json(client, key, payload)
+        n = {rid: sum(k == f"fusion/radar/{rid}/plots" for k, _ in stream) for rid in "ABC"}
+
+        def done() -> bool:
+            s1, s2 = w1.http.get("/status").json(), w2.http.get("/status").json()
+            got1 = {r["radar_id"]: r["batches"] for r in s1["radars"]}
+            got2 = {r["radar_id"]: r["batches"] for r in s2["radars"]}
+            return got1 == {"A": n["A"], "B": n["B"]} and got2 == {"C": n["C"]}
+
+        wait_for(done, timeout=60)
+        wait_for(lambda: w1.http.get("/pairs", params={"status": "all"}).json())
+        assert w2.http.get("/pairs", params={"status": "all"}).json() == []
+        # every worker answers when the query targets all queryables, unconsolidated
+        everyone = {"target": zenoh.QueryTarget.ALL, "consolidation": zenoh.ConsolidationMode.NONE}
+        replies = [r.ok for r in client.get("fusion/pairs/**", **everyone) if r.ok is not None]
+        assert [str(r.key_expr) for r in replies] == ["fusion/pairs/A/B"]
+        statuses = [
+            json.loads(r.ok.payload.to_bytes()) for r in client.get("fusion/status", **everyone) if r.ok
+        ]
+        owned = sorted(tuple(x["radar_id"] for x in s["radars"]) for s in statuses)
+        assert owned == [("A", "B"), ("C",)]

@@ -71,6 +71,7 @@ class ServiceNode:
         queue_size: int = 4096,
         put_timeout_s: float = 10.0,
         session: zenoh.Session | None = None,
+        radars: tuple[str, ...] = (),
     ) -> None:
         self.engine = Engine(engine_config)
         self.keys = Keys(engine_config.prefix)
@@ -78,6 +79,7 @@ class ServiceNode:
         self.queue: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
         self.queue_stats = QueueStats(capacity=queue_size)
         self.put_timeout_s = put_timeout_s
+        self.radars = radars
         self.snapshot: Snapshot = self.engine.snapshot()
         self.started_at = time.monotonic()
         self.not_ready_reason = "not started"
@@ -112,11 +114,7 @@ class ServiceNode:
         # wire order across keys, and a full queue pushes back on the link itself.
         self._declared = [
             s.declare_subscriber(key, zenoh.handlers.Callback(self._on_sample, indirect=False))
-            for key in (
-                f"{self.keys.prefix}/radar/*/site",
-                f"{self.keys.prefix}/radar/*/plots",
-                self.keys.ais_inputs,
-            )
+            for key in self._input_keys()
         ]
         self._declared += [
             s.declare_queryable(self.keys.status, self._on_status_query),
@@ -132,6 +130,12 @@ class ServiceNode:
             list(self.zenoh_options.connect),
             self.keys.prefix,
         )
+
+    def _input_keys(self) -> list[str]:
+        """Every radar's inputs, or only the owned radars' (partitioning by configuration)."""
+        ids = self.radars or ("*",)
+        radar_keys = [k for rid in ids for k in (self.keys.site(rid), self.keys.plots(rid))]
+        return [*radar_keys, self.keys.ais_inputs]
 
     def stop(self, timeout_s: float = 5.0) -> None:
         """Stop taking samples, finish the queue, close the session (bounded by ``timeout_s``)."""
