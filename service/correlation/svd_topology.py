@@ -125,6 +125,11 @@ class SvdTopologyParams:
     #: test alone, without re-fitting its topology every update (stage 3).  Its competitors
     #: still get the full topology test, and the assignment's ambiguity margin still applies.
     maintain_confirmed: bool = True
+    #: Before any fit, drop candidates whose velocities cannot belong to one target: speed
+    #: difference and the heading difference beyond ``max_bias_rotation_deg`` (an azimuth bias
+    #: rotates velocities too), chi-square with 2 dof against this false-rejection level.
+    #: 0 disables.  Cheap, and it removes most candidates in dense traffic before the fit.
+    velocity_prefilter_alpha: float = 1e-3
 
 
 @dataclass(frozen=True)
@@ -336,6 +341,28 @@ def svd_match(
     )
 
 
+def _velocity_compatible(
+    a: TrackSnapshot, b: TrackSnapshot, ia: np.ndarray, ib: np.ndarray, m0: FloatArray, prm: SvdTopologyParams
+) -> BoolArray:
+    """Rotation-tolerant velocity gate of candidates (see ``velocity_prefilter_alpha``)."""
+    va = a.enu_velocity[ia] @ m0.T
+    vb = b.enu_velocity[ib]
+    sa = np.hypot(va[:, 0], va[:, 1])
+    sb = np.hypot(vb[:, 0], vb[:, 1])
+    dot = va[:, 0] * vb[:, 0] + va[:, 1] * vb[:, 1]
+    crs = va[:, 0] * vb[:, 1] - va[:, 1] * vb[:, 0]
+    excess = np.maximum(np.abs(np.arctan2(crs, dot)) - np.radians(prm.max_bias_rotation_deg), 0.0)
+    tang = excess * 0.5 * (sa + sb)
+    cva = a.vel_cov[ia]
+    cvb = b.vel_cov[ib]
+    var = (
+        0.5 * (cva[:, 0, 0] + cva[:, 1, 1] + cva[:, 2, 2] + cvb[:, 0, 0] + cvb[:, 1, 1] + cvb[:, 2, 2]) / 1.5
+    )
+    ok = np.isfinite(var) & (var > 0)
+    q = ((sa - sb) ** 2 + tang**2) / np.where(ok, var, 1.0)
+    return ~ok | (q <= chi2.ppf(1.0 - prm.velocity_prefilter_alpha, 2))
+
+
 class SvdTopologyCorrelator(Correlator):
     """Method ``svd-topology``: the topology match above, plus, once registered, stage 2."""
 
@@ -366,6 +393,9 @@ class SvdTopologyCorrelator(Correlator):
             q = q_pos + (q_vel if prm.use_velocity else 0.0)
             if prm.registered_consistency_alpha > 0:
                 run = ok & (q <= chi2.ppf(1.0 - prm.registered_consistency_alpha, dof))
+        m0 = b.site.rotation.T @ a.site.rotation  # Eq. (3)
+        if prm.use_velocity and prm.velocity_prefilter_alpha > 0:
+            run &= _velocity_compatible(a, b, ia, ib, m0, prm)
         maintained = np.zeros(n, dtype=bool)
         if context.registered and prm.maintain_confirmed and len(context.confirmed_a):
             nb = max(len(b), 1)
@@ -377,7 +407,6 @@ class SvdTopologyCorrelator(Correlator):
         nbr_b = neighbourhoods(b.enu, prm.topology)
         pa, ca, ma = gather_points(a.enu, a.enu_cov(), nbr_a, ia[sub])
         pb, cb, mb = gather_points(b.enu, b.enu_cov(), nbr_b, ib[sub])
-        m0 = b.site.rotation.T @ a.site.rotation  # Eq. (3)
         vel = (
             a.enu_velocity[ia[sub]],
             a.enu_vel_cov()[ia[sub]],
