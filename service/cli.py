@@ -231,9 +231,11 @@ class _DemoExtras:
         batches = sum(r["batches"] for r in st["radars"])
         plots = sum(r["plots"] for r in st["radars"])
         tracks = sum(r["tracks_confirmed"] for r in st["radars"])
+        correct = _correct_by_truth(node.snapshot)
         return (
             f"batches {batches}  plots {plots} ({rate:,.0f}/s)  confirmed tracks {tracks}  "
-            f"pairs {st['pairs_confirmed']} confirmed / {st['pairs_tentative']} tentative  "
+            f"pairs {st['pairs_confirmed']} confirmed ({correct} right by simulator truth) / "
+            f"{st['pairs_tentative']} tentative  "
             f"rejected {sum(st['rejected'].values())}  corr p50 {st['correlation']['p50_ms']:.1f} ms"
         )
 
@@ -256,6 +258,22 @@ class _DemoExtras:
         for t in self.threads:
             t.join(timeout=3.0)
         print(f"\ndemo: stopped; {self._line(node, 0.0)}", file=sys.stderr, flush=True)
+
+
+def _correct_by_truth(snapshot: Any) -> int:
+    """Confirmed pairs whose tracks follow the same simulated target (display only: the demo
+    knows the simulator's truth; no algorithm ever reads it)."""
+    truth = {
+        (rid, str(tid)): t
+        for rid, (_, table) in snapshot.tracks.items()
+        for tid, t in zip(table.track_id, table.truth_id, strict=True)
+    }
+    return sum(
+        truth.get((ps["radar_a"], p["track_a"])) is not None
+        and truth.get((ps["radar_a"], p["track_a"])) == truth.get((ps["radar_b"], p["track_b"]))
+        for ps in snapshot.pair_sets(status="confirmed")
+        for p in ps["pairs"]
+    )
 
 
 def scenario_for(args: argparse.Namespace) -> Any:
