@@ -416,7 +416,7 @@ class Engine:
             tracks=tracks,
             radar_rows=rows,
             pair_sets_all=self._correlation.pair_sets(),
-            biases_all=list(self._correlation.biases),
+            biases_all=list(self._correlation.biases()),
             correlation=self._correlation.timings(),
             rejected=dict(sorted(self.rejected.items())),
             method=self.config.method,

@@ -43,7 +43,8 @@ class CorrelationStage:
         self.timings_ms: deque[float] = deque(maxlen=2048)
         self.updates = 0
         self.last_ms = 0.0
-        self.biases: list[dict[str, Any]] = []
+        self._bias_time = 0.0
+        self._bias_cache: tuple[int, list[dict[str, Any]]] = (0, [])
 
     def forget(self, source_id: str) -> None:
         """A source's geometry changed: its pairs start afresh."""
@@ -84,9 +85,15 @@ class CorrelationStage:
             self.timings_ms.append(self.last_ms)
             results.append(self._pair_set(key, corr))
         if results:
-            estimates = (bias_dict(b) for b in estimate_biases(list(self.correlators.values()), time_s))
-            self.biases = [b for b in estimates if b is not None]
+            self._bias_time = time_s
         return results
+
+    def biases(self) -> list[dict[str, Any]]:
+        """Joint bias estimate over every pair, solved when asked (once per correlation update)."""
+        if self._bias_cache[0] != self.updates:
+            estimates = estimate_biases(list(self.correlators.values()), self._bias_time)
+            self._bias_cache = (self.updates, [b for b in map(bias_dict, estimates) if b is not None])
+        return self._bias_cache[1]
 
     def _pair_set(self, key: tuple[str, str], corr: PairCorrelator) -> dict[str, Any]:
         swap = corr.site_a.site_id != key[0]
