@@ -3,32 +3,15 @@
 from __future__ import annotations
 
 import json
-import socket
-import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 from mcap.writer import CompressionType, Writer
 
+from tests.conftest import free_port, wait_for, wait_subscribed
+
+__all__ = ["PREFIX", "foreign_mcap", "free_port", "plots", "site", "wait_for", "wait_subscribed"]
+
 PREFIX = "fusion"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def wait_for(predicate: Callable[[], Any], timeout: float = 10.0, interval: float = 0.02) -> Any:
-    deadline = time.monotonic() + timeout
-    last = None
-    while time.monotonic() < deadline:
-        last = predicate()
-        if last:
-            return last
-        time.sleep(interval)
-    raise AssertionError(f"condition not met within {timeout} s (last value: {last!r})")
 
 
 def site(radar_id: str, lat: float = 31.0, lon: float = 121.0) -> bytes:
@@ -75,12 +58,3 @@ def foreign_mcap(
                 channels[key] = w.register_channel(key, "json", schema_id)
             w.add_message(channels[key], log_time=log_time, data=payload, publish_time=log_time)
         w.finish()
-
-
-def wait_subscribed(session: Any, key: str, timeout: float = 10.0) -> None:
-    """Wait until some subscriber somewhere matches ``key`` (Zenoh matching status)."""
-    publisher = session.declare_publisher(key)
-    try:
-        wait_for(lambda: publisher.matching_status.matching, timeout=timeout)
-    finally:
-        publisher.undeclare()
