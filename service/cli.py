@@ -15,7 +15,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from service.settings import METHODS, Settings
+from service.settings import METHODS, Settings, engine_config
 from service.transport.session import MODES, ZenohOptions
 
 log = logging.getLogger("topofusion")
@@ -119,19 +119,6 @@ def zenoh_options(settings: Settings) -> ZenohOptions:
         listen=tuple(settings.zenoh_listen) if settings.zenoh_listen is not None else None,
         connect=tuple(settings.zenoh_connect),
         config_file=settings.zenoh_config,
-    )
-
-
-def engine_config(settings: Settings) -> Any:
-    from service.engine import EngineConfig, load_sites
-
-    sites = load_sites(settings.sites) if settings.sites else ()
-    return EngineConfig(
-        prefix=settings.prefix,
-        method=settings.method,
-        window_s=settings.window_s,
-        initiator=settings.initiator,
-        sites=sites,
     )
 
 

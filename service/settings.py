@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from service.transport.session import DEFAULT_LISTEN
+
+if TYPE_CHECKING:
+    from service.engine import EngineConfig
 
 METHODS = ("svd-topology", "basic-topology", "nearest", "gmm", "cfar")
 
@@ -59,3 +62,16 @@ class Settings(BaseSettings):
         if self.zenoh_listen is not None:
             return list(self.zenoh_listen)
         return [] if self.zenoh_mode == "client" else [DEFAULT_LISTEN]
+
+
+def engine_config(settings: Settings) -> EngineConfig:
+    """The engine's configuration from the settings (sites loaded from ``settings.sites``)."""
+    from service.engine import EngineConfig, load_sites
+
+    return EngineConfig(
+        prefix=settings.prefix,
+        method=settings.method,
+        window_s=settings.window_s,
+        initiator=settings.initiator,
+        sites=load_sites(settings.sites) if settings.sites else (),
+    )

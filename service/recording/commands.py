@@ -13,6 +13,7 @@ import signal
 import sys
 import threading
 from collections.abc import Iterator
+from dataclasses import replace
 from typing import Any
 
 from service.recording.reader import RecordingError
@@ -162,8 +163,8 @@ def _replay_options(args: argparse.Namespace) -> ReplayOptions:
 
 
 def _offline_engine(args: argparse.Namespace, prefix: str) -> Any:
-    from service.engine import Engine, EngineConfig, load_sites
-    from service.settings import Settings
+    from service.engine import Engine
+    from service.settings import Settings, engine_config
 
     overrides = {
         key: value
@@ -171,16 +172,7 @@ def _offline_engine(args: argparse.Namespace, prefix: str) -> Any:
         if value is not None
     }
     settings = Settings(**overrides)  # environment (TOPOFUSION_*) under the flags, like `run`
-    sites = load_sites(settings.sites) if settings.sites is not None else ()
-    return Engine(
-        EngineConfig(
-            prefix=prefix,
-            method=settings.method,
-            window_s=settings.window_s,
-            initiator=settings.initiator,
-            sites=sites,
-        )
-    )
+    return Engine(replace(engine_config(settings), prefix=prefix))
 
 
 def replay_main(
