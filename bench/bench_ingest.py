@@ -14,13 +14,9 @@ from __future__ import annotations
 import json
 import queue
 import socket
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from service.engine import EngineConfig, plot_columns
 from service.geo import Site
