@@ -8,7 +8,8 @@ over all candidates of an update:
    ``M0 = R_B^-1 R_A`` of Eq. (3), so the remaining rotation is the bias part only.
 2. Robust neighbour pairing (the paper leaves it open; sequences can differ in length):
    (a) rotation-tolerant mutual nearest neighbour on the vectors ``z_i = x_i - x_0``
-   (radial mismatch plus the tangential mismatch beyond ``pairing_rotation_tolerance_deg``);
+   (horizontal radial mismatch, the tangential mismatch beyond
+   ``pairing_rotation_tolerance_deg`` and the vertical mismatch);
    (b) similarity fit; (c) mutual nearest neighbour again with the fitted transform under a
    chi-square gate; (d) elements whose residual fails ``element_gate_chi2`` are trimmed and
    the fit repeated.
@@ -59,6 +60,7 @@ from service.correlation.base import (
     TrackSnapshot,
 )
 from service.correlation.candidates import CandidateParams, candidate_pairs
+from service.correlation.gls import similarity_gls_batch
 from service.correlation.linalg import inv3, mahalanobis2_h, quad3
 from service.correlation.nearest import chi2_pairs
 from service.correlation.topology import TopologyParams, gather_points, neighbourhoods
@@ -105,14 +107,24 @@ class SvdTopologyParams:
     pairing_rotation_tolerance_deg: float = 6.0
     #: Gate (m) of the first, rotation-tolerant pairing.
     pairing_gate_m: float = 4_000.0
-    #: Chi-square (2 dof, horizontal) gate of the re-pairing with the fitted transform (99.9 %).
-    repair_gate_chi2: float = 13.8
+    #: Chi-square (3 dof: horizontal Mahalanobis + vertical) gate of the re-pairing with the
+    #: fitted transform (99.9 %).
+    repair_gate_chi2: float = 16.3
     #: Chi-square (3 dof) an element may reach before it is trimmed as mispaired (99.9 %).
     element_gate_chi2: float = 16.3
-    #: False-rejection probability of the shape test.
-    alpha_shape: float = 0.01
+    #: Yaw model: 1-sigma of the Gaussian prior on the scale ``c`` around 1 in the weighted fit
+    #: behind the test (:mod:`.gls`): the physical bound ``max_scale_deviation`` as a soft one.
+    prior_scale_sigma: float = 0.03
+    #: ... and on the yaw around 0 (deg): the physical bound ``max_bias_rotation_deg``.
+    prior_yaw_sigma_deg: float = 5.0
+    #: False-rejection probability of the shape test.  Shape and position tests are two
+    #: tests of one hypothesis: their sizes add (Bonferroni), so 0.005 + 0.005 keeps the
+    #: single match's false-rejection probability at most 1 %, the size of the basic
+    #: method's single test (equal footing in Fig. 1; the velocity term, stream only, adds
+    #: at most ``alpha_position`` more).
+    alpha_shape: float = 0.005
     #: False-rejection probability of the position (+ velocity) test.
-    alpha_position: float = 0.01
+    alpha_position: float = 0.005
     #: Use track velocities (the stream's tracks) in the position test.
     use_velocity: bool = True
     #: When the radars are registered, candidates the topology cannot decide (too few
@@ -139,7 +151,7 @@ class SvdMatchResult:
     accepted: BoolArray
     reason: NDArray[np.int8]
     chi2_shape: FloatArray
-    dof_shape: NDArray[np.int64]
+    dof_shape: FloatArray  # effective (non-integer for the regularised yaw fit)
     chi2_ref: FloatArray
     dof_ref: NDArray[np.int64]
     statistic: FloatArray
@@ -219,7 +231,8 @@ def svd_match(
     dth = np.abs(np.arctan2(crs, dot))  # angle between the horizontal vectors
     tol = np.radians(prm.pairing_rotation_tolerance_deg)
     tang = np.maximum(dth - tol, 0.0) * 0.5 * (ra[:, :, None] + rb[:, None, :])
-    cost0 = np.hypot(ra[:, :, None] - rb[:, None, :], tang)
+    dz = za[:, :, None, 2] - zb[:, None, :, 2]
+    cost0 = np.sqrt((ra[:, :, None] - rb[:, None, :]) ** 2 + tang**2 + dz**2)
     pair = _mutual_nearest(np.where(valid_pair, cost0, np.inf), prm.pairing_gate_m)
 
     def paired(pr: NDArray[np.intp]) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -240,11 +253,16 @@ def svd_match(
     )
     xt = fit.apply(za)
     xt = np.where(np.isfinite(xt), xt, za)
-    d = xt[:, :, None, :2] - zb[:, None, :, :2]
+    d = xt[:, :, None, :] - zb[:, None, :, :]
     sxx = can[:, :, None, 0, 0] + cbn[:, None, :, 0, 0]
     sxy = can[:, :, None, 0, 1] + cbn[:, None, :, 0, 1]
     syy = can[:, :, None, 1, 1] + cbn[:, None, :, 1, 1]
-    cost1 = mahalanobis2_h(d[..., 0], d[..., 1], sxx, sxy, syy)
+    szz = can[:, :, None, 2, 2] + cbn[:, None, :, 2, 2]
+    # Horizontal Mahalanobis plus the vertical term (the small horizontal-vertical correlation
+    # ignored): neighbours nearly above or below the reference pair by their heights.
+    cost1 = mahalanobis2_h(d[..., 0], d[..., 1], sxx, sxy, syy) + d[..., 2] ** 2 / np.where(
+        szz > 0, szz, np.inf
+    )
     pair1 = _mutual_nearest(np.where(valid_pair, cost1, np.inf), prm.repair_gate_chi2)
     pair = np.where(np.isfinite(fit.scale)[:, None], pair1, pair)
 
@@ -266,21 +284,49 @@ def svd_match(
         w = w_new
     m = (w > 0).sum(axis=1)
     sing = np.any((w > 0) & ~s_ok, axis=1)
-    chi2_shape = (q_k * (w > 0)).sum(axis=1)
-    dof_shape = np.maximum(3 * m - n_par, 1)
 
-    # 6. position test on the translation t (Eq. 4), with the leverage of the origin.
-    wsum = np.maximum(w.sum(axis=1), 1.0)
-    xbar = np.einsum("pk,pkd->pd", w, za) / wsum[:, None]
-    spread = np.einsum("pk,pk->p", w, ((za - xbar[:, None, :])[..., :2] ** 2).sum(-1))
-    tiny = np.finfo(float).tiny
-    h = 1.0 / wsum + np.where(
-        spread > tiny, (xbar[:, :2] ** 2).sum(-1) / np.where(spread > tiny, spread, 1.0), 0.0
-    )
-    s_bar = np.einsum("pk,pkij->pij", w, s_k) / wsum[:, None, None]
+    # 6. The test statistics come from the covariance-weighted fit (:mod:`.gls`) of the same
+    # paired elements, started from nothing but the physical prior: only the weighted minimum
+    # of the weighted norm is chi-square distributed (the unweighted SVD fit above decides the
+    # pairing, the trimming and nothing else).
+    if prm.rotation_model == "full":
+        # The paper's 3-D model, kept for reference: unweighted statistics, leverage approximation.
+        chi2_shape = (q_k * (w > 0)).sum(axis=1)
+        dof_shape = np.maximum(3.0 * m - n_par, 1.0)
+        wsum = np.maximum(w.sum(axis=1), 1.0)
+        xbar = np.einsum("pk,pkd->pd", w, za) / wsum[:, None]
+        spread = np.einsum("pk,pk->p", w, ((za - xbar[:, None, :])[..., :2] ** 2).sum(-1))
+        tiny = np.finfo(float).tiny
+        h = 1.0 / wsum + np.where(
+            spread > tiny, (xbar[:, :2] ** 2).sum(-1) / np.where(spread > tiny, spread, 1.0), 0.0
+        )
+        cov_t = h[:, None, None] * np.einsum("pk,pkij->pij", w, s_k) / wsum[:, None, None]
+        t_fit = fit.translation
+        fit_ok = fit.valid
+    else:
+        gfit = similarity_gls_batch(
+            za,
+            np.where(np.isfinite(y), y, 0.0),
+            w,
+            s_inv,
+            prm.prior_scale_sigma,
+            np.radians(prm.prior_yaw_sigma_deg),
+        )
+        fit_ok = gfit.valid
+        c = np.where(fit_ok, gfit.scale, 1.0)
+        yaw = np.where(fit_ok, gfit.yaw, 0.0)
+        rm = yaw_matrix(yaw)
+        chi2_shape = np.where(fit_ok, gfit.q_residual + gfit.q_prior, 0.0)
+        dof_shape = np.maximum(3.0 * m - np.where(fit_ok, gfit.df_model, 0.0), 0.5)
+        cov_t = np.where(fit_ok[:, None, None], gfit.cov[:, 2:, 2:], 0.0)
+        t_fit = gfit.translation
+
+    # Position test on the translation t (Eq. 4): both references sit at the origin of their
+    # topology vectors, so t is the A reference predicted from the neighbours minus the B
+    # reference; its covariance is the references' own noise plus the fit's (GLS block).
     s_0 = (c**2)[:, None, None] * rm @ ca_r[:, 0] @ np.swapaxes(rm, 1, 2) + cb[:, 0]
-    s_ref_inv, ref_ok = inv3(s_0 + h[:, None, None] * s_bar)
-    t = np.where(np.isfinite(fit.translation), fit.translation, 0.0)
+    s_ref_inv, ref_ok = inv3(s_0 + cov_t)
+    t = np.where(np.isfinite(t_fit), t_fit, 0.0)
     chi2_ref = quad3(t, s_ref_inv)
     dof_ref = np.full(len(m), 3, dtype=np.int64)
     chi2_vel = np.zeros(len(m))
@@ -303,9 +349,12 @@ def svd_match(
         | (np.minimum(n_a, n_b) < min_matched)
         | (m < prm.min_match_fraction * np.minimum(n_a, n_b))
     )
-    degenerate = ~fit.valid | sing | ~ref_ok | ~np.all(np.isfinite(fit.translation), axis=1)
+    degenerate = ~fit.valid | ~fit_ok | sing | ~ref_ok | ~np.all(np.isfinite(t_fit), axis=1)
     bad_weight = weight < prm.min_rotation_weight
-    bad_scale = np.abs(c - 1.0) > prm.max_scale_deviation * (1.0 + 1e-9)
+    # A hard scale bound only for the paper's free 3-D fit: in the yaw model the bound is the
+    # prior of the weighted fit, and with 2-10 neighbours at <= 10 km the scale's own
+    # uncertainty (1-4 %) exceeds it, so a hard cut would reject true pairs on noise.
+    bad_scale = (prm.rotation_model == "full") & (np.abs(c - 1.0) > prm.max_scale_deviation * (1.0 + 1e-9))
     bad_shape = chi2_shape > chi2.ppf(1.0 - prm.alpha_shape, dof_shape)
     bad_pos = chi2_ref > chi2.ppf(1.0 - prm.alpha_position, 3)
     reason = np.select(
@@ -329,7 +378,7 @@ def svd_match(
         accepted=reason == Reason.ACCEPTED,
         reason=reason,
         chi2_shape=np.where(no_dec, np.nan, chi2_shape),
-        dof_shape=dof_shape.astype(np.int64),
+        dof_shape=dof_shape,
         chi2_ref=np.where(no_dec, np.nan, chi2_ref + chi2_vel),
         dof_ref=dof_ref.astype(np.int64),
         statistic=statistic,

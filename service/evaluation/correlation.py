@@ -99,38 +99,62 @@ def run(
 
     progress(f"correlation: Fig. 1 ({n} runs per point)")
     f1 = fig1_correct_vs_neighbours(n, seed, setting, COUNTS)
-    f1_ideal = fig1_correct_vs_neighbours(n, seed + 1, setting, COUNTS, pd=1.0)
+    f1_ideal = fig1_correct_vs_neighbours(n, seed + 1, setting, COUNTS, pd=1.0, with_full=False)
+    f1_paper = fig1_correct_vs_neighbours(
+        n, seed + 5, setting, COUNTS, pd=1.0, neighbour_model="sphere", with_full=False
+    )
     _plot(
         out_dir / "correlation_fig1_correct_vs_neighbours.png",
         list(COUNTS),
-        f1,
+        {
+            **f1,
+            "svd ideal": f1_ideal["svd-topology"],
+            "basic ideal": f1_ideal["basic-topology"],
+            "svd, paper's 10 km ball": f1_paper["svd-topology"],
+            "basic, paper's 10 km ball": f1_paper["basic-topology"],
+        },
         "neighbours",
         "correct correlation (%)",
-        "Fig. 1: one match, 200 m/0.2 deg noise, 100 m/0.1 deg bias, Pd 0.95",
+        "Fig. 1: one match, 200 m/0.2 deg noise, 100 m/0.1 deg bias",
     )
     md += [
         f"### Fig. 1: correct-correlation rate of one match vs neighbours ({n} runs per point)",
         "",
-        "Neighbour detection probability 0.95 per radar; *ideal* = both radars see every neighbour.",
+        "Three neighbour models: *Pd 0.95* -- neighbours uniform in a 10 km horizontal disc at 6-12 km "
+        "altitude, each in each radar's picture with probability 0.95 (sequences can differ); *ideal* -- "
+        "same disc, both radars see every neighbour; *paper* -- the paper's neighbourhood, uniform in a "
+        "10 km ball around the reference, every neighbour seen by both.  Both topology methods are tested "
+        "at the same total size 1 % (svd: shape 0.5 % + position 0.5 %; basic: one chi-square at 1 %, "
+        "searching +-0.25 deg in 0.25 deg steps and +-200 m in 50 m steps: the differential bias of "
+        "this scenario), so neither can exceed ~99 %.",
         "",
-        "| neighbours | svd-topology | basic-topology | nearest | svd 3-D (paper) | svd ideal "
-        "| basic ideal |",
-        "|---:|---:|---:|---:|---:|---:|---:|",
+        "| neighbours | svd Pd 0.95 | basic Pd 0.95 | nearest | svd 3-D (paper fit) | svd ideal "
+        "| basic ideal | svd paper | basic paper |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for k, c in enumerate(COUNTS):
         md.append(
             f"| {c} | {_pct(f1['svd-topology'][k])} | {_pct(f1['basic-topology'][k])} | "
             f"{_pct(f1['nearest'][k])} | {_pct(f1[PAPER_FULL][k])} | {_pct(f1_ideal['svd-topology'][k])} | "
-            f"{_pct(f1_ideal['basic-topology'][k])} |"
+            f"{_pct(f1_ideal['basic-topology'][k])} | {_pct(f1_paper['svd-topology'][k])} | "
+            f"{_pct(f1_paper['basic-topology'][k])} |"
         )
-    margin = min(f1["svd-topology"][k] - f1["basic-topology"][k] for k, c in enumerate(COUNTS) if c >= 3)
-    margin_ideal = min(
-        f1_ideal["svd-topology"][k] - f1_ideal["basic-topology"][k] for k, c in enumerate(COUNTS) if c >= 3
-    )
+
+    def margin(res: dict[str, list[float]], lo: int) -> float:
+        return min(res["svd-topology"][k] - res["basic-topology"][k] for k, c in enumerate(COUNTS) if c >= lo)
+
     md += [
         "",
-        f"Smallest margin svd - basic for >= 3 neighbours: {100 * margin:.1f} points "
-        f"(ideal sequences: {100 * margin_ideal:.1f}).",
+        "Smallest margin svd - basic (points) for >= 3 / >= 4 neighbours: "
+        f"Pd 0.95 {100 * margin(f1, 3):.1f} / {100 * margin(f1, 4):.1f}; "
+        f"ideal {100 * margin(f1_ideal, 3):.1f} / {100 * margin(f1_ideal, 4):.1f}; "
+        f"paper's ball {100 * margin(f1_paper, 3):.1f} / {100 * margin(f1_paper, 4):.1f}.",
+        "",
+        "The basic method's losses with identical sequences are element-order errors: its sequences are "
+        "compared element by element in azimuth order, and two neighbours closer in azimuth than the "
+        "radars' relative cross-range error (~0.7 km) swap order; the chance grows with the neighbour "
+        "count.  With 2-3 neighbours swaps are rare and the basic test is as good as the SVD one, which "
+        "is why the margin is smallest there.",
         "",
     ]
 

@@ -84,10 +84,24 @@ def around(
     count: int,
     radius_m: float = 10_000.0,
     altitude_m: tuple[float, float] = (6_000.0, 12_000.0),
+    model: str = "disc",
 ) -> FloatArray:
-    """``count`` neighbours per trial uniform in a horizontal disc around each centre: (T, count, 3) ECEF."""
+    """``count`` neighbours per trial around each centre: (T, count, 3) ECEF.
+
+    ``model="disc"``: uniform in a horizontal disc of ``radius_m`` at altitudes uniform in
+    ``altitude_m`` (en-route traffic); ``"sphere"``: uniform in the ball of ``radius_m``
+    around the reference -- the paper's own neighbourhood ("a sphere of radius 10 km around
+    the reference", Section 1.2), where neighbours can lie nearly above or below it.
+    """
     t = centre_ecef.shape[0]
     c = a.ecef_to_enu(centre_ecef)
+    if model == "sphere":
+        d = rng.normal(size=(t, count, 3))
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        d *= radius_m * rng.uniform(0.0, 1.0, (t, count, 1)) ** (1.0 / 3.0)
+        return a.enu_to_ecef(c[:, None, :] + d)
+    if model != "disc":
+        raise ValueError(f"unknown neighbour model {model!r}")
     rad = radius_m * np.sqrt(rng.uniform(0.0, 1.0, (t, count)))
     ang = rng.uniform(0.0, 2 * np.pi, (t, count))
     up = rng.uniform(*altitude_m, (t, count))
@@ -144,15 +158,17 @@ def single_match_batch(
     bias_b: Biases,
     radius_m: float = 10_000.0,
     pd_neighbour: float = 1.0,
+    neighbour_model: str = "disc",
 ) -> tuple[MatchBatch, FloatArray]:
     """Fig. 1 trials: one common reference with ``neighbours`` neighbours; returns batch, truth ECEF.
 
     Each neighbour is in each radar's track picture with probability ``pd_neighbour``
     (independently: missed detections, coverage, track breaks), so the two topology
     sequences can differ in length; 1.0 gives the ideal case of identical sequences.
+    ``neighbour_model``: see :func:`around`.
     """
     ref = sample_references(rng, a, b, trials)
-    nb = around(rng, a, ref, neighbours, radius_m)
+    nb = around(rng, a, ref, neighbours, radius_m, model=neighbour_model)
     truth = np.concatenate([ref[:, None, :], nb], axis=1)
     pa, ca = measure(rng, a, truth, bias_a)
     pb, cb = measure(rng, b, truth, bias_b)

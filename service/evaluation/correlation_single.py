@@ -19,7 +19,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from service.correlation.assignment import assign_unambiguous
-from service.correlation.basic_topology import BasicTopologyParams, basic_match
+from service.correlation.basic_topology import BasicTopologyParams, basic_match, search_span
 from service.correlation.linalg import inv3, quad3
 from service.correlation.svd_topology import SvdTopologyParams, svd_match
 from service.evaluation.correlation_scenario import (
@@ -48,6 +48,10 @@ class Setting:
     pd_neighbour: float = 0.95
     alpha: float = 0.01
     ambiguity_margin: float = 6.0
+
+    def basic(self) -> BasicTopologyParams:
+        """The basic method's search for this setting: just the differential bias (both radars)."""
+        return search_span(2.0 * self.angle_bias_deg, 2.0 * self.range_bias_m)
 
 
 def _nearest(batch: MatchBatch, a: Site, b: Site, alpha: float) -> tuple[np.ndarray, np.ndarray]:
@@ -79,8 +83,14 @@ def fig1_correct_vs_neighbours(
     setting: Setting,
     counts: tuple[int, ...] = tuple(range(2, 13)),
     pd: float | None = None,
+    neighbour_model: str = "disc",
+    with_full: bool = True,
 ) -> dict[str, list[float]]:
-    """Correct-correlation rate of one match (true pair accepted) vs neighbour count."""
+    """Correct-correlation rate of one match (true pair accepted) vs neighbour count.
+
+    ``neighbour_model``: :func:`~service.evaluation.correlation_scenario.around`
+    (``"sphere"`` = the paper's 10 km ball).  ``with_full``: also the paper's 3-D fit.
+    """
     rng = np.random.default_rng(seed)
     a, b = make_sites()
     res: dict[str, list[float]] = {m: [] for m in (*METHOD_NAMES, PAPER_FULL)}
@@ -89,13 +99,22 @@ def fig1_correct_vs_neighbours(
         ba = Biases.random_sign(rng, runs, setting.range_bias_m, setting.angle_bias_deg)
         bb = Biases.random_sign(rng, runs, setting.range_bias_m, setting.angle_bias_deg)
         batch, _ = single_match_batch(
-            rng, a, b, n, runs, ba, bb, pd_neighbour=setting.pd_neighbour if pd is None else pd
+            rng,
+            a,
+            b,
+            n,
+            runs,
+            ba,
+            bb,
+            pd_neighbour=setting.pd_neighbour if pd is None else pd,
+            neighbour_model=neighbour_model,
         )
-        dec = decide_all(batch, a, b, setting, BasicTopologyParams(), SvdTopologyParams())
+        dec = decide_all(batch, a, b, setting, setting.basic(), SvdTopologyParams())
         for m in METHOD_NAMES:
             res[m].append(float(dec[m][0].mean()))
-        rf = svd_match(batch.pa, batch.ca, batch.ma, batch.pb, batch.cb, batch.mb, batch.m0, full)
-        res[PAPER_FULL].append(float(rf.accepted.mean()))
+        if with_full:
+            rf = svd_match(batch.pa, batch.ca, batch.ma, batch.pb, batch.cb, batch.mb, batch.m0, full)
+            res[PAPER_FULL].append(float(rf.accepted.mean()))
     return res
 
 
@@ -151,7 +170,7 @@ def fig2_false_vs_spacing(
         ia = 2 * (k // 4) + (k % 4) // 2
         ib = 2 * (k // 4) + k % 2
         true = (k % 4) // 2 == k % 2
-        dec = decide_all(batch, a, b, setting, BasicTopologyParams(), SvdTopologyParams())
+        dec = decide_all(batch, a, b, setting, setting.basic(), SvdTopologyParams())
         for m in METHOD_NAMES:
             acc, cost = dec[m]
             chosen, _ = assign_unambiguous(ia, ib, cost, acc, setting.ambiguity_margin)
