@@ -12,8 +12,9 @@ Per :meth:`PairCorrelator.update` (all in data time, deterministic):
    currently confirmed pairs get a cost bonus ``confirmed_bonus`` (history as a prior).
 4. One-to-one assignment with an ambiguity margin (:mod:`.assignment`).
 5. The M-of-N book (:mod:`.pairs`).
-6. Confirmed pairs feed the registration memory, and the pair's own two-radar bias solution
-   is refreshed for the next update.
+6. Confirmed pairs feed the registration memory (each row's normal-equation pieces computed
+   once), and the pair's own two-radar bias solution is refreshed for the next update: on
+   every update until registered, then once per ``solve_interval_s`` of data time.
 
 What the stream adds over one snapshot: velocities in the tests (two close aircraft rarely
 share a velocity), M-of-N accumulation, registration from confirmed pairs (bias-compensated
@@ -119,6 +120,7 @@ class PairCorrelator:
         self.book = PairBook(self.params.book)
         self.memory = RegistrationMemory(site_a, site_b)
         self.solution: BiasSolution | None = None
+        self._solved_s = float("-inf")
         self.last_update_ms: float = 0.0
         self.last_decisions: Decisions = Decisions.empty()
         self.time_s: float = float("nan")
@@ -181,7 +183,15 @@ class PairCorrelator:
         if len(pa_idx):
             self.memory.add(time_s, raw_a, raw_b, pa_idx, pb_idx, prm.registration)
         if self.method == "svd-topology" and prm.use_registration and len(self.memory.time):
-            self.solution = solve_biases([self.memory], time_s, prm.registration)
+            # Re-solve on a data-time schedule once registered (every update before that).
+            due = (
+                not self.registered
+                or time_s >= self._solved_s + prm.registration.solve_interval_s
+                or time_s < self._solved_s
+            )
+            if due:
+                self.solution = solve_biases([self.memory], time_s, prm.registration)
+                self._solved_s = time_s
         self.last_decisions = dec
         self.last_ambiguous = int(ambiguous.sum())
         self.time_s = time_s

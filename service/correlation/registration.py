@@ -23,7 +23,7 @@ the relative bias even where the split between the radars is prior-driven.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -46,13 +46,20 @@ class RegistrationParams:
     outlier_chi2: float = 16.3
     #: Data time (s) confirmed pairs are remembered for (biases vary slowly).
     memory_s: float = 300.0
-    #: Cap on remembered pair rows per radar pair (oldest dropped first).
-    max_rows: int = 4_000
+    #: Cap on remembered pair rows per radar pair (oldest updates dropped first).  Solving only
+    #: sums cached per-row pieces, so the whole ``memory_s`` of a busy pair fits (40 pairs every
+    #: 3 s for 300 s is 4 000 rows; the former cap of 4 000 cut that memory short).
+    max_rows: int = 20_000
     #: At most this many confirmed pairs (evenly spread) are remembered per update: rows of
     #: one update share the biases, more add little information but cost time.
     max_rows_per_update: int = 300
     #: Minimum confirmed pairs before a correlator uses its registration.
     min_pairs: int = 6
+    #: A :class:`~service.correlation.PairCorrelator` re-solves its own two-radar registration
+    #: at most once per this much *data* time once it is registered (before that, on every
+    #: update).  Biases drift over minutes, a solve over hundreds of remembered rows changes
+    #: little in a few seconds, and the schedule depends on data time only (deterministic).
+    solve_interval_s: float = 10.0
 
 
 @dataclass(frozen=True)
@@ -97,17 +104,64 @@ def bias_jacobian(site: Site, position: FloatArray) -> FloatArray:
     return site.rotation @ polar_jacobian(r, az, el)
 
 
-@dataclass
-class RegistrationMemory:
-    """Recent confirmed-pair rows of one radar pair (raw, uncompensated positions)."""
+_COLUMNS = ("time", "g_a", "g_b", "d", "s", "w", "w_ok", "haa", "hab", "hbb", "va", "vb")
+_SHAPES: dict[str, tuple[int, ...]] = {
+    "time": (),
+    "g_a": (3, 3),
+    "g_b": (3, 3),
+    "d": (3,),
+    "s": (3, 3),
+    "w": (3, 3),
+    "w_ok": (),
+    "haa": (3, 3),
+    "hab": (3, 3),
+    "hbb": (3, 3),
+    "va": (3,),
+    "vb": (3,),
+}
 
-    site_a: Site
-    site_b: Site | None
-    time: FloatArray = field(default_factory=lambda: np.empty(0))
-    g_a: FloatArray = field(default_factory=lambda: np.empty((0, 3, 3)))
-    g_b: FloatArray = field(default_factory=lambda: np.empty((0, 3, 3)))
-    d: FloatArray = field(default_factory=lambda: np.empty((0, 3)))
-    s: FloatArray = field(default_factory=lambda: np.empty((0, 3, 3)))
+
+class RegistrationMemory:
+    """Recent confirmed-pair rows of one radar pair (raw, uncompensated positions).
+
+    Rows are kept as one chunk per update (appending never copies the history; whole chunks
+    leave the memory when older than ``memory_s`` or beyond ``max_rows``).  Each row carries
+    its normal-equation pieces, computed once when it is added: the weight ``W = S^-1`` and
+    its rank flag ``w_ok``, ``haa = G_a^T W G_a``, ``hab = G_a^T W G_b``, ``hbb = G_b^T W G_b``,
+    ``va = G_a^T W d``, ``vb = G_b^T W d``; a solve only sums the rows it keeps.  The columns
+    (``time``, ``g_a``, ``g_b``, ``d``, ``s``, ``w``, ...) read as concatenated arrays.
+    """
+
+    def __init__(self, site_a: Site, site_b: Site | None) -> None:
+        self.site_a = site_a
+        self.site_b = site_b
+        self._chunks: list[dict[str, np.ndarray]] = []
+        self._cat: dict[str, np.ndarray] | None = None
+
+    def _column(self, name: str) -> np.ndarray:
+        if self._cat is None:
+            self._cat = {
+                c: (
+                    np.concatenate([ch[c] for ch in self._chunks])
+                    if self._chunks
+                    else np.empty((0, *_SHAPES[c]), dtype=bool if c == "w_ok" else float)
+                )
+                for c in _COLUMNS
+            }
+        return self._cat[name]
+
+    time = property(lambda self: self._column("time"))
+    g_a = property(lambda self: self._column("g_a"))
+    g_b = property(lambda self: self._column("g_b"))
+    d = property(lambda self: self._column("d"))
+    s = property(lambda self: self._column("s"))
+    w = property(lambda self: self._column("w"))
+    w_ok = property(lambda self: self._column("w_ok"))
+    haa = property(lambda self: self._column("haa"))
+    hab = property(lambda self: self._column("hab"))
+    hbb = property(lambda self: self._column("hbb"))
+    va = property(lambda self: self._column("va"))
+    vb = property(lambda self: self._column("vb"))
 
     def add(
         self,
@@ -127,20 +181,37 @@ class RegistrationMemory:
             if self.site_b is not None
             else np.zeros((len(ib), 3, 3))
         )
-        self.time = np.concatenate([self.time, np.full(len(ia), time_s)])
-        self.g_a = np.concatenate([self.g_a, ga])
-        self.g_b = np.concatenate([self.g_b, gb])
-        self.d = np.concatenate([self.d, a.position[ia] - b.position[ib]])
-        self.s = np.concatenate([self.s, a.pos_cov[ia] + b.pos_cov[ib]])
-        keep = self.time >= time_s - params.memory_s
-        if keep.sum() > params.max_rows:
-            keep &= np.arange(len(keep)) >= len(keep) - params.max_rows
-        self.time, self.g_a, self.g_b = self.time[keep], self.g_a[keep], self.g_b[keep]
-        self.d, self.s = self.d[keep], self.s[keep]
+        d = a.position[ia] - b.position[ib]
+        s = a.pos_cov[ia] + b.pos_cov[ib]
+        w, w_ok = inv3(s)
+        gat_w = np.swapaxes(ga, 1, 2) @ w
+        gbt_w = np.swapaxes(gb, 1, 2) @ w
+        self._chunks.append(
+            {
+                "time": np.full(len(ia), float(time_s)),
+                "g_a": ga,
+                "g_b": gb,
+                "d": d,
+                "s": s,
+                "w": w,
+                "w_ok": w_ok,
+                "haa": gat_w @ ga,
+                "hab": gat_w @ gb,
+                "hbb": gbt_w @ gb,
+                "va": (gat_w @ d[..., None])[..., 0],
+                "vb": (gbt_w @ d[..., None])[..., 0],
+            }
+        )
+        # Forget whole updates: older than the memory, or beyond the row cap (oldest first).
+        self._chunks = [ch for ch in self._chunks if ch["time"][:1].sum() >= time_s - params.memory_s]
+        total = sum(len(ch["time"]) for ch in self._chunks)
+        while len(self._chunks) > 1 and total > params.max_rows:
+            total -= len(self._chunks.pop(0)["time"])
+        self._cat = None
 
     def current(self, time_s: float) -> np.ndarray:
         """Mask of rows within memory (data time) of ``time_s``."""
-        return self.time <= time_s
+        return np.asarray(self.time <= time_s)
 
 
 def solve_biases(
@@ -164,28 +235,24 @@ def solve_biases(
     rows = [(m, m.current(time_s) & (m.time >= time_s - prm.memory_s)) for m in memories]
     if sum(int(r.sum()) for _, r in rows) == 0:
         return None
-    weights = [(m, r, inv3(m.s[r])) for m, r in rows]
+    weights = [(m, r, (m.w[r], m.w_ok[r])) for m, r in rows]
     keep = [ok for _, _, (_, ok) in weights]
     bias = np.zeros(n)
     cov = np.diag(1.0 / prior)
     for _ in range(3):
         h = np.diag(prior)
         g = np.zeros(n)
-        for (m, r, (w, _)), kp in zip(weights, keep, strict=True):
+        for (m, r, _), kp in zip(weights, keep, strict=True):
             ka = 3 * col[m.site_a.site_id]
-            wk = w * kp[:, None, None]
-            ga, gb, d = m.g_a[r], m.g_b[r], m.d[r]
-            gat_w = np.swapaxes(ga, 1, 2) @ wk
-            h[ka : ka + 3, ka : ka + 3] += (gat_w @ ga).sum(0)
-            g[ka : ka + 3] += (gat_w @ d[..., None]).sum(0)[:, 0]
+            h[ka : ka + 3, ka : ka + 3] += m.haa[r][kp].sum(0)
+            g[ka : ka + 3] += m.va[r][kp].sum(0)
             if m.site_b is not None:
                 kb = 3 * col[m.site_b.site_id]
-                gbt_w = np.swapaxes(gb, 1, 2) @ wk
-                cross = (gat_w @ gb).sum(0)
+                cross = m.hab[r][kp].sum(0)
                 h[ka : ka + 3, kb : kb + 3] -= cross
                 h[kb : kb + 3, ka : ka + 3] -= cross.T
-                h[kb : kb + 3, kb : kb + 3] += (gbt_w @ gb).sum(0)
-                g[kb : kb + 3] -= (gbt_w @ d[..., None]).sum(0)[:, 0]
+                h[kb : kb + 3, kb : kb + 3] += m.hbb[r][kp].sum(0)
+                g[kb : kb + 3] -= m.vb[r][kp].sum(0)
         cov = np.linalg.inv(h)
         bias = cov @ g
         new_keep = []

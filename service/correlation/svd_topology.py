@@ -61,7 +61,7 @@ from service.correlation.base import (
 )
 from service.correlation.candidates import CandidateParams, candidate_pairs
 from service.correlation.gls import similarity_gls_batch
-from service.correlation.linalg import inv3, mahalanobis2_h, quad3
+from service.correlation.linalg import congruence, inv3, mahalanobis2_h, quad3, yaw_congruence
 from service.correlation.nearest import chi2_pairs
 from service.correlation.topology import TopologyParams, gather_points, neighbourhoods
 from service.correlation.umeyama import (
@@ -175,6 +175,16 @@ def _mutual_nearest(cost: FloatArray, gate: float) -> NDArray[np.intp]:
     return np.where(ok, jb, -1).astype(np.intp)
 
 
+def _merge_fit(base: SimilarityFit, sub: SimilarityFit, rows: NDArray[np.intp]) -> SimilarityFit:
+    """``base`` with the entries ``rows`` replaced by ``sub``."""
+    parts = []
+    for name in ("rotation", "scale", "translation", "residual", "valid"):
+        arr = getattr(base, name).copy()
+        arr[rows] = getattr(sub, name)
+        parts.append(arr)
+    return SimilarityFit(*parts)
+
+
 def _fit(
     x: FloatArray, y: FloatArray, w: FloatArray, prm: SvdTopologyParams
 ) -> tuple[SimilarityFit, FloatArray]:
@@ -214,7 +224,7 @@ def svd_match(
     min_matched = max(prm.min_matched, 3 if prm.rotation_model == "full" else 2)
     rot0 = yaw_matrix(np.array(prior_yaw_rad)) @ m0
     pa_r = pa @ rot0.T
-    ca_r = rot0 @ ca @ rot0.T
+    ca_r = congruence(rot0, ca)
     za = (pa_r - pa_r[:, :1, :])[:, 1:]
     zb = (pb - pb[:, :1, :])[:, 1:]
     man, mbn = ma[:, 1:], mb[:, 1:]
@@ -267,21 +277,38 @@ def svd_match(
     pair = np.where(np.isfinite(fit.scale)[:, None], pair1, pair)
 
     # 3 + 2(d): neighbours-only fit, element chi-square, trim, refit.
+    # The element covariances (Section 1.6) use the first fit's transform: trimming changes it
+    # by a fraction of the yaw's own uncertainty, far too little to matter for a covariance.
     y, cy, w = paired(pair)
-    for it in range(3):
-        fit, yaw = _fit(za, y, w, prm)
-        c = np.where(np.isfinite(fit.scale), fit.scale, 1.0)
-        rm = fit.rotation
-        r = y - fit.apply(za)
-        s_k = (c**2)[:, None, None, None] * (
-            rm[:, None] @ can @ np.swapaxes(rm, 1, 2)[:, None]
-        ) + cy  # Section 1.6
-        s_inv, s_ok = inv3(s_k)
-        q_k = np.where(w > 0, quad3(np.where(np.isfinite(r), r, 0.0), s_inv), 0.0)
+    fit, yaw = _fit(za, y, w, prm)
+    c = np.where(np.isfinite(fit.scale), fit.scale, 1.0)
+    rm = fit.rotation
+    if prm.rotation_model == "full":
+        rot_can = rm[:, None] @ can @ np.swapaxes(rm, 1, 2)[:, None]
+    else:
+        rot_can = yaw_congruence(np.where(np.isfinite(yaw), yaw, 0.0), can)
+    s_k = (c**2)[:, None, None, None] * rot_can + cy  # Section 1.6
+    s_inv, s_ok = inv3(s_k)
+    y_safe = np.where(np.isfinite(y), y, 0.0)
+
+    def element_chi2(f: SimilarityFit, rows: NDArray[np.intp] | slice) -> FloatArray:
+        r = y_safe[rows] - f.apply(za[rows])
+        return np.where(w[rows] > 0, quad3(np.where(np.isfinite(r), r, 0.0), s_inv[rows]), 0.0)
+
+    q_k = element_chi2(fit, slice(None))
+    for _ in range(2):  # trim and refit only the candidates whose elements changed
         w_new = w * (q_k <= prm.element_gate_chi2)
-        if it == 2 or np.array_equal(w_new, w):
+        ch = np.flatnonzero(np.any(w_new != w, axis=1))
+        if ch.size == 0:
             break
         w = w_new
+        sub_fit, sub_yaw = _fit(za[ch], y[ch], w[ch], prm)
+        fit = _merge_fit(fit, sub_fit, ch)
+        yaw = yaw.copy()
+        yaw[ch] = sub_yaw
+        q_k[ch] = element_chi2(sub_fit, ch)
+    c = np.where(np.isfinite(fit.scale), fit.scale, 1.0)
+    rm = fit.rotation
     m = (w > 0).sum(axis=1)
     sing = np.any((w > 0) & ~s_ok, axis=1)
 
@@ -334,7 +361,7 @@ def svd_match(
     if velocity is not None and prm.use_velocity:
         va, cva, vb, cvb = velocity
         va_r = va @ rot0.T
-        cva_r = rot0 @ cva @ rot0.T
+        cva_r = congruence(rot0, cva)
         rv = vb - c[:, None] * (rm @ va_r[..., None])[..., 0]
         sv_inv, sv_ok = inv3((c**2)[:, None, None] * rm @ cva_r @ np.swapaxes(rm, 1, 2) + cvb)
         chi2_vel = np.where(sv_ok, quad3(rv, sv_inv), 0.0)
