@@ -143,3 +143,33 @@ def test_router_config_listens_where_services_connect() -> None:
 @pytest.mark.parametrize("setting", sorted(Settings.model_fields))
 def test_every_setting_is_documented_in_readme(setting: str) -> None:
     assert f"TOPOFUSION_{setting.upper()}" in (ROOT / "README.md").read_text()
+
+
+def test_kubernetes_manifest_names_only_what_exists() -> None:
+    docs = list(yaml.safe_load_all((ROOT / "deploy" / "kubernetes" / "topofusion.yaml").read_text()))
+    deployments = {d["metadata"]["name"]: d for d in docs if d["kind"] == "Deployment"}
+    ours = deployments["topofusion"]["spec"]["template"]["spec"]["containers"][0]
+    _check_cli(ours["args"])
+    env = {e["name"]: e["value"] for e in ours["env"]}
+    assert set(env) <= _settings_env_names()
+    port = int(env["TOPOFUSION_HTTP_PORT"])
+    assert [p["containerPort"] for p in ours["ports"]] == [port]
+    app = build_app_paths()
+    for probe in ("livenessProbe", "readinessProbe"):
+        assert ours[probe]["httpGet"]["port"] == port and ours[probe]["httpGet"]["path"] in app
+    router = deployments["zenoh-router"]["spec"]["template"]["spec"]["containers"][0]
+    assert router["image"].startswith("eclipse/zenoh:") and router["args"][0].startswith("-")
+    config = next(d for d in docs if d["kind"] == "ConfigMap")["data"]["zenohd.json5"]
+    path = ROOT / "deploy" / "zenohd.json5"
+    assert zenoh.Config.from_json5(config).get_json("listen/endpoints") == zenoh.Config.from_file(
+        str(path)
+    ).get_json("listen/endpoints")
+    assert env["TOPOFUSION_ZENOH_CONNECT"] == "tcp/router:7447"
+    services = {d["metadata"]["name"] for d in docs if d["kind"] == "Service"}
+    assert "router" in services
+
+
+def build_app_paths() -> set[str]:
+    from service.api.app import create_app
+
+    return {getattr(r, "path", "") for r in create_app(lambda: None).routes}  # type: ignore[arg-type, return-value]
