@@ -8,8 +8,11 @@ from typing import Any
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from service.engine import Engine, EngineConfig
+from service.messages import RadarSite
 from service.tracking.base import PlotColumns
 from service.tracking.window import PlotWindow
 from tests.scenario_helpers import scenario_messages
@@ -218,3 +221,62 @@ def test_ais_reference_registers_a_biased_radar() -> None:
     (bias,) = [b for b in snap.biases() if b["radar_id"] == "coast"]
     assert abs(bias["range_bias_m"] - 500.0) < 50.0
     assert abs(bias["azimuth_bias_deg"] - 0.5) < 0.05
+
+
+json_values = st.recursive(
+    st.none() | st.booleans() | st.floats(allow_nan=False) | st.integers() | st.text(max_size=8),
+    lambda children: (
+        st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=8), children, max_size=4)
+    ),
+    max_leaves=20,
+)
+REASONS = {
+    "malformed_json",
+    "schema",
+    "unknown_radar",
+    "duplicate_seq",
+    "too_large",
+    "non_finite",
+    "out_of_range",
+}
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    key=st.sampled_from(["fusion/radar/A/plots", "fusion/radar/A/site", "fusion/ais/s1/reports", "fusion/x"]),
+    body=st.one_of(json_values.map(lambda v: json.dumps(v).encode()), st.binary(max_size=64)),
+)
+def test_arbitrary_input_is_accepted_or_rejected_never_raises(key: str, body: bytes) -> None:
+    engine = Engine(CONFIG)
+    out = engine.ingest(key, body)
+    for msg in out:
+        if msg.key == "fusion/errors":
+            assert json.loads(msg.payload)["reason"] in REASONS
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    field=st.sampled_from(["time_s", "range_m", "azimuth_deg", "elevation_deg"]),
+    value=st.one_of(st.floats(), st.integers(), st.text(max_size=3), st.none()),
+)
+def test_mutated_plot_value_is_rejected_or_valid(field: str, value: object) -> None:
+    """One changed value in a valid batch: either still valid or rejected whole with a reason."""
+    body = {
+        "radar_id": "A",
+        "seq": 1,
+        "time_s": 100.0,
+        "plots": {
+            "time_s": [99.0, 99.5],
+            "range_m": [5e4, 6e4],
+            "azimuth_deg": [10.0, 20.0],
+            "elevation_deg": [1.0, 2.0],
+        },
+    }
+    body["plots"][field][1] = value  # type: ignore[index]
+    engine = Engine(EngineConfig(sites=(RadarSite(radar_id="A", latitude_deg=31.0, longitude_deg=118.0),)))
+    out = engine.ingest("fusion/radar/A/plots", json.dumps(body).encode())
+    errors = [json.loads(o.payload) for o in out if o.key == "fusion/errors"]
+    if errors:
+        assert errors[0]["reason"] in REASONS and engine.radars["A"].batches == 0
+    else:
+        assert engine.radars["A"].batches == 1
