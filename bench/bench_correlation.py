@@ -6,6 +6,10 @@
    2 deg and flat in the bias.
 2. One full ``PairCorrelator.update`` of 1 000 x 1 000 tracks (svd-topology, both the
    unregistered start and the registered steady state).  Goal: <= 50 ms.
+3. Registration: one joint ``solve_biases`` over three radar pairs with full memories
+   (the cost of ``estimate_biases``), and how often a ``PairCorrelator`` re-solves its own.
+4. The engine on the simulator's ``three-radar`` scenario (120 s of data): the correlation
+   stage's share and its top entries by cumulative time (cProfile).
 
 Usage: ``.venv/bin/python bench/bench_correlation.py``
 """
@@ -17,7 +21,7 @@ import time
 import numpy as np
 
 from service.correlation import PairCorrelator
-from service.evaluation.correlation_scenario import make_sites
+from service.evaluation.correlation_scenario import make_sites, sample_references
 from service.evaluation.correlation_single import time_per_match
 from service.evaluation.correlation_stream import RadarTrackSim, StreamScenario, make_targets
 
@@ -63,6 +67,90 @@ def bench_full_update(n: int = 1000, updates: int = 8) -> None:
     print(f"  steady state (registered), median of {len(wall) - 4}: {steady:.1f} ms  (goal <= 50 ms)")
 
 
+def bench_registration(rows_per_update: int = 40, updates: int = 100) -> None:
+    from service.correlation.base import TrackSnapshot
+    from service.correlation.registration import RegistrationMemory, RegistrationParams, solve_biases
+    from service.geo import Site
+
+    def _snapshot(site: Site, truth: np.ndarray, bias: np.ndarray, rng: np.random.Generator, noise: float):
+        r, az, el = site.ecef_to_polar(truth)
+        pos = site.polar_to_ecef(r + bias[0], az + np.degrees(bias[1]), el + np.degrees(bias[2]))
+        pos = pos + rng.normal(0, noise, pos.shape)
+        n = len(pos)
+        cov = np.broadcast_to(np.eye(3) * noise**2, (n, 3, 3)).copy()
+        ids = np.array([f"{site.site_id}{i}" for i in range(n)])
+        return TrackSnapshot(
+            ids, pos, np.zeros((n, 3)), cov, cov.copy(), site, site.ecef_to_enu(pos), np.zeros((n, 3))
+        )
+
+    rng = np.random.default_rng(3)
+    a, b = make_sites()
+    c = Site("C", 32.5, 119.0, 30.0)
+    prm = RegistrationParams()
+    truth = sample_references(rng, a, b, rows_per_update)
+    bias = np.array([100.0, np.radians(0.1), np.radians(0.05)])
+    idx = np.arange(rows_per_update)
+    mems = [RegistrationMemory(x, y) for x, y in ((a, b), (a, c), (b, c))]
+    t_add = []
+    for k in range(updates):
+        for m in mems:
+            sa = _snapshot(m.site_a, truth, bias, rng, 100.0)
+            sb = _snapshot(m.site_b, truth, -bias, rng, 100.0)
+            t0 = time.perf_counter()
+            m.add(3.0 * k, sa, sb, idx, idx, prm)
+            t_add.append(time.perf_counter() - t0)
+    t_end = 3.0 * (updates - 1)
+    solve_biases(mems, t_end, prm)
+    reps = 20
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        solve_biases(mems, t_end, prm)
+    per = (time.perf_counter() - t0) / reps * 1e3
+    print(f"\nregistration: 3 radar pairs x {len(mems[0].time)} remembered rows")
+    print(f"  memory.add per update: {np.mean(t_add) * 1e3:.2f} ms; joint solve_biases: {per:.2f} ms")
+    print(
+        f"  a PairCorrelator re-solves every update until registered, then every "
+        f"{prm.solve_interval_s:g} s of data time"
+    )
+
+
+def bench_engine(scenario: str = "three-radar", duration_s: float = 120.0) -> None:
+    import cProfile
+    import json
+    import pstats
+    from dataclasses import replace
+
+    from service.engine import Engine, EngineConfig
+    from service.keys import Keys
+    from service.scenarios.catalog import get_scenario
+    from service.scenarios.simulator import generate
+
+    keys = Keys("fusion")
+    sc = replace(get_scenario(scenario), duration_s=duration_s)
+    msgs = [(keys.input(m.kind, m.radar_id), json.dumps(m.body).encode()) for m in generate(sc, 1)]
+    engine = Engine(EngineConfig())
+    prof = cProfile.Profile()
+    t0 = time.perf_counter()
+    prof.enable()
+    for key, payload in msgs:
+        engine.ingest(key, payload, receive_time_s=0.0)
+    engine.flush()
+    engine.snapshot().biases()
+    prof.disable()
+    wall = time.perf_counter() - t0
+    st = pstats.Stats(prof)
+    rows = []
+    for (fname, line, func), (_cc, _nc, _tt, ct, _callers) in st.stats.items():  # type: ignore[attr-defined]
+        if "service/correlation" in fname:
+            rows.append((ct, f"{fname.split('service/')[-1]}:{line}({func})"))
+    rows.sort(reverse=True)
+    print(f"\nengine on {scenario!r}, {duration_s:g} s of data: {wall:.1f} s wall (profiled)")
+    for ct, name in rows[:8]:
+        print(f"  {ct:7.2f} s  {name}")
+
+
 if __name__ == "__main__":
     bench_single_match()
     bench_full_update()
+    bench_registration()
+    bench_engine()

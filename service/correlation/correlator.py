@@ -182,7 +182,7 @@ class PairCorrelator:
         )
         if len(pa_idx):
             self.memory.add(time_s, raw_a, raw_b, pa_idx, pb_idx, prm.registration)
-        if self.method == "svd-topology" and prm.use_registration and len(self.memory.time):
+        if self.method == "svd-topology" and prm.use_registration and len(self.memory):
             # Re-solve on a data-time schedule once registered (every update before that).
             due = (
                 not self.registered
@@ -214,5 +214,5 @@ def estimate_biases(
     prior-driven for poorly spread geometry.  Radars without confirmed pairs are omitted.
     """
     prm = params or (correlators[0].params.registration if correlators else RegistrationParams())
-    mems = [c.memory for c in correlators if len(c.memory.time)]
+    mems = [c.memory for c in correlators if len(c.memory)]
     return to_estimates(solve_biases(mems, time_s, prm), time_s)

@@ -139,16 +139,21 @@ class RegistrationMemory:
         self._cat: dict[str, np.ndarray] | None = None
 
     def _column(self, name: str) -> np.ndarray:
+        """One column over all chunks, concatenated when first read after a change."""
         if self._cat is None:
-            self._cat = {
-                c: (
-                    np.concatenate([ch[c] for ch in self._chunks])
-                    if self._chunks
-                    else np.empty((0, *_SHAPES[c]), dtype=bool if c == "w_ok" else float)
-                )
-                for c in _COLUMNS
-            }
-        return self._cat[name]
+            self._cat = {}
+        col = self._cat.get(name)
+        if col is None:
+            col = (
+                np.concatenate([ch[name] for ch in self._chunks])
+                if self._chunks
+                else np.empty((0, *_SHAPES[name]), dtype=bool if name == "w_ok" else float)
+            )
+            self._cat[name] = col
+        return col
+
+    def __len__(self) -> int:
+        return sum(len(ch["time"]) for ch in self._chunks)
 
     time = property(lambda self: self._column("time"))
     g_a = property(lambda self: self._column("g_a"))
@@ -214,6 +219,11 @@ class RegistrationMemory:
         return np.asarray(self.time <= time_s)
 
 
+def _rows(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``x[mask]`` without a copy when every row is selected (the usual case)."""
+    return x if mask.all() else x[mask]
+
+
 def solve_biases(
     memories: Sequence[RegistrationMemory], time_s: float, params: RegistrationParams | None = None
 ) -> BiasSolution | None:
@@ -235,41 +245,56 @@ def solve_biases(
     rows = [(m, m.current(time_s) & (m.time >= time_s - prm.memory_s)) for m in memories]
     if sum(int(r.sum()) for _, r in rows) == 0:
         return None
-    weights = [(m, r, (m.w[r], m.w_ok[r])) for m, r in rows]
-    keep = [ok for _, _, (_, ok) in weights]
+    # Each memory's rows in force, read once; per iteration the kept rows' cached pieces are
+    # summed as one matrix-vector product (keep flags as 0/1 weights).
+    data = [
+        (
+            m,
+            r,
+            {
+                c: _rows(getattr(m, c), r)
+                for c in ("g_a", "g_b", "d", "w", "w_ok", "haa", "hab", "hbb", "va", "vb")
+            },
+        )
+        for m, r in rows
+    ]
+    keep = [cols["w_ok"].copy() for _, _, cols in data]
     bias = np.zeros(n)
     cov = np.diag(1.0 / prior)
     for _ in range(3):
         h = np.diag(prior)
         g = np.zeros(n)
-        for (m, r, _), kp in zip(weights, keep, strict=True):
+        for (m, _, cols), kp in zip(data, keep, strict=True):
+            kf = kp.astype(float)
+            nr = kf.shape[0]
             ka = 3 * col[m.site_a.site_id]
-            h[ka : ka + 3, ka : ka + 3] += m.haa[r][kp].sum(0)
-            g[ka : ka + 3] += m.va[r][kp].sum(0)
+            h[ka : ka + 3, ka : ka + 3] += (kf @ cols["haa"].reshape(nr, 9)).reshape(3, 3)
+            g[ka : ka + 3] += kf @ cols["va"]
             if m.site_b is not None:
                 kb = 3 * col[m.site_b.site_id]
-                cross = m.hab[r][kp].sum(0)
+                cross = (kf @ cols["hab"].reshape(nr, 9)).reshape(3, 3)
                 h[ka : ka + 3, kb : kb + 3] -= cross
                 h[kb : kb + 3, ka : ka + 3] -= cross.T
-                h[kb : kb + 3, kb : kb + 3] += m.hbb[r][kp].sum(0)
-                g[kb : kb + 3] -= m.vb[r][kp].sum(0)
+                h[kb : kb + 3, kb : kb + 3] += (kf @ cols["hbb"].reshape(nr, 9)).reshape(3, 3)
+                g[kb : kb + 3] -= kf @ cols["vb"]
         cov = np.linalg.inv(h)
         bias = cov @ g
         new_keep = []
-        for (m, r, (w, ok)), _kp in zip(weights, keep, strict=True):
+        for m, _, cols in data:
             ka = 3 * col[m.site_a.site_id]
-            pred = m.g_a[r] @ bias[ka : ka + 3]
+            nr = cols["d"].shape[0]
+            pred = (cols["g_a"].reshape(-1, 3) @ bias[ka : ka + 3]).reshape(nr, 3)
             if m.site_b is not None:
                 kb = 3 * col[m.site_b.site_id]
-                pred = pred - m.g_b[r] @ bias[kb : kb + 3]
-            new_keep.append(ok & (quad3(m.d[r] - pred, w) <= prm.outlier_chi2))
+                pred = pred - (cols["g_b"].reshape(-1, 3) @ bias[kb : kb + 3]).reshape(nr, 3)
+            new_keep.append(cols["w_ok"] & (quad3(cols["d"] - pred, cols["w"]) <= prm.outlier_chi2))
         if all(np.array_equal(a, b) for a, b in zip(new_keep, keep, strict=True)):
             break
         keep = new_keep
     # pairs_used: confirmed pairs of the latest remembered update that survived the outlier
     # test (the LS itself uses every remembered update's rows).
     used: dict[str, int] = dict.fromkeys(ids, 0)
-    for (m, r, _), kp in zip(weights, keep, strict=True):
+    for (m, r, _), kp in zip(data, keep, strict=True):
         t = m.time[r]
         n_latest = int((kp & (t == t.max())).sum()) if t.size else 0
         used[m.site_a.site_id] += n_latest
