@@ -23,6 +23,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from service.correlation import CorrelationParams, PairCorrelator, estimate_biases
+from service.correlation.registration import solve_biases
 from service.correlation.svd_topology import SvdTopologyParams
 from service.correlation.topology import TopologyParams
 from service.evaluation.correlation_scenario import make_sites
@@ -214,9 +215,15 @@ def run_stream(
             "ms_mean": float(np.mean(ms)),
         }
         if label == "svd-topology":
+            sol = solve_biases([corr.memory], tables[-1][2], corr.params.registration)
+            std = {} if sol is None else dict(zip(sol.radar_ids, sol.std(), strict=True))
             for e in estimate_biases([corr], tables[-1][2]):
                 truth = sc.bias_a if e.radar_id == "A" else sc.bias_b
+                sd = std.get(e.radar_id, np.full(3, np.nan))
                 biases[e.radar_id] = {
+                    "std_range_m": float(sd[0]),
+                    "std_azimuth_deg": float(np.degrees(sd[1])),
+                    "std_elevation_deg": float(np.degrees(sd[2])),
                     "range_m": e.range_bias_m,
                     "azimuth_deg": e.azimuth_bias_deg,
                     "elevation_deg": e.elevation_bias_deg,
