@@ -87,6 +87,31 @@ def main() -> None:
 
     bench("gmm", gmm_scene, run_gmm, args.repeats)
     bench("cfar", sea_scene, run_cfar, args.repeats)
+    dense_start(max(args.repeats, 20))
+
+
+def dense_start(scenes: int) -> None:
+    """The GMM paper's scene at period 0 (20 targets in 3 x 3 km) and later periods: correct rate."""
+    from dataclasses import replace
+
+    from service.correlation.gmm import GmmParams
+    from service.evaluation.correlation_gmm_scene import paper_scene
+
+    for label, params in (
+        ("gmm", GmmParams()),
+        ("gmm, no omega floor", replace(GmmParams(), omega_floor_from_counts=False)),
+    ):
+        rates = []
+        for period in (0, 10, 25, 99):
+            rng = np.random.default_rng(11)
+            ok = common = 0
+            for _ in range(scenes):
+                pa, pb, ia, ib = paper_scene(rng, at_period=period)
+                r = gmm_associate(pa, pb, params)
+                ok += int(np.sum(ia[r.index_a] == ib[r.index_b]))
+                common += len(np.intersect1d(ia, ib))
+            rates.append(f"period {period}: {ok / max(common, 1):.3f}")
+        print(f"paper scene, {label:20s} " + ", ".join(rates))
 
 
 if __name__ == "__main__":

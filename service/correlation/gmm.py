@@ -37,7 +37,15 @@ Design choices the text leaves open (each is a parameter of :class:`GmmParams`):
 * EM runs on coordinates centred on each set's mean and scaled by their common RMS spread,
   as Coherent Point Drift does (``beta = lambda = 2`` of the paper are CPD's defaults for
   normalised data); centring removes the bulk translation the biases cause;
-* the uniform density of the outlier component is ``1/M`` (CPD's convention).
+* the uniform density of the outlier component is ``1/M`` (CPD's convention);
+* ``omega`` is kept at or above ``1 - N/M`` (``omega_floor_from_counts``): with fewer centroids
+  than samples that many samples cannot have a counterpart.  On the paper's dense starting box
+  (20 targets in 3 x 3 km) the free update of Eq. (25) otherwise collapses ``omega`` to ~0.005
+  while 25-35 % of A's tracks are unmatched; the floor raises the correct rate there from 0.64
+  to 0.70 (30 scenes) and the false share of pairs from 0.30 to 0.24.  The rest is the density
+  itself: with the true bias offset removed, an optimal one-to-one assignment reaches only 0.80
+  at the first period; by period 10 (20 s, the box spreading) the method gets 0.90 and from
+  period 25 on 0.97-1.0, about 0.93 averaged over the run, the paper's "about 0.9".
 
 Everything is vectorised over tracks and track pairs; only the EM iterations loop.
 """
@@ -100,6 +108,13 @@ class GmmParams:
 
     omega_max: float = 0.95
     """Upper clip of ``omega``."""
+
+    omega_floor_from_counts: bool = True
+    """Keep ``omega >= 1 - N / M`` (at least ``M - N`` of the ``M`` samples have no counterpart
+    among the ``N`` centroids).  Without it, in dense scenes (the paper's 20 targets in a
+    3 x 3 km box at the start, nearest-neighbour spacing ~300 m against ~200 m relative track
+    error) every unmatched A track lies close enough to some B centroid that the EM update of
+    Eq. (25) drives ``omega`` to ~0, and unmatched tracks are forced onto centroids."""
 
     max_iter: int = 150
     """Maximum number of EM iterations (Eqs. (21)-(26))."""
@@ -279,6 +294,15 @@ def _e_step(
     return num / den, nll
 
 
+def _omega_floor(m: int, n: int, p: GmmParams) -> float:
+    """Lower bound of ``omega``: with ``M`` samples and ``N < M`` centroids at least ``M - N``
+    samples have no counterpart, so the outlier share is at least ``1 - N / M``
+    (``omega_floor_from_counts``); never below ``omega_min``."""
+    if p.omega_floor_from_counts and m > n:
+        return float(min(max(p.omega_min, 1.0 - n / m), p.omega_max))
+    return p.omega_min
+
+
 def gmm_associate(pos_a: np.ndarray, pos_b: np.ndarray, params: GmmParams | None = None) -> GmmResult:
     """Associate radar A's tracks ``pos_a`` (M, d) with radar B's ``pos_b`` (N, d), d = 2 or 3.
 
@@ -317,7 +341,8 @@ def gmm_associate(pos_a: np.ndarray, pos_b: np.ndarray, params: GmmParams | None
     g = np.exp(-_sq_dist(y, y) / (2.0 * p.beta**2))
     w = np.zeros_like(y)
     sigma2 = float(np.sum(_sq_dist(x, y))) / (dim * m * n)  # CPD's initial sigma^2
-    omega = float(np.clip(p.omega0, p.omega_min, p.omega_max))
+    omega_lo = _omega_floor(m, n, p)
+    omega = float(np.clip(p.omega0, omega_lo, p.omega_max))
     sigma2_floor = 10.0 * _EPS
 
     nll_old = np.inf
@@ -352,7 +377,7 @@ def gmm_associate(pos_a: np.ndarray, pos_b: np.ndarray, params: GmmParams | None
         ) / (n_p * dim)
         # omega update, Eq. (25): omega_new = 1 - Np / M, smoothed by Eq. (26), alpha = 1/k.
         omega_new = 1.0 - n_p / m
-        omega = float(np.clip(omega + (omega_new - omega) / k, p.omega_min, p.omega_max))
+        omega = float(np.clip(omega + (omega_new - omega) / k, omega_lo, p.omega_max))
         if sigma2 <= sigma2_floor:
             sigma2 = sigma2_floor
             converged, reason = True, "converged (sigma collapsed: exact fit)"

@@ -15,6 +15,7 @@ from service.correlation.gmm import (
     neighbour_vectors,
     ospa_subset_matrix,
 )
+from service.evaluation.correlation_gmm_scene import paper_scene
 
 # -- plain reference forms -------------------------------------------------------------------
 
@@ -92,46 +93,6 @@ def test_e_step_matches_per_pair_loop() -> None:
 # -- the paper's scenario (papers/README.md §3) ----------------------------------------------
 
 
-def paper_scene(
-    rng: np.random.Generator, n: int = 20
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Radars at (0, 0) and (150, 0) km; ``n`` targets uniform in [72, 75]^2 km at the start,
-    speed U(5, 200) m/s, heading U(0, 2 pi); errors 60 m / 0.4 deg (A), 80 m / 0.3 deg (B);
-    biases U(0, 1000) m and U(-1, 0) deg (A), U(0, 1000) m and U(0, 1) deg (B); 100 periods of
-    2 s with plot detection probability 0.9 / 0.7.  Each radar's track is a least-squares
-    constant-velocity fit of its detected plots (a converged tracker without process noise),
-    taken at the last period; the radar reports a target's track with the same probability
-    (0.9 / 0.7), so some tracks have no counterpart.  Returns positions and the target ids
-    (evaluation only)."""
-    sites = np.array([[0.0, 0.0], [150e3, 0.0]])
-    sigmas = [(60.0, np.radians(0.4)), (80.0, np.radians(0.3))]
-    pd = [0.9, 0.7]
-    bias = [
-        (rng.uniform(0, 1000), -rng.uniform(0, np.radians(1.0))),
-        (rng.uniform(0, 1000), rng.uniform(0, np.radians(1.0))),
-    ]
-    p0 = rng.uniform(72e3, 75e3, (n, 2))
-    speed, heading = rng.uniform(5, 200, n), rng.uniform(0, 2 * np.pi, n)
-    vel = speed[:, None] * np.column_stack([np.sin(heading), np.cos(heading)])
-    t = np.arange(100) * 2.0
-    truth = p0[None] + t[:, None, None] * vel[None]
-    tt = (t - t[-1])[:, None]
-    out = []
-    for s in range(2):
-        rel = truth - sites[s]
-        r, th = np.hypot(rel[..., 0], rel[..., 1]), np.arctan2(rel[..., 0], rel[..., 1])
-        rm = r + bias[s][0] + sigmas[s][0] * rng.standard_normal(r.shape)
-        tm = th + bias[s][1] + sigmas[s][1] * rng.standard_normal(r.shape)
-        z = sites[s] + np.stack([rm * np.sin(tm), rm * np.cos(tm)], axis=-1)
-        w = (rng.random(r.shape) < pd[s]).astype(float)
-        s0, s1, s2 = w.sum(0), (w * tt).sum(0), (w * tt**2).sum(0)
-        zx, zt = (w[..., None] * z).sum(0), (w[..., None] * tt[..., None] * z).sum(0)
-        pos = (s2[:, None] * zx - s1[:, None] * zt) / (s0 * s2 - s1**2)[:, None]
-        ids = np.flatnonzero(rng.random(n) < pd[s])
-        out.append((pos[ids], ids))
-    return out[0][0], out[1][0], out[0][1], out[1][1]
-
-
 def test_paper_scenario_correct_association_rate() -> None:
     rng = np.random.default_rng(2024)
     correct = common = wrong = 0
@@ -198,3 +159,30 @@ def test_degenerate_inputs_give_empty_result(pos_a: np.ndarray, pos_b: np.ndarra
     assert res.index_a.dtype == np.intp
     assert fragment in res.reason
     assert not res.converged
+
+
+def test_outlier_weight_floor_from_counts() -> None:
+    """With M samples and N < M centroids at least M - N samples are outliers: omega >= 1 - N/M."""
+    rng = np.random.default_rng(9)
+    pos_a, pos_b, _, _ = paper_scene(rng, at_period=0)  # the dense starting box
+    m, n = len(pos_a), len(pos_b)
+    assert n < m
+    res = gmm_associate(pos_a, pos_b)
+    assert res.outlier_weight >= 1.0 - n / m - 1e-12
+    free = gmm_associate(pos_a, pos_b, GmmParams(omega_floor_from_counts=False))
+    assert free.outlier_weight < 1.0 - n / m  # what the floor prevents
+
+
+def test_dense_starting_box_better_with_floor() -> None:
+    rng = np.random.default_rng(11)
+    scenes = [paper_scene(rng, at_period=0) for _ in range(8)]
+
+    def rate(params: GmmParams) -> float:
+        ok = common = 0
+        for pa, pb, ia, ib in scenes:
+            r = gmm_associate(pa, pb, params)
+            ok += int(np.sum(ia[r.index_a] == ib[r.index_b]))
+            common += len(np.intersect1d(ia, ib))
+        return ok / common
+
+    assert rate(GmmParams()) > rate(GmmParams(omega_floor_from_counts=False))
