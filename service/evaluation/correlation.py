@@ -192,7 +192,7 @@ def run(
     ]
 
     progress(f"correlation: Fig. 3 (timing) [{time.perf_counter() - t_start:.0f} s]")
-    f3 = time_per_match(seed + 3, TIMING_BIASES, reps=100 if runs is None or n >= 1000 else 20)
+    f3 = time_per_match(seed + 3, TIMING_BIASES, reps=100 if n >= 1000 else (20 if n >= 100 else 5))
     _plot(
         out_dir / "correlation_fig3_time_vs_bias.png",
         list(TIMING_BIASES),
@@ -239,7 +239,8 @@ def run(
 
     seeds = max(1, n // 1500)
     progress(f"correlation: stream ({seeds} seeds) [{time.perf_counter() - t_start:.0f} s]")
-    sc = StreamScenario()
+    # Tiny runs (the tests) use a short stream; the full evaluation the default 60 scans.
+    sc = StreamScenario() if n >= 100 else StreamScenario(scans=20)
     results = [run_stream(seed + 10 + s, sc, progress) for s in range(seeds)]
     labels = list(results[0].rows)
     md += [
