@@ -18,26 +18,33 @@ over all candidates of an update:
    paper's 3-D rotation, 7 parameters).
 4. Validity (Section 1.5): ``weight(M) >= 0.92``.  The paper's ``M`` is the whole A-to-B
    rotation; here ``M0`` is known exactly from the sites, so the check is applied to the
-   fitted bias rotation ``M_fit`` (the part that can be wrong); ``|c - 1| <=
-   max_scale_deviation``.  With ``constrained_fit`` (default) the yaw and scale are fitted
-   within these bounds in the first place (constrained least squares).
+   fitted bias rotation ``M_fit`` (the part that can be wrong).  With ``constrained_fit``
+   (default) the pairing fits keep yaw and scale within ``max_bias_rotation_deg`` and
+   ``max_scale_deviation``; the test's weighted fit (6) has them as a Gaussian prior.  A hard
+   ``|c - 1| <= max_scale_deviation`` rejection applies to the paper's free 3-D fit only.
 5. Covariance after the transform (Section 1.6).  The paper prints ``c^2 M^T P M``; for a
    vector mapped by ``y = c M x`` the covariance is ``c^2 M P M^T`` (``Cov(Ax) = A Cov(x)
    A^T``), which is what is used.  The residual of element ``k`` has ``S_k = c^2 M P_A,k M^T
    + P_B,k`` (the reference's own noise is common to all elements and absorbed by ``t``).
-6. Matching test (Section 1.4; the paper defers to its reference [9]).  Two parts:
-   *shape*: ``chi2_shape = sum_k r_k^T S_k^-1 r_k`` over the ``m`` paired neighbours is
-   chi-square with ``nu = 3 m - p`` degrees of freedom (``p = 5`` yaw, ``7`` full: the
-   fitted parameters), accepted at level ``alpha_shape``;
+6. Matching test (Section 1.4; the paper defers to its reference [9]).  The statistics come
+   from the covariance-weighted (GLS) fit of the paired elements with the physical prior on
+   yaw and scale (:mod:`service.correlation.gls`; ``rotation_model = "yaw"``): only the
+   minimum of the weighted norm is chi-square distributed (the unweighted SVD fit of Section
+   1.3 left a statistic that rejected 2.5-3.5 % of true pairs at a nominal 1 %).  Two parts:
+   *shape*: ``chi2_shape`` = weighted residual + prior terms over the ``m`` paired
+   neighbours, chi-square with the effective ``nu = 3 m - tr(H^-1 H_data)`` degrees of
+   freedom (between ``3 m - 5`` and ``3 m - 3``), accepted at level ``alpha_shape``;
    *position*: in topology-vector coordinates both references sit at the origin, so the
    fitted translation ``t`` is the A reference's position predicted from the neighbours
    minus the B reference's: Eq. (4) says it must be small.  ``chi2_ref = t^T S_ref^-1 t``
-   with ``S_ref = S_0 + h S_bar`` (``h`` = leverage of the origin in the fit), 3 dof,
+   with ``S_ref = S_0 + Cov(t)`` (references' noise plus the fit's translation block), 3 dof,
    accepted at ``alpha_position``.  This is what tells two close targets apart.
+   ``alpha_shape + alpha_position = 1 %``: the single match's size (Bonferroni).
    With velocities (the stream), ``v_B - c M v_A`` adds a 3-dof velocity term.
    ``statistic`` is the F statistic ``F = (chi2_shape + chi2_ref) / (nu + 3)``, which under
    the hypothesis is ``F(nu + 3, inf)``-distributed: the residual variance of the fit over
-   the variance expected from the radars' random errors.
+   the variance expected from the radars' random errors.  (``rotation_model = "full"``, the
+   paper's 3-D fit kept for reference, uses the unweighted statistic with ``nu = 3 m - 7``.)
 7. Accepted candidates go to a one-to-one assignment with an ambiguity margin
    (:mod:`service.correlation.assignment`), done by the caller.
 """
