@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import os
 import signal
@@ -306,20 +307,26 @@ def _stop_on_signals() -> threading.Event:
     return stop
 
 
+STUDIES = ("initiation", "correlation")
+
+
 def evaluate_main(args: argparse.Namespace) -> int:
+    """Run the studies; each writes ``{study}.md`` and its PNGs; ``REPORT.md`` joins them."""
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    sections = []
-    studies = [args.only] if args.only else ["initiation", "correlation"]
+    studies = [args.only] if args.only else list(STUDIES)
+    argv = sys.argv[2:] if len(sys.argv) > 1 and sys.argv[1] == "evaluate" else []
+    cmd = " ".join(["topofusion evaluate", *argv])
     for name in studies:
-        module = __import__(f"service.evaluation.{name}", fromlist=["run"])
-        print(f"evaluate: {name} ...", file=sys.stderr)
-        sections.append(
-            module.run(out, runs=args.runs, seed=args.seed, progress=lambda m: print(m, file=sys.stderr))
-        )
+        module = importlib.import_module(f"service.evaluation.{name}")
+        print(f"evaluate: {name} ...", file=sys.stderr, flush=True)
+        t0 = time.monotonic()
+        section = module.run(out, runs=args.runs, seed=args.seed, progress=lambda m: print(m, file=sys.stderr))
+        took = time.monotonic() - t0
+        (out / f"{name}.md").write_text(f"{section}\n\n_Made by `{cmd}` in {took:.0f} s._\n")
+    parts = [(out / f"{n}.md").read_text() for n in STUDIES if (out / f"{n}.md").is_file()]
     report = out / "REPORT.md"
-    cmd = "topofusion evaluate " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else "topofusion evaluate"
-    report.write_text(f"# TopoFusion evaluation\n\nMade by `{cmd}`.\n\n" + "\n\n".join(sections) + "\n")
+    report.write_text("# TopoFusion evaluation\n\n" + "\n\n".join(parts))
     print(f"evaluate: wrote {report}", file=sys.stderr)
     return 0
 
