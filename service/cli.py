@@ -321,7 +321,9 @@ def evaluate_main(args: argparse.Namespace) -> int:
         module = importlib.import_module(f"service.evaluation.{name}")
         print(f"evaluate: {name} ...", file=sys.stderr, flush=True)
         t0 = time.monotonic()
-        section = module.run(out, runs=args.runs, seed=args.seed, progress=lambda m: print(m, file=sys.stderr))
+        section = module.run(
+            out, runs=args.runs, seed=args.seed, progress=lambda m: print(m, file=sys.stderr)
+        )
         took = time.monotonic() - t0
         (out / f"{name}.md").write_text(f"{section}\n\n_Made by `{cmd}` in {took:.0f} s._\n")
     parts = [(out / f"{n}.md").read_text() for n in STUDIES if (out / f"{n}.md").is_file()]
