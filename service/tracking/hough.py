@@ -51,11 +51,18 @@ class Accumulator:
         return self.theta[ti], self.rho0 + ri.astype(float) * self.rho_step
 
 
-def accumulate(points: FloatArray, weights: FloatArray, centre: FloatArray, p: HoughParams) -> Accumulator:
-    """Hough accumulator of weighted points (classic: weights 1; PG: cell probabilities)."""
+def accumulate(
+    points: FloatArray, weights: FloatArray, centre: FloatArray, p: HoughParams, extent: float | None = None
+) -> Accumulator:
+    """Hough accumulator of weighted points (classic: weights 1; PG: cell probabilities).
+
+    ``extent`` (m) fixes the rho range to ``[-extent, extent]`` (default: the points' own), so
+    that accumulators of different subsets share their cells.
+    """
     theta = (np.arange(p.theta_bins) + 0.5) * np.pi / p.theta_bins
     rel = points - centre
-    extent = float(np.max(np.linalg.norm(rel, axis=1))) if rel.shape[0] else 0.0
+    if extent is None:
+        extent = float(np.max(np.linalg.norm(rel, axis=1))) if rel.shape[0] else 0.0
     n_rho = 2 * int(np.ceil(extent / p.rho_step_m)) + 3
     rho0 = -(n_rho // 2) * p.rho_step_m
     rho = rel[:, 0, None] * np.cos(theta) + rel[:, 1, None] * np.sin(theta)  # (n, theta_bins)
@@ -69,11 +76,12 @@ def accumulate(points: FloatArray, weights: FloatArray, centre: FloatArray, p: H
     return Accumulator(votes, theta, rho0, p.rho_step_m, centre)
 
 
-def peaks(acc: Accumulator, p: HoughParams) -> tuple[IntArray, IntArray, FloatArray]:
-    """Local maxima at or above ``min_votes``, strongest first."""
+def peaks(acc: Accumulator, p: HoughParams, min_votes: float | None = None) -> tuple[IntArray, IntArray, FloatArray]:
+    """Local maxima at or above ``min_votes`` (default ``p.min_votes``), strongest first."""
     v = acc.votes
+    floor = p.min_votes if min_votes is None else min_votes
     mx = maximum_filter(v, size=p.peak_neighbourhood, mode="nearest")
-    ti, ri = np.nonzero((v >= mx) & (v >= p.min_votes) & (v > 0))
+    ti, ri = np.nonzero((v >= mx) & (v >= floor) & (v > 0))
     h = v[ti, ri]
     order = np.lexsort((ri, ti, -h))
     return ti[order], ri[order], h[order]
@@ -182,16 +190,49 @@ def pg_hough(xy: FloatArray, cov: FloatArray, p: HoughParams) -> Groups:
     def members(rem: IntArray) -> IntArray | None:
         centres, prob = probability_grid(xy[rem], cov[rem], p)  # Eq. (2)-(6) of remaining plots
         acc = accumulate(centres, prob, centre, p)
-        ti, ri, _ = peaks(acc, p)
+        ti, ri, _ = peaks(acc, p, p.pg_min_votes)
         if ti.shape[0] == 0:
             return None
         th, rh = acc.line(ti[:1], ri[:1])
-        c, s = float(np.cos(th[0])), float(np.sin(th[0]))
-        rel = xy[rem] - centre
-        dist = np.abs(rel[:, 0] * c + rel[:, 1] * s - rh[0])
-        cv = cov[rem]
-        # Each plot's sigma along the line normal n = (cos, sin): sqrt(n^T C n).
-        var_n = cv[:, 0, 0] * c * c + 2 * cv[:, 0, 1] * c * s + cv[:, 1, 1] * s * s
-        return rem[dist <= p.member_sigma * np.sqrt(var_n)]
+        return rem[line_band(xy[rem], cov[rem], centre, float(th[0]), float(rh[0]), p)]
 
     return _sequential(xy.shape[0], p.min_plots, p.max_lines, members)
+
+
+def line_band(
+    xy: FloatArray, cov: FloatArray, centre: FloatArray, theta: float, rho: float, p: HoughParams
+) -> np.ndarray:
+    """Plots within ``member_sigma`` of their own sigma normal to the line (PG membership)."""
+    c, s = float(np.cos(theta)), float(np.sin(theta))
+    rel = xy - centre
+    dist = np.abs(rel[:, 0] * c + rel[:, 1] * s - rho)
+    var_n = cov[:, 0, 0] * c * c + 2 * cov[:, 0, 1] * c * s + cov[:, 1, 1] * s * s
+    return np.asarray(dist <= p.member_sigma * np.sqrt(var_n))
+
+
+def pg_hough_bands(xy: FloatArray, cov: FloatArray, p: HoughParams) -> list[tuple[IntArray, float]]:
+    """Preliminary tracks for velocity clustering: the band of every peak (Eq. 2-6).
+
+    The paper runs the Hough transform once and clusters each preliminary track.  Unlike
+    :func:`pg_hough` (a baseline, sequential: a line's plots are removed before the next
+    line), the bands here may share plots: a strong line cutting across several targets must
+    not steal their plots before velocity clustering has looked at them.  Peaks are taken
+    strongest first, at or above ``pg_min_votes``, at most ``max_lines``, non-maximum suppressed
+    over ``peak_neighbourhood`` cells; bands with fewer than ``min_plots`` plots are dropped.
+    Which plots start which track is decided afterwards over all bands together
+    (:func:`service.tracking.velocity_tracks.global_tracks`).  Returns ``(plots, theta)``
+    per band, ``theta`` the line's normal angle (rad).
+    """
+    if xy.shape[0] < p.min_plots:
+        return []
+    centre = _centre(xy)
+    centres, prob = probability_grid(xy, cov, p)  # Eq. (2)-(6)
+    acc = accumulate(centres, prob, centre, p)
+    ti, ri, _ = peaks(acc, p, p.pg_min_votes)
+    th, rh = acc.line(ti[: p.max_lines], ri[: p.max_lines])
+    bands = []
+    for a, r in zip(th.tolist(), rh.tolist(), strict=True):  # loop over peaks (lines)
+        band = np.flatnonzero(line_band(xy, cov, centre, a, r, p))
+        if band.shape[0] >= p.min_plots:
+            bands.append((band, float(a)))
+    return bands

@@ -2,16 +2,20 @@
 
 * ``logic`` (default): three-plot M/N logic with velocity gates (:mod:`.logic`).  Default
   because it needs only three looks, runs in milliseconds for thousands of plots, and the
-  track manager's M-of-N confirmation removes the few clutter triples it lets through; the
-  Hough family needs many plots per target in the window (the paper uses 10 s with random
-  sampling) and its cost grows with the surveillance area.
+  track manager's M-of-N confirmation removes the few clutter triples it lets through.
 * ``hough`` / ``hough-velocity``: the paper's method, probabilistic-grid Hough (Eq. 2-6)
-  then velocity fuzzy clustering (Eq. 7-10, Steps 1-8) on each preliminary track.
+  then velocity fuzzy clustering (Eq. 7-10, Steps 1-8 with the fixes of
+  :mod:`.velocity_tracks`) over the bands of all Hough peaks.
 * ``pg-hough``: probabilistic-grid Hough alone (baseline of Table 1).
 * ``classic-hough``: classic Hough alone (baseline of Table 1).
 
-The Hough family works in the east-north plane (the paper's 2-D set-up); the plot sigma used
-as the location error ``delta`` of Eq. (8) is ``sqrt(trace C)`` of its plane covariance.
+The Hough family works in the east-north plane (the paper's 2-D set-up) with each plot's
+plane covariance (the paper's location error ``delta = sqrt(trace C)``).  In the streaming
+tracker it is applied *locally*: the window's unused plots are split into clusters of plots
+that one target could have produced (pairs closer than ``max_speed * |dt|`` plus 3 sigma,
+:func:`local_clusters`), and each cluster of at least ``min_plots`` plots gets its own Hough
+transform.  A Hough line spanning the whole coverage (hundreds of kilometres, every plot of
+the window) is never formed, and the cost follows the number of plots per cluster.
 """
 
 from __future__ import annotations
@@ -19,18 +23,22 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
-from service.tracking.clustering import velocity_cluster
 from service.tracking.groups import Groups, IntArray
-from service.tracking.hough import classic_hough, pg_hough
+from service.tracking.hough import classic_hough, pg_hough, pg_hough_bands
 from service.tracking.logic import logic_initiate
 from service.tracking.measurement import Measurements
 from service.tracking.params import TrackerParams
+from service.tracking.velocity_tracks import global_tracks, velocity_cluster
 
 #: Names accepted by :func:`service.tracking.make_tracker`.
 INITIATORS: tuple[str, ...] = ("logic", "hough", "hough-velocity", "pg-hough", "classic-hough")
 
 Initiator = Callable[[Measurements, TrackerParams, float], Groups]
+PlaneMethod = Callable[[np.ndarray, np.ndarray, np.ndarray, TrackerParams], list[IntArray]]
 
 
 def location_error(cov2: np.ndarray) -> np.ndarray:
@@ -39,40 +47,84 @@ def location_error(cov2: np.ndarray) -> np.ndarray:
 
 
 def cluster_groups(
-    prelim: Groups, t: np.ndarray, xy: np.ndarray, delta: np.ndarray, params: TrackerParams
+    prelim: Groups, t: np.ndarray, xy: np.ndarray, cov: np.ndarray, params: TrackerParams
 ) -> Groups:
-    """Velocity fuzzy clustering (Section 2) of every preliminary track (loop over lines)."""
+    """Velocity clustering (Section 2, fixed) of every preliminary track separately (loop over
+    lines); used to cluster the sequential :func:`pg_hough` lines."""
     out: list[IntArray] = []
     for members in prelim.to_lists():
-        for sub in velocity_cluster(t[members], xy[members], delta[members], params.cluster):
+        for sub in velocity_cluster(t[members], xy[members], cov[members], params.cluster):
             out.append(members[sub])
     return Groups.from_lists(out)
+
+
+def hough_velocity(t: np.ndarray, xy: np.ndarray, cov: np.ndarray, params: TrackerParams) -> list[IntArray]:
+    """The paper's two stages: PG Hough bands (Eq. 2-6), then velocity clustering over all
+    bands (:func:`service.tracking.velocity_tracks.global_tracks`)."""
+    bands = pg_hough_bands(xy, cov, params.hough)
+    return global_tracks(t, xy, cov, bands, params.cluster)
+
+
+def local_clusters(meas: Measurements, max_speed_mps: float, min_plots: int) -> list[IntArray]:
+    """Connected components (at least ``min_plots`` plots) of the graph joining two plots when
+    one target could have produced both: plane distance at most ``max_speed |dt|`` plus 3
+    sigma of the two plots' position errors.  Components come in order of their first plot."""
+    n = len(meas)
+    if n < min_plots:
+        return []
+    xy = meas.enu_m[:, :2]
+    t = meas.time_s
+    sig = location_error(meas.covariance[:, :2, :2])
+    radius = max_speed_mps * float(np.ptp(t)) + 6.0 * float(sig.max())
+    pr = cKDTree(xy).query_pairs(radius, output_type="ndarray")
+    a, b = pr[:, 0], pr[:, 1]
+    dist = np.linalg.norm(xy[a] - xy[b], axis=1)
+    ok = dist <= max_speed_mps * np.abs(t[a] - t[b]) + 3.0 * np.hypot(sig[a], sig[b])
+    a, b = a[ok], b[ok]
+    graph = coo_matrix((np.ones(a.shape[0]), (a, b)), shape=(n, n))
+    n_comp, label = connected_components(graph, directed=False)
+    sizes = np.bincount(label, minlength=n_comp)
+    order = np.argsort(label, kind="stable")
+    bounds = np.concatenate([[0], np.cumsum(sizes)])
+    return [order[bounds[c] : bounds[c + 1]] for c in range(n_comp) if sizes[c] >= min_plots]
+
+
+def _local(method: PlaneMethod) -> Initiator:
+    """Apply a plane method to each local cluster of the window's plots (loop over clusters:
+    the handful of plot groups a target could have formed, not over plots)."""
+
+    def run(meas: Measurements, params: TrackerParams, scan_period_s: float) -> Groups:
+        min_plots = max(3, min(params.hough.min_plots, params.cluster.min_plots))
+        out: list[IntArray] = []
+        for members in local_clusters(meas, params.cluster.max_speed_mps, min_plots):
+            t = meas.time_s[members]
+            xy = meas.enu_m[members, :2]
+            xy = xy - xy.mean(axis=0)  # local frame: small coordinates for the LS sums
+            cov = meas.covariance[members, :2, :2]
+            out.extend(members[g] for g in method(t, xy, cov, params))
+        return Groups.from_lists(out)
+
+    return run
 
 
 def _logic(meas: Measurements, params: TrackerParams, scan_period_s: float) -> Groups:
     return logic_initiate(meas, params.logic, scan_period_s)
 
 
-def _classic(meas: Measurements, params: TrackerParams, scan_period_s: float) -> Groups:
-    return classic_hough(meas.enu_m[:, :2], params.hough)
+def _classic_plane(t: np.ndarray, xy: np.ndarray, cov: np.ndarray, params: TrackerParams) -> list[IntArray]:
+    return classic_hough(xy, params.hough).to_lists()
 
 
-def _pg(meas: Measurements, params: TrackerParams, scan_period_s: float) -> Groups:
-    return pg_hough(meas.enu_m[:, :2], meas.covariance[:, :2, :2], params.hough)
-
-
-def _pg_velocity(meas: Measurements, params: TrackerParams, scan_period_s: float) -> Groups:
-    xy, cov2 = meas.enu_m[:, :2], meas.covariance[:, :2, :2]
-    prelim = pg_hough(xy, cov2, params.hough)
-    return cluster_groups(prelim, meas.time_s, xy, location_error(cov2), params)
+def _pg_plane(t: np.ndarray, xy: np.ndarray, cov: np.ndarray, params: TrackerParams) -> list[IntArray]:
+    return pg_hough(xy, cov, params.hough).to_lists()
 
 
 _REGISTRY: dict[str, Initiator] = {
     "logic": _logic,
-    "hough": _pg_velocity,
-    "hough-velocity": _pg_velocity,
-    "pg-hough": _pg,
-    "classic-hough": _classic,
+    "hough": _local(hough_velocity),
+    "hough-velocity": _local(hough_velocity),
+    "pg-hough": _local(_pg_plane),
+    "classic-hough": _local(_classic_plane),
 }
 
 

@@ -116,6 +116,11 @@ class HoughParams:
     """A peak of the accumulator (votes, or summed probability for the PG form) must reach this
     to start a preliminary track."""
 
+    pg_min_votes: float = 1.5
+    """The same for the probabilistic-grid form, whose votes are summed cell probabilities: a
+    plot spreads its unit mass over the rho cells its error ellipse crosses, so a line of
+    three plots with errors near ``rho_step_m`` peaks at about half its plot count."""
+
     member_sigma: float = 2.5
     """A plot belongs to a peak's line if its distance to the line is within ``member_sigma``
     times its own position sigma normal to the line (PG form) ..."""
@@ -157,11 +162,62 @@ class ClusterParams:
     velocity (Eq. 7 needs t_i != t_j); such plots can still join through Step 7 merging."""
 
     merge_overlap: int = 2
-    """Step 7: sets sharing at least this many plots are merged."""
+    """Step 7: sets sharing at least this many plots are merged (the paper: 2)."""
 
     min_plots: int = 3
     """Step 8 outputs only sets of at least this many plots (each non-empty set of Step 5 has
     at least three)."""
+
+    # -- fixes of Steps 7-8 (see service/tracking/velocity_tracks.py) ---------------------
+    plot_gate_chi2: float = 13.82
+    """Constant-velocity consistency: every plot of a track must lie within this normalised
+    squared distance ``r^T C^-1 r`` of the set's least-squares CV line (chi-square, 2 degrees
+    of freedom, 99.9 %); also the gate (with the fit's own uncertainty) for absorbing further
+    plots of the preliminary track in Step 8."""
+
+    fit_confidence: float = 0.999
+    """... and the set's total residual ``chi2`` must stay below the chi-square quantile at
+    this confidence with ``2 n - 4`` degrees of freedom."""
+
+    min_span_s: float = 2.0
+    """A set must span at least this much time for its velocity to count as measured (shorter
+    sets are degenerate: no decision)."""
+
+    min_speed_mps: float = 0.0
+    """Speed gate, lower bound (m/s), on the fitted velocity of a track."""
+
+    max_speed_mps: float = 700.0
+    """Speed gate, upper bound (m/s), on the fitted velocity of a track."""
+
+    plot_llr: float = 5.0
+    """Step 8 takes the candidate with the largest score ``sum_p (plot_llr - d_p^2 / 2)`` first
+    (``d_p^2`` its plot's normalised distance to the set's CV line): a track log-likelihood
+    ratio against clutter whose per-plot constant is ``plot_llr``, so a plot adds to a track
+    only when it lies within ``sqrt(2 plot_llr)`` sigma of it."""
+
+    min_track_score: float = 0.0
+    """Step 8 starts a track only if that score reaches this (a sequential-test style
+    threshold: clutter sets that happen to fit a straight line score low)."""
+
+    line_angle_deg: float = 10.0
+    """A candidate's fitted velocity must run along its preliminary track's Hough line within
+    this angle (plus 3 sigma of the velocity's normal component)."""
+
+    same_target_chi2: float = 18.47
+    """Step 8: two started tracks whose CV states (position and velocity) differ by at most
+    this Mahalanobis distance are one target and are merged (chi-square, 4 degrees of
+    freedom, 99.9 %)."""
+
+    extend: bool = True
+    """Step 8: absorb the preliminary track's remaining plots that fall in the prediction gate
+    of an accepted set's CV fit (so a target is not left with a second, partial track)."""
+
+    refine_rounds: int = 3
+    """Step 8: rounds of giving each plot of the selected tracks to the track it fits best
+    (then refitting); 0 disables."""
+
+    grow_rounds: int = 6
+    """Step 7 (fixed): at most this many refit-and-regate rounds per set (a handful)."""
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.tracking.clustering import velocity_cluster, velocity_cluster_reference
+from service.tracking.clustering import velocity_cluster_published, velocity_cluster_reference
 from service.tracking.groups import Groups
 from service.tracking.hough import classic_hough, pg_hough
 from service.tracking.initiators import cluster_groups, location_error
@@ -117,7 +117,7 @@ def test_velocity_cluster_matches_reference() -> None:
         p = ClusterParams(
             delta_v_mps=40.0, lam=1.0 + trial % 3, eta=1.0 + 0.5 * (trial % 2), merge_overlap=2 + trial % 2
         )
-        fast = sorted(tuple(x.tolist()) for x in velocity_cluster(t, xy, delta, p))
+        fast = sorted(tuple(x.tolist()) for x in velocity_cluster_published(t, xy, delta, p))
         ref = sorted(tuple(x.tolist()) for x in velocity_cluster_reference(t, xy, delta, p))
         assert fast == ref
 
