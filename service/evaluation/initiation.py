@@ -29,8 +29,8 @@ from service.evaluation.initiation_bistatic import (
     simulate_bistatic,
 )
 from service.evaluation.initiation_monostatic import MonostaticResult, MonostaticScenario, run_monostatic
-from service.tracking.groups import Groups
 from service.tracking.clustering import velocity_cluster_published
+from service.tracking.groups import Groups
 from service.tracking.hough import classic_hough, pg_hough
 from service.tracking.initiators import INITIATORS, hough_velocity, location_error
 from service.tracking.params import ClusterParams, HoughParams, TrackerParams
@@ -105,7 +105,9 @@ def table1_methods(
     delta = location_error(plots.cov)
     lines = []
     for members in pg.to_lists():  # the published clustering of each sequential PG line
-        for sub in velocity_cluster_published(plots.time_s[members], plots.xy[members], delta[members], TABLE1_PUBLISHED):
+        for sub in velocity_cluster_published(
+            plots.time_s[members], plots.xy[members], delta[members], TABLE1_PUBLISHED
+        ):
             lines.append(members[sub])
     out["PG Hough + velocity clustering, Steps 7-8 as published"] = (
         Groups.from_lists(lines),

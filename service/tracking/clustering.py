@@ -1,5 +1,8 @@
 """Velocity fuzzy clustering of a preliminary track (Hough paper Section 2, Eq. 7-10).
 
+This module holds Eq. (7)-(10) and Steps 1-8 *as published* (the ablation baseline); the form
+used by the initiators, with Steps 7-8 fixed, is :mod:`service.tracking.velocity_tracks`.
+
 Given the plots of one preliminary track (position, time stamp ``t``, location error
 ``delta``), sorted by time (Step 2):
 

@@ -38,22 +38,22 @@ class PlotStats:
     W: FloatArray  # (n, 2, 2) inverse covariances
     AtA: FloatArray  # (n, 16) H^T W H flattened
     Atz: FloatArray  # (n, 4)   H^T W z
-    zWz: FloatArray  # (n,)
+    z_w_z: FloatArray  # (n,)
 
 
 def plot_stats(t: FloatArray, xy: FloatArray, cov: FloatArray, t_ref: float) -> PlotStats:
     """The per-plot sufficient statistics of the CV fit (see module docstring)."""
     n = t.shape[0]
     tau = np.asarray(t, dtype=float) - t_ref
-    W = np.linalg.inv(cov)
+    W = np.asarray(np.linalg.inv(cov), dtype=float)
     H = np.zeros((n, 2, 4))
     H[:, 0, 0] = H[:, 1, 1] = 1.0
     H[:, 0, 2] = H[:, 1, 3] = tau
     HtW = np.swapaxes(H, 1, 2) @ W  # (n, 4, 2)
     AtA = (HtW @ H).reshape(n, 16)
     Atz = np.einsum("nij,nj->ni", HtW, xy)
-    zWz = np.einsum("ni,nij,nj->n", xy, W, xy)
-    return PlotStats(tau, np.asarray(xy, dtype=float), W, AtA, Atz, zWz)
+    z_w_z = np.einsum("ni,nij,nj->n", xy, W, xy)
+    return PlotStats(tau, np.asarray(xy, dtype=float), W, AtA, Atz, z_w_z)
 
 
 @dataclass(frozen=True)
@@ -73,13 +73,13 @@ def fit_sets(stats: PlotStats, members: BoolArray, min_span_s: float) -> SetFits
     mf = members.astype(float)
     A = (mf @ stats.AtA).reshape(m, 4, 4)
     b = mf @ stats.Atz
-    c = mf @ stats.zWz
+    c = mf @ stats.z_w_z
     size = members.sum(axis=1).astype(np.int64)
     big = np.where(members, stats.tau[None, :], -np.inf).max(axis=1)
     small = np.where(members, stats.tau[None, :], np.inf).min(axis=1)
     valid = (size >= 2) & (big - small >= min_span_s)
     A = np.where(valid[:, None, None], A, np.eye(4))  # degenerate sets: placeholder, flagged
-    cov = np.linalg.inv(A)
+    cov = np.asarray(np.linalg.inv(A), dtype=float)
     theta = np.einsum("mij,mj->mi", cov, b)
     chi2 = np.where(valid, np.maximum(c - np.einsum("mi,mi->m", b, theta), 0.0), np.inf)
     return SetFits(theta, cov, chi2, size, valid)
@@ -109,7 +109,10 @@ def residual_d2(stats: PlotStats, fits: SetFits, predicted: bool) -> FloatArray:
 
     def s(i: int, j: int) -> FloatArray:
         return np.asarray(
-            C[None, :, i, j] + P[..., i, j] + tau * (P[..., i, 2 + j] + P[..., 2 + i, j]) + tau**2 * P[..., 2 + i, 2 + j]
+            C[None, :, i, j]
+            + P[..., i, j]
+            + tau * (P[..., i, 2 + j] + P[..., 2 + i, j])
+            + tau**2 * P[..., 2 + i, 2 + j]
         )
 
     s00, s01, s11 = s(0, 0), s(0, 1), s(1, 1)
@@ -142,12 +145,18 @@ def consistent(
     worst = np.where(members, d2, 0.0).max(axis=1) if members.shape[1] else np.zeros(members.shape[0])
     dof = np.maximum(2 * fits.size - 4, 1)
     speed = np.linalg.norm(fits.theta[:, 2:], axis=1)
-    ok = fits.valid & (worst <= plot_gate) & (fits.chi2 <= chi2_limits(fit_confidence, int(dof.max(initial=1)))[dof])
+    ok = (
+        fits.valid
+        & (worst <= plot_gate)
+        & (fits.chi2 <= chi2_limits(fit_confidence, int(dof.max(initial=1)))[dof])
+    )
     ok &= (speed >= speed_mps[0]) & (speed <= speed_mps[1])
     return np.asarray(ok), fits
 
 
-def fit_set_reference(t: FloatArray, xy: FloatArray, cov: FloatArray, t_ref: float) -> tuple[FloatArray, float]:
+def fit_set_reference(
+    t: FloatArray, xy: FloatArray, cov: FloatArray, t_ref: float
+) -> tuple[FloatArray, float]:
     """Plain loop form of one set's fit (for tests): ``(theta, chi2)``."""
     A = np.zeros((4, 4))
     b = np.zeros(4)
@@ -158,5 +167,5 @@ def fit_set_reference(t: FloatArray, xy: FloatArray, cov: FloatArray, t_ref: flo
         A += H.T @ W @ H
         b += H.T @ W @ xy[k]
         c += float(xy[k] @ W @ xy[k])
-    theta = np.linalg.solve(A, b)
+    theta = np.asarray(np.linalg.solve(A, b), dtype=float)
     return theta, c - float(b @ theta)

@@ -76,7 +76,9 @@ def accumulate(
     return Accumulator(votes, theta, rho0, p.rho_step_m, centre)
 
 
-def peaks(acc: Accumulator, p: HoughParams, min_votes: float | None = None) -> tuple[IntArray, IntArray, FloatArray]:
+def peaks(
+    acc: Accumulator, p: HoughParams, min_votes: float | None = None
+) -> tuple[IntArray, IntArray, FloatArray]:
     """Local maxima at or above ``min_votes`` (default ``p.min_votes``), strongest first."""
     v = acc.votes
     floor = p.min_votes if min_votes is None else min_votes

@@ -50,14 +50,18 @@ def _consistent(stats: PlotStats, sets: BoolMatrix, p: ClusterParams) -> tuple[n
     return ok, -score
 
 
-def drop_redundant(sets: BoolMatrix) -> BoolMatrix:
-    """Remove duplicate sets and sets contained in another set (kept: the containing set)."""
+def drop_redundant(sets: BoolMatrix, subsets: bool = True) -> BoolMatrix:
+    """Remove duplicate sets and (``subsets``) sets contained in another set (kept: the
+    containing set).  Only for sets that already passed the consistency test: a consistent
+    set inside an inconsistent one must not be dropped for it."""
     if sets.shape[0] <= 1:
         return sets
     packed = np.ascontiguousarray(np.packbits(sets, axis=1))
     keys = packed.view(np.dtype((np.void, packed.shape[1]))).ravel()
     _, first = np.unique(keys, return_index=True)
     sets = sets[np.sort(first)]
+    if not subsets:
+        return sets
     f = sets.astype(np.float32)
     inter = f @ f.T  # exact for counts below 2^24
     size = f.sum(axis=1)
@@ -217,7 +221,7 @@ def candidate_tracks(
     if sets.shape[0] == 0:
         return np.zeros((0, s), dtype=bool)
     stats = plot_stats(tt, xx, cc, float(tt[0]))
-    sets = drop_redundant(sets)
+    sets = drop_redundant(sets, subsets=False)
     ok, _ = _consistent(stats, sets, p)  # 7a: seeds
     sets = converge(stats, sets[ok], np.ones(s, dtype=bool), p)  # Step 7 (fixed)
     ok, _ = _consistent(stats, sets, p)

@@ -6,17 +6,26 @@ import numpy as np
 import pytest
 
 from service.tracking.clustering import velocity_cluster_published, velocity_cluster_reference
+from service.tracking.cvfit import fit_set_reference, fit_sets, plot_stats, residual_d2
 from service.tracking.groups import Groups
 from service.tracking.hough import classic_hough, pg_hough
-from service.tracking.initiators import cluster_groups, location_error
+from service.tracking.initiators import hough_velocity, local_clusters
 from service.tracking.logic import logic_initiate, resolve_conflicts
 from service.tracking.measurement import Measurements
 from service.tracking.params import ClusterParams, HoughParams, LogicParams, TrackerParams
+from service.tracking.velocity_tracks import drop_redundant
 
 HP = HoughParams(
-    rho_step_m=80.0, cell_m=20.0, min_votes=5.0, member_sigma=3.0, member_band_m=80.0, min_plots=5
+    rho_step_m=80.0,
+    cell_m=20.0,
+    min_votes=5.0,
+    pg_min_votes=3.0,
+    member_sigma=3.0,
+    member_band_m=80.0,
+    min_plots=5,
+    max_lines=20,
 )
-CP = ClusterParams(delta_v_mps=30.0, lam=1.0, eta=1.0, merge_overlap=3, min_plots=5)
+CP = ClusterParams(delta_v_mps=30.0, lam=1.0, eta=1.0, min_plots=5, min_span_s=2.0, min_track_score=10.0)
 SIG = 30.0
 
 
@@ -40,14 +49,9 @@ def _labels(groups: Groups, lab: np.ndarray) -> list[set[int]]:
 
 def _vc(xy, cov, t, hp=HP):
     prelim = pg_hough(xy, cov, hp)
-    return prelim, cluster_groups(prelim, t, xy, location_error(cov), TrackerParams(cluster=CP))
+    return prelim, Groups.from_lists(hough_velocity(t, xy, cov, TrackerParams(hough=hp, cluster=CP)))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known limit of Steps 5-7 as published: A_ik sets with k on the other target absorb it "
-    "through the Step 7 merge (see report); the logic initiator splits this case",
-)
 def test_two_targets_on_one_line_at_different_times_are_split_by_velocity_clustering() -> None:
     rng = np.random.default_rng(3)
     xy, cov, t, lab = _plane([_line(0, 0, 300, 0, 0, 10), _line(0, 0, 300, 0, 10, 20)], rng)
@@ -137,12 +141,89 @@ def test_resolve_conflicts_matches_sequential_greedy() -> None:
         assert got == want
 
 
+def test_table1_fixed_clustering_beats_published_and_baselines() -> None:
+    """A few Monte Carlo runs of the Table 1 set-up: the fixed Steps 7-8 beat the published
+    ones and both Hough baselines on both columns (the full 200 runs are in the evaluation)."""
+    from service.evaluation.initiation import run_table1
+
+    rows = {r.method: r for r in run_table1(runs=3, seed=0)}
+    vc = rows["Hough + velocity clustering"]
+    assert vc.accuracy >= 80.0 and vc.false_ratio <= 25.0
+    for other in (
+        "Hough",
+        "probabilistic-grid Hough",
+        "PG Hough + velocity clustering, Steps 7-8 as published",
+    ):
+        assert vc.accuracy > rows[other].accuracy and vc.false_ratio < rows[other].false_ratio
+
+
 @pytest.mark.xfail(
-    strict=True, reason="goal not reached: Table 1 accuracy >= 98 % / false <= 5 % (see report)"
+    strict=False,
+    reason="goal not reached over 200 runs: about 97 % accuracy / 5 % false tracks at 1 s mean "
+    "sampling interval (20 plots per target); misses are mostly the crossing pair with 12-13 plots "
+    "(see report); a 3-run sample may pass by chance, hence not strict",
 )
 def test_table1_goal_hough_velocity_clustering() -> None:
     from service.evaluation.initiation import run_table1
 
-    rows = {r.method: r for r in run_table1(runs=4, seed=0)}
+    rows = {r.method: r for r in run_table1(runs=3, seed=0)}
     vc = rows["Hough + velocity clustering"]
     assert vc.accuracy >= 98.0 and vc.false_ratio <= 5.0
+
+
+def test_cv_fit_matches_reference_and_gates() -> None:
+    rng = np.random.default_rng(9)
+    n = 12
+    t = np.sort(rng.uniform(0, 10, n))
+    xy = rng.normal(0, 500, (n, 2))
+    a = rng.normal(size=(n, 2, 2))
+    cov = a @ np.swapaxes(a, 1, 2) * 100.0 + np.eye(2) * 50.0
+    members = rng.random((5, n)) < 0.6
+    members[:, :3] = True
+    stats = plot_stats(t, xy, cov, 0.0)
+    fits = fit_sets(stats, members, 0.5)
+    d2 = residual_d2(stats, fits, predicted=False)
+    d2p = residual_d2(stats, fits, predicted=True)
+    for q in range(members.shape[0]):  # plain loop reference per set
+        m = members[q]
+        theta, chi2 = fit_set_reference(t[m], xy[m], cov[m], 0.0)
+        np.testing.assert_allclose(fits.theta[q], theta, rtol=1e-8, atol=1e-6)
+        np.testing.assert_allclose(fits.chi2[q], chi2, rtol=1e-6, atol=1e-6)
+        assert np.isclose(np.sum(d2[q, m]), chi2, rtol=1e-6)
+        for k in range(n):
+            h = np.array([[1.0, 0.0, t[k], 0.0], [0.0, 1.0, 0.0, t[k]]])
+            r = xy[k] - h @ theta
+            s_k = cov[k] + h @ fits.cov[q] @ h.T
+            assert np.isclose(d2p[q, k], r @ np.linalg.solve(s_k, r), rtol=1e-6)
+
+
+def test_drop_redundant_matches_reference() -> None:
+    rng = np.random.default_rng(10)
+    sets = rng.random((40, 12)) < 0.3
+    sets = np.concatenate([sets, sets[:5], sets[:3] & (rng.random((3, 12)) < 0.5)])
+    got = {tuple(r) for r in drop_redundant(sets).tolist()}
+    rows = [tuple(r) for r in sets.tolist()]
+    want = set()
+    for a in rows:  # keep a unless a proper subset of, or equal to an earlier copy of, another
+        sub = any(set(np.flatnonzero(a)) < set(np.flatnonzero(b)) for b in rows)
+        if not sub:
+            want.add(a)
+    assert got == want
+
+
+def test_local_clusters_split_far_plots() -> None:
+    t = np.array([0.0, 4.0, 8.0, 0.0, 4.0, 8.0, 0.0])
+    xyz = np.array(
+        [
+            [0, 0, 0],
+            [1200, 0, 0],
+            [2400, 0, 0],
+            [80_000, 0, 0],
+            [80_000, 1200, 0],
+            [80_000, 2400, 0],
+            [40_000, 0, 0],
+        ],
+        dtype=float,
+    )
+    clusters = local_clusters(_meas3(xyz, t, 100.0), 700.0, 3)
+    assert sorted(sorted(c.tolist()) for c in clusters) == [[0, 1, 2], [3, 4, 5]]
