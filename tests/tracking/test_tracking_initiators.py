@@ -159,7 +159,7 @@ def test_table1_fixed_clustering_beats_published_and_baselines() -> None:
 
 @pytest.mark.xfail(
     strict=False,
-    reason="goal not reached over 200 runs: about 97 % accuracy / 5 % false tracks at 1 s mean "
+    reason="goal not reached over 200 runs: 97.0 % accuracy / 4.2 % false tracks at 1 s mean "
     "sampling interval (20 plots per target); misses are mostly the crossing pair with 12-13 plots "
     "(see report); a 3-run sample may pass by chance, hence not strict",
 )

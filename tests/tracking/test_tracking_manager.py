@@ -54,3 +54,16 @@ def test_monostatic_goal_logic() -> None:
     r = run_monostatic(MonostaticScenario(), "logic", seed=1)
     assert r.completeness >= 0.95
     assert r.false_ratio <= 0.02
+
+
+@pytest.mark.parametrize("initiator", ["hough-velocity", "pg-hough", "classic-hough"])
+def test_hough_initiators_in_the_streaming_tracker(initiator: str) -> None:
+    """Local Hough initiation (clusters of the window's plots) confirms the targets."""
+    scn = MonostaticScenario(n_targets=15, clutter_per_scan=20, scans=8)
+    batches, truth, _ = simulate(scn, np.random.default_rng(13))
+    tr = make_tracker(SITE, initiator=initiator)
+    for plots, tb in batches:
+        tr.update(plots, tb)
+    conf = tr.tracks().take(tr.tracks().confirmed)
+    assert len(set(conf.truth_id.tolist()) & set(truth.names)) >= 12
+    assert all(t in truth.names for t in conf.truth_id)
