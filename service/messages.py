@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic_core import PydanticCustomError
 
 #: `{radar_id}` / `{source_id}` pattern of the contract.
 ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
@@ -33,9 +34,23 @@ RejectionReason = Literal[
 ]
 
 SourceId = Annotated[str, Field(pattern=ID_PATTERN, description="matches [A-Za-z0-9_-]{1,64}")]
-Finite = Annotated[float, Field(allow_inf_nan=False)]
-TimeS = Annotated[float, Field(allow_inf_nan=False, description="seconds since the Unix epoch, UTC")]
-Range = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+#: Plausibility bounds that keep hostile but finite numbers out of the numerics (a range of
+#: 1e156 m overflows the covariance maths; a time of 1e300 s would stop every radar's clock).
+#: Latest accepted time: 2286-11-20, the end of 10-digit Unix seconds.
+MAX_TIME_S = 1e10
+#: Accepted slant ranges: 1 m (no radar measures closer; a denormal range overflows the
+#: geometry) to 10 000 km (far beyond any radar horizon).
+MIN_RANGE_M, MAX_RANGE_M = 1.0, 1e7
+#: Accepted heights above the ellipsoid (plots and sites): deepest ocean to 1 000 km.
+MIN_ALTITUDE_M, MAX_ALTITUDE_M = -12_000.0, 1_000_000.0
+#: A plot may be stamped at most this long after its batch's ``time_s`` (clock jitter).
+PLOT_TIME_TOLERANCE_S = 1.0
+
+TimeS = Annotated[
+    float, Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False, description="seconds since the Unix epoch, UTC")
+]
+Range = Annotated[float, Field(ge=MIN_RANGE_M, le=MAX_RANGE_M, allow_inf_nan=False)]
+Altitude = Annotated[float, Field(ge=MIN_ALTITUDE_M, le=MAX_ALTITUDE_M, allow_inf_nan=False)]
 Azimuth = Annotated[float, Field(ge=0, lt=360, allow_inf_nan=False)]
 Elevation = Annotated[float, Field(ge=-90, le=90, allow_inf_nan=False)]
 Latitude = Annotated[float, Field(ge=-90, le=90, allow_inf_nan=False)]
@@ -55,7 +70,7 @@ class RadarSite(WireModel):
     radar_id: SourceId
     latitude_deg: Latitude
     longitude_deg: Longitude
-    altitude_m: Finite = 0.0
+    altitude_m: Altitude = 0.0
     range_sigma_m: Sigma = 200.0
     azimuth_sigma_deg: Sigma = 0.2
     elevation_sigma_deg: Sigma = 0.2
@@ -75,7 +90,7 @@ class PlotColumnsModel(WireModel):
     range_m: Annotated[list[Range], Field(max_length=MAX_BATCH_ITEMS)]
     azimuth_deg: Annotated[list[Azimuth], Field(max_length=MAX_BATCH_ITEMS)]
     elevation_deg: Annotated[list[Elevation], Field(max_length=MAX_BATCH_ITEMS)] | None = None
-    altitude_m: Annotated[list[Finite], Field(max_length=MAX_BATCH_ITEMS)] | None = None
+    altitude_m: Annotated[list[Altitude], Field(max_length=MAX_BATCH_ITEMS)] | None = None
     truth_id: Annotated[list[str | None], Field(max_length=MAX_BATCH_ITEMS)] | None = Field(
         default=None,
         description="simulation only: carried to tracks for evaluation, never read by algorithms",
@@ -101,6 +116,18 @@ class PlotBatch(WireModel):
     seq: Annotated[int, Field(ge=0)]
     time_s: TimeS
     plots: PlotColumnsModel
+
+    @model_validator(mode="after")
+    def _plots_not_after_batch(self) -> PlotBatch:
+        """``time_s`` is the time up to which the radar has reported: no plot is later."""
+        latest = max(self.plots.time_s, default=self.time_s)
+        if latest > self.time_s + PLOT_TIME_TOLERANCE_S:
+            raise PydanticCustomError(
+                "out_of_range",
+                "plot time {latest} is after the batch time_s {time_s} (+{tol} s)",
+                {"latest": latest, "time_s": self.time_s, "tol": PLOT_TIME_TOLERANCE_S},
+            )
+        return self
 
 
 class AisReportsModel(WireModel):
@@ -261,6 +288,7 @@ _REASON_BY_ERROR: dict[str, RejectionReason] = {
     "less_than": "out_of_range",
     "less_than_equal": "out_of_range",
     "too_long": "too_large",
+    "out_of_range": "out_of_range",
 }
 _PRIORITY: tuple[RejectionReason, ...] = (
     "malformed_json",

@@ -48,6 +48,13 @@ def _plot_batch(**plots: object) -> dict[str, object]:
         (json.dumps(_plot_batch(range_m=[1.0, -5.0])).encode(), "out_of_range"),
         (json.dumps(_plot_batch(azimuth_deg=[360.0, 1.0])).encode(), "out_of_range"),
         (json.dumps(_plot_batch(elevation_deg=[91.0, 1.0])).encode(), "out_of_range"),
+        (json.dumps(_plot_batch(range_m=[1.0, 2.7e156])).encode(), "out_of_range"),  # finite, absurd
+        (
+            json.dumps(_plot_batch(time_s=[1763769603.1, 1763769699.0])).encode(),
+            "out_of_range",
+        ),  # after batch
+        (json.dumps({**_plot_batch(), "time_s": 1e300}).encode(), "out_of_range"),
+        (json.dumps(_plot_batch(elevation_deg=None, altitude_m=[0.0, 1e200])).encode(), "out_of_range"),
         (json.dumps(_plot_batch()).replace("152031.5", "NaN").encode(), "non_finite"),
         (json.dumps(_plot_batch()).replace("152031.5", "Infinity").encode(), "non_finite"),
         (json.dumps(_plot_batch()).replace("152031.5", "1e999").encode(), "non_finite"),
