@@ -17,8 +17,26 @@ assignment and registration are shared.
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
+from service.correlation import cfar, gmm
 from service.correlation.base import Correlator, DecisionContext, Decisions, Reason, TrackSnapshot
+
+
+def _all_accepted(index_a: ArrayLike, index_b: ArrayLike, cost: ArrayLike, statistic: ArrayLike) -> Decisions:
+    """Decisions for a method that returns its one-to-one pairs only (every pair accepted)."""
+    ia = np.asarray(index_a, dtype=np.intp)
+    n = int(ia.size)
+    return Decisions.build(
+        ia,
+        np.asarray(index_b, dtype=np.intp),
+        accepted=np.ones(n, dtype=bool),
+        reason=np.full(n, Reason.ACCEPTED, dtype=np.int8),
+        cost=np.asarray(cost, dtype=float),
+        statistic=np.asarray(statistic, dtype=float),
+        rotation_weight=np.ones(n),
+        scale=np.ones(n),
+    )
 
 
 class GmmCorrelator(Correlator):
@@ -27,14 +45,7 @@ class GmmCorrelator(Correlator):
     name = "gmm"
     requires_sites = True
 
-    def __init__(self, params: object | None = None) -> None:
-        try:
-            from service.correlation import gmm
-        except ImportError as exc:  # pragma: no cover - only before the module lands
-            raise NotImplementedError(
-                "method 'gmm' is not available yet (service/correlation/gmm.py)"
-            ) from exc
-        self._gmm = gmm
+    def __init__(self, params: gmm.GmmParams | None = None) -> None:
         self.params = params
 
     def decide(self, a: TrackSnapshot, b: TrackSnapshot, context: DecisionContext) -> Decisions:
@@ -42,19 +53,9 @@ class GmmCorrelator(Correlator):
             raise ValueError("gmm needs radar A's site")
         pos_a = a.enu[:, :2]
         pos_b = a.site.ecef_to_enu(b.position)[:, :2]
-        res = self._gmm.gmm_associate(pos_a, pos_b, self.params)  # type: ignore[arg-type]
-        n = int(res.index_a.size)
+        res = gmm.gmm_associate(pos_a, pos_b, self.params)
         post = np.asarray(res.posterior, dtype=float)
-        return Decisions.build(
-            np.asarray(res.index_a, dtype=np.intp),
-            np.asarray(res.index_b, dtype=np.intp),
-            accepted=np.ones(n, dtype=bool),
-            reason=np.full(n, Reason.ACCEPTED, dtype=np.int8),
-            cost=-np.log(np.clip(post, 1e-12, 1.0)),
-            statistic=post,
-            rotation_weight=np.ones(n),
-            scale=np.ones(n),
-        )
+        return _all_accepted(res.index_a, res.index_b, -np.log(np.clip(post, 1e-12, 1.0)), post)
 
 
 class CfarCorrelator(Correlator):
@@ -63,14 +64,7 @@ class CfarCorrelator(Correlator):
     name = "cfar"
     requires_sites = False
 
-    def __init__(self, params: object | None = None) -> None:
-        try:
-            from service.correlation import cfar
-        except ImportError as exc:  # pragma: no cover - only before the module lands
-            raise NotImplementedError(
-                "method 'cfar' is not available yet (service/correlation/cfar.py)"
-            ) from exc
-        self._cfar = cfar
+    def __init__(self, params: cfar.CfarParams | None = None) -> None:
         self.params = params
 
     def decide(self, a: TrackSnapshot, b: TrackSnapshot, context: DecisionContext) -> Decisions:
@@ -78,20 +72,6 @@ class CfarCorrelator(Correlator):
             raise ValueError("cfar needs radar A's site (source B is the reference)")
         ra, aza, _ = a.site.ecef_to_polar(a.position)
         rb, azb, _ = a.site.ecef_to_polar(b.position)
-        res = self._cfar.cfar_associate(
-            np.column_stack([rb, azb]),
-            np.column_stack([ra, aza]),
-            self.params,  # type: ignore[arg-type]
-        )
-        n = int(res.index_ref.size)
+        res = cfar.cfar_associate(np.column_stack([rb, azb]), np.column_stack([ra, aza]), self.params)
         conf = np.asarray(res.confident, dtype=bool)
-        return Decisions.build(
-            np.asarray(res.index_radar, dtype=np.intp),
-            np.asarray(res.index_ref, dtype=np.intp),
-            accepted=np.ones(n, dtype=bool),
-            reason=np.full(n, Reason.ACCEPTED, dtype=np.int8),
-            cost=np.where(conf, -1.0, 0.0),
-            statistic=conf.astype(float),
-            rotation_weight=np.ones(n),
-            scale=np.ones(n),
-        )
+        return _all_accepted(res.index_radar, res.index_ref, np.where(conf, -1.0, 0.0), conf)
