@@ -49,12 +49,34 @@ def quad3(r: FloatArray, s_inv: FloatArray) -> FloatArray:
 def mahalanobis2_h(
     dx: FloatArray, dy: FloatArray, sxx: FloatArray, sxy: FloatArray, syy: FloatArray
 ) -> FloatArray:
-    """Horizontal 2-D Mahalanobis distance squared with a closed-form 2x2 inverse (inf if singular)."""
-    det = sxx * syy - sxy * sxy
-    ok = det > SINGULAR_RTOL * ((sxx + syy) / 2.0) ** 2
-    safe = np.where(ok, det, 1.0)
-    q = (syy * dx * dx - 2.0 * sxy * dx * dy + sxx * dy * dy) / safe
-    return np.where(ok, q, np.inf)
+    """Horizontal 2-D Mahalanobis distance squared with a closed-form 2x2 inverse (inf if singular).
+
+    ``(syy dx^2 - 2 sxy dx dy + sxx dy^2) / det``; evaluated in place on a few buffers of the
+    broadcast shape (the callers' arrays are large ``(P, K, K)`` stacks).
+    """
+    shape = np.broadcast_shapes(dx.shape, dy.shape, sxx.shape, sxy.shape, syy.shape)
+    det = np.multiply(sxx, syy, out=np.empty(shape))
+    tmp = np.multiply(sxy, sxy, out=np.empty(shape))
+    det -= tmp
+    np.add(sxx, syy, out=tmp)
+    tmp /= 2.0
+    tmp *= tmp
+    tmp *= SINGULAR_RTOL
+    bad = det <= tmp
+    bad |= np.isnan(det)  # (det > floor) is False for NaN as well
+    det[bad] = 1.0
+    q = np.multiply(syy, dx, out=np.empty(shape))
+    q *= dx
+    np.multiply(2.0, sxy, out=tmp)
+    tmp *= dx
+    tmp *= dy
+    q -= tmp
+    np.multiply(sxx, dy, out=tmp)
+    tmp *= dy
+    q += tmp
+    q /= det
+    q[bad] = np.inf
+    return q
 
 
 def congruence(r: FloatArray, s: FloatArray) -> FloatArray:

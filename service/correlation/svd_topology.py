@@ -176,8 +176,10 @@ def _mutual_nearest(cost: FloatArray, gate: float) -> NDArray[np.intp]:
         return np.full((p, ka), -1, dtype=np.intp)
     jb = np.argmin(cost, axis=2)
     ia_of_b = np.argmin(cost, axis=1)
-    back = np.take_along_axis(ia_of_b, jb, axis=1)
-    best = np.take_along_axis(cost, jb[..., None], axis=2)[..., 0]
+    # Flat indices instead of take_along_axis (same values, no broadcast index arrays).
+    flat_b = jb + (np.arange(p) * kb)[:, None]
+    back = ia_of_b.ravel()[flat_b]
+    best = cost.reshape(p, ka * kb)[np.arange(p)[:, None], jb + (np.arange(ka) * kb)[None, :]]
     ok = (back == np.arange(ka)[None, :]) & (best <= gate)
     return np.where(ok, jb, -1).astype(np.intp)
 
@@ -230,38 +232,59 @@ def svd_match(
     n_par = 7 if prm.rotation_model == "full" else 5
     min_matched = max(prm.min_matched, 3 if prm.rotation_model == "full" else 2)
     rot0 = yaw_matrix(np.array(prior_yaw_rad)) @ m0
-    pa_r = pa @ rot0.T
-    ca_r = congruence(rot0, ca)
+    no_rot = bool(np.array_equal(rot0, np.eye(3)))  # e.g. A already turned by the caller (decide)
+    if no_rot:
+        pa_r, ca_r = pa, ca
+    else:
+        pa_r = pa @ rot0.T
+        ca_r = congruence(rot0, ca)
     za = (pa_r - pa_r[:, :1, :])[:, 1:]
     zb = (pb - pb[:, :1, :])[:, 1:]
     man, mbn = ma[:, 1:], mb[:, 1:]
     can, cbn = ca_r[:, 1:], cb[:, 1:]
     n_a = man.sum(axis=1)
     n_b = mbn.sum(axis=1)
-    valid_pair = man[:, :, None] & mbn[:, None, :]
+    invalid_pair = ~(man[:, :, None] & mbn[:, None, :])
+    n_cand, kb = zb.shape[0], zb.shape[1]
 
-    # 2(a) rotation-tolerant first pairing on the horizontal components.
+    # 2(a) rotation-tolerant first pairing on the horizontal components.  All (P, Ka, Kb)
+    # arrays are formed in place (few temporaries); the cost is the squared distance (the
+    # mutual nearest neighbour and its gate are unchanged by the monotone square root).
     ra = np.hypot(za[..., 0], za[..., 1])
     rb = np.hypot(zb[..., 0], zb[..., 1])
-    dot = za[:, :, None, 0] * zb[:, None, :, 0] + za[:, :, None, 1] * zb[:, None, :, 1]
-    crs = za[:, :, None, 0] * zb[:, None, :, 1] - za[:, :, None, 1] * zb[:, None, :, 0]
-    dth = np.abs(np.arctan2(crs, dot))  # angle between the horizontal vectors
-    tol = np.radians(prm.pairing_rotation_tolerance_deg)
-    tang = np.maximum(dth - tol, 0.0) * 0.5 * (ra[:, :, None] + rb[:, None, :])
-    dz = za[:, :, None, 2] - zb[:, None, :, 2]
-    cost0 = np.sqrt((ra[:, :, None] - rb[:, None, :]) ** 2 + tang**2 + dz**2)
-    pair = _mutual_nearest(np.where(valid_pair, cost0, np.inf), prm.pairing_gate_m)
+    xa, ya = za[:, :, None, 0], za[:, :, None, 1]
+    xb, yb = zb[:, None, :, 0], zb[:, None, :, 1]
+    dot = xa * xb
+    dot += ya * yb
+    crs = xa * yb
+    crs -= ya * xb
+    dth = np.arctan2(crs, dot, out=crs)  # angle between the horizontal vectors
+    np.abs(dth, out=dth)
+    dth -= np.radians(prm.pairing_rotation_tolerance_deg)
+    np.maximum(dth, 0.0, out=dth)
+    dth *= 0.5
+    tang = dth
+    tang *= ra[:, :, None] + rb[:, None, :]
+    tang *= tang
+    cost0 = np.subtract(ra[:, :, None], rb[:, None, :], out=dot)
+    cost0 *= cost0
+    cost0 += tang
+    dz = np.subtract(za[:, :, None, 2], zb[:, None, :, 2], out=tang)
+    dz *= dz
+    cost0 += dz
+    cost0[invalid_pair] = np.inf
+    pair = _mutual_nearest(cost0, prm.pairing_gate_m**2)
+    flat_base = (np.arange(n_cand) * kb)[:, None]
+    zb_flat = zb.reshape(-1, 3)
 
-    def paired(pr: NDArray[np.intp]) -> tuple[FloatArray, FloatArray, FloatArray]:
-        safe = np.maximum(pr, 0)
-        y = np.take_along_axis(zb, safe[..., None], axis=1)
-        cy = np.take_along_axis(cbn, safe[..., None, None], axis=1)
-        return y, cy, (pr >= 0).astype(float)
+    def paired(pr: NDArray[np.intp]) -> tuple[FloatArray, FloatArray]:
+        y = zb_flat[np.maximum(pr, 0) + flat_base]
+        return y, (pr >= 0).astype(float)
 
     # 2(b-c) fit (reference included, it anchors the hypothesis) and re-pair with the fit.
     zeros = np.zeros((za.shape[0], 1, 3))
     ones = np.ones((za.shape[0], 1))
-    y, _, w = paired(pair)
+    y, w = paired(pair)
     fit, _ = _fit(
         np.concatenate([zeros, za], 1),
         np.concatenate([zeros, y], 1),
@@ -270,23 +293,36 @@ def svd_match(
     )
     xt = fit.apply(za)
     xt = np.where(np.isfinite(xt), xt, za)
-    d = xt[:, :, None, :] - zb[:, None, :, :]
-    sxx = can[:, :, None, 0, 0] + cbn[:, None, :, 0, 0]
-    sxy = can[:, :, None, 0, 1] + cbn[:, None, :, 0, 1]
-    syy = can[:, :, None, 1, 1] + cbn[:, None, :, 1, 1]
-    szz = can[:, :, None, 2, 2] + cbn[:, None, :, 2, 2]
+    cov_a = can.reshape(*can.shape[:2], 9)
+    cov_b = cbn.reshape(*cbn.shape[:2], 9)
+
+    def pair_sum(k: int) -> FloatArray:  # (P, Ka, Kb) sum of the A and B covariance entries k
+        return np.add(cov_a[:, :, None, k], cov_b[:, None, :, k])
+
     # Horizontal Mahalanobis plus the vertical term (the small horizontal-vertical correlation
     # ignored): neighbours nearly above or below the reference pair by their heights.
-    cost1 = mahalanobis2_h(d[..., 0], d[..., 1], sxx, sxy, syy) + d[..., 2] ** 2 / np.where(
-        szz > 0, szz, np.inf
+    cost1 = mahalanobis2_h(
+        xt[:, :, None, 0] - zb[:, None, :, 0],
+        xt[:, :, None, 1] - zb[:, None, :, 1],
+        pair_sum(0),
+        pair_sum(1),
+        pair_sum(4),
     )
-    pair1 = _mutual_nearest(np.where(valid_pair, cost1, np.inf), prm.repair_gate_chi2)
+    szz = pair_sum(8)
+    szz[~(szz > 0)] = np.inf
+    dz = np.subtract(xt[:, :, None, 2], zb[:, None, :, 2])
+    dz *= dz
+    dz /= szz
+    cost1 += dz
+    cost1[invalid_pair] = np.inf
+    pair1 = _mutual_nearest(cost1, prm.repair_gate_chi2)
     pair = np.where(np.isfinite(fit.scale)[:, None], pair1, pair)
 
     # 3 + 2(d): neighbours-only fit, element chi-square, trim, refit.
     # The element covariances (Section 1.6) use the first fit's transform: trimming changes it
     # by a fraction of the yaw's own uncertainty, far too little to matter for a covariance.
-    y, cy, w = paired(pair)
+    y, w = paired(pair)
+    cy = cbn.reshape(-1, 3, 3)[np.maximum(pair, 0) + flat_base]
     fit, yaw = _fit(za, y, w, prm)
     c = np.where(np.isfinite(fit.scale), fit.scale, 1.0)
     rm = fit.rotation
@@ -367,8 +403,8 @@ def svd_match(
     vel_ok = np.ones(len(m), dtype=bool)
     if velocity is not None and prm.use_velocity:
         va, cva, vb, cvb = velocity
-        va_r = va @ rot0.T
-        cva_r = congruence(rot0, cva)
+        va_r = va if no_rot else va @ rot0.T
+        cva_r = cva if no_rot else congruence(rot0, cva)
         rv = vb - c[:, None] * (rm @ va_r[..., None])[..., 0]
         sv_inv, sv_ok = inv3((c**2)[:, None, None] * rm @ cva_r @ np.swapaxes(rm, 1, 2) + cvb)
         chi2_vel = np.where(sv_ok, quad3(rv, sv_inv), 0.0)
@@ -486,17 +522,21 @@ class SvdTopologyCorrelator(Correlator):
             maintained = is_conf & ok & (q <= chi2.ppf(1.0 - prm.alpha_position, dof))
             run &= ~maintained
         sub = np.flatnonzero(run)
-        nbr_a = neighbourhoods(a.enu, prm.topology)
-        nbr_b = neighbourhoods(b.enu, prm.topology)
-        pa, ca, ma = gather_points(a.enu, a.enu_cov(), nbr_a, ia[sub])
-        pb, cb, mb = gather_points(b.enu, b.enu_cov(), nbr_b, ib[sub])
+        # Neighbourhoods of the candidate references only; A is turned into B's orientation
+        # (M0 of Eq. 3) once per track here rather than once per candidate element in
+        # svd_match, which is then told that no rotation is left (M0 = I).
+        ra_sub, rb_sub = ia[sub], ib[sub]
+        nbr_a = neighbourhoods(a.enu, prm.topology, rows=np.unique(ra_sub))
+        nbr_b = neighbourhoods(b.enu, prm.topology, rows=np.unique(rb_sub))
+        pa, ca, ma = gather_points(a.enu @ m0.T, congruence(m0, a.enu_cov()), nbr_a, ra_sub, trim=True)
+        pb, cb, mb = gather_points(b.enu, b.enu_cov(), nbr_b, rb_sub, trim=True)
         vel = (
-            a.enu_velocity[ia[sub]],
-            a.enu_vel_cov()[ia[sub]],
-            b.enu_velocity[ib[sub]],
-            b.enu_vel_cov()[ib[sub]],
+            a.enu_velocity[ra_sub] @ m0.T,
+            congruence(m0, a.enu_vel_cov()[ra_sub]),
+            b.enu_velocity[rb_sub],
+            b.enu_vel_cov()[rb_sub],
         )
-        res = svd_match(pa, ca, ma, pb, cb, mb, m0, prm, velocity=vel)
+        res = svd_match(pa, ca, ma, pb, cb, mb, np.eye(3), prm, velocity=vel)
 
         def full(x: np.ndarray, fill: float) -> np.ndarray:
             out = np.full(n, fill, dtype=x.dtype)

@@ -38,8 +38,15 @@ class TopologyParams:
     max_neighbours: int = 8
 
 
-def neighbourhoods(enu: FloatArray, params: TopologyParams | None = None) -> NDArray[np.intp]:
-    """Padded neighbour indices ``(n, max_neighbours)``, nearest first, ``-1`` where none."""
+def neighbourhoods(
+    enu: FloatArray, params: TopologyParams | None = None, rows: NDArray[np.intp] | None = None
+) -> NDArray[np.intp]:
+    """Padded neighbour indices ``(n, max_neighbours)``, nearest first, ``-1`` where none.
+
+    ``rows``: only these tracks' neighbourhoods are searched (the others are all ``-1``); the
+    neighbours are still any of the ``n`` tracks.  A correlation update needs the
+    neighbourhoods of candidate references only.
+    """
     p = params or TopologyParams()
     n = enu.shape[0]
     kmax = int(p.max_neighbours)
@@ -47,12 +54,18 @@ def neighbourhoods(enu: FloatArray, params: TopologyParams | None = None) -> NDA
         return np.full((n, max(kmax, 0)), -1, dtype=np.intp)
     k = min(kmax + 1, n)
     bound = max(p.max_radius_m, p.radius_m)
-    dist, idx = cKDTree(enu).query(enu, k=k, distance_upper_bound=bound)
-    dist = np.atleast_2d(dist)[:, 1:]  # column 0 is the track itself (distance 0)
-    idx = np.atleast_2d(idx)[:, 1:]
+    query = enu if rows is None else enu[rows]
+    dist, idx = cKDTree(enu).query(query, k=k, distance_upper_bound=bound)
+    dist = dist.reshape(len(query), k)[:, 1:]  # column 0 is the track itself (distance 0)
+    idx = idx.reshape(len(query), k)[:, 1:]
     rank = np.arange(dist.shape[1])[None, :]
     keep = np.isfinite(dist) & ((dist <= p.radius_m) | (rank < p.min_neighbours))
-    out = np.where(keep, idx, -1).astype(np.intp)
+    found = np.where(keep, idx, -1).astype(np.intp)
+    if rows is None:
+        out = found
+    else:
+        out = np.full((n, found.shape[1]), -1, dtype=np.intp)
+        out[rows] = found
     if out.shape[1] < kmax:
         out = np.concatenate([out, np.full((n, kmax - out.shape[1]), -1, dtype=np.intp)], axis=1)
     return out
@@ -76,16 +89,22 @@ def topology_sequences(
 
 
 def gather_points(
-    enu: FloatArray, cov: FloatArray, nbr: NDArray[np.intp], ref: NDArray[np.intp]
+    enu: FloatArray, cov: FloatArray, nbr: NDArray[np.intp], ref: NDArray[np.intp], trim: bool = False
 ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
     """Points of candidate references ``ref`` and their neighbours: ``(P, K+1, 3)``, covs, mask.
 
     Index 0 is the reference itself, 1.. its neighbours (padding masked out, zero-filled,
-    covariance identity so that nothing singular reaches the linear algebra).
+    covariance identity so that nothing singular reaches the linear algebra).  ``trim``: drop
+    trailing padding columns no reference uses (neighbours are a prefix of each row, nearest
+    first), so that the per-candidate arrays are no wider than the longest sequence.
     """
-    idx = np.concatenate([ref[:, None], nbr[ref]], axis=1)
+    nb = nbr[ref]
+    if trim and nb.shape[1]:
+        nb = nb[:, : int((nb >= 0).sum(axis=1).max(initial=0))]
+    idx = np.concatenate([ref[:, None], nb], axis=1)
     mask = idx >= 0
-    safe = np.maximum(idx, 0)
-    pts = np.where(mask[..., None], enu[safe], 0.0)
-    cv = np.where(mask[..., None, None], cov[safe], np.eye(3))
+    n = enu.shape[0]
+    safe = np.where(mask, idx, n)  # padding reads an appended zero point / identity covariance
+    pts = np.concatenate([enu, np.zeros((1, 3))])[safe]
+    cv = np.concatenate([cov, np.eye(3)[None]])[safe]
     return pts, cv, mask
