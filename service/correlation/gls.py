@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.correlation.base import BoolArray, FloatArray
-from service.correlation.linalg import inv3
+from service.correlation.linalg import inv3, matvec3
 
 #: Parameters: a, b, t_e, t_n, t_u.
 N_PARAMS = 5
@@ -97,19 +97,19 @@ def similarity_gls_batch(
     # forming the (P, K, 3, 5) design: W x, W J x and their inner products.
     jx = _jx(x)
     ww = s_inv * w[..., None, None]
-    wx = (ww @ x[..., None])[..., 0]
-    wjx = (ww @ jx[..., None])[..., 0]
+    wx = matvec3(ww, x)
+    wjx = matvec3(ww, jx)
     h_data = np.zeros((p, N_PARAMS, N_PARAMS))
-    h_data[:, 0, 0] = (x * wx).sum((1, 2))
-    h_data[:, 0, 1] = h_data[:, 1, 0] = (jx * wx).sum((1, 2))
-    h_data[:, 1, 1] = (jx * wjx).sum((1, 2))
-    h_data[:, 0, 2:] = h_data[:, 2:, 0] = wx.sum(1)
-    h_data[:, 1, 2:] = h_data[:, 2:, 1] = wjx.sum(1)
-    h_data[:, 2:, 2:] = ww.sum(1)
-    g = np.stack(
-        [(wx * y).sum((1, 2)), (wjx * y).sum((1, 2)), *np.moveaxis((ww @ y[..., None])[..., 0].sum(1), 1, 0)],
-        axis=1,
-    )
+    h_data[:, 0, 0] = np.einsum("pki,pki->p", x, wx)
+    h_data[:, 0, 1] = h_data[:, 1, 0] = np.einsum("pki,pki->p", jx, wx)
+    h_data[:, 1, 1] = np.einsum("pki,pki->p", jx, wjx)
+    h_data[:, 0, 2:] = h_data[:, 2:, 0] = np.einsum("pki->pi", wx)
+    h_data[:, 1, 2:] = h_data[:, 2:, 1] = np.einsum("pki->pi", wjx)
+    h_data[:, 2:, 2:] = np.einsum("pkij->pij", ww)
+    g = np.empty((p, N_PARAMS))
+    g[:, 0] = np.einsum("pki,pki->p", wx, y)
+    g[:, 1] = np.einsum("pki,pki->p", wjx, y)
+    g[:, 2:] = np.einsum("pki->pi", matvec3(ww, y))
     lam = np.array([1.0 / sigma_scale**2, 1.0 / sigma_yaw_rad**2, 0.0, 0.0, 0.0])
     theta0 = np.array([1.0, 0.0, 0.0, 0.0, 0.0])
     h = h_data + np.diag(lam)
@@ -141,7 +141,7 @@ def similarity_gls_batch(
     cov[:, 2:, 2:] = htt_inv + np.swapaxes(k_gain, 1, 2) @ cov_pp @ k_gain
     cov = np.where(valid[:, None, None], cov, 0.0)
     r = y - _design_apply(x, theta)
-    q_res = (w * (r * (s_inv @ r[..., None])[..., 0]).sum(-1)).sum(-1)
+    q_res = np.einsum("pk,pki->p", w, r * matvec3(s_inv, r))
     dth = theta - theta0
     q_pri = (lam * dth * dth).sum(-1)
     df_model = (cov * h_data).sum((1, 2))  # tr(H^-1 H_data), both symmetric

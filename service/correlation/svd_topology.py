@@ -55,7 +55,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2
+from scipy.special import gammaincinv
 
 from service.correlation.base import (
     BoolArray,
@@ -169,6 +169,15 @@ class SvdMatchResult:
     matched: NDArray[np.int64]
 
 
+def chi2_upper(alpha: float, dof: FloatArray | float) -> FloatArray:
+    """Upper ``alpha`` quantile of chi-square with ``dof`` degrees of freedom, ``chi2.ppf(1 - alpha, dof)``.
+
+    The same expression scipy evaluates (``2 gammaincinv(dof / 2, p)``), without
+    ``rv_continuous``'s per-call argument handling (a large share of a small call).
+    """
+    return np.asarray(2 * gammaincinv(np.asarray(dof, dtype=float) / 2, 1.0 - alpha))
+
+
 def _mutual_nearest(cost: FloatArray, gate: float) -> NDArray[np.intp]:
     """For cost (P, Ka, Kb): B index paired with each A element by mutual nearest neighbour, -1 if none."""
     p, ka, kb = cost.shape
@@ -203,9 +212,9 @@ def _fit(
         return fit, yaw
     if prm.constrained_fit:
         return yaw_similarity_batch(
-            x, y, w, 2, np.radians(prm.max_bias_rotation_deg), prm.max_scale_deviation
+            x, y, w, 2, np.radians(prm.max_bias_rotation_deg), prm.max_scale_deviation, residual=False
         )
-    return yaw_similarity_batch(x, y, w, min_points=2)
+    return yaw_similarity_batch(x, y, w, min_points=2, residual=False)
 
 
 def svd_match(
@@ -408,7 +417,7 @@ def svd_match(
         rv = vb - c[:, None] * (rm @ va_r[..., None])[..., 0]
         sv_inv, sv_ok = inv3((c**2)[:, None, None] * rm @ cva_r @ np.swapaxes(rm, 1, 2) + cvb)
         chi2_vel = np.where(sv_ok, quad3(rv, sv_inv), 0.0)
-        vel_ok = chi2_vel <= chi2.ppf(1.0 - prm.alpha_position, 3)
+        vel_ok = chi2_vel <= chi2_upper(prm.alpha_position, 3)
         dof_ref = dof_ref + 3 * sv_ok
     # Section 1.5 on the unknown part of the rotation: M0 of Eq. (3) is known exactly from the
     # sites, so the check asks whether the fitted bias rotation (times any prior) is near I.
@@ -425,8 +434,8 @@ def svd_match(
     # prior of the weighted fit, and with 2-10 neighbours at <= 10 km the scale's own
     # uncertainty (1-4 %) exceeds it, so a hard cut would reject true pairs on noise.
     bad_scale = (prm.rotation_model == "full") & (np.abs(c - 1.0) > prm.max_scale_deviation * (1.0 + 1e-9))
-    bad_shape = chi2_shape > chi2.ppf(1.0 - prm.alpha_shape, dof_shape)
-    bad_pos = chi2_ref > chi2.ppf(1.0 - prm.alpha_position, 3)
+    bad_shape = chi2_shape > chi2_upper(prm.alpha_shape, dof_shape)
+    bad_pos = chi2_ref > chi2_upper(prm.alpha_position, 3)
     reason = np.select(
         [few, degenerate, bad_weight, bad_scale, bad_shape, bad_pos, ~vel_ok],
         [
@@ -479,7 +488,7 @@ def _velocity_compatible(
     )
     ok = np.isfinite(var) & (var > 0)
     q = ((sa - sb) ** 2 + tang**2) / np.where(ok, var, 1.0)
-    return ~ok | (q <= chi2.ppf(1.0 - prm.velocity_prefilter_alpha, 2))
+    return ~ok | (q <= chi2_upper(prm.velocity_prefilter_alpha, 2))
 
 
 class SvdTopologyCorrelator(Correlator):
@@ -511,7 +520,7 @@ class SvdTopologyCorrelator(Correlator):
             )
             q = q_pos + (q_vel if prm.use_velocity else 0.0)
             if prm.registered_consistency_alpha > 0:
-                run = ok & (q <= chi2.ppf(1.0 - prm.registered_consistency_alpha, dof))
+                run = ok & (q <= chi2_upper(prm.registered_consistency_alpha, dof))
         m0 = b.site.rotation.T @ a.site.rotation  # Eq. (3)
         if prm.use_velocity and prm.velocity_prefilter_alpha > 0:
             run &= _velocity_compatible(a, b, ia, ib, m0, prm)
@@ -519,7 +528,7 @@ class SvdTopologyCorrelator(Correlator):
         if context.registered and prm.maintain_confirmed and len(context.confirmed_a):
             nb = max(len(b), 1)
             is_conf = np.isin(ia * nb + ib, context.confirmed_a * nb + context.confirmed_b)
-            maintained = is_conf & ok & (q <= chi2.ppf(1.0 - prm.alpha_position, dof))
+            maintained = is_conf & ok & (q <= chi2_upper(prm.alpha_position, dof))
             run &= ~maintained
         sub = np.flatnonzero(run)
         # Neighbourhoods of the candidate references only; A is turned into B's orientation
@@ -550,7 +559,7 @@ class SvdTopologyCorrelator(Correlator):
         stage = np.where(accepted, 1.0, 0.0)
         if context.registered and prm.registered_fallback:
             undecided = np.isin(reason, [Reason.TOO_FEW_NEIGHBOURS, Reason.DEGENERATE_FIT])
-            passed = undecided & ok & (q <= chi2.ppf(1.0 - prm.alpha_position, dof))
+            passed = undecided & ok & (q <= chi2_upper(prm.alpha_position, dof))
             accepted |= passed
             reason = np.where(
                 passed,

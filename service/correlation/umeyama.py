@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.correlation.base import BoolArray, FloatArray
+from service.correlation.linalg import matvec3
 
 #: Relative singular-value floor under which a cross-covariance is called rank deficient.
 RANK_RTOL = 1e3 * np.finfo(float).eps ** 0.5
@@ -45,9 +46,7 @@ class SimilarityFit:
 
     def apply(self, x: FloatArray) -> FloatArray:
         """Transform points ``x`` (P, K, 3): ``c M x + t``."""
-        return (
-            self.scale[:, None, None] * (x @ np.swapaxes(self.rotation, 1, 2)) + self.translation[:, None, :]
-        )
+        return self.scale[:, None, None] * matvec3(self.rotation[:, None], x) + self.translation[:, None, :]
 
 
 def _weighted_moments(
@@ -130,6 +129,7 @@ def yaw_similarity_batch(
     min_points: int = 2,
     max_yaw_rad: float | None = None,
     max_scale_deviation: float | None = None,
+    residual: bool = True,
 ) -> tuple[SimilarityFit, FloatArray]:
     """Similarity fit with the rotation constrained to the vertical axis; returns (fit, yaw rad).
 
@@ -141,6 +141,8 @@ def yaw_similarity_batch(
     ``sigma_y^2 - 2 c (a cos(yaw) + b sin(yaw)) + c^2 sigma_x^2``, so for any ``c > 0`` the best
     admissible yaw is the unconstrained one clipped to ``+-max_yaw_rad``, and the best scale
     given that yaw, ``(a cos + b sin) / sigma_xh^2``, clipped to ``1 +- max_scale_deviation``.
+
+    ``residual=False`` skips ``e^2`` (returned as NaN) for callers that judge the fit otherwise.
     """
     x = np.asarray(x, dtype=float)
     y = np.asarray(y, dtype=float)
@@ -150,7 +152,6 @@ def yaw_similarity_batch(
     a = np.einsum("pk,pk->p", wn, xc[..., 0] * yc[..., 0] + xc[..., 1] * yc[..., 1])
     b = np.einsum("pk,pk->p", wn, xc[..., 0] * yc[..., 1] - xc[..., 1] * yc[..., 0])
     var_xh = np.einsum("pk,pk->p", wn, xc[..., 0] ** 2 + xc[..., 1] ** 2)
-    var_y = (wn * (yc * yc).sum(-1)).sum(-1)
     yaw_hat = np.arctan2(b, a)
     yaw = yaw_hat if max_yaw_rad is None else np.clip(yaw_hat, -max_yaw_rad, max_yaw_rad)
     npts = (w > 0).sum(axis=1)
@@ -164,6 +165,9 @@ def yaw_similarity_batch(
     rot = yaw_matrix(yaw)
     t = my - c[:, None] * (rot @ mx[..., None])[..., 0]
     fit = SimilarityFit(rot, c, t, np.full(p, np.nan), valid)
+    if not residual:
+        return fit, yaw
+    var_y = (wn * (yc * yc).sum(-1)).sum(-1)
     resid = y - fit.apply(x)
     e2 = (wn * (resid * resid).sum(-1)).sum(-1)
     return SimilarityFit(rot, c, t, np.where(np.isfinite(e2), e2, var_y), valid), yaw
