@@ -24,21 +24,36 @@ def inv3(s: FloatArray) -> tuple[FloatArray, BoolArray]:
     g = s[..., 2, 0]
     h = s[..., 2, 1]
     i = s[..., 2, 2]
-    co = np.empty_like(s)
-    co[..., 0, 0] = e * i - f * h
-    co[..., 0, 1] = -(b * i - c * h)
-    co[..., 0, 2] = b * f - c * e
-    co[..., 1, 0] = -(d * i - f * g)
-    co[..., 1, 1] = a * i - c * g
-    co[..., 1, 2] = -(a * f - c * d)
-    co[..., 2, 0] = d * h - e * g
-    co[..., 2, 1] = -(a * h - b * g)
-    co[..., 2, 2] = a * e - b * d
-    det = a * co[..., 0, 0] + b * co[..., 1, 0] + c * co[..., 2, 0]
+    co = np.empty(s.shape)
+    tmp = np.empty(s.shape[:-2])
+
+    def cof(out: FloatArray, p: FloatArray, q: FloatArray, r: FloatArray, t: FloatArray, neg: bool) -> None:
+        # out = p q - r t (negated for the odd positions), with one scratch buffer
+        np.multiply(p, q, out=out)
+        np.multiply(r, t, out=tmp)
+        if neg:
+            np.subtract(tmp, out, out=out)
+        else:
+            out -= tmp
+
+    cof(co[..., 0, 0], e, i, f, h, False)
+    cof(co[..., 0, 1], b, i, c, h, True)
+    cof(co[..., 0, 2], b, f, c, e, False)
+    cof(co[..., 1, 0], d, i, f, g, True)
+    cof(co[..., 1, 1], a, i, c, g, False)
+    cof(co[..., 1, 2], a, f, c, d, True)
+    cof(co[..., 2, 0], d, h, e, g, False)
+    cof(co[..., 2, 1], a, h, b, g, True)
+    cof(co[..., 2, 2], a, e, b, d, False)
+    det = np.multiply(a, co[..., 0, 0], out=np.empty(s.shape[:-2]))
+    det += b * co[..., 1, 0]
+    det += c * co[..., 2, 0]
     scale = np.abs(a + e + i) / 3.0
     ok = np.isfinite(det) & (det > SINGULAR_RTOL * scale**3) & (scale > 0)
-    safe = np.where(ok, det, 1.0)
-    return np.where(ok[..., None, None], co / safe[..., None, None], 0.0), ok
+    det[~ok] = 1.0
+    co /= det[..., None, None]
+    co[~ok] = 0.0
+    return co, ok
 
 
 def matvec3(m: FloatArray, v: FloatArray) -> FloatArray:

@@ -64,6 +64,17 @@ def _keys(a: NDArray[np.str_], b: NDArray[np.str_]) -> NDArray[np.str_]:
     return np.char.add(np.char.add(a.astype(str), _SEP), b.astype(str))
 
 
+def _isin(x: NDArray[np.str_], y: NDArray[np.str_]) -> NDArray[np.bool_]:
+    """``np.isin(x, y)`` for string arrays by one sort of ``y`` and a binary search (``np.isin``
+    sorts both sides and their union; this is the book's most frequent operation)."""
+    x, y = np.asarray(x), np.asarray(y)
+    if x.shape[0] == 0 or y.shape[0] == 0:
+        return np.zeros(x.shape[0], dtype=bool)
+    ys = np.sort(y)
+    pos = np.minimum(np.searchsorted(ys, x), ys.shape[0] - 1)
+    return np.asarray(ys[pos] == x)
+
+
 def _popcount(x: NDArray[np.uint32]) -> NDArray[np.int64]:
     return np.bitwise_count(x).astype(np.int64)
 
@@ -127,7 +138,7 @@ class PairBook:
         scale = np.nan_to_num(np.asarray(scale, dtype=float), nan=1.0)
         book_keys = _keys(self.track_a, self.track_b)
         new_keys = _keys(chosen_a, chosen_b)
-        hit = np.isin(book_keys, new_keys)
+        hit = _isin(book_keys, new_keys)
         self.history = (self.history << np.uint32(1)) | hit.astype(np.uint32)
         self.hits = self.hits + hit
         self.misses = np.where(hit, 0, self.misses + 1)
@@ -141,7 +152,7 @@ class PairBook:
             self.cols["last_time_s"][hit] = time_s
             self.neighbors[hit] = neighbors[src]
         # Append the new pairs.
-        fresh = ~np.isin(new_keys, book_keys)
+        fresh = ~_isin(new_keys, book_keys)
         nf = int(fresh.sum())
         if nf:
             self.track_a = np.concatenate([self.track_a, chosen_a[fresh].astype(str)])
@@ -161,7 +172,7 @@ class PairBook:
             self.cols = {k: np.concatenate([v, add[k]]) for k, v in self.cols.items()}
         # Drop.
         score = self.score
-        gone = ~np.isin(self.track_a, present_a) | ~np.isin(self.track_b, present_b)
+        gone = ~_isin(self.track_a, present_a) | ~_isin(self.track_b, present_b)
         stale_tent = ~self.confirmed & (score <= 0)
         stale_conf = self.confirmed & (self.misses >= prm.drop_misses)
         self._keep(~(gone | stale_tent | stale_conf))
@@ -172,8 +183,8 @@ class PairBook:
         ready = (
             ~self.confirmed
             & (score * prm.window >= prm.confirm_hits - 1e-9)
-            & ~np.isin(self.track_a, busy_a)
-            & ~np.isin(self.track_b, busy_b)
+            & ~_isin(self.track_a, busy_a)
+            & ~_isin(self.track_b, busy_b)
         )
         idx = np.flatnonzero(ready)
         if idx.size:

@@ -36,17 +36,23 @@ def predict_states(
     """Vectorised CV prediction of ``n`` states by ``dt`` (n,) seconds; returns pos, vel, 6x6 cov."""
     dt = np.asarray(dt, dtype=float)
     pos = position + velocity * dt[:, None]
-    n = dt.shape[0]
-    f = np.broadcast_to(np.eye(6), (n, 6, 6)).copy()
-    f[:, 0, 3] = f[:, 1, 4] = f[:, 2, 5] = dt
-    cov = f @ covariance @ np.swapaxes(f, 1, 2)
+    # F P F^T by blocks (F = [[I, dt I], [0, I]]; a batched 6x6 product is far slower):
+    # [[A, B], [B', D]] -> [[A + dt B' + dt (B + dt D), B + dt D], [B' + dt D, D]].
+    p = np.asarray(covariance, dtype=float)
+    d3 = dt[:, None, None]
+    pv = p[:, :3, 3:] + d3 * p[:, 3:, 3:]
+    cov = np.empty(p.shape)
+    cov[:, :3, :3] = (p[:, :3, :3] + d3 * p[:, 3:, :3]) + d3 * pv
+    cov[:, :3, 3:] = pv
+    cov[:, 3:, :3] = p[:, 3:, :3] + d3 * p[:, 3:, 3:]
+    cov[:, 3:, 3:] = p[:, 3:, 3:]
     a = np.abs(dt)
-    q = np.zeros((n, 6, 6))
+    qpp, qpv, qvv = accel_psd * (a**3 / 3.0), accel_psd * (dt * a / 2.0), accel_psd * a
     for k in range(3):
-        q[:, k, k] = a**3 / 3.0
-        q[:, k, k + 3] = q[:, k + 3, k] = dt * a / 2.0
-        q[:, k + 3, k + 3] = a
-    cov = cov + accel_psd * q
+        cov[:, k, k] += qpp
+        cov[:, k, k + 3] += qpv
+        cov[:, k + 3, k] += qpv
+        cov[:, k + 3, k + 3] += qvv
     return pos, velocity.copy(), cov
 
 

@@ -55,9 +55,26 @@ def neighbourhoods(
     k = min(kmax + 1, n)
     bound = max(p.max_radius_m, p.radius_m)
     query = enu if rows is None else enu[rows]
-    dist, idx = cKDTree(enu).query(query, k=k, distance_upper_bound=bound)
-    dist = dist.reshape(len(query), k)[:, 1:]  # column 0 is the track itself (distance 0)
-    idx = idx.reshape(len(query), k)[:, 1:]
+    nq = query.shape[0]
+    tree = cKDTree(enu)
+    # Two searches giving the same neighbours as one k-nearest search within ``bound``: the
+    # first ``min_neighbours + 1`` within ``bound``; only where the last of these lies within
+    # ``radius_m`` can more be kept, and all of those (and the ones before) lie within
+    # ``radius_m``, so a second, cheap search with that bound completes them.
+    k1 = min(max(p.min_neighbours, 0) + 2, k)
+    dist, idx = tree.query(query, k=k1, distance_upper_bound=bound)
+    dist = dist.reshape(nq, k1)
+    idx = idx.reshape(nq, k1)
+    if k1 < k:
+        more = np.flatnonzero(dist[:, k1 - 1] <= p.radius_m)
+        dist = np.concatenate([dist, np.full((nq, k - k1), np.inf)], axis=1)
+        idx = np.concatenate([idx, np.full((nq, k - k1), n)], axis=1)
+        if more.size:
+            d2, i2 = tree.query(query[more], k=k, distance_upper_bound=p.radius_m)
+            dist[more] = d2.reshape(more.size, k)
+            idx[more] = i2.reshape(more.size, k)
+    dist = dist[:, 1:]  # column 0 is the track itself (distance 0)
+    idx = idx[:, 1:]
     rank = np.arange(dist.shape[1])[None, :]
     keep = np.isfinite(dist) & ((dist <= p.radius_m) | (rank < p.min_neighbours))
     found = np.where(keep, idx, -1).astype(np.intp)
