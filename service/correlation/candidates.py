@@ -35,5 +35,5 @@ def candidate_pairs(
     sdm = cKDTree(pos_a).sparse_distance_matrix(cKDTree(pos_b), gate_m, output_type="ndarray")
     ia = sdm["i"].astype(np.intp)
     ib = sdm["j"].astype(np.intp)
-    order = np.lexsort((ib, ia))
+    order = np.argsort(ia * pos_b.shape[0] + ib)  # (i, j) order; the keys are unique
     return ia[order], ib[order], sdm["v"][order].astype(float)

@@ -1,0 +1,119 @@
+"""The hot path's fast forms against plain ones: same neighbours, same decisions, same numbers."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.stats import chi2
+
+from service.correlation.linalg import congruence, inv3, mahalanobis2_h, matvec3
+from service.correlation.pairs import _isin
+from service.correlation.svd_topology import chi2_upper, svd_match
+from service.correlation.topology import TopologyParams, gather_points, neighbourhoods
+from service.evaluation.correlation_scenario import Biases, make_sites, single_match_batch
+
+
+def _clustered(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Sparse traffic plus a few dense clusters (so both neighbour searches are exercised)."""
+    pts = rng.uniform(0, 200_000, (n, 3)) * np.array([1, 1, 0.05])
+    centres = rng.uniform(0, 200_000, (4, 3)) * np.array([1, 1, 0.05])
+    cl = centres[rng.integers(0, 4, n // 3)] + rng.normal(0, 3_000, (n // 3, 3)) * np.array([1, 1, 0.1])
+    return np.concatenate([pts, cl])
+
+
+def test_neighbourhoods_match_brute_force_default_params_and_rows() -> None:
+    rng = np.random.default_rng(5)
+    pts = _clustered(rng, 240)
+    prm = TopologyParams()
+    full = neighbourhoods(pts, prm)
+    dense = 0
+    for i in range(len(pts)):
+        d = np.linalg.norm(pts - pts[i], axis=1)
+        d[i] = np.inf
+        order = np.argsort(d)[: prm.max_neighbours]
+        want = [
+            j
+            for r, j in enumerate(order)
+            if d[j] <= prm.radius_m or (r < prm.min_neighbours and d[j] <= prm.max_radius_m)
+        ]
+        assert list(full[i][full[i] >= 0]) == want
+        dense += len(want) > prm.min_neighbours
+    assert dense > 10  # the second (radius) search ran
+    rows = np.unique(rng.integers(0, len(pts), 60))
+    part = neighbourhoods(pts, prm, rows=rows)
+    assert part.shape == full.shape
+    np.testing.assert_array_equal(part[rows], full[rows])
+    others = np.setdiff1d(np.arange(len(pts)), rows)
+    assert np.all(part[others] == -1)
+
+
+def test_gather_points_trim_drops_only_padding() -> None:
+    rng = np.random.default_rng(6)
+    pts = _clustered(rng, 90)
+    cov = np.broadcast_to(np.eye(3) * 4e4, (len(pts), 3, 3)).copy()
+    nbr = neighbourhoods(pts, TopologyParams())
+    ref = rng.integers(0, len(pts), 40)
+    p0, c0, m0 = gather_points(pts, cov, nbr, ref)
+    p1, c1, m1 = gather_points(pts, cov, nbr, ref, trim=True)
+    k = p1.shape[1]
+    assert k <= p0.shape[1] and not m0[:, k:].any()
+    np.testing.assert_array_equal(p1, p0[:, :k])
+    np.testing.assert_array_equal(c1, c0[:, :k])
+    np.testing.assert_array_equal(m1, m0[:, :k])
+    # padding: zero point, identity covariance
+    assert np.all(p0[~m0] == 0.0) and np.all(c0[~m0] == np.eye(3))
+
+
+def test_small_linear_algebra_matches_numpy() -> None:
+    rng = np.random.default_rng(7)
+    a = rng.normal(size=(40, 5, 3, 3))
+    s = a @ np.swapaxes(a, -1, -2) + 0.1 * np.eye(3)
+    s[0, 0] = np.diag([1.0, 1.0, 0.0])  # singular
+    s[1, 1] = np.nan
+    inv, ok = inv3(s)
+    assert not ok[0, 0] and not ok[1, 1] and ok.sum() == ok.size - 2
+    np.testing.assert_allclose(inv[ok], np.linalg.inv(s[ok]), rtol=1e-9, atol=1e-12)
+    assert np.all(inv[~ok] == 0.0)
+    inv1, ok1 = inv3(s[2, 3])  # a single matrix
+    assert ok1 and np.allclose(inv1, np.linalg.inv(s[2, 3]))
+    v = rng.normal(size=(40, 5, 3))
+    np.testing.assert_allclose(matvec3(s[2:], v[2:]), (s[2:] @ v[2:, ..., None])[..., 0], rtol=1e-12)
+    r = rng.normal(size=(3, 3))
+    np.testing.assert_allclose(congruence(r, s[2:]), r @ s[2:] @ r.T, rtol=1e-9, atol=1e-12)
+    d = rng.normal(size=(40, 5, 2))
+    want = np.array(
+        [
+            [d[p, k] @ np.linalg.inv(s[p, k, :2, :2]) @ d[p, k] if ok[p, k] else np.inf for k in range(5)]
+            for p in range(40)
+        ]
+    )
+    got = mahalanobis2_h(d[..., 0], d[..., 1], s[..., 0, 0], s[..., 0, 1], s[..., 1, 1])
+    fine = np.isfinite(want)
+    np.testing.assert_allclose(got[fine], want[fine], rtol=1e-9)
+
+
+def test_string_isin_and_chi2_quantile() -> None:
+    rng = np.random.default_rng(8)
+    x = np.array([f"T{k}" for k in rng.integers(0, 300, 200)])
+    y = np.array([f"T{k}" for k in rng.integers(0, 300, 150)])
+    np.testing.assert_array_equal(_isin(x, y), np.isin(x, y))
+    assert _isin(x, y[:0]).shape == x.shape and not _isin(x, y[:0]).any()
+    assert _isin(x[:0], y).shape == (0,)
+    dof = np.linspace(0.5, 30.0, 60)
+    for alpha in (0.005, 1e-3, 1e-4):
+        np.testing.assert_array_equal(chi2_upper(alpha, dof), chi2.ppf(1.0 - alpha, dof))
+        assert chi2_upper(alpha, 3) == chi2.ppf(1.0 - alpha, 3)
+
+
+def test_svd_match_pre_rotated_a_is_the_same_decision() -> None:
+    """decide() turns A into B's orientation per track and passes M0 = I: same results."""
+    rng = np.random.default_rng(9)
+    a, b = make_sites()
+    ba = Biases.random_sign(rng, 200, 100.0, 0.1)
+    bb = Biases.random_sign(rng, 200, 100.0, 0.1)
+    m = single_match_batch(rng, a, b, 6, 200, ba, bb, pd_neighbour=0.8)[0]
+    r0 = svd_match(m.pa, m.ca, m.ma, m.pb, m.cb, m.mb, m.m0)
+    r1 = svd_match(m.pa @ m.m0.T, congruence(m.m0, m.ca), m.ma, m.pb, m.cb, m.mb, np.eye(3))
+    np.testing.assert_array_equal(r0.reason, r1.reason)
+    np.testing.assert_array_equal(r0.matched, r1.matched)
+    for name in ("statistic", "cost", "chi2_shape", "chi2_ref", "rotation_weight", "scale", "yaw_rad"):
+        np.testing.assert_allclose(getattr(r1, name), getattr(r0, name), rtol=1e-9, atol=1e-9)
