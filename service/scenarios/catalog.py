@@ -9,8 +9,8 @@ from service.scenarios.simulator import AisSpec, RadarSpec, Scenario
 # Two radars ~200 km apart (SVD paper, Section 3: random errors 200 m / 0.2 deg, systematic
 # errors 100 m / 0.1 deg); targets over the common area between them.
 _LAT = 31.20
-_A = RadarSpec("A", _LAT, 118.50, range_bias_m=100.0, azimuth_bias_deg=0.1, elevation_bias_deg=0.05)
-_B = RadarSpec("B", _LAT, 120.60, range_bias_m=-100.0, azimuth_bias_deg=-0.1, elevation_bias_deg=-0.05)
+_A = RadarSpec("A", _LAT, 118.50, range_bias_m=100.0, azimuth_bias_deg=0.1, elevation_bias_deg=0.1)
+_B = RadarSpec("B", _LAT, 120.60, range_bias_m=-100.0, azimuth_bias_deg=-0.1, elevation_bias_deg=-0.1)
 _C = RadarSpec("C", 32.80, 119.55, range_bias_m=150.0, azimuth_bias_deg=0.15, scan_period_s=5.0, sectors=10)
 
 SCENARIOS: dict[str, Scenario] = {
