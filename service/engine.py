@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from pydantic import TypeAdapter, ValidationError
 
+from service.correlation import PairCorrelator
 from service.geo import Site
 from service.keys import Keys
 from service.messages import (
@@ -226,6 +227,10 @@ class Engine:
         except Exception as exc:  # a bug must cost one message, never the service
             internal = RejectionError("internal", f"{type(exc).__name__}: {exc}", kind[1] if kind else None)
             return [self._reject(key, internal, receive_time_s)]
+
+    def correlators(self) -> list[PairCorrelator]:
+        """The live pair correlators, one per correlated source pair (evaluation, diagnostics)."""
+        return list(self._correlation.correlators.values())
 
     def flush(self) -> list[Outgoing]:
         """Release every held batch regardless of the watermark (end of a replay or shutdown)."""
