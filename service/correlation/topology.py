@@ -117,7 +117,8 @@ def gather_points(
     """
     nb = nbr[ref]
     if trim and nb.shape[1]:
-        nb = nb[:, : int((nb >= 0).sum(axis=1).max(initial=0))]
+        # at least one (padding) column: the batched fit indexes neighbour 0 of every side
+        nb = nb[:, : max(1, int((nb >= 0).sum(axis=1).max(initial=0)))]
     idx = np.concatenate([ref[:, None], nb], axis=1)
     mask = idx >= 0
     n = enu.shape[0]
