@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.correlation.base import BoolArray, FloatArray
-from service.correlation.linalg import inv3, matvec3
+from service.correlation.linalg import inv3, matvec3, quad3_large
 
 #: Parameters: a, b, t_e, t_n, t_u.
 N_PARAMS = 5
@@ -141,7 +141,7 @@ def similarity_gls_batch(
     cov[:, 2:, 2:] = htt_inv + np.swapaxes(k_gain, 1, 2) @ cov_pp @ k_gain
     cov = np.where(valid[:, None, None], cov, 0.0)
     r = y - _design_apply(x, theta)
-    q_res = np.einsum("pk,pki->p", w, r * matvec3(s_inv, r))
+    q_res = np.einsum("pk,pk->p", w, quad3_large(r, s_inv))
     dth = theta - theta0
     q_pri = (lam * dth * dth).sum(-1)
     df_model = (cov * h_data).sum((1, 2))  # tr(H^-1 H_data), both symmetric

@@ -8,6 +8,8 @@ from service.correlation.base import BoolArray, FloatArray
 
 #: A covariance whose determinant is below this fraction of (trace/d)^d is called singular.
 SINGULAR_RTOL = 1e-10
+#: Stacks of fewer 3x3 matrices than this take the fewest-calls path of :func:`inv3`.
+_SMALL_STACK = 256
 
 
 def inv3(s: FloatArray) -> tuple[FloatArray, BoolArray]:
@@ -25,6 +27,23 @@ def inv3(s: FloatArray) -> tuple[FloatArray, BoolArray]:
     h = s[..., 2, 1]
     i = s[..., 2, 2]
     co = np.empty(s.shape)
+    if s.size < _SMALL_STACK * 9:
+        # Few matrices: fewest numpy calls (the same arithmetic as below, so the same bits).
+        co[..., 0, 0] = e * i - f * h
+        co[..., 0, 1] = -(b * i - c * h)
+        co[..., 0, 2] = b * f - c * e
+        co[..., 1, 0] = -(d * i - f * g)
+        co[..., 1, 1] = a * i - c * g
+        co[..., 1, 2] = -(a * f - c * d)
+        co[..., 2, 0] = d * h - e * g
+        co[..., 2, 1] = -(a * h - b * g)
+        co[..., 2, 2] = a * e - b * d
+        det0 = a * co[..., 0, 0] + b * co[..., 1, 0] + c * co[..., 2, 0]
+        scale0 = np.abs(a + e + i) / 3.0
+        ok0 = np.isfinite(det0) & (det0 > SINGULAR_RTOL * scale0**3) & (scale0 > 0)
+        safe = np.where(ok0, det0, 1.0)
+        return np.where(ok0[..., None, None], co / safe[..., None, None], 0.0), ok0
+    # Many matrices: in place, one scratch buffer (fewer passes over memory).
     tmp = np.empty(s.shape[:-2])
 
     def cof(out: FloatArray, p: FloatArray, q: FloatArray, r: FloatArray, t: FloatArray, neg: bool) -> None:
@@ -59,7 +78,10 @@ def inv3(s: FloatArray) -> tuple[FloatArray, BoolArray]:
 def matvec3(m: FloatArray, v: FloatArray) -> FloatArray:
     """``M v`` for stacks ``m (..., 3, 3)``, ``v (..., 3)`` written out (a batched ``@`` on 3x3
     matrices pays a per-matrix overhead; this is three fused rows)."""
-    out = np.empty(np.broadcast_shapes(m.shape[:-1], v.shape))
+    shape = np.broadcast_shapes(m.shape[:-1], v.shape)
+    if np.prod(shape) < _SMALL_STACK * 3:
+        return np.asarray((m @ v[..., None])[..., 0])
+    out = np.empty(shape)
     for i in range(3):
         np.multiply(m[..., i, 0], v[..., 0], out=out[..., i])
         out[..., i] += m[..., i, 1] * v[..., 1]
@@ -68,7 +90,13 @@ def matvec3(m: FloatArray, v: FloatArray) -> FloatArray:
 
 
 def quad3(r: FloatArray, s_inv: FloatArray) -> FloatArray:
-    """``r^T S^-1 r`` for stacks ``r (..., 3)``, ``s_inv (..., 3, 3)``."""
+    """``r^T S^-1 r`` for stacks ``r (..., 3)``, ``s_inv (..., 3, 3)`` (one ``@``: cheapest for small
+    stacks, e.g. inside the basic method's grid loop; large stacks: :func:`quad3_large`)."""
+    return (r * (s_inv @ r[..., None])[..., 0]).sum(-1)
+
+
+def quad3_large(r: FloatArray, s_inv: FloatArray) -> FloatArray:
+    """:func:`quad3` through :func:`matvec3`: fewer passes over a large stack, more calls."""
     return (r * matvec3(s_inv, r)).sum(-1)
 
 

@@ -68,7 +68,7 @@ from service.correlation.base import (
 )
 from service.correlation.candidates import CandidateParams, candidate_pairs
 from service.correlation.gls import similarity_gls_batch
-from service.correlation.linalg import congruence, inv3, mahalanobis2_h, quad3, yaw_congruence
+from service.correlation.linalg import congruence, inv3, mahalanobis2_h, quad3, quad3_large, yaw_congruence
 from service.correlation.nearest import chi2_pairs
 from service.correlation.topology import TopologyParams, gather_points, neighbourhoods
 from service.correlation.umeyama import (
@@ -345,7 +345,7 @@ def svd_match(
 
     def element_chi2(f: SimilarityFit, rows: NDArray[np.intp] | slice) -> FloatArray:
         r = y_safe[rows] - f.apply(za[rows])
-        return np.where(w[rows] > 0, quad3(np.where(np.isfinite(r), r, 0.0), s_inv[rows]), 0.0)
+        return np.where(w[rows] > 0, quad3_large(np.where(np.isfinite(r), r, 0.0), s_inv[rows]), 0.0)
 
     q_k = element_chi2(fit, slice(None))
     for _ in range(2):  # trim and refit only the candidates whose elements changed

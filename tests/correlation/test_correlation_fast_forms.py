@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.stats import chi2
 
-from service.correlation.linalg import congruence, inv3, mahalanobis2_h, matvec3
+from service.correlation.linalg import congruence, inv3, mahalanobis2_h, matvec3, quad3, quad3_large
 from service.correlation.pairs import _isin
 from service.correlation.svd_topology import chi2_upper, svd_match
 from service.correlation.topology import TopologyParams, gather_points, neighbourhoods
@@ -63,30 +64,32 @@ def test_gather_points_trim_drops_only_padding() -> None:
     assert np.all(p0[~m0] == 0.0) and np.all(c0[~m0] == np.eye(3))
 
 
-def test_small_linear_algebra_matches_numpy() -> None:
+@pytest.mark.parametrize("stack", [(40, 5), (3,), (90, 8)])  # small (fewest calls) and large (in place) paths
+def test_small_linear_algebra_matches_numpy(stack: tuple[int, ...]) -> None:
     rng = np.random.default_rng(7)
-    a = rng.normal(size=(40, 5, 3, 3))
+    a = rng.normal(size=(*stack, 3, 3))
     s = a @ np.swapaxes(a, -1, -2) + 0.1 * np.eye(3)
-    s[0, 0] = np.diag([1.0, 1.0, 0.0])  # singular
-    s[1, 1] = np.nan
+    flat = s.reshape(-1, 3, 3)
+    flat[0] = np.diag([1.0, 1.0, 0.0])  # singular
+    flat[1] = np.nan
     inv, ok = inv3(s)
-    assert not ok[0, 0] and not ok[1, 1] and ok.sum() == ok.size - 2
+    assert not ok.flat[0] and not ok.flat[1] and ok.sum() == ok.size - 2
     np.testing.assert_allclose(inv[ok], np.linalg.inv(s[ok]), rtol=1e-9, atol=1e-12)
     assert np.all(inv[~ok] == 0.0)
-    inv1, ok1 = inv3(s[2, 3])  # a single matrix
-    assert ok1 and np.allclose(inv1, np.linalg.inv(s[2, 3]))
-    v = rng.normal(size=(40, 5, 3))
-    np.testing.assert_allclose(matvec3(s[2:], v[2:]), (s[2:] @ v[2:, ..., None])[..., 0], rtol=1e-12)
+    inv1, ok1 = inv3(flat[2])  # a single matrix
+    assert ok1 and np.allclose(inv1, np.linalg.inv(flat[2]))
+    v = rng.normal(size=(*stack, 3))
+    np.testing.assert_allclose(matvec3(s, v), (s @ v[..., None])[..., 0], rtol=1e-12)
+    good = s[ok]
+    np.testing.assert_allclose(quad3_large(v[ok], good), quad3(v[ok], good), rtol=1e-12)
     r = rng.normal(size=(3, 3))
-    np.testing.assert_allclose(congruence(r, s[2:]), r @ s[2:] @ r.T, rtol=1e-9, atol=1e-12)
-    d = rng.normal(size=(40, 5, 2))
+    np.testing.assert_allclose(congruence(r, good), r @ good @ r.T, rtol=1e-9, atol=1e-12)
+    d = rng.normal(size=(*stack, 2)).reshape(-1, 2)
+    sf = s.reshape(-1, 3, 3)
     want = np.array(
-        [
-            [d[p, k] @ np.linalg.inv(s[p, k, :2, :2]) @ d[p, k] if ok[p, k] else np.inf for k in range(5)]
-            for p in range(40)
-        ]
+        [d[k] @ np.linalg.inv(sf[k, :2, :2]) @ d[k] if ok.flat[k] else np.inf for k in range(len(sf))]
     )
-    got = mahalanobis2_h(d[..., 0], d[..., 1], s[..., 0, 0], s[..., 0, 1], s[..., 1, 1])
+    got = mahalanobis2_h(d[:, 0], d[:, 1], sf[:, 0, 0], sf[:, 0, 1], sf[:, 1, 1])
     fine = np.isfinite(want)
     np.testing.assert_allclose(got[fine], want[fine], rtol=1e-9)
 
