@@ -50,6 +50,12 @@ METHOD_ROWS: dict[str, str] = {
 }
 
 #: Parameters used for the Table 1 set-up (plot errors of 100-500 m in an 8 x 6 km area).
+#: ``max_lines`` = 60: with clutter as dense as the true plots, a clutter band through the
+#: area holds about as many plots as a target with 12-13 plots, and the strong targets each
+#: give several peaks at neighbouring angles; with 25 lines the line of the weaker target of
+#: the crossing pair was often not among them (it then had no candidate set, whatever Steps
+#: 1-8 did), which was most of the misses.  Bands may share plots and Step 8 selects over all
+#: of them, so more lines cost time (about 2x) but add few false tracks.
 TABLE1_HOUGH = HoughParams(
     theta_bins=180,
     rho_step_m=400.0,
@@ -60,7 +66,7 @@ TABLE1_HOUGH = HoughParams(
     member_sigma=3.0,
     member_band_m=500.0,
     min_plots=6,
-    max_lines=25,
+    max_lines=60,
 )
 TABLE1_CLUSTER = ClusterParams(
     delta_v_mps=30.0,
