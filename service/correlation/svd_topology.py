@@ -469,6 +469,20 @@ def svd_match(
     )
 
 
+def _join_results(parts: list[tuple[NDArray[np.intp], SvdMatchResult]], n: int) -> SvdMatchResult:
+    """One :class:`SvdMatchResult` of ``n`` candidates from results of index groups."""
+    if len(parts) == 1 and np.array_equal(parts[0][0], np.arange(n)):
+        return parts[0][1]
+    cols = {}
+    for name in SvdMatchResult.__dataclass_fields__:
+        first = getattr(parts[0][1], name)
+        out = np.empty(n, dtype=first.dtype)
+        for idx, r in parts:
+            out[idx] = getattr(r, name)
+        cols[name] = out
+    return SvdMatchResult(**cols)
+
+
 def _velocity_compatible(
     a: TrackSnapshot, b: TrackSnapshot, ia: np.ndarray, ib: np.ndarray, m0: FloatArray, prm: SvdTopologyParams
 ) -> BoolArray:
@@ -537,15 +551,24 @@ class SvdTopologyCorrelator(Correlator):
         ra_sub, rb_sub = ia[sub], ib[sub]
         nbr_a = neighbourhoods(a.enu, prm.topology, rows=np.unique(ra_sub))
         nbr_b = neighbourhoods(b.enu, prm.topology, rows=np.unique(rb_sub))
-        pa, ca, ma = gather_points(a.enu @ m0.T, congruence(m0, a.enu_cov()), nbr_a, ra_sub, trim=True)
-        pb, cb, mb = gather_points(b.enu, b.enu_cov(), nbr_b, rb_sub, trim=True)
-        vel = (
-            a.enu_velocity[ra_sub] @ m0.T,
-            congruence(m0, a.enu_vel_cov()[ra_sub]),
-            b.enu_velocity[rb_sub],
-            b.enu_vel_cov()[rb_sub],
-        )
-        res = svd_match(pa, ca, ma, pb, cb, mb, np.eye(3), prm, velocity=vel)
+        enu_a, cov_a, cov_b = a.enu @ m0.T, congruence(m0, a.enu_cov()), b.enu_cov()
+        vel_a, vcov_a = a.enu_velocity @ m0.T, congruence(m0, a.enu_vel_cov())
+        vcov_b = b.enu_vel_cov()
+        # Candidates are matched in (at most two) groups by sequence length: most references
+        # have ``min_neighbours`` neighbours, a few more, and the per-candidate arrays of a
+        # group are only as wide as its longest sequence.  Per-candidate results do not depend
+        # on the grouping.
+        width = np.maximum((nbr_a[ra_sub] >= 0).sum(axis=1), (nbr_b[rb_sub] >= 0).sum(axis=1))
+        common = int(np.bincount(width).argmax()) if len(width) else 0
+        groups = [g for g in (np.flatnonzero(width <= common), np.flatnonzero(width > common)) if g.size]
+        parts = []
+        for g in groups or [np.arange(len(sub))]:
+            ga, gb = ra_sub[g], rb_sub[g]
+            pa, ca, ma = gather_points(enu_a, cov_a, nbr_a, ga, trim=True)
+            pb, cb, mb = gather_points(b.enu, cov_b, nbr_b, gb, trim=True)
+            vel = (vel_a[ga], vcov_a[ga], b.enu_velocity[gb], vcov_b[gb])
+            parts.append((g, svd_match(pa, ca, ma, pb, cb, mb, np.eye(3), prm, velocity=vel)))
+        res = _join_results(parts, len(sub))
 
         def full(x: np.ndarray, fill: float) -> np.ndarray:
             out = np.full(n, fill, dtype=x.dtype)

@@ -120,3 +120,33 @@ def test_svd_match_pre_rotated_a_is_the_same_decision() -> None:
     np.testing.assert_array_equal(r0.matched, r1.matched)
     for name in ("statistic", "cost", "chi2_shape", "chi2_ref", "rotation_weight", "scale", "yaw_rad"):
         np.testing.assert_allclose(getattr(r1, name), getattr(r0, name), rtol=1e-9, atol=1e-9)
+
+
+def test_svd_match_per_candidate_independent_of_grouping_and_width() -> None:
+    """decide() matches candidates in groups of similar sequence length: same results."""
+    rng = np.random.default_rng(10)
+    pts = _clustered(rng, 150)
+    pts_b = pts + rng.normal(0, 150.0, pts.shape)
+    cov = np.broadcast_to(np.diag([4e4, 4e4, 9e4]), (len(pts), 3, 3)).copy()
+    prm = TopologyParams()
+    nbr_a, nbr_b = neighbourhoods(pts, prm), neighbourhoods(pts_b, prm)
+    ref = np.arange(len(pts))
+    width = np.maximum((nbr_a >= 0).sum(1), (nbr_b >= 0).sum(1))
+    assert len(np.unique(width)) > 1
+
+    def run(rows: np.ndarray):  # type: ignore[no-untyped-def]
+        pa, ca, ma = gather_points(pts, cov, nbr_a, ref[rows], trim=True)
+        pb, cb, mb = gather_points(pts_b, cov, nbr_b, ref[rows], trim=True)
+        return svd_match(pa, ca, ma, pb, cb, mb, np.eye(3))
+
+    whole = run(ref)
+    narrow = np.flatnonzero(width <= np.median(width))
+    wide = np.flatnonzero(width > np.median(width))
+    assert narrow.size and wide.size
+    for rows in (narrow, wide):
+        part = run(rows)
+        np.testing.assert_array_equal(part.reason, whole.reason[rows])
+        np.testing.assert_array_equal(part.matched, whole.matched[rows])
+        for name in ("statistic", "cost", "chi2_shape", "chi2_ref", "scale", "yaw_rad"):
+            np.testing.assert_allclose(getattr(part, name), getattr(whole, name)[rows], rtol=1e-9, atol=1e-9)
+    assert whole.accepted.mean() > 0.5
