@@ -39,6 +39,7 @@ class PlotStats:
     AtA: FloatArray  # (n, 16) H^T W H flattened
     Atz: FloatArray  # (n, 4)   H^T W z
     z_w_z: FloatArray  # (n,)
+    C: FloatArray  # (n, 2, 2) covariances (the prediction gate adds them to H P H^T)
 
 
 def plot_stats(t: FloatArray, xy: FloatArray, cov: FloatArray, t_ref: float) -> PlotStats:
@@ -53,7 +54,7 @@ def plot_stats(t: FloatArray, xy: FloatArray, cov: FloatArray, t_ref: float) -> 
     AtA = (HtW @ H).reshape(n, 16)
     Atz = np.einsum("nij,nj->ni", HtW, xy)
     z_w_z = np.einsum("ni,nij,nj->n", xy, W, xy)
-    return PlotStats(tau, np.asarray(xy, dtype=float), W, AtA, Atz, z_w_z)
+    return PlotStats(tau, np.asarray(xy, dtype=float), W, AtA, Atz, z_w_z, np.asarray(cov, dtype=float))
 
 
 @dataclass(frozen=True)
@@ -104,7 +105,7 @@ def residual_d2(stats: PlotStats, fits: SetFits, predicted: bool) -> FloatArray:
     if not predicted:
         return _quad(r0, r1, W[None, :, 0, 0], W[None, :, 0, 1], W[None, :, 1, 1])
     # S = C_p + H P H^T with H = [I, tau I]: P_xx + tau (P_xv + P_vx) + tau^2 P_vv.
-    C = np.linalg.inv(W)
+    C = stats.C
     P = fits.cov[:, None]
 
     def s(i: int, j: int) -> FloatArray:

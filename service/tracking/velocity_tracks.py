@@ -80,23 +80,28 @@ def converge(stats: PlotStats, sets: BoolMatrix, allowed: np.ndarray, p: Cluster
     drops its own plots that do not; sets that converge to the same plots are then one set
     (:func:`drop_redundant`).  This is the paper's merge of overlapping sets restricted to
     velocity-consistent plots: a union is only ever formed of plots that fit one CV track.
-    Degenerate fits keep their set unchanged (and fail the consistency test later).
+    Degenerate fits keep their set unchanged (and fail the consistency test later).  Only the
+    sets updated in the previous round are refitted (an unchanged set would give the same
+    update again).
     """
+    active = np.arange(sets.shape[0])
     for _ in range(p.grow_rounds):
-        if sets.shape[0] == 0:
+        if active.shape[0] == 0:
             break
-        fits = fit_sets(stats, sets, p.min_span_s)
+        cur = sets[active]
+        fits = fit_sets(stats, cur, p.min_span_s)
         d2 = residual_d2(stats, fits, predicted=True)
-        new = np.where(fits.valid[:, None], allowed[None, :] & (d2 <= p.plot_gate_chi2), sets)
-        changed = (new != sets).any(axis=1)
+        new = np.where(fits.valid[:, None], allowed[None, :] & (d2 <= p.plot_gate_chi2), cur)
+        changed = (new != cur).any(axis=1)
         if not changed.any():
             break
         ok, _ = _consistent(stats, new[changed], p)
-        rows = np.flatnonzero(changed)[ok]  # an update that breaks consistency is not taken
-        if rows.shape[0] == 0:
+        upd = np.flatnonzero(changed)[ok]  # an update that breaks consistency is not taken
+        if upd.shape[0] == 0:
             break
         sets = sets.copy()
-        sets[rows] = new[rows]
+        sets[active[upd]] = new[upd]
+        active = active[upd]
     return sets
 
 
@@ -105,27 +110,32 @@ def select_tracks(stats: PlotStats, sets: BoolMatrix, p: ClusterParams) -> list[
 
     The best consistent candidate is taken; its plots leave every other candidate, which are
     then re-tested; repeat.  With ``extend``, a taken track first absorbs the untaken plots in
-    its prediction gate (:func:`converge`).  One pass per taken or discarded candidate.
+    its prediction gate (:func:`converge`).  One pass per taken or discarded candidate; only
+    the candidates that lost plots to a taken track are re-tested (the others are unchanged).
     """
     n = stats.tau.shape[0]
     taken = np.zeros(n, dtype=bool)
     out: list[np.ndarray] = []
     sets = sets.copy()
+    ok, cost = _consistent(stats, sets, p)
+    ok &= sets.sum(axis=1) >= min(p.min_plots, 3)
     for _ in range(sets.shape[0]):  # one taken or discarded candidate per pass
-        sets &= ~taken
-        ok, cost = _consistent(stats, sets, p)
-        ok &= sets.sum(axis=1) >= min(p.min_plots, 3)
         if not ok.any():
             break
         best = int(np.flatnonzero(ok)[np.argmin(cost[ok])])
         member = sets[best].copy()
-        sets = np.delete(sets, best, axis=0)
+        sets, ok, cost = np.delete(sets, best, axis=0), np.delete(ok, best), np.delete(cost, best)
         if p.extend:
             member = converge(stats, member[None, :], ~taken, p)[0]
         final_ok, final_cost = _consistent(stats, member[None, :], p)
         if member.sum() >= p.min_plots and final_ok[0] and -final_cost[0] >= p.min_track_score:
             out.append(np.flatnonzero(member))
             taken |= member
+            hit = (sets & member[None, :]).any(axis=1)  # these lose plots: re-test them
+            if hit.any():
+                sets[hit] &= ~taken
+                ok[hit], cost[hit] = _consistent(stats, sets[hit], p)
+                ok[hit] &= sets[hit].sum(axis=1) >= min(p.min_plots, 3)
     return out
 
 
