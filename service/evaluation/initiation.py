@@ -55,7 +55,7 @@ METHOD_ROWS: dict[str, str] = {
 #: give several peaks at neighbouring angles; with 25 lines the line of the weaker target of
 #: the crossing pair was often not among them (it then had no candidate set, whatever Steps
 #: 1-8 did), which was most of the misses.  Bands may share plots and Step 8 selects over all
-#: of them, so more lines cost time (about 2x) but add few false tracks.
+#: of them, so more lines cost time but add few false tracks.
 TABLE1_HOUGH = HoughParams(
     theta_bins=180,
     rho_step_m=400.0,
@@ -301,6 +301,20 @@ def _markdown(
             f"{r.tracks_per_run:.2f} | {r.ms_per_run:.0f} |"
         )
     lines += [
+        "",
+        "Hough + velocity clustering runs Steps 1-8 on the bands of the 60 strongest Hough peaks "
+        "(``TABLE1_HOUGH.max_lines``).  With 25 peaks it reached 97.0 % / 4.2 %: with clutter as "
+        "dense as the true plots a clutter band holds about as many plots as a target with 12-13 "
+        "plots, the strong targets each give several peaks at neighbouring angles, and the line "
+        "of the weaker target of the crossing pair was then often not among the 25, so it had no "
+        "candidate set at all.  The misses left (seed 0: 10 of 1000 targets) are mostly the "
+        "crossing pair (8): targets 4 and 5 meet at one point at t = 6.7 s, the plots within "
+        "about a second of it fit both, the track taken first keeps them and its partner is left "
+        "split or short of ``min_plots``; the others are targets with fewer plots than "
+        "``min_plots`` (8) or barely more (5 and 9 plots).  Giving such candidates a second "
+        "chance (sharing the crossing plots, or provisional shorter tracks settled by the final "
+        "reassignment) recovered them but started clutter tracks (false-track ratio 11-27 % on "
+        "50-run samples), so it is not used.",
         "",
         f"![Table 1 set-up, one realisation]({fig1})",
         "",
