@@ -7,8 +7,9 @@ import functools
 import numpy as np
 
 from service.evaluation.initiation import Table1Row
+from service.tracking import velocity_tracks as vt
 from service.tracking.clustering import velocity_cluster_published, velocity_cluster_reference
-from service.tracking.cvfit import fit_set_reference, fit_sets, plot_stats, residual_d2
+from service.tracking.cvfit import PlotStats, fit_set_reference, fit_sets, plot_stats, residual_d2
 from service.tracking.groups import Groups
 from service.tracking.hough import classic_hough, pg_hough
 from service.tracking.initiators import hough_velocity, local_clusters
@@ -228,3 +229,61 @@ def test_local_clusters_split_far_plots() -> None:
     )
     clusters = local_clusters(_meas3(xyz, t, 100.0), 700.0, 3)
     assert sorted(sorted(c.tolist()) for c in clusters) == [[0, 1, 2], [3, 4, 5]]
+
+
+def _select_reference(stats: PlotStats, sets: np.ndarray, p: ClusterParams) -> list[np.ndarray]:
+    """Plain form of :func:`select_tracks`."""
+    taken = np.zeros(stats.tau.shape[0], dtype=bool)
+    out = []
+    sets = sets.copy()
+    for _ in range(sets.shape[0]):  # re-test every candidate in every pass
+        sets &= ~taken
+        ok, cost = vt._consistent(stats, sets, p)
+        ok &= sets.sum(axis=1) >= min(p.min_plots, 3)
+        if not ok.any():
+            break
+        best = int(np.flatnonzero(ok)[np.argmin(cost[ok])])
+        member = sets[best].copy()
+        sets = np.delete(sets, best, axis=0)
+        for _ in range(p.grow_rounds):  # converge one set: refit and re-gate every round
+            fits = fit_sets(stats, member[None, :], p.min_span_s)
+            d2 = residual_d2(stats, fits, predicted=True)[0]
+            new = ~taken & (d2 <= p.plot_gate_chi2) if fits.valid[0] else member
+            if (new == member).all() or not vt._consistent(stats, new[None, :], p)[0][0]:
+                break
+            member = new
+        ok1, cost1 = vt._consistent(stats, member[None, :], p)
+        if member.sum() >= p.min_plots and ok1[0] and -cost1[0] >= p.min_track_score:
+            out.append(np.flatnonzero(member))
+            taken |= member
+    return out
+
+
+def test_select_tracks_matches_plain_reference() -> None:
+    """Step 8 (re-testing only the candidates that lost plots) against the plain form that
+    re-tests every candidate in every pass, on a Table 1 realisation."""
+    from service.evaluation.initiation import TABLE1_CLUSTER, TABLE1_HOUGH
+    from service.evaluation.initiation_bistatic import BistaticScenario, simulate_bistatic
+    from service.tracking.hough import pg_hough_bands
+
+    p = TABLE1_CLUSTER
+    pl = simulate_bistatic(BistaticScenario(), np.random.default_rng([0, 7]))
+    bands = pg_hough_bands(pl.xy, pl.cov, TABLE1_HOUGH)[:12]
+    parts = [np.zeros((0, pl.time_s.shape[0]), dtype=bool)]
+    for band, angle in bands:
+        sub = vt.candidate_tracks(pl.time_s[band], pl.xy[band], pl.cov[band], p, angle)
+        full = np.zeros((sub.shape[0], pl.time_s.shape[0]), dtype=bool)
+        full[:, band] = sub
+        parts.append(full)
+    sets = vt.drop_redundant(np.concatenate(parts))
+    stats = plot_stats(pl.time_s, pl.xy - pl.xy.mean(axis=0), pl.cov, float(pl.time_s.min()))
+    got = vt.select_tracks(stats, sets, p)
+    want = _select_reference(stats, sets, p)
+    assert len(got) >= 3
+    assert [g.tolist() for g in got] == [w.tolist() for w in want]
+    # Step 7 (refitting only the sets updated last round) against one set at a time.
+    seeds = np.concatenate(parts)[:40]
+    allowed = np.ones(pl.time_s.shape[0], dtype=bool)
+    both = vt.converge(stats, seeds, allowed, p)
+    for q in range(seeds.shape[0]):  # plain loop over sets
+        assert (vt.converge(stats, seeds[q : q + 1], allowed, p)[0] == both[q]).all()
