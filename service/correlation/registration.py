@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.correlation.base import FloatArray, TrackSnapshot
-from service.correlation.linalg import inv3, quad3
+from service.correlation.linalg import inv3, matvec3, quad3
 from service.geo import Site, polar_jacobian
 
 
@@ -354,24 +354,24 @@ def _robust_covariance(
     if len(residuals) != len(data):
         return cov, 0
     n = cov.shape[0]
-    scores, keys = [], []
-    for k, ((m, _, cols), kp, res) in enumerate(zip(data, keep, residuals, strict=True)):
+    scores, clusters, c = [], [], 0
+    for (m, _, cols), kp, res in zip(data, keep, residuals, strict=True):
         idx = np.flatnonzero(kp)
-        wr = (cols["w"][idx] @ res[idx][..., None])[..., 0]  # W r
+        wr = matvec3(cols["w"][idx], res[idx])  # W r
         sc = np.zeros((idx.size, n))
         ka = 3 * col[m.site_a.site_id]
-        sc[:, ka : ka + 3] = (np.swapaxes(cols["g_a"][idx], 1, 2) @ wr[..., None])[..., 0]
+        sc[:, ka : ka + 3] = matvec3(np.swapaxes(cols["g_a"][idx], 1, 2), wr)
         if m.site_b is not None:
             kb = 3 * col[m.site_b.site_id]
-            sc[:, kb : kb + 3] -= (np.swapaxes(cols["g_b"][idx], 1, 2) @ wr[..., None])[..., 0]
+            sc[:, kb : kb + 3] -= matvec3(np.swapaxes(cols["g_b"][idx], 1, 2), wr)
         scores.append(sc)
-        keys.append(np.char.add(f"{k}\x1e", cols["pair"][idx]))
-    _, cluster = np.unique(np.concatenate(keys), return_inverse=True)
-    c = int(cluster.max()) + 1 if cluster.size else 0
+        _, inv = np.unique(cols["pair"][idx], return_inverse=True)  # track pairs of this memory
+        clusters.append(inv.ravel() + c)
+        c += int(inv.max()) + 1 if inv.size else 0
     if c < max(min_clusters, 2):
         return cov, c
-    summed = np.zeros((c, n))
-    np.add.at(summed, cluster, np.concatenate(scores))
+    cluster, score = np.concatenate(clusters), np.concatenate(scores)
+    summed = np.stack([np.bincount(cluster, weights=score[:, j], minlength=c) for j in range(n)], axis=1)
     meat = summed.T @ summed * (c / (c - 1)) + np.diag(prior)
     return cov @ meat @ cov, c
 
