@@ -3,6 +3,7 @@ the cached registration normal equations and the data-time solve schedule."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -137,19 +138,31 @@ def test_paper_neighbour_model_is_a_ball() -> None:
     assert np.ptp(a.ecef_to_enu(nb.reshape(-1, 3))[:, 2]) > 8_000.0  # spans heights, not a disc
 
 
-def _dense_solve(mem: RegistrationMemory, prior: np.ndarray) -> np.ndarray:
-    """Plain weighted least squares (tests only): stacked rows, one loop."""
-    rows, rhs, wts = [], [], []
+def _dense_solve(mem: RegistrationMemory, prior: np.ndarray, iterations: int = 1) -> np.ndarray:
+    """Plain weighted least squares (tests only): stacked rows, one loop per row; the first
+    iteration is the linear model's solution, later ones Gauss-Newton steps on the exact
+    residual (each row's biases removed through its own polar coordinates)."""
+    a_site, b_site = mem.site_a, mem.site_b
+    assert b_site is not None
+    rows, wts = [], []
     for i in range(len(mem.time)):
         rows.append(np.hstack([mem.g_a[i], -mem.g_b[i]]))
-        rhs.append(mem.d[i])
         wts.append(np.linalg.inv(mem.s[i]))
     h = np.diag(prior)
-    g = np.zeros(6)
-    for a_i, d_i, w_i in zip(rows, rhs, wts, strict=True):
+    for a_i, w_i in zip(rows, wts, strict=True):
         h += a_i.T @ w_i @ a_i
-        g += a_i.T @ w_i @ d_i
-    return np.linalg.solve(h, g).reshape(2, 3)
+    bias = np.zeros(6)
+    for _ in range(iterations):
+        g = -prior * bias
+        for i, (a_i, w_i) in enumerate(zip(rows, wts, strict=True)):
+            pa, pb = [], []
+            for site, p, b in ((a_site, mem.p_a[i], bias[:3]), (b_site, mem.p_b[i], bias[3:])):
+                r, az, el = (float(np.ravel(x)[0]) for x in site.ecef_to_polar(p[None]))
+                q = site.polar_to_ecef(r - b[0], az - np.degrees(b[1]), el - np.degrees(b[2]))
+                (pa if site is a_site else pb).append(np.ravel(q))
+            g += a_i.T @ w_i @ (pa[0] - pb[0])
+        bias = bias + np.linalg.solve(h, g)
+    return bias.reshape(2, 3)
 
 
 def test_cached_normal_equations_match_dense_solve() -> None:
@@ -163,12 +176,15 @@ def test_cached_normal_equations_match_dense_solve() -> None:
     idx = np.arange(60)
     for t in (0.0, 5.0, 10.0):
         mem.add(t, _snapshot(a, truth, ba, rng, 50.0), _snapshot(b, truth, bb, rng, 50.0), idx, idx, prm)
-    sol = solve_biases([mem], 10.0, prm)
-    assert sol is not None
     prior = np.tile(
         [1 / prm.prior_range_m**2, 1 / np.radians(prm.prior_azimuth_deg) ** 2, 1 / np.radians(3.0) ** 2], 2
     )
-    np.testing.assert_allclose(sol.bias, _dense_solve(mem, prior), rtol=1e-7, atol=1e-9)
+    linear = solve_biases([mem], 10.0, dataclasses.replace(prm, max_iterations=1))
+    assert linear is not None
+    np.testing.assert_allclose(linear.bias, _dense_solve(mem, prior), rtol=1e-7, atol=1e-9)
+    sol = solve_biases([mem], 10.0, prm)
+    assert sol is not None
+    np.testing.assert_allclose(sol.bias, _dense_solve(mem, prior, iterations=4), rtol=1e-7, atol=1e-9)
     assert len(mem.time) == 180
 
 
