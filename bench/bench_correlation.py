@@ -112,14 +112,20 @@ def bench_registration(rows_per_update: int = 40, updates: int = 100) -> None:
     c = Site("C", 32.5, 119.0, 30.0)
     prm = RegistrationParams()
     truth = sample_references(rng, a, b, rows_per_update)
-    bias = np.array([100.0, np.radians(0.1), np.radians(0.05)])
+    # one bias per radar (the same radar has the same bias in every pair it belongs to)
+    bias = {
+        "A": np.array([100.0, np.radians(0.1), np.radians(0.05)]),
+        "B": np.array([-100.0, np.radians(-0.1), np.radians(-0.05)]),
+        "C": np.array([150.0, np.radians(0.15), 0.0]),
+    }
     idx = np.arange(rows_per_update)
     mems = [RegistrationMemory(x, y) for x, y in ((a, b), (a, c), (b, c))]
     t_add = []
     for k in range(updates):
         for m in mems:
-            sa = _snapshot(m.site_a, truth, bias, rng, 100.0)
-            sb = _snapshot(m.site_b, truth, -bias, rng, 100.0)
+            assert m.site_b is not None
+            sa = _snapshot(m.site_a, truth, bias[m.site_a.site_id], rng, 100.0)
+            sb = _snapshot(m.site_b, truth, bias[m.site_b.site_id], rng, 100.0)
             t0 = time.perf_counter()
             m.add(3.0 * k, sa, sb, idx, idx, prm)
             t_add.append(time.perf_counter() - t0)

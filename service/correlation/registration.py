@@ -76,12 +76,14 @@ class RegistrationParams:
     #: Fewest distinct track pairs for the cluster-robust covariance; below it, ``H^-1``.
     min_clusters: int = 10
     #: Most Gauss-Newton iterations of a solve: the estimate converges on the current rows
-    #: (2-3 steps), then the outlier test re-selects the rows, and again until nothing changes.
+    #: (2-3 steps), then the outlier test re-selects the rows, and again until nothing changes
+    #: or ``outlier_rounds`` re-selections were made.
     max_iterations: int = 12
-    #: The iteration has converged when no range bias moved more than this (m) ...
-    converged_range_m: float = 0.01
-    #: ... and no angle bias more than this (deg), and the outlier set did not change.
-    converged_angle_deg: float = 1e-6
+    #: Re-selections of the rows by the outlier test at most (a set that keeps changing is
+    #: left as it is after this many).
+    outlier_rounds: int = 3
+    #: Converged: no bias moved by more than this fraction of its (model) 1-sigma in a step.
+    converged_sigma: float = 0.01
 
 
 @dataclass(frozen=True)
@@ -301,10 +303,7 @@ def solve_biases(
     residuals = [cols["p_a"] - cols["p_b"] for _, _, cols in data]
     fit_keep = keep
     cov = np.diag(1.0 / prior)
-    tol = np.tile(
-        [prm.converged_range_m, np.radians(prm.converged_angle_deg), np.radians(prm.converged_angle_deg)],
-        len(ids),
-    )
+    rounds = 0
     for _ in range(prm.max_iterations):
         fit_keep = keep
         h = np.diag(prior)
@@ -325,8 +324,11 @@ def solve_biases(
         step = cov @ g
         bias = bias + step
         residuals = [_residual(m, cols, bias, col) for m, _, cols in data]
-        if np.any(np.abs(step) > tol):
+        if np.any(np.abs(step) > prm.converged_sigma * np.sqrt(np.diag(cov))):
             continue  # converge on this set of rows first: a far-off estimate flags good rows
+        if rounds == prm.outlier_rounds:
+            break
+        rounds += 1
         new_keep = [
             cols["w_ok"] & (quad3(res, cols["w"]) <= prm.outlier_chi2)
             for (_, _, cols), res in zip(data, residuals, strict=True)
@@ -349,9 +351,26 @@ def solve_biases(
 
 def remove_bias(site: Site, position: FloatArray, bias: FloatArray) -> FloatArray:
     """The exact inverse of the bias model (Eq. 2): the ECEF positions ``(n, 3)`` the radar at
-    ``site`` would report without its bias ``(dr, dtheta, dphi)`` in (m, rad, rad)."""
-    r, az, el = site.ecef_to_polar(position)
-    return site.polar_to_ecef(r - bias[0], az - np.degrees(bias[1]), el - np.degrees(bias[2]))
+    ``site`` would report without its bias ``(dr, dtheta, dphi)`` in (m, rad, rad).
+
+    Equal to ``polar_to_ecef(r - dr, theta - dtheta, phi - dphi)`` of the position's polar
+    coordinates, computed without per-point trigonometry: in the site's ENU frame the
+    horizontal part turns by ``dtheta`` about the vertical (azimuth clockwise from north), the
+    point turns by ``-dphi`` in its vertical plane, and the range scales by ``(r - dr) / r``.
+    """
+    enu = site.ecef_to_enu(position)
+    ct, st = np.cos(bias[1]), np.sin(bias[1])
+    cp, sp = np.cos(bias[2]), np.sin(bias[2])
+    e = enu[:, 0] * ct - enu[:, 1] * st
+    n = enu[:, 1] * ct + enu[:, 0] * st
+    u = enu[:, 2]
+    h = np.hypot(e, n)
+    r = np.hypot(h, u)
+    h1 = h * cp + u * sp
+    u1 = u * cp - h * sp
+    scale = (r - bias[0]) / np.where(r > 0, r, 1.0)
+    ratio = np.divide(h1, h, out=np.ones_like(h), where=h > 0) * scale
+    return site.enu_to_ecef(np.stack([e * ratio, n * ratio, u1 * scale], axis=1))
 
 
 def _residual(

@@ -10,6 +10,7 @@ from service.correlation.registration import (
     RegistrationMemory,
     RegistrationParams,
     compensate,
+    remove_bias,
     solve_biases,
 )
 from service.evaluation.correlation_scenario import make_sites, sample_references
@@ -165,3 +166,15 @@ def test_exact_model_recovers_large_biases(scale: float) -> None:
     np.testing.assert_allclose(sol.bias, np.stack([ba, bb]), rtol=1e-6, atol=1e-9)
     comp, _ = compensate(sa, *sol.of("A"))
     np.testing.assert_allclose(comp.position, truth, atol=1e-3)
+
+
+def test_remove_bias_is_the_polar_inverse() -> None:
+    """The rotation form of the exact bias removal against the plain polar round trip."""
+    rng = np.random.default_rng(3)
+    a, b = make_sites()
+    pos = sample_references(rng, a, b, 500)
+    for _ in range(5):
+        bias = rng.uniform([-3000, -0.05, -0.05], [3000, 0.05, 0.05])
+        r, az, el = a.ecef_to_polar(pos)
+        plain = a.polar_to_ecef(r - bias[0], az - np.degrees(bias[1]), el - np.degrees(bias[2]))
+        np.testing.assert_allclose(remove_bias(a, pos, bias), plain, rtol=0, atol=1e-6)
