@@ -207,7 +207,8 @@ def run(
         percent=False,
     )
     md += [
-        "### Fig. 3: time of one match vs azimuth bias (ms, this machine, one candidate per call)",
+        "### Fig. 3: time of one match vs azimuth bias (ms, this machine, one candidate per call, "
+        "median of 200 calls)",
         "",
         "| azimuth bias (deg) | svd-topology | basic-topology | ratio | svd batched, per candidate |",
         "|---:|---:|---:|---:|---:|",
