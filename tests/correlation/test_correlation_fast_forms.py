@@ -11,6 +11,7 @@ from service.correlation.pairs import _isin
 from service.correlation.svd_topology import chi2_upper, svd_match
 from service.correlation.topology import TopologyParams, gather_points, neighbourhoods
 from service.evaluation.correlation_scenario import Biases, make_sites, single_match_batch
+from tests.reference_forms import brute_force_neighbours
 
 
 def _clustered(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -28,14 +29,7 @@ def test_neighbourhoods_match_brute_force_default_params_and_rows() -> None:
     full = neighbourhoods(pts, prm)
     dense = 0
     for i in range(len(pts)):
-        d = np.linalg.norm(pts - pts[i], axis=1)
-        d[i] = np.inf
-        order = np.argsort(d)[: prm.max_neighbours]
-        want = [
-            j
-            for r, j in enumerate(order)
-            if d[j] <= prm.radius_m or (r < prm.min_neighbours and d[j] <= prm.max_radius_m)
-        ]
+        want = brute_force_neighbours(pts, i, prm)
         assert list(full[i][full[i] >= 0]) == want
         dense += len(want) > prm.min_neighbours
     assert dense > 10  # the second (radius) search ran

@@ -7,6 +7,7 @@ import numpy as np
 from service.correlation.candidates import candidate_pairs
 from service.correlation.prediction import predict_states
 from service.correlation.topology import TopologyParams, neighbourhoods, topology_sequences
+from tests.reference_forms import brute_force_neighbours
 
 
 def test_neighbourhoods_match_brute_force() -> None:
@@ -15,14 +16,7 @@ def test_neighbourhoods_match_brute_force() -> None:
     prm = TopologyParams(radius_m=10_000.0, min_neighbours=3, max_radius_m=30_000.0, max_neighbours=6)
     nb = neighbourhoods(pts, prm)
     for i in range(len(pts)):
-        d = np.linalg.norm(pts - pts[i], axis=1)
-        d[i] = np.inf
-        order = np.argsort(d)[: prm.max_neighbours]
-        want = [
-            j
-            for r, j in enumerate(order)
-            if d[j] <= prm.radius_m or (r < prm.min_neighbours and d[j] <= 30_000)
-        ]
+        want = brute_force_neighbours(pts, i, prm)
         assert list(nb[i][nb[i] >= 0]) == want
 
 

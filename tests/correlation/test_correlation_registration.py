@@ -37,25 +37,6 @@ def _snapshot(
     )
 
 
-def test_recovers_biases_of_two_radars_without_noise() -> None:
-    rng = np.random.default_rng(0)
-    a, b = make_sites()
-    truth = sample_references(rng, a, b, 200)
-    ba = np.array([400.0, np.radians(0.5), np.radians(0.1)])
-    bb = np.array([-250.0, np.radians(-0.3), np.radians(-0.05)])
-    sa, sb = _snapshot(a, truth, ba, rng, 0.0), _snapshot(b, truth, bb, rng, 0.0)
-    mem = RegistrationMemory(a, b)
-    idx = np.arange(200)
-    prm = RegistrationParams(
-        max_rows_per_update=200, prior_range_m=1e6, prior_azimuth_deg=1e3, prior_elevation_deg=1e3
-    )
-    mem.add(0.0, sa, sb, idx, idx, prm)
-    sol = solve_biases([mem], 0.0, prm)
-    assert sol is not None
-    np.testing.assert_allclose(sol.bias[0], ba, rtol=0.02, atol=1e-5)
-    np.testing.assert_allclose(sol.bias[1], bb, rtol=0.02, atol=1e-5)
-
-
 def test_three_radars_joint_and_compensation() -> None:
     rng = np.random.default_rng(1)
     a, b = make_sites()
@@ -145,10 +126,11 @@ def test_robust_covariance_ignores_repeated_rows_and_is_calibrated() -> None:
     assert np.all((rms_z > 0.7) & (rms_z < 1.4)), rms_z
 
 
-@pytest.mark.parametrize("scale", [0.5, 1.0, 2.0])
-def test_exact_model_recovers_large_biases(scale: float) -> None:
-    """Up to 2 km / 2 deg the solve converges on the exact (polar) model: without noise the
-    biases come back exactly (the linear model alone was 23 m off at 1 km / 1 deg)."""
+@pytest.mark.parametrize("scale", [0.1, 0.5, 1.0, 2.0])
+def test_recovers_biases_of_two_radars_without_noise(scale: float) -> None:
+    """From 100 m / 0.1 deg up to 2 km / 2 deg the solve converges on the exact (polar) model:
+    without noise the biases come back exactly (the linear model alone was 23 m off at 1 km /
+    1 deg), and compensation puts A's tracks on the truth."""
     rng = np.random.default_rng(0)
     a, b = make_sites()
     truth = sample_references(rng, a, b, 200)
