@@ -145,8 +145,11 @@ def load_sites(path: str | Path) -> tuple[RadarSite, ...]:
 
 def _default_tracker_factory(site: Site, window_s: float | None, initiator: str, id_prefix: str) -> Tracker:
     from service.tracking import make_tracker
+    from service.truth_labels import TruthLabelledTracker
 
-    return make_tracker(site, window_s=window_s, initiator=initiator, id_prefix=id_prefix)
+    # TrackBatch.truth_id (evaluation only) is tallied outside the tracker
+    tracker = make_tracker(site, window_s=window_s, initiator=initiator, id_prefix=id_prefix)
+    return TruthLabelledTracker(tracker)
 
 
 def to_geometry(site: RadarSite) -> Site:

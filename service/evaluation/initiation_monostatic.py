@@ -15,6 +15,7 @@ from service.geo import FloatArray, Site, enu_to_polar
 from service.tracking import make_tracker
 from service.tracking.base import PlotColumns, TrackTable
 from service.tracking.params import TrackerParams
+from service.truth_labels import TruthLabelledTracker
 
 
 @dataclass(frozen=True)
@@ -159,7 +160,7 @@ def run_monostatic(
     """Run one scenario realisation through one tracker; metrics at the end of the run."""
     rng = np.random.default_rng(seed)
     batches, truth, first_det = simulate(scn, rng)
-    tracker = make_tracker(SITE, initiator=initiator, id_prefix="M", params=params)
+    tracker = TruthLabelledTracker(make_tracker(SITE, initiator=initiator, id_prefix="M", params=params))
     n = scn.n_targets
     confirmed_at = np.full(n, np.inf)
     sq_err: list[np.ndarray] = []

@@ -17,8 +17,10 @@ One :meth:`TrackManager.update` per accepted batch, all in data time:
    candidate groups, a CV fit checks each (mean NIS), and accepted groups become tentative
    tracks (their plots count as hits) and leave the window.
 
-Track ids ``{prefix}-{n}`` count from 1 and are never reused.  ``truth_id`` is carried for
-evaluation only (a tally per track); no decision reads it.
+Track ids ``{prefix}-{n}`` count from 1 and are never reused.  Every update records which
+plots joined which track (:attr:`TrackManager.joined`, plots with all their columns); the
+manager itself only carries them.  Per-track labels from the plots (the simulator's truth, for
+evaluation) are kept outside the tracker, by :mod:`service.truth_labels`.
 """
 
 from __future__ import annotations
@@ -88,18 +90,23 @@ class TrackManager(Tracker):
         self._miss_run = np.empty(0, dtype=np.int64)
         self._confirmed = np.empty(0, dtype=bool)
         self._nplots = np.empty(0, dtype=np.int64)
-        # Evaluation-only truth tally: (track uid, truth code, count); never read by decisions.
-        self._truth_names: list[str] = []
-        self._truth_codes: dict[str, int] = {}
-        self._tally = (np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0, np.int64))
+        #: The plots that joined tracks in the last update, as ``(track uids, plots)`` chunks:
+        #: assigned to existing tracks, and the members of newly initiated ones.
+        self.joined: list[tuple[NDArray[np.int64], PlotColumns]] = []
 
     # -- contract ---------------------------------------------------------------------
     @property
     def window_plots(self) -> int:
         return len(self._window)
 
+    @property
+    def uids(self) -> NDArray[np.int64]:
+        """Numeric ids of the live tracks, in the row order of :meth:`tracks`."""
+        return self._uid.copy()
+
     def update(self, plots: PlotColumns, time_s: float) -> None:
         fp = self.params.filter
+        self.joined = []
         self.last_time_s = max(self.last_time_s, float(time_s))
         meas = plots_to_measurements(self.site, plots, self.params.measurement)
         n_tr = self._uid.shape[0]
@@ -115,7 +122,7 @@ class TrackManager(Tracker):
                 self._nplots[r] += 1
                 hit[r] = True
                 used[c] = True
-                self._tally_add(self._uid[r], self._encode_truth(plots.truth_id[c]))
+                self.joined.append((self._uid[r], plots.take(c)))
         self._life_cycle(hit, plots.azimuth_deg, float(time_s))
         self._window.extend(plots.take(~used), float(time_s))
         self._initiate_from_window()
@@ -140,7 +147,7 @@ class TrackManager(Tracker):
             vel,
             cov,
             self._nplots.copy(),
-            self._truth_of_tracks(),
+            np.full(n, None, dtype=object),  # plot labels per track: service.truth_labels
         )
 
     # -- association ------------------------------------------------------------------
@@ -209,9 +216,6 @@ class TrackManager(Tracker):
         self._hist, self._looks = self._hist[keep], self._looks[keep]
         self._miss_run, self._confirmed = self._miss_run[keep], self._confirmed[keep]
         self._nplots = self._nplots[keep]
-        u, c, k = self._tally
-        alive = np.isin(u, self._uid)
-        self._tally = (u[alive], c[alive], k[alive])
 
     # -- initiation -------------------------------------------------------------------
     def _initiate_from_window(self) -> None:
@@ -247,51 +251,7 @@ class TrackManager(Tracker):
         label_uid[ok] = uid
         in_new = label_uid[groups.group] >= 0
         member = groups.plot[in_new]
-        self._tally_add(label_uid[groups.group][in_new], self._encode_truth(wplots.truth_id[member]))
+        self.joined.append((label_uid[groups.group][in_new], wplots.take(member)))
         used = np.zeros(len(wplots), dtype=bool)
         used[member] = True
         self._window.replace(wplots.take(~used))
-
-    # -- evaluation-only truth tally (never read by any decision) ---------------------
-    def _encode_truth(self, truth: NDArray[np.object_]) -> NDArray[np.int64]:
-        codes = np.full(truth.shape[0], -1, dtype=np.int64)
-        present = np.array([t is not None for t in truth.tolist()], dtype=bool)  # evaluation only
-        if present.any():
-            names, inv = np.unique(truth[present].astype(str), return_inverse=True)
-            lut = np.empty(names.shape[0], dtype=np.int64)
-            for q, name in enumerate(names.tolist()):  # loop over distinct names (evaluation only)
-                code = self._truth_codes.get(name)
-                if code is None:
-                    code = len(self._truth_names)
-                    self._truth_codes[name] = code
-                    self._truth_names.append(name)
-                lut[q] = code
-            codes[present] = lut[inv]
-        return codes
-
-    def _tally_add(self, uid: NDArray[np.int64], code: NDArray[np.int64]) -> None:
-        have = code >= 0
-        if not have.any():
-            return
-        u0, c0, k0 = self._tally
-        u = np.concatenate([u0, uid[have]])
-        c = np.concatenate([c0, code[have]])
-        k = np.concatenate([k0, np.ones(int(have.sum()), dtype=np.int64)])
-        key = u * (1 << 32) + c
-        uk, inv = np.unique(key, return_inverse=True)
-        self._tally = (uk >> 32, uk & 0xFFFFFFFF, np.bincount(inv, weights=k).astype(np.int64))
-
-    def _truth_of_tracks(self) -> NDArray[np.object_]:
-        out = np.full(self._uid.shape[0], None, dtype=object)
-        u, c, k = self._tally
-        if u.shape[0] == 0:
-            return out
-        order = np.lexsort((c, -k, u))  # per uid: most plots first, ties by first-seen code
-        u, c = u[order], c[order]
-        first = np.ones(u.shape[0], dtype=bool)
-        first[1:] = u[1:] != u[:-1]
-        u, c = u[first], c[first]
-        row = np.searchsorted(self._uid, u)
-        names = np.array(self._truth_names, dtype=object)
-        out[row] = names[c]
-        return out

@@ -7,6 +7,7 @@ import pytest
 
 from service.evaluation.initiation_monostatic import SITE, MonostaticScenario, run_monostatic, simulate
 from service.tracking import DEFAULT_WINDOW_S, INITIATORS, make_tracker
+from service.truth_labels import TruthLabelledTracker
 
 
 def test_unknown_initiator_is_a_clear_value_error() -> None:
@@ -18,7 +19,7 @@ def test_unknown_initiator_is_a_clear_value_error() -> None:
 def test_tracks_ids_truth_and_covariance() -> None:
     scn = MonostaticScenario(n_targets=15, clutter_per_scan=20, scans=8)
     batches, truth, _ = simulate(scn, np.random.default_rng(11))
-    tr = make_tracker(SITE, id_prefix="A")
+    tr = TruthLabelledTracker(make_tracker(SITE, id_prefix="A"))
     seen: set[str] = set()
     for plots, tb in batches:
         tr.update(plots, tb)
@@ -61,7 +62,7 @@ def test_hough_initiators_in_the_streaming_tracker(initiator: str) -> None:
     """Local Hough initiation (clusters of the window's plots) confirms the targets."""
     scn = MonostaticScenario(n_targets=15, clutter_per_scan=20, scans=8)
     batches, truth, _ = simulate(scn, np.random.default_rng(13))
-    tr = make_tracker(SITE, initiator=initiator)
+    tr = TruthLabelledTracker(make_tracker(SITE, initiator=initiator))
     for plots, tb in batches:
         tr.update(plots, tb)
     conf = tr.tracks().take(tr.tracks().confirmed)
