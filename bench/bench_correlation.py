@@ -146,18 +146,15 @@ def bench_registration(rows_per_update: int = 40, updates: int = 100) -> None:
 
 def bench_engine(scenario: str = "three-radar", duration_s: float = 120.0) -> None:
     import cProfile
-    import json
     import pstats
     from dataclasses import replace
 
     from service.engine import Engine, EngineConfig
-    from service.keys import Keys
     from service.scenarios.catalog import get_scenario
-    from service.scenarios.simulator import generate
+    from service.scenarios.simulator import wire_messages
 
-    keys = Keys("fusion")
     sc = replace(get_scenario(scenario), duration_s=duration_s)
-    msgs = [(keys.input(m.kind, m.radar_id), json.dumps(m.body).encode()) for m in generate(sc, 1)]
+    msgs = list(wire_messages(sc, 1))
     engine = Engine(EngineConfig())
     prof = cProfile.Profile()
     t0 = time.perf_counter()

@@ -15,17 +15,15 @@ import time
 from dataclasses import replace
 
 from service.engine import Engine
-from service.keys import Keys
 from service.scenarios.catalog import get_scenario
-from service.scenarios.simulator import generate
+from service.scenarios.simulator import wire_messages
 
 DATA_S = 120.0
 
 
 def stream(name: str, targets: int, half_width_m: float) -> list[tuple[str, bytes]]:
     sc = replace(get_scenario(name), duration_s=DATA_S, targets=targets, half_width_m=half_width_m)
-    keys = Keys()
-    return [(keys.input(m.kind, m.radar_id), json.dumps(m.body).encode()) for m in generate(sc, 1)]
+    return list(wire_messages(sc, 1))
 
 
 def main() -> None:

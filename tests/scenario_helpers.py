@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import replace
 
-from service.keys import Keys
 from service.scenarios.catalog import get_scenario
-from service.scenarios.simulator import generate
+from service.scenarios.simulator import wire_messages
 
 
 def scenario_messages(
@@ -19,8 +17,4 @@ def scenario_messages(
 ) -> list[tuple[str, bytes]]:
     """``(key, payload)`` of a scenario's sites and batches, in data-time order."""
     sc = replace(get_scenario(name), duration_s=duration_s, **changes)  # type: ignore[arg-type]
-    keys = Keys(prefix)
-    out = []
-    for m in generate(sc, seed):
-        out.append((keys.input(m.kind, m.radar_id), json.dumps(m.body).encode()))
-    return out
+    return list(wire_messages(sc, seed, prefix))

@@ -12,7 +12,6 @@ reported uncertainty is honest.
 
 from __future__ import annotations
 
-import json
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from multiprocessing import get_context
@@ -21,9 +20,8 @@ import numpy as np
 
 from service.correlation.registration import solve_biases
 from service.engine import Engine, EngineConfig
-from service.keys import Keys
 from service.scenarios.catalog import get_scenario
-from service.scenarios.simulator import generate
+from service.scenarios.simulator import wire_messages
 
 COMPONENTS = ("range (m)", "azimuth (deg)", "elevation (deg)")
 #: The issue's goal: estimates within this fraction of the true bias.
@@ -44,10 +42,9 @@ class RegistrationRun:
 def run_registration(seed: int, duration_s: float = 600.0, scenario: str = "two-radar") -> RegistrationRun:
     """The engine over one simulated stream; biases from its correlator's registration memory."""
     sc = replace(get_scenario(scenario), duration_s=duration_s)
-    keys = Keys("fusion")
     engine = Engine(EngineConfig())
-    for m in generate(sc, seed):
-        engine.ingest(keys.input(m.kind, m.radar_id), json.dumps(m.body).encode(), receive_time_s=0.0)
+    for key, payload in wire_messages(sc, seed):
+        engine.ingest(key, payload, receive_time_s=0.0)
     engine.flush()
     memories = [c.memory for c in engine.correlators() if len(c.memory)]
     truth = {

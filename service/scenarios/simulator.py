@@ -11,6 +11,7 @@ Uniform clutter is added per sector.  The scan is reported in ``sectors`` batche
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -18,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from service.geo import Site, ecef_to_geodetic, enu_rotation, geodetic_to_ecef
+from service.keys import Keys
 
 
 @dataclass(frozen=True)
@@ -181,6 +183,13 @@ def generate(sc: Scenario, seed: int = 0) -> Iterator[SimMessage]:
                 yield SimMessage(body["time_s"], "ais", a.source_id, body)
         targets.advance(t_next - t)
         t = t_next
+
+
+def wire_messages(sc: Scenario, seed: int, prefix: str = "fusion") -> Iterator[tuple[str, bytes]]:
+    """``(key, JSON payload)`` of a scenario's messages in data-time order, as published."""
+    keys = Keys(prefix)
+    for m in generate(sc, seed):
+        yield keys.input(m.kind, m.radar_id), json.dumps(m.body).encode()
 
 
 def _sector_batch(
