@@ -134,7 +134,7 @@ def bias_jacobian(site: Site, position: FloatArray) -> FloatArray:
     return site.rotation @ polar_jacobian(r, az, el)
 
 
-_COLUMNS = ("time", "pair", "p_a", "p_b", "g_a", "g_b", "s", "w", "w_ok", "haa", "hab", "hbb")
+_COLUMNS = ("time", "pair", "p_a", "p_b", "g_a", "g_b", "s", "w", "w_ok", "gaw", "gbw", "haa", "hab", "hbb")
 _SHAPES: dict[str, tuple[int, ...]] = {
     "time": (),
     "pair": (),
@@ -145,6 +145,8 @@ _SHAPES: dict[str, tuple[int, ...]] = {
     "s": (3, 3),
     "w": (3, 3),
     "w_ok": (),
+    "gaw": (3, 3),
+    "gbw": (3, 3),
     "haa": (3, 3),
     "hab": (3, 3),
     "hbb": (3, 3),
@@ -160,8 +162,9 @@ class RegistrationMemory:
     Rows are kept as one chunk per update (appending never copies the history; whole chunks
     leave the memory when older than ``memory_s`` or beyond ``max_rows``).  Each row carries
     its normal-equation pieces, computed once when it is added: the weight ``W = S^-1`` and
-    its rank flag ``w_ok``, ``haa = G_a^T W G_a``, ``hab = G_a^T W G_b``, ``hbb = G_b^T W G_b``,
-    ``va = G_a^T W d``, ``vb = G_b^T W d``; a solve only sums the rows it keeps.  The columns
+    its rank flag ``w_ok``, ``gaw = G_a^T W``, ``gbw = G_b^T W`` (a row's score is ``gaw r``,
+    ``-gbw r``), ``haa = G_a^T W G_a``, ``hab = G_a^T W G_b``, ``hbb = G_b^T W G_b``; a solve
+    sums the pieces of the rows it keeps.  The columns
     (``time``, ``p_a``, ``p_b`` the raw ECEF positions, ``g_a``, ``g_b``, ``s``, ``w``, ...) read as
     concatenated arrays; ``d = p_a - p_b``.
     """
@@ -199,6 +202,8 @@ class RegistrationMemory:
     s = property(lambda self: self._column("s"))
     w = property(lambda self: self._column("w"))
     w_ok = property(lambda self: self._column("w_ok"))
+    gaw = property(lambda self: self._column("gaw"))
+    gbw = property(lambda self: self._column("gbw"))
     haa = property(lambda self: self._column("haa"))
     hab = property(lambda self: self._column("hab"))
     hbb = property(lambda self: self._column("hbb"))
@@ -238,6 +243,8 @@ class RegistrationMemory:
                 "s": s,
                 "w": w,
                 "w_ok": w_ok,
+                "gaw": gat_w,
+                "gbw": gbt_w,
                 "haa": gat_w @ ga,
                 "hab": gat_w @ gb,
                 "hbb": gbt_w @ gb,
@@ -293,7 +300,7 @@ def solve_biases(
             r,
             {
                 c: _rows(getattr(m, c), r)
-                for c in ("pair", "p_a", "p_b", "g_a", "g_b", "w", "w_ok", "haa", "hab", "hbb")
+                for c in ("pair", "p_a", "p_b", "w", "w_ok", "gaw", "gbw", "haa", "hab", "hbb")
             },
         )
         for m, r in rows
@@ -390,13 +397,12 @@ def _scores(
 ) -> FloatArray:
     """Each row's score ``(rows, n)``: ``G_a^T W r`` in A's columns, ``-G_b^T W r`` in B's (the
     negative half-gradient of the row's ``r^T W r`` in the biases)."""
-    wr = matvec3(cols["w"], res)
     sc = np.zeros((res.shape[0], n))
     ka = 3 * col[m.site_a.site_id]
-    sc[:, ka : ka + 3] = matvec3(np.swapaxes(cols["g_a"], 1, 2), wr)
+    sc[:, ka : ka + 3] = matvec3(cols["gaw"], res)
     if m.site_b is not None:
         kb = 3 * col[m.site_b.site_id]
-        sc[:, kb : kb + 3] -= matvec3(np.swapaxes(cols["g_b"], 1, 2), wr)
+        sc[:, kb : kb + 3] -= matvec3(cols["gbw"], res)
     return sc
 
 
