@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 from service.scenarios.simulator import AisSpec, RadarSpec, Scenario
@@ -12,6 +13,60 @@ _LAT = 31.20
 _A = RadarSpec("A", _LAT, 118.50, range_bias_m=100.0, azimuth_bias_deg=0.1, elevation_bias_deg=0.1)
 _B = RadarSpec("B", _LAT, 120.60, range_bias_m=-100.0, azimuth_bias_deg=-0.1, elevation_bias_deg=-0.1)
 _C = RadarSpec("C", 32.80, 119.55, range_bias_m=150.0, azimuth_bias_deg=0.15, scan_period_s=5.0, sectors=10)
+
+
+# A national network: 12 radars evenly spread on a ring 250 km across, 1 500 aircraft over a
+# square 740 km wide, so each radar (300 km range, radio horizon of its altitude) sees about
+# half of them.  Scan periods 4-6 s mixed, each radar with its own bias of varied sign and
+# its own clutter and Pd.  About 1 750 plots/s in total: a load scenario for the engine.
+_NATIONAL_LAT, _NATIONAL_LON = 46.5, 2.5
+_NATIONAL_RING_M = 125_000.0
+#: Per radar: scan period s, range bias m, azimuth bias deg, elevation bias deg, clutter per
+#: scan, Pd, antenna altitude m.
+_NATIONAL_RADARS = (
+    (4.0, 250.0, 0.25, 0.05, 30, 0.93, 60.0),
+    (5.0, -300.0, 0.15, -0.10, 45, 0.90, 120.0),
+    (6.0, 400.0, -0.30, 0.10, 20, 0.95, 40.0),
+    (4.5, -150.0, -0.20, 0.05, 35, 0.92, 200.0),
+    (5.0, 350.0, 0.35, -0.05, 50, 0.91, 80.0),
+    (4.0, -450.0, 0.10, 0.15, 25, 0.94, 30.0),
+    (6.0, 200.0, -0.40, -0.10, 40, 0.90, 150.0),
+    (5.5, -250.0, 0.30, 0.05, 30, 0.95, 100.0),
+    (4.0, 300.0, -0.15, -0.15, 20, 0.92, 50.0),
+    (5.0, -400.0, -0.25, 0.10, 45, 0.93, 250.0),
+    (6.0, 150.0, 0.20, -0.05, 35, 0.91, 70.0),
+    (4.5, -200.0, -0.35, 0.05, 50, 0.94, 110.0),
+)
+
+
+def _national_radars() -> tuple[RadarSpec, ...]:
+    out = []
+    cos_lat = math.cos(math.radians(_NATIONAL_LAT))
+    for i, (period, rb, ab, eb, clutter, pd, alt) in enumerate(_NATIONAL_RADARS):
+        bearing = math.radians(360.0 * i / len(_NATIONAL_RADARS))
+        east, north = _NATIONAL_RING_M * math.sin(bearing), _NATIONAL_RING_M * math.cos(bearing)
+        # metres to degrees on a sphere: good to well under 1 km at this scale, and the sites
+        # are sent with the radars' exact positions anyway
+        lat = _NATIONAL_LAT + north / 111_195.0
+        lon = _NATIONAL_LON + east / (111_195.0 * cos_lat)
+        out.append(
+            RadarSpec(
+                f"N{i + 1:02d}",
+                round(lat, 5),
+                round(lon, 5),
+                altitude_m=alt,
+                scan_period_s=period,
+                range_bias_m=rb,
+                azimuth_bias_deg=ab,
+                elevation_bias_deg=eb,
+                pd=pd,
+                clutter_per_scan=clutter,
+                max_range_m=300_000.0,
+                sectors=8,
+            )
+        )
+    return tuple(out)
+
 
 SCENARIOS: dict[str, Scenario] = {
     "two-radar": Scenario(
@@ -72,6 +127,17 @@ SCENARIOS: dict[str, Scenario] = {
         speed_mps=(3.0, 12.0),
         altitude_m=(0.0, 0.0),
         duration_s=900.0,
+    ),
+    "national": Scenario(
+        name="national",
+        description="12 radars on a 250 km ring, 1 500 aircraft, 4-6 s scans, per-radar biases "
+        "and clutter, about 1 750 plots/s",
+        radars=_national_radars(),
+        center_lat_deg=_NATIONAL_LAT,
+        center_lon_deg=_NATIONAL_LON,
+        half_width_m=370_000.0,
+        targets=1500,
+        duration_s=600.0,
     ),
 }
 #: The scenario of ``topofusion demo`` (runs until stopped).
