@@ -149,6 +149,19 @@ class Decisions:
             np.zeros(n, dtype=np.int64) if neighbors is None else neighbors.astype(np.int64),
         )
 
+    @staticmethod
+    def concat(parts: list[Decisions]) -> Decisions:
+        """The rows of ``parts`` one after the other; an extra column missing from a part is NaN there."""
+        if not parts:
+            return Decisions.empty()
+        if len(parts) == 1:
+            return parts[0]
+        names = [f for f in Decisions.__dataclass_fields__ if f != "extras"]
+        cols = {f: np.concatenate([getattr(p, f) for p in parts]) for f in names}
+        keys = sorted({k for p in parts for k in p.extras})
+        extras = {k: np.concatenate([p.extras.get(k, np.full(len(p), np.nan)) for p in parts]) for k in keys}
+        return Decisions(**cols, extras=extras)
+
     def take(self, index: IntArray | BoolArray) -> Decisions:
         return Decisions(
             self.index_a[index],
@@ -172,7 +185,10 @@ class DecisionContext:
     registration (then absolute-position tests are meaningful); ``registration_cov``: the
     extra covariance (ECEF, per track of A and of B) the registration's own uncertainty adds
     to an absolute position difference; ``confirmed_a``/``confirmed_b``: index pairs of
-    currently confirmed pairs (for priors).
+    currently confirmed pairs (for priors).  ``reference_a``/``reference_b``: the rows of A and
+    of B that may form candidate pairs (None: every row); the other rows still count as
+    neighbours of a reference.  A caller restricts them only for a method that re-verified
+    the rest (:meth:`Correlator.reverify`); a method without a ``reverify`` may ignore them.
     """
 
     time_s: float
@@ -181,6 +197,8 @@ class DecisionContext:
     registration_cov_b: FloatArray | None = None
     confirmed_a: IntArray = field(default_factory=lambda: np.empty(0, dtype=np.intp))
     confirmed_b: IntArray = field(default_factory=lambda: np.empty(0, dtype=np.intp))
+    reference_a: IntArray | None = None
+    reference_b: IntArray | None = None
 
 
 class Correlator(ABC):
@@ -196,4 +214,17 @@ class Correlator(ABC):
 
     @abstractmethod
     def decide(self, a: TrackSnapshot, b: TrackSnapshot, context: DecisionContext) -> Decisions:
-        """Single decisions for every candidate pair of this update."""
+        """Single decisions for every candidate pair of this update (of the reference rows of
+        ``context`` when it names them and the method re-verifies)."""
+
+    def reverify(
+        self, a: TrackSnapshot, b: TrackSnapshot, ia: IntArray, ib: IntArray, context: DecisionContext
+    ) -> Decisions | None:
+        """A cheap re-check of the currently confirmed pairs ``(ia[k], ib[k])``, or None when the
+        method has none for this context (the default: every pair goes to :meth:`decide`).
+
+        The accepted rows are kept without a full decision, and the caller then restricts
+        :meth:`decide` to the other rows (``context.reference_a``/``reference_b``), which a
+        method implementing this must honour.
+        """
+        return None

@@ -10,6 +10,14 @@ Per :meth:`PairCorrelator.update` (all in data time, deterministic):
    (Only for ``svd-topology``; ``basic-topology`` and ``nearest`` run as published.)
 3. The method's single decisions (:class:`~.base.Correlator`); candidates that are
    currently confirmed pairs get a cost bonus ``confirmed_bonus`` (history as a prior).
+   Once registered, the confirmed pairs whose two tracks are present are first re-checked by
+   the method's cheap test (:meth:`~.base.Correlator.reverify`; ``svd-topology``: the
+   bias-compensated chi-square of position and velocity, stage 3).  The pairs that pass are
+   kept as single decisions of their own, and the method's full decision runs only for the
+   other tracks (``DecisionContext.reference_a``/``reference_b``; every track stays a
+   neighbour): new tracks, tentative pairs, failed re-checks.  A steady-state update then
+   costs the prediction, the compensation and a vectorised test per confirmed pair, plus a
+   topology match per track that needs a decision.
 4. One-to-one assignment with an ambiguity margin (:mod:`.assignment`).
 5. The M-of-N book (:mod:`.pairs`).
 6. Confirmed pairs feed the registration memory (each row's normal-equation pieces computed
@@ -26,7 +34,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -100,6 +108,13 @@ def _lookup_pairs(
     return ia[ok].astype(np.intp), ib[ok].astype(np.intp)
 
 
+def _other_rows(n: int, rows: np.ndarray) -> np.ndarray:
+    """The rows ``0..n-1`` not in ``rows``, ascending."""
+    free = np.ones(n, dtype=bool)
+    free[rows] = False
+    return np.flatnonzero(free)
+
+
 class PairCorrelator:
     """Live correlation of radar ``site_a`` with ``site_b`` (None: a bias-free reference source)."""
 
@@ -123,6 +138,8 @@ class PairCorrelator:
         self._solved_s = float("-inf")
         self.last_update_ms: float = 0.0
         self.last_decisions: Decisions = Decisions.empty()
+        #: Confirmed pairs the last update kept by the method's re-check (no full decision).
+        self.last_reverified = 0
         self.time_s: float = float("nan")
         self.updates = 0
 
@@ -154,12 +171,26 @@ class PairCorrelator:
             a.track_id, b.track_id, self.book.track_a[conf], self.book.track_b[conf]
         )
         ctx = DecisionContext(time_s=time_s, confirmed_a=ca_idx, confirmed_b=cb_idx, **ctx_kw)  # type: ignore[arg-type]
-        dec = self.correlator.decide(a, b, ctx)
-        cost = dec.cost.copy()
-        if len(dec) and conf.any():
-            keys = np.char.add(np.char.add(a.track_id[dec.index_a], "\x1f"), b.track_id[dec.index_b])
-            ckeys = np.char.add(np.char.add(self.book.track_a[conf], "\x1f"), self.book.track_b[conf])
-            cost = np.where(np.isin(keys, ckeys), cost - prm.confirmed_bonus, cost)
+        parts = []
+        kept = self.correlator.reverify(a, b, ca_idx, cb_idx, ctx)
+        if kept is not None:
+            # Kept pairs are decided; only the other tracks are candidate references.
+            kept = kept.take(kept.accepted)
+            parts.append(kept)
+            ctx = replace(
+                ctx,
+                reference_a=_other_rows(len(a), kept.index_a),
+                reference_b=_other_rows(len(b), kept.index_b),
+            )
+        self.last_reverified = len(kept) if kept is not None else 0
+        parts.append(self.correlator.decide(a, b, ctx))
+        dec = Decisions.concat(parts)
+        cost = dec.cost
+        if len(dec) and len(ca_idx):
+            # Confirmed pairs by row indices (those present in both snapshots).
+            nb = max(len(b), 1)
+            is_conf = np.isin(dec.index_a * nb + dec.index_b, ca_idx * nb + cb_idx)
+            cost = np.where(is_conf, cost - prm.confirmed_bonus, cost)
         chosen, ambiguous = assign_unambiguous(
             dec.index_a, dec.index_b, cost, dec.accepted, prm.ambiguity_margin
         )

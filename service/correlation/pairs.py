@@ -129,13 +129,16 @@ class PairBook:
     ) -> None:
         """Score one update: ``chosen_*`` are this update's one-to-one single decisions.
 
-        Non-finite statistics are stored as finite placeholders (statistic 0, weight and scale
-        1) so that every published field is valid JSON.
+        A hit pair's ``statistic``, ``rotation_weight``, ``scale`` and ``neighbors`` are those
+        of the decision that scored it, the latest one: NaN where that decision computed none
+        (e.g. a confirmed pair kept by the registered re-check fitted no rotation), published
+        as null.  No placeholder: a weight of 1 would claim a fit that was not made.  Infinite
+        statistics are clipped to +-1e6.
         """
         prm = self.params
-        statistic = np.nan_to_num(np.asarray(statistic, dtype=float), nan=0.0, posinf=1e6, neginf=0.0)
-        rotation_weight = np.nan_to_num(np.asarray(rotation_weight, dtype=float), nan=1.0)
-        scale = np.nan_to_num(np.asarray(scale, dtype=float), nan=1.0)
+        statistic = np.clip(np.asarray(statistic, dtype=float), -1e6, 1e6)
+        rotation_weight = np.asarray(rotation_weight, dtype=float)
+        scale = np.asarray(scale, dtype=float)
         book_keys = _keys(self.track_a, self.track_b)
         new_keys = _keys(chosen_a, chosen_b)
         hit = _isin(book_keys, new_keys)

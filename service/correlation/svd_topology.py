@@ -47,6 +47,16 @@ over all candidates of an update:
    paper's 3-D fit kept for reference, uses the unweighted statistic with ``nu = 3 m - 7``.)
 7. Accepted candidates go to a one-to-one assignment with an ambiguity margin
    (:mod:`service.correlation.assignment`), done by the caller.
+
+Once the stream has registered the radars (snapshots bias-compensated by the Eq. 2 model,
+:func:`service.correlation.registration.compensate`) two cheaper decisions use the textbook
+absolute chi-square of :mod:`service.correlation.nearest` (He et al. 2007, the paper's
+reference [1]) with the registration's own covariance added (:func:`compensated_chi2`):
+*stage 2* decides candidates the topology cannot (too few neighbours), and *stage 3*
+(:meth:`SvdTopologyCorrelator.reverify`) keeps the currently confirmed pairs that still pass
+it, so that the topology match runs only for the tracks that need a decision.  Neither fits a
+topology: their ``rotation_weight`` and ``scale`` are NaN (null on the wire), not a claimed
+identity.
 """
 
 from __future__ import annotations
@@ -140,9 +150,11 @@ class SvdTopologyParams:
     #: ... and topology-accepted candidates must also pass it at this (loose) level.
     registered_consistency_alpha: float = 1e-4
     #: Once registered, a currently confirmed pair that passes the bias-compensated
-    #: chi-square test (position + velocity, at ``alpha_position``) is maintained by that
-    #: test alone, without re-fitting its topology every update (stage 3).  Its competitors
-    #: still get the full topology test, and the assignment's ambiguity margin still applies.
+    #: chi-square test (position + velocity, at ``alpha_position``) is kept by that test
+    #: alone (stage 3, :meth:`SvdTopologyCorrelator.reverify`): no topology fit, and its two
+    #: tracks leave the update's candidate references, so a kept pair meets no competitor
+    #: (the book already lets a track be in one confirmed pair only; a challenger is decided
+    #: once the pair fails the re-check).  A pair that fails is decided in full with the rest.
     maintain_confirmed: bool = True
     #: Before any fit, drop candidates whose velocities cannot belong to one target: speed
     #: difference and the heading difference beyond ``max_bias_rotation_deg`` (an azimuth bias
@@ -483,6 +495,40 @@ def _join_results(parts: list[tuple[NDArray[np.intp], SvdMatchResult]], n: int) 
     return SvdMatchResult(**cols)
 
 
+def compensated_chi2(
+    a: TrackSnapshot,
+    b: TrackSnapshot,
+    ia: NDArray[np.intp],
+    ib: NDArray[np.intp],
+    context: DecisionContext,
+    prm: SvdTopologyParams,
+) -> tuple[FloatArray, BoolArray, int]:
+    """Absolute chi-square of pairs ``(ia[k], ib[k])`` of bias-compensated snapshots (stages 2, 3).
+
+    :func:`service.correlation.nearest.chi2_pairs` with ``S = P_a + P_b`` plus the covariance
+    the registration's own uncertainty adds on each side (``context.registration_cov_*``, as
+    :func:`~service.correlation.registration.compensate` returns it), and with ``use_velocity``
+    the velocity term (``P_va + P_vb``).  Returns the chi-square, the non-singular flag, the dof.
+    """
+    q_pos, q_vel, ok = chi2_pairs(a, b, ia, ib, context.registration_cov_a, context.registration_cov_b)
+    if prm.use_velocity:
+        return q_pos + q_vel, ok, 6
+    return q_pos, ok, 3
+
+
+def _reference_candidates(
+    a: TrackSnapshot, b: TrackSnapshot, context: DecisionContext, gate_m: float
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Candidate pairs among the context's reference rows (all rows when it names none), (i, j) order."""
+    if context.reference_a is None and context.reference_b is None:
+        ia, ib, _ = candidate_pairs(a.position, b.position, gate_m)
+        return ia, ib
+    ra = np.arange(len(a)) if context.reference_a is None else np.sort(context.reference_a)
+    rb = np.arange(len(b)) if context.reference_b is None else np.sort(context.reference_b)
+    ia, ib, _ = candidate_pairs(a.position[ra], b.position[rb], gate_m)
+    return ra[ia].astype(np.intp), rb[ib].astype(np.intp)  # ascending maps keep the (i, j) order
+
+
 def _velocity_compatible(
     a: TrackSnapshot, b: TrackSnapshot, ia: np.ndarray, ib: np.ndarray, m0: FloatArray, prm: SvdTopologyParams
 ) -> BoolArray:
@@ -518,7 +564,9 @@ class SvdTopologyCorrelator(Correlator):
         prm = self.params
         if a.site is None or b.site is None:
             raise ValueError("svd-topology needs two radar sites")
-        ia, ib, _ = candidate_pairs(a.position, b.position, prm.candidates.gate_m)
+        # Only the reference rows form candidates; every row stays a neighbour (the topology
+        # sequence of a reference is its whole neighbourhood, Section 2 step 1).
+        ia, ib = _reference_candidates(a, b, context, prm.candidates.gate_m)
         n = len(ia)
         if n == 0:
             return Decisions.empty()
@@ -529,21 +577,12 @@ class SvdTopologyCorrelator(Correlator):
         if context.registered:
             # Stage 2 gate first: on compensated positions (+ velocities) a candidate failing the
             # loose consistency test could not be accepted anyway, so it skips the topology fit.
-            q_pos, q_vel, ok = chi2_pairs(
-                a, b, ia, ib, context.registration_cov_a, context.registration_cov_b
-            )
-            q = q_pos + (q_vel if prm.use_velocity else 0.0)
+            q, ok, dof = compensated_chi2(a, b, ia, ib, context, prm)
             if prm.registered_consistency_alpha > 0:
                 run = ok & (q <= chi2_upper(prm.registered_consistency_alpha, dof))
         m0 = b.site.rotation.T @ a.site.rotation  # Eq. (3)
         if prm.use_velocity and prm.velocity_prefilter_alpha > 0:
             run &= _velocity_compatible(a, b, ia, ib, m0, prm)
-        maintained = np.zeros(n, dtype=bool)
-        if context.registered and prm.maintain_confirmed and len(context.confirmed_a):
-            nb = max(len(b), 1)
-            is_conf = np.isin(ia * nb + ib, context.confirmed_a * nb + context.confirmed_b)
-            maintained = is_conf & ok & (q <= chi2_upper(prm.alpha_position, dof))
-            run &= ~maintained
         sub = np.flatnonzero(run)
         # Neighbourhoods of the candidate references only; A is turned into B's orientation
         # (M0 of Eq. 3) once per track here rather than once per candidate element in
@@ -592,11 +631,6 @@ class SvdTopologyCorrelator(Correlator):
             cost = np.where(passed, q - dof, cost)
             statistic = np.where(passed, q / dof, statistic)
             stage = np.where(passed, 2.0, stage)
-        accepted |= maintained
-        reason = np.where(maintained, np.int8(Reason.ACCEPTED), reason)
-        cost = np.where(maintained, q - dof, cost)
-        statistic = np.where(maintained, q / dof, statistic)
-        stage = np.where(maintained, 3.0, stage)
         dec = Decisions.build(
             ia,
             ib,
@@ -604,11 +638,38 @@ class SvdTopologyCorrelator(Correlator):
             reason=reason.astype(np.int8),
             cost=cost,
             statistic=statistic,
-            # Stage 2/3 decisions fit no topology: after compensation the transform is the identity.
-            rotation_weight=np.where(stage >= 2, 1.0, full(res.rotation_weight, np.nan)),
-            scale=np.where(stage >= 2, 1.0, full(res.scale, np.nan)),
+            # A stage 2 decision used no topology fit: no rotation weight or scale to report.
+            rotation_weight=np.where(stage >= 2, np.nan, full(res.rotation_weight, np.nan)),
+            scale=np.where(stage >= 2, np.nan, full(res.scale, np.nan)),
             neighbors=full(res.matched, 0),
         )
         dec.extras["stage"] = stage
         dec.extras["yaw_rad"] = full(res.yaw_rad, np.nan)
+        return dec
+
+    def reverify(
+        self,
+        a: TrackSnapshot,
+        b: TrackSnapshot,
+        ia: NDArray[np.intp],
+        ib: NDArray[np.intp],
+        context: DecisionContext,
+    ) -> Decisions | None:
+        """Stage 3: re-check the confirmed pairs ``(ia[k], ib[k])`` by :func:`compensated_chi2` alone.
+
+        Only once registered (the absolute test needs compensated snapshots) and with
+        ``maintain_confirmed``; else None.  A pair passing at ``alpha_position`` is accepted
+        with ``cost = chi2 - dof`` and ``statistic = chi2 / dof`` (the stage 2 convention);
+        ``rotation_weight``, ``scale`` are NaN and ``neighbors`` 0: no topology was matched.
+        """
+        prm = self.params
+        if not (context.registered and prm.maintain_confirmed):
+            return None
+        q, ok, dof = compensated_chi2(a, b, ia, ib, context, prm)
+        passed = ok & (q <= chi2_upper(prm.alpha_position, dof))
+        reason = np.where(passed, Reason.ACCEPTED, np.where(ok, Reason.GATE, Reason.DEGENERATE_FIT)).astype(
+            np.int8
+        )
+        dec = Decisions.build(ia, ib, accepted=passed, reason=reason, cost=q - dof, statistic=q / dof)
+        dec.extras["stage"] = np.full(len(ia), 3.0)
         return dec
