@@ -56,6 +56,9 @@ Elevation = Annotated[float, Field(ge=-90, le=90, allow_inf_nan=False)]
 Latitude = Annotated[float, Field(ge=-90, le=90, allow_inf_nan=False)]
 Longitude = Annotated[float, Field(ge=-180, le=180, allow_inf_nan=False)]
 Sigma = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+#: Largest accepted ``seq``: a signed 64-bit integer (what every publisher's counter fits in).
+MAX_SEQ = 2**63 - 1
+Seq = Annotated[int, Field(ge=0, le=MAX_SEQ)]
 
 
 class WireModel(BaseModel):
@@ -113,7 +116,7 @@ class PlotColumnsModel(WireModel):
 
 class PlotBatch(WireModel):
     radar_id: SourceId
-    seq: Annotated[int, Field(ge=0)]
+    seq: Seq
     time_s: TimeS
     plots: PlotColumnsModel
 
@@ -151,7 +154,7 @@ class AisReportsModel(WireModel):
 
 class AisBatch(WireModel):
     source_id: SourceId
-    seq: Annotated[int, Field(ge=0)]
+    seq: Seq
     time_s: TimeS
     reports: AisReportsModel
 
@@ -231,6 +234,11 @@ class RadarStatus(OutModel):
     tracks_confirmed: int
     tracks_tentative: int
     last_time_s: float | None
+    restarts: int = Field(default=0, description="publisher restarts recognised (seq back near 1)")
+    window_evicted: int = Field(
+        default=0, description="plots evicted from the window by its plot bound (oldest first)"
+    )
+    expired: bool = Field(default=False, description="no batch for the source expiry time of data")
 
 
 class CorrelationTimings(OutModel):

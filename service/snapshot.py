@@ -1,15 +1,40 @@
-"""Immutable views of the engine's state, and their contract JSON (TrackBatch, PairSet, ...)."""
+"""The read model's views: immutable state for readers, and their contract JSON built on demand.
+
+A snapshot holds references to immutable columns (a radar's :class:`TrackTable`, a copy of a
+pair book's columns), never JSON: a ``TrackBatch`` or ``PairSet`` is built only when somebody
+reads it (an HTTP handler, a queryable, a publisher with subscribers) and then kept.  Taking a
+snapshot therefore costs in proportion to the number of radars and pairs, not tracks.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import orjson
+from numpy.typing import NDArray
 
 from service.geo import ecef_to_geodetic
 from service.tracking.base import TrackTable
+
+
+def encode(obj: object) -> bytes:
+    """Compact JSON for the wire (orjson: about 10x the standard library on these payloads).
+
+    Every float the service publishes is finite or ``None`` by construction (NaN means "not
+    produced" and is mapped to ``None`` where it is built).
+    """
+    return orjson.dumps(obj)
+
+
+def _nullable(x: NDArray[np.float64]) -> list[float | None]:
+    """Floats as a list, non-finite entries as ``None`` (JSON has no NaN)."""
+    out: list[Any] = np.asarray(x, dtype=float).tolist()
+    bad = np.flatnonzero(~np.isfinite(x))
+    for i in bad.tolist():
+        out[i] = None
+    return out
 
 
 def track_batch(radar_id: str, time_s: float, tracks: TrackTable, status: str = "all") -> dict[str, Any]:
@@ -19,56 +44,35 @@ def track_batch(radar_id: str, time_s: float, tracks: TrackTable, status: str = 
     elif status == "tentative":
         tracks = tracks.take(~tracks.confirmed)
     lat, lon, alt = ecef_to_geodetic(tracks.position_ecef_m)
-    pos = tracks.position_ecef_m.tolist()
-    vel = tracks.velocity_ecef_mps.tolist()
+    state = np.where(tracks.confirmed, "confirmed", "tentative").tolist()
     rows = [
         {
-            "track_id": str(tracks.track_id[i]),
-            "status": "confirmed" if tracks.confirmed[i] else "tentative",
-            "time_s": float(tracks.time_s[i]),
-            "latitude_deg": float(lat[i]),
-            "longitude_deg": float(lon[i]),
-            "altitude_m": float(alt[i]),
-            "position_ecef_m": pos[i],
-            "velocity_ecef_mps": vel[i],
-            "plots": int(tracks.plots[i]),
-            "truth_id": tracks.truth_id[i],
+            "track_id": tid,
+            "status": st,
+            "time_s": t,
+            "latitude_deg": la,
+            "longitude_deg": lo,
+            "altitude_m": al,
+            "position_ecef_m": p,
+            "velocity_ecef_mps": v,
+            "plots": n,
+            "truth_id": truth,
         }
-        for i in range(len(tracks))
+        for tid, st, t, la, lo, al, p, v, n, truth in zip(
+            tracks.track_id.tolist(),
+            state,
+            tracks.time_s.tolist(),
+            np.atleast_1d(lat).tolist(),
+            np.atleast_1d(lon).tolist(),
+            np.atleast_1d(alt).tolist(),
+            tracks.position_ecef_m.tolist(),
+            tracks.velocity_ecef_mps.tolist(),
+            tracks.plots.tolist(),
+            tracks.truth_id.tolist(),
+            strict=True,
+        )
     ]
     return {"radar_id": radar_id, "time_s": time_s, "tracks": rows}
-
-
-def finite_or_none(x: float) -> float | None:
-    """JSON has no NaN: a quantity the decision did not produce is ``null``."""
-    return float(x) if np.isfinite(x) else None
-
-
-def pair_set(
-    radar_a: str, radar_b: str, time_s: float, method: str, pairs: Iterable[Any], swap: bool = False
-) -> dict[str, Any]:
-    """The contract's ``PairSet``; ``swap`` when the correlator's A side is the key's B side."""
-    rows = []
-    for p in pairs:
-        a, b = (p.track_b, p.track_a) if swap else (p.track_a, p.track_b)
-        rows.append(
-            {
-                "track_a": a,
-                "track_b": b,
-                "status": p.status,
-                "score": float(p.score),
-                "statistic": finite_or_none(p.statistic),
-                "rotation_weight": finite_or_none(p.rotation_weight),
-                "scale": finite_or_none(p.scale),
-                "neighbors": int(p.neighbors),
-                "hits": int(p.hits),
-                "first_time_s": float(p.first_time_s),
-                "last_time_s": float(p.last_time_s),
-            }
-        )
-    if swap:
-        rows.sort(key=lambda r: (r["track_a"], r["track_b"]))
-    return {"radar_a": radar_a, "radar_b": radar_b, "time_s": time_s, "method": method, "pairs": rows}
 
 
 def bias_dict(b: Any) -> dict[str, Any] | None:
@@ -85,8 +89,126 @@ def bias_dict(b: Any) -> dict[str, Any] | None:
     }
 
 
-def _filter_status(items: list[dict[str, Any]], status: str) -> list[dict[str, Any]]:
-    return items if status == "all" else [p for p in items if p["status"] == status]
+_PAIR_FLOATS = ("statistic", "rotation_weight", "scale")
+
+
+@dataclass(frozen=True)
+class PairSetView:
+    """One radar pair's book at one update: copied columns, the ``PairSet`` built when read."""
+
+    radar_a: str
+    radar_b: str
+    time_s: float
+    method: str
+    columns: dict[str, np.ndarray]
+    confirmed: int
+    tentative: int
+    _cache: dict[str, dict[str, Any]] = field(default_factory=dict, compare=False, repr=False)
+
+    @staticmethod
+    def of(key: tuple[str, str], corr: Any, time_s: float) -> PairSetView:
+        """Capture ``corr``'s book (a :class:`~service.correlation.PairCorrelator`) for ``key``."""
+        book = corr.book
+        swap = corr.site_a.site_id != key[0]
+        ta, tb = (book.track_b, book.track_a) if swap else (book.track_a, book.track_b)
+        order = np.lexsort((tb, ta))
+        cols = {
+            "track_a": ta[order],
+            "track_b": tb[order],
+            "confirmed": book.confirmed[order],
+            "score": book.score[order],
+            "neighbors": book.neighbors[order],
+            "hits": book.hits[order],
+            **{k: v[order] for k, v in book.cols.items()},  # fancy indexing copies
+        }
+        n_conf = int(np.count_nonzero(cols["confirmed"]))
+        return PairSetView(key[0], key[1], time_s, corr.method, cols, n_conf, len(order) - n_conf)
+
+    def _rows(self) -> list[dict[str, Any]]:
+        c = self.columns
+        state = np.where(c["confirmed"], "confirmed", "tentative").tolist()
+        return [
+            {
+                "track_a": a,
+                "track_b": b,
+                "status": st,
+                "score": sc,
+                "statistic": stat,
+                "rotation_weight": rw,
+                "scale": scale,
+                "neighbors": nb,
+                "hits": h,
+                "first_time_s": t0,
+                "last_time_s": t1,
+            }
+            for a, b, st, sc, stat, rw, scale, nb, h, t0, t1 in zip(
+                c["track_a"].tolist(),
+                c["track_b"].tolist(),
+                state,
+                c["score"].tolist(),
+                *(_nullable(c[k]) for k in _PAIR_FLOATS),
+                c["neighbors"].tolist(),
+                c["hits"].tolist(),
+                c["first_time_s"].tolist(),
+                c["last_time_s"].tolist(),
+                strict=True,
+            )
+        ]
+
+    def body(self, status: str = "all") -> dict[str, Any]:
+        """The contract's ``PairSet``, pairs filtered by ``status`` (built once per status)."""
+        got = self._cache.get(status)
+        if got is None:
+            if "all" not in self._cache:
+                self._cache["all"] = {
+                    "radar_a": self.radar_a,
+                    "radar_b": self.radar_b,
+                    "time_s": self.time_s,
+                    "method": self.method,
+                    "pairs": self._rows(),
+                }
+            got = self._cache["all"]
+            if status != "all":
+                got = {**got, "pairs": [p for p in got["pairs"] if p["status"] == status]}
+                self._cache[status] = got
+        return got
+
+
+@dataclass(frozen=True)
+class RadarRow:
+    """One radar's counters for ``/status`` and ``/radars``."""
+
+    site: dict[str, Any]
+    radar_id: str
+    batches: int
+    plots: int
+    rejected: int
+    lost_batches: int
+    window_plots: int
+    tracks_confirmed: int
+    tracks_tentative: int
+    last_time_s: float | None
+    restarts: int = 0
+    window_evicted: int = 0
+    expired: bool = False
+
+    _STATUS = (
+        "radar_id",
+        "batches",
+        "plots",
+        "rejected",
+        "lost_batches",
+        "window_plots",
+        "tracks_confirmed",
+        "tracks_tentative",
+        "last_time_s",
+        "restarts",
+        "window_evicted",
+        "expired",
+    )
+
+    def status(self) -> dict[str, Any]:
+        return {k: getattr(self, k) for k in self._STATUS}
 
 
 @dataclass(frozen=True)
@@ -94,22 +216,23 @@ class Snapshot:
     """Immutable state for readers (HTTP handlers, queryables) on other threads."""
 
     tracks: dict[str, tuple[float, TrackTable]]
-    radar_rows: list[dict[str, Any]]
-    pair_sets_all: list[dict[str, Any]]
+    radar_rows: list[RadarRow]
+    pair_views: list[PairSetView]
     biases_all: list[dict[str, Any]]
     correlation: dict[str, Any]
     rejected: dict[str, int]
     method: str
     prefix: str
-
-    def radar_ids(self) -> list[str]:
-        return [r["radar_id"] for r in self.radar_rows]
+    _batches: dict[tuple[str, str], dict[str, Any]] = field(default_factory=dict, compare=False, repr=False)
 
     def track_batch(self, radar_id: str, status: str = "confirmed") -> dict[str, Any] | None:
         if radar_id not in self.tracks:
             return None
-        time_s, table = self.tracks[radar_id]
-        return track_batch(radar_id, time_s, table, status)
+        got = self._batches.get((radar_id, status))
+        if got is None:
+            time_s, table = self.tracks[radar_id]
+            got = self._batches[(radar_id, status)] = track_batch(radar_id, time_s, table, status)
+        return got
 
     def track_batches(self, status: str = "all") -> list[dict[str, Any]]:
         return [b for rid in self.tracks if (b := self.track_batch(rid, status)) is not None]
@@ -119,23 +242,18 @@ class Snapshot:
     ) -> list[dict[str, Any]]:
         """Pair sets involving both given radars (either order), pairs filtered by ``status``."""
         wanted = {x for x in (radar_a, radar_b) if x is not None}
-        return [
-            {**ps, "pairs": _filter_status(ps["pairs"], status)}
-            for ps in self.pair_sets_all
-            if wanted <= {ps["radar_a"], ps["radar_b"]}
-        ]
+        return [v.body(status) for v in self.pair_views if wanted <= {v.radar_a, v.radar_b}]
 
     def biases(self) -> list[dict[str, Any]]:
         return list(self.biases_all)
 
     def status_core(self) -> dict[str, Any]:
-        pairs = [p for ps in self.pair_sets_all for p in ps["pairs"]]
         return {
             "method": self.method,
             "prefix": self.prefix,
-            "radars": [{k: v for k, v in r.items() if k != "site"} for r in self.radar_rows],
-            "pairs_confirmed": sum(p["status"] == "confirmed" for p in pairs),
-            "pairs_tentative": sum(p["status"] == "tentative" for p in pairs),
+            "radars": [r.status() for r in self.radar_rows],
+            "pairs_confirmed": sum(v.confirmed for v in self.pair_views),
+            "pairs_tentative": sum(v.tentative for v in self.pair_views),
             "correlation": self.correlation,
             "rejected": self.rejected,
         }
@@ -146,4 +264,4 @@ class Snapshot:
 
     def radars(self) -> list[dict[str, Any]]:
         keys = ("batches", "plots", "rejected", "lost_batches", "last_time_s")
-        return [{**r["site"], **{k: r[k] for k in keys}} for r in self.radar_rows]
+        return [{**r.site, **{k: getattr(r, k) for k in keys}} for r in self.radar_rows]

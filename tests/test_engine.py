@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from service.engine import Engine, EngineConfig
 from service.messages import RadarSite
+from service.pipeline.sequencer import SequencerParams
 from service.tracking.base import PlotColumns
 from service.tracking.window import PlotWindow
 from tests.scenario_helpers import scenario_messages
@@ -177,7 +178,7 @@ def test_plots_before_site_are_unknown_radar_then_accepted(stream: list[tuple[st
 
 def test_silent_radar_stops_holding_back_the_others(stream: list[tuple[str, bytes]]) -> None:
     # B goes silent after 5 s of data time; A's batches must still be processed.
-    engine = Engine(EngineConfig(max_lag_s=10.0))
+    engine = Engine(EngineConfig(sequencer=SequencerParams(max_lag_s=10.0)))
     for key, payload in stream:
         body = json.loads(payload)
         if key.endswith("B/plots") and body["time_s"] > 1_763_769_605.0:

@@ -15,7 +15,6 @@ Threads (DESIGN.md "Data flow and threads"):
 
 from __future__ import annotations
 
-import json
 import logging
 import queue
 import threading
@@ -27,7 +26,7 @@ import zenoh
 
 from service.engine import Engine, EngineConfig, Outgoing, Snapshot
 from service.keys import Keys
-from service.messages import dump_json
+from service.snapshot import encode
 from service.transport.session import ZenohOptions, open_session
 
 log = logging.getLogger(__name__)
@@ -87,6 +86,7 @@ class ServiceNode:
         self._own_session = session is None
         self._session: zenoh.Session | None = session
         self._declared: list[Any] = []
+        self._publishers: dict[str, zenoh.Publisher] = {}
         self._worker: threading.Thread | None = None
         self._rejections = RateLimitedLog()
         self._stopping = threading.Event()
@@ -155,6 +155,12 @@ class ServiceNode:
             except queue.Full:
                 log.warning("worker queue full at shutdown; abandoning %d samples", self.queue.qsize())
             self._worker.join(timeout=timeout_s)
+        for pub in self._publishers.values():
+            try:
+                pub.undeclare()
+            except Exception:  # already gone with the session
+                log.debug("undeclare failed", exc_info=True)
+        self._publishers = {}
         if self._own_session and self._session is not None:
             self._session.close()
         self._session = None
@@ -173,14 +179,14 @@ class ServiceNode:
             log.error("ingest queue full for %.1f s: dropped a sample on %s", self.put_timeout_s, item[0])
 
     def _on_status_query(self, query: zenoh.Query) -> None:
-        query.reply(self.keys.status, dump_json(self.status()), encoding=zenoh.Encoding.APPLICATION_JSON)
+        query.reply(self.keys.status, encode(self.status()), encoding=zenoh.Encoding.APPLICATION_JSON)
 
     def _on_pairs_query(self, query: zenoh.Query) -> None:
         wanted = query.key_expr
-        for ps in self.snapshot.pair_sets(status="all"):
-            key = self.keys.pairs(ps["radar_a"], ps["radar_b"])
+        for view in self.snapshot.pair_views:
+            key = self.keys.pairs(view.radar_a, view.radar_b)
             if wanted.intersects(zenoh.KeyExpr(key)):
-                query.reply(key, dump_json(ps), encoding=zenoh.Encoding.APPLICATION_JSON)
+                query.reply(key, encode(view.body("all")), encoding=zenoh.Encoding.APPLICATION_JSON)
 
     # -- worker ------------------------------------------------------------------------------
     def _run(self) -> None:
@@ -205,15 +211,22 @@ class ServiceNode:
         self._publish(out)
 
     def _publish(self, out: list[Outgoing]) -> None:
+        """Put each output whose key has a subscriber (an output nobody hears is never encoded)."""
         session = self._session
         if session is None:
             return
         for msg in out:
             if msg.key == self.keys.errors:
-                body = json.loads(msg.payload)
+                body = msg.body()
                 self._rejections.warn(body["reason"], f"{body['key']}: {body['detail']}")
             try:
-                session.put(msg.key, msg.payload, encoding=zenoh.Encoding.APPLICATION_JSON)
+                pub = self._publishers.get(msg.key)
+                if pub is None:
+                    pub = self._publishers[msg.key] = session.declare_publisher(
+                        msg.key, encoding=zenoh.Encoding.APPLICATION_JSON
+                    )
+                if pub.matching_status:
+                    pub.put(msg.payload)
             except Exception:
                 log.exception("publish failed on %s", msg.key)
 

@@ -1,0 +1,178 @@
+"""The correlation stage: one ``PairCorrelator`` per pair of sources, on a data-time cadence.
+
+Radar pairs use the configured method.  A reference source (AIS) is bias-free: each radar is
+correlated with it by ``cfar`` (the method built for cooperative references) and the pairs
+feed the joint bias estimate, which then is absolute rather than relative.
+
+Cost follows tracks, not ids:
+
+* a pair is correlated once per ``cadence_scans`` scans of the slower of its radars (the
+  tracks of both have been refreshed by then; more often re-tests the same plots), and never
+  more often than ``min_interval_s``;
+* a pair is first correlated only once both sides have at least ``min_confirmed_tracks``
+  confirmed tracks: sources without tracks cost nothing (an existing pair keeps its cadence,
+  so a side whose tracks are gone empties its book);
+* radars farther apart than ``max_site_distance_m`` are never paired, and a reference source
+  is paired with a radar only if one of its reference tracks lies within
+  ``max_reference_range_m`` of the radar;
+* the joint bias solve over every pair runs once per ``bias_interval_s`` of data time, inside
+  the update that crosses it: never because someone read the result.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from service.correlation import PairCorrelator, estimate_biases
+from service.geo import Site
+from service.snapshot import PairSetView, bias_dict
+from service.tracking.base import TrackTable
+
+#: Method used between a radar and a reference source.
+REFERENCE_METHOD = "cfar"
+
+
+@dataclass(frozen=True)
+class CadenceParams:
+    """When pairs are correlated and biases solved (all in data time)."""
+
+    #: A pair is correlated once per this many scans of the slower of its radars.
+    cadence_scans: float = 1.0
+    #: ... and at most once per this many data seconds.
+    min_interval_s: float = 1.0
+    #: Radars farther apart than this cannot share targets and are never correlated (m).
+    max_site_distance_m: float = 800_000.0
+    #: A reference source is correlated with a radar only if one of its tracks lies within
+    #: this distance of the radar (m): beyond any radar's horizon.
+    max_reference_range_m: float = 500_000.0
+    #: A new pair is correlated only once both sides have this many confirmed tracks.
+    min_confirmed_tracks: int = 1
+    #: The joint bias estimate over every pair is solved once per this many data seconds.
+    bias_interval_s: float = 10.0
+
+
+@dataclass(frozen=True)
+class Source:
+    """What the stage needs of one source at an update."""
+
+    source_id: str
+    geometry: Site | None  # None: a bias-free reference source
+    tracks: Callable[[float], TrackTable]
+    confirmed: int
+
+
+class CorrelationStage:
+    def __init__(self, method: str, params: CadenceParams | None = None) -> None:
+        self.method = method
+        self.params = params or CadenceParams()
+        self.correlators: dict[tuple[str, str], PairCorrelator] = {}
+        self.views: dict[tuple[str, str], PairSetView] = {}
+        self.next_due: dict[tuple[str, str], float] = {}
+        self.timings_ms: deque[float] = deque(maxlen=2048)
+        self.updates = 0
+        self.last_ms = 0.0
+        self.biases: list[dict[str, Any]] = []
+        self._next_bias_s = -np.inf
+
+    def forget(self, source_id: str) -> None:
+        """A source left the engine: its pairs go."""
+        for key in [k for k in self.correlators if source_id in k]:
+            del self.correlators[key]
+            self.views.pop(key, None)
+            self.next_due.pop(key, None)
+
+    def moved(self, site: Site) -> None:
+        """A radar moved: its pairs keep their books but re-register from scratch.
+
+        The remembered registration rows were measured from the old position; pairs of the
+        other radars are untouched.
+        """
+        for key, old in list(self.correlators.items()):
+            if site.site_id not in key:
+                continue
+            a = site if old.site_a.site_id == site.site_id else old.site_a
+            b = site if old.site_b is not None and old.site_b.site_id == site.site_id else old.site_b
+            new = PairCorrelator(old.method, a, b, old.params)
+            new.book = old.book
+            self.correlators[key] = new
+
+    def _reachable(self, radar: Site, other: Source, table: TrackTable | None) -> bool:
+        p = self.params
+        if other.geometry is not None:
+            return bool(
+                np.linalg.norm(radar.origin_ecef - other.geometry.origin_ecef) <= p.max_site_distance_m
+            )
+        if table is None or len(table) == 0:
+            return False
+        d2 = np.einsum("ij,ij->i", *(2 * [table.position_ecef_m - radar.origin_ecef]))
+        return bool(d2.min() <= p.max_reference_range_m**2)
+
+    def _interval(self, a: Site, b: Site | None) -> float:
+        scan = max(a.scan_period_s, b.scan_period_s if b is not None else 0.0)
+        return max(self.params.min_interval_s, self.params.cadence_scans * scan)
+
+    def update(self, radar: Source, others: list[Source], time_s: float) -> list[tuple[str, str]]:
+        """Correlate ``radar`` with every partner due for an update; the keys updated."""
+        assert radar.geometry is not None
+        p = self.params
+        updated = []
+        own: TrackTable | None = None
+        for other in others:
+            key = (min(radar.source_id, other.source_id), max(radar.source_id, other.source_id))
+            corr = self.correlators.get(key)
+            if time_s < self.next_due.get(key, -np.inf):
+                continue
+            if corr is None and min(radar.confirmed, other.confirmed) < p.min_confirmed_tracks:
+                continue
+            table = other.tracks(time_s) if other.geometry is None else None
+            if corr is None and not self._reachable(radar.geometry, other, table):
+                continue
+            # The correlator's A side is a radar; a reference source is always its B side.
+            first, second = (
+                (radar, other) if other.geometry is None or key[0] == radar.source_id else (other, radar)
+            )
+            if corr is None:
+                method = self.method if second.geometry is not None else REFERENCE_METHOD
+                assert first.geometry is not None
+                corr = self.correlators[key] = PairCorrelator(method, first.geometry, second.geometry)
+            self.next_due[key] = time_s + self._interval(radar.geometry, other.geometry)
+            own = radar.tracks(time_s) if own is None else own
+            other_table = table if table is not None else other.tracks(time_s)
+            ta, tb = (own, other_table) if first is radar else (other_table, own)
+            corr.update(ta, tb, time_s)
+            self.updates += 1
+            self.last_ms = float(corr.last_update_ms)
+            self.timings_ms.append(self.last_ms)
+            self.views[key] = PairSetView.of(key, corr, time_s)
+            updated.append(key)
+        if updated and time_s >= self._next_bias_s:
+            self._solve_biases(time_s)
+        return updated
+
+    def finish(self) -> None:
+        """End of the input: the joint bias estimate at the last update's data time."""
+        times = [c.time_s for c in self.correlators.values() if np.isfinite(c.time_s)]
+        if times:
+            self._solve_biases(max(times))
+
+    def _solve_biases(self, time_s: float) -> None:
+        estimates = estimate_biases(list(self.correlators.values()), time_s)
+        self.biases = [b for b in map(bias_dict, estimates) if b is not None]
+        self._next_bias_s = time_s + self.params.bias_interval_s
+
+    def pair_views(self) -> list[PairSetView]:
+        return [self.views[k] for k in sorted(self.views)]
+
+    def timings(self) -> dict[str, Any]:
+        t = np.asarray(self.timings_ms) if self.timings_ms else np.zeros(1)
+        return {
+            "updates": self.updates,
+            "last_ms": round(self.last_ms, 3),
+            "p50_ms": round(float(np.percentile(t, 50)), 3),
+            "p99_ms": round(float(np.percentile(t, 99)), 3),
+        }

@@ -1,0 +1,320 @@
+"""The data-time sequencer: every source's ``seq`` and clock, and the release of its batches.
+
+Data time, not wall time
+------------------------
+Per source, batches are taken strictly in ``seq`` order.  Across sources an accepted batch is
+held until every *live* source has reported at least up to its ``time_s`` (the watermark) and
+then released in ``(time_s, kind, source_id, seq)`` order, so the stages after it see the same
+sequence whatever the interleaving on arrival: a replay at any speed equals the live run.
+
+Valid but hostile input (each policy a named field of :class:`SequencerParams`)
+------------------------------------------------------------------------------
+* **A clock far ahead.**  A batch stamped more than ``max_clock_skew_s`` ahead of the other
+  sources' data clock is rejected (``out_of_range``).  The reference is the *low median* of the
+  live sources' clocks together with the candidate's own time, so one source cannot move it:
+  a lone future batch is measured against the others, and a future source that came first is
+  outvoted by the next honest one.  The watermark only listens to sources within
+  ``max_clock_skew_s`` of that consensus, so a clock that got in before any other source was
+  there cannot hold the others back or release them early.
+* **An absurd ``seq`` jump.**  A jump of more than ``max_seq_jump`` batches that is also more
+  than ``max_batch_rate_hz`` times the data time since the source's last batch is rejected
+  (``out_of_range``): a radar back after a day's outage may legitimately skip many numbers, a
+  batch four seconds later cannot skip 10^30.
+* **A publisher restart.**  A ``seq`` at or below the last accepted one is a duplicate, unless
+  it is at most ``restart_max_seq`` (the counter started again) *and* its ``time_s`` is later
+  than the source's clock: then it is a restart, counted, and the sequence goes on from there.
+* **Sources that go silent** expire ``source_expiry_s`` of data time after their last batch
+  (an event in the same data-time order as the batches, so replays expire them identically);
+  the engine then drops what they cost (their tracks coast out, they leave correlation).
+* **Too many ids.**  At most ``max_sources`` sources are held.  When full, an expired source
+  (or one that announced itself and never reported) makes room; otherwise the newcomer is
+  rejected (``out_of_range``).
+
+A radar whose data clock lags the consensus by more than ``max_lag_s`` stops holding the others
+back (an outage must not freeze the picture); its late batches are still released when they
+come.
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections import deque
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from service.pipeline.errors import RejectionError
+
+#: Kinds of source, in their release order at equal data time.
+REFERENCE, RADAR = 0, 1
+#: Heap entries of this kind are expiry events, after every batch of the same data time.
+_EXPIRE = 2
+
+
+@dataclass(frozen=True)
+class SequencerParams:
+    """Data-time ordering and the policies on sources' ``seq`` and clocks."""
+
+    #: A source lagging the consensus data clock by more than this no longer holds back the
+    #: release of the others (s of data time).
+    max_lag_s: float = 30.0
+    #: A batch stamped more than this ahead of the other sources' data clock is rejected (s).
+    #: Radars and bridges stamp their own data; ten minutes is far beyond any clock error of a
+    #: working sensor, and far below the hours a wrong date or time zone would give.
+    max_clock_skew_s: float = 600.0
+    #: A ``seq`` jump above this many batches may be rejected (see ``max_batch_rate_hz``).
+    max_seq_jump: int = 10_000
+    #: ...but only if it is also above this many batches per data second since the source's
+    #: last batch: no sensor sends 100 batches a second, so a long outage passes, 10^30 does not.
+    max_batch_rate_hz: float = 100.0
+    #: A ``seq`` this low, below the last accepted one but at a later ``time_s``, is a publisher
+    #: that restarted its counter (counted as a restart), not a duplicate.
+    restart_max_seq: int = 1_000
+    #: A source with no batch for this long (s of data time) expires: its tracks coast out and
+    #: it leaves correlation until it reports again.
+    source_expiry_s: float = 300.0
+    #: Most sources held at once (radars and references).  Every held source costs a little
+    #: memory and a term of the watermark; beyond this, expired sources make room.
+    max_sources: int = 1_024
+
+
+@dataclass
+class SourceClock:
+    """One source's sequence, clock, pending batches and counters."""
+
+    kind: int
+    last_seq: int | None = None
+    batches: int = 0
+    lost_batches: int = 0
+    restarts: int = 0
+    rejected: int = 0
+    #: Data clock of accepted batches (never goes back).
+    last_time_s: float | None = None
+    #: Data clock of the last released batch.
+    released_time_s: float | None = None
+    expired: bool = False
+    #: Consensus data clock when the source was announced (its site arrived).
+    announced_s: float = -np.inf
+    pending: deque[tuple[float, int, Any]] = field(default_factory=deque)
+
+
+@dataclass(frozen=True)
+class Admission:
+    """A batch that passed every check; :meth:`Sequencer.accept` applies it."""
+
+    source_id: str
+    kind: int
+    seq: int
+    time_s: float
+    restart: bool
+    lost: int
+
+
+@dataclass(frozen=True)
+class Release:
+    """A released batch (``item`` as accepted), or a source's expiry (``item`` is None)."""
+
+    kind: int
+    source_id: str
+    time_s: float
+    item: Any
+
+    @property
+    def expiry(self) -> bool:
+        return self.item is None
+
+
+def _low_median(values: list[float]) -> float:
+    values.sort()
+    return values[(len(values) - 1) // 2]
+
+
+class Sequencer:
+    """Per-source ``seq`` and data clocks; releases accepted batches in data-time order."""
+
+    def __init__(self, params: SequencerParams | None = None) -> None:
+        self.params = params or SequencerParams()
+        self.sources: dict[str, SourceClock] = {}
+        # heads of the sources' pending queues and expiry events: (clock, kind, id, seq)
+        self._heap: list[tuple[float, int, str, int]] = []
+        self._expiry_due: dict[str, float] = {}
+        self._first_clock = np.inf
+
+    # -- sources ---------------------------------------------------------------------------
+    def announce(self, source_id: str, kind: int) -> list[str]:
+        """Hold a source (a radar whose site arrived); returns the ids evicted to make room."""
+        if source_id in self.sources:
+            return []
+        evicted = self._make_room(source_id)
+        self.sources[source_id] = SourceClock(kind, announced_s=self.consensus())
+        return evicted
+
+    def _make_room(self, source_id: str) -> list[str]:
+        if len(self.sources) < self.params.max_sources:
+            return []
+        now = self.consensus()
+        idle = [
+            (s.last_time_s if s.last_time_s is not None else s.announced_s, sid)
+            for sid, s in self.sources.items()
+            if not s.pending
+            and (s.expired or (s.last_time_s is None and s.announced_s < now - self.params.source_expiry_s))
+        ]
+        if not idle:
+            raise RejectionError(
+                "out_of_range",
+                f"source table full ({self.params.max_sources} sources, none expired): "
+                f"not admitting {source_id!r}",
+                source_id,
+            )
+        _, victim = min(idle)
+        del self.sources[victim]
+        self._expiry_due.pop(victim, None)
+        return [victim]
+
+    def forget(self, source_id: str) -> None:
+        """Drop a source that holds no pending batch (its state left the engine)."""
+        src = self.sources.get(source_id)
+        if src is not None and not src.pending:
+            del self.sources[source_id]
+            self._expiry_due.pop(source_id, None)
+
+    # -- admission -------------------------------------------------------------------------
+    def check(self, source_id: str, kind: int, seq: int, time_s: float) -> Admission:
+        """Every check of a batch, changing nothing; raises :class:`RejectionError`."""
+        p = self.params
+        src = self.sources.get(source_id)
+        restart, lost = False, 0
+        if src is not None and src.last_seq is not None:
+            last_time = src.last_time_s if src.last_time_s is not None else -np.inf
+            if seq <= src.last_seq:
+                if not (seq <= p.restart_max_seq and time_s > last_time):
+                    raise RejectionError(
+                        "duplicate_seq", f"seq {seq} <= last accepted {src.last_seq}", source_id
+                    )
+                restart = True
+            else:
+                lost = seq - src.last_seq - 1
+                allowed = max(p.max_seq_jump, p.max_batch_rate_hz * max(0.0, time_s - last_time))
+                if lost > allowed:
+                    raise RejectionError(
+                        "out_of_range",
+                        f"seq {seq} skips {lost} batches after {src.last_seq} in "
+                        f"{max(0.0, time_s - last_time):.3f} s of data time (max_seq_jump {p.max_seq_jump}, "
+                        f"max_batch_rate_hz {p.max_batch_rate_hz:g})",
+                        source_id,
+                    )
+        others = [
+            s.last_time_s
+            for sid, s in self.sources.items()
+            if sid != source_id and s.last_time_s is not None and not s.expired
+        ]
+        if others:
+            reference = _low_median([*others, time_s])
+            if time_s > reference + p.max_clock_skew_s:
+                raise RejectionError(
+                    "out_of_range",
+                    f"time_s {time_s:.3f} is {time_s - reference:.1f} s ahead of the other sources' "
+                    f"data clock {reference:.3f} (max_clock_skew_s {p.max_clock_skew_s:g})",
+                    source_id,
+                )
+        if src is None and len(self.sources) >= p.max_sources:
+            self._make_room_check(source_id)
+        return Admission(source_id, kind, seq, time_s, restart, lost)
+
+    def _make_room_check(self, source_id: str) -> None:
+        """Raise as :meth:`_make_room` would, without evicting anything."""
+        now = self.consensus()
+        if not any(
+            not s.pending
+            and (s.expired or (s.last_time_s is None and s.announced_s < now - self.params.source_expiry_s))
+            for s in self.sources.values()
+        ):
+            raise RejectionError(
+                "out_of_range",
+                f"source table full ({self.params.max_sources} sources, none expired): "
+                f"not admitting {source_id!r}",
+                source_id,
+            )
+
+    def accept(self, adm: Admission, item: Any) -> list[str]:
+        """Apply an admitted batch; returns the ids evicted to make room for a new source."""
+        evicted = []
+        src = self.sources.get(adm.source_id)
+        if src is None:
+            evicted = self._make_room(adm.source_id)
+            src = self.sources[adm.source_id] = SourceClock(adm.kind, announced_s=self.consensus())
+        src.last_seq = adm.seq
+        src.batches += 1
+        src.lost_batches += adm.lost
+        src.restarts += adm.restart
+        clock = max(adm.time_s, src.last_time_s if src.last_time_s is not None else -np.inf)
+        src.last_time_s = clock
+        src.expired = False
+        self._expiry_due.pop(adm.source_id, None)
+        if not src.pending:
+            heapq.heappush(self._heap, (clock, adm.kind, adm.source_id, adm.seq))
+        src.pending.append((clock, adm.seq, item))
+        return evicted
+
+    def count_rejected(self, source_id: str | None) -> None:
+        src = self.sources.get(source_id) if source_id is not None else None
+        if src is not None:
+            src.rejected += 1
+
+    # -- data-time release -------------------------------------------------------------------
+    def consensus(self) -> float:
+        """The sources' common data clock: the low median of the live clocks (-inf: none yet)."""
+        clocks = [s.last_time_s for s in self.sources.values() if s.last_time_s is not None and not s.expired]
+        return _low_median(clocks) if clocks else -np.inf
+
+    def watermark(self) -> float:
+        """Data time up to which every live source has reported (see module docstring)."""
+        p = self.params
+        clocks = [s.last_time_s for s in self.sources.values() if s.last_time_s is not None and not s.expired]
+        if not clocks:
+            return -np.inf
+        self._first_clock = min(self._first_clock, *clocks)
+        consensus = _low_median(list(clocks))
+        newest = max(c for c in clocks if c <= consensus + p.max_clock_skew_s)
+        # A radar whose site is known but which has not reported yet holds the others back
+        # from the first data time seen, within the same lag bound.
+        if any(s.last_time_s is None and s.kind == RADAR for s in self.sources.values()):
+            clocks.append(self._first_clock)
+        return min(c for c in clocks if newest - p.max_lag_s <= c <= newest)
+
+    def release(self, until: float | None = None) -> Iterator[Release]:
+        """Release held batches and expiries up to ``until`` (default: the watermark)."""
+        limit = self.watermark() if until is None else until
+        while self._heap and self._heap[0][0] <= limit:
+            clock, kind, source_id, _ = heapq.heappop(self._heap)
+            src = self.sources.get(source_id)
+            if kind == _EXPIRE:
+                if src is not None and not src.pending and self._expiry_due.get(source_id) == clock:
+                    del self._expiry_due[source_id]
+                    src.expired = True
+                    yield Release(src.kind, source_id, clock, None)
+                continue
+            if src is None:  # evicted with nothing pending: cannot happen, kept for safety
+                continue
+            clock, _seq, item = src.pending.popleft()
+            if src.pending:
+                head = src.pending[0]
+                heapq.heappush(self._heap, (head[0], kind, source_id, head[1]))
+            else:
+                due = clock + self.params.source_expiry_s
+                self._expiry_due[source_id] = due
+                heapq.heappush(self._heap, (due, _EXPIRE, source_id, 0))
+            src.released_time_s = clock
+            yield Release(kind, source_id, clock, item)
+
+    def flush(self) -> Iterator[Release]:
+        """Release every held batch regardless of the watermark (end of a replay, shutdown).
+
+        Expiry events beyond the last batch are left alone: the end of the input is not
+        silence.
+        """
+        while any(s.pending for s in self.sources.values()):
+            last = max(s.pending[-1][0] for s in self.sources.values() if s.pending)
+            yield from self.release(until=last)

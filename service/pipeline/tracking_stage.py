@@ -1,0 +1,137 @@
+"""The tracking stage: every radar's site and tracker, one update per released batch.
+
+A site message that moves a radar by less than ``move_tolerance_m`` is not a move: the radar
+keeps the position it has (so that repeated small "changes" cannot walk it away, nor reset its
+pairs), and only its error sigmas and scan period are taken.  A real move replaces the
+geometry of new plots and is reported, so the correlation stage re-registers that radar's pairs
+(and only those).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import Enum
+
+import numpy as np
+
+from service.geo import Site
+from service.messages import RadarSite
+from service.tracking.base import PlotColumns, Tracker, TrackTable
+
+TrackerFactory = Callable[[Site, "float | None", str, str], Tracker]
+
+
+@dataclass(frozen=True)
+class SiteParams:
+    """How site messages are taken."""
+
+    #: A site whose position differs from the held one by less than this (m, ECEF distance)
+    #: is the same site: survey noise or a re-sent message, not a move.  Ten metres is far
+    #: below a radar's range error (hundreds of metres) and far above re-rounded coordinates.
+    move_tolerance_m: float = 10.0
+
+
+class SiteChange(Enum):
+    SAME = "same"
+    NEW = "new"
+    UPDATED = "updated"  # sigmas or scan period, same position
+    MOVED = "moved"
+
+
+def to_geometry(site: RadarSite) -> Site:
+    return Site(
+        site_id=site.radar_id,
+        latitude_deg=site.latitude_deg,
+        longitude_deg=site.longitude_deg,
+        altitude_m=site.altitude_m,
+        range_sigma_m=site.range_sigma_m,
+        azimuth_sigma_deg=site.azimuth_sigma_deg,
+        elevation_sigma_deg=site.elevation_sigma_deg,
+        scan_period_s=site.scan_period_s,
+    )
+
+
+@dataclass
+class RadarTrack:
+    """One radar: its site, its tracker (made at its first batch) and its latest tracks."""
+
+    site: RadarSite
+    geometry: Site
+    tracker: Tracker | None = None
+    table: TrackTable = field(default_factory=TrackTable.empty)
+    time_s: float = 0.0
+
+    @property
+    def confirmed(self) -> int:
+        return int(np.count_nonzero(self.table.confirmed))
+
+
+class TrackingStage:
+    def __init__(
+        self,
+        tracker_factory: TrackerFactory,
+        window_s: float | None,
+        initiator: str,
+        params: SiteParams | None = None,
+    ) -> None:
+        self.params = params or SiteParams()
+        self._factory = tracker_factory
+        self._window_s = window_s
+        self._initiator = initiator
+        self.radars: dict[str, RadarTrack] = {}
+
+    def set_site(self, site: RadarSite) -> SiteChange:
+        """Take a site message (see module docstring for what counts as a move)."""
+        held = self.radars.get(site.radar_id)
+        if held is None:
+            self.radars[site.radar_id] = RadarTrack(site, to_geometry(site))
+            return SiteChange.NEW
+        if held.site == site:
+            return SiteChange.SAME
+        new = to_geometry(site)
+        moved = (
+            float(np.linalg.norm(new.origin_ecef - held.geometry.origin_ecef)) >= self.params.move_tolerance_m
+        )
+        if not moved:  # keep the held position, take the rest
+            site = site.model_copy(
+                update={
+                    "latitude_deg": held.site.latitude_deg,
+                    "longitude_deg": held.site.longitude_deg,
+                    "altitude_m": held.site.altitude_m,
+                }
+            )
+            if site == held.site:
+                return SiteChange.SAME
+            new = to_geometry(site)
+        held.site, held.geometry = site, new
+        if held.tracker is not None:  # same tracks, new geometry for new plots
+            held.tracker.site = new
+        return SiteChange.MOVED if moved else SiteChange.UPDATED
+
+    def update(self, radar_id: str, plots: PlotColumns, time_s: float) -> TrackTable:
+        """One batch of a radar, applied whole (the tracker's update is all or nothing)."""
+        radar = self.radars[radar_id]
+        if radar.tracker is None:
+            radar.tracker = self._factory(radar.geometry, self._window_s, self._initiator, radar_id)
+        radar.tracker.update(plots, time_s)
+        radar.table = radar.tracker.tracks()
+        radar.time_s = time_s
+        return radar.table
+
+    def expire(self, radar_id: str, time_s: float) -> None:
+        """A silent radar: data time moves on without plots, so its tracks coast out."""
+        radar = self.radars.get(radar_id)
+        if radar is not None and radar.tracker is not None:
+            self.update(radar_id, PlotColumns.empty(), time_s)
+
+    def drop(self, radar_id: str) -> None:
+        self.radars.pop(radar_id, None)
+
+    def window_plots(self, radar_id: str) -> int:
+        tracker = self.radars[radar_id].tracker
+        return tracker.window_plots if tracker is not None else 0
+
+    def window_evicted(self, radar_id: str) -> int:
+        tracker = self.radars[radar_id].tracker
+        return int(getattr(tracker, "window_evicted", 0)) if tracker is not None else 0

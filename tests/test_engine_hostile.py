@@ -1,0 +1,250 @@
+"""Valid but hostile input: each message is allowed by the contract's grammar and must not cost
+the good input anything (service/pipeline/sequencer.py, tracking_stage.py, correlation_stage.py).
+
+Each test runs a real simulated stream with and without the hostile messages and checks that
+the honest radars' tracks and pairs come out exactly as without them.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import pytest
+
+from service.engine import Engine, EngineConfig
+from service.pipeline.sequencer import SequencerParams
+from tests.scenario_helpers import scenario_messages
+
+Stream = list[tuple[str, bytes]]
+
+
+def run(messages: Stream, config: EngineConfig | None = None) -> tuple[Engine, list[Any]]:
+    engine = Engine(config or EngineConfig())
+    out = []
+    for key, payload in messages:
+        out.extend(engine.ingest(key, payload, receive_time_s=0.0))
+    out.extend(engine.flush())
+    return engine, out
+
+
+def results(engine: Engine, radars: tuple[str, ...] = ("A", "B")) -> dict[str, Any]:
+    snap = engine.snapshot()
+    return {
+        "tracks": [b for b in snap.track_batches("all") if b["radar_id"] in radars],
+        "pairs": [ps for ps in snap.pair_sets(status="all") if {ps["radar_a"], ps["radar_b"]} <= set(radars)],
+        "biases": [b for b in snap.biases() if b["radar_id"] in radars],
+    }
+
+
+def errors(out: list[Any]) -> list[dict[str, Any]]:
+    return [json.loads(o.payload) for o in out if o.key == "fusion/errors"]
+
+
+@pytest.fixture(scope="module")
+def stream() -> Stream:
+    return scenario_messages("two-radar", duration_s=90.0)
+
+
+@pytest.fixture(scope="module")
+def baseline(stream: Stream) -> tuple[Engine, list[Any]]:
+    return run(stream)
+
+
+def batches(stream: Stream, radar: str) -> list[tuple[int, dict[str, Any]]]:
+    return [(i, json.loads(p)) for i, (k, p) in enumerate(stream) if k == f"fusion/radar/{radar}/plots"]
+
+
+def insert_after(stream: Stream, index: int, extra: Stream) -> Stream:
+    return [*stream[: index + 1], *extra, *stream[index + 1 :]]
+
+
+def test_batch_far_in_the_future_is_rejected_and_costs_nothing(
+    stream: Stream, baseline: tuple[Engine, list[Any]]
+) -> None:
+    i, body = batches(stream, "A")[10]
+    future = {**body, "seq": body["seq"] + 1, "time_s": body["time_s"] + 1e9}
+    future["plots"] = {**body["plots"], "time_s": [body["time_s"] + 1e9] * len(body["plots"]["time_s"])}
+    # It carries the seq of the next honest batch: rejected whole, it never happened.
+    engine, out = run(insert_after(stream, i, [("fusion/radar/A/plots", json.dumps(future).encode())]))
+    (err,) = errors(out)
+    assert err["reason"] == "out_of_range" and "ahead of the other sources" in err["detail"]
+    assert results(engine) == results(baseline[0])
+    assert engine.radars["A"].lost_batches == 0 and engine.radars["A"].rejected == 1
+
+
+def test_future_source_first_cannot_hold_or_release_the_others(
+    stream: Stream, baseline: tuple[Engine, list[Any]]
+) -> None:
+    """A rogue source whose very first batch is 10^9 s ahead is outvoted by the honest ones."""
+    sites = [m for m in stream if m[0].endswith("/site")]
+    rogue_site = json.loads(sites[0][1]) | {"radar_id": "R", "latitude_deg": 10.0}
+    _, a0 = batches(stream, "A")[0]
+    rogue = {**a0, "radar_id": "R", "seq": 1, "time_s": a0["time_s"] + 1e9}
+    rogue["plots"] = {**a0["plots"], "time_s": [a0["time_s"] + 1e9] * len(a0["plots"]["time_s"])}
+    head = [
+        ("fusion/radar/R/site", json.dumps(rogue_site).encode()),
+        ("fusion/radar/R/plots", json.dumps(rogue).encode()),
+    ]
+    rest = [m for m in stream if not m[0].endswith("/site")]
+    engine, out = run([*sites, *head, *rest])
+    assert errors(out) == []  # first: nothing to measure it against
+    assert results(engine) == results(baseline[0])
+    later = {**rogue, "seq": 2, "time_s": rogue["time_s"] + 4}
+    (err,) = errors(engine.ingest("fusion/radar/R/plots", json.dumps(later).encode()))
+    assert err["reason"] == "out_of_range"
+
+
+def test_absurd_seq_jump_is_rejected_and_the_radar_goes_on(
+    stream: Stream, baseline: tuple[Engine, list[Any]]
+) -> None:
+    i, body = batches(stream, "B")[5]
+    extra = [
+        ("fusion/radar/B/plots", json.dumps({**body, "seq": 10**30}).encode()),  # beyond int64
+        ("fusion/radar/B/plots", json.dumps({**body, "seq": body["seq"] + 10**6}).encode()),  # in int64
+    ]
+    engine, out = run(insert_after(stream, i, extra))
+    assert [e["reason"] for e in errors(out)] == ["out_of_range", "out_of_range"]
+    assert "skips" in errors(out)[1]["detail"]
+    assert results(engine) == results(baseline[0])
+    assert engine.radars["B"].batches == baseline[0].radars["B"].batches
+
+
+def test_long_outage_may_skip_many_seq_numbers() -> None:
+    """A jump that the elapsed data time explains is a gap, not an attack."""
+    engine = Engine(EngineConfig(sequencer=SequencerParams(max_seq_jump=10, max_batch_rate_hz=5.0)))
+    engine.ingest(
+        "fusion/radar/A/site",
+        json.dumps({"radar_id": "A", "latitude_deg": 31, "longitude_deg": 118}).encode(),
+    )
+
+    def batch(seq: int, t: float) -> bytes:
+        plots = {"time_s": [t], "range_m": [5e4], "azimuth_deg": [10.0], "elevation_deg": [1.0]}
+        return json.dumps({"radar_id": "A", "seq": seq, "time_s": t, "plots": plots}).encode()
+
+    assert not errors(engine.ingest("fusion/radar/A/plots", batch(1, 1000.0)))
+    assert errors(engine.ingest("fusion/radar/A/plots", batch(500, 1010.0)))  # 498 in 10 s: > 5 Hz
+    assert not errors(engine.ingest("fusion/radar/A/plots", batch(500, 1200.0)))  # 498 in 200 s: fine
+    assert engine.radars["A"].lost_batches == 498
+
+
+def test_publisher_restart_is_recognised_not_locked_out(stream: Stream) -> None:
+    """A radar restarts its counter (seq back to 1) at a later time: counted, and tracked on."""
+    b_batches = batches(stream, "B")
+    k = len(b_batches) // 2
+    restarted = list(stream)
+    for n, (j, b) in enumerate(b_batches[k:]):
+        restarted[j] = (restarted[j][0], json.dumps({**b, "seq": n + 1}).encode())
+    engine, out = run(restarted)
+    assert errors(out) == []
+    assert engine.radars["B"].restarts == 1
+    assert engine.radars["B"].batches == len(b_batches)
+    base, _ = run(stream)
+    assert results(engine) == results(base)
+    # a true duplicate is still one: the first batch after the restart, sent again
+    j, _ = b_batches[k]
+    (err,) = errors(engine.ingest(*restarted[j]))
+    assert err["reason"] == "duplicate_seq"
+
+
+def test_site_resent_slightly_moved_changes_nothing(
+    stream: Stream, baseline: tuple[Engine, list[Any]]
+) -> None:
+    site_b = json.loads(next(p for k, p in stream if k == "fusion/radar/B/site"))
+    mixed: Stream = []
+    n = 0
+    for key, payload in stream:
+        mixed.append((key, payload))
+        if key.endswith("/plots"):
+            n += 1
+            jitter = (n % 2) * 1e-6  # 1e-6 deg of latitude is 0.11 m
+            moved = {**site_b, "latitude_deg": site_b["latitude_deg"] + jitter}
+            mixed.append(("fusion/radar/B/site", json.dumps(moved).encode()))
+    engine, out = run(mixed)
+    assert errors(out) == []
+    assert results(engine) == results(baseline[0])
+    assert engine.snapshot().status_core()["pairs_confirmed"] > 10
+
+
+def test_a_real_move_reregisters_only_that_radars_pairs() -> None:
+    stream = scenario_messages("three-radar", duration_s=60.0)
+    engine = Engine()
+    for key, payload in stream:
+        engine.ingest(key, payload)
+    before = {k: (c, c.book, c.memory) for k, c in engine.correlation.correlators.items()}
+    assert set(before) == {("A", "B"), ("A", "C"), ("B", "C")}
+    site_c = json.loads(next(p for k, p in stream if k == "fusion/radar/C/site"))
+    moved = {**site_c, "latitude_deg": site_c["latitude_deg"] + 0.01}  # 1.1 km
+    engine.ingest("fusion/radar/C/site", json.dumps(moved).encode())
+    after = engine.correlation.correlators
+    assert after[("A", "B")] is before[("A", "B")][0]  # untouched
+    for key in (("A", "C"), ("B", "C")):
+        assert after[key].book is before[key][1]  # the pairs are kept...
+        assert len(after[key].memory) == 0 < len(before[key][2])  # ...the registration starts again
+        assert after[key].site_b is not None and after[key].site_b.latitude_deg == moved["latitude_deg"]
+
+
+def test_many_fake_radar_ids_cost_nothing(stream: Stream, baseline: tuple[Engine, list[Any]]) -> None:
+    """300 ids with a site near the real radars and one 5-plot batch each: the honest radars'
+    results are unchanged and the fakes are never correlated (cost follows tracks, not ids)."""
+    site_a = json.loads(next(p for k, p in stream if k == "fusion/radar/A/site"))
+    _, a0 = batches(stream, "A")[0]
+    extra: Stream = []
+    for n in range(300):
+        rid = f"A{n:03d}"
+        extra.append(
+            (
+                f"fusion/radar/{rid}/site",
+                json.dumps(
+                    {**site_a, "radar_id": rid, "longitude_deg": site_a["longitude_deg"] + n * 1e-3}
+                ).encode(),
+            )
+        )
+        plots = {k: v[:5] for k, v in a0["plots"].items()}
+        extra.append(
+            (
+                f"fusion/radar/{rid}/plots",
+                json.dumps({"radar_id": rid, "seq": 1, "time_s": a0["time_s"], "plots": plots}).encode(),
+            )
+        )
+    i, _ = batches(stream, "A")[0]
+    engine, out = run(insert_after(stream, i, extra))
+    assert errors(out) == []
+    assert results(engine) == results(baseline[0])
+    assert set(engine.correlation.correlators) == {("A", "B")}
+    assert engine.correlation.updates == baseline[0].correlation.updates
+    assert engine.radars["A042"].batches == 1
+
+
+def test_silent_source_expires_and_its_pairs_empty(stream: Stream) -> None:
+    params = SequencerParams(source_expiry_s=20.0, max_lag_s=10.0)
+    engine = Engine(EngineConfig(sequencer=params))
+    cut = None
+    for key, payload in stream:
+        body = json.loads(payload)
+        if key == "fusion/radar/B/plots" and body["time_s"] > stream_start(stream) + 50:
+            cut = cut or body["time_s"]
+            continue
+        engine.ingest(key, payload)
+    engine.flush()
+    b = engine.radars["B"]
+    assert b.expired and not engine.radars["A"].expired
+    assert len(engine.tracking.radars["B"].table) == 0
+    (ps,) = engine.snapshot().pair_sets(status="all")
+    assert ps["pairs"] == []
+    status = {r["radar_id"]: r for r in engine.snapshot().status_core()["radars"]}
+    assert status["B"]["expired"] is True
+
+
+def stream_start(stream: Stream) -> float:
+    return min(json.loads(p)["time_s"] for k, p in stream if k.endswith("/plots"))
+
+
+def test_source_table_is_bounded() -> None:
+    engine = Engine(EngineConfig(sequencer=SequencerParams(max_sources=3)))
+    site = {"latitude_deg": 31.0, "longitude_deg": 118.0}
+    for rid in ("A", "B", "C"):
+        assert engine.ingest(f"fusion/radar/{rid}/site", json.dumps({**site, "radar_id": rid}).encode()) == []
+    (err,) = errors(engine.ingest("fusion/radar/D/site", json.dumps({**site, "radar_id": "D"}).encode()))
+    assert err["reason"] == "out_of_range" and "source table full" in err["detail"]
+    assert "D" not in engine.radars and len(engine.radars) == 3
