@@ -212,7 +212,8 @@ class PairCorrelator:
             raw_a.track_id, raw_b.track_id, self.book.track_a[conf], self.book.track_b[conf]
         )
         if len(pa_idx):
-            self.memory.add(time_s, raw_a, raw_b, pa_idx, pb_idx, prm.registration)
+            cap = prm.registration.registered_rows_per_update if self.registered else None
+            self.memory.add(time_s, raw_a, raw_b, pa_idx, pb_idx, prm.registration, max_rows=cap)
         if self.method == "svd-topology" and prm.use_registration and len(self.memory):
             # Re-solve on a data-time schedule once registered (every update before that).
             due = (
@@ -221,7 +222,9 @@ class PairCorrelator:
                 or time_s < self._solved_s
             )
             if due:
-                self.solution = solve_biases([self.memory], time_s, prm.registration)
+                # Warm start once registered: the rows changed little since the last solve.
+                start = self.solution if self.registered else None
+                self.solution = solve_biases([self.memory], time_s, prm.registration, initial=start)
                 self._solved_s = time_s
         self.last_decisions = dec
         self.last_ambiguous = int(ambiguous.sum())

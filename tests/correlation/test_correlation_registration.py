@@ -160,3 +160,63 @@ def test_remove_bias_is_the_polar_inverse() -> None:
         r, az, el = a.ecef_to_polar(pos)
         plain = a.polar_to_ecef(r - bias[0], az - np.degrees(bias[1]), el - np.degrees(bias[2]))
         np.testing.assert_allclose(remove_bias(a, pos, bias), plain, rtol=0, atol=1e-6)
+
+
+def _noisy_memory(seed: int) -> tuple[RegistrationMemory, RegistrationParams]:
+    rng = np.random.default_rng(seed)
+    a, b = make_sites()
+    truth = sample_references(rng, a, b, 120)
+    ba = np.array([400.0, np.radians(0.3), np.radians(0.05)])
+    bb = np.array([-250.0, np.radians(-0.2), np.radians(-0.05)])
+    prm = RegistrationParams()
+    mem = RegistrationMemory(a, b)
+    idx = np.arange(120)
+    for t in range(6):
+        sa, sb = _snapshot(a, truth, ba, rng, 80.0), _snapshot(b, truth, bb, rng, 80.0)
+        sa.position[:4] += 3_000.0  # a few outliers (mispaired tracks) for the outlier test
+        mem.add(float(t), sa, sb, idx, idx, prm)
+    return mem, prm
+
+
+def test_warm_start_reaches_the_cold_fixed_point_in_fewer_steps(monkeypatch: pytest.MonkeyPatch) -> None:
+    import service.correlation.registration as reg
+
+    mem, prm = _noisy_memory(12)
+    calls = [0]
+    residual = reg._residual
+
+    def counted(*args):  # type: ignore[no-untyped-def]
+        calls[0] += 1
+        return residual(*args)
+
+    monkeypatch.setattr(reg, "_residual", counted)
+    cold = solve_biases([mem], 5.0, prm)
+    cold_calls, calls[0] = calls[0], 0
+    assert cold is not None and cold.model_covariance is not None
+    # A previous solution nearby (as after a few more updates): perturbed by 0.3 sigma.
+    sigma = np.sqrt(np.diag(cold.model_covariance)).reshape(-1, 3)
+    start = reg.BiasSolution(cold.radar_ids, cold.bias + 0.3 * sigma, cold.covariance, cold.pairs_used)
+    warm = solve_biases([mem], 5.0, prm, initial=start)
+    assert warm is not None
+    assert calls[0] < cold_calls
+    assert np.all(np.abs(warm.bias - cold.bias) <= 0.02 * sigma)
+    assert warm.pairs_used == cold.pairs_used  # the same rows survived the outlier test
+    np.testing.assert_allclose(warm.std(), cold.std(), rtol=1e-3)
+
+
+def test_rows_per_update_rotate_over_the_pairs() -> None:
+    """A capped add takes evenly spread pairs, different ones on successive updates."""
+    rng = np.random.default_rng(13)
+    a, b = make_sites()
+    truth = sample_references(rng, a, b, 1000)
+    z = np.zeros(3)
+    sa, sb = _snapshot(a, truth, z, rng, 10.0), _snapshot(b, truth, z, rng, 10.0)
+    mem = RegistrationMemory(a, b)
+    idx = np.arange(1000)
+    seen = []
+    for t in range(10):
+        mem.add(float(t), sa, sb, idx, idx, RegistrationParams(), max_rows=100)
+        rows = np.array([int(p.split("\x1f")[0][1:]) for p in mem.pair[mem.time == t]])
+        assert len(rows) == 100 and np.all(np.diff(rows) >= 1) and np.all(np.diff(rows) <= 20)
+        seen.append(rows)
+    assert len(np.unique(np.concatenate(seen))) >= 600  # fixed picks would give 100
