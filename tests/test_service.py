@@ -159,3 +159,65 @@ def test_a_dropped_sample_is_counted_and_visible(router: str, client: zenoh.Sess
     finally:
         gate.set()
         node.stop()
+
+
+def test_hostile_but_valid_input_over_zenoh_costs_the_honest_radars_nothing(
+    router: str, client: zenoh.Session
+) -> None:
+    """Through the public interface: a batch 10^9 s ahead, an absurd seq, 50 fake radar ids and
+    a site re-sent 0.1 m away after every batch.  Each is rejected or absorbed, the service stays
+    ready, and the honest radars' tracks and pairs are those of the clean stream."""
+    from service.engine import Engine
+
+    stream = scenario_messages("two-radar", duration_s=60.0)
+    plots_a = [json.loads(p) for k, p in stream if k == "fusion/radar/A/plots"]
+    site_b = json.loads(next(p for k, p in stream if k == "fusion/radar/B/site"))
+    site_a = json.loads(next(p for k, p in stream if k == "fusion/radar/A/site"))
+    b5 = plots_a[5]
+    future = {**b5, "seq": b5["seq"] + 1, "time_s": b5["time_s"] + 1e9}
+    future["plots"] = {**b5["plots"], "time_s": [b5["time_s"] + 1e9] * len(b5["plots"]["time_s"])}
+    hostile: list[tuple[str, bytes]] = [
+        ("fusion/radar/A/plots", json.dumps(future).encode()),
+        ("fusion/radar/A/plots", json.dumps({**b5, "seq": b5["seq"] + 10**9}).encode()),
+    ]
+    for n in range(50):
+        rid = f"X{n}"
+        hostile.append((f"fusion/radar/{rid}/site", json.dumps({**site_a, "radar_id": rid}).encode()))
+        small = {k: v[:5] for k, v in b5["plots"].items()}
+        body = {"radar_id": rid, "seq": 1, "time_s": b5["time_s"], "plots": small}
+        hostile.append((f"fusion/radar/{rid}/plots", json.dumps(body).encode()))
+    mixed: list[tuple[str, bytes]] = []
+    for key, payload in stream:
+        mixed.append((key, payload))
+        if key == "fusion/radar/A/plots" and json.loads(payload)["seq"] == b5["seq"]:
+            mixed.extend(hostile)
+        if key.endswith("/plots"):
+            jitter = {**site_b, "latitude_deg": site_b["latitude_deg"] + 1e-6 * (len(mixed) % 2)}
+            mixed.append(("fusion/radar/B/site", json.dumps(jitter).encode()))
+    clean = Engine()
+    for key, payload in stream:
+        clean.ingest(key, payload)
+    clean.flush()
+    n_batches = sum(k.endswith("/plots") for k, _ in mixed) - 2  # all but the two rejected
+
+    with running_service(router) as svc:
+        wait_subscribed(client, "fusion/radar/A/plots")
+        for key, payload in mixed:
+            put_json(client, key, payload)
+
+        def all_in() -> bool:
+            st = svc.http.get("/status").json()
+            return sum(r["batches"] for r in st["radars"]) == n_batches
+
+        wait_for(all_in, timeout=60)
+        assert svc.http.get("/readyz").status_code == 200
+        status = svc.http.get("/status").json()
+        assert status["rejected"] == {"out_of_range": 2}
+        node = svc.node
+    # stopped: the node flushed what it held; compare with the clean stream in one engine
+    snap, ref = node.engine.snapshot(), clean.snapshot()
+    honest = {"A", "B"}
+    assert [b for b in snap.track_batches("all") if b["radar_id"] in honest] == ref.track_batches("all")
+    got = [ps for ps in snap.pair_sets(status="all") if {ps["radar_a"], ps["radar_b"]} <= honest]
+    assert got == ref.pair_sets(status="all") and got[0]["pairs"]
+    assert set(node.engine.correlation.correlators) == {("A", "B")}

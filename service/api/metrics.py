@@ -24,6 +24,19 @@ class NodeCollector(Collector):
         )
         window = GaugeMetricFamily("topofusion_window_plots", "Plots in the sliding window", labels=["radar"])
         tracks = GaugeMetricFamily("topofusion_tracks", "Live tracks", labels=["radar", "status"])
+        evicted = CounterMetricFamily(
+            "topofusion_window_evicted_plots",
+            "Plots evicted from the window by its plot bound (oldest first)",
+            labels=["radar"],
+        )
+        restarts = CounterMetricFamily(
+            "topofusion_source_restarts", "Publisher restarts recognised (seq back near 1)", labels=["radar"]
+        )
+        expired = GaugeMetricFamily(
+            "topofusion_source_expired",
+            "1 while the radar has sent nothing for the expiry time",
+            labels=["radar"],
+        )
         for r in status["radars"]:
             rid = r["radar_id"]
             batches.add_metric([rid], r["batches"])
@@ -32,7 +45,10 @@ class NodeCollector(Collector):
             window.add_metric([rid], r["window_plots"])
             tracks.add_metric([rid, "confirmed"], r["tracks_confirmed"])
             tracks.add_metric([rid, "tentative"], r["tracks_tentative"])
-        yield from (batches, plots, lost, window, tracks)
+            evicted.add_metric([rid], r["window_evicted"])
+            restarts.add_metric([rid], r["restarts"])
+            expired.add_metric([rid], float(r["expired"]))
+        yield from (batches, plots, lost, window, tracks, evicted, restarts, expired)
         rejected = CounterMetricFamily("topofusion_rejected", "Rejected messages", labels=["reason"])
         for reason, n in status["rejected"].items():
             rejected.add_metric([reason], n)

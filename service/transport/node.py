@@ -32,6 +32,8 @@ from service.transport.session import ZenohOptions, open_session
 log = logging.getLogger(__name__)
 
 _STOP = object()
+#: Puts a new publisher makes before trusting its matching status (see ``_publish``).
+UNCONDITIONAL_PUTS = 8
 
 
 @dataclass
@@ -86,7 +88,7 @@ class ServiceNode:
         self._own_session = session is None
         self._session: zenoh.Session | None = session
         self._declared: list[Any] = []
-        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._publishers: dict[str, list[Any]] = {}  # key -> [publisher, unconditional puts left]
         self._worker: threading.Thread | None = None
         self._rejections = RateLimitedLog()
         self._stopping = threading.Event()
@@ -155,7 +157,7 @@ class ServiceNode:
             except queue.Full:
                 log.warning("worker queue full at shutdown; abandoning %d samples", self.queue.qsize())
             self._worker.join(timeout=timeout_s)
-        for pub in self._publishers.values():
+        for pub, _ in self._publishers.values():
             try:
                 pub.undeclare()
             except Exception:  # already gone with the session
@@ -211,21 +213,28 @@ class ServiceNode:
         self._publish(out)
 
     def _publish(self, out: list[Outgoing]) -> None:
-        """Put each output whose key has a subscriber (an output nobody hears is never encoded)."""
+        """Put each output whose key has a subscriber (an output nobody hears is never encoded).
+
+        A new publisher learns of the subscribers that already exist a round trip after it is
+        declared, so its first ``UNCONDITIONAL_PUTS`` outputs are put whatever its matching
+        status says; errors are always put.
+        """
         session = self._session
         if session is None:
             return
         for msg in out:
-            if msg.key == self.keys.errors:
+            errors = msg.key == self.keys.errors
+            if errors:
                 body = msg.body()
                 self._rejections.warn(body["reason"], f"{body['key']}: {body['detail']}")
             try:
-                pub = self._publishers.get(msg.key)
-                if pub is None:
-                    pub = self._publishers[msg.key] = session.declare_publisher(
-                        msg.key, encoding=zenoh.Encoding.APPLICATION_JSON
-                    )
-                if pub.matching_status:
+                entry = self._publishers.get(msg.key)
+                if entry is None:
+                    pub = session.declare_publisher(msg.key, encoding=zenoh.Encoding.APPLICATION_JSON)
+                    entry = self._publishers[msg.key] = [pub, UNCONDITIONAL_PUTS]
+                pub, fresh = entry
+                if errors or fresh > 0 or pub.matching_status.matching:
+                    entry[1] = fresh - 1
                     pub.put(msg.payload)
             except Exception:
                 log.exception("publish failed on %s", msg.key)
