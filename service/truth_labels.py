@@ -111,3 +111,7 @@ class TruthLabelledTracker(Tracker):
     @property
     def window_plots(self) -> int:
         return self.inner.window_plots
+
+    @property
+    def window_evicted(self) -> int:
+        return self.inner.window_evicted

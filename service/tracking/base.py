@@ -136,3 +136,9 @@ class Tracker(ABC):
     @abstractmethod
     def window_plots(self) -> int:
         """Number of plots currently held in the sliding window."""
+
+    @property
+    def window_evicted(self) -> int:
+        """Plots evicted from the sliding window so far because it held its maximum number of
+        plots (0 for a tracker whose window has no such cap)."""
+        return 0

@@ -108,7 +108,7 @@ def _local(method: PlaneMethod) -> Initiator:
 
 
 def _logic(meas: Measurements, params: TrackerParams, scan_period_s: float) -> Groups:
-    return logic_initiate(meas, params.logic, scan_period_s)
+    return logic_initiate(meas, params.logic, scan_period_s, params.bounds)
 
 
 def _classic_plane(t: np.ndarray, xy: np.ndarray, cov: np.ndarray, params: TrackerParams) -> list[IntArray]:

@@ -13,63 +13,69 @@ The classic sliding-window logic (Blackman & Popoli 1999, Section 3.5; Bar-Shalo
    triples they block are removed and the round repeats (a handful of rounds).
 Plots in the window are candidates only (not used by tracks), so every triple starts a
 tentative track whose three plots count as three hits of its M-of-N history.
+
+Memory and work per call are bounded (:class:`~service.tracking.params.BoundParams`): the
+pairs come from a blockwise search of later plots in the time gate
+(:mod:`service.tracking.pairs`, at most ``max_pairs`` candidates), and the triples are formed
+and gated in blocks, at most ``max_triples`` of them (pairs with the fewest continuations
+first).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from service.tracking import kalman
 from service.tracking.groups import Groups, IntArray
 from service.tracking.measurement import Measurements
-from service.tracking.params import LogicParams
+from service.tracking.pairs import time_gated_pairs
+from service.tracking.params import BoundParams, LogicParams
 
 
-def _pairs(meas: Measurements, p: LogicParams, scan_period_s: float) -> tuple[IntArray, IntArray]:
-    """Time-ordered pairs passing the time and velocity gates (step 1)."""
+def _pairs(
+    meas: Measurements, p: LogicParams, scan_period_s: float, bounds: BoundParams
+) -> tuple[IntArray, IntArray]:
+    """Time-ordered pairs passing the time and velocity gates (step 1), searched with bounded
+    memory and work (:func:`service.tracking.pairs.time_gated_pairs`)."""
     n = len(meas)
     if n < 2:
         e = np.empty(0, dtype=np.intp)
         return e, e
     dt_min, dt_max = p.min_dt_scans * scan_period_s, p.max_dt_scans * scan_period_s
     sig = np.sqrt(np.trace(meas.covariance, axis1=1, axis2=2))  # per-plot 3-D position sigma
+    # Search reach: the speed gate below never accepts a pair farther apart than this.
     radius = p.max_speed_mps * dt_max + 3.0 * 2.0 * float(sig.max())
-    tree = cKDTree(meas.enu_m)
-    pr = tree.query_pairs(radius, output_type="ndarray")
-    if pr.shape[0] == 0:
-        e = np.empty(0, dtype=np.intp)
-        return e, e
-    a, b = pr[:, 0].astype(np.intp), pr[:, 1].astype(np.intp)
-    swap = meas.time_s[a] > meas.time_s[b]
-    i = np.where(swap, b, a)
-    j = np.where(swap, a, b)
-    dt = meas.time_s[j] - meas.time_s[i]
-    dist = np.linalg.norm(meas.enu_m[j] - meas.enu_m[i], axis=1)
-    slack = 3.0 * np.hypot(sig[i], sig[j])
-    ok = (dt >= dt_min) & (dt <= dt_max)
-    ok &= dist <= p.max_speed_mps * dt + slack
-    ok &= dist >= p.min_speed_mps * dt - slack
-    return i[ok], j[ok]
+    t, z = meas.time_s, meas.enu_m
+
+    def gates(i: IntArray, j: IntArray) -> np.ndarray:
+        dt = t[j] - t[i]
+        dist = np.linalg.norm(z[j] - z[i], axis=1)
+        slack = 3.0 * np.hypot(sig[i], sig[j])
+        ok = (dt >= dt_min) & (dt <= dt_max)
+        ok &= dist <= p.max_speed_mps * dt + slack
+        ok &= dist >= p.min_speed_mps * dt - slack
+        return ok
+
+    return time_gated_pairs(t, z, radius, dt_min, dt_max, gates, bounds.max_pairs, bounds.block)
 
 
-def logic_initiate(meas: Measurements, params: LogicParams, scan_period_s: float) -> Groups:
-    """Three-plot candidates from the window's plots (see module docstring)."""
-    i, j = _pairs(meas, params, scan_period_s)
-    if i.shape[0] < 2:
-        return Groups.empty()
-    # Step 2: join (i, j) with (j, k): pairs sorted by their first plot.
-    order = np.argsort(i, kind="stable")
-    first, second = i[order], j[order]
-    lo = np.searchsorted(first, j, side="left")
-    hi = np.searchsorted(first, j, side="right")
-    cnt = hi - lo
-    if cnt.sum() == 0:
-        return Groups.empty()
-    left = np.repeat(np.arange(i.shape[0]), cnt)
-    offs = np.arange(left.shape[0]) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-    right = lo[left] + offs
-    a, b, c = i[left], j[left], second[right]
+def _triple_counts(cnt: IntArray, max_triples: int) -> IntArray:
+    """Triples per pair, zero for the pairs beyond the ``max_triples`` work bound: pairs are
+    taken with the fewest continuations first (the least ambiguous; ties in pair order) and
+    the first pair whose triples would pass the bound, and every later one, gives none."""
+    if int(cnt.sum()) <= max_triples:
+        return cnt
+    by_count = np.argsort(cnt, kind="stable")
+    fits = np.cumsum(cnt[by_count]) <= max_triples
+    out = np.zeros_like(cnt)
+    out[by_count[fits]] = cnt[by_count[fits]]
+    return out
+
+
+def _gate_triples(
+    meas: Measurements, params: LogicParams, a: IntArray, b: IntArray, c: IntArray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Step 2's third-plot gate: ``(ok, d^2)`` of triples ``(a, b, c)``."""
     t, z, R = meas.time_s, meas.enu_m, meas.covariance
     dt1 = t[b] - t[a]
     dt2 = t[c] - t[b]
@@ -79,9 +85,46 @@ def logic_initiate(meas: Measurements, params: LogicParams, scan_period_s: float
     S = R[c] + ((1 + tau) ** 2)[:, None, None] * R[b] + (tau**2)[:, None, None] * R[a]
     S = S + acc[:, None, None] * np.eye(3)
     d2 = kalman.mahalanobis2(z[c] - pred, S)
-    ok = d2 <= params.gate_chi2
-    trip = np.stack([a[ok], b[ok], c[ok]], axis=1)
-    cost = d2[ok]
+    return d2 <= params.gate_chi2, d2
+
+
+def logic_initiate(
+    meas: Measurements, params: LogicParams, scan_period_s: float, bounds: BoundParams | None = None
+) -> Groups:
+    """Three-plot candidates from the window's plots (see module docstring); memory and work
+    within ``bounds`` (default :class:`BoundParams`)."""
+    bounds = bounds if bounds is not None else BoundParams()
+    i, j = _pairs(meas, params, scan_period_s, bounds)
+    if i.shape[0] < 2:
+        return Groups.empty()
+    # Step 2: join (i, j) with (j, k): pairs sorted by their first plot.
+    order = np.argsort(i, kind="stable")
+    first, second = i[order], j[order]
+    lo = np.searchsorted(first, j, side="left")
+    hi = np.searchsorted(first, j, side="right")
+    cnt = _triple_counts(hi - lo, bounds.max_triples)
+    if cnt.sum() == 0:
+        return Groups.empty()
+    # Triples in blocks of consecutive pairs (``block`` triples, plus one pair's own), in the
+    # order of one pass over all pairs; the gate is per triple, so blocks change nothing.
+    start = np.cumsum(cnt) - cnt
+    edges = np.flatnonzero(np.diff(start // max(bounds.block, 1))) + 1
+    cuts = np.concatenate([[0], edges, [cnt.shape[0]]])
+    trips: list[np.ndarray] = []
+    costs: list[np.ndarray] = []
+    for p0, p1 in zip(cuts[:-1].tolist(), cuts[1:].tolist(), strict=True):  # a few blocks
+        bc = cnt[p0:p1]
+        if bc.sum() == 0:
+            continue
+        left = np.repeat(np.arange(p0, p1), bc)
+        offs = np.arange(left.shape[0]) - np.repeat(np.cumsum(bc) - bc, bc)
+        right = lo[left] + offs
+        a, b, c = i[left], j[left], second[right]
+        ok, d2 = _gate_triples(meas, params, a, b, c)
+        trips.append(np.stack([a[ok], b[ok], c[ok]], axis=1))
+        costs.append(d2[ok])
+    trip = np.concatenate(trips) if trips else np.empty((0, 3), dtype=np.intp)
+    cost = np.concatenate(costs) if costs else np.empty(0)
     if trip.shape[0] == 0:
         return Groups.empty()
     chosen = resolve_conflicts(trip, cost, len(meas))

@@ -13,9 +13,14 @@ One :meth:`TrackManager.update` per accepted batch, all in data time:
 5. confirmation (M of the last N looks), deletion (a tentative track that can no longer reach M,
    a confirmed track after ``confirmed_max_misses`` expected misses in a row, any track not
    updated for ``coast_scans`` scan periods);
-6. unused plots join the radar's :class:`PlotWindow`; the initiator turns window plots into
-   candidate groups, a CV fit checks each (mean NIS), and accepted groups become tentative
-   tracks (their plots count as hits) and leave the window.
+6. unused plots join the radar's :class:`PlotWindow` (at most ``bounds.max_window_plots``, the
+   oldest evicted beyond); the initiator turns window plots into candidate groups, a CV fit
+   checks each (mean NIS), and accepted groups become tentative tracks (their plots count as
+   hits) and leave the window.
+
+An update is all or nothing: it builds the new tracks and window aside (the track arrays and
+the window's chunks are never written in place) and keeps them only once every step has
+succeeded, so a batch that fails part-way leaves the tracker exactly as it was.
 
 Track ids ``{prefix}-{n}`` count from 1 and are never reused.  Every update records which
 plots joined which track (:attr:`TrackManager.joined`, plots with all their columns); the
@@ -24,6 +29,8 @@ evaluation) are kept outside the tracker, by :mod:`service.truth_labels`.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -59,6 +66,60 @@ def covered_arc(azimuth_deg: FloatArray) -> tuple[float, float] | None:
     return start, float(360.0 - gaps[g])
 
 
+@dataclass(frozen=True)
+class _Tracks:
+    """The live tracks, one row each; an update builds new arrays, never writes these."""
+
+    uid: NDArray[np.int64]
+    x: FloatArray  # (n, 6) ENU state
+    P: FloatArray  # (n, 6, 6)
+    t: FloatArray  # time of the state
+    hist: NDArray[np.int64]  # M-of-N look history, newest look in bit 0
+    looks: NDArray[np.int64]  # looks in the history (at most confirm_n)
+    miss_run: NDArray[np.int64]  # expected misses in a row
+    confirmed: NDArray[np.bool_]
+    nplots: NDArray[np.int64]
+
+    def __len__(self) -> int:
+        return int(self.uid.shape[0])
+
+    @staticmethod
+    def empty() -> _Tracks:
+        i = np.empty(0, dtype=np.int64)
+        return _Tracks(
+            i, np.empty((0, 6)), np.empty((0, 6, 6)), np.empty(0), i, i, i, np.empty(0, dtype=bool), i
+        )
+
+    def take(self, keep: NDArray[np.bool_]) -> _Tracks:
+        return _Tracks(
+            self.uid[keep],
+            self.x[keep],
+            self.P[keep],
+            self.t[keep],
+            self.hist[keep],
+            self.looks[keep],
+            self.miss_run[keep],
+            self.confirmed[keep],
+            self.nplots[keep],
+        )
+
+    def append(self, new: _Tracks) -> _Tracks:
+        return _Tracks(
+            np.concatenate([self.uid, new.uid]),
+            np.concatenate([self.x, new.x]),
+            np.concatenate([self.P, new.P]),
+            np.concatenate([self.t, new.t]),
+            np.concatenate([self.hist, new.hist]),
+            np.concatenate([self.looks, new.looks]),
+            np.concatenate([self.miss_run, new.miss_run]),
+            np.concatenate([self.confirmed, new.confirmed]),
+            np.concatenate([self.nplots, new.nplots]),
+        )
+
+
+Joined = list[tuple[NDArray[np.int64], PlotColumns]]
+
+
 class TrackManager(Tracker):
     """Per-radar tracker (see module docstring)."""
 
@@ -78,21 +139,13 @@ class TrackManager(Tracker):
         self.initiator = initiator
         self._initiate = get_initiator(initiator)
         self.id_prefix = id_prefix
-        self._window = PlotWindow(window_s)
+        self._window = PlotWindow(window_s, self.params.bounds.max_window_plots)
         self._next_uid = 1
         self.last_time_s = -np.inf
-        self._uid = np.empty(0, dtype=np.int64)
-        self._x = np.empty((0, 6))
-        self._P = np.empty((0, 6, 6))
-        self._t = np.empty(0)
-        self._hist = np.empty(0, dtype=np.int64)
-        self._looks = np.empty(0, dtype=np.int64)
-        self._miss_run = np.empty(0, dtype=np.int64)
-        self._confirmed = np.empty(0, dtype=bool)
-        self._nplots = np.empty(0, dtype=np.int64)
+        self._tracks = _Tracks.empty()
         #: The plots that joined tracks in the last update, as ``(track uids, plots)`` chunks:
         #: assigned to existing tracks, and the members of newly initiated ones.
-        self.joined: list[tuple[NDArray[np.int64], PlotColumns]] = []
+        self.joined: Joined = []
 
     # -- contract ---------------------------------------------------------------------
     @property
@@ -100,62 +153,77 @@ class TrackManager(Tracker):
         return len(self._window)
 
     @property
+    def window_evicted(self) -> int:
+        """Plots evicted so far because the window held ``bounds.max_window_plots``."""
+        return self._window.evicted
+
+    @property
     def uids(self) -> NDArray[np.int64]:
         """Numeric ids of the live tracks, in the row order of :meth:`tracks`."""
-        return self._uid.copy()
+        return self._tracks.uid.copy()
 
     def update(self, plots: PlotColumns, time_s: float) -> None:
+        """One batch, all or nothing (module docstring): every step works on new arrays and a
+        copy of the window, and the tracker takes them only at the end."""
         fp = self.params.filter
-        self.joined = []
-        self.last_time_s = max(self.last_time_s, float(time_s))
+        joined: Joined = []
+        tracks = self._tracks
+        window = self._window.copy()
         meas = plots_to_measurements(self.site, plots, self.params.measurement)
-        n_tr = self._uid.shape[0]
         used = np.zeros(len(meas), dtype=bool)
-        hit = np.zeros(n_tr, dtype=bool)
-        if n_tr and len(meas):
-            rows, cols, d2, xp, pp = self._gate(meas)
+        hit = np.zeros(len(tracks), dtype=bool)
+        if len(tracks) and len(meas):
+            rows, cols, d2, xp, pp = self._gate(tracks, meas)
             chosen = assign(rows, cols, d2, fp.gate_chi2)
             r, c = rows[chosen], cols[chosen]
             if r.shape[0]:
                 x_new, p_new, _ = kalman.update(xp[chosen], pp[chosen], meas.enu_m[c], meas.covariance[c])
-                self._x[r], self._P[r], self._t[r] = x_new, p_new, meas.time_s[c]
-                self._nplots[r] += 1
+                x, P, t, nplots = tracks.x.copy(), tracks.P.copy(), tracks.t.copy(), tracks.nplots.copy()
+                x[r], P[r], t[r] = x_new, p_new, meas.time_s[c]
+                nplots[r] += 1
+                tracks = replace(tracks, x=x, P=P, t=t, nplots=nplots)
                 hit[r] = True
                 used[c] = True
-                self.joined.append((self._uid[r], plots.take(c)))
-        self._life_cycle(hit, plots.azimuth_deg, float(time_s))
-        self._window.extend(plots.take(~used), float(time_s))
-        self._initiate_from_window()
+                joined.append((tracks.uid[r], plots.take(c)))
+        tracks = self._life_cycle(tracks, hit, plots.azimuth_deg, float(time_s))
+        window.extend(plots.take(~used), float(time_s))
+        tracks, next_uid = self._initiate_from_window(tracks, window, joined)
+        # Commit: plain assignments only, after every step that can fail.
+        self._tracks, self._window, self.joined, self._next_uid = tracks, window, joined, next_uid
+        self.last_time_s = max(self.last_time_s, float(time_s))
 
     def tracks(self) -> TrackTable:
-        n = self._uid.shape[0]
+        tr = self._tracks
+        n = len(tr)
         if n == 0:
             return TrackTable.empty()
         rot = self.site.rotation
-        pos = self._x[:, :3] @ rot.T + self.site.origin_ecef
-        vel = self._x[:, 3:] @ rot.T
+        pos = tr.x[:, :3] @ rot.T + self.site.origin_ecef
+        vel = tr.x[:, 3:] @ rot.T
         big = np.zeros((6, 6))
         big[:3, :3] = rot
         big[3:, 3:] = rot
-        cov = big @ self._P @ big.T
-        ids = np.array([f"{self.id_prefix}-{u}" for u in self._uid.tolist()], dtype=str)
+        cov = big @ tr.P @ big.T
+        ids = np.array([f"{self.id_prefix}-{u}" for u in tr.uid.tolist()], dtype=str)
         return TrackTable(
             ids,
-            self._confirmed.copy(),
-            self._t.copy(),
+            tr.confirmed.copy(),
+            tr.t.copy(),
             pos,
             vel,
             cov,
-            self._nplots.copy(),
+            tr.nplots.copy(),
             np.full(n, None, dtype=object),  # plot labels per track: service.truth_labels
         )
 
     # -- association ------------------------------------------------------------------
-    def _gate(self, meas: Measurements) -> tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray]:
+    def _gate(
+        self, tracks: _Tracks, meas: Measurements
+    ) -> tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray]:
         """Gated candidates ``(track, plot, d^2)`` and each candidate's predicted state."""
         fp = self.params.filter
         tb = float(np.median(meas.time_s))
-        xb, pb = kalman.predict(self._x, self._P, tb - self._t, fp.process_noise_psd)
+        xb, pb = kalman.predict(tracks.x, tracks.P, tb - tracks.t, fp.process_noise_psd)
         span = float(np.max(np.abs(meas.time_s - tb)))
         sig_t = np.sqrt(np.trace(pb[:, :3, :3], axis1=1, axis2=2))
         sig_p = float(np.sqrt(np.max(np.trace(meas.covariance, axis1=1, axis2=2))))
@@ -169,89 +237,90 @@ class TrackManager(Tracker):
         cols = sdm["j"].astype(np.intp)
         keep = sdm["v"] <= radius[rows]
         rows, cols = rows[keep], cols[keep]
-        dt = meas.time_s[cols] - self._t[rows]
-        xp, pp = kalman.predict(self._x[rows], self._P[rows], dt, fp.process_noise_psd)
+        dt = meas.time_s[cols] - tracks.t[rows]
+        xp, pp = kalman.predict(tracks.x[rows], tracks.P[rows], dt, fp.process_noise_psd)
         y, S = kalman.innovation(xp, pp, meas.enu_m[cols], meas.covariance[cols])
         d2 = kalman.mahalanobis2(y, S)
         ok = d2 <= fp.gate_chi2
         return rows[ok], cols[ok], d2[ok], xp[ok], pp[ok]
 
     # -- life cycle -------------------------------------------------------------------
-    def _expected(self, azimuth_deg: FloatArray, time_s: float) -> NDArray[np.bool_]:
+    def _expected(self, tracks: _Tracks, azimuth_deg: FloatArray, time_s: float) -> NDArray[np.bool_]:
         """Tracks whose predicted azimuth lies inside the batch's covered arc (less a margin)."""
         arc = covered_arc(np.asarray(azimuth_deg, dtype=float))
-        n = self._uid.shape[0]
+        n = len(tracks)
         if arc is None or n == 0:
             return np.zeros(n, dtype=bool)
         start, width = arc
-        pos = self._x[:, :3] + self._x[:, 3:] * (time_s - self._t)[:, None]
+        pos = tracks.x[:, :3] + tracks.x[:, 3:] * (time_s - tracks.t)[:, None]
         az = np.degrees(np.arctan2(pos[:, 0], pos[:, 1]))
         off = np.mod(az - start, 360.0)
         m = self.params.manager.sector_margin_deg
         return np.asarray((off >= m) & (off <= width - m))
 
-    def _life_cycle(self, hit: NDArray[np.bool_], azimuth_deg: FloatArray, time_s: float) -> None:
+    def _life_cycle(
+        self, tracks: _Tracks, hit: NDArray[np.bool_], azimuth_deg: FloatArray, time_s: float
+    ) -> _Tracks:
         mp = self.params.manager
         n_bits = mp.confirm_n
         mask = (1 << n_bits) - 1
-        expected = self._expected(azimuth_deg, time_s) & ~hit
+        expected = self._expected(tracks, azimuth_deg, time_s) & ~hit
         looked = hit | expected
-        self._hist[looked] = ((self._hist[looked] << 1) | hit[looked].astype(np.int64)) & mask
-        self._looks[looked] = np.minimum(self._looks[looked] + 1, n_bits)
-        self._miss_run[hit] = 0
-        self._miss_run[expected] += 1
-        hits = popcount(self._hist)
-        self._confirmed |= hits >= mp.confirm_m
-        misses = self._looks - hits
-        dead = (~self._confirmed & (misses > mp.confirm_n - mp.confirm_m)) | (
-            self._confirmed & (self._miss_run >= mp.confirmed_max_misses)
+        hist = np.where(looked, ((tracks.hist << 1) | hit.astype(np.int64)) & mask, tracks.hist)
+        looks = np.where(looked, np.minimum(tracks.looks + 1, n_bits), tracks.looks)
+        miss_run = np.where(hit, 0, tracks.miss_run + expected)
+        hits = popcount(hist)
+        confirmed = tracks.confirmed | (hits >= mp.confirm_m)
+        tracks = replace(tracks, hist=hist, looks=looks, miss_run=miss_run, confirmed=confirmed)
+        misses = looks - hits
+        dead = (~confirmed & (misses > mp.confirm_n - mp.confirm_m)) | (
+            confirmed & (miss_run >= mp.confirmed_max_misses)
         )
-        dead |= time_s - self._t > mp.coast_scans * self.site.scan_period_s
-        if dead.any():
-            self._keep(~dead)
-
-    def _keep(self, keep: NDArray[np.bool_]) -> None:
-        self._uid = self._uid[keep]
-        self._x, self._P, self._t = self._x[keep], self._P[keep], self._t[keep]
-        self._hist, self._looks = self._hist[keep], self._looks[keep]
-        self._miss_run, self._confirmed = self._miss_run[keep], self._confirmed[keep]
-        self._nplots = self._nplots[keep]
+        dead |= time_s - tracks.t > mp.coast_scans * self.site.scan_period_s
+        return tracks.take(~dead) if dead.any() else tracks
 
     # -- initiation -------------------------------------------------------------------
-    def _initiate_from_window(self) -> None:
-        wplots = self._window.plots
+    def _initiate_from_window(
+        self, tracks: _Tracks, window: PlotWindow, joined: Joined
+    ) -> tuple[_Tracks, int]:
+        """New tentative tracks from ``window`` (whose used plots it removes), their plots
+        appended to ``joined``; returns the tracks and the next free uid."""
+        next_uid = self._next_uid
+        wplots = window.plots
         if len(wplots) < 3:
-            return
+            return tracks, next_uid
         p = self.params
         wm = plots_to_measurements(self.site, wplots, p.measurement)
         groups = self._initiate(wm, p, self.site.scan_period_s)
         if groups.count == 0:
-            return
+            return tracks, next_uid
         births = fit_groups(wm, groups, p.filter.process_noise_psd, p.manager.birth_velocity_sigma_mps)
         ok = births.mean_nis <= p.manager.birth_max_mean_nis
         if not ok.any():
-            return
+            return tracks, next_uid
         k = int(ok.sum())
-        uid = np.arange(self._next_uid, self._next_uid + k, dtype=np.int64)
-        self._next_uid += k
+        uid = np.arange(next_uid, next_uid + k, dtype=np.int64)
         n_bits = p.manager.confirm_n
         first = np.minimum(births.plots[ok], n_bits).astype(np.int64)
         hist = (np.int64(1) << first) - 1
-        self._uid = np.concatenate([self._uid, uid])
-        self._x = np.concatenate([self._x, births.x[ok]])
-        self._P = np.concatenate([self._P, births.P[ok]])
-        self._t = np.concatenate([self._t, births.time_s[ok]])
-        self._hist = np.concatenate([self._hist, hist])
-        self._looks = np.concatenate([self._looks, first])
-        self._miss_run = np.concatenate([self._miss_run, np.zeros(k, dtype=np.int64)])
-        self._confirmed = np.concatenate([self._confirmed, popcount(hist) >= p.manager.confirm_m])
-        self._nplots = np.concatenate([self._nplots, births.plots[ok]])
+        born = _Tracks(
+            uid,
+            births.x[ok],
+            births.P[ok],
+            births.time_s[ok],
+            hist,
+            first,
+            np.zeros(k, dtype=np.int64),
+            popcount(hist) >= p.manager.confirm_m,
+            births.plots[ok],
+        )
         # Plots of accepted groups leave the window; label -> uid of the new track.
         label_uid = np.full(groups.count, -1, dtype=np.int64)
         label_uid[ok] = uid
         in_new = label_uid[groups.group] >= 0
         member = groups.plot[in_new]
-        self.joined.append((label_uid[groups.group][in_new], wplots.take(member)))
+        joined.append((label_uid[groups.group][in_new], wplots.take(member)))
         used = np.zeros(len(wplots), dtype=bool)
         used[member] = True
-        self._window.replace(wplots.take(~used))
+        window.replace(wplots.take(~used))
+        return tracks.append(born), next_uid + k

@@ -221,6 +221,53 @@ class ClusterParams:
 
 
 @dataclass(frozen=True)
+class BoundParams:
+    """Bounds on the memory and work of one update, whatever a batch holds.
+
+    The contract allows batches of up to 100 000 plots (``service.messages.MAX_BATCH_ITEMS``),
+    and a dense one can put tens of thousands of plots within one initiator search radius
+    (``max_speed * dt`` plus a few sigma: tens of kilometres).  Without bounds the candidate
+    pairs, triples and local clusters grow quadratically or worse with the plots and one batch
+    exhausts the memory.  Normal traffic stays far below every bound (figures below: the
+    tracking benchmark, 1 000 targets + 200 clutter plots per scan), so results there are
+    exactly those of the unbounded search.
+    """
+
+    max_window_plots: int = 50_000
+    """At most this many plots stay in the sliding window; beyond it the oldest (by plot time,
+    then arrival) are evicted and counted (``Tracker.window_evicted``).  A window of three scans
+    normally holds about 600-1 800 plots, so this is some 30 times the busiest normal window
+    yet half a contract batch: one full batch cannot keep the window full of one instant's
+    plots, and the per-update work that follows the window (the measurements of all its plots,
+    the grid count of the pair search) stays a few tens of milliseconds."""
+
+    max_pairs: int = 4_000_000
+    """Work bound of the pair searches of the initiators: candidate pairs (plots in the 3x3
+    grid cells of the search radius around a plot, inside its time gate;
+    :mod:`service.tracking.pairs`) examined per update.  Plots are taken oldest first and the
+    search stops before the plot that would pass this; the rest are searched in later updates,
+    when they are the oldest.  The benchmark's windows have at most some 50 000 such
+    candidates; 4 million take about a second and, in blocks, little memory."""
+
+    max_triples: int = 1_000_000
+    """Work bound of the logic initiator's triples: pairs ``(i, j)`` are joined with the pairs
+    ``(j, k)`` oldest ``i`` first, stopping before the pair whose triples would pass this.
+    The benchmark's windows form a few thousand triples."""
+
+    block: int = 250_000
+    """Candidate pairs or triples held in memory at once (the searches run in blocks of this
+    many, plus at most one plot's own candidates).  A candidate pair costs about 150 bytes of
+    temporaries and a triple about 700 (its 3x3 gate covariances), so a block stays under
+    200 MB; splitting into blocks changes no result."""
+
+    max_cluster_plots: int = 300
+    """The Hough family initiators run on local clusters of plots that one target could have
+    produced; a cluster with more plots than this is not transformed in that update (its plots
+    stay in the window).  Velocity clustering builds ``S x S x S`` arrays over the ``S`` plots
+    of a Hough band (at most the cluster), 200 MB per array at 300 plots."""
+
+
+@dataclass(frozen=True)
 class TrackerParams:
     """All parameters of one radar's tracker."""
 
@@ -230,3 +277,4 @@ class TrackerParams:
     logic: LogicParams = field(default_factory=LogicParams)
     hough: HoughParams = field(default_factory=HoughParams)
     cluster: ClusterParams = field(default_factory=ClusterParams)
+    bounds: BoundParams = field(default_factory=BoundParams)

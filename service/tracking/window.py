@@ -1,4 +1,4 @@
-"""The per-radar sliding window of plots, kept by data time."""
+"""The per-radar sliding window of plots, kept by data time and bounded in plots."""
 
 from __future__ import annotations
 
@@ -10,26 +10,44 @@ from service.tracking.base import PlotColumns
 
 
 class PlotWindow:
-    """Plots of one radar not (yet) used by a track, over the last ``window_s`` of data time.
+    """Plots of one radar not (yet) used by a track, over the last ``window_s`` of data time,
+    at most ``max_plots`` of them.
 
     Pruning drops every plot older than ``newest_time - window_s``, where ``newest_time`` is
-    the latest batch ``time_s`` seen (the radar's own data clock, never the wall clock).
+    the latest batch ``time_s`` seen (the radar's own data clock, never the wall clock).  When
+    more than ``max_plots`` remain, the oldest by plot time are evicted (equal times: the
+    earliest arrived first) and counted in :attr:`evicted`.
 
     Batches are kept as chunks and joined only when :attr:`plots` is read, so appending a
     batch costs O(batch), not O(window): raw ingest stays fast however long the window.
+    A window is changed only by its own methods, and its chunks are never written in place,
+    so :meth:`copy` is cheap (the chunks are shared) and a copy can be changed and then kept
+    or dropped as a whole (the track manager's all-or-nothing update).
     """
 
-    def __init__(self, window_s: float) -> None:
+    def __init__(self, window_s: float, max_plots: int | None = None) -> None:
         if not window_s > 0:
             raise ValueError(f"window_s must be > 0, got {window_s!r}")
+        if max_plots is not None and max_plots < 0:
+            raise ValueError(f"max_plots must be >= 0, got {max_plots!r}")
         self.window_s = float(window_s)
+        self.max_plots = max_plots
         self._chunks: deque[PlotColumns] = deque()
         self._count = 0
         self._joined: PlotColumns | None = PlotColumns.empty()
         self.newest_time_s = -np.inf
+        #: Plots evicted so far because the window held more than ``max_plots``.
+        self.evicted = 0
 
     def __len__(self) -> int:
         return self._count
+
+    def copy(self) -> PlotWindow:
+        """An independent window with the same plots and counters (chunks shared, O(chunks))."""
+        out = PlotWindow.__new__(PlotWindow)
+        out.__dict__.update(self.__dict__)
+        out._chunks = deque(self._chunks)
+        return out
 
     @property
     def plots(self) -> PlotColumns:
@@ -55,6 +73,7 @@ class PlotWindow:
         self._joined = plots
 
     def prune(self) -> None:
+        """Drop plots older than the window, then evict the oldest beyond ``max_plots``."""
         cutoff = self.newest_time_s - self.window_s
         changed = False
         kept: deque[PlotColumns] = deque()
@@ -70,3 +89,14 @@ class PlotWindow:
         if changed:
             self._chunks = kept
             self._joined = None
+        self._evict()
+
+    def _evict(self) -> None:
+        excess = self._count - self.max_plots if self.max_plots is not None else 0
+        if excess <= 0:
+            return
+        plots = self.plots  # arrival order, so a stable sort by time breaks ties by arrival
+        keep = np.ones(len(plots), dtype=bool)
+        keep[np.argsort(plots.time_s, kind="stable")[:excess]] = False
+        self.replace(plots.take(keep))
+        self.evicted += excess
