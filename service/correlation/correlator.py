@@ -94,14 +94,18 @@ def make_correlator(method: str, params: CorrelationParams) -> Correlator:
 
 
 def _lookup_pairs(
-    ids_a: np.ndarray, ids_b: np.ndarray, pair_a: np.ndarray, pair_b: np.ndarray
+    ids_a: np.ndarray,
+    ids_b: np.ndarray,
+    pair_a: np.ndarray,
+    pair_b: np.ndarray,
+    sorters: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Row indices in ``ids_a``/``ids_b`` of the pairs ``(pair_a, pair_b)`` present in both."""
+    """Row indices in ``ids_a``/``ids_b`` of the pairs ``(pair_a, pair_b)`` present in both
+    (``sorters``: the argsorts of ``ids_a`` and ``ids_b`` when already known)."""
     if len(ids_a) == 0 or len(ids_b) == 0 or len(pair_a) == 0:
         e = np.empty(0, dtype=np.intp)
         return e, e.copy()
-    sa = np.argsort(ids_a)
-    sb = np.argsort(ids_b)
+    sa, sb = sorters if sorters is not None else (np.argsort(ids_a), np.argsort(ids_b))
     ia = sa[np.minimum(np.searchsorted(ids_a, pair_a, sorter=sa), len(sa) - 1)]
     ib = sb[np.minimum(np.searchsorted(ids_b, pair_b, sorter=sb), len(sb) - 1)]
     ok = (ids_a[ia] == pair_a) & (ids_b[ib] == pair_b)
@@ -167,8 +171,9 @@ class PairCorrelator:
             b, extra_b = compensate(raw_b, bb, pb)
             ctx_kw = {"registered": True, "registration_cov_a": extra_a, "registration_cov_b": extra_b}
         conf = self.book.confirmed
+        sorters = (np.argsort(a.track_id), np.argsort(b.track_id))  # the rows of a, b and raw_a, raw_b
         ca_idx, cb_idx = _lookup_pairs(
-            a.track_id, b.track_id, self.book.track_a[conf], self.book.track_b[conf]
+            a.track_id, b.track_id, self.book.track_a[conf], self.book.track_b[conf], sorters
         )
         ctx = DecisionContext(time_s=time_s, confirmed_a=ca_idx, confirmed_b=cb_idx, **ctx_kw)  # type: ignore[arg-type]
         parts = []
@@ -183,18 +188,20 @@ class PairCorrelator:
                 reference_b=_other_rows(len(b), kept.index_b),
             )
         self.last_reverified = len(kept) if kept is not None else 0
-        parts.append(self.correlator.decide(a, b, ctx))
-        dec = Decisions.concat(parts)
-        cost = dec.cost
-        if len(dec) and len(ca_idx):
+        decided = self.correlator.decide(a, b, ctx)
+        cost = decided.cost
+        if len(decided) and len(ca_idx):
             # Confirmed pairs by row indices (those present in both snapshots).
             nb = max(len(b), 1)
-            is_conf = np.isin(dec.index_a * nb + dec.index_b, ca_idx * nb + cb_idx)
+            is_conf = np.isin(decided.index_a * nb + decided.index_b, ca_idx * nb + cb_idx)
             cost = np.where(is_conf, cost - prm.confirmed_bonus, cost)
         chosen, ambiguous = assign_unambiguous(
-            dec.index_a, dec.index_b, cost, dec.accepted, prm.ambiguity_margin
+            decided.index_a, decided.index_b, cost, decided.accepted, prm.ambiguity_margin
         )
-        sel = dec.take(chosen)
+        # Kept pairs share no track with the decided candidates: the assignment would take
+        # each of them as it is (no rival), so they are chosen without it.
+        dec = Decisions.concat([*parts, decided])
+        sel = Decisions.concat([*parts, decided.take(chosen)])
         self.book.update(
             time_s,
             np.asarray(tracks_a.track_id).astype(str),
@@ -209,7 +216,7 @@ class PairCorrelator:
         # Registration rows from the confirmed pairs (raw, uncompensated positions).
         conf = self.book.confirmed
         pa_idx, pb_idx = _lookup_pairs(
-            raw_a.track_id, raw_b.track_id, self.book.track_a[conf], self.book.track_b[conf]
+            raw_a.track_id, raw_b.track_id, self.book.track_a[conf], self.book.track_b[conf], sorters
         )
         if len(pa_idx):
             cap = prm.registration.registered_rows_per_update if self.registered else None

@@ -90,6 +90,7 @@ class PairBook:
             raise ValueError("window must be within 1..32")
         self.track_a = np.empty(0, dtype=str)
         self.track_b = np.empty(0, dtype=str)
+        self.keys = np.empty(0, dtype=str)  # track_a + separator + track_b, kept with the rows
         self.history = np.empty(0, dtype=np.uint32)
         self.hits = np.empty(0, dtype=np.int64)
         self.misses = np.empty(0, dtype=np.int64)
@@ -108,6 +109,7 @@ class PairBook:
     def _keep(self, keep: NDArray[np.bool_]) -> None:
         self.track_a = self.track_a[keep]
         self.track_b = self.track_b[keep]
+        self.keys = self.keys[keep]
         self.history = self.history[keep]
         self.hits = self.hits[keep]
         self.misses = self.misses[keep]
@@ -139,27 +141,35 @@ class PairBook:
         statistic = np.clip(np.asarray(statistic, dtype=float), -1e6, 1e6)
         rotation_weight = np.asarray(rotation_weight, dtype=float)
         scale = np.asarray(scale, dtype=float)
-        book_keys = _keys(self.track_a, self.track_b)
         new_keys = _keys(chosen_a, chosen_b)
-        hit = _isin(book_keys, new_keys)
+        # Book pairs among the chosen ones, and which chosen pair each is (one sort, one search).
+        hit = np.zeros(len(self), dtype=bool)
+        src = np.empty(0, dtype=np.intp)
+        if len(self) and len(new_keys):
+            order = np.argsort(new_keys)
+            ns = new_keys[order]
+            pos = np.minimum(np.searchsorted(ns, self.keys), len(ns) - 1)
+            hit = ns[pos] == self.keys
+            src = order[pos[hit]]
         self.history = (self.history << np.uint32(1)) | hit.astype(np.uint32)
         self.hits = self.hits + hit
         self.misses = np.where(hit, 0, self.misses + 1)
         # Refresh statistics of the hit pairs.
         if hit.any():
-            pos = np.searchsorted(new_keys, book_keys[hit], sorter=np.argsort(new_keys))
-            src = np.argsort(new_keys)[pos]
             self.cols["statistic"][hit] = statistic[src]
             self.cols["rotation_weight"][hit] = rotation_weight[src]
             self.cols["scale"][hit] = scale[src]
             self.cols["last_time_s"][hit] = time_s
             self.neighbors[hit] = neighbors[src]
-        # Append the new pairs.
-        fresh = ~_isin(new_keys, book_keys)
+        # Append the new pairs: the chosen ones no book pair found (chosen pairs are one-to-one,
+        # so their keys are unique).
+        fresh = np.ones(len(new_keys), dtype=bool)
+        fresh[src] = False
         nf = int(fresh.sum())
         if nf:
             self.track_a = np.concatenate([self.track_a, chosen_a[fresh].astype(str)])
             self.track_b = np.concatenate([self.track_b, chosen_b[fresh].astype(str)])
+            self.keys = np.concatenate([self.keys, new_keys[fresh]])
             self.history = np.concatenate([self.history, np.ones(nf, dtype=np.uint32)])
             self.hits = np.concatenate([self.hits, np.ones(nf, dtype=np.int64)])
             self.misses = np.concatenate([self.misses, np.zeros(nf, dtype=np.int64)])
@@ -181,15 +191,11 @@ class PairBook:
         self._keep(~(gone | stale_tent | stale_conf))
         # Confirm.
         score = self.score
-        busy_a = self.track_a[self.confirmed]
-        busy_b = self.track_b[self.confirmed]
-        ready = (
-            ~self.confirmed
-            & (score * prm.window >= prm.confirm_hits - 1e-9)
-            & ~_isin(self.track_a, busy_a)
-            & ~_isin(self.track_b, busy_b)
-        )
-        idx = np.flatnonzero(ready)
+        idx = np.flatnonzero(~self.confirmed & (score * prm.window >= prm.confirm_hits - 1e-9))
+        if idx.size:  # (the busy test only for these: in a steady state they are few)
+            busy_a = self.track_a[self.confirmed]
+            busy_b = self.track_b[self.confirmed]
+            idx = idx[~_isin(self.track_a[idx], busy_a) & ~_isin(self.track_b[idx], busy_b)]
         if idx.size:
             ua, ra = np.unique(self.track_a[idx], return_inverse=True)
             ub, rb = np.unique(self.track_b[idx], return_inverse=True)

@@ -56,6 +56,24 @@ def predict_states(
     return pos, velocity.copy(), cov
 
 
+def predict_blocks(
+    position: FloatArray, velocity: FloatArray, covariance: FloatArray, dt: FloatArray, accel_psd: float
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`predict_states` returning the position and velocity covariance blocks only (what a
+    snapshot keeps), in the same arithmetic: ``A + dt B^T + dt (B + dt D) + Q_pp`` and ``D + Q_vv``."""
+    dt = np.asarray(dt, dtype=float)
+    pos = position + velocity * dt[:, None]
+    p = np.asarray(covariance, dtype=float)
+    d3 = dt[:, None, None]
+    pos_cov = (p[:, :3, :3] + d3 * p[:, 3:, :3]) + d3 * (p[:, :3, 3:] + d3 * p[:, 3:, 3:])
+    vel_cov = p[:, 3:, 3:].copy()
+    a = np.abs(dt)
+    diag = np.arange(3)
+    pos_cov[:, diag, diag] += (accel_psd * (a**3 / 3.0))[:, None]
+    vel_cov[:, diag, diag] += (accel_psd * a)[:, None]
+    return pos, velocity.copy(), pos_cov, vel_cov
+
+
 def predict_snapshot(
     table: TrackTable, site: Site | None, time_s: float, params: PredictionParams | None = None
 ) -> TrackSnapshot:
@@ -72,9 +90,15 @@ def predict_snapshot(
     keep &= np.all(np.isfinite(table.position_ecef_m), axis=1) & np.all(
         np.isfinite(table.velocity_ecef_mps), axis=1
     )
-    t = table.take(np.flatnonzero(keep))
-    pos, vel, cov = predict_states(
-        t.position_ecef_m, t.velocity_ecef_mps, t.covariance, time_s - t.time_s, p.accel_psd
+    # Only the columns a snapshot uses (a table also carries plots, truth labels, ...).
+    rows = np.flatnonzero(keep)
+    track_id = np.asarray(table.track_id)[rows]
+    pos, vel, pos_cov, vel_cov = predict_blocks(
+        table.position_ecef_m[rows],
+        table.velocity_ecef_mps[rows],
+        table.covariance[rows],
+        time_s - table.time_s[rows],
+        p.accel_psd,
     )
     if site is None:
         enu, enu_v = pos, vel
@@ -82,11 +106,11 @@ def predict_snapshot(
         enu = site.ecef_to_enu(pos)
         enu_v = vel @ site.rotation
     return TrackSnapshot(
-        track_id=np.asarray(t.track_id).astype(str),
+        track_id=track_id.astype(str),
         position=pos,
         velocity=vel,
-        pos_cov=cov[:, :3, :3],
-        vel_cov=cov[:, 3:, 3:],
+        pos_cov=pos_cov,
+        vel_cov=vel_cov,
         site=site,
         enu=enu,
         enu_velocity=enu_v,

@@ -38,8 +38,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.correlation.base import FloatArray, TrackSnapshot
-from service.correlation.linalg import inv3, matvec3, quad3
-from service.geo import Site, polar_jacobian
+from service.correlation.linalg import congruence, inv3, matvec3, quad3
+from service.geo import Site
 
 
 @dataclass(frozen=True)
@@ -136,8 +136,35 @@ class BiasSolution:
 
 def bias_jacobian(site: Site, position: FloatArray) -> FloatArray:
     """``G = R J`` of each ECEF position (n, 3) for that site's polar biases, ``(n, 3, 3)``."""
-    r, az, el = site.ecef_to_polar(position)
-    return site.rotation @ polar_jacobian(r, az, el)
+    j = polar_jacobian_enu(site.ecef_to_enu(position))
+    # R J_k for every k as one 2-D product: (J_k^T R^T)^T.
+    return np.swapaxes((np.swapaxes(j, 1, 2).reshape(-1, 3) @ site.rotation.T).reshape(j.shape), 1, 2)
+
+
+def polar_jacobian_enu(enu: FloatArray) -> FloatArray:
+    """:func:`service.geo.polar_jacobian` (the ``J`` of Eq. 2) from ENU points ``(n, 3)``, without
+    trigonometry: with ``h`` the horizontal and ``r`` the slant range, ``sin(az) = e / h``,
+    ``cos(az) = n / h``, ``cos(el) = h / r``, ``sin(el) = u / r``, so
+    ``J = [[e/r, n, -u e/h], [n/r, -e, -u n/h], [u/r, 0, h]]`` (straight above the site,
+    ``h = 0``, the azimuth is taken as 0 as ``arctan2(0, 0)`` does)."""
+    e, n, u = enu[:, 0], enu[:, 1], enu[:, 2]
+    h = np.hypot(e, n)
+    r = np.hypot(h, u)
+    above = h <= 0
+    sa = np.divide(e, h, out=np.zeros_like(h), where=~above)
+    ca = np.divide(n, h, out=np.ones_like(h), where=~above)
+    rs = np.where(r > 0, r, 1.0)
+    jac = np.empty((enu.shape[0], 3, 3))
+    jac[:, 0, 0] = h / rs * sa
+    jac[:, 0, 1] = h * ca
+    jac[:, 0, 2] = -u * sa
+    jac[:, 1, 0] = h / rs * ca
+    jac[:, 1, 1] = -h * sa
+    jac[:, 1, 2] = -u * ca
+    jac[:, 2, 0] = u / rs
+    jac[:, 2, 1] = 0.0
+    jac[:, 2, 2] = h
+    return jac
 
 
 _COLUMNS = ("time", "pair", "p_a", "p_b", "g_a", "g_b", "s", "w", "w_ok", "gaw", "gbw", "haa", "hab", "hbb")
@@ -403,7 +430,11 @@ def remove_bias(site: Site, position: FloatArray, bias: FloatArray) -> FloatArra
     horizontal part turns by ``dtheta`` about the vertical (azimuth clockwise from north), the
     point turns by ``-dphi`` in its vertical plane, and the range scales by ``(r - dr) / r``.
     """
-    enu = site.ecef_to_enu(position)
+    return site.enu_to_ecef(_remove_bias_enu(site.ecef_to_enu(position), bias))
+
+
+def _remove_bias_enu(enu: FloatArray, bias: FloatArray) -> FloatArray:
+    """:func:`remove_bias` in the site's ENU frame (points in, points out)."""
     ct, st = np.cos(bias[1]), np.sin(bias[1])
     cp, sp = np.cos(bias[2]), np.sin(bias[2])
     e = enu[:, 0] * ct - enu[:, 1] * st
@@ -415,7 +446,7 @@ def remove_bias(site: Site, position: FloatArray, bias: FloatArray) -> FloatArra
     u1 = u * cp - h * sp
     scale = (r - bias[0]) / np.where(r > 0, r, 1.0)
     ratio = np.divide(h1, h, out=np.ones_like(h), where=h > 0) * scale
-    return site.enu_to_ecef(np.stack([e * ratio, n * ratio, u1 * scale], axis=1))
+    return np.stack([e * ratio, n * ratio, u1 * scale], axis=1)
 
 
 def _residual(
@@ -490,21 +521,24 @@ def compensate(
     if snapshot.site is None or len(snapshot) == 0:
         return snapshot, np.zeros((len(snapshot), 3, 3))
     site = snapshot.site
-    g = bias_jacobian(site, snapshot.position)
-    pos = remove_bias(site, snapshot.position, bias)
+    # The snapshot's own ENU states (those of its positions) give the Jacobian and the removal.
+    j = polar_jacobian_enu(snapshot.enu)
+    enu = _remove_bias_enu(snapshot.enu, bias)
     dth = -bias[1]
     c, s = np.cos(dth), np.sin(dth)
     ev = snapshot.enu_velocity
     enu_v = np.stack([ev[:, 0] * c + ev[:, 1] * s, -ev[:, 0] * s + ev[:, 1] * c, ev[:, 2]], axis=1)
-    extra = g @ bias_cov @ np.swapaxes(g, 1, 2)
+    # G C G^T = R (J C J^T) R^T: J C as one 2-D product, R (.) R^T as a congruence.
+    jc = (j.reshape(-1, 3) @ bias_cov).reshape(j.shape)
+    extra = congruence(site.rotation, jc @ np.swapaxes(j, 1, 2))
     out = TrackSnapshot(
         track_id=snapshot.track_id,
-        position=pos,
+        position=site.enu_to_ecef(enu),
         velocity=enu_v @ site.rotation.T,
         pos_cov=snapshot.pos_cov,
         vel_cov=snapshot.vel_cov,
         site=site,
-        enu=site.ecef_to_enu(pos),
+        enu=enu,
         enu_velocity=enu_v,
         compensated=True,
     )

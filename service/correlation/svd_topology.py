@@ -516,6 +516,25 @@ def compensated_chi2(
     return q_pos, ok, 3
 
 
+#: Up to this many candidates are matched in one group (see ``decide``).
+_ONE_GROUP = 64
+
+
+def _used_rows(nbr: NDArray[np.intp], refs: NDArray[np.intp]) -> NDArray[np.intp]:
+    """The references ``refs`` and every neighbour of theirs (rows of ``nbr``), ascending."""
+    nb = nbr[refs]
+    return np.unique(np.concatenate([refs, nb[nb >= 0]]))
+
+
+def _turned_rows(rot: FloatArray, cov: FloatArray, rows: NDArray[np.intp]) -> FloatArray:
+    """``rot P rot^T`` of the stack ``cov`` at ``rows`` (identity elsewhere: never read)."""
+    if 2 * len(rows) >= cov.shape[0]:
+        return congruence(rot, cov)
+    out = np.broadcast_to(np.eye(3), cov.shape).copy()
+    out[rows] = congruence(rot, cov[rows])
+    return out
+
+
 def _reference_candidates(
     a: TrackSnapshot, b: TrackSnapshot, context: DecisionContext, gate_m: float
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
@@ -588,24 +607,36 @@ class SvdTopologyCorrelator(Correlator):
         # (M0 of Eq. 3) once per track here rather than once per candidate element in
         # svd_match, which is then told that no rotation is left (M0 = I).
         ra_sub, rb_sub = ia[sub], ib[sub]
-        nbr_a = neighbourhoods(a.enu, prm.topology, rows=np.unique(ra_sub))
-        nbr_b = neighbourhoods(b.enu, prm.topology, rows=np.unique(rb_sub))
-        enu_a, cov_a, cov_b = a.enu @ m0.T, congruence(m0, a.enu_cov()), b.enu_cov()
-        vel_a, vcov_a = a.enu_velocity @ m0.T, congruence(m0, a.enu_vel_cov())
-        vcov_b = b.enu_vel_cov()
+        ua, ub = np.unique(ra_sub), np.unique(rb_sub)
+        nbr_a = neighbourhoods(a.enu, prm.topology, rows=ua)
+        nbr_b = neighbourhoods(b.enu, prm.topology, rows=ub)
+        # Covariances in B's ENU orientation, of the rows the references and their neighbours
+        # use only (a registered update has few references among many tracks).  For A that is
+        # M0 R_A^T P R_A M0^T = R_B^T P R_B (Eq. 3), as for B.
+        rot_b = b.site.rotation.T
+        enu_a = a.enu @ m0.T
+        cov_a = _turned_rows(rot_b, a.pos_cov, _used_rows(nbr_a, ua))
+        cov_b = _turned_rows(rot_b, b.pos_cov, _used_rows(nbr_b, ub))
         # Candidates are matched in (at most two) groups by sequence length: most references
         # have ``min_neighbours`` neighbours, a few more, and the per-candidate arrays of a
         # group are only as wide as its longest sequence.  Per-candidate results do not depend
-        # on the grouping.
+        # on the grouping; a few candidates are one group (one call costs less than two).
         width = np.maximum((nbr_a[ra_sub] >= 0).sum(axis=1), (nbr_b[rb_sub] >= 0).sum(axis=1))
         common = int(np.bincount(width).argmax()) if len(width) else 0
+        if len(width) <= _ONE_GROUP:
+            common = int(width.max(initial=0))
         groups = [g for g in (np.flatnonzero(width <= common), np.flatnonzero(width > common)) if g.size]
         parts = []
         for g in groups or [np.arange(len(sub))]:
             ga, gb = ra_sub[g], rb_sub[g]
             pa, ca, ma = gather_points(enu_a, cov_a, nbr_a, ga, trim=True)
             pb, cb, mb = gather_points(b.enu, cov_b, nbr_b, gb, trim=True)
-            vel = (vel_a[ga], vcov_a[ga], b.enu_velocity[gb], vcov_b[gb])
+            vel = (
+                a.enu_velocity[ga] @ m0.T,
+                congruence(rot_b, a.vel_cov[ga]),
+                b.enu_velocity[gb],
+                congruence(rot_b, b.vel_cov[gb]),
+            )
             parts.append((g, svd_match(pa, ca, ma, pb, cb, mb, np.eye(3), prm, velocity=vel)))
         res = _join_results(parts, len(sub))
 

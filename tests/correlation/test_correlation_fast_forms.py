@@ -144,3 +144,68 @@ def test_svd_match_per_candidate_independent_of_grouping_and_width() -> None:
         for name in ("statistic", "cost", "chi2_shape", "chi2_ref", "scale", "yaw_rad"):
             np.testing.assert_allclose(getattr(part, name), getattr(whole, name)[rows], rtol=1e-9, atol=1e-9)
     assert whole.accepted.mean() > 0.5
+
+
+def test_prediction_blocks_match_the_full_prediction() -> None:
+    """The snapshot's two covariance blocks against the 6x6 prediction (itself tested against
+    ``F P F^T + Q`` per track)."""
+    from service.correlation.prediction import predict_blocks, predict_states
+
+    rng = np.random.default_rng(21)
+    n = 300
+    pos, vel = rng.normal(size=(n, 3)) * 1e5, rng.normal(size=(n, 3)) * 200
+    a = rng.normal(size=(n, 6, 6))
+    cov = a @ np.swapaxes(a, 1, 2)
+    dt = rng.uniform(-3, 8, n)
+    p, v, c = predict_states(pos, vel, cov, dt, 1.5)
+    p2, v2, pc, vc = predict_blocks(pos, vel, cov, dt, 1.5)
+    np.testing.assert_array_equal(p2, p)
+    np.testing.assert_array_equal(v2, v)
+    np.testing.assert_allclose(pc, c[:, :3, :3], rtol=1e-13, atol=1e-9)
+    np.testing.assert_allclose(vc, c[:, 3:, 3:], rtol=1e-13, atol=1e-12)
+
+
+def test_polar_jacobian_from_enu_matches_the_trigonometric_one() -> None:
+    from service.correlation.registration import bias_jacobian, polar_jacobian_enu
+    from service.geo import enu_to_polar, polar_jacobian
+
+    rng = np.random.default_rng(22)
+    enu = rng.normal(size=(400, 3)) * np.array([1.5e5, 1.5e5, 6e3])
+    enu[0] = [0.0, 0.0, 9_000.0]  # straight above the site
+    enu[1] = [0.0, 80_000.0, 0.0]  # on the horizon, due north
+    r, az, el = enu_to_polar(enu)
+    want = polar_jacobian(r, az, el)
+    np.testing.assert_allclose(polar_jacobian_enu(enu), want, rtol=1e-9, atol=1e-6)
+    site, _ = make_sites()
+    pos = site.enu_to_ecef(enu)
+    g = bias_jacobian(site, pos)
+    for k in range(2, 400, 37):  # (not above the site: there the azimuth is ill-conditioned)
+        rk, ak, ek = (x[0] for x in site.ecef_to_polar(pos[k : k + 1]))
+        np.testing.assert_allclose(g[k], site.rotation @ polar_jacobian(rk, ak, ek), rtol=1e-8, atol=1e-4)
+
+
+def test_compensation_covariance_matches_per_track_product() -> None:
+    """``G C G^T`` of :func:`compensate` against the per-track product, and the compensated
+    positions against :func:`remove_bias`."""
+    from service.correlation.base import TrackSnapshot
+    from service.correlation.registration import bias_jacobian, compensate, remove_bias
+
+    rng = np.random.default_rng(23)
+    site, _ = make_sites()
+    n = 50
+    enu = rng.normal(size=(n, 3)) * np.array([1e5, 1e5, 4e3]) + np.array([0, 0, 9e3])
+    pos = site.enu_to_ecef(enu)
+    vel = rng.normal(size=(n, 3)) * 200
+    cov = np.broadcast_to(np.eye(3) * 1e4, (n, 3, 3)).copy()
+    snap = TrackSnapshot(
+        np.array([f"t{k}" for k in range(n)]), pos, vel, cov, cov.copy(), site, enu, vel @ site.rotation
+    )
+    bias = np.array([400.0, np.radians(0.3), np.radians(0.1)])
+    half = rng.normal(size=(3, 3)) * np.array([10.0, 1e-4, 1e-4])
+    bias_cov = half @ half.T
+    out, extra = compensate(snap, bias, bias_cov)
+    g = bias_jacobian(site, pos)
+    for k in range(n):
+        np.testing.assert_allclose(extra[k], g[k] @ bias_cov @ g[k].T, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(out.position, remove_bias(site, pos, bias), atol=1e-6)
+    np.testing.assert_allclose(out.enu, site.ecef_to_enu(out.position), atol=1e-6)
