@@ -192,8 +192,10 @@ _DTYPES: dict[str, type] = {"w_ok": bool, "pair": str}
 class RegistrationMemory:
     """Recent confirmed-pair rows of one radar pair (raw, uncompensated positions).
 
-    Rows are kept as one chunk per update (appending never copies the history; whole chunks
-    leave the memory when older than ``memory_s`` or beyond ``max_rows``).  Each row carries
+    Rows are kept in one buffer per column, the rows of each update appended at its end and
+    whole updates leaving from its front (older than ``memory_s`` or beyond ``max_rows``);
+    a column reads as a view of its live rows, so a solve copies nothing (the buffer is
+    compacted, at amortised constant cost per row, only when its end is reached).  Each row carries
     its normal-equation pieces, computed once when it is added: the weight ``W = S^-1`` and
     its rank flag ``w_ok``, ``gaw = G_a^T W``, ``gbw = G_b^T W`` (a row's score is ``gaw r``,
     ``-gbw r``), ``haa = G_a^T W G_a``, ``hab = G_a^T W G_b``, ``hbb = G_b^T W G_b``; a solve
@@ -205,26 +207,43 @@ class RegistrationMemory:
     def __init__(self, site_a: Site, site_b: Site | None) -> None:
         self.site_a = site_a
         self.site_b = site_b
-        self._chunks: list[dict[str, np.ndarray]] = []
-        self._cat: dict[str, np.ndarray] | None = None
+        self._buf: dict[str, np.ndarray] = {}
+        self._start = 0  # live rows are [_start, _end) of every column buffer
+        self._end = 0
+        self._updates: list[tuple[float, int]] = []  # (time, rows) of each remembered update
         self._adds = 0
 
     def _column(self, name: str) -> np.ndarray:
-        """One column over all chunks, concatenated when first read after a change."""
-        if self._cat is None:
-            self._cat = {}
-        col = self._cat.get(name)
-        if col is None:
-            col = (
-                np.concatenate([ch[name] for ch in self._chunks])
-                if self._chunks
-                else np.empty((0, *_SHAPES[name]), dtype=_DTYPES.get(name, float))
-            )
-            self._cat[name] = col
-        return col
+        """One column's live rows (a view: valid until the next :meth:`add`)."""
+        if not self._buf:
+            return np.empty((0, *_SHAPES[name]), dtype=_DTYPES.get(name, float))
+        return self._buf[name][self._start : self._end]
 
     def __len__(self) -> int:
-        return sum(len(ch["time"]) for ch in self._chunks)
+        return self._end - self._start
+
+    def _append(self, rows: dict[str, np.ndarray]) -> None:
+        k = rows["time"].shape[0]
+        live = self._end - self._start
+        cap = self._buf["time"].shape[0] if self._buf else 0
+        wider = bool(self._buf) and rows["pair"].dtype.itemsize > self._buf["pair"].dtype.itemsize
+        if self._end + k > cap or wider:
+            # Compact the live rows to the front of fresh buffers (twice what is needed, so
+            # this happens once per as many appended rows as are live).
+            new_cap = max(cap, 2 * (live + k), 1024)
+            buf = {}
+            for name, col in rows.items():
+                dtype = col.dtype
+                if name in self._buf and self._buf[name].dtype.itemsize > dtype.itemsize:
+                    dtype = self._buf[name].dtype
+                out = np.empty((new_cap, *col.shape[1:]), dtype=dtype)
+                if live:
+                    out[:live] = self._buf[name][self._start : self._end]
+                buf[name] = out
+            self._buf, self._start, self._end = buf, 0, live
+        for name, col in rows.items():
+            self._buf[name][self._end : self._end + k] = col
+        self._end += k
 
     time = property(lambda self: self._column("time"))
     pair = property(lambda self: self._column("pair"))
@@ -276,7 +295,7 @@ class RegistrationMemory:
         gbt_w = np.swapaxes(gb, 1, 2) @ w
         id_a, id_b = np.asarray(a.track_id[ia], dtype=str), np.asarray(b.track_id[ib], dtype=str)
         pair = np.char.add(np.char.add(id_a, "\x1f"), id_b)
-        self._chunks.append(
+        self._append(
             {
                 "time": np.full(len(ia), float(time_s)),
                 "pair": pair,
@@ -294,12 +313,14 @@ class RegistrationMemory:
                 "hbb": gbt_w @ gb,
             }
         )
-        # Forget whole updates: older than the memory, or beyond the row cap (oldest first).
-        self._chunks = [ch for ch in self._chunks if ch["time"][:1].sum() >= time_s - params.memory_s]
-        total = sum(len(ch["time"]) for ch in self._chunks)
-        while len(self._chunks) > 1 and total > params.max_rows:
-            total -= len(self._chunks.pop(0)["time"])
-        self._cat = None
+        self._updates.append((float(time_s), len(ia)))
+        # Forget whole updates from the front: older than the memory, or beyond the row cap.
+        # (A solve also leaves out rows outside its own window, should data time step back.)
+        while self._updates and (
+            self._updates[0][0] < time_s - params.memory_s
+            or (len(self._updates) > 1 and len(self) > params.max_rows)
+        ):
+            self._start += self._updates.pop(0)[1]
 
     def current(self, time_s: float) -> np.ndarray:
         """Mask of rows within memory (data time) of ``time_s``."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -220,3 +222,32 @@ def test_rows_per_update_rotate_over_the_pairs() -> None:
         assert len(rows) == 100 and np.all(np.diff(rows) >= 1) and np.all(np.diff(rows) <= 20)
         seen.append(rows)
     assert len(np.unique(np.concatenate(seen))) >= 600  # fixed picks would give 100
+
+
+def test_memory_buffer_holds_exactly_the_remembered_updates() -> None:
+    """The column buffers (appended at the end, forgotten from the front, compacted now and then)
+    against a plain list of per-update chunks, over many updates of varying size and id width."""
+    rng = np.random.default_rng(14)
+    a, b = make_sites()
+    truth = sample_references(rng, a, b, 400)
+    z = np.zeros(3)
+    prm = RegistrationParams(memory_s=30.0, max_rows=900, max_rows_per_update=400)
+    mem = RegistrationMemory(a, b)
+    chunks: list[tuple[float, np.ndarray, np.ndarray]] = []
+    for k in range(60):
+        t = 2.0 * k
+        sa, sb = _snapshot(a, truth, z, rng, 10.0), _snapshot(b, truth, z, rng, 10.0)
+        if k > 40:  # longer track ids from here on: the pair column must widen
+            sb = dataclasses.replace(sb, track_id=np.char.add(sb.track_id, "-long-suffix"))
+        n = int(rng.integers(0, 400))
+        idx = np.sort(rng.choice(400, n, replace=False))
+        mem.add(t, sa, sb, idx, idx, prm)
+        pair = np.char.add(np.char.add(sa.track_id[idx], "\x1f"), sb.track_id[idx])
+        chunks.append((t, sa.position[idx], pair))
+        chunks = [c for c in chunks if c[0] >= t - prm.memory_s]
+        while len(chunks) > 1 and sum(len(c[1]) for c in chunks) > prm.max_rows:
+            chunks.pop(0)
+        assert len(mem) == sum(len(c[1]) for c in chunks)
+        np.testing.assert_array_equal(mem.time, np.concatenate([np.full(len(c[1]), c[0]) for c in chunks]))
+        np.testing.assert_array_equal(mem.p_a, np.concatenate([c[1] for c in chunks]))
+        assert mem.pair.tolist() == np.concatenate([c[2] for c in chunks]).tolist()
