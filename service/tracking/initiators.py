@@ -25,13 +25,13 @@ from collections.abc import Callable
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from service.tracking.groups import Groups, IntArray
 from service.tracking.hough import classic_hough, pg_hough, pg_hough_bands
 from service.tracking.logic import logic_initiate
 from service.tracking.measurement import Measurements
-from service.tracking.params import TrackerParams
+from service.tracking.pairs import time_gated_pairs
+from service.tracking.params import BoundParams, TrackerParams
 from service.tracking.velocity_tracks import global_tracks, velocity_cluster
 
 #: Names accepted by :func:`service.tracking.make_tracker`.
@@ -65,38 +65,49 @@ def hough_velocity(t: np.ndarray, xy: np.ndarray, cov: np.ndarray, params: Track
     return global_tracks(t, xy, cov, bands, params.cluster)
 
 
-def local_clusters(meas: Measurements, max_speed_mps: float, min_plots: int) -> list[IntArray]:
+def local_clusters(
+    meas: Measurements, max_speed_mps: float, min_plots: int, bounds: BoundParams | None = None
+) -> list[IntArray]:
     """Connected components (at least ``min_plots`` plots) of the graph joining two plots when
     one target could have produced both: plane distance at most ``max_speed |dt|`` plus 3
-    sigma of the two plots' position errors.  Components come in order of their first plot."""
+    sigma of the two plots' position errors.  Components come in order of their first plot.
+    The pairs are searched within ``bounds`` (:func:`service.tracking.pairs.time_gated_pairs`:
+    blockwise, at most ``max_pairs`` candidates)."""
     n = len(meas)
     if n < min_plots:
         return []
+    bounds = bounds if bounds is not None else BoundParams()
     xy = meas.enu_m[:, :2]
     t = meas.time_s
     sig = location_error(meas.covariance[:, :2, :2])
-    radius = max_speed_mps * float(np.ptp(t)) + 6.0 * float(sig.max())
-    pr = cKDTree(xy).query_pairs(radius, output_type="ndarray")
-    a, b = pr[:, 0], pr[:, 1]
-    dist = np.linalg.norm(xy[a] - xy[b], axis=1)
-    ok = dist <= max_speed_mps * np.abs(t[a] - t[b]) + 3.0 * np.hypot(sig[a], sig[b])
-    a, b = a[ok], b[ok]
+    span = float(np.ptp(t))
+    radius = max_speed_mps * span + 6.0 * float(sig.max())
+
+    def joins(a: IntArray, b: IntArray) -> np.ndarray:
+        dist = np.linalg.norm(xy[a] - xy[b], axis=1)
+        return np.asarray(dist <= max_speed_mps * np.abs(t[a] - t[b]) + 3.0 * np.hypot(sig[a], sig[b]))
+
+    a, b = time_gated_pairs(t, xy, radius, 0.0, span, joins, bounds.max_pairs, bounds.block)
     graph = coo_matrix((np.ones(a.shape[0]), (a, b)), shape=(n, n))
     n_comp, label = connected_components(graph, directed=False)
     sizes = np.bincount(label, minlength=n_comp)
     order = np.argsort(label, kind="stable")
-    bounds = np.concatenate([[0], np.cumsum(sizes)])
-    return [order[bounds[c] : bounds[c + 1]] for c in range(n_comp) if sizes[c] >= min_plots]
+    edges = np.concatenate([[0], np.cumsum(sizes)])
+    return [order[edges[c] : edges[c + 1]] for c in range(n_comp) if sizes[c] >= min_plots]
 
 
 def _local(method: PlaneMethod) -> Initiator:
     """Apply a plane method to each local cluster of the window's plots (loop over clusters:
-    the handful of plot groups a target could have formed, not over plots)."""
+    the handful of plot groups a target could have formed, not over plots).  Clusters of more
+    than ``bounds.max_cluster_plots`` plots are left alone: the plane methods' memory grows
+    with the cube of a cluster's plots (velocity clustering's ``S x S x S`` arrays)."""
 
     def run(meas: Measurements, params: TrackerParams, scan_period_s: float) -> Groups:
         min_plots = max(3, min(params.hough.min_plots, params.cluster.min_plots))
         out: list[IntArray] = []
-        for members in local_clusters(meas, params.cluster.max_speed_mps, min_plots):
+        for members in local_clusters(meas, params.cluster.max_speed_mps, min_plots, params.bounds):
+            if members.shape[0] > params.bounds.max_cluster_plots:
+                continue
             t = meas.time_s[members]
             xy = meas.enu_m[members, :2]
             xy = xy - xy.mean(axis=0)  # local frame: small coordinates for the LS sums
