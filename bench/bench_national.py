@@ -16,7 +16,8 @@ Prints figures, never asserts.  The simulated stream is generated before any clo
   message.
 * ``--profile``: the in-process run under cProfile; top functions by cumulative and own time.
 * ``--soak-minutes M``: a never-ending stream, generated in chunks, fed in process for M wall
-  minutes; one line per minute (RSS, window, tracks, pairs) and the RSS slope at the end.
+  minutes; one line per minute (RSS, window, tracks, pairs) and the RSS slope at the end;
+  ``--trace-memory`` adds where the Python heap grew over the second half (tracemalloc).
 
 Accuracy (evaluation only: the simulator's ``truth_id`` on the final tracks, which no
 algorithm reads): share of confirmed pairs whose two tracks follow the same aircraft, track
@@ -26,7 +27,7 @@ radars of a correlated pair that have a correct confirmed pair), and each radar'
 estimate against the simulator's bias.
 
 Run: .venv/bin/python bench/bench_national.py [--duration 120] [--seed 1] [--repeat 1]
-     [--zenoh | --profile | --soak-minutes 30]
+     [--cache FILE] [--zenoh | --profile | --soak-minutes 30 [--trace-memory]]
 """
 
 from __future__ import annotations
@@ -45,7 +46,8 @@ import resource
 import socket
 import sys
 import time
-from collections.abc import Callable, Iterator
+import tracemalloc
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
@@ -64,6 +66,10 @@ SEEN_FOR_S = 30.0
 #: ... and saw it within this many of its scan periods before the end of the stream.
 STILL_SEEN_SCANS = 3.0
 PROGRESS_PERIOD_S = 10.0
+#: Slowest ingest calls listed per run.
+SLOWEST = 5
+#: Data time origin of the scenario (its start_time_s), for message times in the report.
+T0 = get_scenario("national").start_time_s
 
 
 # -- the stream and what the simulator knows ---------------------------------------------------
@@ -82,7 +88,10 @@ def scenario(duration_s: float | None) -> Scenario:
 
 
 def make_stream(sc: Scenario, seed: int, cache: Path | None) -> Stream:
-    """The whole stream in memory; ``cache`` keeps it keyed by the scenario and seed."""
+    """The whole stream in memory; ``cache`` keeps it keyed by the scenario and seed.
+
+    The key does not cover the simulator's code: delete the file after changing it.
+    """
     tag = hashlib.sha256(repr((sc, seed)).encode()).hexdigest()[:16]
     if cache is not None and cache.exists():
         with cache.open("rb") as f:
@@ -177,12 +186,25 @@ class Probe:
 
     def __init__(self, engine: Engine) -> None:
         self.updates_ms: list[float] = []
+        self.bias_ms: list[float] = []
         self.stage_s = float("nan")
         stage = correlation_stage(engine)
         if stage is None:
             return
         self.stage_s = 0.0
         original = stage.update
+        # The joint bias solve, where the stage runs it inside an update (part of stage_s).
+        solve = getattr(stage, "_solve_biases", None)
+        if callable(solve):
+
+            def timed_solve(*a: Any, **k: Any) -> Any:
+                t0 = time.perf_counter()
+                try:
+                    return solve(*a, **k)
+                finally:
+                    self.bias_ms.append(1e3 * (time.perf_counter() - t0))
+
+            setattr(stage, "_solve_biases", timed_solve)  # noqa: B010 (as below)
 
         def timed(*a: Any, **k: Any) -> Any:
             before = int(stage.updates)
@@ -207,6 +229,7 @@ class RunResult:
     snapshot_s: list[float]
     ingest_ms: np.ndarray
     updates_ms: np.ndarray
+    bias_ms: np.ndarray
     stage_s: float
     final: Snapshot
     final_snapshot_s: float
@@ -263,6 +286,7 @@ def feed(
         snapshot_s=snaps,
         ingest_ms=ingest_ms,
         updates_ms=np.asarray(probe.updates_ms),
+        bias_ms=np.asarray(probe.bias_ms),
         stage_s=probe.stage_s,
         final=final,
         final_snapshot_s=final_snapshot_s,
@@ -277,7 +301,17 @@ def pct(x: np.ndarray | list[float], q: float) -> float:
     return float(np.percentile(a, q)) if a.size else float("nan")
 
 
-def report_run(r: RunResult, data_s: float, truth: Truth, messages: int) -> None:
+def describe(message: tuple[str, bytes]) -> str:
+    """A message as ``radar@data time`` (seconds from the scenario's start)."""
+    key, payload = message
+    body = json.loads(payload)
+    t = body.get("time_s")
+    source = body.get("radar_id") or body.get("source_id") or key
+    return f"{source}@{t - T0:.1f}s" if isinstance(t, float | int) else str(source)
+
+
+def report_run(r: RunResult, data_s: float, truth: Truth, stream: Stream) -> None:
+    messages = len(stream)
     snaps = np.asarray(r.snapshot_s)
     print(f"[{r.label}]")
     print(
@@ -288,6 +322,10 @@ def report_run(r: RunResult, data_s: float, truth: Truth, messages: int) -> None
     print(
         f"  ingest per message: p50 {pct(r.ingest_ms, 50):.2f} ms, p99 {pct(r.ingest_ms, 99):.1f} ms, "
         f"max {r.ingest_ms.max():.1f} ms"
+    )
+    slowest = np.argsort(r.ingest_ms)[::-1][:SLOWEST]
+    print(
+        "  slowest ingests: " + ", ".join(f"{describe(stream[i])} {r.ingest_ms[i]:.0f} ms" for i in slowest)
     )
     corr = r.final.correlation
     if r.corr_updates:
@@ -303,6 +341,11 @@ def report_run(r: RunResult, data_s: float, truth: Truth, messages: int) -> None
             f"(snapshot's last 2048: p50 {corr.get('p50_ms')} ms, p99 {corr.get('p99_ms')} ms); "
             f"stage total {stage}"
         )
+        if r.bias_ms.size:
+            print(
+                f"  bias solves (inside the stage): {r.bias_ms.size}, p50 {pct(r.bias_ms, 50):.0f} ms, "
+                f"max {r.bias_ms.max():.0f} ms, total {r.bias_ms.sum() / 1e3:.1f} s"
+            )
     else:
         print("  correlation: no update (as intended for tracking alone)")
     if snaps.size:
@@ -462,7 +505,7 @@ def run_inprocess(args: argparse.Namespace) -> None:
         for label, config in configs:
             gc.collect()
             r = feed(Engine(config), stream, args.snapshot_every, f"{label} #{rep + 1}", data_s)
-            report_run(r, data_s, truth, len(stream))
+            report_run(r, data_s, truth, stream)
             if label == "full pipeline" and rep == args.repeat - 1:
                 accuracy(r.final, sc, truth)
             elif label == "tracking alone" and r.corr_updates:
@@ -498,7 +541,7 @@ def run_profile(args: argparse.Namespace) -> None:
     profiler.enable()
     r = feed(engine, stream, args.snapshot_every, "profile", data_s)
     profiler.disable()
-    report_run(r, data_s, truth, len(stream))
+    report_run(r, data_s, truth, stream)
     for order in ("cumulative", "tottime"):
         print(f"--- top {args.top} by {order} ---")
         pstats.Stats(profiler, stream=sys.stdout).strip_dirs().sort_stats(order).print_stats(args.top)
@@ -638,71 +681,65 @@ def run_zenoh(args: argparse.Namespace) -> None:
     accuracy(final, sc, truth)
 
 
-def chunks(sc: Scenario, seed: int, size: int) -> Iterator[Stream]:
-    """The never-ending stream ``size`` messages at a time (the generator itself holds no history)."""
-    messages = wire_messages(sc, seed)
-    while True:
-        chunk = list(itertools.islice(messages, size))
-        if not chunk:
-            return
-        yield chunk
-
-
 def run_soak(args: argparse.Namespace) -> None:
     sc = scenario(None)
     minutes = float(args.soak_minutes)
     print(
         f"national soak: {len(sc.radars)} radars, {sc.targets} aircraft, never-ending stream (seed "
-        f"{args.seed}) "
-        f"generated {args.chunk} msgs at a time, fed to one Engine in process as fast as it goes for "
-        f"{minutes:g} wall minutes, snapshot every {args.snapshot_every} msgs; one line per wall minute"
+        f"{args.seed}) generated {args.chunk} msgs at a time, fed to one Engine in process as fast "
+        f"as it goes for {minutes:g} wall minutes, snapshot every {args.snapshot_every} msgs; one "
+        "line per wall minute ('x rt': data s per wall s of the engine, generation excluded)"
+        + ("; tracemalloc on (slows the engine)" if args.trace_memory else "")
     )
     print(
         f"{'min':>5} {'data s':>8} {'x rt':>6} {'RSS MB':>8} {'peak MB':>8} {'window':>9} "
         f"{'tracks':>7} {'pairs':>7}"
     )
     engine = Engine(EngineConfig())
+    messages = wire_messages(sc, args.seed)  # lazy: the generator keeps no history
     start = time.monotonic()
     next_line = start + 60.0
     count = 0
     series: list[tuple[float, float]] = []  # (elapsed minutes, RSS MB)
-    last_data = 0.0
-    last_wall = start
+    last_data, last_engine_s, engine_s = 0.0, 0.0, 0.0
+    traced: Any = None
+    if args.trace_memory:
+        # traced from the start: a block allocated before tracing and freed later would not
+        # count as a decrease, and the growth would be overstated
+        tracemalloc.start(1)
 
     def data_time() -> float:
         clocks = [r["last_time_s"] for r in engine.snapshot().status_core()["radars"] if r["last_time_s"]]
         return max(clocks) - sc.start_time_s if clocks else 0.0
 
-    for chunk in chunks(sc, args.seed, args.chunk):
+    while time.monotonic() - start < 60.0 * minutes:
+        chunk = list(itertools.islice(messages, args.chunk))
+        t0 = time.monotonic()
         for key, payload in chunk:
             engine.ingest(key, payload, receive_time_s=0.0)
             count += 1
             if args.snapshot_every > 0 and count % args.snapshot_every == 0:
                 engine.snapshot()
-            now = time.monotonic()
-            if now >= next_line:
-                next_line += 60.0
-                snap = engine.snapshot()
-                core = snap.status_core()
-                data = data_time()
-                rt = (data - last_data) / max(now - last_wall, 1e-9)
-                last_data, last_wall = data, now
-                rss = rss_mb()
-                elapsed = (now - start) / 60.0
-                series.append((elapsed, rss))
-                window = sum(r["window_plots"] for r in core["radars"])
-                tracks = sum(r["tracks_confirmed"] + r["tracks_tentative"] for r in core["radars"])
-                print(
-                    f"{elapsed:5.1f} {data:8.0f} {rt:6.2f} {rss:8.0f} {peak_rss_mb():8.0f} "
-                    f"{window:9d} {tracks:7d} "
-                    f"{core['pairs_confirmed']:7d}",
-                    flush=True,
-                )
-            if now - start >= 60.0 * minutes:
-                break
-        else:
-            continue
-        break
+        now = time.monotonic()
+        engine_s += now - t0
+        if args.trace_memory and traced is None and now - start >= 30.0 * minutes:
+            traced = tracemalloc.take_snapshot()
+        if now >= next_line:
+            next_line += 60.0
+            core = engine.snapshot().status_core()
+            data = data_time()
+            rt = (data - last_data) / max(engine_s - last_engine_s, 1e-9)
+            last_data, last_engine_s = data, engine_s
+            rss = rss_mb()
+            elapsed = (now - start) / 60.0
+            series.append((elapsed, rss))
+            window = sum(r["window_plots"] for r in core["radars"])
+            tracks = sum(r["tracks_confirmed"] + r["tracks_tentative"] for r in core["radars"])
+            print(
+                f"{elapsed:5.1f} {data:8.0f} {rt:6.2f} {rss:8.0f} {peak_rss_mb():8.0f} {window:9d} "
+                f"{tracks:7d} {core['pairs_confirmed']:7d}",
+                flush=True,
+            )
     print("RSS series (min, MB): " + ", ".join(f"({m:.0f}, {r:.0f})" for m, r in series))
     half = [(m, r) for m, r in series if m >= minutes / 2]
     if len(half) >= 2:
@@ -711,6 +748,14 @@ def run_soak(args: argparse.Namespace) -> None:
         print(f"RSS slope over the second half: {slope:+.1f} MB/h ({len(half)} points)")
     else:
         print("RSS slope: too few points in the second half (run longer)")
+    if traced is not None:
+        growth = tracemalloc.take_snapshot().compare_to(traced, "lineno")
+        total = sum(g.size_diff for g in growth) / 1e6
+        print(f"Python heap growth over the second half (tracemalloc): {total:+.1f} MB; top lines:")
+        for g in growth[:10]:
+            print(f"  {g.size_diff / 1e6:+8.1f} MB {g.count_diff:+8d} blocks  {g.traceback[0]}")
+    if args.trace_memory:
+        tracemalloc.stop()
 
 
 def main() -> None:
@@ -733,6 +778,9 @@ def main() -> None:
     )
     parser.add_argument("--top", type=int, default=25, help="functions listed per profile order")
     parser.add_argument("--chunk", type=int, default=512, help="messages generated at a time in the soak")
+    parser.add_argument(
+        "--trace-memory", action="store_true", help="soak: where the Python heap grows over the second half"
+    )
     args = parser.parse_args()
     if args.zenoh:
         run_zenoh(args)
