@@ -107,9 +107,12 @@ def logic_initiate(
         return Groups.empty()
     # Triples in blocks of consecutive pairs (``block`` triples, plus one pair's own), in the
     # order of one pass over all pairs; the gate is per triple, so blocks change nothing.
-    start = np.cumsum(cnt) - cnt
-    edges = np.flatnonzero(np.diff(start // max(bounds.block, 1))) + 1
-    cuts = np.concatenate([[0], edges, [cnt.shape[0]]])
+    if int(cnt.sum()) <= bounds.block:
+        cuts = np.array([0, cnt.shape[0]])
+    else:
+        start = np.cumsum(cnt) - cnt
+        edges = np.flatnonzero(np.diff(start // max(bounds.block, 1))) + 1
+        cuts = np.concatenate([[0], edges, [cnt.shape[0]]])
     trips: list[np.ndarray] = []
     costs: list[np.ndarray] = []
     for p0, p1 in zip(cuts[:-1].tolist(), cuts[1:].tolist(), strict=True):  # a few blocks

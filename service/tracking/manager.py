@@ -18,9 +18,10 @@ One :meth:`TrackManager.update` per accepted batch, all in data time:
    checks each (mean NIS), and accepted groups become tentative tracks (their plots count as
    hits) and leave the window.
 
-An update is all or nothing: it builds the new tracks and window aside (the track arrays and
-the window's chunks are never written in place) and keeps them only once every step has
-succeeded, so a batch that fails part-way leaves the tracker exactly as it was.
+An update is all or nothing: it builds the new tracks and window aside (the window's chunks
+are never written in place; the rows of the assigned tracks' states that are written in place
+are saved first and restored on failure) and keeps them only once every step has succeeded,
+so a batch that fails part-way leaves the tracker exactly as it was.
 
 Track ids ``{prefix}-{n}`` count from 1 and are never reused.  Every update records which
 plots joined which track (:attr:`TrackManager.joined`, plots with all their columns); the
@@ -30,7 +31,7 @@ evaluation) are kept outside the tracker, by :mod:`service.truth_labels`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -68,7 +69,9 @@ def covered_arc(azimuth_deg: FloatArray) -> tuple[float, float] | None:
 
 @dataclass(frozen=True)
 class _Tracks:
-    """The live tracks, one row each; an update builds new arrays, never writes these."""
+    """The live tracks, one row each.  An update builds new arrays, except for the rows of
+    ``x``, ``P``, ``t`` and ``nplots`` that its Kalman update writes (and restores on failure,
+    :meth:`TrackManager.update`)."""
 
     uid: NDArray[np.int64]
     x: FloatArray  # (n, 6) ENU state
@@ -163,31 +166,41 @@ class TrackManager(Tracker):
         return self._tracks.uid.copy()
 
     def update(self, plots: PlotColumns, time_s: float) -> None:
-        """One batch, all or nothing (module docstring): every step works on new arrays and a
-        copy of the window, and the tracker takes them only at the end."""
+        """One batch, all or nothing (module docstring): the steps build new track arrays and
+        change a copy of the window, and the tracker takes them only at the end.  The one
+        exception is the Kalman update of the assigned tracks, written into their rows in
+        place (a fresh copy of every state and covariance per batch costs more than the rest
+        of the bookkeeping); those rows are saved first and put back if a later step fails."""
         fp = self.params.filter
         joined: Joined = []
         tracks = self._tracks
         window = self._window.copy()
-        meas = plots_to_measurements(self.site, plots, self.params.measurement)
-        used = np.zeros(len(meas), dtype=bool)
-        hit = np.zeros(len(tracks), dtype=bool)
-        if len(tracks) and len(meas):
-            rows, cols, d2, xp, pp = self._gate(tracks, meas)
-            chosen = assign(rows, cols, d2, fp.gate_chi2)
-            r, c = rows[chosen], cols[chosen]
-            if r.shape[0]:
-                x_new, p_new, _ = kalman.update(xp[chosen], pp[chosen], meas.enu_m[c], meas.covariance[c])
-                x, P, t, nplots = tracks.x.copy(), tracks.P.copy(), tracks.t.copy(), tracks.nplots.copy()
-                x[r], P[r], t[r] = x_new, p_new, meas.time_s[c]
-                nplots[r] += 1
-                tracks = replace(tracks, x=x, P=P, t=t, nplots=nplots)
-                hit[r] = True
-                used[c] = True
-                joined.append((tracks.uid[r], plots.take(c)))
-        tracks = self._life_cycle(tracks, hit, plots.azimuth_deg, float(time_s))
-        window.extend(plots.take(~used), float(time_s))
-        tracks, next_uid = self._initiate_from_window(tracks, window, joined)
+        saved: tuple[IntArray, FloatArray, FloatArray, FloatArray, NDArray[np.int64]] | None = None
+        try:
+            meas = plots_to_measurements(self.site, plots, self.params.measurement)
+            used = np.zeros(len(meas), dtype=bool)
+            hit = np.zeros(len(tracks), dtype=bool)
+            if len(tracks) and len(meas):
+                rows, cols, d2, xp, pp = self._gate(tracks, meas)
+                chosen = assign(rows, cols, d2, fp.gate_chi2)
+                r, c = rows[chosen], cols[chosen]
+                if r.shape[0]:
+                    x_new, p_new, _ = kalman.update(xp[chosen], pp[chosen], meas.enu_m[c], meas.covariance[c])
+                    saved = (r, tracks.x[r], tracks.P[r], tracks.t[r], tracks.nplots[r])
+                    tracks.x[r], tracks.P[r], tracks.t[r] = x_new, p_new, meas.time_s[c]
+                    tracks.nplots[r] += 1
+                    hit[r] = True
+                    used[c] = True
+                    joined.append((tracks.uid[r], plots.take(c)))
+            tracks = self._life_cycle(tracks, hit, plots.azimuth_deg, float(time_s))
+            window.extend(plots.take(~used), float(time_s))
+            tracks, next_uid = self._initiate_from_window(tracks, window, joined)
+        except BaseException:
+            if saved is not None:
+                live = self._tracks
+                rs, x0, p0, t0, n0 = saved
+                live.x[rs], live.P[rs], live.t[rs], live.nplots[rs] = x0, p0, t0, n0
+            raise
         # Commit: plain assignments only, after every step that can fail.
         self._tracks, self._window, self.joined, self._next_uid = tracks, window, joined, next_uid
         self.last_time_s = max(self.last_time_s, float(time_s))
@@ -271,7 +284,9 @@ class TrackManager(Tracker):
         miss_run = np.where(hit, 0, tracks.miss_run + expected)
         hits = popcount(hist)
         confirmed = tracks.confirmed | (hits >= mp.confirm_m)
-        tracks = replace(tracks, hist=hist, looks=looks, miss_run=miss_run, confirmed=confirmed)
+        tracks = _Tracks(
+            tracks.uid, tracks.x, tracks.P, tracks.t, hist, looks, miss_run, confirmed, tracks.nplots
+        )
         misses = looks - hits
         dead = (~confirmed & (misses > mp.confirm_n - mp.confirm_m)) | (
             confirmed & (miss_run >= mp.confirmed_max_misses)

@@ -64,6 +64,25 @@ def _neighbour_keys(keys: NDArray[np.int64], stride: int) -> NDArray[np.int64]:
     return keys[:, None] + _OFFSETS[:, 0] * stride + _OFFSETS[:, 1]
 
 
+def _grid_total(xy: FloatArray, cell: float) -> int:
+    """Sum over the points of the points in the 3x3 grid cells around each (itself included):
+    twice a bound on the pairs within ``cell`` of each other, plus the points."""
+    keys, stride = _cell_keys(xy, cell)
+    size = int(keys.max()) + stride + 2
+    if size <= 4 * keys.shape[0] + 1024:  # a dense grid over the points' box: no sort
+        count = np.bincount(keys, minlength=size)
+        around = np.zeros(size, dtype=np.int64)
+        for off in (_OFFSETS[:, 0] * stride + _OFFSETS[:, 1]).tolist():  # the 9 cells
+            lo, hi = max(off, 0), size + min(off, 0)
+            around[lo - off : hi - off] += count[lo:hi]
+        return int(np.dot(count, around))
+    cells, n_in = np.unique(keys, return_counts=True)
+    nk = _neighbour_keys(cells, stride)
+    at = np.minimum(np.searchsorted(cells, nk), cells.shape[0] - 1)
+    near = np.where(cells[at] == nk, n_in[at], 0).sum(axis=1)  # points in the 3x3 block
+    return int(np.dot(n_in, near))
+
+
 def _one_query_tree(pos: FloatArray, radius: float, max_pairs: int, block: int) -> cKDTree | None:
     """The KD-tree for one ``query_pairs`` over all points when that stays within both bounds
     (else None): the plots in the 3x3 cells around each plot bound its partners within
@@ -72,12 +91,7 @@ def _one_query_tree(pos: FloatArray, radius: float, max_pairs: int, block: int) 
     n = pos.shape[0]
     if n * n <= max_pairs and n * (n - 1) // 2 <= block:
         return cKDTree(pos)  # any n points: no grid needed
-    keys, stride = _cell_keys(pos[:, :2], radius)
-    cells, count = np.unique(keys, return_counts=True)
-    nk = _neighbour_keys(cells, stride)
-    at = np.minimum(np.searchsorted(cells, nk), cells.shape[0] - 1)
-    around = np.where(cells[at] == nk, count[at], 0).sum(axis=1)  # plots in the 3x3 block
-    total = int(np.dot(count, around))  # sum over plots of their 3x3 counts (self included)
+    total = _grid_total(pos[:, :2], radius)
     if total > max_pairs:
         return None
     tree = cKDTree(pos)
