@@ -18,11 +18,15 @@ Per :meth:`PairCorrelator.update` (all in data time, deterministic):
    neighbour): new tracks, tentative pairs, failed re-checks.  A steady-state update then
    costs the prediction, the compensation and a vectorised test per confirmed pair, plus a
    topology match per track that needs a decision.
-4. One-to-one assignment with an ambiguity margin (:mod:`.assignment`).
-5. The M-of-N book (:mod:`.pairs`).
+4. One-to-one assignment with an ambiguity margin (:mod:`.assignment`) of the decided
+   candidates (kept pairs share no track with them: nothing to assign).
+5. The M-of-N book (:mod:`.pairs`); a kept pair scores a hit with the re-check's statistic
+   and NaN rotation weight and scale (null on the wire: no topology was fitted).
 6. Confirmed pairs feed the registration memory (each row's normal-equation pieces computed
-   once), and the pair's own two-radar bias solution is refreshed for the next update: on
-   every update until registered, then once per ``solve_interval_s`` of data time.
+   once; once registered at most ``registered_rows_per_update`` rows, different pairs on
+   successive updates), and the pair's own two-radar bias solution is refreshed for the next
+   update: on every update until registered, then once per ``solve_interval_s`` of data time,
+   warm-started from the previous solution (two Gauss-Newton steps instead of five to eight).
 
 What the stream adds over one snapshot: velocities in the tests (two close aircraft rarely
 share a velocity), M-of-N accumulation, registration from confirmed pairs (bias-compensated
