@@ -44,6 +44,7 @@ from service.tracking.base import PlotColumns, Tracker, TrackTable
 from service.tracking.groups import fit_groups
 from service.tracking.initiators import get_initiator
 from service.tracking.measurement import Measurements, plots_to_measurements
+from service.tracking.pairs import cell_counts
 from service.tracking.params import TrackerParams
 from service.tracking.window import PlotWindow
 
@@ -121,6 +122,21 @@ class _Tracks:
 
 
 Joined = list[tuple[NDArray[np.int64], PlotColumns]]
+
+
+def _track_chunks(tracks_enu: FloatArray, plots_enu: FloatArray, reach: float, block: int) -> list[IntArray]:
+    """Tracks in consecutive chunks whose candidate plots (those in the 3x3 grid cells of
+    side ``reach`` around each track, a bound on the plots within ``reach``) add up to at most
+    ``block``, plus one track's own; all tracks in one chunk when they fit."""
+    n_t = tracks_enu.shape[0]
+    every = np.arange(n_t, dtype=np.intp)
+    if n_t * plots_enu.shape[0] <= block:
+        return [every]
+    bound = cell_counts(plots_enu[:, :2], tracks_enu[:, :2], reach)
+    if int(bound.sum()) <= block:
+        return [every]
+    start = np.cumsum(bound) - bound
+    return np.split(every, np.flatnonzero(np.diff(start // block)) + 1)
 
 
 class TrackManager(Tracker):
@@ -233,7 +249,13 @@ class TrackManager(Tracker):
     def _gate(
         self, tracks: _Tracks, meas: Measurements
     ) -> tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray]:
-        """Gated candidates ``(track, plot, d^2)`` and each candidate's predicted state."""
+        """Gated candidates ``(track, plot, d^2)`` and each candidate's predicted state.
+
+        Memory stays bounded however many plots crowd around the tracks: the tracks go in
+        chunks whose candidates within the pre-gate radius are at most ``gate_block`` (counted
+        on a grid first, :func:`.pairs.cell_counts`; plus one track's own), and the per-candidate
+        predictions are made ``gate_block`` at a time.  Normal batches are one chunk and one
+        block, the form used before these bounds."""
         fp = self.params.filter
         tb = float(np.median(meas.time_s))
         xb, pb = kalman.predict(tracks.x, tracks.P, tb - tracks.t, fp.process_noise_psd)
@@ -243,19 +265,38 @@ class TrackManager(Tracker):
         speed = np.linalg.norm(xb[:, 3:], axis=1)
         radius = np.sqrt(fp.gate_chi2) * (sig_t + sig_p) + speed * span
         radius = np.minimum(radius, fp.coarse_gate_max_m)
-        tree_t = cKDTree(xb[:, :3])
+        gb = max(self.params.bounds.gate_block, 1)
         tree_p = cKDTree(meas.enu_m)
-        sdm = tree_t.sparse_distance_matrix(tree_p, float(radius.max()), output_type="ndarray")
-        rows = sdm["i"].astype(np.intp)
-        cols = sdm["j"].astype(np.intp)
-        keep = sdm["v"] <= radius[rows]
-        rows, cols = rows[keep], cols[keep]
-        dt = meas.time_s[cols] - tracks.t[rows]
-        xp, pp = kalman.predict(tracks.x[rows], tracks.P[rows], dt, fp.process_noise_psd)
-        y, S = kalman.innovation(xp, pp, meas.enu_m[cols], meas.covariance[cols])
-        d2 = kalman.mahalanobis2(y, S)
-        ok = d2 <= fp.gate_chi2
-        return rows[ok], cols[ok], d2[ok], xp[ok], pp[ok]
+        out: list[tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray]] = []
+        for chunk in _track_chunks(xb[:, :3], meas.enu_m, float(radius.max()), gb):  # a few
+            sdm = cKDTree(xb[chunk, :3]).sparse_distance_matrix(
+                tree_p, float(radius[chunk].max()), output_type="ndarray"
+            )
+            rows = chunk[sdm["i"].astype(np.intp)]
+            cols = sdm["j"].astype(np.intp)
+            keep = sdm["v"] <= radius[rows]
+            rows, cols = rows[keep], cols[keep]
+            for b0 in range(0, rows.shape[0], gb):  # the exact gate, ``gate_block`` at a time
+                r, c = rows[b0 : b0 + gb], cols[b0 : b0 + gb]
+                dt = meas.time_s[c] - tracks.t[r]
+                xp, pp = kalman.predict(tracks.x[r], tracks.P[r], dt, fp.process_noise_psd)
+                y, S = kalman.innovation(xp, pp, meas.enu_m[c], meas.covariance[c])
+                d2 = kalman.mahalanobis2(y, S)
+                ok = d2 <= fp.gate_chi2
+                out.append((r[ok], c[ok], d2[ok], xp[ok], pp[ok]))
+        if len(out) == 1:
+            return out[0]
+        if not out:
+            e = np.empty(0, dtype=np.intp)
+            return e, e, np.empty(0), np.empty((0, 6)), np.empty((0, 6, 6))
+        r_, c_, d_, x_, p_ = zip(*out, strict=True)
+        return (
+            np.concatenate(r_),
+            np.concatenate(c_),
+            np.concatenate(d_),
+            np.concatenate(x_),
+            np.concatenate(p_),
+        )
 
     # -- life cycle -------------------------------------------------------------------
     def _expected(self, tracks: _Tracks, azimuth_deg: FloatArray, time_s: float) -> NDArray[np.bool_]:

@@ -64,6 +64,19 @@ def _neighbour_keys(keys: NDArray[np.int64], stride: int) -> NDArray[np.int64]:
     return keys[:, None] + _OFFSETS[:, 0] * stride + _OFFSETS[:, 1]
 
 
+def cell_counts(points: FloatArray, queries: FloatArray, cell: float) -> IntArray:
+    """For each query, the points in the 3x3 cells around its own of a square grid of side
+    ``cell`` (2-D coordinates): a bound on the points within ``cell`` of it."""
+    lo = np.minimum(points.min(axis=0), queries.min(axis=0))
+    ip = np.floor((points - lo) / cell).astype(np.int64) + 1  # >= 1: neighbours stay >= 0
+    iq = np.floor((queries - lo) / cell).astype(np.int64) + 1
+    stride = int(max(ip[:, 1].max(), iq[:, 1].max())) + 2
+    cells, n_in = np.unique(ip[:, 0] * stride + ip[:, 1], return_counts=True)
+    nk = _neighbour_keys(iq[:, 0] * stride + iq[:, 1], stride)
+    at = np.minimum(np.searchsorted(cells, nk), cells.shape[0] - 1)
+    return np.asarray(np.where(cells[at] == nk, n_in[at], 0).sum(axis=1), dtype=np.intp)
+
+
 def _grid_total(xy: FloatArray, cell: float) -> int:
     """Sum over the points of the points in the 3x3 grid cells around each (itself included):
     twice a bound on the pairs within ``cell`` of each other, plus the points."""

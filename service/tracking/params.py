@@ -260,6 +260,12 @@ class BoundParams:
     temporaries and a triple about 700 (its 3x3 gate covariances), so a block stays under
     200 MB; splitting into blocks changes no result."""
 
+    gate_block: int = 32_768
+    """Association: (track, plot) candidates within the pre-gate radius handled at once (the
+    KD-tree search by chunks of tracks, the exact gate in blocks).  A candidate costs about
+    1.5 kB (its own 6x6 prediction and temporaries), so a block about 50 MB; the benchmark's
+    batches have at most a few thousand candidates, so they stay one block."""
+
     max_cluster_plots: int = 200
     """The Hough family initiators run on local clusters of plots that one target could have
     produced; a cluster with more plots than this is not transformed in that update (its plots

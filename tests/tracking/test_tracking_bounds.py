@@ -121,6 +121,22 @@ def test_pair_search_holds_its_work_and_memory_bounds() -> None:
     np.testing.assert_array_equal(again[1], j)
 
 
+def test_association_in_chunks_and_blocks_gives_the_same_tracks() -> None:
+    scn = MonostaticScenario(n_targets=80, clutter_per_scan=200, scans=6)
+    batches, _, _ = simulate(scn, np.random.default_rng(8))
+    one = make_tracker(SITE)
+    many = make_tracker(SITE, params=TrackerParams(bounds=BoundParams(gate_block=7)))
+    for plots, tb in batches:
+        one.update(plots, tb)
+        many.update(plots, tb)
+        a, b = one.tracks(), many.tracks()
+        np.testing.assert_array_equal(a.track_id, b.track_id)
+        np.testing.assert_array_equal(a.position_ecef_m, b.position_ecef_m)
+        np.testing.assert_array_equal(a.covariance, b.covariance)
+        np.testing.assert_array_equal(one._window.plots.time_s, many._window.plots.time_s)
+    assert one.tracks().confirmed.sum() >= 60
+
+
 def _plots(times: list[float]) -> PlotColumns:
     n = len(times)
     return PlotColumns(
@@ -236,18 +252,20 @@ from service.tracking import make_tracker
 from service.tracking.base import PlotColumns
 from service.tracking.params import BoundParams, TrackerParams
 
-cfg = json.loads(sys.argv[1])
+cfg = {"targets": 1000, "range_m": [30_000.0, 120_000.0], "filler_from": 0, **json.loads(sys.argv[1])}
 # Safety net: an unbounded regression fails here with MemoryError instead of taking the box.
 resource.setrlimit(resource.RLIMIT_AS, (cfg["address_limit"], cfg["address_limit"]))
 rng = np.random.default_rng(cfg["seed"])
 t0, scan = 1_763_769_600.0, 4.0
 params = TrackerParams(bounds=BoundParams(max_window_plots=cfg["max_window_plots"]))
 tr = make_tracker(SITE, params=params)
-scn = MonostaticScenario(n_targets=1000, clutter_per_scan=200, scans=cfg["batches"], sectors=1, t0_s=t0)
+lo, hi = cfg["range_m"]
+scn = MonostaticScenario(n_targets=cfg["targets"], clutter_per_scan=200, scans=cfg["batches"], sectors=1,
+                         range_min_m=lo, range_max_m=hi, t0_s=t0)
 real, _, _ = simulate(scn, rng)
 total, times = 0, []
 for b, (rp, tb) in enumerate(real):
-    k = cfg["plots"] - len(rp)
+    k = cfg["plots"] - len(rp) if b >= cfg["filler_from"] else 0
     if cfg["dense"]:  # every plot in a 10 km x 10 deg patch
         r, az = rng.uniform(50_000.0, 60_000.0, k), rng.uniform(40.0, 50.0, k)
     else:  # uniform over the coverage
@@ -318,3 +336,12 @@ def test_a_window_of_several_full_batches_hits_the_pair_bounds(dense: bool) -> N
     assert r["rss_mb"] < RSS_LIMIT_MB, r  # type: ignore[operator]
     assert r["evicted"] == 0 and r["window"] > 250_000, r  # type: ignore[operator]
     assert max(r["seconds"]) < 10.0, r  # type: ignore[arg-type]
+
+
+def test_a_dense_batch_over_many_tracks_keeps_association_bounded() -> None:
+    """2 000 targets in a 10 km wide annulus make tracks over four scans; then 100 000 plots
+    fall in a 10 km x 10 deg patch of it.  The unbounded association search formed every
+    (track, plot) pair within the pre-gate radius at once and ran out of memory."""
+    r = _run_big(batches=5, targets=2000, range_m=[50_000.0, 60_000.0], filler_from=4, dense=True)
+    assert r["rss_mb"] < RSS_LIMIT_MB, r  # type: ignore[operator]
+    assert r["tracks"] > 1000, r  # type: ignore[operator]
