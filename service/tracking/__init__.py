@@ -7,6 +7,9 @@ Public API used by the engine::
     tracker.update(plots, time_s)      # one accepted batch
     tracker.tracks()                   # TrackTable of all live tracks (ECEF)
     tracker.window_plots               # plots held in the sliding window
+    tracker.window_evicted             # plots evicted because the window was full
+
+Memory and work per update are bounded whatever a batch holds (``TrackerParams.bounds``).
 """
 
 from __future__ import annotations

@@ -14,9 +14,9 @@ returns the same pairs with two bounds (:class:`~service.tracking.params.BoundPa
 
 A *candidate* of plot ``s`` is a plot later in (time, index) order that lies in one of the 3x3
 cells around ``s``'s cell of a square grid of side ``radius`` in the first two coordinates, with
-a time inside ``s``'s time range (widened by a rounding pad).  Every pair within the radius is
-a candidate (a cell list, Allen & Tildesley, *Computer Simulation of Liquids*, Section 5.3.2),
-and the count per plot is known before any pair is formed, so both bounds hold exactly.
+a time inside ``s``'s time range (widened by a rounding pad).  Every pair within the radius and
+the time range is a candidate (a cell list), and the count per plot is known before any pair
+is formed, so both bounds hold exactly.
 
 When the whole window's pairs within the radius fit in one block and its candidates under
 ``max_pairs`` (the usual case), the pairs come from one ``query_pairs`` over the window (the

@@ -236,35 +236,35 @@ class BoundParams:
     max_window_plots: int = 50_000
     """At most this many plots stay in the sliding window; beyond it the oldest (by plot time,
     then arrival) are evicted and counted (``Tracker.window_evicted``).  A window of three scans
-    normally holds about 600-1 800 plots, so this is some 30 times the busiest normal window
-    yet half a contract batch: one full batch cannot keep the window full of one instant's
-    plots, and the per-update work that follows the window (the measurements of all its plots,
-    the grid count of the pair search) stays a few tens of milliseconds."""
+    normally holds some 600-1 800 plots (the benchmark), so this is about 30 times the busiest
+    normal window yet half a contract batch.  A full window of uniform clutter costs the logic
+    initiator about 0.4 s per update on 2 cores (measurements of all its plots, the grid count
+    of the pair search, ``max_pairs`` candidates) and the window itself some 25 MB."""
 
     max_pairs: int = 4_000_000
-    """Work bound of the pair searches of the initiators: candidate pairs (plots in the 3x3
-    grid cells of the search radius around a plot, inside its time gate;
-    :mod:`service.tracking.pairs`) examined per update.  Plots are taken oldest first and the
-    search stops before the plot that would pass this; the rest are searched in later updates,
-    when they are the oldest.  The benchmark's windows have at most some 50 000 such
-    candidates; 4 million take about a second and, in blocks, little memory."""
+    """Work bound of the initiators' pair searches: candidate pairs (a plot and a later one in
+    the 3x3 grid cells of the search radius around it, inside its time gate;
+    :mod:`service.tracking.pairs`) examined per update.  Beyond it whole grid cells are
+    searched, the least crowded first, up to this many candidates; the crowded cells wait for
+    a later update.  The benchmark's windows have at most about 30 000 candidates; 4 million
+    take about half a second on a 300 000-plot window."""
 
     max_triples: int = 1_000_000
     """Work bound of the logic initiator's triples: pairs ``(i, j)`` are joined with the pairs
-    ``(j, k)`` oldest ``i`` first, stopping before the pair whose triples would pass this.
-    The benchmark's windows form a few thousand triples."""
+    ``(j, k)``, the pairs with the fewest continuations first, stopping before the pair whose
+    triples would pass this.  The benchmark's windows form at most about 600 triples."""
 
     block: int = 250_000
     """Candidate pairs or triples held in memory at once (the searches run in blocks of this
-    many, plus at most one plot's own candidates).  A candidate pair costs about 150 bytes of
-    temporaries and a triple about 700 (its 3x3 gate covariances), so a block stays under
-    200 MB; splitting into blocks changes no result."""
+    many, plus at most one plot's own candidates).  A candidate pair costs about 100 bytes of
+    temporaries and a triple about 300, so a block stays under 100 MB; splitting into blocks
+    changes no result."""
 
     gate_block: int = 32_768
     """Association: (track, plot) candidates within the pre-gate radius handled at once (the
     KD-tree search by chunks of tracks, the exact gate in blocks).  A candidate costs about
-    1.5 kB (its own 6x6 prediction and temporaries), so a block about 50 MB; the benchmark's
-    batches have at most a few thousand candidates, so they stay one block."""
+    1.3 kB (its own 6x6 prediction and temporaries), so a block about 40 MB; the benchmark's
+    batches have at most about 4 000 candidates, so they stay one block."""
 
     max_cluster_plots: int = 200
     """The Hough family initiators run on local clusters of plots that one target could have
