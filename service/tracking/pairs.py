@@ -50,10 +50,16 @@ def _empty() -> tuple[IntArray, IntArray]:
     return e, e
 
 
+def _side(cell: float) -> float:
+    """Grid cell side: the search radius, or 1 m when that is 0 (any side works for a radius
+    of 0: only coincident points pair)."""
+    return cell if cell > 0 else 1.0
+
+
 def _cell_keys(xy: FloatArray, cell: float) -> tuple[NDArray[np.int64], int]:
     """Integer key of each point's grid cell, and the key stride of one east step (the north
     index has room for one empty cell on each side, so the 3x3 neighbours never wrap)."""
-    ij = np.floor(xy / cell).astype(np.int64)
+    ij = np.floor(xy / _side(cell)).astype(np.int64)
     ij -= ij.min(axis=0) - 1
     stride = int(ij[:, 1].max()) + 2
     return ij[:, 0] * stride + ij[:, 1], stride
@@ -68,8 +74,8 @@ def cell_counts(points: FloatArray, queries: FloatArray, cell: float) -> IntArra
     """For each query, the points in the 3x3 cells around its own of a square grid of side
     ``cell`` (2-D coordinates): a bound on the points within ``cell`` of it."""
     lo = np.minimum(points.min(axis=0), queries.min(axis=0))
-    ip = np.floor((points - lo) / cell).astype(np.int64) + 1  # >= 1: neighbours stay >= 0
-    iq = np.floor((queries - lo) / cell).astype(np.int64) + 1
+    ip = np.floor((points - lo) / _side(cell)).astype(np.int64) + 1  # >= 1: neighbours >= 0
+    iq = np.floor((queries - lo) / _side(cell)).astype(np.int64) + 1
     stride = int(max(ip[:, 1].max(), iq[:, 1].max())) + 2
     cells, n_in = np.unique(ip[:, 0] * stride + ip[:, 1], return_counts=True)
     nk = _neighbour_keys(iq[:, 0] * stride + iq[:, 1], stride)
