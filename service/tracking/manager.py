@@ -89,9 +89,19 @@ class _Tracks:
 
     @staticmethod
     def empty() -> _Tracks:
-        i = np.empty(0, dtype=np.int64)
+        def i() -> NDArray[np.int64]:
+            return np.empty(0, dtype=np.int64)
+
         return _Tracks(
-            i, np.empty((0, 6)), np.empty((0, 6, 6)), np.empty(0), i, i, i, np.empty(0, dtype=bool), i
+            i(),
+            np.empty((0, 6)),
+            np.empty((0, 6, 6)),
+            np.empty(0),
+            i(),
+            i(),
+            i(),
+            np.empty(0, dtype=bool),
+            i(),
         )
 
     def take(self, keep: NDArray[np.bool_]) -> _Tracks:
