@@ -133,6 +133,12 @@ class _Tracks:
 
 Joined = list[tuple[NDArray[np.int64], PlotColumns]]
 
+#: Association memory: a (track, plot) pair of the KD-tree pre-gate search costs about 90 bytes
+#: (its output and masks), a gate prediction about 1.3 kB, so the search runs on chunks of
+#: tracks with up to this many times ``gate_block`` pairs: about the memory of one block of
+#: predictions.
+_SEARCH_PAIRS_PER_PREDICTION = 16
+
 
 def _track_chunks(tracks_enu: FloatArray, plots_enu: FloatArray, reach: float, block: int) -> list[IntArray]:
     """Tracks in consecutive chunks whose candidate plots (those in the 3x3 grid cells of
@@ -262,10 +268,11 @@ class TrackManager(Tracker):
         """Gated candidates ``(track, plot, d^2)`` and each candidate's predicted state.
 
         Memory stays bounded however many plots crowd around the tracks: the tracks go in
-        chunks whose candidates within the pre-gate radius are at most ``gate_block`` (counted
-        on a grid first, :func:`.pairs.cell_counts`; plus one track's own), and the per-candidate
-        predictions are made ``gate_block`` at a time.  Normal batches are one chunk and one
-        block, the form used before these bounds."""
+        chunks whose candidates within the pre-gate radius are at most
+        ``_SEARCH_PAIRS_PER_PREDICTION * gate_block`` (counted on a grid first,
+        :func:`.pairs.cell_counts`; plus one track's own), and the per-candidate predictions are
+        made ``gate_block`` at a time.  Normal batches are one chunk and one block, the form
+        used before these bounds."""
         fp = self.params.filter
         tb = float(np.median(meas.time_s))
         xb, pb = kalman.predict(tracks.x, tracks.P, tb - tracks.t, fp.process_noise_psd)
@@ -278,7 +285,8 @@ class TrackManager(Tracker):
         gb = max(self.params.bounds.gate_block, 1)
         tree_p = cKDTree(meas.enu_m)
         out: list[tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray]] = []
-        for chunk in _track_chunks(xb[:, :3], meas.enu_m, float(radius.max()), gb):  # a few
+        chunks = _track_chunks(xb[:, :3], meas.enu_m, float(radius.max()), _SEARCH_PAIRS_PER_PREDICTION * gb)
+        for chunk in chunks:  # a few
             sdm = cKDTree(xb[chunk, :3]).sparse_distance_matrix(
                 tree_p, float(radius[chunk].max()), output_type="ndarray"
             )

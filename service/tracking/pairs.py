@@ -45,6 +45,12 @@ PairTest = Callable[[IntArray, IntArray], BoolArray]
 _OFFSETS = np.array([(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)], dtype=np.int64)
 
 
+#: Counts per cell go on a dense grid over the points' box when it has at most this many cells
+#: beyond 4 per point (half a megabyte: cheaper than sorting the cells of a few thousand
+#: points); wider boxes (points spread far apart) use the sorted cells instead.
+_DENSE_GRID_CELLS = 65_536
+
+
 def _empty() -> tuple[IntArray, IntArray]:
     e = np.empty(0, dtype=np.intp)
     return e, e
@@ -70,6 +76,22 @@ def _neighbour_keys(keys: NDArray[np.int64], stride: int) -> NDArray[np.int64]:
     return keys[:, None] + _OFFSETS[:, 0] * stride + _OFFSETS[:, 1]
 
 
+def _box_counts(keys: NDArray[np.int64], at: NDArray[np.int64], stride: int) -> IntArray:
+    """For each key in ``at``, the points (``keys``: their cells) in the 3x3 cells around it."""
+    size = int(max(keys.max(), at.max())) + stride + 2
+    if size <= 4 * (keys.shape[0] + at.shape[0]) + _DENSE_GRID_CELLS:  # dense grid: no sort
+        count = np.bincount(keys, minlength=size)
+        around = np.zeros(size, dtype=np.intp)
+        for off in (_OFFSETS[:, 0] * stride + _OFFSETS[:, 1]).tolist():  # the 9 cells
+            lo, hi = max(off, 0), size + min(off, 0)
+            around[lo - off : hi - off] += count[lo:hi]
+        return around[at]
+    cells, n_in = np.unique(keys, return_counts=True)
+    nk = _neighbour_keys(at, stride)
+    where = np.minimum(np.searchsorted(cells, nk), cells.shape[0] - 1)
+    return np.asarray(np.where(cells[where] == nk, n_in[where], 0).sum(axis=1), dtype=np.intp)
+
+
 def cell_counts(points: FloatArray, queries: FloatArray, cell: float) -> IntArray:
     """For each query, the points in the 3x3 cells around its own of a square grid of side
     ``cell`` (2-D coordinates): a bound on the points within ``cell`` of it."""
@@ -77,29 +99,14 @@ def cell_counts(points: FloatArray, queries: FloatArray, cell: float) -> IntArra
     ip = np.floor((points - lo) / _side(cell)).astype(np.int64) + 1  # >= 1: neighbours >= 0
     iq = np.floor((queries - lo) / _side(cell)).astype(np.int64) + 1
     stride = int(max(ip[:, 1].max(), iq[:, 1].max())) + 2
-    cells, n_in = np.unique(ip[:, 0] * stride + ip[:, 1], return_counts=True)
-    nk = _neighbour_keys(iq[:, 0] * stride + iq[:, 1], stride)
-    at = np.minimum(np.searchsorted(cells, nk), cells.shape[0] - 1)
-    return np.asarray(np.where(cells[at] == nk, n_in[at], 0).sum(axis=1), dtype=np.intp)
+    return _box_counts(ip[:, 0] * stride + ip[:, 1], iq[:, 0] * stride + iq[:, 1], stride)
 
 
 def _grid_total(xy: FloatArray, cell: float) -> int:
     """Sum over the points of the points in the 3x3 grid cells around each (itself included):
     twice a bound on the pairs within ``cell`` of each other, plus the points."""
     keys, stride = _cell_keys(xy, cell)
-    size = int(keys.max()) + stride + 2
-    if size <= 4 * keys.shape[0] + 1024:  # a dense grid over the points' box: no sort
-        count = np.bincount(keys, minlength=size)
-        around = np.zeros(size, dtype=np.int64)
-        for off in (_OFFSETS[:, 0] * stride + _OFFSETS[:, 1]).tolist():  # the 9 cells
-            lo, hi = max(off, 0), size + min(off, 0)
-            around[lo - off : hi - off] += count[lo:hi]
-        return int(np.dot(count, around))
-    cells, n_in = np.unique(keys, return_counts=True)
-    nk = _neighbour_keys(cells, stride)
-    at = np.minimum(np.searchsorted(cells, nk), cells.shape[0] - 1)
-    near = np.where(cells[at] == nk, n_in[at], 0).sum(axis=1)  # points in the 3x3 block
-    return int(np.dot(n_in, near))
+    return int(_box_counts(keys, keys, stride).sum())
 
 
 def _one_query_tree(pos: FloatArray, radius: float, max_pairs: int, block: int) -> cKDTree | None:

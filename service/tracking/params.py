@@ -261,8 +261,8 @@ class BoundParams:
     changes no result."""
 
     gate_block: int = 32_768
-    """Association: (track, plot) candidates within the pre-gate radius handled at once (the
-    KD-tree search by chunks of tracks, the exact gate in blocks).  A candidate costs about
+    """Association: (track, plot) candidates of the exact gate predicted at once (the KD-tree
+    pre-gate search runs on chunks of tracks of the same memory).  A candidate costs about
     1.3 kB (its own 6x6 prediction and temporaries), so a block about 40 MB; the benchmark's
     batches have at most about 4 000 candidates, so they stay one block."""
 
