@@ -7,7 +7,13 @@ Methods (``METHODS``): ``svd-topology`` (default; Wu, Jiang, Ren 2011), ``basic-
 """
 
 from service.correlation.base import Correlator, DecisionContext, Decisions, Reason, TrackSnapshot
-from service.correlation.correlator import METHODS, CorrelationParams, PairCorrelator, estimate_biases
+from service.correlation.correlator import (
+    METHODS,
+    CorrelationParams,
+    PairCorrelator,
+    estimate_biases,
+    joint_solution,
+)
 from service.correlation.pairs import PairBookParams, PairState
 from service.correlation.registration import BiasEstimate, RegistrationParams
 
@@ -25,4 +31,5 @@ __all__ = [
     "RegistrationParams",
     "TrackSnapshot",
     "estimate_biases",
+    "joint_solution",
 ]

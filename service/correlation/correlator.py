@@ -248,16 +248,27 @@ class PairCorrelator:
         return self.book.states()
 
 
-def estimate_biases(
-    correlators: Sequence[PairCorrelator], time_s: float, params: RegistrationParams | None = None
-) -> list[BiasEstimate]:
+def joint_solution(
+    correlators: Sequence[PairCorrelator],
+    time_s: float,
+    params: RegistrationParams | None = None,
+    initial: BiasSolution | None = None,
+) -> BiasSolution | None:
     """Joint bias least squares over every radar pair's remembered confirmed pairs.
 
     See :mod:`service.correlation.registration` for the model and what is observable: the
     weak prior makes unobservable components shrink to zero (minimum-norm-like) instead of
     diverging; with two radars the relative effect is determined, the split can be
     prior-driven for poorly spread geometry.  Radars without confirmed pairs are omitted.
+    ``initial``: the previous joint solution, a warm start (same fixed point, fewer steps).
     """
     prm = params or (correlators[0].params.registration if correlators else RegistrationParams())
     mems = [c.memory for c in correlators if len(c.memory)]
-    return to_estimates(solve_biases(mems, time_s, prm), time_s)
+    return solve_biases(mems, time_s, prm, initial=initial)
+
+
+def estimate_biases(
+    correlators: Sequence[PairCorrelator], time_s: float, params: RegistrationParams | None = None
+) -> list[BiasEstimate]:
+    """:func:`joint_solution` as one :class:`BiasEstimate` per radar."""
+    return to_estimates(joint_solution(correlators, time_s, params), time_s)

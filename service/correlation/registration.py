@@ -36,6 +36,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.correlation.base import FloatArray, TrackSnapshot
 from service.correlation.linalg import congruence, inv3, matvec3, quad3
@@ -76,9 +77,11 @@ class RegistrationParams:
     min_pairs: int = 6
     #: A :class:`~service.correlation.PairCorrelator` re-solves its own two-radar registration
     #: at most once per this much *data* time once it is registered (before that, on every
-    #: update).  Biases drift over minutes, a solve over hundreds of remembered rows changes
-    #: little in a few seconds, and the schedule depends on data time only (deterministic).
-    solve_interval_s: float = 10.0
+    #: update).  Radar biases drift over hours; the memory holds ``memory_s`` of rows, so a
+    #: re-solve every minute adds a sixth of the memory's information each time, and a network
+    #: of 66 radar pairs spends about 5 ms per data second on it (measured on the national
+    #: scenario: 30 ms at 10 s).  The schedule depends on data time only (deterministic).
+    solve_interval_s: float = 60.0
     #: Fewest distinct track pairs for the cluster-robust covariance; below it, ``H^-1``.
     min_clusters: int = 10
     #: Most Gauss-Newton iterations of a solve: the estimate converges on the current rows
@@ -412,7 +415,7 @@ def solve_biases(
                 h[ka : ka + 3, kb : kb + 3] -= cross
                 h[kb : kb + 3, ka : ka + 3] -= cross.T
                 h[kb : kb + 3, kb : kb + 3] += (kf @ cols["hbb"].reshape(nr, 9)).reshape(3, 3)
-            g += kf @ _scores(m, cols, res, col, n)
+            np.add.at(g, _columns(m, col), kf @ _scores(m, cols, res))
         cov = np.linalg.inv(h)
         step = cov @ g
         bias = bias + step
@@ -482,18 +485,23 @@ def _residual(
     return pa - remove_bias(m.site_b, cols["p_b"], bias[kb : kb + 3])
 
 
-def _scores(
-    m: RegistrationMemory, cols: dict[str, np.ndarray], res: FloatArray, col: dict[str, int], n: int
-) -> FloatArray:
-    """Each row's score ``(rows, n)``: ``G_a^T W r`` in A's columns, ``-G_b^T W r`` in B's (the
-    negative half-gradient of the row's ``r^T W r`` in the biases)."""
-    sc = np.zeros((res.shape[0], n))
-    ka = 3 * col[m.site_a.site_id]
-    sc[:, ka : ka + 3] = matvec3(cols["gaw"], res)
+def _scores(m: RegistrationMemory, cols: dict[str, np.ndarray], res: FloatArray) -> FloatArray:
+    """Each row's score in its own two radars' columns ``(rows, 6)``: ``G_a^T W r`` for A and
+    ``-G_b^T W r`` for B (the negative half-gradient of the row's ``r^T W r`` in the biases;
+    B's half is zero for a reference source)."""
+    sc = np.zeros((res.shape[0], 6))
+    sc[:, :3] = matvec3(cols["gaw"], res)
     if m.site_b is not None:
-        kb = 3 * col[m.site_b.site_id]
-        sc[:, kb : kb + 3] -= matvec3(cols["gbw"], res)
+        sc[:, 3:] = -matvec3(cols["gbw"], res)
     return sc
+
+
+def _columns(m: RegistrationMemory, col: dict[str, int]) -> NDArray[np.intp]:
+    """The six columns of the joint problem a memory's row scores fall in (B's: A's again for
+    a reference source, whose half of the score is zero)."""
+    ka = 3 * col[m.site_a.site_id]
+    kb = 3 * col[m.site_b.site_id] if m.site_b is not None else ka
+    return np.r_[ka : ka + 3, kb : kb + 3].astype(np.intp)
 
 
 def _robust_covariance(
@@ -513,20 +521,25 @@ def _robust_covariance(
     """
     if len(residuals) != len(data):
         return cov, 0
-    n = cov.shape[0]
-    scores, clusters, c = [], [], 0
+    # Clusters (track pairs) never span two memories, so the meat is a sum of one 6x6 block per
+    # memory: the outer products of its clusters' summed scores, in its two radars' columns.
+    meat = np.diag(prior)
+    c = 0
+    blocks = []
     for (m, _, cols), kp, res in zip(data, keep, residuals, strict=True):
         idx = np.flatnonzero(kp)
-        sc = _scores(m, cols, res, col, n)[idx]
-        scores.append(sc)
+        if idx.size == 0:
+            continue
+        sc = _scores(m, cols, res)[idx]
         _, inv = np.unique(cols["pair"][idx], return_inverse=True)  # track pairs of this memory
-        clusters.append(inv.ravel() + c)
-        c += int(inv.max()) + 1 if inv.size else 0
+        k = int(inv.max()) + 1
+        summed = np.stack([np.bincount(inv.ravel(), weights=sc[:, j], minlength=k) for j in range(6)], axis=1)
+        blocks.append((_columns(m, col), summed.T @ summed))
+        c += k
     if c < max(min_clusters, 2):
         return cov, c
-    cluster, score = np.concatenate(clusters), np.concatenate(scores)
-    summed = np.stack([np.bincount(cluster, weights=score[:, j], minlength=c) for j in range(n)], axis=1)
-    meat = summed.T @ summed * (c / (c - 1)) + np.diag(prior)
+    for where, block in blocks:
+        np.add.at(meat, np.ix_(where, where), block * (c / (c - 1)))
     return cov @ meat @ cov, c
 
 
