@@ -61,10 +61,11 @@ CHILD = textwrap.dedent(
     engine, outs = run(mixed)
     snap, ref = engine.snapshot(), clean.snapshot()
     honest = lambda ps: {ps["radar_a"], ps["radar_b"]} <= {"A", "B"}
+    others = [b for b in snap.track_batches("all") if b["radar_id"] != "X"]
     x = next(r for r in snap.status_core()["radars"] if r["radar_id"] == "X")
     print(json.dumps({
         "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-        "tracks_same": [b for b in snap.track_batches("all") if b["radar_id"] != "X"] == ref.track_batches("all"),
+        "tracks_same": others == ref.track_batches("all"),
         "pairs_same": [p for p in snap.pair_sets(status="all") if honest(p)] == ref.pair_sets(status="all"),
         "errors": [json.loads(o.payload) for o in outs if o.key == "fusion/errors"],
         "x": x,
