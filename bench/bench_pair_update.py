@@ -15,11 +15,23 @@ With 170 updates (680 s of data) the registration memory is full (``memory_s`` =
 re-solve figures are those of a pair in service for a long time.
 
 Usage: ``.venv/bin/python bench/bench_pair_update.py [n] [updates]``
+
+``--national [seconds] [cache.pickle]``: the engine on the ``national`` scenario (12 radars,
+66 radar pairs) instead, the full pipeline and tracking alone (``max_site_distance_m = 0``:
+no pair) run on the same messages in turns A/B/A/B (a shared machine is noisy), each over
+the second half of the stream.  Printed: the wall time of each run, the ratio full /
+tracking alone, the per-update times of the last 1 000 pair updates (p50 / p99), the share
+of confirmed pairs whose tracks follow one target (truth labels, evaluation only) and, with
+``--profile``, the cumulative profile of the full pipeline's second half.  The messages are
+simulated once and kept in ``cache.pickle`` when a path is given.
 """
 
 from __future__ import annotations
 
+import cProfile
 import os
+import pickle
+import pstats
 import sys
 import time
 
@@ -91,6 +103,96 @@ def bench_steady_state(n: int = 1000, updates: int = 60) -> None:
     print(f"  load average {os.getloadavg()[0]:.1f}")
 
 
+def _national_messages(duration_s: float, cache: str | None) -> list[tuple[str, bytes]]:
+    from dataclasses import replace
+
+    from service.scenarios.catalog import get_scenario
+    from service.scenarios.simulator import wire_messages
+
+    if cache and os.path.exists(cache):
+        with open(cache, "rb") as f:
+            cached: list[tuple[str, bytes]] = pickle.load(f)
+        return cached
+    msgs = list(wire_messages(replace(get_scenario("national"), duration_s=duration_s), 1))
+    if cache:
+        with open(cache, "wb") as f:
+            pickle.dump(msgs, f)
+    return msgs
+
+
+def _run_engine(msgs: list[tuple[str, bytes]], tracking_only: bool, profile: bool) -> tuple[float, object]:
+    """Seconds spent on the second half of ``msgs``, and the engine."""
+    from service.engine import Engine, EngineConfig
+    from service.pipeline.correlation_stage import CadenceParams
+
+    cfg = EngineConfig(cadence=CadenceParams(max_site_distance_m=0)) if tracking_only else EngineConfig()
+    e = Engine(cfg)
+    h = len(msgs) // 2
+    for k, p in msgs[:h]:
+        e.ingest(k, p)
+    pr = cProfile.Profile() if profile else None
+    t0 = time.perf_counter()
+    if pr is not None:
+        pr.enable()
+    for k, p in msgs[h:]:
+        e.ingest(k, p)
+    if pr is not None:
+        pr.disable()
+    wall = time.perf_counter() - t0
+    if pr is not None:
+        pstats.Stats(pr).sort_stats("cumulative").print_stats("service", 40)
+    return wall, e
+
+
+def _confirmed_accuracy(e: object) -> tuple[int, int, int]:
+    """Confirmed pairs judged, those whose two tracks carry one truth label, pairs of a gone track."""
+    snap = e.snapshot()  # type: ignore[attr-defined]
+    truth: dict[tuple[str, str], str | None] = {}
+    for batch in snap.track_batches("all"):
+        for t in batch["tracks"]:
+            truth[(batch["radar_id"], t["track_id"])] = t["truth_id"]
+    judged = ok = gone = 0
+    for ps in snap.pair_sets(status="confirmed"):
+        for p in ps["pairs"]:
+            ka, kb = (ps["radar_a"], p["track_a"]), (ps["radar_b"], p["track_b"])
+            if ka not in truth or kb not in truth:
+                gone += 1
+                continue
+            judged += 1
+            ok += truth[ka] is not None and truth[ka] == truth[kb]
+    return judged, ok, gone
+
+
+def bench_national(duration_s: float = 300.0, cache: str | None = None, profile: bool = False) -> None:
+    msgs = _national_messages(duration_s, cache)
+    print(f"national scenario, {duration_s:.0f} s of data, {len(msgs)} messages (second half timed)")
+    walls: dict[str, list[float]] = {"full": [], "tracking": []}
+    for turn in range(2):
+        for label in ("full", "tracking"):
+            wall, e = _run_engine(msgs, label == "tracking", profile and turn == 0 and label == "full")
+            walls[label].append(wall)
+            print(f"  {label:>8}: {wall:6.2f} s")
+            if label == "full" and turn == 1:
+                t = np.asarray(list(e.correlation.timings_ms)[-1000:])  # type: ignore[attr-defined]
+                print(
+                    f"  pair updates: {e.correlation.updates}; last {len(t)}: "  # type: ignore[attr-defined]
+                    f"p50 {np.percentile(t, 50):.2f} ms  p99 {np.percentile(t, 99):.2f} ms"
+                )
+                judged, ok, gone = _confirmed_accuracy(e)
+                print(
+                    f"  confirmed pairs: {judged} judged, same target: {ok} "
+                    f"({100.0 * ok / max(judged, 1):.2f} %); {gone} of a track gone"
+                )
+    ratio = min(walls["full"]) / min(walls["tracking"])
+    print(f"  full / tracking alone (best of 2 each): {ratio:.2f}; load average {os.getloadavg()[0]:.1f}")
+
+
 if __name__ == "__main__":
-    args = [int(x) for x in sys.argv[1:3]]
-    bench_steady_state(*args)
+    if len(sys.argv) > 1 and sys.argv[1] == "--national":
+        rest = [x for x in sys.argv[2:] if x != "--profile"]
+        bench_national(
+            float(rest[0]) if rest else 300.0, rest[1] if len(rest) > 1 else None, "--profile" in sys.argv
+        )
+    else:
+        args = [int(x) for x in sys.argv[1:3]]
+        bench_steady_state(*args)

@@ -10,7 +10,10 @@ little over a few tens of km at ranges of 100 km and more (the translation of Eq
 linearly with the neighbourhood size; the fit absorbs its constant part).
 
 Neighbours are found with one ``cKDTree.query`` for all tracks (k nearest with a distance
-bound), returned as a padded index array (``-1`` = none).
+bound), returned as a padded index array (``-1`` = none).  When only a few tracks' neighbourhoods
+are wanted (a registered update asks for a handful of candidate references among hundreds of
+tracks), a full distance scan from those tracks finds the same neighbours for less than the
+cost of building the tree.
 """
 
 from __future__ import annotations
@@ -38,6 +41,37 @@ class TopologyParams:
     max_neighbours: int = 8
 
 
+#: Up to this many (queried track, track) distances the neighbours are found by a full
+#: distance scan instead of a KD-tree (same neighbours; building a tree over a radar's
+#: ~750 tracks costs more than ~20 000 distances).  Speed only: never changes a result.
+BRUTE_FORCE_MAX_DISTANCES = 20_000
+
+
+def _nearest_by_scan(
+    enu: FloatArray, query_rows: NDArray[np.intp], k: int, bound: float
+) -> tuple[FloatArray, NDArray[np.intp]]:
+    """``cKDTree(enu).query(enu[query_rows], k, distance_upper_bound=bound)`` by a full scan:
+    the ``k`` nearest of each queried track sorted by distance (itself first), ``inf`` and
+    index ``n`` beyond ``bound`` (kept strictly within it, as the tree does)."""
+    n = enu.shape[0]
+    q = enu[query_rows]
+    d2 = np.zeros((len(query_rows), n))
+    for c in range(3):  # per coordinate: (q, n) arrays, no (q, n, 3) temporary
+        dc = enu[None, :, c] - q[:, c, None]
+        dc *= dc
+        d2 += dc
+    dist = np.sqrt(d2, out=d2)
+    # The track itself first (ahead of any other track at distance 0), then dropped by the caller.
+    dist[np.arange(len(query_rows)), query_rows] = -1.0
+    near = np.argpartition(dist, k - 1, axis=1)[:, :k] if k < n else np.broadcast_to(np.arange(n), dist.shape)
+    d = np.take_along_axis(dist, near, axis=1)
+    order = np.argsort(d, axis=1, kind="stable")
+    d = np.take_along_axis(d, order, axis=1)
+    idx = np.take_along_axis(near, order, axis=1)
+    out = d < bound
+    return np.where(out, d, np.inf), np.where(out, idx, n)
+
+
 def neighbourhoods(
     enu: FloatArray, params: TopologyParams | None = None, rows: NDArray[np.intp] | None = None
 ) -> NDArray[np.intp]:
@@ -56,6 +90,9 @@ def neighbourhoods(
     bound = max(p.max_radius_m, p.radius_m)
     query = enu if rows is None else enu[rows]
     nq = query.shape[0]
+    if rows is not None and nq * n <= BRUTE_FORCE_MAX_DISTANCES:
+        dist, idx = _nearest_by_scan(enu, np.asarray(rows, dtype=np.intp), k, bound)
+        return _padded(dist, idx, n, rows, kmax, p)
     tree = cKDTree(enu)
     # Two searches giving the same neighbours as one k-nearest search within ``bound``: the
     # first ``min_neighbours + 1`` within ``bound``; only where the last of these lies within
@@ -73,6 +110,18 @@ def neighbourhoods(
             d2, i2 = tree.query(query[more], k=k, distance_upper_bound=p.radius_m)
             dist[more] = d2.reshape(more.size, k)
             idx[more] = i2.reshape(more.size, k)
+    return _padded(dist, idx, n, rows, kmax, p)
+
+
+def _padded(
+    dist: FloatArray,
+    idx: NDArray[np.intp],
+    n: int,
+    rows: NDArray[np.intp] | None,
+    kmax: int,
+    p: TopologyParams,
+) -> NDArray[np.intp]:
+    """The neighbourhoods from the sorted k-nearest search results (the track itself first)."""
     dist = dist[:, 1:]  # column 0 is the track itself (distance 0)
     idx = idx[:, 1:]
     rank = np.arange(dist.shape[1])[None, :]

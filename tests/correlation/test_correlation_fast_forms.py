@@ -41,6 +41,29 @@ def test_neighbourhoods_match_brute_force_default_params_and_rows() -> None:
     assert np.all(part[others] == -1)
 
 
+@pytest.mark.parametrize("seed", [5, 11, 12])
+def test_neighbourhoods_scan_matches_tree_and_brute_force(seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The full-distance-scan path for a few queried rows gives the tree's neighbourhoods."""
+    from service.correlation import topology
+
+    rng = np.random.default_rng(seed)
+    pts = _clustered(rng, 300)
+    prm = TopologyParams()
+    rows = np.unique(rng.integers(0, len(pts), 12))
+    assert len(rows) * len(pts) <= topology.BRUTE_FORCE_MAX_DISTANCES  # the scan path
+    scan = neighbourhoods(pts, prm, rows=rows)
+    monkeypatch.setattr(topology, "BRUTE_FORCE_MAX_DISTANCES", 0)  # the tree path
+    tree = neighbourhoods(pts, prm, rows=rows)
+    np.testing.assert_array_equal(scan, tree)
+    for i in rows:
+        assert list(scan[i][scan[i] >= 0]) == brute_force_neighbours(pts, int(i), prm)
+    # no row, and fewer tracks than a full neighbourhood
+    assert np.all(neighbourhoods(pts, prm, rows=np.empty(0, dtype=np.intp)) == -1)
+    few = pts[:5]
+    monkeypatch.setattr(topology, "BRUTE_FORCE_MAX_DISTANCES", 20_000)
+    np.testing.assert_array_equal(neighbourhoods(few, prm, rows=np.arange(5)), neighbourhoods(few, prm))
+
+
 def test_gather_points_trim_drops_only_padding() -> None:
     rng = np.random.default_rng(6)
     pts = _clustered(rng, 90)
