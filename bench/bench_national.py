@@ -54,11 +54,9 @@ from typing import Any
 
 import numpy as np
 
-from service.engine import Engine, EngineConfig
-from service.keys import Keys
+from service.engine import Engine, EngineConfig, Snapshot
 from service.scenarios.catalog import get_scenario
 from service.scenarios.simulator import Scenario, wire_messages
-from service.snapshot import Snapshot
 
 Stream = list[tuple[str, bytes]]
 
@@ -607,7 +605,7 @@ def run_zenoh(args: argparse.Namespace) -> None:
         if args.subscribe:
             # The node encodes and puts an output only when a subscriber matches its key: without
             # one, that part of its work is not measured.
-            keys = Keys(EngineConfig().prefix)
+            keys = node.keys
             for kind, expr in (
                 ("tracks", keys.tracks("*")),
                 ("pairs", keys.pairs_all),
