@@ -10,6 +10,7 @@ tracker's :class:`~service.tracking.base.TrackTable`.
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -18,67 +19,126 @@ from service.geo import Site
 from service.tracking.base import PlotColumns, Tracker, TrackTable
 from service.tracking.manager import TrackManager
 
+_NONE = np.array(None, dtype=object)
+
+
+def _find(sorted_values: NDArray[Any], values: NDArray[Any]) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
+    """Insertion point of each of ``values`` in ``sorted_values``, and whether it is there."""
+    at = np.searchsorted(sorted_values, values)
+    found = at < sorted_values.shape[0]
+    found[found] = sorted_values[at[found]] == values[found]
+    return at, found
+
 
 class TruthTally:
-    """Plot counts per (track uid, truth name); the most common name is the track's truth."""
+    """Plot counts per (track uid, truth name); the most common name is the track's truth.
+
+    Names get integer codes in the order they are first seen (a batch's new names in the order
+    of its chunks, sorted by name within a chunk), and ties between equally common names go to
+    the lowest code.  Counts only grow while a track lives, so each track's leader is kept up
+    to date from the pairs a batch adds: :meth:`of` is a lookup, not a sort of the tally.
+    """
 
     def __init__(self) -> None:
-        self._names: list[str] = []
-        self._codes: dict[str, int] = {}
-        # (track uid, truth code, plots), one row per pair seen
-        self._tally = (np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0, np.int64))
+        self._names = np.empty(0, dtype=object)  # code -> name
+        self._sorted_names = np.empty(0, dtype=str)  # the names, sorted, for lookups
+        self._sorted_codes = np.empty(0, dtype=np.int64)
+        # (track uid << 32 | truth code) -> plots, sorted by key
+        self._key = np.empty(0, dtype=np.int64)
+        self._count = np.empty(0, dtype=np.int64)
+        # per track, sorted by uid: its most common code and that code's plots
+        self._lead_uid = np.empty(0, dtype=np.int64)
+        self._lead_code = np.empty(0, dtype=np.int64)
+        self._lead_count = np.empty(0, dtype=np.int64)
 
-    def _encode(self, truth: NDArray[np.object_]) -> NDArray[np.int64]:
-        """Integer code per plot, -1 where the plot has no truth."""
+    def _encode(self, truth: NDArray[np.object_], chunk: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Integer code per plot, -1 where the plot has no truth; ``chunk``: each plot's chunk
+        (new names are coded in the order of the chunk that first holds them, then by name)."""
         codes = np.full(truth.shape[0], -1, dtype=np.int64)
-        present = np.array([t is not None for t in truth.tolist()], dtype=bool)
-        if present.any():
-            names, inv = np.unique(truth[present].astype(str), return_inverse=True)
-            lut = np.empty(names.shape[0], dtype=np.int64)
-            for q, name in enumerate(names.tolist()):  # loop over distinct names only
-                code = self._codes.get(name)
-                if code is None:
-                    code = len(self._names)
-                    self._codes[name] = code
-                    self._names.append(name)
-                lut[q] = code
-            codes[present] = lut[inv]
+        present: NDArray[np.bool_] = np.not_equal(truth, _NONE).astype(bool)  # per-element ``!= None``
+        if not present.any():
+            return codes
+        names, inv = np.unique(truth[present].astype(str), return_inverse=True)
+        where, known = _find(self._sorted_names, names)
+        lut = np.full(names.shape[0], -1, dtype=np.int64)
+        lut[known] = self._sorted_codes[where[known]]
+        if not known.all():
+            first = np.full(names.shape[0], np.iinfo(np.int64).max, dtype=np.int64)
+            np.minimum.at(first, inv, chunk[present])
+            new = np.flatnonzero(~known)
+            new = new[np.lexsort((new, first[new]))]  # by first chunk, then by name
+            lut[new] = self._names.shape[0] + np.arange(new.shape[0])
+            self._names = np.concatenate([self._names, names[new].astype(object)])
+            all_names = np.concatenate([self._sorted_names, names[new]])
+            all_codes = np.concatenate([self._sorted_codes, lut[new]])
+            order = np.argsort(all_names, kind="stable")
+            self._sorted_names, self._sorted_codes = all_names[order], all_codes[order]
+        codes[present] = lut[inv]
         return codes
 
     def add(self, uid: NDArray[np.int64], truth: NDArray[np.object_]) -> None:
         """Count plots with labels ``truth`` for tracks ``uid`` (one entry per plot)."""
-        code = self._encode(truth)
+        self.add_chunks([(uid, truth)])
+
+    def add_chunks(self, chunks: list[tuple[NDArray[np.int64], NDArray[np.object_]]]) -> None:
+        """:meth:`add` of each ``(uid, truth)`` chunk in turn, encoded and counted at once."""
+        if not chunks:
+            return
+        uid = np.concatenate([np.asarray(u, dtype=np.int64) for u, _ in chunks])
+        truth = np.concatenate([t for _, t in chunks])
+        chunk = np.repeat(np.arange(len(chunks), dtype=np.int64), [len(t) for _, t in chunks])
+        code = self._encode(truth, chunk)
         have = code >= 0
         if not have.any():
             return
-        u0, c0, k0 = self._tally
-        u = np.concatenate([u0, uid[have]])
-        c = np.concatenate([c0, code[have]])
-        k = np.concatenate([k0, np.ones(int(have.sum()), dtype=np.int64)])
-        key = u * (1 << 32) + c
-        uk, inv = np.unique(key, return_inverse=True)
-        self._tally = (uk >> 32, uk & 0xFFFFFFFF, np.bincount(inv, weights=k).astype(np.int64))
+        key, plots = np.unique(uid[have] * (1 << 32) + code[have], return_counts=True)
+        at, seen = _find(self._key, key)
+        count = self._count.copy()
+        count[at[seen]] += plots[seen]
+        total = plots.copy()
+        total[seen] = count[at[seen]]
+        self._key = np.insert(self._key, at[~seen], key[~seen])
+        self._count = np.insert(count, at[~seen], plots[~seen])
+        self._lead(key >> 32, key & 0xFFFFFFFF, total)
+
+    def _lead(self, uid: NDArray[np.int64], code: NDArray[np.int64], count: NDArray[np.int64]) -> None:
+        """Update the leaders with the new totals ``count`` of pairs ``(uid, code)``: a track's
+        leader is its old one or one of its pairs that grew (the others did not change)."""
+        at, held = _find(self._lead_uid, uid)
+        old = np.unique(at[held])
+        u = np.concatenate([uid, self._lead_uid[old]])
+        c = np.concatenate([code, self._lead_code[old]])
+        k = np.concatenate([count, self._lead_count[old]])
+        order = np.lexsort((c, -k, u))  # per uid: most plots first, ties by first-seen code
+        u, c, k = u[order], c[order], k[order]
+        first = np.ones(u.shape[0], dtype=bool)
+        first[1:] = u[1:] != u[:-1]
+        u, c, k = u[first], c[first], k[first]
+        at, held = _find(self._lead_uid, u)
+        lead_code, lead_count = self._lead_code.copy(), self._lead_count.copy()
+        lead_code[at[held]], lead_count[at[held]] = c[held], k[held]
+        new = at[~held]
+        self._lead_uid = np.insert(self._lead_uid, new, u[~held])
+        self._lead_code = np.insert(lead_code, new, c[~held])
+        self._lead_count = np.insert(lead_count, new, k[~held])
 
     def keep(self, live: NDArray[np.int64]) -> None:
         """Forget the tracks not in ``live`` (deleted tracks; uids are never reused)."""
-        u, c, k = self._tally
-        alive = np.isin(u, live)
-        self._tally = (u[alive], c[alive], k[alive])
+        live = np.sort(np.asarray(live, dtype=np.int64))
+        alive = _find(live, self._key >> 32)[1]
+        self._key, self._count = self._key[alive], self._count[alive]
+        alive = _find(live, self._lead_uid)[1]
+        self._lead_uid, self._lead_code, self._lead_count = (
+            self._lead_uid[alive],
+            self._lead_code[alive],
+            self._lead_count[alive],
+        )
 
     def of(self, uids: NDArray[np.int64]) -> NDArray[np.object_]:
-        """The most common truth name of each track in ``uids`` (sorted), None where none."""
+        """The most common truth name of each track in ``uids``, None where none."""
         out = np.full(uids.shape[0], None, dtype=object)
-        u, c, k = self._tally
-        if u.shape[0] == 0:
-            return out
-        order = np.lexsort((c, -k, u))  # per uid: most plots first, ties by first-seen code
-        u, c = u[order], c[order]
-        first = np.ones(u.shape[0], dtype=bool)
-        first[1:] = u[1:] != u[:-1]
-        u, c = u[first], c[first]
-        row = np.searchsorted(uids, u)
-        ok = (row < uids.shape[0]) & (uids[np.minimum(row, max(uids.shape[0] - 1, 0))] == u)
-        out[row[ok]] = np.array(self._names, dtype=object)[c[ok]]
+        at, ok = _find(self._lead_uid, uids)
+        out[ok] = self._names[self._lead_code[at[ok]]]
         return out
 
 
@@ -100,8 +160,7 @@ class TruthLabelledTracker(Tracker):
 
     def update(self, plots: PlotColumns, time_s: float) -> None:
         self.inner.update(plots, time_s)
-        for uid, joined in self.inner.joined:
-            self.tally.add(uid, joined.truth_id)
+        self.tally.add_chunks([(uid, joined.truth_id) for uid, joined in self.inner.joined])
         self.tally.keep(self.inner.uids)
 
     def tracks(self) -> TrackTable:

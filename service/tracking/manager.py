@@ -31,7 +31,7 @@ evaluation) are kept outside the tracker, by :mod:`service.truth_labels`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -83,6 +83,8 @@ class _Tracks:
     miss_run: NDArray[np.int64]  # expected misses in a row
     confirmed: NDArray[np.bool_]
     nplots: NDArray[np.int64]
+    ids: NDArray[np.str_]  # "{prefix}-{uid}", made once at birth
+    cov_ecef: FloatArray  # (n, 6, 6) ``P`` in ECEF, made when ``P`` is (see ``TrackManager.tracks``)
 
     def __len__(self) -> int:
         return int(self.uid.shape[0])
@@ -102,6 +104,8 @@ class _Tracks:
             i(),
             np.empty(0, dtype=bool),
             i(),
+            np.empty(0, dtype=str),
+            np.empty((0, 6, 6)),
         )
 
     def take(self, keep: NDArray[np.bool_]) -> _Tracks:
@@ -115,6 +119,8 @@ class _Tracks:
             self.miss_run[keep],
             self.confirmed[keep],
             self.nplots[keep],
+            self.ids[keep],
+            self.cov_ecef[keep],
         )
 
     def append(self, new: _Tracks) -> _Tracks:
@@ -128,10 +134,15 @@ class _Tracks:
             np.concatenate([self.miss_run, new.miss_run]),
             np.concatenate([self.confirmed, new.confirmed]),
             np.concatenate([self.nplots, new.nplots]),
+            np.concatenate([self.ids, new.ids]),
+            np.concatenate([self.cov_ecef, new.cov_ecef]),
         )
 
 
 Joined = list[tuple[NDArray[np.int64], PlotColumns]]
+#: The arrays an update writes in place and the rows it wrote, with their previous values:
+#: ``(tracks, rows, x, P, t, nplots, cov_ecef)``.
+_Saved = tuple[_Tracks, IntArray, FloatArray, FloatArray, FloatArray, NDArray[np.int64], FloatArray]
 
 #: Association memory: a (track, plot) pair of the KD-tree pre-gate search costs about 90 bytes
 #: (its output and masks), a gate prediction about 1.3 kB, so the search runs on chunks of
@@ -153,6 +164,62 @@ def _track_chunks(tracks_enu: FloatArray, plots_enu: FloatArray, reach: float, b
         return [every]
     start = np.cumsum(bound) - bound
     return np.split(every, np.flatnonzero(np.diff(start // block)) + 1)
+
+
+#: Association: the tracks near a batch's plots are found on a dense grid of flags over the
+#: box of the plots (cells of side ``coarse_gate_max_m``) when it has at most this many cells
+#: (64 kB).  A wider box (plots spread over far more than the coarse gate) sends every track to
+#: the pre-gate search, the form used before the selection.
+_NEAR_GRID_CELLS = 65_536
+
+#: Rounding pad of the selection grid's side, in units in the last place of the largest
+#: coordinate: a track and a plot within ``coarse_gate_max_m`` of each other then always lie
+#: in neighbouring cells, whatever the rounding of the positions and of the cell indices.
+_NEAR_GRID_PAD_ULPS = 16.0
+
+
+def _near_tracks(tracks: _Tracks, plots_enu: FloatArray, tb: float, reach: float) -> IntArray | None:
+    """Rows of the tracks that may have a plot within ``reach`` at ``tb``: those whose predicted
+    (east, north) lies in one of the 3x3 cells around a plot's cell of a square grid of side
+    ``reach`` (a pair within ``reach`` in 3-D is within it in 2-D, so in neighbouring cells).
+    None, meaning every track, when some number is not finite (the search over all tracks
+    then meets it as before) or the grid would pass ``_NEAR_GRID_CELLS``."""
+    x, P, t = tracks.x, tracks.P, tracks.t
+    if not all(np.isfinite(a.sum()) for a in (x, P, t, plots_enu)) or not np.isfinite(tb):
+        return None  # a sum is finite only if every term is
+    en = plots_enu[:, :2]
+    lo, hi = en.min(axis=0), en.max(axis=0)
+    scale = float(np.max(np.abs(np.concatenate([lo, hi])))) + max(reach, 0.0)
+    side = max(reach, 0.0) + _NEAR_GRID_PAD_ULPS * float(np.spacing(scale))
+    extent = np.floor((hi - lo) / side)
+    if (extent[0] + 3.0) * (extent[1] + 3.0) > _NEAR_GRID_CELLS:
+        return None
+    shape = (int(extent[0]) + 3, int(extent[1]) + 3)  # an empty cell on each side of the plots'
+    cell = np.floor((en - lo) / side).astype(np.intp) + 1
+    occupied = np.zeros(shape, dtype=bool)
+    occupied[cell[:, 0], cell[:, 1]] = True
+    near = np.zeros(shape, dtype=bool)
+    core = occupied[1:-1, 1:-1]
+    for de in range(3):  # the 3x3 neighbourhood of every occupied cell
+        for dn in range(3):
+            near[de : de + shape[0] - 2, dn : dn + shape[1] - 2] |= core
+    pos = x[:, :2] + (tb - t)[:, None] * x[:, 3:5]
+    if not np.isfinite(pos.sum()):
+        return None
+    at = np.floor((pos - lo) / side)
+    inside = np.all((at >= -1.0) & (at <= np.array(shape, dtype=float) - 2.0), axis=1)
+    idx = np.flatnonzero(inside)
+    ij = at[idx].astype(np.intp) + 1
+    return idx[near[ij[:, 0], ij[:, 1]]]
+
+
+def _ecef_block(rotation: FloatArray) -> FloatArray:
+    """The 6x6 map of an ENU ``[position, velocity]`` covariance to ECEF (the site's rotation on
+    both diagonal blocks): ``big @ P @ big.T``."""
+    big = np.zeros((6, 6))
+    big[:3, :3] = rotation
+    big[3:, 3:] = rotation
+    return big
 
 
 class TrackManager(Tracker):
@@ -178,6 +245,10 @@ class TrackManager(Tracker):
         self._next_uid = 1
         self.last_time_s = -np.inf
         self._tracks = _Tracks.empty()
+        #: The site rotation that ``_tracks.cov_ecef`` was made with, and the site that the
+        #: window's measurements were made with (a site can be replaced, see ``update``).
+        self._ecef_rotation = np.array(self.site.rotation, dtype=float, copy=True)
+        self._window_site = self.site
         #: The plots that joined tracks in the last update, as ``(track uids, plots)`` chunks:
         #: assigned to existing tracks, and the members of newly initiated ones.
         self.joined: Joined = []
@@ -202,14 +273,27 @@ class TrackManager(Tracker):
         change a copy of the window, and the tracker takes them only at the end.  The one
         exception is the Kalman update of the assigned tracks, written into their rows in
         place (a fresh copy of every state and covariance per batch costs more than the rest
-        of the bookkeeping); those rows are saved first and put back if a later step fails."""
+        of the bookkeeping); those rows are saved first and put back if a later step fails.
+
+        Two caches ride along, both made from the site: each track's ECEF covariance (made
+        when its covariance changes, for :meth:`tracks`) and the measurements of the window's
+        plots (made when their batch arrives).  When the engine has replaced the site since,
+        both are made anew here, so results are those of converting everything every time."""
         fp = self.params.filter
+        site = self.site
         joined: Joined = []
         tracks = self._tracks
         window = self._window.copy()
-        saved: tuple[IntArray, FloatArray, FloatArray, FloatArray, NDArray[np.int64]] | None = None
+        rotation = np.array(site.rotation, dtype=float, copy=True)
+        big = _ecef_block(rotation)
+        saved: _Saved | None = None
         try:
-            meas = plots_to_measurements(self.site, plots, self.params.measurement)
+            if not np.array_equal(rotation, self._ecef_rotation):
+                tracks = replace(tracks, cov_ecef=big @ tracks.P @ big.T)
+            if site != self._window_site:
+                wplots = window.plots
+                window.replace(wplots, plots_to_measurements(site, wplots, self.params.measurement))
+            meas = plots_to_measurements(site, plots, self.params.measurement)
             used = np.zeros(len(meas), dtype=bool)
             hit = np.zeros(len(tracks), dtype=bool)
             if len(tracks) and len(meas):
@@ -218,26 +302,39 @@ class TrackManager(Tracker):
                 r, c = rows[chosen], cols[chosen]
                 if r.shape[0]:
                     x_new, p_new, _ = kalman.update(xp[chosen], pp[chosen], meas.enu_m[c], meas.covariance[c])
-                    saved = (r, tracks.x[r], tracks.P[r], tracks.t[r], tracks.nplots[r])
+                    saved = (
+                        tracks,
+                        r,
+                        tracks.x[r],
+                        tracks.P[r],
+                        tracks.t[r],
+                        tracks.nplots[r],
+                        tracks.cov_ecef[r],
+                    )
                     tracks.x[r], tracks.P[r], tracks.t[r] = x_new, p_new, meas.time_s[c]
                     tracks.nplots[r] += 1
+                    tracks.cov_ecef[r] = big @ p_new @ big.T
                     hit[r] = True
                     used[c] = True
                     joined.append((tracks.uid[r], plots.take(c)))
             tracks = self._life_cycle(tracks, hit, plots.azimuth_deg, float(time_s))
-            window.extend(plots.take(~used), float(time_s))
-            tracks, next_uid = self._initiate_from_window(tracks, window, joined)
+            window.extend(plots.take(~used), float(time_s), meas.take(~used))
+            tracks, next_uid = self._initiate_from_window(tracks, window, joined, big)
         except BaseException:
-            if saved is not None:
-                live = self._tracks
-                rs, x0, p0, t0, n0 = saved
-                live.x[rs], live.P[rs], live.t[rs], live.nplots[rs] = x0, p0, t0, n0
+            if saved is not None:  # back into the very arrays written
+                written, rs, x0, p0, t0, n0, c0 = saved
+                written.x[rs], written.P[rs], written.t[rs], written.nplots[rs] = x0, p0, t0, n0
+                written.cov_ecef[rs] = c0
             raise
         # Commit: plain assignments only, after every step that can fail.
         self._tracks, self._window, self.joined, self._next_uid = tracks, window, joined, next_uid
+        self._ecef_rotation, self._window_site = rotation, site
         self.last_time_s = max(self.last_time_s, float(time_s))
 
     def tracks(self) -> TrackTable:
+        """The live tracks in ECEF.  Covariances and ids come from the per-track caches (made
+        when a track's covariance changes, and at its birth), so a call costs copies of the
+        arrays, not a 6x6 product and a string per track."""
         tr = self._tracks
         n = len(tr)
         if n == 0:
@@ -245,13 +342,15 @@ class TrackManager(Tracker):
         rot = self.site.rotation
         pos = tr.x[:, :3] @ rot.T + self.site.origin_ecef
         vel = tr.x[:, 3:] @ rot.T
-        big = np.zeros((6, 6))
-        big[:3, :3] = rot
-        big[3:, 3:] = rot
-        cov = big @ tr.P @ big.T
-        ids = np.array([f"{self.id_prefix}-{u}" for u in tr.uid.tolist()], dtype=str)
+        if np.array_equal(rot, self._ecef_rotation):
+            cov = tr.cov_ecef.copy()
+        else:  # the site was replaced since the last update
+            big = _ecef_block(rot)
+            cov = big @ tr.P @ big.T
+        # The width of the longest id (the highest uid), as a table built from the strings has.
+        width = len(self.id_prefix) + 1 + len(str(int(tr.uid.max())))
         return TrackTable(
-            ids,
+            tr.ids.astype(f"<U{width}"),
             tr.confirmed.copy(),
             tr.t.copy(),
             pos,
@@ -267,6 +366,13 @@ class TrackManager(Tracker):
     ) -> tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray]:
         """Gated candidates ``(track, plot, d^2)`` and each candidate's predicted state.
 
+        Only the tracks near the batch's plots (:func:`_near_tracks`: a sector batch of a
+        scanning radar covers an eighth of its tracks) are predicted and searched; the others
+        cannot have a plot within their pre-gate radius, which is at most
+        ``coarse_gate_max_m``.  Every step below works row by row, so the candidates and
+        their values are those of the search over all tracks (their order may differ; the
+        assignment does not depend on it).
+
         Memory stays bounded however many plots crowd around the tracks: the tracks go in
         chunks whose candidates within the pre-gate radius are at most
         ``_SEARCH_PAIRS_PER_PREDICTION * gate_block`` (counted on a grid first,
@@ -275,33 +381,40 @@ class TrackManager(Tracker):
         used before these bounds."""
         fp = self.params.filter
         tb = float(np.median(meas.time_s))
-        xb, pb = kalman.predict(tracks.x, tracks.P, tb - tracks.t, fp.process_noise_psd)
-        span = float(np.max(np.abs(meas.time_s - tb)))
-        sig_t = np.sqrt(np.trace(pb[:, :3, :3], axis1=1, axis2=2))
-        sig_p = float(np.sqrt(np.max(np.trace(meas.covariance, axis1=1, axis2=2))))
-        speed = np.linalg.norm(xb[:, 3:], axis=1)
-        radius = np.sqrt(fp.gate_chi2) * (sig_t + sig_p) + speed * span
-        radius = np.minimum(radius, fp.coarse_gate_max_m)
-        gb = max(self.params.bounds.gate_block, 1)
-        tree_p = cKDTree(meas.enu_m)
+        near = _near_tracks(tracks, meas.enu_m, tb, fp.coarse_gate_max_m)
+        if near is None:
+            x, P, t = tracks.x, tracks.P, tracks.t
+        else:
+            x, P, t = tracks.x[near], tracks.P[near], tracks.t[near]
         out: list[tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray]] = []
-        chunks = _track_chunks(xb[:, :3], meas.enu_m, float(radius.max()), _SEARCH_PAIRS_PER_PREDICTION * gb)
-        for chunk in chunks:  # a few
-            sdm = cKDTree(xb[chunk, :3]).sparse_distance_matrix(
-                tree_p, float(radius[chunk].max()), output_type="ndarray"
+        if x.shape[0]:
+            xb, pb = kalman.predict(x, P, tb - t, fp.process_noise_psd)
+            span = float(np.max(np.abs(meas.time_s - tb)))
+            sig_t = np.sqrt(np.trace(pb[:, :3, :3], axis1=1, axis2=2))
+            sig_p = float(np.sqrt(np.max(np.trace(meas.covariance, axis1=1, axis2=2))))
+            speed = np.linalg.norm(xb[:, 3:], axis=1)
+            radius = np.sqrt(fp.gate_chi2) * (sig_t + sig_p) + speed * span
+            radius = np.minimum(radius, fp.coarse_gate_max_m)
+            gb = max(self.params.bounds.gate_block, 1)
+            tree_p = cKDTree(meas.enu_m)
+            chunks = _track_chunks(
+                xb[:, :3], meas.enu_m, float(radius.max()), _SEARCH_PAIRS_PER_PREDICTION * gb
             )
-            rows = chunk[sdm["i"].astype(np.intp)]
-            cols = sdm["j"].astype(np.intp)
-            keep = sdm["v"] <= radius[rows]
-            rows, cols = rows[keep], cols[keep]
-            for b0 in range(0, rows.shape[0], gb):  # the exact gate, ``gate_block`` at a time
-                r, c = rows[b0 : b0 + gb], cols[b0 : b0 + gb]
-                dt = meas.time_s[c] - tracks.t[r]
-                xp, pp = kalman.predict(tracks.x[r], tracks.P[r], dt, fp.process_noise_psd)
-                y, S = kalman.innovation(xp, pp, meas.enu_m[c], meas.covariance[c])
-                d2 = kalman.mahalanobis2(y, S)
-                ok = d2 <= fp.gate_chi2
-                out.append((r[ok], c[ok], d2[ok], xp[ok], pp[ok]))
+            for chunk in chunks:  # a few
+                sdm = cKDTree(xb[chunk, :3]).sparse_distance_matrix(
+                    tree_p, float(radius[chunk].max()), output_type="ndarray"
+                )
+                rows = chunk[sdm["i"].astype(np.intp)]
+                cols = sdm["j"].astype(np.intp)
+                keep = sdm["v"] <= radius[rows]
+                rows, cols = rows[keep], cols[keep]
+                for b0 in range(0, rows.shape[0], gb):  # the exact gate, ``gate_block`` at a time
+                    r, c = rows[b0 : b0 + gb], cols[b0 : b0 + gb]
+                    xp, pp = kalman.predict(x[r], P[r], meas.time_s[c] - t[r], fp.process_noise_psd)
+                    y, S = kalman.innovation(xp, pp, meas.enu_m[c], meas.covariance[c])
+                    d2 = kalman.mahalanobis2(y, S)
+                    ok = d2 <= fp.gate_chi2
+                    out.append((r[ok] if near is None else near[r[ok]], c[ok], d2[ok], xp[ok], pp[ok]))
         if len(out) == 1:
             return out[0]
         if not out:
@@ -343,9 +456,7 @@ class TrackManager(Tracker):
         miss_run = np.where(hit, 0, tracks.miss_run + expected)
         hits = popcount(hist)
         confirmed = tracks.confirmed | (hits >= mp.confirm_m)
-        tracks = _Tracks(
-            tracks.uid, tracks.x, tracks.P, tracks.t, hist, looks, miss_run, confirmed, tracks.nplots
-        )
+        tracks = replace(tracks, hist=hist, looks=looks, miss_run=miss_run, confirmed=confirmed)
         misses = looks - hits
         dead = (~confirmed & (misses > mp.confirm_n - mp.confirm_m)) | (
             confirmed & (miss_run >= mp.confirmed_max_misses)
@@ -355,16 +466,19 @@ class TrackManager(Tracker):
 
     # -- initiation -------------------------------------------------------------------
     def _initiate_from_window(
-        self, tracks: _Tracks, window: PlotWindow, joined: Joined
+        self, tracks: _Tracks, window: PlotWindow, joined: Joined, big: FloatArray
     ) -> tuple[_Tracks, int]:
         """New tentative tracks from ``window`` (whose used plots it removes), their plots
-        appended to ``joined``; returns the tracks and the next free uid."""
+        appended to ``joined``; returns the tracks and the next free uid.  ``big``: the map of
+        a covariance to ECEF (:func:`_ecef_block`)."""
         next_uid = self._next_uid
         wplots = window.plots
         if len(wplots) < 3:
             return tracks, next_uid
         p = self.params
-        wm = plots_to_measurements(self.site, wplots, p.measurement)
+        wm = window.measurements
+        if wm is None:  # the window's plots all came with theirs (``update``); kept for safety
+            wm = plots_to_measurements(self.site, wplots, p.measurement)
         groups = self._initiate(wm, p, self.site.scan_period_s)
         if groups.count == 0:
             return tracks, next_uid
@@ -387,6 +501,8 @@ class TrackManager(Tracker):
             np.zeros(k, dtype=np.int64),
             popcount(hist) >= p.manager.confirm_m,
             births.plots[ok],
+            np.char.add(f"{self.id_prefix}-", uid.astype(str)),
+            big @ births.P[ok] @ big.T,
         )
         # Plots of accepted groups leave the window; label -> uid of the new track.
         label_uid = np.full(groups.count, -1, dtype=np.int64)
@@ -396,5 +512,5 @@ class TrackManager(Tracker):
         joined.append((label_uid[groups.group][in_new], wplots.take(member)))
         used = np.zeros(len(wplots), dtype=bool)
         used[member] = True
-        window.replace(wplots.take(~used))
+        window.replace(wplots.take(~used), wm.take(~used))
         return tracks.append(born), next_uid + k

@@ -36,6 +36,20 @@ class Measurements:
     def take(self, index: np.ndarray) -> Measurements:
         return Measurements(self.time_s[index], self.enu_m[index], self.covariance[index])
 
+    @staticmethod
+    def empty() -> Measurements:
+        return Measurements(np.empty(0), np.empty((0, 3)), np.empty((0, 3, 3)))
+
+    @staticmethod
+    def concat(parts: list[Measurements]) -> Measurements:
+        if not parts:
+            return Measurements.empty()
+        return Measurements(
+            np.concatenate([p.time_s for p in parts]),
+            np.concatenate([p.enu_m for p in parts]),
+            np.concatenate([p.covariance for p in parts]),
+        )
+
 
 def polar_covariance_enu(
     range_m: FloatArray,
@@ -80,7 +94,7 @@ def plot_elevation(
 def plots_to_measurements(site: Site, plots: PlotColumns, params: MeasurementParams) -> Measurements:
     """Polar plots to ENU positions and covariances (issue 3 item 1)."""
     if len(plots) == 0:
-        return Measurements(np.empty(0), np.empty((0, 3)), np.empty((0, 3, 3)))
+        return Measurements.empty()
     el, el_sigma = plot_elevation(site, plots, params)
     enu = polar_to_enu(plots.range_m, plots.azimuth_deg, el)
     cov = polar_covariance_enu(

@@ -7,6 +7,7 @@ from collections import deque
 import numpy as np
 
 from service.tracking.base import PlotColumns
+from service.tracking.measurement import Measurements
 
 
 class PlotWindow:
@@ -23,6 +24,10 @@ class PlotWindow:
     A window is changed only by its own methods, and its chunks are never written in place,
     so :meth:`copy` is cheap (the chunks are shared) and a copy can be changed and then kept
     or dropped as a whole (the track manager's all-or-nothing update).
+
+    A chunk may carry the :class:`Measurements` of its plots (row for row), which then follow
+    the plots through pruning, eviction and :meth:`replace`: the track manager converts each
+    plot once, when its batch arrives, instead of the whole window at every update.
     """
 
     def __init__(self, window_s: float, max_plots: int | None = None) -> None:
@@ -32,9 +37,9 @@ class PlotWindow:
             raise ValueError(f"max_plots must be >= 0, got {max_plots!r}")
         self.window_s = float(window_s)
         self.max_plots = max_plots
-        self._chunks: deque[PlotColumns] = deque()
+        self._chunks: deque[tuple[PlotColumns, Measurements | None]] = deque()
         self._count = 0
-        self._joined: PlotColumns | None = PlotColumns.empty()
+        self._joined: tuple[PlotColumns, Measurements | None] | None = (PlotColumns.empty(), None)
         self.newest_time_s = -np.inf
         #: Plots evicted so far because the window held more than ``max_plots``.
         self.evicted = 0
@@ -49,43 +54,57 @@ class PlotWindow:
         out._chunks = deque(self._chunks)
         return out
 
+    def _join(self) -> tuple[PlotColumns, Measurements | None]:
+        if self._joined is None:
+            parts = list(self._chunks)
+            plots = PlotColumns.concat([p for p, _ in parts])
+            meas = [m for _, m in parts if m is not None]
+            joined_meas = Measurements.concat(meas) if len(meas) == len(parts) else None
+            self._joined = (plots, joined_meas)
+            self._chunks = deque([self._joined]) if len(plots) else deque()
+        return self._joined
+
     @property
     def plots(self) -> PlotColumns:
         """All plots in the window, in arrival order."""
-        if self._joined is None:
-            self._joined = PlotColumns.concat(list(self._chunks))
-            self._chunks = deque([self._joined]) if len(self._joined) else deque()
-        return self._joined
+        return self._join()[0]
 
-    def extend(self, plots: PlotColumns, time_s: float) -> None:
-        """Add a batch's plots and advance the data clock to ``time_s``, then prune."""
+    @property
+    def measurements(self) -> Measurements | None:
+        """The measurements of :attr:`plots` (same rows) when every chunk came with its own,
+        else None."""
+        return self._join()[1]
+
+    def extend(self, plots: PlotColumns, time_s: float, measurements: Measurements | None = None) -> None:
+        """Add a batch's plots (with their measurements, if given) and advance the data clock
+        to ``time_s``, then prune."""
         if len(plots):
-            self._chunks.append(plots)
+            self._chunks.append((plots, measurements))
             self._count += len(plots)
             self._joined = None
         self.newest_time_s = max(self.newest_time_s, float(time_s))
         self.prune()
 
-    def replace(self, plots: PlotColumns) -> None:
+    def replace(self, plots: PlotColumns, measurements: Measurements | None = None) -> None:
         """Keep exactly ``plots`` (e.g. after an initiator consumed some of them)."""
-        self._chunks = deque([plots]) if len(plots) else deque()
+        self._joined = (plots, measurements)
+        self._chunks = deque([self._joined]) if len(plots) else deque()
         self._count = len(plots)
-        self._joined = plots
 
     def prune(self) -> None:
         """Drop plots older than the window, then evict the oldest beyond ``max_plots``."""
         cutoff = self.newest_time_s - self.window_s
         changed = False
-        kept: deque[PlotColumns] = deque()
-        for chunk in self._chunks:
+        kept: deque[tuple[PlotColumns, Measurements | None]] = deque()
+        for chunk, meas in self._chunks:
             if chunk.time_s.size and chunk.time_s.min() < cutoff:
                 keep = chunk.time_s >= cutoff
                 self._count -= int(np.count_nonzero(~keep))
                 changed = True
                 if keep.any():
-                    kept.append(chunk.take(keep))
+                    kept.append((chunk.take(keep), meas.take(keep) if meas is not None else None))
             else:
-                kept.append(chunk)
+                kept.append((chunk, meas))
         if changed:
             self._chunks = kept
             self._joined = None
@@ -95,8 +114,8 @@ class PlotWindow:
         excess = self._count - self.max_plots if self.max_plots is not None else 0
         if excess <= 0:
             return
-        plots = self.plots  # arrival order, so a stable sort by time breaks ties by arrival
+        plots, meas = self._join()  # arrival order, so a stable sort by time breaks ties by arrival
         keep = np.ones(len(plots), dtype=bool)
         keep[np.argsort(plots.time_s, kind="stable")[:excess]] = False
-        self.replace(plots.take(keep))
+        self.replace(plots.take(keep), meas.take(keep) if meas is not None else None)
         self.evicted += excess
