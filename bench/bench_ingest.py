@@ -20,11 +20,11 @@ import numpy as np
 
 from service.engine import EngineConfig, plot_columns
 from service.geo import Site
-from service.messages import PlotBatch, RadarSite
 from service.tracking.base import PlotColumns, Tracker, TrackTable
 from service.tracking.window import PlotWindow
 from service.transport.node import ServiceNode
 from service.transport.session import ZenohOptions, open_session
+from service.wire.models import PlotBatch, RadarSite
 
 PLOTS = 1000
 T0 = 1_763_769_600.0

@@ -16,15 +16,20 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from service.settings import METHODS, Settings, engine_config
+from service.settings import Settings, engine_config
 from service.transport.session import MODES, ZenohOptions
+from service.wire.vocabulary import METHODS
 
 log = logging.getLogger("topofusion")
 
 
-def _zenoh_flags(p: argparse.ArgumentParser, default_mode: str | None) -> None:
+def _zenoh_flags(p: argparse.ArgumentParser, default_mode: str) -> None:
     g = p.add_argument_group("zenoh")
-    g.add_argument("--mode", choices=MODES, default=default_mode, help="zenoh session mode")
+    g.add_argument(
+        "--mode",
+        choices=MODES,
+        help=f"zenoh session mode (default: the config file's, else {default_mode})",
+    )
     g.add_argument("--listen", action="append", metavar="ENDPOINT", help="listen endpoint (repeatable)")
     g.add_argument("--connect", action="append", metavar="ENDPOINT", help="connect endpoint (repeatable)")
     g.add_argument("--zenoh-config", metavar="FILE", help="JSON5 zenoh config; the flags above override it")
@@ -32,7 +37,7 @@ def _zenoh_flags(p: argparse.ArgumentParser, default_mode: str | None) -> None:
 
 
 def _service_flags(p: argparse.ArgumentParser) -> None:
-    _zenoh_flags(p, default_mode=None)
+    _zenoh_flags(p, default_mode="peer")
     p.add_argument("--http-host", help="HTTP side port host (default 127.0.0.1)")
     p.add_argument("--http-port", type=int, help="HTTP side port (default 8000; 0 picks a free port)")
     p.add_argument("--sites", metavar="FILE", help="JSON file with a list of RadarSite")
@@ -114,12 +119,15 @@ def settings_from(args: argparse.Namespace) -> Settings:
     return Settings(**overrides)
 
 
-def zenoh_options(settings: Settings) -> ZenohOptions:
+def zenoh_options(settings: Settings, default_mode: str = "peer") -> ZenohOptions:
+    """The Zenoh options of the settings; ``default_mode`` where neither a flag, a setting nor
+    the config file gives one (peer for the service, client for the tools)."""
     return ZenohOptions(
         mode=settings.zenoh_mode,
         listen=tuple(settings.zenoh_listen) if settings.zenoh_listen is not None else None,
         connect=tuple(settings.zenoh_connect),
         config_file=settings.zenoh_config,
+        default_mode=default_mode,
     )
 
 
@@ -283,9 +291,9 @@ def simulate_main(args: argparse.Namespace) -> int:
     from service.transport.session import open_session
 
     scenario = scenario_for(args)
-    settings = settings_from(argparse.Namespace(**{**vars(args), "mode": args.mode or "client"}))
+    settings = settings_from(args)
     stop = _stop_on_signals()
-    session = open_session(zenoh_options(settings))
+    session = open_session(zenoh_options(settings, default_mode="client"))
     try:
         t0 = time.monotonic()
         batches, plots = publish_scenario(session, scenario, settings.prefix, args.speed, args.seed, stop)
@@ -367,10 +375,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command in ("record", "replay"):
             from service import recording
 
-            settings = settings_from(argparse.Namespace(**{**vars(args), "mode": args.mode or "client"}))
+            settings = settings_from(args)
             args.prefix = settings.prefix
             fn = recording.record_main if args.command == "record" else recording.replay_main
-            return int(fn(args, zenoh_options(settings)))
+            return int(fn(args, zenoh_options(settings, default_mode="client")))
         if args.command == "evaluate":
             return evaluate_main(args)
         if args.command == "schemas":

@@ -26,21 +26,22 @@ from pydantic import TypeAdapter, ValidationError
 
 from service.correlation import PairCorrelator
 from service.geo import Site
-from service.keys import Keys
-from service.messages import (
+from service.pipeline.correlation_stage import CadenceParams, CorrelationStage, Source
+from service.pipeline.errors import RejectionError
+from service.pipeline.read_model import RadarRow, Snapshot, track_batch
+from service.pipeline.sequencer import RADAR, REFERENCE, Release, Sequencer, SequencerParams, SourceClock
+from service.pipeline.tracking_stage import SiteChange, SiteParams, TrackerFactory, TrackingStage
+from service.reference import ReferenceParams, ReferenceTracks
+from service.tracking.base import PlotColumns, Tracker
+from service.wire.keys import Keys
+from service.wire.models import (
     MAX_PAYLOAD_BYTES,
     AisBatch,
     PlotBatch,
     RadarSite,
     rejection_reason,
 )
-from service.pipeline.correlation_stage import CadenceParams, CorrelationStage, Source
-from service.pipeline.errors import RejectionError
-from service.pipeline.sequencer import RADAR, REFERENCE, Release, Sequencer, SequencerParams, SourceClock
-from service.pipeline.tracking_stage import SiteChange, SiteParams, TrackerFactory, TrackingStage
-from service.reference import ReferenceParams, ReferenceTracks
-from service.snapshot import RadarRow, Snapshot, encode, track_batch
-from service.tracking.base import PlotColumns, Tracker
+from service.wire.outputs import encode, rejection
 
 __all__ = ["Engine", "EngineConfig", "Outgoing", "RejectionError", "Snapshot", "load_sites", "plot_columns"]
 
@@ -221,13 +222,8 @@ class Engine:
         self.rejected[rej.reason] += 1
         self.sequencer.count_rejected(rej.source_id)
         self._snapshot = None
-        body = {
-            "key": key,
-            "radar_id": rej.source_id,
-            "reason": rej.reason,
-            "detail": rej.detail,
-            "time_s": receive_time_s if receive_time_s is not None else time.time(),
-        }
+        when = receive_time_s if receive_time_s is not None else time.time()
+        body = rejection(key, rej.source_id, rej.reason, rej.detail, when)
         return Outgoing(self.keys.errors, lambda: body)
 
     def _set_site(self, site: RadarSite) -> None:

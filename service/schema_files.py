@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from service.messages import WIRE_MODELS
+from service.wire.models import WIRE_MODELS
 
 #: The contract's own examples (CONTRACT.md §1-2), one per payload.
 EXAMPLES: dict[str, Any] = {

@@ -2,19 +2,16 @@
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-from service.transport.session import DEFAULT_LISTEN
+from service.wire.vocabulary import Method, is_source_id
 
 if TYPE_CHECKING:
     from service.engine import EngineConfig
-
-METHODS = ("svd-topology", "basic-topology", "nearest", "gmm", "cfar")
 
 
 def _split(value: object) -> object:
@@ -28,7 +25,8 @@ class Settings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="TOPOFUSION_", extra="ignore")
 
-    zenoh_mode: Literal["peer", "client", "router"] = "peer"
+    #: ``None``: the Zenoh config file's mode, else the command's default (peer for the service).
+    zenoh_mode: Literal["peer", "client", "router"] | None = None
     #: ``None`` means the mode's default (none for client, the contract's endpoint otherwise).
     zenoh_listen: Annotated[list[str] | None, NoDecode] = None
     zenoh_connect: Annotated[list[str], NoDecode] = Field(default_factory=list)
@@ -37,7 +35,7 @@ class Settings(BaseSettings):
     http_port: int = Field(default=8000, ge=0, le=65535)
     prefix: str = Field(default="fusion", pattern=r"^[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*$")
     sites: Path | None = None
-    method: Literal["svd-topology", "basic-topology", "nearest", "gmm", "cfar"] = "svd-topology"
+    method: Method = "svd-topology"
     window_s: float | None = Field(default=None, gt=0)
     initiator: str = "logic"
     #: Radars this worker owns (comma separated ids); empty: every radar under the prefix.
@@ -53,15 +51,10 @@ class Settings(BaseSettings):
     @field_validator("radars")
     @classmethod
     def _radar_ids(cls, value: list[str]) -> list[str]:
-        bad = [r for r in value if not re.fullmatch(r"[A-Za-z0-9_-]{1,64}", r)]
+        bad = [r for r in value if not is_source_id(r)]
         if bad:
             raise ValueError(f"radar ids must match [A-Za-z0-9_-]{{1,64}}: {bad}")
         return value
-
-    def listen_endpoints(self) -> list[str]:
-        if self.zenoh_listen is not None:
-            return list(self.zenoh_listen)
-        return [] if self.zenoh_mode == "client" else [DEFAULT_LISTEN]
 
 
 def engine_config(settings: Settings) -> EngineConfig:

@@ -27,21 +27,20 @@ import yaml
 from fastapi.routing import APIRoute
 from prometheus_client import generate_latest
 
-from service import messages
+from service.wire import models, vocabulary
 from service.api.app import create_app
 from service.api.metrics import registry_for
 from service.cli import build_parser
 from service.correlation import METHODS
 from service.engine import Engine, EngineConfig
-from service.keys import Keys
 from service.pipeline.correlation_stage import CadenceParams
 from service.pipeline.sequencer import SequencerParams
 from service.pipeline.tracking_stage import SiteParams
-from service.recording.keys import MODEL_BY_KIND, classify_key
 from service.reference import ReferenceParams
 from service.settings import Settings
 from service.transport.node import ServiceNode
 from service.transport.session import DEFAULT_LISTEN, ZenohOptions
+from service.wire.keys import MODEL_BY_KIND, Keys, classify_key
 
 ROOT = Path(__file__).resolve().parents[1]
 CONTRACT = ROOT / "docs" / "contract.md"
@@ -219,7 +218,7 @@ def method_problems(text: str) -> list[str]:
 # -- values, reasons, metrics --------------------------------------------------------------
 
 CODE_ROOTS: dict[str, Any] = {
-    "messages": messages,
+    "models": models,
     "SequencerParams": SequencerParams(),
     "CadenceParams": CadenceParams(),
     "SiteParams": SiteParams(),
@@ -261,7 +260,7 @@ def value_problems(text: str) -> list[str]:
 
 def reason_problems(text: str) -> list[str]:
     documented = {cells[0].strip("`") for cells, _ in rows_of(text, "reason", "when")}
-    reasons = set(get_args(messages.RejectionReason))
+    reasons = set(get_args(vocabulary.RejectionReason))
     return [f"rejection reason {r} differs between contract and code" for r in sorted(documented ^ reasons)]
 
 
@@ -377,7 +376,7 @@ def channel_problems(doc: dict[str, Any]) -> list[str]:
             problems.append(f"channel {name}: unknown parameters in {address}")
         key = rendered[name] = render(address)
         if key not in built:
-            problems.append(f"channel {name}: {address} is no key expression service.keys.Keys builds")
+            problems.append(f"channel {name}: {address} is no key expression service.wire.keys.Keys builds")
         kind = classify_key(key, PREFIX)
         for message in channel.get("messages", {}).values():
             msg = deref(doc, message)
@@ -517,7 +516,7 @@ def test_asyncapi_parameter_patterns_are_the_code_s(asyncapi: dict[str, Any]) ->
     assert params["prefix"]["x-pattern"] == prefix["pattern"]
     assert params["prefix"]["default"] == prefix["default"] == PREFIX
     for name in SAMPLE_IDS:
-        assert params[name]["x-pattern"] == messages.ID_PATTERN, name
+        assert params[name]["x-pattern"] == vocabulary.ID_PATTERN, name
         assert re.fullmatch(params[name]["x-pattern"], params[name]["examples"][0])
 
 

@@ -12,10 +12,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from service.engine import Engine, EngineConfig
-from service.messages import RadarSite
 from service.pipeline.sequencer import SequencerParams
 from service.tracking.base import PlotColumns
 from service.tracking.window import PlotWindow
+from service.wire.models import RadarSite
 from tests.scenario_helpers import scenario_messages
 
 CONFIG = EngineConfig()

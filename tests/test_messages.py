@@ -9,8 +9,8 @@ import jsonschema
 import pytest
 from pydantic import ValidationError
 
-from service.messages import WIRE_MODELS, AisBatch, PlotBatch, RadarSite, rejection_reason
 from service.schema_files import EXAMPLES, render, schema_documents
+from service.wire.models import WIRE_MODELS, AisBatch, PlotBatch, RadarSite, rejection_reason
 
 SCHEMAS = Path(__file__).resolve().parents[1] / "schemas"
 

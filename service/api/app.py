@@ -11,8 +11,8 @@ from fastapi.responses import JSONResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from service.api.metrics import registry_for
-from service.messages import BiasEstimate, PairSet, RadarInfo, Status, TrackBatch
 from service.transport.node import ServiceNode
+from service.wire.models import BiasEstimate, PairSet, RadarInfo, Status, TrackBatch
 
 StatusFilter = Literal["confirmed", "tentative", "all"]
 

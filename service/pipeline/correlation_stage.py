@@ -31,8 +31,9 @@ import numpy as np
 from service.correlation import PairCorrelator, joint_solution
 from service.correlation.registration import BiasSolution, to_estimates
 from service.geo import Site
-from service.snapshot import PairSetView, bias_dict
+from service.pipeline.read_model import PairSetView
 from service.tracking.base import TrackTable
+from service.wire.outputs import bias_dict
 
 #: Method used between a radar and a reference source.
 REFERENCE_METHOD = "cfar"

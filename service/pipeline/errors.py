@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from service.messages import RejectionReason
+from service.wire.models import RejectionReason
 
 
 class RejectionError(Exception):

@@ -16,8 +16,8 @@ from enum import Enum
 import numpy as np
 
 from service.geo import Site
-from service.messages import RadarSite
 from service.tracking.base import PlotColumns, Tracker, TrackTable
+from service.wire.models import RadarSite
 
 TrackerFactory = Callable[[Site, "float | None", str, str], Tracker]
 

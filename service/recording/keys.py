@@ -1,68 +1,22 @@
-"""What a recorded key is: its kind (contract §1), its payload model and JSON Schema.
+"""What a recorded key is: its kind (:mod:`service.wire.keys`), its JSON Schema, key filters.
 
-The key shapes are the contract's; ``{prefix}`` is matched literally so that a recording made
-under one prefix is read with the same prefix it was made with.
+``{prefix}`` is matched literally so that a recording made under one prefix is read with the
+same prefix it was made with.
 """
 
 from __future__ import annotations
 
 import json
-import re
 from functools import lru_cache
-from typing import Literal
 
 import zenoh
-from pydantic import BaseModel
 
-from service.messages import AisBatch, PairSet, PlotBatch, RadarSite, Rejection, Status, TrackBatch
-
-KeyKind = Literal["site", "plots", "ais", "tracks", "pairs", "errors", "status", "other"]
-
-#: Kinds the service consumes: replay republishes only these unless told to include all keys.
-INPUT_KINDS: frozenset[KeyKind] = frozenset({"site", "plots", "ais"})
-#: Kinds the service itself publishes.
-OUTPUT_KINDS: frozenset[KeyKind] = frozenset({"tracks", "pairs", "errors", "status"})
-
-#: Payload model per key kind (contract §1 table).
-MODEL_BY_KIND: dict[KeyKind, type[BaseModel]] = {
-    "site": RadarSite,
-    "plots": PlotBatch,
-    "ais": AisBatch,
-    "tracks": TrackBatch,
-    "pairs": PairSet,
-    "errors": Rejection,
-    "status": Status,
-}
+from service.wire.keys import MODEL_BY_KIND, KeyKind
 
 #: MCAP schema encoding of a JSON Schema (MCAP well-known schema encodings).
 SCHEMA_ENCODING = "jsonschema"
 #: MCAP message encoding of every channel (contract §3).
 MESSAGE_ENCODING = "json"
-
-_ID = r"[A-Za-z0-9_-]{1,64}"
-_SHAPES: tuple[tuple[KeyKind, str], ...] = (
-    ("site", rf"radar/{_ID}/site"),
-    ("plots", rf"radar/{_ID}/plots"),
-    ("tracks", rf"radar/{_ID}/tracks"),
-    ("ais", rf"ais/{_ID}/reports"),
-    ("pairs", rf"pairs/{_ID}/{_ID}"),
-    ("errors", r"errors"),
-    ("status", r"status"),
-)
-
-
-@lru_cache(maxsize=64)
-def _patterns(prefix: str) -> tuple[tuple[KeyKind, re.Pattern[str]], ...]:
-    head = re.escape(prefix.strip("/"))
-    return tuple((kind, re.compile(rf"^{head}/{shape}$")) for kind, shape in _SHAPES)
-
-
-def classify_key(key: str, prefix: str) -> KeyKind:
-    """The contract kind of a concrete key under ``prefix``, ``"other"`` when it has none."""
-    for kind, pattern in _patterns(prefix):
-        if pattern.match(key):
-            return kind
-    return "other"
 
 
 @lru_cache(maxsize=16)

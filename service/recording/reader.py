@@ -27,7 +27,8 @@ from mcap.records import Channel, Chunk, Footer, Message, Schema
 from mcap.stream_reader import MAGIC_SIZE, StreamReader, breakup_chunk
 from mcap.summary import Summary
 
-from service.recording.keys import INPUT_KINDS, KeyFilter, KeyKind, classify_key, is_concrete_key
+from service.recording.keys import KeyFilter, is_concrete_key
+from service.wire.keys import INPUT_KINDS, KeyKind, classify_key
 
 MCAP_MAGIC = bytes([137, 77, 67, 65, 80, 48, 13, 10])
 #: Message encodings read as JSON (the contract writes ``json``).

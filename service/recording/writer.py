@@ -16,7 +16,8 @@ from typing import BinaryIO
 
 from mcap.writer import CompressionType, Writer
 
-from service.recording.keys import MESSAGE_ENCODING, SCHEMA_ENCODING, classify_key, schema_for_kind
+from service.recording.keys import MESSAGE_ENCODING, SCHEMA_ENCODING, schema_for_kind
+from service.wire.keys import classify_key
 
 #: Uncompressed bytes per MCAP chunk.  Smaller than the library's 1 MiB so that a recorder
 #: killed without a chance to finish its file loses little (see also ``flush_interval_s``).

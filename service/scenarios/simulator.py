@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from service.geo import Site, ecef_to_geodetic, enu_rotation, geodetic_to_ecef
-from service.keys import Keys
+from service.wire.keys import Keys
 
 
 @dataclass(frozen=True)

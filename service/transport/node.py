@@ -25,9 +25,9 @@ from typing import Any
 import zenoh
 
 from service.engine import Engine, EngineConfig, Outgoing, Snapshot
-from service.keys import Keys
-from service.snapshot import encode
 from service.transport.session import ZenohOptions, open_session
+from service.wire.keys import Keys
+from service.wire.outputs import encode
 
 log = logging.getLogger(__name__)
 
@@ -127,9 +127,9 @@ class ServiceNode:
         self.not_ready_reason = ""
         log.info(
             "zenoh session open (mode=%s, listen=%s, connect=%s), prefix %r",
-            self.zenoh_options.mode,
+            self.zenoh_options.effective_mode,
             self.zenoh_options.effective_listen(),
-            list(self.zenoh_options.connect),
+            self.zenoh_options.effective_connect(),
             self.keys.prefix,
         )
 
@@ -245,9 +245,9 @@ class ServiceNode:
         return {
             "uptime_s": round(time.monotonic() - self.started_at, 3),
             "zenoh": {
-                "mode": self.zenoh_options.mode,
+                "mode": self.zenoh_options.effective_mode,
                 "listen": self.zenoh_options.effective_listen(),
-                "connect": list(self.zenoh_options.connect),
+                "connect": self.zenoh_options.effective_connect(),
             },
             **snap.status_core(),
             "queue": {

@@ -9,8 +9,8 @@ from collections.abc import Callable
 
 import zenoh
 
-from service.keys import Keys
 from service.scenarios.simulator import Scenario, generate
+from service.wire.keys import Keys
 
 #: Sites are published again every this many plot batches, so that a service started after
 #: the simulator still learns them.

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import zenoh
@@ -15,49 +15,85 @@ MODES = ("peer", "client", "router")
 
 
 @dataclass(frozen=True)
-class ZenohOptions:
-    """The Zenoh part of every command's flags (CONTRACT.md §3)."""
+class Resolved:
+    """The endpoints in force: flags over the config file over the defaults."""
 
-    mode: str = "peer"
-    listen: tuple[str, ...] | None = None  # None: the mode's default
+    mode: str
+    listen: tuple[str, ...]
+    connect: tuple[str, ...]
+    multicast_from_file: bool
+
+
+@dataclass(frozen=True)
+class ZenohOptions:
+    """The Zenoh part of every command's flags (docs/contract.md §3).
+
+    Each of ``mode``, ``listen`` and ``connect`` left unset (None, or no connect endpoint) is
+    taken from the config file when it sets it, else from the default: ``default_mode`` (peer
+    for the service, client for the tools) and the contract's listen endpoint for peer and
+    router.
+    """
+
+    mode: str | None = None
+    listen: tuple[str, ...] | None = None
     connect: tuple[str, ...] = ()
     config_file: Path | None = None
-    extra: dict[str, str] = field(default_factory=dict)  # json5 path -> json5 value
+    default_mode: str = "peer"
+
+    def _file_config(self) -> zenoh.Config | None:
+        if self.config_file is None:
+            return None
+        if not Path(self.config_file).is_file():
+            raise FileNotFoundError(f"zenoh config file not found: {self.config_file}")
+        return zenoh.Config.from_file(str(self.config_file))
+
+    @cached_property
+    def resolved(self) -> Resolved:
+        file = self._file_config()
+
+        def from_file(key: str) -> object:
+            # An unset key reads as null; listen endpoints unset read as zenoh's per-mode table.
+            return json.loads(file.get_json(key)) if file is not None else None
+
+        mode = self.mode or from_file("mode") or self.default_mode
+        if mode not in MODES:
+            raise ValueError(f"zenoh mode must be one of {', '.join(MODES)}, got {mode!r}")
+        file_listen = from_file("listen/endpoints")
+        if self.listen is not None:
+            listen = tuple(self.listen)
+        elif isinstance(file_listen, list):
+            listen = tuple(file_listen)
+        else:
+            listen = () if mode == "client" else (DEFAULT_LISTEN,)
+        file_connect = from_file("connect/endpoints")
+        connect = tuple(self.connect) or tuple(file_connect if isinstance(file_connect, list) else ())
+        multicast = from_file("scouting/multicast/enabled")
+        return Resolved(str(mode), listen, connect, multicast is not None)
+
+    @property
+    def effective_mode(self) -> str:
+        return self.resolved.mode
 
     def effective_listen(self) -> list[str]:
-        if self.listen is not None:
-            return list(self.listen)
-        return [] if self.mode == "client" else [DEFAULT_LISTEN]
+        return list(self.resolved.listen)
+
+    def effective_connect(self) -> list[str]:
+        return list(self.resolved.connect)
 
 
 def zenoh_config(options: ZenohOptions) -> zenoh.Config:
-    """A ``zenoh.Config`` from a JSON5 file (optional) overridden by the flags.
+    """A ``zenoh.Config``: the JSON5 file (optional) with the resolved endpoints.
 
-    Multicast scouting is off unless the config file turns it on (contract §3).
+    Multicast scouting is off unless the config file sets it (contract §3).
     """
-    if options.mode not in MODES:
-        raise ValueError(f"zenoh mode must be one of {', '.join(MODES)}, got {options.mode!r}")
-    if options.config_file is not None:
-        if not Path(options.config_file).is_file():
-            raise FileNotFoundError(f"zenoh config file not found: {options.config_file}")
-        conf = zenoh.Config.from_file(str(options.config_file))
-        multicast_from_file = _file_sets_multicast(Path(options.config_file))
-    else:
-        conf = zenoh.Config()
-        multicast_from_file = False
-    conf.insert_json5("mode", json.dumps(options.mode))
-    conf.insert_json5("listen/endpoints", json.dumps(options.effective_listen()))
-    conf.insert_json5("connect/endpoints", json.dumps(list(options.connect)))
-    if not multicast_from_file:
+    r = options.resolved
+    conf = options._file_config() or zenoh.Config()
+    conf.insert_json5("mode", json.dumps(r.mode))
+    conf.insert_json5("listen/endpoints", json.dumps(list(r.listen)))
+    conf.insert_json5("connect/endpoints", json.dumps(list(r.connect)))
+    if not r.multicast_from_file:
         conf.insert_json5("scouting/multicast/enabled", "false")
-    for path, value in options.extra.items():
-        conf.insert_json5(path, value)
     return conf
-
-
-def _file_sets_multicast(path: Path) -> bool:
-    text = path.read_text(encoding="utf-8")
-    return "multicast" in text
 
 
 def open_session(options: ZenohOptions) -> zenoh.Session:
@@ -67,17 +103,6 @@ def open_session(options: ZenohOptions) -> zenoh.Session:
         return zenoh.open(conf)
     except Exception as exc:  # zenoh raises ZError, a plain Exception subclass
         raise RuntimeError(
-            f"cannot open Zenoh session (mode={options.mode}, listen={options.effective_listen()}, "
-            f"connect={list(options.connect)}): {exc}"
+            f"cannot open Zenoh session (mode={options.effective_mode}, listen={options.effective_listen()}, "
+            f"connect={options.effective_connect()}): {exc}"
         ) from exc
-
-
-def options_from_lists(
-    mode: str, listen: Sequence[str] | None, connect: Sequence[str] | None, config_file: str | Path | None
-) -> ZenohOptions:
-    return ZenohOptions(
-        mode=mode,
-        listen=tuple(listen) if listen else None,
-        connect=tuple(connect or ()),
-        config_file=Path(config_file) if config_file else None,
-    )

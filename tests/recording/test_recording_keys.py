@@ -6,7 +6,8 @@ import json
 
 import pytest
 
-from service.recording.keys import KeyFilter, classify_key, is_concrete_key, schema_for_kind
+from service.recording.keys import KeyFilter, is_concrete_key, schema_for_kind
+from service.wire.keys import classify_key
 
 
 @pytest.mark.parametrize(
@@ -34,7 +35,7 @@ def test_classify_key_with_a_multi_level_prefix() -> None:
 
 
 def test_schemas_come_from_the_wire_models() -> None:
-    from service.messages import PlotBatch
+    from service.wire.models import PlotBatch
 
     name, data = schema_for_kind("plots") or ("", b"")
     assert name == "PlotBatch"

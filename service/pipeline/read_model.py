@@ -1,4 +1,4 @@
-"""The read model's views: immutable state for readers, and their contract JSON built on demand.
+"""The read model: immutable state for readers; contract JSON built when first read.
 
 A snapshot holds references to immutable columns (a radar's :class:`TrackTable`, a copy of a
 pair book's columns), never JSON: a ``TrackBatch`` or ``PairSet`` is built only when somebody
@@ -12,29 +12,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import orjson
-from numpy.typing import NDArray
 
 from service.geo import ecef_to_geodetic
 from service.tracking.base import TrackTable
-
-
-def encode(obj: object) -> bytes:
-    """Compact JSON for the wire (orjson: about 10x the standard library on these payloads).
-
-    Every float the service publishes is finite or ``None`` by construction (NaN means "not
-    produced" and is mapped to ``None`` where it is built).
-    """
-    return orjson.dumps(obj)
-
-
-def _nullable(x: NDArray[np.float64]) -> list[float | None]:
-    """Floats as a list, non-finite entries as ``None`` (JSON has no NaN)."""
-    out: list[Any] = np.asarray(x, dtype=float).tolist()
-    bad = np.flatnonzero(~np.isfinite(x))
-    for i in bad.tolist():
-        out[i] = None
-    return out
+from service.wire.outputs import pair_rows, track_rows
 
 
 def track_batch(radar_id: str, time_s: float, tracks: TrackTable, status: str = "all") -> dict[str, Any]:
@@ -44,52 +25,19 @@ def track_batch(radar_id: str, time_s: float, tracks: TrackTable, status: str = 
     elif status == "tentative":
         tracks = tracks.take(~tracks.confirmed)
     lat, lon, alt = ecef_to_geodetic(tracks.position_ecef_m)
-    state = np.where(tracks.confirmed, "confirmed", "tentative").tolist()
-    rows = [
-        {
-            "track_id": tid,
-            "status": st,
-            "time_s": t,
-            "latitude_deg": la,
-            "longitude_deg": lo,
-            "altitude_m": al,
-            "position_ecef_m": p,
-            "velocity_ecef_mps": v,
-            "plots": n,
-            "truth_id": truth,
-        }
-        for tid, st, t, la, lo, al, p, v, n, truth in zip(
-            tracks.track_id.tolist(),
-            state,
-            tracks.time_s.tolist(),
-            np.atleast_1d(lat).tolist(),
-            np.atleast_1d(lon).tolist(),
-            np.atleast_1d(alt).tolist(),
-            tracks.position_ecef_m.tolist(),
-            tracks.velocity_ecef_mps.tolist(),
-            tracks.plots.tolist(),
-            tracks.truth_id.tolist(),
-            strict=True,
-        )
-    ]
-    return {"radar_id": radar_id, "time_s": time_s, "tracks": rows}
-
-
-def bias_dict(b: Any) -> dict[str, Any] | None:
-    values = (b.range_bias_m, b.azimuth_bias_deg, b.elevation_bias_deg)
-    if not all(np.isfinite(v) for v in values):
-        return None
-    return {
-        "radar_id": b.radar_id,
-        "range_bias_m": float(b.range_bias_m),
-        "azimuth_bias_deg": float(b.azimuth_bias_deg),
-        "elevation_bias_deg": float(b.elevation_bias_deg),
-        "pairs_used": int(b.pairs_used),
-        "time_s": float(b.time_s),
+    columns = {
+        "track_id": tracks.track_id,
+        "confirmed": tracks.confirmed,
+        "time_s": tracks.time_s,
+        "latitude_deg": np.atleast_1d(lat),
+        "longitude_deg": np.atleast_1d(lon),
+        "altitude_m": np.atleast_1d(alt),
+        "position_ecef_m": tracks.position_ecef_m,
+        "velocity_ecef_mps": tracks.velocity_ecef_mps,
+        "plots": tracks.plots,
+        "truth_id": tracks.truth_id,
     }
-
-
-_PAIR_FLOATS = ("statistic", "rotation_weight", "scale")
+    return {"radar_id": radar_id, "time_s": time_s, "tracks": track_rows(columns)}
 
 
 @dataclass(frozen=True)
@@ -124,37 +72,6 @@ class PairSetView:
         n_conf = int(np.count_nonzero(cols["confirmed"]))
         return PairSetView(key[0], key[1], time_s, corr.method, cols, n_conf, len(order) - n_conf)
 
-    def _rows(self) -> list[dict[str, Any]]:
-        c = self.columns
-        state = np.where(c["confirmed"], "confirmed", "tentative").tolist()
-        return [
-            {
-                "track_a": a,
-                "track_b": b,
-                "status": st,
-                "score": sc,
-                "statistic": stat,
-                "rotation_weight": rw,
-                "scale": scale,
-                "neighbors": nb,
-                "hits": h,
-                "first_time_s": t0,
-                "last_time_s": t1,
-            }
-            for a, b, st, sc, stat, rw, scale, nb, h, t0, t1 in zip(
-                c["track_a"].tolist(),
-                c["track_b"].tolist(),
-                state,
-                c["score"].tolist(),
-                *(_nullable(c[k]) for k in _PAIR_FLOATS),
-                c["neighbors"].tolist(),
-                c["hits"].tolist(),
-                c["first_time_s"].tolist(),
-                c["last_time_s"].tolist(),
-                strict=True,
-            )
-        ]
-
     def body(self, status: str = "all") -> dict[str, Any]:
         """The contract's ``PairSet``, pairs filtered by ``status`` (built once per status)."""
         got = self._cache.get(status)
@@ -165,7 +82,7 @@ class PairSetView:
                     "radar_b": self.radar_b,
                     "time_s": self.time_s,
                     "method": self.method,
-                    "pairs": self._rows(),
+                    "pairs": pair_rows(self.columns),
                 }
             got = self._cache["all"]
             if status != "all":

@@ -1,4 +1,4 @@
-"""Pydantic models of every payload in CONTRACT.md: the only wire definitions.
+"""Pydantic models of every payload of the contract (docs/contract.md): the only wire definitions.
 
 Input models (``RadarSite``, ``PlotBatch``, ``AisBatch``) carry all of the contract's
 validation rules; :func:`rejection_reason` maps a pydantic error onto the contract's
@@ -7,31 +7,19 @@ validation rules; :func:`rejection_reason` maps a pydantic error onto the contra
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from pydantic_core import PydanticCustomError
 
-#: `{radar_id}` / `{source_id}` pattern of the contract.
-ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
+from service.wire.vocabulary import ID_PATTERN, RejectionReason
+
 #: At most this many plots (or AIS reports) per batch.
 MAX_BATCH_ITEMS = 100_000
 #: Payloads above this many bytes are rejected (``too_large``) before parsing.  A full batch
 #: of 100 000 plots with truth ids is about 9 MB of JSON.
 MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
-
-RejectionReason = Literal[
-    "malformed_json",
-    "schema",
-    "unknown_radar",
-    "duplicate_seq",
-    "too_large",
-    "non_finite",
-    "out_of_range",
-    "internal",
-]
 
 SourceId = Annotated[str, Field(pattern=ID_PATTERN, description="matches [A-Za-z0-9_-]{1,64}")]
 #: Plausibility bounds that keep hostile but finite numbers out of the numerics (a range of
@@ -278,11 +266,6 @@ class BiasEstimate(OutModel):
     elevation_bias_deg: float
     pairs_used: int
     time_s: float
-
-
-def dump_json(obj: object) -> bytes:
-    """Compact, strict JSON for the wire: a NaN or infinity is a bug, never a payload."""
-    return json.dumps(obj, allow_nan=False, separators=(",", ":")).encode()
 
 
 # -- rejection reasons ---------------------------------------------------------------------

@@ -1,0 +1,111 @@
+"""Zenoh key expressions of the contract (docs/contract.md §1): built and parsed in one place.
+
+One grammar serves the service (which inputs it takes), the recorder and the replay (what a
+recorded key is): :func:`classify_key` names the kind of any concrete key under a prefix.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Literal
+
+from pydantic import BaseModel
+
+from service.wire.models import AisBatch, PairSet, PlotBatch, RadarSite, Rejection, Status, TrackBatch
+from service.wire.vocabulary import ID_REGEX
+
+KeyKind = Literal["site", "plots", "ais", "tracks", "pairs", "errors", "status", "other"]
+
+#: Kinds the service consumes: replay republishes only these unless told to include all keys.
+INPUT_KINDS: frozenset[KeyKind] = frozenset({"site", "plots", "ais"})
+
+#: Payload model per key kind (contract §1 table).
+MODEL_BY_KIND: dict[KeyKind, type[BaseModel]] = {
+    "site": RadarSite,
+    "plots": PlotBatch,
+    "ais": AisBatch,
+    "tracks": TrackBatch,
+    "pairs": PairSet,
+    "errors": Rejection,
+    "status": Status,
+}
+
+#: Each kind's key after ``{prefix}/``, its ids captured.
+_SHAPES: tuple[tuple[KeyKind, str], ...] = (
+    ("site", rf"radar/({ID_REGEX})/site"),
+    ("plots", rf"radar/({ID_REGEX})/plots"),
+    ("tracks", rf"radar/({ID_REGEX})/tracks"),
+    ("ais", rf"ais/({ID_REGEX})/reports"),
+    ("pairs", rf"pairs/({ID_REGEX})/({ID_REGEX})"),
+    ("errors", r"errors"),
+    ("status", r"status"),
+)
+
+
+@lru_cache(maxsize=64)
+def _patterns(prefix: str) -> tuple[tuple[KeyKind, re.Pattern[str]], ...]:
+    head = re.escape(prefix.strip("/"))
+    return tuple((kind, re.compile(rf"^{head}/{shape}$")) for kind, shape in _SHAPES)
+
+
+def parse_key(key: str, prefix: str) -> tuple[KeyKind, tuple[str, ...]]:
+    """The contract kind of a concrete key under ``prefix`` and its ids; ``("other", ())``."""
+    for kind, pattern in _patterns(prefix):
+        m = pattern.match(key)
+        if m:
+            return kind, m.groups()
+    return "other", ()
+
+
+def classify_key(key: str, prefix: str) -> KeyKind:
+    """The contract kind of a concrete key under ``prefix``, ``"other"`` when it has none."""
+    return parse_key(key, prefix)[0]
+
+
+@dataclass(frozen=True)
+class Keys:
+    """The keys of one prefix."""
+
+    prefix: str = "fusion"
+
+    def site(self, radar_id: str) -> str:
+        return f"{self.prefix}/radar/{radar_id}/site"
+
+    def plots(self, radar_id: str) -> str:
+        return f"{self.prefix}/radar/{radar_id}/plots"
+
+    def ais(self, source_id: str) -> str:
+        return f"{self.prefix}/ais/{source_id}/reports"
+
+    def tracks(self, radar_id: str) -> str:
+        return f"{self.prefix}/radar/{radar_id}/tracks"
+
+    def pairs(self, radar_a: str, radar_b: str) -> str:
+        return f"{self.prefix}/pairs/{radar_a}/{radar_b}"
+
+    def input(self, kind: str, source_id: str) -> str:
+        """The input key of ``kind`` (``site``, ``plots`` or ``ais``) for a source."""
+        return {"site": self.site, "plots": self.plots, "ais": self.ais}[kind](source_id)
+
+    @property
+    def errors(self) -> str:
+        return f"{self.prefix}/errors"
+
+    @property
+    def status(self) -> str:
+        return f"{self.prefix}/status"
+
+    @property
+    def pairs_all(self) -> str:
+        return f"{self.prefix}/pairs/**"
+
+    @property
+    def ais_inputs(self) -> str:
+        return f"{self.prefix}/ais/*/reports"
+
+    def classify(self, key: str) -> tuple[str, str] | None:
+        """``("site"|"plots"|"ais", id)`` for an input key of this prefix, else ``None``."""
+        kind, ids = parse_key(key, self.prefix)
+        return (kind, ids[0]) if kind in INPUT_KINDS else None
