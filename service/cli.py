@@ -1,4 +1,4 @@
-"""``topofusion`` command line (CONTRACT.md §3).  Parsing stays here; entry points take config."""
+"""``topofusion`` command line (docs/contract.md §3).  Parsing stays here; entry points take config."""
 
 from __future__ import annotations
 

@@ -11,7 +11,7 @@ Frames
 SVD paper, Section 1.1, Eq. (1): ``y = R x + L`` with ``L`` the radar's ECEF position and
 ``R`` the local-to-ECEF rotation whose columns are east, north and up.  The paper prints
 ``x = r cos(phi) cos(theta), y = r cos(phi) sin(theta)``; with its east-north-up ``R`` and
-azimuth clockwise from north the consistent form is used here (papers/README.md §1):
+azimuth clockwise from north the consistent form is used here (docs/references.md §1):
 ``east = r cos(phi) sin(theta)``, ``north = r cos(phi) cos(theta)``, ``up = r sin(phi)``.
 """
 

@@ -8,7 +8,7 @@ from typing import Any
 
 from service.wire.models import WIRE_MODELS
 
-#: The contract's own examples (CONTRACT.md §1-2), one per payload.
+#: The contract's own examples (docs/contract.md §1-2), one per payload.
 EXAMPLES: dict[str, Any] = {
     "RadarSite": {
         "radar_id": "A",

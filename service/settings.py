@@ -1,4 +1,4 @@
-"""One settings object (pydantic-settings); command-line flags override it (CONTRACT.md §3)."""
+"""One settings object (pydantic-settings); command-line flags override it (docs/contract.md §3)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Wire models, rejection reasons and the committed JSON Schemas (CONTRACT.md §1)."""
+"""Wire models, rejection reasons and the committed JSON Schemas (docs/contract.md §1)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The HTTP side port (CONTRACT.md §2).  The lifespan owns the Zenoh node and its worker."""
+"""The HTTP side port (docs/contract.md §2).  The lifespan owns the Zenoh node and its worker."""
 
 from __future__ import annotations
 

@@ -1,8 +1,7 @@
 """CA-CFAR confidential association of a bias-free reference (AIS) with a radar (correlator ``cfar``).
 
 Qi Lin, Cui Yaqi, Xiong Wei, Wang Cong, "Anti-bias association algorithm for AIS and radar
-based on bias detection", JEIT 37(8), 2015 (``papers/cfar-ais-radar-association.zh.txt``,
-digest ``papers/README.md`` §4).
+based on bias detection", JEIT 37(8), 2015 (``docs/references.md`` §4).
 
 Reference tracks (AIS: true positions) and the radar's tracks, both at common times, are put in
 the radar's local plane (Section 2.1-2.2).  Systematic errors shift every radar track by a
@@ -190,7 +189,7 @@ def wrap_deg(angle_deg: np.ndarray) -> FloatArray:
 def polar_to_plane(polar: np.ndarray) -> FloatArray:
     """``[range_m, azimuth_deg]`` rows to (east, north) metres in the radar's local plane.
 
-    Azimuth clockwise from north (papers/README.md §1 correction, as ``service.geo``).
+    Azimuth clockwise from north (docs/references.md §1 correction, as ``service.geo``).
     """
     p = np.asarray(polar, dtype=float)
     az = np.radians(p[:, 1])

@@ -1,7 +1,7 @@
 """GMM anti-bias track association (correlator ``gmm``), pure numpy/scipy.
 
 Li Baozhu, Dong Yunlong, Ding Hao, Guan Jian, "GMM-based anti-bias track association"
-(``papers/gmm-anti-bias-association.zh.txt``, digest ``papers/README.md`` §3).
+(``docs/references.md`` §3).
 
 Radar A reports the track set ``X_A`` (``M`` tracks, the GMM *samples*), radar B the set
 ``X_B`` (``N`` tracks, the moving GMM *centroids*), both in one local plane.  Systematic

@@ -42,7 +42,7 @@ class PairBookParams:
 
 @dataclass
 class PairState:
-    """One pair of the book, as published in ``PairSet`` (CONTRACT.md)."""
+    """One pair of the book, as published in ``PairSet`` (docs/contract.md)."""
 
     track_a: str
     track_b: str

@@ -1,4 +1,4 @@
-"""The GMM paper's simulation scene (Li, Dong, Ding, Guan; digest ``papers/README.md`` §3), evaluation only.
+"""The GMM paper's simulation scene (Li, Dong, Ding, Guan; ``docs/references.md`` §3), evaluation only.
 
 Seeded; the target ids it returns are truth, for scoring only.
 """

@@ -1,4 +1,4 @@
-"""Record Zenoh streams to MCAP and replay them (CONTRACT.md §3), over Zenoh or offline.
+"""Record Zenoh streams to MCAP and replay them (docs/contract.md §3), over Zenoh or offline.
 
 Modules: :mod:`keys` (key kinds, schemas), :mod:`writer` (MCAP file), :mod:`recorder`
 (subscriber -> queue -> writer thread), :mod:`reader` (any contract-shaped MCAP, damaged or

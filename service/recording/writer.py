@@ -1,4 +1,4 @@
-"""An MCAP file of Zenoh samples in the contract's shape (CONTRACT.md §3).
+"""An MCAP file of Zenoh samples in the contract's shape (docs/contract.md §3).
 
 One channel per key (topic = the key), ``message_encoding`` ``json``, the key's JSON Schema
 where the key has a contract payload, payload bytes unchanged, ``log_time`` = receipt time and

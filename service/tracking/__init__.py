@@ -1,5 +1,5 @@
 """Per-radar tracking (pure numpy/scipy): measurement model, CV Kalman filter, M-of-N track
-manager, and the initiators of the Hough paper (see ``/work/shared/papers/README.md`` §2).
+manager, and the initiators of the Hough paper (see ``docs/references.md`` §2).
 
 Public API used by the engine::
 

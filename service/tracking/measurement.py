@@ -92,7 +92,7 @@ def plot_elevation(
 
 
 def plots_to_measurements(site: Site, plots: PlotColumns, params: MeasurementParams) -> Measurements:
-    """Polar plots to ENU positions and covariances (issue 3 item 1)."""
+    """Polar plots to ENU positions and covariances."""
     if len(plots) == 0:
         return Measurements.empty()
     el, el_sigma = plot_elevation(site, plots, params)

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 @dataclass(frozen=True)
 class MeasurementParams:
-    """Polar plot to ENU position (issue 3 item 1)."""
+    """Polar plot to ENU position."""
 
     altitude_sigma_m: float = 100.0
     """1-sigma error of a given (or assumed 0) altitude for 2-D radars; it is mapped into an
@@ -21,7 +21,7 @@ class MeasurementParams:
 
 @dataclass(frozen=True)
 class FilterParams:
-    """Constant-velocity Kalman filter (issue 3 item 2)."""
+    """Constant-velocity Kalman filter."""
 
     process_noise_psd: float = 25.0
     """Continuous white-noise acceleration spectral density q (m^2/s^3) per ENU axis.  The
@@ -57,7 +57,7 @@ class ManagerParams:
 
     sector_margin_deg: float = 1.0
     """A track only counts a miss when its predicted azimuth lies inside the azimuth arc the
-    batch's plots cover by at least this margin (sector batches, issue 3)."""
+    batch's plots cover by at least this margin (sector batches)."""
 
     birth_velocity_sigma_mps: float = 1000.0
     """Prior velocity sigma when a track is born from an initiator's plots (weak prior: the

@@ -1,6 +1,6 @@
 """The running service: a Zenoh session, one worker thread around the engine, queryables.
 
-Threads (DESIGN.md "Data flow and threads"):
+Threads (README "Architecture"):
 
 * Zenoh's network thread runs the subscriber callbacks (directly, so that samples keep their
   wire order across keys), which only put ``(key, bytes, time)`` on a bounded queue.  When

@@ -90,7 +90,7 @@ def test_e_step_matches_per_pair_loop() -> None:
             assert post[j, i] == pytest.approx(g[j] / (sum(g) + c), abs=1e-12)
 
 
-# -- the paper's scenario (papers/README.md §3) ----------------------------------------------
+# -- the paper's scenario (docs/references.md §3) ----------------------------------------------
 
 
 def test_paper_scenario_correct_association_rate() -> None:
