@@ -27,7 +27,6 @@ import yaml
 from fastapi.routing import APIRoute
 from prometheus_client import generate_latest
 
-from service.wire import models, vocabulary
 from service.api.app import create_app
 from service.api.metrics import registry_for
 from service.cli import build_parser
@@ -40,6 +39,7 @@ from service.reference import ReferenceParams
 from service.settings import Settings
 from service.transport.node import ServiceNode
 from service.transport.session import DEFAULT_LISTEN, ZenohOptions
+from service.wire import models, vocabulary
 from service.wire.keys import MODEL_BY_KIND, Keys, classify_key
 
 ROOT = Path(__file__).resolve().parents[1]
