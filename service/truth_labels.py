@@ -21,6 +21,11 @@ from service.tracking.manager import TrackManager
 
 _NONE = np.array(None, dtype=object)
 
+#: The tally forgets deleted tracks only once it holds this many tracks per live one: a
+#: sort and two searches at every update cost more than the rest of the tally's work, and
+#: the memory stays within a few times that of the live tracks.
+_DEAD_PER_LIVE = 2
+
 
 def _find(sorted_values: NDArray[Any], values: NDArray[Any]) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
     """Insertion point of each of ``values`` in ``sorted_values``, and whether it is there."""
@@ -55,7 +60,7 @@ class TruthTally:
         """Integer code per plot, -1 where the plot has no truth; ``chunk``: each plot's chunk
         (new names are coded in the order of the chunk that first holds them, then by name)."""
         codes = np.full(truth.shape[0], -1, dtype=np.int64)
-        present: NDArray[np.bool_] = np.not_equal(truth, _NONE).astype(bool)  # per-element ``!= None``
+        present: NDArray[np.bool_] = np.not_equal(truth, _NONE, dtype=bool)  # per-element ``!= None``
         if not present.any():
             return codes
         names, inv = np.unique(truth[present].astype(str), return_inverse=True)
@@ -97,8 +102,11 @@ class TruthTally:
         count[at[seen]] += plots[seen]
         total = plots.copy()
         total[seen] = count[at[seen]]
-        self._key = np.insert(self._key, at[~seen], key[~seen])
-        self._count = np.insert(count, at[~seen], plots[~seen])
+        if seen.all():
+            self._count = count
+        else:
+            self._key = np.insert(self._key, at[~seen], key[~seen])
+            self._count = np.insert(count, at[~seen], plots[~seen])
         self._lead(key >> 32, key & 0xFFFFFFFF, total)
 
     def _lead(self, uid: NDArray[np.int64], code: NDArray[np.int64], count: NDArray[np.int64]) -> None:
@@ -117,13 +125,20 @@ class TruthTally:
         at, held = _find(self._lead_uid, u)
         lead_code, lead_count = self._lead_code.copy(), self._lead_count.copy()
         lead_code[at[held]], lead_count[at[held]] = c[held], k[held]
+        if held.all():
+            self._lead_code, self._lead_count = lead_code, lead_count
+            return
         new = at[~held]
         self._lead_uid = np.insert(self._lead_uid, new, u[~held])
         self._lead_code = np.insert(lead_code, new, c[~held])
         self._lead_count = np.insert(lead_count, new, k[~held])
 
     def keep(self, live: NDArray[np.int64]) -> None:
-        """Forget the tracks not in ``live`` (deleted tracks; uids are never reused)."""
+        """Forget the tracks not in ``live`` (deleted tracks; uids are never reused), once
+        more than ``_DEAD_PER_LIVE`` tracks are held per live one: a deleted track's counts
+        are never read again, so dropping them in bulk changes no label."""
+        if self._lead_uid.shape[0] <= _DEAD_PER_LIVE * live.shape[0]:
+            return
         live = np.sort(np.asarray(live, dtype=np.int64))
         alive = _find(live, self._key >> 32)[1]
         self._key, self._count = self._key[alive], self._count[alive]

@@ -22,13 +22,21 @@ IntArray = NDArray[np.intp]
 _FORBIDDEN = 1e12
 
 
+def _dense_ranks(index: IntArray) -> tuple[IntArray, int]:
+    """Rank of each of ``index`` (non-negative ints) among its distinct values, and how many
+    there are: ``np.unique(index, return_inverse=True)`` by counting, for small ints (track
+    and plot rows)."""
+    present = np.bincount(index) > 0
+    rank = np.cumsum(present) - 1
+    return rank[index], int(rank[-1]) + 1
+
+
 def _dense_solve(
     rows: IntArray, cols: IntArray, cost: FloatArray, miss_cost: float
 ) -> tuple[IntArray, IntArray]:
     """LSA on ``[C | diag(miss_cost)]`` over the rows/columns present; returns chosen pair indices."""
-    ur, ri = np.unique(rows, return_inverse=True)
-    uc, ci = np.unique(cols, return_inverse=True)
-    nr, nc = ur.shape[0], uc.shape[0]
+    ri, nr = _dense_ranks(rows)
+    ci, nc = _dense_ranks(cols)
     mat = np.full((nr, nc + nr), _FORBIDDEN)
     mat[ri, ci] = cost
     mat[np.arange(nr), nc + np.arange(nr)] = miss_cost
@@ -48,9 +56,7 @@ def assign(rows: IntArray, cols: IntArray, cost: FloatArray, miss_cost: float) -
     """
     if rows.shape[0] == 0:
         return np.empty(0, dtype=np.intp)
-    _, r_inv, r_cnt = np.unique(rows, return_inverse=True, return_counts=True)
-    _, c_inv, c_cnt = np.unique(cols, return_inverse=True, return_counts=True)
-    single = (r_cnt[r_inv] == 1) & (c_cnt[c_inv] == 1)
+    single = (np.bincount(rows)[rows] == 1) & (np.bincount(cols)[cols] == 1)
     direct = np.flatnonzero(single)
     rest = np.flatnonzero(~single)
     if rest.shape[0] == 0:

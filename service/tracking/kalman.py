@@ -68,12 +68,25 @@ def update(
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Kalman update of each state with its plot; returns ``(x+, P+, nis)`` (Joseph form)."""
     y, S = innovation(x, P, z, R)
+    nis = np.einsum("ni,ni->n", y, np.linalg.solve(S, y[..., None])[..., 0])
+    return (*_update(x, P, R, y, S), nis)
+
+
+def update_state(x: FloatArray, P: FloatArray, z: FloatArray, R: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """:func:`update` without the NIS (the same ``x+`` and ``P+``), for callers that do not
+    use it."""
+    y, S = innovation(x, P, z, R)
+    return _update(x, P, R, y, S)
+
+
+def _update(
+    x: FloatArray, P: FloatArray, R: FloatArray, y: FloatArray, S: FloatArray
+) -> tuple[FloatArray, FloatArray]:
     # K = P H^T S^-1, computed as (S^-1 H P)^T since S and P are symmetric.
     K = np.swapaxes(np.linalg.solve(S, P[..., :3, :]), -1, -2)  # (n, 6, 3)
-    nis = np.einsum("ni,ni->n", y, np.linalg.solve(S, y[..., None])[..., 0])
     x_new = x + np.einsum("nij,nj->ni", K, y)
     ikh = np.broadcast_to(np.eye(6), P.shape).copy()
     ikh[..., :, :3] -= K
     p_new = ikh @ P @ np.swapaxes(ikh, -1, -2) + K @ R @ np.swapaxes(K, -1, -2)
     p_new = 0.5 * (p_new + np.swapaxes(p_new, -1, -2))
-    return x_new, p_new, nis
+    return x_new, p_new

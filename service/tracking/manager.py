@@ -184,33 +184,29 @@ def _near_tracks(tracks: _Tracks, plots_enu: FloatArray, tb: float, reach: float
     ``reach`` (a pair within ``reach`` in 3-D is within it in 2-D, so in neighbouring cells).
     None, meaning every track, when some number is not finite (the search over all tracks
     then meets it as before) or the grid would pass ``_NEAR_GRID_CELLS``."""
-    x, P, t = tracks.x, tracks.P, tracks.t
-    if not all(np.isfinite(a.sum()) for a in (x, P, t, plots_enu)) or not np.isfinite(tb):
+    x, t = tracks.x, tracks.t
+    pos = x[:, :2] + (tb - t)[:, None] * x[:, 3:5]
+    if not np.isfinite(x.sum() + tracks.P.sum() + t.sum() + pos.sum() + plots_enu.sum() + tb):
         return None  # a sum is finite only if every term is
     en = plots_enu[:, :2]
     lo, hi = en.min(axis=0), en.max(axis=0)
-    scale = float(np.max(np.abs(np.concatenate([lo, hi])))) + max(reach, 0.0)
-    side = max(reach, 0.0) + _NEAR_GRID_PAD_ULPS * float(np.spacing(scale))
+    reach = max(reach, 0.0)
+    side = reach + _NEAR_GRID_PAD_ULPS * float(np.spacing(float(np.abs([lo, hi]).max()) + reach))
     extent = np.floor((hi - lo) / side)
-    if (extent[0] + 3.0) * (extent[1] + 3.0) > _NEAR_GRID_CELLS:
+    if (extent[0] + 5.0) * (extent[1] + 5.0) > _NEAR_GRID_CELLS:
         return None
-    shape = (int(extent[0]) + 3, int(extent[1]) + 3)  # an empty cell on each side of the plots'
-    cell = np.floor((en - lo) / side).astype(np.intp) + 1
+    # The plots' cells, two empty cells on each side: the ring next to them is their
+    # neighbourhood, the outer ring stays empty and takes every track beyond.
+    shape = (int(extent[0]) + 5, int(extent[1]) + 5)
+    cell = np.floor((en - lo) / side).astype(np.intp) + 2
     occupied = np.zeros(shape, dtype=bool)
     occupied[cell[:, 0], cell[:, 1]] = True
+    band = np.zeros(shape, dtype=bool)  # the 3x3 neighbourhood, one axis at a time
+    band[1:-1] = occupied[:-2] | occupied[1:-1] | occupied[2:]
     near = np.zeros(shape, dtype=bool)
-    core = occupied[1:-1, 1:-1]
-    for de in range(3):  # the 3x3 neighbourhood of every occupied cell
-        for dn in range(3):
-            near[de : de + shape[0] - 2, dn : dn + shape[1] - 2] |= core
-    pos = x[:, :2] + (tb - t)[:, None] * x[:, 3:5]
-    if not np.isfinite(pos.sum()):
-        return None
-    at = np.floor((pos - lo) / side)
-    inside = np.all((at >= -1.0) & (at <= np.array(shape, dtype=float) - 2.0), axis=1)
-    idx = np.flatnonzero(inside)
-    ij = at[idx].astype(np.intp) + 1
-    return idx[near[ij[:, 0], ij[:, 1]]]
+    near[:, 1:-1] = band[:, :-2] | band[:, 1:-1] | band[:, 2:]
+    at = np.clip(np.floor((pos - lo) / side) + 2.0, 0.0, np.array(shape, dtype=float) - 1.0).astype(np.intp)
+    return np.flatnonzero(near[at[:, 0], at[:, 1]])
 
 
 def _ecef_block(rotation: FloatArray) -> FloatArray:
@@ -301,7 +297,8 @@ class TrackManager(Tracker):
                 chosen = assign(rows, cols, d2, fp.gate_chi2)
                 r, c = rows[chosen], cols[chosen]
                 if r.shape[0]:
-                    x_new, p_new, _ = kalman.update(xp[chosen], pp[chosen], meas.enu_m[c], meas.covariance[c])
+                    z, cov_z = meas.enu_m[c], meas.covariance[c]
+                    x_new, p_new = kalman.update_state(xp[chosen], pp[chosen], z, cov_z)
                     saved = (
                         tracks,
                         r,
