@@ -26,12 +26,12 @@ from pydantic import TypeAdapter, ValidationError
 
 from service.correlation import PairCorrelator
 from service.geo import Site
-from service.pipeline.correlation_stage import CadenceParams, CorrelationStage, Source
+from service.pipeline.correlation_stage import CadenceParams, CorrelationStage
 from service.pipeline.errors import RejectionError
 from service.pipeline.read_model import RadarRow, Snapshot, track_batch
 from service.pipeline.sequencer import RADAR, REFERENCE, Release, Sequencer, SequencerParams, SourceClock
 from service.pipeline.tracking_stage import SiteChange, SiteParams, TrackerFactory, TrackingStage
-from service.reference import ReferenceParams, ReferenceTracks
+from service.reference import ReferenceParams
 from service.tracking.base import PlotColumns, Tracker
 from service.wire.keys import Keys
 from service.wire.models import (
@@ -162,8 +162,7 @@ class Engine:
             self.config.initiator,
             self.config.site,
         )
-        self.correlation = CorrelationStage(self.config.method, self.config.cadence)
-        self.references: dict[str, ReferenceTracks] = {}
+        self.correlation = CorrelationStage(self.config.method, self.config.cadence, self.config.reference)
         self.plots: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
         self._snapshot: Snapshot | None = None
@@ -238,7 +237,6 @@ class Engine:
     def _drop(self, source_ids: Iterable[str]) -> None:
         for sid in source_ids:
             self.tracking.drop(sid)
-            self.references.pop(sid, None)
             self.plots.pop(sid, None)
             self.correlation.forget(sid)
 
@@ -258,7 +256,6 @@ class Engine:
         _check_body_id("source_id", batch.source_id, source_id)
         adm = self.sequencer.check(source_id, REFERENCE, batch.seq, batch.time_s)
         self._drop(self.sequencer.accept(adm, batch))
-        self.references.setdefault(source_id, ReferenceTracks(self.config.reference))
         self.plots[source_id] += len(batch.reports.time_s)
         self._snapshot = None
 
@@ -269,10 +266,12 @@ class Engine:
             self._snapshot = None
             try:
                 if rel.kind == REFERENCE:
-                    if not rel.expiry:
+                    if rel.expiry:
+                        self.correlation.silent(rel.source_id)
+                    else:
                         self._process_reference(rel.source_id, rel.item, rel.time_s)
                 elif rel.expiry:
-                    self.tracking.expire(rel.source_id, rel.time_s)
+                    out.extend(self._process_radar(rel.source_id, None, rel.time_s))
                 else:
                     out.extend(self._process_radar(rel.source_id, rel.item, rel.time_s))
             except Exception as exc:  # a bug costs this batch's outputs, never the service
@@ -285,35 +284,27 @@ class Engine:
 
     def _process_reference(self, source_id: str, batch: AisBatch, clock: float) -> None:
         r = batch.reports
-        self.references[source_id].add(
+        self.correlation.reference(
+            source_id,
+            clock,
             np.asarray(r.time_s, dtype=float),
             np.asarray(r.mmsi, dtype=str),
             np.asarray(r.latitude_deg, dtype=float),
             np.asarray(r.longitude_deg, dtype=float),
-            clock,
         )
 
-    def _process_radar(self, radar_id: str, plots: PlotColumns, clock: float) -> list[Outgoing]:
-        table = self.tracking.update(radar_id, plots, clock)
+    def _process_radar(self, radar_id: str, plots: PlotColumns | None, clock: float) -> list[Outgoing]:
+        """A released batch (``None``: the radar expired, its tracks coast out) and its pairs."""
+        if plots is None:
+            if not self.tracking.expire(radar_id, clock):
+                return []
+            table = self.tracking.radars[radar_id].table
+        else:
+            table = self.tracking.update(radar_id, plots, clock)
         out = [Outgoing(self.keys.tracks(radar_id), lambda: track_batch(radar_id, clock, table))]
-        radar = self.tracking.radars[radar_id]
-        me = Source(radar_id, radar.geometry, lambda t: table, radar.confirmed)
-        for key in self.correlation.update(me, self._partners(radar_id), clock):
-            view = self.correlation.views[key]
-            out.append(Outgoing(self.keys.pairs(*key), view.body))
-        return out
-
-    def _partners(self, radar_id: str) -> list[Source]:
-        """Every other live radar and reference source, in id order."""
-        out = []
-        for rid, r in sorted(self.tracking.radars.items()):
-            if rid != radar_id and r.tracker is not None:
-                table = r.table
-                out.append(Source(rid, r.geometry, lambda t, table=table: table, r.confirmed))  # type: ignore[misc]
-        for sid, ref in sorted(self.references.items()):
-            clock = self.sequencer.sources[sid]
-            if clock.released_time_s is not None and not clock.expired:
-                out.append(Source(sid, None, ref.table, len(ref)))
+        geometry = self.tracking.radars[radar_id].geometry
+        for key in self.correlation.radar(radar_id, geometry, table, clock):
+            out.append(Outgoing(self.keys.pairs(*key), self.correlation.views[key].body))
         return out
 
     # -- read model ----------------------------------------------------------------------

@@ -71,8 +71,10 @@ class RegistrationParams:
     #: solve costs in proportion to the remembered rows (a re-solve of a busy pair with 300
     #: rows per update was 40-80 ms); the pick's phase advances each update, so successive
     #: updates take different track pairs, and the memory still holds every confirmed pair
-    #: many times over (1 000 pairs, 4 s updates, 600 s: each about 15 times at 100 rows).
-    registered_rows_per_update: int = 100
+    #: several times over (1 000 pairs, 4 s updates, 600 s: each about 4 times at 30 rows).
+    #: A row costs about 700 bytes (its cached normal-equation pieces): a national network of
+    #: 66 radar pairs holds some 250 MB of rows at 30 per update, 800 MB at 100.
+    registered_rows_per_update: int = 30
     #: Minimum confirmed pairs before a correlator uses its registration.
     min_pairs: int = 6
     #: A :class:`~service.correlation.PairCorrelator` re-solves its own two-radar registration

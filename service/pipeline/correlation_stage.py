@@ -32,6 +32,7 @@ from service.correlation import PairCorrelator, joint_solution
 from service.correlation.registration import BiasSolution, to_estimates
 from service.geo import Site
 from service.pipeline.read_model import PairSetView
+from service.reference import ReferenceParams, ReferenceTracks
 from service.tracking.base import TrackTable
 from service.wire.outputs import bias_dict
 
@@ -63,7 +64,7 @@ class CadenceParams:
 
 @dataclass(frozen=True)
 class Source:
-    """What the stage needs of one source at an update."""
+    """What the stage needs of one partner at an update."""
 
     source_id: str
     geometry: Site | None  # None: a bias-free reference source
@@ -72,9 +73,19 @@ class Source:
 
 
 class CorrelationStage:
-    def __init__(self, method: str, params: CadenceParams | None = None) -> None:
+    """Pair correlators over the latest tracks of every source (see module docstring).
+
+    The stage keeps its own view of every source (the latest track table of each radar, the
+    reports of each reference), fed in the engine's release order, so it can run next to the
+    engine or behind a pipe in another process (:mod:`.correlation_process`) alike.
+    """
+
+    def __init__(
+        self, method: str, params: CadenceParams | None = None, reference: ReferenceParams | None = None
+    ) -> None:
         self.method = method
         self.params = params or CadenceParams()
+        self.reference_params = reference or ReferenceParams()
         self.correlators: dict[tuple[str, str], PairCorrelator] = {}
         self.views: dict[tuple[str, str], PairSetView] = {}
         self.next_due: dict[tuple[str, str], float] = {}
@@ -84,9 +95,34 @@ class CorrelationStage:
         self.biases: list[dict[str, Any]] = []
         self._next_bias_s = -np.inf
         self._joint: BiasSolution | None = None
+        self._radars: dict[str, tuple[Site, TrackTable]] = {}
+        self._references: dict[str, ReferenceTracks] = {}
+        self._silent: set[str] = set()
+
+    # -- the sources ---------------------------------------------------------------------------
+    def reference(
+        self,
+        source_id: str,
+        time_s: float,
+        report_time_s: np.ndarray,
+        ids: np.ndarray,
+        latitude_deg: np.ndarray,
+        longitude_deg: np.ndarray,
+    ) -> None:
+        """A released batch of a reference source's reports."""
+        refs = self._references.setdefault(source_id, ReferenceTracks(self.reference_params))
+        refs.add(report_time_s, ids, latitude_deg, longitude_deg, time_s)
+        self._silent.discard(source_id)
+
+    def silent(self, source_id: str) -> None:
+        """A reference source expired: it is offered to no radar until it reports again."""
+        self._silent.add(source_id)
 
     def forget(self, source_id: str) -> None:
         """A source left the engine: its pairs go."""
+        self._radars.pop(source_id, None)
+        self._references.pop(source_id, None)
+        self._silent.discard(source_id)
         for key in [k for k in self.correlators if source_id in k]:
             del self.correlators[key]
             self.views.pop(key, None)
@@ -98,6 +134,8 @@ class CorrelationStage:
         The remembered registration rows were measured from the old position; pairs of the
         other radars are untouched.
         """
+        if site.site_id in self._radars:
+            self._radars[site.site_id] = (site, self._radars[site.site_id][1])
         for key, old in list(self.correlators.items()):
             if site.site_id not in key:
                 continue
@@ -107,6 +145,19 @@ class CorrelationStage:
             new.book = old.book
             self.correlators[key] = new
 
+    def _partners(self, radar_id: str) -> list[Source]:
+        """Every other radar and every live reference source, in id order."""
+        out = []
+        for rid, (geometry, table) in sorted(self._radars.items()):
+            if rid != radar_id:
+                n = int(np.count_nonzero(table.confirmed))
+                out.append(Source(rid, geometry, lambda t, table=table: table, n))  # type: ignore[misc]
+        for sid, ref in sorted(self._references.items()):
+            if sid not in self._silent:
+                out.append(Source(sid, None, ref.table, len(ref)))
+        return out
+
+    # -- correlation ---------------------------------------------------------------------------
     def _reachable(self, radar: Site, other: Source, table: TrackTable | None) -> bool:
         p = self.params
         if other.geometry is not None:
@@ -121,6 +172,12 @@ class CorrelationStage:
     def _interval(self, a: Site, b: Site | None) -> float:
         scan = max(a.scan_period_s, b.scan_period_s if b is not None else 0.0)
         return max(self.params.min_interval_s, self.params.cadence_scans * scan)
+
+    def radar(self, radar_id: str, geometry: Site, table: TrackTable, time_s: float) -> list[tuple[str, str]]:
+        """A radar's tracks after one of its batches: correlate it with every partner due."""
+        self._radars[radar_id] = (geometry, table)
+        me = Source(radar_id, geometry, lambda t: table, int(np.count_nonzero(table.confirmed)))
+        return self.update(me, self._partners(radar_id), time_s)
 
     def update(self, radar: Source, others: list[Source], time_s: float) -> list[tuple[str, str]]:
         """Correlate ``radar`` with every partner due for an update; the keys updated."""

@@ -119,11 +119,16 @@ class TrackingStage:
         radar.time_s = time_s
         return radar.table
 
-    def expire(self, radar_id: str, time_s: float) -> None:
-        """A silent radar: data time moves on without plots, so its tracks coast out."""
+    def expire(self, radar_id: str, time_s: float) -> bool:
+        """A silent radar: data time moves on without plots, so its tracks coast out.
+
+        False if the radar has no tracker (it never reported): nothing to do.
+        """
         radar = self.radars.get(radar_id)
-        if radar is not None and radar.tracker is not None:
-            self.update(radar_id, PlotColumns.empty(), time_s)
+        if radar is None or radar.tracker is None:
+            return False
+        self.update(radar_id, PlotColumns.empty(), time_s)
+        return True
 
     def drop(self, radar_id: str) -> None:
         self.radars.pop(radar_id, None)
