@@ -56,9 +56,9 @@ import numpy as np
 
 from service.engine import Engine, EngineConfig
 from service.keys import Keys
-from service.scenarios.catalog import get_scenario
-from service.scenarios.simulator import Scenario, wire_messages
 from service.snapshot import Snapshot
+from topofusion_lab.scenarios.catalog import get_scenario
+from topofusion_lab.scenarios.simulator import Scenario, wire_messages
 
 Stream = list[tuple[str, bytes]]
 

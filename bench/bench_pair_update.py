@@ -26,8 +26,8 @@ import time
 import numpy as np
 
 from service.correlation import PairCorrelator
-from service.evaluation.correlation_scenario import make_sites
-from service.evaluation.correlation_stream import RadarTrackSim, StreamScenario, make_targets
+from topofusion_lab.evaluation.correlation_scenario import make_sites
+from topofusion_lab.evaluation.correlation_stream import RadarTrackSim, StreamScenario, make_targets
 
 
 def _tables(n: int, updates: int, seed: int = 1) -> list[tuple[object, object, float]]:

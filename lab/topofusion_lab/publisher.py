@@ -10,7 +10,7 @@ from collections.abc import Callable
 import zenoh
 
 from service.keys import Keys
-from service.scenarios.simulator import Scenario, generate
+from topofusion_lab.scenarios.simulator import Scenario, generate
 
 #: Sites are published again every this many plot batches, so that a service started after
 #: the simulator still learns them.

@@ -21,15 +21,15 @@ from service.correlation.linalg import congruence, inv3, yaw_congruence
 from service.correlation.registration import RegistrationMemory, RegistrationParams, solve_biases
 from service.correlation.svd_topology import svd_match
 from service.correlation.umeyama import yaw_matrix
-from service.evaluation.correlation_scenario import (
+from tests.correlation.test_correlation_registration import _snapshot
+from topofusion_lab.evaluation.correlation_scenario import (
     Biases,
     around,
     make_sites,
     sample_references,
     single_match_batch,
 )
-from service.evaluation.correlation_stream import RadarTrackSim, StreamScenario, make_targets
-from tests.correlation.test_correlation_registration import _snapshot
+from topofusion_lab.evaluation.correlation_stream import RadarTrackSim, StreamScenario, make_targets
 
 
 def _spd(rng: np.random.Generator, shape: tuple[int, ...], scale: float) -> np.ndarray:

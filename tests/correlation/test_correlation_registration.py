@@ -15,8 +15,8 @@ from service.correlation.registration import (
     remove_bias,
     solve_biases,
 )
-from service.evaluation.correlation_scenario import make_sites, sample_references
 from service.geo import Site
+from topofusion_lab.evaluation.correlation_scenario import make_sites, sample_references
 
 
 def _snapshot(
