@@ -7,8 +7,8 @@ import functools
 import numpy as np
 
 from service.tracking import velocity_tracks as vt
-from service.tracking.clustering import velocity_cluster_published, velocity_cluster_reference
-from service.tracking.cvfit import PlotStats, fit_set_reference, fit_sets, plot_stats, residual_d2
+from service.tracking.clustering import velocity_cluster_published
+from service.tracking.cvfit import PlotStats, fit_sets, plot_stats, residual_d2
 from service.tracking.groups import Groups
 from service.tracking.hough import classic_hough, pg_hough
 from service.tracking.initiators import hough_velocity, local_clusters
@@ -16,6 +16,7 @@ from service.tracking.logic import logic_initiate, resolve_conflicts
 from service.tracking.measurement import Measurements
 from service.tracking.params import ClusterParams, HoughParams, LogicParams, TrackerParams
 from service.tracking.velocity_tracks import drop_redundant
+from tests.tracking_reference_forms import fit_set_reference, velocity_cluster_reference
 from topofusion_lab.evaluation.initiation import Table1Row
 
 HP = HoughParams(
