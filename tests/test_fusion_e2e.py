@@ -10,8 +10,8 @@ from typing import Any
 
 import zenoh
 
-from tests.conftest import put_json, running_service, wait_for, wait_subscribed
 from tests.scenario_helpers import scenario_messages
+from tests.support import put_json, running_service, wait_for, wait_subscribed
 from topofusion_lab.scenarios.catalog import get_scenario
 
 
