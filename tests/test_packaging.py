@@ -114,7 +114,7 @@ def test_lab_wheel_holds_the_lab_and_requires_the_runtime(
         "publisher.py",
         "evaluation/correlation.py",
     ):
-        assert f"{LAB_PACKAGE}/{module}" in names
+        assert f"{LAB_PACKAGE}/{module}" in names, module
     meta = _metadata(wheel)
     assert {"topofusion", "matplotlib"} <= _requirement_names(meta)
     assert meta["License-Expression"] == "Apache-2.0"
