@@ -2,30 +2,45 @@
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
-STAMP  := $(VENV)/.installed-stamp
+# Two installs into the one venv, each with its stamp (redone when a pyproject changes):
+#   demo: the runtime and the lab (lab/: simulator, scenarios, evaluation), no test toolchain;
+#   test: the runtime with its test extra, and the lab (the tests use the simulator).
+# Each installs the runtime and the lab in one pip command, so that the lab's requirement
+# `topofusion` resolves to this checkout.
+DEMO_STAMP := $(VENV)/.installed-demo-stamp
+TEST_STAMP := $(VENV)/.installed-test-stamp
+PYPROJECTS := pyproject.toml lab/pyproject.toml
+LINTED := service tests bench lab
 PYTEST_ARGS ?=
 
-.PHONY: install demo run test lint typecheck unit bench evaluate schemas clean
+.PHONY: install install-demo demo run test lint typecheck unit bench evaluate schemas clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 
-$(STAMP): pyproject.toml | $(BIN)/python
+$(DEMO_STAMP): $(PYPROJECTS) | $(BIN)/python
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[test]"
-	touch $(STAMP)
+	$(BIN)/python -m pip install --quiet -e . -e lab
+	touch $(DEMO_STAMP)
 
-install: $(STAMP)
+$(TEST_STAMP): $(PYPROJECTS) | $(BIN)/python
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e ".[test]" -e lab
+	touch $(TEST_STAMP)
 
-demo: install ## the service plus its simulator on an embedded Zenoh peer (Ctrl-C stops)
+install-demo: $(DEMO_STAMP)
+
+install: $(TEST_STAMP) ## development install: runtime, test extra, lab
+
+demo: install-demo ## the service plus its simulator on an embedded Zenoh peer (Ctrl-C stops)
 	$(BIN)/topofusion demo
 
-run: install
+run: install-demo
 	$(BIN)/topofusion run
 
 lint: install
-	$(BIN)/ruff check service tests bench
-	$(BIN)/ruff format --check service tests bench
+	$(BIN)/ruff check $(LINTED)
+	$(BIN)/ruff format --check $(LINTED)
 
 typecheck: install
 	$(BIN)/mypy
@@ -38,10 +53,12 @@ test: lint typecheck unit ## installs, lints, type-checks and runs the whole sui
 bench: install
 	for b in bench/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
 
-evaluate: install
-	$(BIN)/topofusion evaluate --out evaluation
+# Into docs/evaluation, where README.md links the report from (the command's own default,
+# ./evaluation, is for ad-hoc runs and is gitignored).
+evaluate: install-demo
+	$(BIN)/topofusion evaluate --out docs/evaluation
 
-schemas: install
+schemas: install-demo
 	$(BIN)/topofusion schemas --out schemas
 
 clean:

@@ -23,9 +23,9 @@ import time
 import numpy as np
 
 from service.correlation import PairCorrelator
-from service.evaluation.correlation_scenario import make_sites, sample_references
-from service.evaluation.correlation_single import time_per_match
-from service.evaluation.correlation_stream import RadarTrackSim, StreamScenario, make_targets
+from topofusion_lab.evaluation.correlation_scenario import make_sites, sample_references
+from topofusion_lab.evaluation.correlation_single import time_per_match
+from topofusion_lab.evaluation.correlation_stream import RadarTrackSim, StreamScenario, make_targets
 
 
 def bench_single_match() -> None:
@@ -150,8 +150,8 @@ def bench_engine(scenario: str = "three-radar", duration_s: float = 120.0) -> No
     from dataclasses import replace
 
     from service.engine import Engine, EngineConfig
-    from service.scenarios.catalog import get_scenario
-    from service.scenarios.simulator import wire_messages
+    from topofusion_lab.scenarios.catalog import get_scenario
+    from topofusion_lab.scenarios.simulator import wire_messages
 
     sc = replace(get_scenario(scenario), duration_s=duration_s)
     msgs = list(wire_messages(sc, 1))

@@ -15,8 +15,8 @@ import time
 from dataclasses import replace
 
 from service.engine import Engine
-from service.scenarios.catalog import get_scenario
-from service.scenarios.simulator import wire_messages
+from topofusion_lab.scenarios.catalog import get_scenario
+from topofusion_lab.scenarios.simulator import wire_messages
 
 DATA_S = 120.0
 

@@ -95,7 +95,7 @@ def dense_start(scenes: int) -> None:
     from dataclasses import replace
 
     from service.correlation.gmm import GmmParams
-    from service.evaluation.correlation_gmm_scene import paper_scene
+    from topofusion_lab.evaluation.correlation_gmm_scene import paper_scene
 
     for label, params in (
         ("gmm", GmmParams()),

@@ -55,8 +55,8 @@ from typing import Any
 import numpy as np
 
 from service.engine import Engine, EngineConfig, Snapshot
-from service.scenarios.catalog import get_scenario
-from service.scenarios.simulator import Scenario, wire_messages
+from topofusion_lab.scenarios.catalog import get_scenario
+from topofusion_lab.scenarios.simulator import Scenario, wire_messages
 
 Stream = list[tuple[str, bytes]]
 

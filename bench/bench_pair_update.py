@@ -38,8 +38,8 @@ import time
 import numpy as np
 
 from service.correlation import PairCorrelator
-from service.evaluation.correlation_scenario import make_sites
-from service.evaluation.correlation_stream import RadarTrackSim, StreamScenario, make_targets
+from topofusion_lab.evaluation.correlation_scenario import make_sites
+from topofusion_lab.evaluation.correlation_stream import RadarTrackSim, StreamScenario, make_targets
 
 
 def _tables(n: int, updates: int, seed: int = 1) -> list[tuple[object, object, float]]:
@@ -106,8 +106,8 @@ def bench_steady_state(n: int = 1000, updates: int = 60) -> None:
 def _national_messages(duration_s: float, cache: str | None) -> list[tuple[str, bytes]]:
     from dataclasses import replace
 
-    from service.scenarios.catalog import get_scenario
-    from service.scenarios.simulator import wire_messages
+    from topofusion_lab.scenarios.catalog import get_scenario
+    from topofusion_lab.scenarios.simulator import wire_messages
 
     if cache and os.path.exists(cache):
         with open(cache, "rb") as f:

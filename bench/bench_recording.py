@@ -185,9 +185,9 @@ def bench_replay_zenoh(path: Path, plots: int) -> None:
 
 def bench_offline(tmp: Path, duration_s: float, targets: int) -> None:
     from service.engine import Engine, EngineConfig
-    from service.scenarios.catalog import get_scenario
-    from service.scenarios.simulator import generate
     from service.wire.keys import Keys
+    from topofusion_lab.scenarios.catalog import get_scenario
+    from topofusion_lab.scenarios.simulator import generate
 
     sc = replace(get_scenario("three-radar"), duration_s=duration_s, targets=targets)
     keys = Keys(PREFIX)

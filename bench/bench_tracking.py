@@ -11,8 +11,8 @@ import time
 
 import numpy as np
 
-from service.evaluation.initiation_monostatic import SITE, MonostaticScenario, simulate
 from service.tracking import make_tracker
+from topofusion_lab.evaluation.initiation_monostatic import SITE, MonostaticScenario, simulate
 
 
 def main() -> None:

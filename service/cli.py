@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
 import os
@@ -10,9 +11,9 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from pydantic import ValidationError
 
@@ -21,6 +22,59 @@ from service.transport.session import MODES, ZenohOptions
 from service.wire.vocabulary import METHODS
 
 log = logging.getLogger("topofusion")
+
+#: The lab distribution (lab/ in a checkout): the simulator and its scenarios, their Zenoh
+#: publisher and the evaluation.  The runtime does not depend on it and the container image does
+#: not hold it, so only ``demo``, ``simulate`` and ``evaluate`` import it, and only when they run.
+LAB_PACKAGE = "topofusion_lab"
+
+
+class LabMissingError(RuntimeError):
+    """A command that needs the lab ran where only the runtime is installed."""
+
+    def __init__(self, command: str) -> None:
+        super().__init__(
+            f"`topofusion {command}` needs the TopoFusion lab ({LAB_PACKAGE}: simulator, scenarios, "
+            "evaluation), which is not installed; install it from a checkout with `pip install -e lab`"
+        )
+
+
+@contextlib.contextmanager
+def lab_imports(command: str) -> Iterator[None]:
+    """Turn the lab's absence, inside the block, into :class:`LabMissingError` for ``command``."""
+    try:
+        yield
+    except ModuleNotFoundError as exc:
+        if (exc.name or "").partition(".")[0] != LAB_PACKAGE:
+            raise  # something else is missing (e.g. a dependency of an installed lab): show it
+        raise LabMissingError(command) from exc
+
+
+class _ListScenarios(argparse.Action):
+    """``simulate --list``: print the scenarios and their descriptions, then exit 0 (like ``--help``,
+    so that the required ``--scenario`` is not asked for)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, help: str | None = None) -> None:
+        super().__init__(
+            option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, nargs=0, help=help
+        )
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> NoReturn:
+        try:
+            with lab_imports("simulate --list"):
+                from topofusion_lab.scenarios.catalog import DEMO, SCENARIOS
+        except LabMissingError as exc:
+            parser.exit(2, f"topofusion: {exc}\n")
+        for scenario in (DEMO, *SCENARIOS.values()):
+            until = " (runs until stopped)" if scenario.duration_s is None else ""
+            print(f"{scenario.name:<12} {scenario.description}{until}")
+        parser.exit(0)
 
 
 def _zenoh_flags(p: argparse.ArgumentParser, default_mode: str) -> None:
@@ -67,6 +121,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser("simulate", help="publish a scenario's sites and plot batches over Zenoh")
     _zenoh_flags(sim, default_mode="client")
     sim.add_argument("--scenario", required=True, help="scenario name (see --list)")
+    sim.add_argument(
+        "--list", action=_ListScenarios, help="list the scenarios with their descriptions and exit"
+    )
     sim.add_argument("--speed", type=float, default=1.0, help="x real time; 0 = as fast as possible")
     sim.add_argument("--seed", type=int, default=0)
     sim.add_argument("--duration", type=float, help="data seconds to simulate (default: the scenario's)")
@@ -191,7 +248,13 @@ class _DemoExtras:
     """The demo's simulator thread and its one-line progress report."""
 
     def __init__(self, args: argparse.Namespace, prefix: str) -> None:
-        self.scenario = scenario_for(args)
+        # The lab is imported here, before Zenoh and the HTTP server start, so that its absence
+        # is one clear error rather than a failure inside the server's start-up hook.
+        with lab_imports("demo"):
+            from topofusion_lab.publisher import publish_scenario
+
+        self.publish_scenario = publish_scenario
+        self.scenario = scenario_for(args, "demo")
         self.speed = args.speed
         self.seed = args.seed
         self.prefix = prefix
@@ -199,7 +262,7 @@ class _DemoExtras:
         self.threads: list[threading.Thread] = []
 
     def start(self, node: Any) -> None:
-        from service.transport.publisher import publish_scenario
+        publish_scenario = self.publish_scenario
 
         def simulate() -> None:
             try:
@@ -272,11 +335,12 @@ def _correct_by_truth(snapshot: Any) -> int:
     )
 
 
-def scenario_for(args: argparse.Namespace) -> Any:
+def scenario_for(args: argparse.Namespace, command: str) -> Any:
     """The named scenario, starting at ``--start-time`` (default: now, whole seconds)."""
     from dataclasses import replace
 
-    from service.scenarios.catalog import get_scenario
+    with lab_imports(command):
+        from topofusion_lab.scenarios.catalog import get_scenario
 
     scenario = get_scenario(args.scenario)
     start = args.start_time if args.start_time is not None else float(int(time.time()))
@@ -287,10 +351,11 @@ def scenario_for(args: argparse.Namespace) -> Any:
 
 
 def simulate_main(args: argparse.Namespace) -> int:
-    from service.transport.publisher import publish_scenario
     from service.transport.session import open_session
 
-    scenario = scenario_for(args)
+    with lab_imports("simulate"):
+        from topofusion_lab.publisher import publish_scenario
+    scenario = scenario_for(args, "simulate")
     settings = settings_from(args)
     stop = _stop_on_signals()
     session = open_session(zenoh_options(settings, default_mode="client"))
@@ -320,13 +385,14 @@ STUDIES = ("initiation", "correlation")
 
 def evaluate_main(args: argparse.Namespace) -> int:
     """Run the studies; each writes ``{study}.md`` and its PNGs; ``REPORT.md`` joins them."""
+    studies = [args.only] if args.only else list(STUDIES)
+    with lab_imports("evaluate"):  # before anything is written
+        modules = {name: importlib.import_module(f"{LAB_PACKAGE}.evaluation.{name}") for name in studies}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    studies = [args.only] if args.only else list(STUDIES)
     argv = sys.argv[2:] if len(sys.argv) > 1 and sys.argv[1] == "evaluate" else []
     cmd = " ".join(["topofusion evaluate", *argv])
-    for name in studies:
-        module = importlib.import_module(f"service.evaluation.{name}")
+    for name, module in modules.items():
         print(f"evaluate: {name} ...", file=sys.stderr, flush=True)
         t0 = time.monotonic()
         section = module.run(
@@ -387,6 +453,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             return healthcheck_main(Settings())
     except ValidationError as exc:
         print(f"topofusion: invalid setting: {exc}", file=sys.stderr)
+        return 2
+    except LabMissingError as exc:
+        print(f"topofusion: {exc}", file=sys.stderr)
         return 2
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"topofusion: {exc}", file=sys.stderr)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from service.scenarios.catalog import get_scenario
-from service.scenarios.simulator import wire_messages
+from topofusion_lab.scenarios.catalog import get_scenario
+from topofusion_lab.scenarios.simulator import wire_messages
 
 
 def scenario_messages(

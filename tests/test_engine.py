@@ -228,7 +228,7 @@ def test_paper_level_biases_estimated_within_ten_percent() -> None:
     """The paper's small biases (100 m / 0.1 deg on both radars, random 200 m / 0.2 deg) from
     the whole engine after 10 minutes: every component within 10 % of the truth and within 3
     of its reported sigma (the default scenario and seed; docs/evaluation has 10 seeds)."""
-    from service.evaluation.correlation_registration import run_registration
+    from topofusion_lab.evaluation.correlation_registration import run_registration
 
     res = run_registration(seed=1, duration_s=600.0)
     assert res.track_pairs >= 30

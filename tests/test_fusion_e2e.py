@@ -10,9 +10,9 @@ from typing import Any
 
 import zenoh
 
-from service.scenarios.catalog import get_scenario
-from tests.conftest import put_json, running_service, wait_for, wait_subscribed
 from tests.scenario_helpers import scenario_messages
+from tests.support import put_json, running_service, wait_for, wait_subscribed
+from topofusion_lab.scenarios.catalog import get_scenario
 
 
 def test_large_bias_stream_gives_right_tracks_pairs_and_biases(router: str, client: zenoh.Session) -> None:

@@ -7,8 +7,8 @@ import json
 import numpy as np
 
 from service.geo import enu_rotation, geodetic_to_ecef
-from service.scenarios.catalog import get_scenario
 from tests.scenario_helpers import scenario_messages
+from topofusion_lab.scenarios.catalog import get_scenario
 
 
 def test_national_geometry() -> None:

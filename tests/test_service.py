@@ -10,8 +10,8 @@ import zenoh
 
 from service.engine import EngineConfig
 from service.transport.node import ServiceNode
-from tests.conftest import put_json, running_service, wait_for, wait_subscribed
 from tests.scenario_helpers import scenario_messages
+from tests.support import put_json, running_service, wait_for, wait_subscribed
 
 
 def _radar(status: dict[str, Any], rid: str) -> dict[str, Any]:

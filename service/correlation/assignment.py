@@ -12,7 +12,6 @@ what keeps the false-correlation rate low for targets closer than the radars can
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
 from service.correlation.base import BoolArray, FloatArray, IntArray
@@ -79,27 +78,3 @@ def assign_unambiguous(
     chosen[acc] = assigned & ~amb
     ambiguous[acc] = amb
     return chosen, ambiguous
-
-
-def assign_reference(
-    index_a: NDArray[np.intp], index_b: NDArray[np.intp], cost: FloatArray, accepted: BoolArray, margin: float
-) -> BoolArray:
-    """Plain dense form of :func:`assign_unambiguous` (tests only)."""
-    chosen = np.zeros(index_a.shape[0], dtype=bool)
-    acc = [k for k in range(index_a.shape[0]) if accepted[k] and np.isfinite(cost[k])]
-    if not acc:
-        return chosen
-    na = int(index_a.max()) + 1
-    nb = int(index_b.max()) + 1
-    mat = np.full((na, nb), _FORBIDDEN)
-    for k in acc:
-        mat[index_a[k], index_b[k]] = cost[k]
-    r_idx, c_idx = linear_sum_assignment(mat)
-    for r, cc in zip(r_idx, c_idx, strict=True):
-        if mat[r, cc] >= _FORBIDDEN:
-            continue
-        k = next(k for k in acc if index_a[k] == r and index_b[k] == cc)
-        rivals = [cost[j] for j in acc if j != k and (index_a[j] == r or index_b[j] == cc)]
-        if all(rv - cost[k] >= margin for rv in rivals):
-            chosen[k] = True
-    return chosen

@@ -118,17 +118,6 @@ def _sequence_chi2(
     return q - quad3(u, common_inv)
 
 
-def sequence_chi2_reference(r: FloatArray, d: FloatArray, c0: FloatArray) -> float:
-    """Plain dense form of the joint chi-square (tests only): one candidate, ``r (n, 3)``."""
-    n = r.shape[0]
-    cov = np.zeros((3 * n, 3 * n))
-    for i in range(n):
-        for j in range(n):
-            cov[3 * i : 3 * i + 3, 3 * j : 3 * j + 3] = c0 + (d[i] if i == j else 0.0)
-    v = r.reshape(-1)
-    return float(v @ np.linalg.solve(cov, v))
-
-
 def search_grid(params: BasicTopologyParams) -> tuple[FloatArray, FloatArray]:
     """The azimuth (deg) and range (m) hypotheses of the step search."""
     na = int(np.floor(params.max_azimuth_bias_deg / params.azimuth_step_deg + 1e-9))

@@ -154,31 +154,3 @@ def similarity_gls_batch(
         df_model=np.where(valid, df_model, nan),
         valid=valid,
     )
-
-
-def similarity_gls_reference(
-    x: FloatArray, y: FloatArray, s: FloatArray, sigma_scale: float, sigma_yaw_rad: float
-) -> tuple[FloatArray, FloatArray, float, float]:
-    """Plain one-candidate form (tests only): stacked 3m x 5 design, dense weight matrix.
-
-    Returns ``theta, cov, Q (residual + prior), df_model``.
-    """
-    m = x.shape[0]
-    rows = []
-    for i in range(m):
-        xe, xn, xu = x[i]
-        rows.append([[xe, -xn, 1, 0, 0], [xn, xe, 0, 1, 0], [xu, 0, 0, 0, 1]])
-    big_a = np.array(rows, dtype=float).reshape(3 * m, N_PARAMS)
-    big_w = np.zeros((3 * m, 3 * m))
-    for i in range(m):
-        big_w[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = np.linalg.inv(s[i])
-    lam = np.diag([1.0 / sigma_scale**2, 1.0 / sigma_yaw_rad**2, 0.0, 0.0, 0.0])
-    theta0 = np.array([1.0, 0.0, 0.0, 0.0, 0.0])
-    yy = y.reshape(-1)
-    h_data = big_a.T @ big_w @ big_a
-    h = h_data + lam
-    theta = np.linalg.solve(h, big_a.T @ big_w @ yy + lam @ theta0)
-    r = yy - big_a @ theta
-    q = float(r @ big_w @ r + (theta - theta0) @ lam @ (theta - theta0))
-    cov = np.linalg.inv(h)
-    return theta, cov, q, float(np.trace(cov @ h_data))

@@ -17,8 +17,6 @@ Two models, both batched over a stack of candidate pairs (no Python loop over pa
 Points carry weights ``w >= 0`` (0 = absent, padding), so candidates with different
 neighbour counts share one stack.  Degenerate inputs (fewer than the minimum points,
 coincident or collinear points) give ``valid = False``, never an exception.
-Plain per-pair reference forms (:func:`umeyama_reference`, :func:`yaw_similarity_reference`)
-are kept for the tests.
 """
 
 from __future__ import annotations
@@ -88,27 +86,6 @@ def umeyama_batch(
     return SimilarityFit(rot, c, t, np.maximum(e2, 0.0), valid)
 
 
-def umeyama_reference(x: FloatArray, y: FloatArray) -> tuple[FloatArray, float, FloatArray, float]:
-    """Plain one-pair form of Umeyama's algorithm (tests only): returns ``M, c, t, e^2``."""
-    n = x.shape[0]
-    mx = x.mean(axis=0)
-    my = y.mean(axis=0)
-    var_x = float(((x - mx) ** 2).sum() / n)
-    var_y = float(((y - my) ** 2).sum() / n)
-    sigma = np.zeros((3, 3))
-    for i in range(n):
-        sigma += np.outer(y[i] - my, x[i] - mx) / n
-    u, d, vt = np.linalg.svd(sigma)
-    s = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        s[2, 2] = -1.0
-    rot = u @ s @ vt
-    c = float(np.trace(np.diag(d) @ s) / var_x)
-    t = my - c * rot @ mx
-    e2 = var_y - float(np.trace(np.diag(d) @ s)) ** 2 / var_x
-    return rot, c, t, e2
-
-
 def yaw_matrix(angle_rad: FloatArray) -> FloatArray:
     """Rotations about the up axis, counter-clockwise seen from above (east towards north)."""
     a = np.asarray(angle_rad, dtype=float)
@@ -171,24 +148,6 @@ def yaw_similarity_batch(
     resid = y - fit.apply(x)
     e2 = (wn * (resid * resid).sum(-1)).sum(-1)
     return SimilarityFit(rot, c, t, np.where(np.isfinite(e2), e2, var_y), valid), yaw
-
-
-def yaw_similarity_reference(x: FloatArray, y: FloatArray) -> tuple[float, float, FloatArray]:
-    """Plain one-pair yaw fit (tests only), by brute-force normal equations: yaw, c, t."""
-    n = x.shape[0]
-    mx = x.mean(axis=0)
-    my = y.mean(axis=0)
-    a = b = v = 0.0
-    for i in range(n):
-        dx = x[i] - mx
-        dy = y[i] - my
-        a += (dx[0] * dy[0] + dx[1] * dy[1]) / n
-        b += (dx[0] * dy[1] - dx[1] * dy[0]) / n
-        v += (dx[0] ** 2 + dx[1] ** 2) / n
-    yaw = float(np.arctan2(b, a))
-    c = float(np.hypot(a, b) / v)
-    rot = yaw_matrix(np.array(yaw))
-    return yaw, c, my - c * rot @ mx
 
 
 def rotation_weight(m: FloatArray) -> FloatArray:

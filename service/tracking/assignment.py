@@ -63,21 +63,3 @@ def assign(rows: IntArray, cols: IntArray, cost: FloatArray, miss_cost: float) -
         return direct
     chosen, _ = _dense_solve(rows[rest], cols[rest], cost[rest], miss_cost)
     return np.sort(np.concatenate([direct, rest[chosen]]))
-
-
-def assign_reference(
-    n_rows: int, n_cols: int, rows: IntArray, cols: IntArray, cost: FloatArray, miss_cost: float
-) -> IntArray:
-    """Plain reference: one dense LSA over every track and plot (for tests)."""
-    if rows.shape[0] == 0:
-        return np.empty(0, dtype=np.intp)
-    mat = np.full((n_rows, n_cols + n_rows), _FORBIDDEN)
-    index = np.full((n_rows, n_cols), -1, dtype=np.intp)
-    for k in range(rows.shape[0]):
-        mat[rows[k], cols[k]] = cost[k]
-        index[rows[k], cols[k]] = k
-    for r in range(n_rows):
-        mat[r, n_cols + r] = miss_cost
-    r_idx, c_idx = linear_sum_assignment(mat)
-    out = [int(index[r, c]) for r, c in zip(r_idx, c_idx, strict=True) if c < n_cols]
-    return np.sort(np.array(out, dtype=np.intp))

@@ -153,20 +153,3 @@ def consistent(
     )
     ok &= (speed >= speed_mps[0]) & (speed <= speed_mps[1])
     return np.asarray(ok), fits
-
-
-def fit_set_reference(
-    t: FloatArray, xy: FloatArray, cov: FloatArray, t_ref: float
-) -> tuple[FloatArray, float]:
-    """Plain loop form of one set's fit (for tests): ``(theta, chi2)``."""
-    A = np.zeros((4, 4))
-    b = np.zeros(4)
-    c = 0.0
-    for k in range(t.shape[0]):
-        H = np.array([[1.0, 0.0, t[k] - t_ref, 0.0], [0.0, 1.0, 0.0, t[k] - t_ref]])
-        W = np.linalg.inv(cov[k])
-        A += H.T @ W @ H
-        b += H.T @ W @ xy[k]
-        c += float(xy[k] @ W @ xy[k])
-    theta = np.asarray(np.linalg.solve(A, b), dtype=float)
-    return theta, c - float(b @ theta)

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.correlation.assignment import assign_reference, assign_unambiguous
+from service.correlation.assignment import assign_unambiguous
+from tests.reference_forms import assign_reference
 
 
 def test_matches_reference_on_random_graphs() -> None:

@@ -10,26 +10,22 @@ import numpy as np
 from scipy.stats import chi2
 
 from service.correlation import PairCorrelator
-from service.correlation.basic_topology import (
-    _sequence_chi2,
-    basic_match,
-    search_span,
-    sequence_chi2_reference,
-)
-from service.correlation.gls import similarity_gls_batch, similarity_gls_reference
+from service.correlation.basic_topology import _sequence_chi2, basic_match, search_span
+from service.correlation.gls import similarity_gls_batch
 from service.correlation.linalg import congruence, inv3, yaw_congruence
 from service.correlation.registration import RegistrationMemory, RegistrationParams, solve_biases
 from service.correlation.svd_topology import svd_match
 from service.correlation.umeyama import yaw_matrix
-from service.evaluation.correlation_scenario import (
+from tests.correlation_support import snapshot_of
+from tests.reference_forms import sequence_chi2_reference, similarity_gls_reference
+from topofusion_lab.evaluation.correlation_scenario import (
     Biases,
     around,
     make_sites,
     sample_references,
     single_match_batch,
 )
-from service.evaluation.correlation_stream import RadarTrackSim, StreamScenario, make_targets
-from tests.correlation.test_correlation_registration import _snapshot
+from topofusion_lab.evaluation.correlation_stream import RadarTrackSim, StreamScenario, make_targets
 
 
 def _spd(rng: np.random.Generator, shape: tuple[int, ...], scale: float) -> np.ndarray:
@@ -175,7 +171,7 @@ def test_cached_normal_equations_match_dense_solve() -> None:
     mem = RegistrationMemory(a, b)
     idx = np.arange(60)
     for t in (0.0, 5.0, 10.0):
-        mem.add(t, _snapshot(a, truth, ba, rng, 50.0), _snapshot(b, truth, bb, rng, 50.0), idx, idx, prm)
+        mem.add(t, snapshot_of(a, truth, ba, rng, 50.0), snapshot_of(b, truth, bb, rng, 50.0), idx, idx, prm)
     prior = np.tile(
         [1 / prm.prior_range_m**2, 1 / np.radians(prm.prior_azimuth_deg) ** 2, 1 / np.radians(3.0) ** 2], 2
     )
@@ -202,7 +198,7 @@ def test_memory_forgets_whole_updates_by_data_time_and_rows() -> None:
     mem = RegistrationMemory(a, b)
     idx = np.arange(10)
     for t in (0.0, 10.0, 20.0, 30.0):
-        mem.add(t, _snapshot(a, truth, z, rng, 10.0), _snapshot(b, truth, z, rng, 10.0), idx, idx, prm)
+        mem.add(t, snapshot_of(a, truth, z, rng, 10.0), snapshot_of(b, truth, z, rng, 10.0), idx, idx, prm)
     assert sorted(set(mem.time.tolist())) == [20.0, 30.0]  # 10.0 fell to the row cap, 0.0 to time
 
 

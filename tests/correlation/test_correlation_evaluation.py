@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pathlib
 
-from service.evaluation.correlation import run
+from topofusion_lab.evaluation.correlation import run
 
 
 def test_run_small(tmp_path: pathlib.Path) -> None:

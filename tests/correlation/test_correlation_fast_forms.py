@@ -10,8 +10,8 @@ from service.correlation.linalg import congruence, inv3, mahalanobis2_h, matvec3
 from service.correlation.pairs import _isin
 from service.correlation.svd_topology import chi2_upper, svd_match
 from service.correlation.topology import TopologyParams, gather_points, neighbourhoods
-from service.evaluation.correlation_scenario import Biases, make_sites, single_match_batch
 from tests.reference_forms import brute_force_neighbours
+from topofusion_lab.evaluation.correlation_scenario import Biases, make_sites, single_match_batch
 
 
 def _clustered(rng: np.random.Generator, n: int) -> np.ndarray:

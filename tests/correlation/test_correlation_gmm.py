@@ -15,7 +15,7 @@ from service.correlation.gmm import (
     neighbour_vectors,
     ospa_subset_matrix,
 )
-from service.evaluation.correlation_gmm_scene import paper_scene
+from topofusion_lab.evaluation.correlation_gmm_scene import paper_scene
 
 # -- plain reference forms -------------------------------------------------------------------
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from service.correlation import METHODS, PairCorrelator
-from service.evaluation.correlation_scenario import make_sites, sample_references
 from service.geo import Site
 from service.tracking.base import TrackTable
+from topofusion_lab.evaluation.correlation_scenario import make_sites, sample_references
 
 
 def _table(site: Site, truth: np.ndarray, prefix: str) -> TrackTable:

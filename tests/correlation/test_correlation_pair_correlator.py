@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from service.correlation import METHODS, BiasEstimate, PairCorrelator, PairState, estimate_biases
-from service.evaluation.correlation_scenario import make_sites
-from service.evaluation.correlation_stream import StreamScenario, run_stream
 from service.tracking.base import TrackTable
+from topofusion_lab.evaluation.correlation_scenario import make_sites
+from topofusion_lab.evaluation.correlation_stream import StreamScenario, run_stream
 
 SHORT = StreamScenario(sparse_targets=40, cluster_targets=10, scans=14)
 
@@ -71,7 +71,7 @@ def test_api_contract() -> None:
 
 
 def test_deterministic_and_sorted() -> None:
-    from service.evaluation.correlation_stream import RadarTrackSim, make_targets
+    from topofusion_lab.evaluation.correlation_stream import RadarTrackSim, make_targets
 
     sc = StreamScenario(sparse_targets=30, cluster_targets=8, scans=8)
     a, b = make_sites()

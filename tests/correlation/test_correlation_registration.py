@@ -15,28 +15,9 @@ from service.correlation.registration import (
     remove_bias,
     solve_biases,
 )
-from service.evaluation.correlation_scenario import make_sites, sample_references
 from service.geo import Site
-
-
-def _snapshot(
-    site: Site, truth: np.ndarray, bias: np.ndarray, rng: np.random.Generator, noise: float
-) -> TrackSnapshot:
-    r, az, el = site.ecef_to_polar(truth)
-    pos = site.polar_to_ecef(r + bias[0], az + np.degrees(bias[1]), el + np.degrees(bias[2]))
-    pos = pos + rng.normal(0, noise, pos.shape)
-    n = len(pos)
-    cov = np.broadcast_to(np.eye(3) * max(noise, 1.0) ** 2, (n, 3, 3)).copy()
-    return TrackSnapshot(
-        np.array([f"{site.site_id}{i}" for i in range(n)]),
-        pos,
-        np.zeros((n, 3)),
-        cov,
-        cov.copy(),
-        site,
-        site.ecef_to_enu(pos),
-        np.zeros((n, 3)),
-    )
+from tests.correlation_support import snapshot_of
+from topofusion_lab.evaluation.correlation_scenario import make_sites, sample_references
 
 
 def test_three_radars_joint_and_compensation() -> None:
@@ -49,7 +30,7 @@ def test_three_radars_joint_and_compensation() -> None:
         "B": np.array([-200.0, np.radians(-0.2), 0.0]),
         "C": np.array([100.0, np.radians(0.3), 0.0]),
     }
-    snaps = {s.site_id: _snapshot(s, truth, biases[s.site_id], rng, 30.0) for s in (a, b, c)}
+    snaps = {s.site_id: snapshot_of(s, truth, biases[s.site_id], rng, 30.0) for s in (a, b, c)}
     idx = np.arange(300)
     prm = RegistrationParams(max_rows_per_update=300)
     mems = []
@@ -73,8 +54,8 @@ def test_reference_source_fixed_at_zero() -> None:
     rng = np.random.default_rng(2)
     a, b = make_sites()
     truth = sample_references(rng, a, b, 100)
-    sa = _snapshot(a, truth, np.array([500.0, np.radians(0.6), 0.0]), rng, 10.0)
-    ref = _snapshot(b, truth, np.zeros(3), rng, 10.0)
+    sa = snapshot_of(a, truth, np.array([500.0, np.radians(0.6), 0.0]), rng, 10.0)
+    ref = snapshot_of(b, truth, np.zeros(3), rng, 10.0)
     ref = TrackSnapshot(
         ref.track_id, ref.position, ref.velocity, ref.pos_cov, ref.vel_cov, None, ref.position, ref.velocity
     )
@@ -94,7 +75,7 @@ def _repeated_updates(repeats: int, seed: int) -> tuple[RegistrationMemory, np.n
     truth = sample_references(rng, a, b, 40)
     ba = np.array([100.0, np.radians(0.1), np.radians(0.1)])
     bb = np.array([-100.0, np.radians(-0.1), np.radians(-0.1)])
-    sa, sb = _snapshot(a, truth, ba, rng, 150.0), _snapshot(b, truth, bb, rng, 150.0)
+    sa, sb = snapshot_of(a, truth, ba, rng, 150.0), snapshot_of(b, truth, bb, rng, 150.0)
     mem = RegistrationMemory(a, b)
     idx = np.arange(40)
     for k in range(repeats):
@@ -138,7 +119,7 @@ def test_recovers_biases_of_two_radars_without_noise(scale: float) -> None:
     truth = sample_references(rng, a, b, 200)
     ba = np.array([1000 * scale, np.radians(scale), np.radians(0.2 * scale)])
     bb = np.array([-600 * scale, np.radians(-0.6 * scale), np.radians(-0.1 * scale)])
-    sa, sb = _snapshot(a, truth, ba, rng, 0.0), _snapshot(b, truth, bb, rng, 0.0)
+    sa, sb = snapshot_of(a, truth, ba, rng, 0.0), snapshot_of(b, truth, bb, rng, 0.0)
     mem = RegistrationMemory(a, b)
     idx = np.arange(200)
     prm = RegistrationParams(
@@ -174,7 +155,7 @@ def _noisy_memory(seed: int) -> tuple[RegistrationMemory, RegistrationParams]:
     mem = RegistrationMemory(a, b)
     idx = np.arange(120)
     for t in range(6):
-        sa, sb = _snapshot(a, truth, ba, rng, 80.0), _snapshot(b, truth, bb, rng, 80.0)
+        sa, sb = snapshot_of(a, truth, ba, rng, 80.0), snapshot_of(b, truth, bb, rng, 80.0)
         sa.position[:4] += 3_000.0  # a few outliers (mispaired tracks) for the outlier test
         mem.add(float(t), sa, sb, idx, idx, prm)
     return mem, prm
@@ -212,7 +193,7 @@ def test_rows_per_update_rotate_over_the_pairs() -> None:
     a, b = make_sites()
     truth = sample_references(rng, a, b, 1000)
     z = np.zeros(3)
-    sa, sb = _snapshot(a, truth, z, rng, 10.0), _snapshot(b, truth, z, rng, 10.0)
+    sa, sb = snapshot_of(a, truth, z, rng, 10.0), snapshot_of(b, truth, z, rng, 10.0)
     mem = RegistrationMemory(a, b)
     idx = np.arange(1000)
     seen = []
@@ -236,7 +217,7 @@ def test_memory_buffer_holds_exactly_the_remembered_updates() -> None:
     chunks: list[tuple[float, np.ndarray, np.ndarray]] = []
     for k in range(60):
         t = 2.0 * k
-        sa, sb = _snapshot(a, truth, z, rng, 10.0), _snapshot(b, truth, z, rng, 10.0)
+        sa, sb = snapshot_of(a, truth, z, rng, 10.0), snapshot_of(b, truth, z, rng, 10.0)
         if k > 40:  # longer track ids from here on: the pair column must widen
             sb = dataclasses.replace(sb, track_id=np.char.add(sb.track_id, "-long-suffix"))
         n = int(rng.integers(0, 400))

@@ -16,9 +16,9 @@ from scipy.stats import chi2
 
 from service.correlation import DecisionContext, PairCorrelator, TrackSnapshot
 from service.correlation.svd_topology import SvdTopologyCorrelator, SvdTopologyParams
-from service.evaluation.correlation_scenario import make_sites
-from service.evaluation.correlation_stream import RadarTrackSim, StreamScenario, make_targets
 from service.tracking.base import TrackTable
+from topofusion_lab.evaluation.correlation_scenario import make_sites
+from topofusion_lab.evaluation.correlation_stream import RadarTrackSim, StreamScenario, make_targets
 
 SC = StreamScenario(sparse_targets=80, cluster_targets=0, confirm_scans=1, box_m=250_000.0)
 

@@ -9,8 +9,8 @@ import numpy as np
 from service.correlation.base import NO_DECISION_REASONS, Reason
 from service.correlation.basic_topology import BasicTopologyParams, basic_match, search_grid
 from service.correlation.svd_topology import SvdTopologyParams, svd_match
-from service.evaluation.correlation_scenario import Biases, make_sites, single_match_batch
-from service.evaluation.correlation_single import Setting, fig2_false_vs_spacing
+from topofusion_lab.evaluation.correlation_scenario import Biases, make_sites, single_match_batch
+from topofusion_lab.evaluation.correlation_single import Setting, fig2_false_vs_spacing
 
 
 def _batch(n: int, trials: int = 300, seed: int = 0, pd: float = 1.0, bias_deg: float = 0.1):

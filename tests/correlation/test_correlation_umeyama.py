@@ -5,14 +5,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from service.correlation.umeyama import (
-    rotation_weight,
-    umeyama_batch,
-    umeyama_reference,
-    yaw_matrix,
-    yaw_similarity_batch,
-    yaw_similarity_reference,
-)
+from service.correlation.umeyama import rotation_weight, umeyama_batch, yaw_matrix, yaw_similarity_batch
+from tests.reference_forms import umeyama_reference, yaw_similarity_reference
 
 
 def test_batched_full_fit_matches_reference() -> None:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from mcap.writer import CompressionType, Writer
 
-from tests.conftest import free_port, wait_for, wait_subscribed
+from tests.support import free_port, wait_for, wait_subscribed
 
 __all__ = ["PREFIX", "foreign_mcap", "free_port", "plots", "site", "wait_for", "wait_subscribed"]
 

@@ -19,10 +19,10 @@ from recording_helpers import PREFIX, foreign_mcap, wait_for, wait_subscribed
 
 from service.engine import Engine, EngineConfig
 from service.recording import Recorder, add_replay_arguments, replay_main, replay_offline
-from service.scenarios.catalog import get_scenario
 from service.transport.node import ServiceNode
-from service.transport.publisher import SITE_REPEAT_BATCHES, publish_scenario
 from service.transport.session import ZenohOptions, open_session
+from topofusion_lab.publisher import SITE_REPEAT_BATCHES, publish_scenario
+from topofusion_lab.scenarios.catalog import get_scenario
 
 #: Three radars (one with a 5 s scan), light clutter: 40 s of data is enough to confirm
 #: tracks on every radar and pairs on every radar pair, in a few seconds of compute.

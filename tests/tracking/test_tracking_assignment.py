@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.tracking.assignment import assign, assign_reference
+from service.tracking.assignment import assign
+from tests.tracking_reference_forms import assign_reference
 
 
 def test_assignment_matches_dense_reference() -> None:

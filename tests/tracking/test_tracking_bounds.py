@@ -13,7 +13,6 @@ import pytest
 from scipy.spatial import cKDTree
 
 import service.tracking.manager as manager_module
-from service.evaluation.initiation_monostatic import SITE, MonostaticScenario, simulate
 from service.tracking import make_tracker
 from service.tracking.base import PlotColumns
 from service.tracking.initiators import local_clusters
@@ -23,6 +22,7 @@ from service.tracking.pairs import time_gated_pairs
 from service.tracking.params import BoundParams, LogicParams, TrackerParams
 from service.tracking.window import PlotWindow
 from service.truth_labels import TruthLabelledTracker
+from topofusion_lab.evaluation.initiation_monostatic import SITE, MonostaticScenario, simulate
 
 ROOT = Path(__file__).resolve().parents[2]
 #: Bounds that force the blockwise search on any input of more than one plot.
@@ -247,7 +247,7 @@ def test_a_failing_batch_changes_nothing(step: str, monkeypatch: pytest.MonkeyPa
 _BIG = r"""
 import json, resource, sys, time
 import numpy as np
-from service.evaluation.initiation_monostatic import SITE, MonostaticScenario, simulate
+from topofusion_lab.evaluation.initiation_monostatic import SITE, MonostaticScenario, simulate
 from service.tracking import make_tracker
 from service.tracking.base import PlotColumns
 from service.tracking.params import BoundParams, TrackerParams

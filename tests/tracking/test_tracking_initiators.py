@@ -6,10 +6,9 @@ import functools
 
 import numpy as np
 
-from service.evaluation.initiation import Table1Row
 from service.tracking import velocity_tracks as vt
-from service.tracking.clustering import velocity_cluster_published, velocity_cluster_reference
-from service.tracking.cvfit import PlotStats, fit_set_reference, fit_sets, plot_stats, residual_d2
+from service.tracking.clustering import velocity_cluster_published
+from service.tracking.cvfit import PlotStats, fit_sets, plot_stats, residual_d2
 from service.tracking.groups import Groups
 from service.tracking.hough import classic_hough, pg_hough
 from service.tracking.initiators import hough_velocity, local_clusters
@@ -17,6 +16,8 @@ from service.tracking.logic import logic_initiate, resolve_conflicts
 from service.tracking.measurement import Measurements
 from service.tracking.params import ClusterParams, HoughParams, LogicParams, TrackerParams
 from service.tracking.velocity_tracks import drop_redundant
+from tests.tracking_reference_forms import fit_set_reference, velocity_cluster_reference
+from topofusion_lab.evaluation.initiation import Table1Row
 
 HP = HoughParams(
     rho_step_m=80.0,
@@ -148,7 +149,7 @@ def test_resolve_conflicts_matches_sequential_greedy() -> None:
 def _table1_rows() -> dict[str, Table1Row]:
     """Eight Monte Carlo runs of the Table 1 set-up (seed 0), shared by the tests below (the
     full 200 runs are in the evaluation)."""
-    from service.evaluation.initiation import run_table1
+    from topofusion_lab.evaluation.initiation import run_table1
 
     return {r.method: r for r in run_table1(runs=8, seed=0)}
 
@@ -262,9 +263,9 @@ def _select_reference(stats: PlotStats, sets: np.ndarray, p: ClusterParams) -> l
 def test_select_tracks_matches_plain_reference() -> None:
     """Step 8 (re-testing only the candidates that lost plots) against the plain form that
     re-tests every candidate in every pass, on a Table 1 realisation."""
-    from service.evaluation.initiation import TABLE1_CLUSTER, TABLE1_HOUGH
-    from service.evaluation.initiation_bistatic import BistaticScenario, simulate_bistatic
     from service.tracking.hough import pg_hough_bands
+    from topofusion_lab.evaluation.initiation import TABLE1_CLUSTER, TABLE1_HOUGH
+    from topofusion_lab.evaluation.initiation_bistatic import BistaticScenario, simulate_bistatic
 
     p = TABLE1_CLUSTER
     pl = simulate_bistatic(BistaticScenario(), np.random.default_rng([0, 7]))

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.evaluation.initiation_monostatic import SITE, MonostaticScenario, run_monostatic, simulate
 from service.tracking import DEFAULT_WINDOW_S, INITIATORS, make_tracker
 from service.truth_labels import TruthLabelledTracker
+from topofusion_lab.evaluation.initiation_monostatic import SITE, MonostaticScenario, run_monostatic, simulate
 
 
 def test_unknown_initiator_is_a_clear_value_error() -> None:

@@ -31,9 +31,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from service.evaluation.correlation_registration import markdown as registration_markdown
-from service.evaluation.correlation_registration import registration_study
-from service.evaluation.correlation_single import (
+from topofusion_lab.evaluation.correlation_registration import markdown as registration_markdown
+from topofusion_lab.evaluation.correlation_registration import registration_study
+from topofusion_lab.evaluation.correlation_single import (
     METHOD_NAMES,
     PAPER_FULL,
     Setting,
@@ -42,7 +42,7 @@ from service.evaluation.correlation_single import (
     fig2_false_vs_spacing,
     time_per_match,
 )
-from service.evaluation.correlation_stream import StreamScenario, run_stream
+from topofusion_lab.evaluation.correlation_stream import StreamScenario, run_stream
 
 #: Monte Carlo runs per point by default (the paper's count); about 5 min on 2 cores in all.
 DEFAULT_RUNS = 5000

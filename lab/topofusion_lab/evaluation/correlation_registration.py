@@ -20,8 +20,8 @@ import numpy as np
 
 from service.correlation.registration import solve_biases
 from service.engine import Engine, EngineConfig
-from service.scenarios.catalog import get_scenario
-from service.scenarios.simulator import wire_messages
+from topofusion_lab.scenarios.catalog import get_scenario
+from topofusion_lab.scenarios.simulator import wire_messages
 
 COMPONENTS = ("range (m)", "azimuth (deg)", "elevation (deg)")
 #: The issue's goal: estimates within this fraction of the true bias.

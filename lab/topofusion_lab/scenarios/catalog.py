@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
-from service.scenarios.simulator import AisSpec, RadarSpec, Scenario
+from topofusion_lab.scenarios.simulator import AisSpec, RadarSpec, Scenario
 
 # Two radars ~200 km apart (SVD paper, Section 3: random errors 200 m / 0.2 deg, systematic
 # errors 100 m / 0.1 deg); targets over the common area between them.

@@ -22,18 +22,22 @@ from multiprocessing import get_context
 
 import numpy as np
 
-from service.evaluation.initiation_bistatic import (
-    BistaticPlots,
-    BistaticScenario,
-    score_groups,
-    simulate_bistatic,
-)
-from service.evaluation.initiation_monostatic import MonostaticResult, MonostaticScenario, run_monostatic
 from service.tracking.clustering import velocity_cluster_published
 from service.tracking.groups import Groups
 from service.tracking.hough import classic_hough, pg_hough
 from service.tracking.initiators import INITIATORS, hough_velocity, location_error
 from service.tracking.params import ClusterParams, HoughParams, TrackerParams
+from topofusion_lab.evaluation.initiation_bistatic import (
+    BistaticPlots,
+    BistaticScenario,
+    score_groups,
+    simulate_bistatic,
+)
+from topofusion_lab.evaluation.initiation_monostatic import (
+    MonostaticResult,
+    MonostaticScenario,
+    run_monostatic,
+)
 
 #: Published Table 1: (accuracy %, false-track ratio %).
 PAPER_TABLE1: dict[str, tuple[float, float]] = {

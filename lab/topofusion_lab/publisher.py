@@ -9,8 +9,8 @@ from collections.abc import Callable
 
 import zenoh
 
-from service.scenarios.simulator import Scenario, generate
 from service.wire.keys import Keys
+from topofusion_lab.scenarios.simulator import Scenario, generate
 
 #: Sites are published again every this many plot batches, so that a service started after
 #: the simulator still learns them.

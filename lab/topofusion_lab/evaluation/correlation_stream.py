@@ -26,9 +26,9 @@ from service.correlation import CorrelationParams, PairCorrelator, estimate_bias
 from service.correlation.registration import solve_biases
 from service.correlation.svd_topology import SvdTopologyParams
 from service.correlation.topology import TopologyParams
-from service.evaluation.correlation_scenario import make_sites
 from service.geo import Site, polar_to_enu
 from service.tracking.base import TrackTable
+from topofusion_lab.evaluation.correlation_scenario import make_sites
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,8 @@ from service.correlation.assignment import assign_unambiguous
 from service.correlation.basic_topology import BasicTopologyParams, basic_match, search_span
 from service.correlation.linalg import inv3, quad3
 from service.correlation.svd_topology import SvdTopologyParams, svd_match
-from service.evaluation.correlation_scenario import (
+from service.geo import Site
+from topofusion_lab.evaluation.correlation_scenario import (
     Biases,
     MatchBatch,
     around,
@@ -32,7 +33,6 @@ from service.evaluation.correlation_scenario import (
     sample_references,
     single_match_batch,
 )
-from service.geo import Site
 
 METHOD_NAMES = ("svd-topology", "basic-topology", "nearest")
 #: Candidates decided per call in the experiments (memory bound only).
@@ -109,7 +109,7 @@ def fig1_correct_vs_neighbours(
 ) -> dict[str, list[float]]:
     """Correct-correlation rate of one match (true pair accepted) vs neighbour count.
 
-    ``neighbour_model``: :func:`~service.evaluation.correlation_scenario.around`
+    ``neighbour_model``: :func:`~topofusion_lab.evaluation.correlation_scenario.around`
     (``"sphere"`` = the paper's 10 km ball).  ``with_full``: also the paper's 3-D fit.
     """
     rng = np.random.default_rng(seed)

@@ -1,0 +1,96 @@
+"""Helpers the tests import: free ports, polling, Zenoh puts, and the real service in-process.
+
+The pytest fixtures built on them stay in conftest.py (tests never import conftest).  Everything
+stays on 127.0.0.1 with ports picked at run time.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import httpx
+import uvicorn
+import zenoh
+
+from service.api.app import create_app
+from service.engine import EngineConfig
+from service.transport.node import ServiceNode
+from service.transport.session import ZenohOptions
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_for(predicate: Callable[[], Any], timeout: float = 10.0, interval: float = 0.05) -> Any:
+    """Poll until ``predicate()`` is truthy; fail the test with a clear message otherwise."""
+    deadline = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < deadline:
+        last = predicate()
+        if last:
+            return last
+        time.sleep(interval)
+    raise AssertionError(f"condition not met within {timeout} s (last value: {last!r})")
+
+
+def wait_subscribed(session: zenoh.Session, key: str, timeout: float = 10.0) -> None:
+    """Wait until a subscriber matching ``key`` is known to ``session`` (a put before that is lost)."""
+    publisher = session.declare_publisher(key)
+    try:
+        wait_for(lambda: publisher.matching_status.matching, timeout=timeout)
+    finally:
+        publisher.undeclare()
+
+
+def put_json(session: zenoh.Session, key: str, body: Any) -> None:
+    payload = body if isinstance(body, bytes) else json.dumps(body).encode()
+    session.put(key, payload, encoding=zenoh.Encoding.APPLICATION_JSON)
+
+
+@dataclass
+class RunningService:
+    node: ServiceNode
+    http: httpx.Client
+    base_url: str
+
+
+@contextlib.contextmanager
+def running_service(
+    router: str, config: EngineConfig | None = None, radars: tuple[str, ...] = ()
+) -> Iterator[RunningService]:
+    """The real service in-process: a client session to ``router``, the worker, uvicorn on a free port."""
+    holder: dict[str, ServiceNode] = {}
+
+    def factory() -> ServiceNode:
+        options = ZenohOptions(mode="client", connect=(router,))
+        holder["node"] = ServiceNode(config or EngineConfig(), options, radars=radars)
+        return holder["node"]
+
+    app = create_app(factory)
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    base = f"http://127.0.0.1:{port}"
+    try:
+        with httpx.Client(base_url=base, timeout=10.0) as http:
+            wait_for(lambda: server.started, timeout=15)
+            wait_for(lambda: http.get("/readyz").status_code == 200, timeout=15)
+            yield RunningService(holder["node"], http, base)
+    finally:
+        server.should_exit = True
+        thread.join(timeout=10)
+        sock.close()
+        assert not thread.is_alive(), "uvicorn did not stop"
