@@ -113,6 +113,12 @@ class TruthTally:
         """Update the leaders with the new totals ``count`` of pairs ``(uid, code)``: a track's
         leader is its old one or one of its pairs that grew (the others did not change)."""
         at, held = _find(self._lead_uid, uid)
+        if held.all() and bool(np.all(uid[1:] != uid[:-1])):  # the usual batch: one pair per led track
+            k0, c0 = self._lead_count[at], self._lead_code[at]
+            wins = (count > k0) | ((count == k0) & (code < c0))
+            self._lead_code, self._lead_count = self._lead_code.copy(), self._lead_count.copy()
+            self._lead_code[at[wins]], self._lead_count[at[wins]] = code[wins], count[wins]
+            return
         old = np.unique(at[held])
         u = np.concatenate([uid, self._lead_uid[old]])
         c = np.concatenate([code, self._lead_code[old]])

@@ -19,13 +19,16 @@ from service.geo import FloatArray
 _I3 = np.eye(3)
 
 
+#: Row and column indices of the three position-velocity couplings (``F`` and ``Q``).
+_POS = np.arange(3)
+_VEL = _POS + 3
+
+
 def cv_transition(dt: FloatArray) -> FloatArray:
     """``F(dt)`` for each ``dt``, shape ``(n, 6, 6)``."""
     dt = np.asarray(dt, dtype=float)
     f = np.broadcast_to(np.eye(6), (*dt.shape, 6, 6)).copy()
-    f[..., 0, 3] = dt
-    f[..., 1, 4] = dt
-    f[..., 2, 5] = dt
+    f[..., _POS, _VEL] = dt[..., None]
     return f
 
 
@@ -34,14 +37,11 @@ def cv_process_noise(dt: FloatArray, q: float) -> FloatArray:
     dt = np.asarray(dt, dtype=float)
     a = np.abs(dt)
     out = np.zeros((*dt.shape, 6, 6))
-    pp = q * a**3 / 3.0
-    pv = q * dt * a / 2.0
-    vv = q * a
-    for k in range(3):
-        out[..., k, k] = pp
-        out[..., k, k + 3] = pv
-        out[..., k + 3, k] = pv
-        out[..., k + 3, k + 3] = vv
+    pv = (q * dt * a / 2.0)[..., None]
+    out[..., _POS, _POS] = (q * a**3 / 3.0)[..., None]
+    out[..., _POS, _VEL] = pv
+    out[..., _VEL, _POS] = pv
+    out[..., _VEL, _VEL] = (q * a)[..., None]
     return out
 
 

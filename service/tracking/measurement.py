@@ -61,15 +61,10 @@ def polar_covariance_enu(
 ) -> FloatArray:
     """``J diag(s_r^2, s_az^2, s_el^2) J^T`` per plot, shape ``(n, 3, 3)``; sigmas broadcast."""
     jac = polar_jacobian(range_m, azimuth_deg, elevation_deg)
-    n = jac.shape[:-2]
-    d = np.stack(
-        np.broadcast_arrays(
-            np.broadcast_to(np.square(range_sigma_m), n),
-            np.broadcast_to(np.square(azimuth_sigma_rad), n),
-            np.broadcast_to(np.square(elevation_sigma_rad), n),
-        ),
-        axis=-1,
-    )
+    d = np.empty(jac.shape[:-1])  # the variances, broadcast to every plot
+    d[..., 0] = np.square(range_sigma_m)
+    d[..., 1] = np.square(azimuth_sigma_rad)
+    d[..., 2] = np.square(elevation_sigma_rad)
     cov = (jac * d[..., None, :]) @ np.swapaxes(jac, -1, -2)
     return 0.5 * (cov + np.swapaxes(cov, -1, -2))
 
