@@ -208,7 +208,13 @@ def serve(settings: Settings, demo: argparse.Namespace | None = None) -> int:
     extras = _DemoExtras(demo, settings.prefix) if demo is not None else None
 
     # Open Zenoh before the HTTP server, so that a refused endpoint is one clear error line.
-    node = ServiceNode(config, options, queue_size=settings.queue_size, radars=tuple(settings.radars))
+    node = ServiceNode(
+        config,
+        options,
+        queue_size=settings.queue_size,
+        radars=tuple(settings.radars),
+        correlation_process=settings.correlation_process,
+    )
     node.open()
 
     def node_factory() -> ServiceNode:

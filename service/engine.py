@@ -26,6 +26,7 @@ from pydantic import TypeAdapter, ValidationError
 
 from service.correlation import PairCorrelator
 from service.geo import Site
+from service.pipeline.correlation_process import RemoteCorrelation
 from service.pipeline.correlation_stage import CadenceParams, CorrelationStage
 from service.pipeline.errors import RejectionError
 from service.pipeline.read_model import RadarRow, Snapshot, track_batch
@@ -151,8 +152,14 @@ class Engine:
     """Per-radar windows and trackers, AIS references, cross-source correlation, rejections."""
 
     def __init__(
-        self, config: EngineConfig | None = None, tracker_factory: TrackerFactory | None = None
+        self,
+        config: EngineConfig | None = None,
+        tracker_factory: TrackerFactory | None = None,
+        correlation_process: bool = False,
     ) -> None:
+        """``correlation_process``: run the correlation stage in a child process (two cores:
+        tracking and correlation at once; same results, pair sets handed out a little later,
+        and :meth:`close` stops it)."""
         self.config = config or EngineConfig()
         self.keys = Keys(self.config.prefix)
         self.sequencer = Sequencer(self.config.sequencer)
@@ -162,7 +169,15 @@ class Engine:
             self.config.initiator,
             self.config.site,
         )
-        self.correlation = CorrelationStage(self.config.method, self.config.cadence, self.config.reference)
+        self.correlation: CorrelationStage | RemoteCorrelation
+        if correlation_process:
+            self.correlation = RemoteCorrelation(
+                self.config.method, self.config.cadence, self.config.reference
+            )
+        else:
+            self.correlation = CorrelationStage(
+                self.config.method, self.config.cadence, self.config.reference
+            )
         self.plots: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
         self._snapshot: Snapshot | None = None
@@ -179,8 +194,16 @@ class Engine:
         return {k: s for k, s in self.sequencer.sources.items() if s.kind == REFERENCE}
 
     def correlators(self) -> list[PairCorrelator]:
-        """The live pair correlators, one per correlated source pair."""
+        """The live pair correlators, one per correlated source pair (none in this process when
+        the correlation runs in its own)."""
+        if isinstance(self.correlation, RemoteCorrelation):
+            return []
         return list(self.correlation.correlators.values())
+
+    def close(self) -> None:
+        """Stop the correlation process, if any (the engine's only resource)."""
+        if isinstance(self.correlation, RemoteCorrelation):
+            self.correlation.close()
 
     # -- ingest ------------------------------------------------------------------------
     def ingest(self, key: str, payload: bytes, receive_time_s: float | None = None) -> list[Outgoing]:
@@ -214,6 +237,7 @@ class Engine:
         """Release every held batch regardless of the watermark (end of a replay or shutdown)."""
         out = self._process(self.sequencer.flush())
         self.correlation.finish()
+        out.extend(self._remote_results())
         self._snapshot = None
         return out
 
@@ -280,6 +304,18 @@ class Engine:
                     self.keys.ais(rel.source_id) if rel.kind == REFERENCE else self.keys.plots(rel.source_id)
                 )
                 out.append(self._reject(key, RejectionError("internal", detail, rel.source_id), None))
+        out.extend(self._remote_results())
+        return out
+
+    def _remote_results(self) -> list[Outgoing]:
+        """Pair sets and failures the correlation process answered since the last call."""
+        if not isinstance(self.correlation, RemoteCorrelation):
+            return []
+        views = self.correlation.views
+        out = [Outgoing(self.keys.pairs(*k), views[k].body) for k in self.correlation.take_ready()]
+        for source_id, detail in self.correlation.take_errors():
+            key = self.keys.plots(source_id) if source_id else self.keys.errors
+            out.append(self._reject(key, RejectionError("internal", detail, source_id or None), None))
         return out
 
     def _process_reference(self, source_id: str, batch: AisBatch, clock: float) -> None:

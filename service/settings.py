@@ -45,6 +45,9 @@ class Settings(BaseSettings):
     #: Capacity of the queue between Zenoh callbacks and the worker (samples).
     queue_size: int = Field(default=4096, ge=1)
     log_level: str = "INFO"
+    #: Run the correlation stage in its own process, so that tracking and correlation use two
+    #: cores (same results; ``false``: one process, e.g. where processes cannot be started).
+    correlation_process: bool = True
 
     _split_listen = field_validator("zenoh_listen", "zenoh_connect", "radars", mode="before")(_split)
 

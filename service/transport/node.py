@@ -73,8 +73,9 @@ class ServiceNode:
         put_timeout_s: float = 10.0,
         session: zenoh.Session | None = None,
         radars: tuple[str, ...] = (),
+        correlation_process: bool = True,
     ) -> None:
-        self.engine = Engine(engine_config)
+        self.engine = Engine(engine_config, correlation_process=correlation_process)
         self.keys = Keys(engine_config.prefix)
         self.zenoh_options = zenoh_options
         self.queue: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
@@ -163,6 +164,7 @@ class ServiceNode:
             except Exception:  # already gone with the session
                 log.debug("undeclare failed", exc_info=True)
         self._publishers = {}
+        self.engine.close()
         if self._own_session and self._session is not None:
             self._session.close()
         self._session = None

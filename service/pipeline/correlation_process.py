@@ -1,0 +1,245 @@
+"""The correlation stage in a child process: tracking and correlation on two cores at once.
+
+The engine feeds its correlation stage in release order (a radar's tracks after each batch,
+reference reports, site moves, departures).  :class:`RemoteCorrelation` takes the same calls
+and sends each as a message down a pipe to a child process that owns a
+:class:`~service.pipeline.correlation_stage.CorrelationStage`; the child answers every message
+with what it changed (the views of the pairs it updated, the biases when it re-solved them, its
+timings).  The child sees the same inputs in the same order as an in-process stage, so the pairs
+and biases are the same, bit for bit; they only arrive later: the pair sets a batch updates are
+handed out by a later call, and :meth:`RemoteCorrelation.finish` waits for all of them.
+
+At most ``max_in_flight`` messages are sent and not yet answered: when correlation falls
+behind, tracking waits for it (memory stays bounded, nothing is dropped).  If the child dies, it is started
+afresh and the failure is reported; pairs then re-confirm and registration re-learns from the
+next updates.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import queue
+import threading
+from dataclasses import dataclass, replace
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+
+from service.geo import Site
+from service.pipeline.correlation_stage import CadenceParams, CorrelationStage
+from service.pipeline.read_model import PairSetView
+from service.reference import ReferenceParams
+from service.tracking.base import TrackTable
+
+log = logging.getLogger(__name__)
+
+Key = tuple[str, str]
+
+
+@dataclass(frozen=True)
+class Answer:
+    """The child's reply to one message."""
+
+    updated: list[tuple[Key, PairSetView]]
+    biases: list[dict[str, Any]] | None  # None: unchanged
+    timings: dict[str, Any]
+    error: tuple[str, str] | None = None  # (source id, detail) when the message failed
+
+
+def _serve(
+    requests: Connection, answers: Connection, method: str, cadence: CadenceParams, ref: ReferenceParams
+) -> None:
+    """The child: apply each message to one stage, answer each with what changed."""
+    stage = CorrelationStage(method, cadence, ref)
+    timings: dict[str, Any] | None = None
+    while True:
+        msg = requests.recv()
+        if msg is None:
+            break
+        op, args = msg
+        biases_before = stage.biases
+        keys: list[Key] = []
+        error = None
+        try:
+            if op == "radar":
+                keys = stage.radar(*args)
+            else:
+                getattr(stage, op)(*args)
+        except Exception as exc:  # a bug costs this message's pair updates, never the stage
+            error = (str(args[0]) if args else "", f"correlation failed: {type(exc).__name__}: {exc}")
+        biases = stage.biases if stage.biases is not biases_before else None
+        if keys or timings is None:  # timings change only with pair updates
+            timings = stage.timings()
+        answers.send(Answer([(k, stage.views[k]) for k in keys], biases, timings, error))
+    answers.close()
+
+
+class RemoteCorrelation:
+    """A :class:`CorrelationStage` in a child process, behind the same calls."""
+
+    def __init__(
+        self,
+        method: str,
+        cadence: CadenceParams | None = None,
+        reference: ReferenceParams | None = None,
+        max_in_flight: int = 64,
+    ) -> None:
+        self._args = (method, cadence or CadenceParams(), reference or ReferenceParams())
+        self.max_in_flight = max_in_flight
+        self.views: dict[Key, PairSetView] = {}
+        self.biases: list[dict[str, Any]] = []
+        self._timings: dict[str, Any] = {"updates": 0, "last_ms": 0.0, "p50_ms": 0.0, "p99_ms": 0.0}
+        self._ready: list[Key] = []
+        self._errors: list[tuple[str, str]] = []
+        self.restarts = 0
+        self._start()
+
+    def _start(self) -> None:
+        # spawn, not fork: the parent runs Zenoh's and uvicorn's threads, which a fork would copy
+        # in whatever state they are in.
+        ctx = mp.get_context("spawn")
+        req_r, self._requests = ctx.Pipe(duplex=False)
+        answers, ans_w = ctx.Pipe(duplex=False)
+        self._process = ctx.Process(
+            target=_serve, args=(req_r, ans_w, *self._args), name="topofusion-correlation", daemon=True
+        )
+        self._process.start()
+        req_r.close()
+        ans_w.close()
+        # Two threads move the messages: a writer sends them (a pipe takes a message only as
+        # fast as the child reads it, and the engine must not wait for that), a reader takes
+        # every answer off the pipe as soon as it is written (so the child never waits to
+        # answer and the two cannot deadlock).  ``_slots`` bounds the messages not yet answered.
+        self._outbox: queue.Queue[Any] = queue.Queue()
+        self._inbox: queue.Queue[Answer | None] = queue.Queue()
+        self._slots = threading.BoundedSemaphore(self.max_in_flight)
+        self._writer = threading.Thread(
+            target=self._write,
+            args=(self._requests, self._outbox, self._inbox),
+            name="correlation-requests",
+            daemon=True,
+        )
+        self._reader = threading.Thread(
+            target=self._read,
+            args=(answers, self._inbox, self._slots),
+            name="correlation-answers",
+            daemon=True,
+        )
+        self._writer.start()
+        self._reader.start()
+        self._pending = 0
+
+    @staticmethod
+    def _write(requests: Connection, outbox: queue.Queue[Any], inbox: queue.Queue[Answer | None]) -> None:
+        try:
+            while True:
+                msg = outbox.get()
+                requests.send(msg)
+                if msg is None:
+                    break
+        except (BrokenPipeError, OSError):
+            inbox.put(None)  # the child is gone
+        finally:
+            requests.close()
+
+    @staticmethod
+    def _read(
+        answers: Connection, inbox: queue.Queue[Answer | None], slots: threading.BoundedSemaphore
+    ) -> None:
+        try:
+            while True:
+                inbox.put(answers.recv())
+                slots.release()
+        except (EOFError, OSError):
+            inbox.put(None)  # the child is gone
+        finally:
+            answers.close()
+
+    # -- the pipe ----------------------------------------------------------------------------
+    def _send(self, op: str, *args: Any) -> None:
+        self._slots.acquire()
+        self._outbox.put((op, args))
+        self._pending += 1
+        self._apply(block=False)
+
+    def _apply(self, block: bool) -> None:
+        """Apply the answers received (``block``: wait until every message is answered)."""
+        while self._pending:
+            try:
+                answer = self._inbox.get(block=block)
+            except queue.Empty:
+                return
+            if answer is None:
+                self._lost("no answer")
+                return
+            self._pending -= 1
+            for key, view in answer.updated:
+                self.views[key] = view
+                self._ready.append(key)
+            if answer.biases is not None:
+                self.biases = answer.biases
+            self._timings = answer.timings
+            if answer.error is not None:
+                self._errors.append(answer.error)
+
+    def _lost(self, what: str) -> None:
+        code = self._process.exitcode
+        log.error("correlation process died (%s, exit code %s); starting it afresh", what, code)
+        detail = f"correlation process died ({what}); its pairs and registration start afresh"
+        self._errors.append(("", detail))
+        self.restarts += 1
+        self._process.kill()
+        self._outbox.put(None)
+        self._start()
+
+    def take_ready(self) -> list[Key]:
+        """Pairs updated since the last call (their views are current)."""
+        ready, self._ready = self._ready, []
+        return ready
+
+    def take_errors(self) -> list[tuple[str, str]]:
+        """``(source id, detail)`` of the messages that failed since the last call."""
+        errors, self._errors = self._errors, []
+        return errors
+
+    # -- the stage's calls ---------------------------------------------------------------------
+    def radar(self, radar_id: str, geometry: Site, table: TrackTable, time_s: float) -> list[Key]:
+        # Truth labels (evaluation only) are no input of correlation: not sent.
+        unlabelled = replace(table, truth_id=np.full(len(table), None, dtype=object))
+        self._send("radar", radar_id, geometry, unlabelled, time_s)
+        return self.take_ready()
+
+    def reference(self, source_id: str, time_s: float, *columns: Any) -> None:
+        self._send("reference", source_id, time_s, *columns)
+
+    def silent(self, source_id: str) -> None:
+        self._send("silent", source_id)
+
+    def forget(self, source_id: str) -> None:
+        self._send("forget", source_id)
+
+    def moved(self, site: Site) -> None:
+        self._send("moved", site)
+
+    def finish(self) -> None:
+        """Solve the final biases and wait until every message is answered."""
+        self._send("finish")
+        self._apply(block=True)
+
+    def pair_views(self) -> list[PairSetView]:
+        return [self.views[k] for k in sorted(self.views)]
+
+    def timings(self) -> dict[str, Any]:
+        return dict(self._timings)
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Stop the child (after it answered what it holds)."""
+        self._outbox.put(None)
+        self._writer.join(timeout_s)
+        self._process.join(timeout_s)
+        if self._process.is_alive():
+            self._process.kill()
+            self._process.join(timeout_s)
+        self._reader.join(timeout_s)
