@@ -1,4 +1,4 @@
-"""The correlation stage in a child process gives the in-process results (service/pipeline/correlation_process.py)."""
+"""The correlation stage in a child process gives the in-process results (correlation_process.py)."""
 
 from __future__ import annotations
 
