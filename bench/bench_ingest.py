@@ -33,8 +33,8 @@ T0 = 1_763_769_600.0
 class WindowOnly(Tracker):
     """Keeps the sliding window only: isolates ingest from tracking."""
 
-    def __init__(self, site: Site, window_s: float | None, initiator: str, id_prefix: str) -> None:
-        super().__init__(site, window_s or 12.0)
+    def __init__(self, site: Site, radar_id: str) -> None:
+        super().__init__(site, 12.0)
         self.window = PlotWindow(self.window_s)
 
     def update(self, plots: PlotColumns, time_s: float) -> None:
@@ -112,11 +112,8 @@ def bench_node(batches: list[tuple[str, bytes]], radars: list[str], window_only:
     node = ServiceNode(
         EngineConfig(sites=sites, method="nearest"), ZenohOptions(mode="peer", listen=(endpoint,))
     )
-    if window_only:
-        node.engine._tracker_factory = WindowOnly
-        for r in node.engine.radars.values():
-            assert r.geometry is not None
-            r.tracker = WindowOnly(r.geometry, None, "", "")
+    if window_only:  # trackers are made at a radar's first batch, by the stage's factory
+        node.engine.tracking.factory = WindowOnly
     node.start()
     client = open_session(ZenohOptions(mode="client", connect=(endpoint,)))
     try:

@@ -102,6 +102,7 @@ def _service_flags(p: argparse.ArgumentParser) -> None:
         "--radars", action="append", metavar="ID", help="radars this worker owns (repeatable; default all)"
     )
     p.add_argument("--log-level", help="logging level (default INFO)")
+    p.add_argument("--config", metavar="FILE", help="engine parameters, TOML/YAML/JSON (see `config --show`)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -147,6 +148,10 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser(
         "healthcheck", help="exit 0 if the local service answers GET /healthz (container HEALTHCHECK)"
     )
+    cfg = sub.add_parser("config", help="the engine's effective configuration, every parameter")
+    cfg.add_argument("--show", action="store_true", help="print it (YAML) with its defaults")
+    cfg.add_argument("--config", metavar="FILE", help="a config file to apply (TOML/YAML/JSON)")
+    cfg.add_argument("--format", choices=("yaml", "json"), default="yaml")
     sch = sub.add_parser("schemas", help="write JSON Schemas of every payload into schemas/")
     sch.add_argument("--out", default="schemas", help="output folder (default ./schemas)")
     return parser
@@ -169,11 +174,32 @@ def settings_from(args: argparse.Namespace) -> Settings:
         ("initiator", "initiator"),
         ("radars", "radars"),
         ("log_level", "log_level"),
+        ("config", "config"),
     ]:
         value = getattr(args, flag, None)
         if value is not None:
             overrides[key] = value
     return Settings(**overrides)
+
+
+def config_main(args: argparse.Namespace) -> int:
+    """``topofusion config --show``: the effective engine configuration (file, environment,
+    settings and defaults), validated; exit 2 with the key named when it is not valid."""
+    import json
+
+    from service.config import as_dict
+
+    data = as_dict(engine_config(settings_from(args)))
+    if not args.show:
+        print("configuration is valid (use --show to print it)", file=sys.stderr)
+        return 0
+    if args.format == "json":
+        print(json.dumps(data, indent=2))
+    else:
+        import yaml
+
+        print(yaml.safe_dump(data, sort_keys=False), end="")
+    return 0
 
 
 def zenoh_options(settings: Settings, default_mode: str = "peer") -> ZenohOptions:
@@ -455,6 +481,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return evaluate_main(args)
         if args.command == "schemas":
             return schemas_main(args)
+        if args.command == "config":
+            return config_main(args)
         if args.command == "healthcheck":
             return healthcheck_main(Settings())
     except ValidationError as exc:
@@ -463,7 +491,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except LabMissingError as exc:
         print(f"topofusion: {exc}", file=sys.stderr)
         return 2
-    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+    except (ValueError, FileNotFoundError, RuntimeError) as exc:  # ConfigError is a ValueError
         print(f"topofusion: {exc}", file=sys.stderr)
         return 2
     parser.error(f"unknown command {args.command}")

@@ -16,7 +16,6 @@ from __future__ import annotations
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -24,15 +23,15 @@ from typing import Any
 import numpy as np
 from pydantic import TypeAdapter, ValidationError
 
+from service.config import EngineConfig
 from service.correlation import PairCorrelator
 from service.geo import Site
 from service.pipeline.correlation_process import RemoteCorrelation
-from service.pipeline.correlation_stage import CadenceParams, CorrelationStage
+from service.pipeline.correlation_stage import CorrelationStage
 from service.pipeline.errors import RejectionError
 from service.pipeline.read_model import RadarRow, Snapshot, track_batch
-from service.pipeline.sequencer import RADAR, REFERENCE, Release, Sequencer, SequencerParams, SourceClock
-from service.pipeline.tracking_stage import SiteChange, SiteParams, TrackerFactory, TrackingStage
-from service.reference import ReferenceParams
+from service.pipeline.sequencer import RADAR, REFERENCE, Release, Sequencer, SourceClock
+from service.pipeline.tracking_stage import SiteChange, TrackerFactory, TrackingStage
 from service.tracking.base import PlotColumns, Tracker
 from service.wire.keys import Keys
 from service.wire.models import (
@@ -72,29 +71,6 @@ class Outgoing:
         return f"Outgoing({self.key!r})"
 
 
-@dataclass(frozen=True)
-class EngineConfig:
-    """Everything that decides the engine's results (all in data time)."""
-
-    prefix: str = "fusion"
-    #: Correlation method (svd-topology, basic-topology, nearest, gmm, cfar).
-    method: str = "svd-topology"
-    #: Sliding window of unused plots per radar, data seconds; ``None``: the tracker's default.
-    window_s: float | None = None
-    #: Track initiator (``service.tracking.INITIATORS``).
-    initiator: str = "logic"
-    #: Sites known at start-up (setting ``TOPOFUSION_SITES``).
-    sites: tuple[RadarSite, ...] = ()
-    #: Data-time ordering and the policies on sources' ``seq`` and clocks.
-    sequencer: SequencerParams = field(default_factory=SequencerParams)
-    #: When pairs are correlated and biases solved.
-    cadence: CadenceParams = field(default_factory=CadenceParams)
-    #: How site messages are taken (what is a move).
-    site: SiteParams = field(default_factory=SiteParams)
-    #: How AIS reports become reference tracks.
-    reference: ReferenceParams = field(default_factory=ReferenceParams)
-
-
 _SITE_LIST = TypeAdapter(list[RadarSite])
 
 
@@ -109,13 +85,19 @@ def load_sites(path: str | Path) -> tuple[RadarSite, ...]:
         raise ValueError(f"sites file {p} is not a JSON list of RadarSite: {exc}") from None
 
 
-def _default_tracker_factory(site: Site, window_s: float | None, initiator: str, id_prefix: str) -> Tracker:
+def tracker_for(config: EngineConfig) -> TrackerFactory:
+    """The tracker of each radar: the configured initiator, window and parameters."""
     from service.tracking import make_tracker
     from service.truth_labels import TruthLabelledTracker
 
-    # TrackBatch.truth_id (evaluation only) is tallied outside the tracker
-    tracker = make_tracker(site, window_s=window_s, initiator=initiator, id_prefix=id_prefix)
-    return TruthLabelledTracker(tracker)
+    make_tracker(Site("check", 0.0, 0.0), config.window_s, config.initiator, "check", config.tracking)
+
+    def factory(site: Site, radar_id: str) -> Tracker:
+        # TrackBatch.truth_id (evaluation only) is tallied outside the tracker
+        tracker = make_tracker(site, config.window_s, config.initiator, radar_id, config.tracking)
+        return TruthLabelledTracker(tracker)
+
+    return factory
 
 
 def plot_columns(batch: PlotBatch) -> PlotColumns:
@@ -163,21 +145,13 @@ class Engine:
         self.config = config or EngineConfig()
         self.keys = Keys(self.config.prefix)
         self.sequencer = Sequencer(self.config.sequencer)
-        self.tracking = TrackingStage(
-            tracker_factory or _default_tracker_factory,
-            self.config.window_s,
-            self.config.initiator,
-            self.config.site,
-        )
+        self.tracking = TrackingStage(tracker_factory or tracker_for(self.config), self.config.site)
+        c = self.config
         self.correlation: CorrelationStage | RemoteCorrelation
         if correlation_process:
-            self.correlation = RemoteCorrelation(
-                self.config.method, self.config.cadence, self.config.reference
-            )
+            self.correlation = RemoteCorrelation(c.method, c.cadence, c.reference, c.correlation)
         else:
-            self.correlation = CorrelationStage(
-                self.config.method, self.config.cadence, self.config.reference
-            )
+            self.correlation = CorrelationStage(c.method, c.cadence, c.reference, c.correlation)
         self.plots: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
         self._snapshot: Snapshot | None = None

@@ -45,6 +45,8 @@ class Settings(BaseSettings):
     #: Capacity of the queue between Zenoh callbacks and the worker (samples).
     queue_size: int = Field(default=4096, ge=1)
     log_level: str = "INFO"
+    #: Engine parameter file (TOML, YAML or JSON; ``service.config``); ``None``: defaults.
+    config: Path | None = None
     #: Run the correlation stage in its own process, so that tracking and correlation use two
     #: cores (same results; ``false``: one process, e.g. where processes cannot be started).
     correlation_process: bool = True
@@ -61,13 +63,25 @@ class Settings(BaseSettings):
 
 
 def engine_config(settings: Settings) -> EngineConfig:
-    """The engine's configuration from the settings (sites loaded from ``settings.sites``)."""
-    from service.engine import EngineConfig, load_sites
+    """The engine's configuration: defaults < config file < ``TOPOFUSION_ENGINE__*`` < the
+    contract's flags and settings (method, window, initiator, sites, prefix) where given.
 
-    return EngineConfig(
-        prefix=settings.prefix,
-        method=settings.method,
-        window_s=settings.window_s,
-        initiator=settings.initiator,
-        sites=load_sites(settings.sites) if settings.sites else (),
-    )
+    Raises :class:`service.config.ConfigError` naming the key of a bad value.
+    """
+    from service.config import engine_config_from, from_environment, load_file, merge
+    from service.engine import load_sites
+
+    data: dict[str, object] = load_file(settings.config) if settings.config is not None else {}
+    data = merge(data, from_environment())
+    given = settings.model_fields_set
+    for name, key in (
+        ("prefix", "prefix"),
+        ("method", "method"),
+        ("window_s", "window_s"),
+        ("initiator", "initiator"),
+    ):
+        if name in given or key not in data:
+            data[key] = getattr(settings, name)
+    if settings.sites is not None:
+        data["sites"] = load_sites(settings.sites)
+    return engine_config_from(data)

@@ -50,7 +50,7 @@ SCHEMAS = ROOT / "schemas"
 PREFIX = "fusion"
 #: A sample value for every key parameter, distinct so that a swapped parameter shows.
 SAMPLE_IDS = {"radar_id": "R1", "source_id": "S1", "radar_a": "A1", "radar_b": "B2"}
-SETTING = re.compile(r"TOPOFUSION_[A-Z0-9_]*[A-Z0-9]")
+SETTING = re.compile(r"TOPOFUSION_[A-Z0-9_]*[A-Z0-9](?![A-Za-z0-9_*])")  # not TOPOFUSION_ENGINE__*
 PARAM = re.compile(r"\{([A-Za-z_][A-Za-z0-9_]*)\}")
 
 

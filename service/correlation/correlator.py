@@ -37,7 +37,7 @@ topology fit must otherwise find), and the confirmed-pair prior in the assignmen
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -45,7 +45,9 @@ import numpy as np
 from service.correlation.assignment import assign_unambiguous
 from service.correlation.base import Correlator, DecisionContext, Decisions
 from service.correlation.basic_topology import BasicTopologyCorrelator, BasicTopologyParams
+from service.correlation.cfar import CfarParams
 from service.correlation.external import CfarCorrelator, GmmCorrelator
+from service.correlation.gmm import GmmParams
 from service.correlation.nearest import NearestCorrelator, NearestParams
 from service.correlation.pairs import PairBook, PairBookParams, PairState
 from service.correlation.prediction import PredictionParams, predict_snapshot
@@ -62,8 +64,6 @@ from service.correlation.svd_topology import SvdTopologyCorrelator, SvdTopologyP
 from service.geo import Site
 from service.tracking.base import TrackTable
 
-METHODS: tuple[str, ...] = ("svd-topology", "basic-topology", "nearest", "gmm", "cfar")
-
 
 @dataclass(frozen=True)
 class CorrelationParams:
@@ -75,6 +75,8 @@ class CorrelationParams:
     svd: SvdTopologyParams = field(default_factory=SvdTopologyParams)
     basic: BasicTopologyParams = field(default_factory=BasicTopologyParams)
     nearest: NearestParams = field(default_factory=NearestParams)
+    gmm: GmmParams = field(default_factory=GmmParams)
+    cfar: CfarParams = field(default_factory=CfarParams)
     #: Ambiguity margin of the one-to-one assignment (chi-square units; 6 ~ likelihood ratio 20).
     ambiguity_margin: float = 6.0
     #: Cost bonus for a candidate that is a currently confirmed pair (hysteresis from history).
@@ -83,18 +85,25 @@ class CorrelationParams:
     use_registration: bool = True
 
 
+#: Each method's correlator, built from its section of :class:`CorrelationParams`.  The names
+#: are the contract's method names (the wire vocabulary; a test holds the two equal).
+CORRELATORS: dict[str, Callable[[CorrelationParams], Correlator]] = {
+    "svd-topology": lambda p: SvdTopologyCorrelator(p.svd),
+    "basic-topology": lambda p: BasicTopologyCorrelator(p.basic),
+    "nearest": lambda p: NearestCorrelator(p.nearest),
+    "gmm": lambda p: GmmCorrelator(p.gmm),
+    "cfar": lambda p: CfarCorrelator(p.cfar),
+}
+METHODS: tuple[str, ...] = tuple(CORRELATORS)
+
+
 def make_correlator(method: str, params: CorrelationParams) -> Correlator:
-    if method == "svd-topology":
-        return SvdTopologyCorrelator(params.svd)
-    if method == "basic-topology":
-        return BasicTopologyCorrelator(params.basic)
-    if method == "nearest":
-        return NearestCorrelator(params.nearest)
-    if method == "gmm":
-        return GmmCorrelator()
-    if method == "cfar":
-        return CfarCorrelator()
-    raise ValueError(f"unknown correlation method {method!r}; expected one of {', '.join(METHODS)}")
+    try:
+        return CORRELATORS[method](params)
+    except KeyError:
+        raise ValueError(
+            f"unknown correlation method {method!r}; expected one of {', '.join(METHODS)}"
+        ) from None
 
 
 def _lookup_pairs(
@@ -129,8 +138,6 @@ class PairCorrelator:
     def __init__(
         self, method: str, site_a: Site, site_b: Site | None, params: CorrelationParams | None = None
     ) -> None:
-        if method not in METHODS:
-            raise ValueError(f"unknown correlation method {method!r}; expected one of {', '.join(METHODS)}")
         self.method = method
         self.params = params or CorrelationParams()
         self.correlator = make_correlator(method, self.params)

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from service.correlation import CorrelationParams
 from service.geo import Site
 from service.pipeline.correlation_stage import CadenceParams, CorrelationStage
 from service.pipeline.read_model import PairSetView
@@ -48,11 +49,9 @@ class Answer:
     error: tuple[str, str] | None = None  # (source id, detail) when the message failed
 
 
-def _serve(
-    requests: Connection, answers: Connection, method: str, cadence: CadenceParams, ref: ReferenceParams
-) -> None:
+def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
     """The child: apply each message to one stage, answer each with what changed."""
-    stage = CorrelationStage(method, cadence, ref)
+    stage = CorrelationStage(*stage_args)
     timings: dict[str, Any] | None = None
     while True:
         msg = requests.recv()
@@ -84,9 +83,10 @@ class RemoteCorrelation:
         method: str,
         cadence: CadenceParams | None = None,
         reference: ReferenceParams | None = None,
+        correlation: CorrelationParams | None = None,
         max_in_flight: int = 64,
     ) -> None:
-        self._args = (method, cadence or CadenceParams(), reference or ReferenceParams())
+        self._args = (method, cadence, reference, correlation)
         self.max_in_flight = max_in_flight
         self.views: dict[Key, PairSetView] = {}
         self.biases: list[dict[str, Any]] = []

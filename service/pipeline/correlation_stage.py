@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from service.correlation import PairCorrelator, joint_solution
+from service.correlation import CorrelationParams, PairCorrelator, joint_solution
 from service.correlation.registration import BiasSolution, to_estimates
 from service.geo import Site
 from service.pipeline.read_model import PairSetView
@@ -81,11 +81,16 @@ class CorrelationStage:
     """
 
     def __init__(
-        self, method: str, params: CadenceParams | None = None, reference: ReferenceParams | None = None
+        self,
+        method: str,
+        params: CadenceParams | None = None,
+        reference: ReferenceParams | None = None,
+        correlation: CorrelationParams | None = None,
     ) -> None:
         self.method = method
         self.params = params or CadenceParams()
         self.reference_params = reference or ReferenceParams()
+        self.correlation_params = correlation or CorrelationParams()
         self.correlators: dict[tuple[str, str], PairCorrelator] = {}
         self.views: dict[tuple[str, str], PairSetView] = {}
         self.next_due: dict[tuple[str, str], float] = {}
@@ -141,7 +146,7 @@ class CorrelationStage:
                 continue
             a = site if old.site_a.site_id == site.site_id else old.site_a
             b = site if old.site_b is not None and old.site_b.site_id == site.site_id else old.site_b
-            new = PairCorrelator(old.method, a, b, old.params)
+            new = PairCorrelator(old.method, a, b, old.params)  # same parameters, new geometry
             new.book = old.book
             self.correlators[key] = new
 
@@ -202,7 +207,9 @@ class CorrelationStage:
             if corr is None:
                 method = self.method if second.geometry is not None else REFERENCE_METHOD
                 assert first.geometry is not None
-                corr = self.correlators[key] = PairCorrelator(method, first.geometry, second.geometry)
+                corr = self.correlators[key] = PairCorrelator(
+                    method, first.geometry, second.geometry, self.correlation_params
+                )
             self.next_due[key] = time_s + self._interval(radar.geometry, other.geometry)
             own = radar.tracks(time_s) if own is None else own
             other_table = table if table is not None else other.tracks(time_s)
@@ -226,7 +233,9 @@ class CorrelationStage:
     def _solve_biases(self, time_s: float) -> None:
         # Warm-started from the previous solve: the rows changed little since, so one or two
         # Gauss-Newton steps reach the same fixed point a cold solve does.
-        self._joint = joint_solution(list(self.correlators.values()), time_s, initial=self._joint)
+        self._joint = joint_solution(
+            list(self.correlators.values()), time_s, self.correlation_params.registration, self._joint
+        )
         self.biases = [b for b in map(bias_dict, to_estimates(self._joint, time_s)) if b is not None]
         self._next_bias_s = time_s + self.params.bias_interval_s
 

@@ -19,7 +19,8 @@ from service.geo import Site
 from service.tracking.base import PlotColumns, Tracker, TrackTable
 from service.wire.models import RadarSite
 
-TrackerFactory = Callable[[Site, "float | None", str, str], Tracker]
+#: Makes a radar's tracker from its site and id (the engine's builds it from its configuration).
+TrackerFactory = Callable[[Site, str], Tracker]
 
 
 @dataclass(frozen=True)
@@ -68,17 +69,9 @@ class RadarTrack:
 
 
 class TrackingStage:
-    def __init__(
-        self,
-        tracker_factory: TrackerFactory,
-        window_s: float | None,
-        initiator: str,
-        params: SiteParams | None = None,
-    ) -> None:
+    def __init__(self, tracker_factory: TrackerFactory, params: SiteParams | None = None) -> None:
         self.params = params or SiteParams()
-        self._factory = tracker_factory
-        self._window_s = window_s
-        self._initiator = initiator
+        self.factory = tracker_factory
         self.radars: dict[str, RadarTrack] = {}
 
     def set_site(self, site: RadarSite) -> SiteChange:
@@ -113,7 +106,7 @@ class TrackingStage:
         """One batch of a radar, applied whole (the tracker's update is all or nothing)."""
         radar = self.radars[radar_id]
         if radar.tracker is None:
-            radar.tracker = self._factory(radar.geometry, self._window_s, self._initiator, radar_id)
+            radar.tracker = self.factory(radar.geometry, radar_id)
         radar.tracker.update(plots, time_s)
         radar.table = radar.tracker.tracks()
         radar.time_s = time_s

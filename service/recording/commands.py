@@ -20,8 +20,7 @@ from service.recording.reader import RecordingError
 from service.recording.recorder import DEFAULT_QUEUE_BYTES, DEFAULT_QUEUE_SAMPLES, record
 from service.recording.replay import ReplayOptions, replay
 from service.transport.session import ZenohOptions, open_session
-
-METHOD_NAMES = ("svd-topology", "basic-topology", "nearest", "gmm", "cfar")
+from service.wire.vocabulary import METHODS
 
 
 def _non_negative(text: str) -> float:
@@ -85,9 +84,10 @@ def add_replay_arguments(parser: argparse.ArgumentParser) -> None:
     off = parser.add_argument_group("offline replay (no Zenoh)")
     off.add_argument("--offline", action="store_true", help="feed an in-process engine instead of publishing")
     off.add_argument("--out", metavar="RESULT.json", help="offline result file (default: stdout)")
-    off.add_argument("--method", choices=METHOD_NAMES, help="correlation method (default svd-topology)")
+    off.add_argument("--method", choices=METHODS, help="correlation method (default svd-topology)")
     off.add_argument("--window", type=_positive, metavar="S", help="sliding window, seconds of data time")
     off.add_argument("--sites", metavar="FILE", help="JSON file with a list of RadarSite")
+    off.add_argument("--config", metavar="FILE", help="engine parameters, TOML/YAML/JSON (as for run)")
     off.add_argument(
         "--compare",
         action="store_true",
@@ -168,7 +168,12 @@ def _offline_engine(args: argparse.Namespace, prefix: str) -> Any:
 
     overrides = {
         key: value
-        for key, value in (("method", args.method), ("window_s", args.window), ("sites", args.sites))
+        for key, value in (
+            ("method", args.method),
+            ("window_s", args.window),
+            ("sites", args.sites),
+            ("config", args.config),
+        )
         if value is not None
     }
     settings = Settings(**overrides)  # environment (TOPOFUSION_*) under the flags, like `run`
