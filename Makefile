@@ -13,7 +13,7 @@ PYPROJECTS := pyproject.toml lab/pyproject.toml
 LINTED := service tests bench lab
 PYTEST_ARGS ?=
 
-.PHONY: install install-demo demo run test lint typecheck unit bench evaluate schemas clean
+.PHONY: install install-demo demo run test lint imports typecheck unit bench evaluate schemas clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -42,13 +42,16 @@ lint: install
 	$(BIN)/ruff check $(LINTED)
 	$(BIN)/ruff format --check $(LINTED)
 
+imports: install ## the import rules of the house (pyproject.toml [tool.importlinter])
+	$(BIN)/lint-imports
+
 typecheck: install
 	$(BIN)/mypy
 
 unit: install
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
-test: lint typecheck unit ## installs, lints, type-checks and runs the whole suite
+test: lint imports typecheck unit ## installs, lints, checks imports and types, runs the whole suite
 
 bench: install
 	for b in bench/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
