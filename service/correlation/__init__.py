@@ -15,11 +15,10 @@ from service.correlation.correlator import (
     joint_solution,
 )
 from service.correlation.pairs import PairBookParams, PairState
-from service.correlation.registration import BiasEstimate, RegistrationParams
+from service.correlation.registration import RadarBias, RegistrationParams
 
 __all__ = [
     "METHODS",
-    "BiasEstimate",
     "CorrelationParams",
     "Correlator",
     "DecisionContext",
@@ -27,6 +26,7 @@ __all__ = [
     "PairBookParams",
     "PairCorrelator",
     "PairState",
+    "RadarBias",
     "Reason",
     "RegistrationParams",
     "TrackSnapshot",

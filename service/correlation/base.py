@@ -43,15 +43,6 @@ class Reason(IntEnum):
     AMBIGUOUS = 10  # no decision: a competitor within the ambiguity margin
     NOT_ASSIGNED = 11  # accepted but lost the one-to-one assignment
 
-    @property
-    def is_no_decision(self) -> bool:
-        return self in (
-            Reason.TOO_FEW_NEIGHBOURS,
-            Reason.DEGENERATE_FIT,
-            Reason.UNEQUAL_LENGTH,
-            Reason.AMBIGUOUS,
-        )
-
 
 #: Reasons meaning "could not decide" rather than "decided: not the same target".
 NO_DECISION_REASONS = np.array(

@@ -155,7 +155,7 @@ class CfarThresholds:
 
 
 @dataclass(frozen=True)
-class BiasEstimate:
+class CfarBias:
     """Least-squares radar bias from paired tracks (:func:`bias_least_squares`)."""
 
     range_bias_m: float
@@ -167,7 +167,7 @@ class BiasEstimate:
     n_pairs: int
 
 
-def _empty(reason: str, thr: CfarThresholds | None = None, bias: BiasEstimate | None = None) -> CfarResult:
+def _empty(reason: str, thr: CfarThresholds | None = None, bias: CfarBias | None = None) -> CfarResult:
     nan = float("nan")
     return CfarResult(
         index_ref=np.empty(0, dtype=np.intp),
@@ -271,7 +271,7 @@ def confident_pairs(
     return i[ok].astype(np.intp), j[ok].astype(np.intp)
 
 
-def bias_least_squares(ref_polar: np.ndarray, radar_polar: np.ndarray) -> BiasEstimate:
+def bias_least_squares(ref_polar: np.ndarray, radar_polar: np.ndarray) -> CfarBias:
     """Least-squares range and azimuth bias from paired rows of ``ref_polar`` and ``radar_polar``.
 
     Bias model of Eqs. (17)-(18) in the radar's polar frame: ``r_meas = r_true + dr + e_r``,
@@ -284,11 +284,11 @@ def bias_least_squares(ref_polar: np.ndarray, radar_polar: np.ndarray) -> BiasEs
     n = min(ref.shape[0], rad.shape[0])
     if n == 0:
         nan = float("nan")
-        return BiasEstimate(nan, nan, nan, nan, 0)
+        return CfarBias(nan, nan, nan, nan, 0)
     dr = rad[:n, 0] - ref[:n, 0]
     da = wrap_deg(rad[:n, 1] - ref[:n, 1])
     ddof_ok = n > 1
-    return BiasEstimate(
+    return CfarBias(
         range_bias_m=float(dr.mean()),
         azimuth_bias_deg=float(da.mean()),
         range_residual_std_m=float(dr.std(ddof=1)) if ddof_ok else float("nan"),
@@ -297,7 +297,7 @@ def bias_least_squares(ref_polar: np.ndarray, radar_polar: np.ndarray) -> BiasEs
     )
 
 
-def _sigmas(bias: BiasEstimate, p: CfarParams) -> tuple[float, float]:
+def _sigmas(bias: CfarBias, p: CfarParams) -> tuple[float, float]:
     """Range and azimuth sigmas for the second-stage gate (given, estimated, or fallback)."""
     estimable = bias.n_pairs >= p.min_pairs_for_sigma
     if p.range_sigma_m is not None:

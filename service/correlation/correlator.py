@@ -52,8 +52,8 @@ from service.correlation.nearest import NearestCorrelator, NearestParams
 from service.correlation.pairs import PairBook, PairBookParams, PairState
 from service.correlation.prediction import PredictionParams, predict_snapshot
 from service.correlation.registration import (
-    BiasEstimate,
     BiasSolution,
+    RadarBias,
     RegistrationMemory,
     RegistrationParams,
     compensate,
@@ -206,7 +206,7 @@ class PairCorrelator:
             nb = max(len(b), 1)
             is_conf = np.isin(decided.index_a * nb + decided.index_b, ca_idx * nb + cb_idx)
             cost = np.where(is_conf, cost - prm.confirmed_bonus, cost)
-        chosen, ambiguous = assign_unambiguous(
+        chosen, _ambiguous = assign_unambiguous(
             decided.index_a, decided.index_b, cost, decided.accepted, prm.ambiguity_margin
         )
         # Kept pairs share no track with the decided candidates: the assignment would take
@@ -245,7 +245,6 @@ class PairCorrelator:
                 self.solution = solve_biases([self.memory], time_s, prm.registration, initial=start)
                 self._solved_s = time_s
         self.last_decisions = dec
-        self.last_ambiguous = int(ambiguous.sum())
         self.time_s = time_s
         self.updates += 1
         self.last_update_ms = (time.perf_counter() - t0) * 1e3
@@ -276,6 +275,6 @@ def joint_solution(
 
 def estimate_biases(
     correlators: Sequence[PairCorrelator], time_s: float, params: RegistrationParams | None = None
-) -> list[BiasEstimate]:
-    """:func:`joint_solution` as one :class:`BiasEstimate` per radar."""
+) -> list[RadarBias]:
+    """:func:`joint_solution` as one :class:`RadarBias` per radar."""
     return to_estimates(joint_solution(correlators, time_s, params), time_s)

@@ -98,7 +98,7 @@ class RegistrationParams:
 
 
 @dataclass(frozen=True)
-class BiasEstimate:
+class RadarBias:
     """One radar's estimated systematic errors (``GET /biases``).
 
     ``pairs_used``: confirmed pairs (over all radar pairs involving this radar) of the latest
@@ -172,7 +172,6 @@ def polar_jacobian_enu(enu: FloatArray) -> FloatArray:
     return jac
 
 
-_COLUMNS = ("time", "pair", "p_a", "p_b", "g_a", "g_b", "s", "w", "w_ok", "gaw", "gbw", "haa", "hab", "hbb")
 _SHAPES: dict[str, tuple[int, ...]] = {
     "time": (),
     "pair": (),
@@ -581,11 +580,11 @@ def compensate(
     return out, extra
 
 
-def to_estimates(solution: BiasSolution | None, time_s: float) -> list[BiasEstimate]:
+def to_estimates(solution: BiasSolution | None, time_s: float) -> list[RadarBias]:
     if solution is None:
         return []
     return [
-        BiasEstimate(
+        RadarBias(
             radar_id=rid,
             range_bias_m=float(solution.bias[k, 0]),
             azimuth_bias_deg=float(np.degrees(solution.bias[k, 1])),

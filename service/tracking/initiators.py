@@ -32,7 +32,7 @@ from service.tracking.logic import logic_initiate
 from service.tracking.measurement import Measurements
 from service.tracking.pairs import time_gated_pairs
 from service.tracking.params import BoundParams, TrackerParams
-from service.tracking.velocity_tracks import global_tracks, velocity_cluster
+from service.tracking.velocity_tracks import global_tracks
 
 #: Names accepted by :func:`service.tracking.make_tracker`.
 INITIATORS: tuple[str, ...] = ("logic", "hough", "hough-velocity", "pg-hough", "classic-hough")
@@ -44,18 +44,6 @@ PlaneMethod = Callable[[np.ndarray, np.ndarray, np.ndarray, TrackerParams], list
 def location_error(cov2: np.ndarray) -> np.ndarray:
     """Location error ``delta`` of a plot: ``sqrt(trace C)`` of its plane covariance."""
     return np.asarray(np.sqrt(np.trace(cov2, axis1=1, axis2=2)))
-
-
-def cluster_groups(
-    prelim: Groups, t: np.ndarray, xy: np.ndarray, cov: np.ndarray, params: TrackerParams
-) -> Groups:
-    """Velocity clustering (Section 2, fixed) of every preliminary track separately (loop over
-    lines); used to cluster the sequential :func:`pg_hough` lines."""
-    out: list[IntArray] = []
-    for members in prelim.to_lists():
-        for sub in velocity_cluster(t[members], xy[members], cov[members], params.cluster):
-            out.append(members[sub])
-    return Groups.from_lists(out)
 
 
 def hough_velocity(t: np.ndarray, xy: np.ndarray, cov: np.ndarray, params: TrackerParams) -> list[IntArray]:

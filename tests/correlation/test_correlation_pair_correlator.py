@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from service.correlation import METHODS, BiasEstimate, PairCorrelator, PairState, estimate_biases
+from service.correlation import METHODS, PairCorrelator, PairState, RadarBias, estimate_biases
 from service.tracking.base import TrackTable
 from topofusion_lab.evaluation.correlation_scenario import make_sites
 from topofusion_lab.evaluation.correlation_stream import StreamScenario, run_stream
@@ -60,7 +60,7 @@ def test_api_contract() -> None:
         "first_time_s",
         "last_time_s",
     ]
-    assert [f.name for f in dataclasses.fields(BiasEstimate)] == [
+    assert [f.name for f in dataclasses.fields(RadarBias)] == [
         "radar_id",
         "range_bias_m",
         "azimuth_bias_deg",
