@@ -383,14 +383,14 @@ def scenario_for(args: argparse.Namespace, command: str) -> Any:
 
 
 def simulate_main(args: argparse.Namespace) -> int:
-    from service.transport.session import open_session
+    from service.transport.session import open_tool_session
 
     with lab_imports("simulate"):
         from topofusion_lab.publisher import publish_scenario
     scenario = scenario_for(args, "simulate")
     settings = settings_from(args)
     stop = _stop_on_signals()
-    session = open_session(zenoh_options(settings, default_mode="client"))
+    session = open_tool_session(zenoh_options(settings, default_mode="client"), "simulate")
     try:
         t0 = time.monotonic()
         batches, plots = publish_scenario(session, scenario, settings.prefix, args.speed, args.seed, stop)
@@ -422,8 +422,7 @@ def evaluate_main(args: argparse.Namespace) -> int:
         modules = {name: importlib.import_module(f"{LAB_PACKAGE}.evaluation.{name}") for name in studies}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    argv = sys.argv[2:] if len(sys.argv) > 1 and sys.argv[1] == "evaluate" else []
-    cmd = " ".join(["topofusion evaluate", *argv])
+    cmd = " ".join(["topofusion evaluate", *getattr(args, "argv", [])])
     for name, module in modules.items():
         print(f"evaluate: {name} ...", file=sys.stderr, flush=True)
         t0 = time.monotonic()
@@ -461,7 +460,9 @@ def healthcheck_main(settings: Settings) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
+    args.argv = argv[1:]  # the command's own arguments, e.g. quoted in the evaluation report
     try:
         if args.command in ("run", "demo"):
             settings = settings_from(args)

@@ -12,6 +12,7 @@ import json
 import signal
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import replace
 from typing import Any
@@ -19,7 +20,7 @@ from typing import Any
 from service.recording.reader import RecordingError
 from service.recording.recorder import DEFAULT_QUEUE_BYTES, DEFAULT_QUEUE_SAMPLES, record
 from service.recording.replay import ReplayOptions, replay
-from service.transport.session import ZenohOptions, open_session
+from service.transport.session import ZenohOptions, open_tool_session
 from service.wire.vocabulary import METHODS
 
 
@@ -130,7 +131,7 @@ def record_main(
     prefix = _prefix(args)
     key_expr = args.key or f"{prefix}/**"
     stop = stop or threading.Event()
-    session = open_session(zenoh_options)
+    session = open_tool_session(zenoh_options, "record")
     try:
         print(f"recording {key_expr} to {args.out} (Ctrl-C to stop)", file=sys.stderr, flush=True)
         with _stop_on_signals(stop):
@@ -196,18 +197,71 @@ def replay_main(
             raise ValueError("--out is for --offline (the result file); a Zenoh replay publishes instead")
         from service.recording.publisher import ZenohReplayPublisher
 
-        session = open_session(zenoh_options)
+        session = open_tool_session(zenoh_options, "replay")
+        rejections = RejectionWatch(session, prefix)
         try:
             with _stop_on_signals(stop), ZenohReplayPublisher(session) as publish:
                 report = replay(args.file, publish, prefix, options, stop=stop, progress=args.progress)
+            rejections.settle()
         finally:
+            rejections.close()
             session.close()
     except (RecordingError, FileNotFoundError, IsADirectoryError, PermissionError, ValueError) as exc:
         print(f"topofusion replay: {exc}", file=sys.stderr, flush=True)
         return 2
-    for line in report.lines():
+    for line in report.lines() + rejections.lines():
         print(line, file=sys.stderr, flush=True)
-    return 0
+    return 1 if rejections.by_reason.get("duplicate_seq") else 0
+
+
+class RejectionWatch:
+    """The service's rejections (``{prefix}/errors``) of the keys this replay sends.
+
+    A service that already took a recording rejects every batch of a second replay as a
+    duplicate ``seq``: the replay then says so and exits 1 rather than reporting success.
+    """
+
+    #: After the last message, wait until no rejection came for this long (s), at most ``SETTLE_MAX_S``.
+    SETTLE_QUIET_S, SETTLE_MAX_S = 0.5, 5.0
+
+    def __init__(self, session: Any, prefix: str) -> None:
+        self.by_reason: dict[str, int] = {}
+        self._last = time.monotonic()
+        self._lock = threading.Lock()
+        self._sub = session.declare_subscriber(f"{prefix}/errors", self._on_sample)
+
+    def _on_sample(self, sample: Any) -> None:
+        try:
+            reason = str(json.loads(sample.payload.to_bytes())["reason"])
+        except (ValueError, KeyError, TypeError):
+            return
+        with self._lock:
+            self.by_reason[reason] = self.by_reason.get(reason, 0) + 1
+            self._last = time.monotonic()
+
+    def settle(self) -> None:
+        """Wait for the rejections still on their way (the replay's last messages were sent)."""
+        end = time.monotonic() + self.SETTLE_MAX_S
+        with self._lock:
+            self._last = max(self._last, time.monotonic())
+        while time.monotonic() < end and time.monotonic() - self._last < self.SETTLE_QUIET_S:
+            time.sleep(0.05)
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self._sub.undeclare()
+
+    def lines(self) -> list[str]:
+        if not self.by_reason:
+            return []
+        counts = ", ".join(f"{n} {r}" for r, n in sorted(self.by_reason.items()))
+        out = [f"the service rejected messages of this replay: {counts}"]
+        if self.by_reason.get("duplicate_seq"):
+            out.append(
+                "WARNING: duplicate seq numbers: the service already took this recording; "
+                "restart it (or replay into a fresh one) to process it again"
+            )
+        return out
 
 
 def _offline_main(args: argparse.Namespace, prefix: str, options: ReplayOptions) -> int:

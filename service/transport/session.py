@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -96,13 +98,52 @@ def zenoh_config(options: ZenohOptions) -> zenoh.Config:
     return conf
 
 
-def open_session(options: ZenohOptions) -> zenoh.Session:
-    """Open a session; raises a ``RuntimeError`` naming the endpoints when Zenoh refuses."""
+#: How long the tools (record, replay, simulate) keep trying to reach their router when it is
+#: not there yet (s): long enough for a router started alongside, short enough to say why.
+TOOL_CONNECT_RETRY_S = 30.0
+#: First and longest wait between two attempts (s); the wait doubles each time.
+RETRY_FIRST_S, RETRY_MAX_S = 0.2, 5.0
+
+
+def open_session(
+    options: ZenohOptions,
+    retry_for_s: float = 0.0,
+    on_retry: Callable[[str, float], None] | None = None,
+) -> zenoh.Session:
+    """Open a session; raises a ``RuntimeError`` naming the endpoints when Zenoh refuses.
+
+    ``retry_for_s``: keep trying that long (a router not up yet), waiting ``RETRY_FIRST_S``
+    then twice as long each time, at most ``RETRY_MAX_S``; ``on_retry(reason, wait_s)`` hears
+    of each failed attempt.  An invalid configuration is not retried.
+    """
     conf = zenoh_config(options)
-    try:
-        return zenoh.open(conf)
-    except Exception as exc:  # zenoh raises ZError, a plain Exception subclass
-        raise RuntimeError(
-            f"cannot open Zenoh session (mode={options.effective_mode}, listen={options.effective_listen()}, "
-            f"connect={options.effective_connect()}): {exc}"
-        ) from exc
+    deadline = time.monotonic() + retry_for_s
+    wait = RETRY_FIRST_S
+    while True:
+        try:
+            return zenoh.open(conf)
+        except Exception as exc:  # zenoh raises ZError, a plain Exception subclass
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise RuntimeError(
+                    f"cannot open Zenoh session (mode={options.effective_mode}, "
+                    f"listen={options.effective_listen()}, connect={options.effective_connect()}): {exc}"
+                ) from exc
+            wait = min(wait, left)
+            if on_retry is not None:
+                on_retry(str(exc).split("  at ")[0], wait)
+            time.sleep(wait)
+            conf = zenoh_config(options)  # a config is consumed by an attempt
+            wait = min(2 * wait, RETRY_MAX_S)
+
+
+def open_tool_session(options: ZenohOptions, name: str) -> zenoh.Session:
+    """A tool's session (record, replay, simulate): a client waits for its router up to
+    ``TOOL_CONNECT_RETRY_S``, saying so on stderr; other modes fail at once."""
+    import sys
+
+    def say(reason: str, wait_s: float) -> None:
+        print(f"{name}: waiting for the Zenoh router ({reason}); retrying in {wait_s:.1f} s", file=sys.stderr)
+
+    retry = TOOL_CONNECT_RETRY_S if options.effective_mode == "client" else 0.0
+    return open_session(options, retry_for_s=retry, on_retry=say)

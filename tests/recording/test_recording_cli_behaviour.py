@@ -1,0 +1,75 @@
+"""The tools as a newcomer meets them: started before the router, replaying twice."""
+
+from __future__ import annotations
+
+import argparse
+import threading
+from pathlib import Path
+
+import pytest
+from recording_helpers import PREFIX, foreign_mcap, plots, site, wait_for, wait_subscribed
+
+from service.recording import add_record_arguments, add_replay_arguments, record_main, replay_main
+from service.transport.session import ZenohOptions, open_session
+from tests.support import free_port, running_service
+
+
+def _parser(add: object) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser()
+    add(p)  # type: ignore[operator]
+    return p
+
+
+def test_recorder_started_before_its_router_waits_for_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    options = ZenohOptions(mode="client", connect=(endpoint,))
+    out = tmp_path / "late.mcap"
+    args = _parser(add_record_arguments).parse_args(["--out", str(out), "--duration", "30"])
+    stop = threading.Event()
+    result: dict[str, int] = {}
+    thread = threading.Thread(target=lambda: result.setdefault("rc", record_main(args, options, stop)))
+    thread.start()
+    try:
+        wait_for(lambda: "waiting for the Zenoh router" in capsys.readouterr().err, timeout=10)
+        router = open_session(ZenohOptions(mode="router", listen=(endpoint,)))
+        try:
+            pub = open_session(options)
+            try:
+                wait_subscribed(pub, f"{PREFIX}/radar/A/plots", timeout=20)
+                pub.put(f"{PREFIX}/radar/A/plots", plots("A", 1, 1e9))
+                wait_for(lambda: out.exists() and out.stat().st_size > 0, timeout=10)
+            finally:
+                pub.close()
+            stop.set()
+            thread.join(timeout=20)
+        finally:
+            router.close()
+    finally:
+        stop.set()
+        thread.join(timeout=20)
+    assert result["rc"] == 0
+
+
+def test_a_second_replay_into_the_same_service_says_it_was_rejected(
+    tmp_path: Path, router: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    recording = tmp_path / "run.mcap"
+    msgs = [(f"{PREFIX}/radar/A/site", site("A"), 1)]
+    msgs += [(f"{PREFIX}/radar/A/plots", plots("A", i, 1e9 + i), 10 + i) for i in range(1, 6)]
+    foreign_mcap(recording, msgs)
+    options = ZenohOptions(mode="client", connect=(router,))
+    args = _parser(add_replay_arguments).parse_args([str(recording), "--speed", "0"])
+    with running_service(router) as svc:
+        probe = open_session(options)
+        try:
+            wait_subscribed(probe, f"{PREFIX}/radar/A/plots")
+        finally:
+            probe.close()
+        assert replay_main(args, options) == 0
+        wait_for(lambda: svc.http.get("/status").json()["radars"][0]["batches"] == 5)
+        capsys.readouterr()
+        assert replay_main(args, options) == 1
+        err = capsys.readouterr().err
+        assert "5 duplicate_seq" in err and "already took this recording" in err
