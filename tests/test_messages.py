@@ -93,3 +93,50 @@ def test_ais_and_site_rules() -> None:
     assert rejection_reason(info.value)[0] == "out_of_range"
     with pytest.raises(ValidationError):
         RadarSite.model_validate({"radar_id": "A", "latitude_deg": 0, "longitude_deg": 200})
+
+
+def test_everything_the_engine_publishes_is_valid_against_models_and_schemas() -> None:
+    """The output builders (service/wire/outputs.py) are fast, hand-written JSON: every payload
+    a real run publishes, and what the read model serves, must still be its model's."""
+    from service.engine import Engine
+    from service.wire.keys import MODEL_BY_KIND, parse_key
+    from tests.scenario_helpers import scenario_messages
+
+    stream = scenario_messages("coastal", duration_s=120.0)  # a radar and an AIS reference
+    stream += scenario_messages("three-radar", duration_s=60.0, targets=30)
+    stream.append(("fusion/radar/A/plots", b"{broken"))
+    engine = Engine()
+    out = []
+    for key, payload in stream:
+        out.extend(engine.ingest(key, payload, receive_time_s=0.0))
+    out.extend(engine.flush())
+    seen: set[str] = set()
+    schemas = {}
+    for msg in out:
+        kind, _ = parse_key(msg.key, "fusion")
+        model = MODEL_BY_KIND[kind]
+        body = json.loads(msg.payload)
+        model.model_validate(body)
+        name = model.__name__
+        schemas.setdefault(name, json.loads((SCHEMAS / f"{name}.schema.json").read_text()))
+        jsonschema.validate(body, schemas[name])
+        seen.add(kind)
+    assert seen == {"tracks", "pairs", "errors"}
+    snap = engine.snapshot()
+    for ps in snap.pair_sets(status="all"):
+        WIRE_MODELS["PairSet"].model_validate(ps)
+    for tb in snap.track_batches("all"):
+        WIRE_MODELS["TrackBatch"].model_validate(tb)
+    for b in snap.biases():
+        WIRE_MODELS["BiasEstimate"].model_validate(b)
+    WIRE_MODELS["Status"].model_validate(snap.status())
+    for r in snap.radars():
+        WIRE_MODELS["RadarInfo"].model_validate(r)
+
+
+def test_the_wire_names_the_methods_the_numerics_have() -> None:
+    """The contract's method names (service/wire/vocabulary.py) are the correlators' registry."""
+    from service.correlation import METHODS as REGISTERED
+    from service.wire.vocabulary import METHODS
+
+    assert METHODS == REGISTERED
