@@ -335,7 +335,7 @@ class _DemoExtras:
         tty = sys.stderr.isatty()
         last_plots, last_t = 0, time.monotonic()
         while not self.stop_event.wait(1.0 if tty else 5.0):
-            plots = sum(r.plots for r in node.snapshot.radar_rows)
+            plots = sum(r.status.plots for r in node.snapshot.radar_rows)
             now = time.monotonic()
             rate = (plots - last_plots) / max(now - last_t, 1e-6)
             last_plots, last_t = plots, now

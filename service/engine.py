@@ -39,6 +39,7 @@ from service.wire.models import (
     AisBatch,
     PlotBatch,
     RadarSite,
+    RadarStatus,
     rejection_reason,
 )
 from service.wire.outputs import encode, rejection
@@ -337,19 +338,21 @@ class Engine:
             confirmed = r.confirmed
             rows.append(
                 RadarRow(
-                    site=r.site.model_dump(),
-                    radar_id=rid,
-                    batches=clock.batches if clock else 0,
-                    plots=self.plots.get(rid, 0),
-                    rejected=clock.rejected if clock else 0,
-                    lost_batches=clock.lost_batches if clock else 0,
-                    window_plots=self.tracking.window_plots(rid),
-                    tracks_confirmed=confirmed,
-                    tracks_tentative=len(r.table) - confirmed,
-                    last_time_s=clock.last_time_s if clock else None,
-                    restarts=clock.restarts if clock else 0,
-                    window_evicted=self.tracking.window_evicted(rid),
-                    expired=clock.expired if clock else False,
+                    r.site,
+                    RadarStatus(
+                        radar_id=rid,
+                        batches=clock.batches if clock else 0,
+                        plots=self.plots.get(rid, 0),
+                        rejected=clock.rejected if clock else 0,
+                        lost_batches=clock.lost_batches if clock else 0,
+                        window_plots=self.tracking.window_plots(rid),
+                        tracks_confirmed=confirmed,
+                        tracks_tentative=len(r.table) - confirmed,
+                        last_time_s=clock.last_time_s if clock else None,
+                        restarts=clock.restarts if clock else 0,
+                        window_evicted=self.tracking.window_evicted(rid),
+                        expired=clock.expired if clock else False,
+                    ),
                 )
             )
         return Snapshot(

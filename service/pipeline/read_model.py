@@ -15,6 +15,7 @@ import numpy as np
 
 from service.geo import ecef_to_geodetic
 from service.tracking.base import TrackTable
+from service.wire.models import RadarSite, RadarStatus
 from service.wire.outputs import pair_rows, track_rows
 
 
@@ -93,39 +94,10 @@ class PairSetView:
 
 @dataclass(frozen=True)
 class RadarRow:
-    """One radar's counters for ``/status`` and ``/radars``."""
+    """One radar's site and counters (``/radars``, ``/status``), in the wire's own models."""
 
-    site: dict[str, Any]
-    radar_id: str
-    batches: int
-    plots: int
-    rejected: int
-    lost_batches: int
-    window_plots: int
-    tracks_confirmed: int
-    tracks_tentative: int
-    last_time_s: float | None
-    restarts: int = 0
-    window_evicted: int = 0
-    expired: bool = False
-
-    _STATUS = (
-        "radar_id",
-        "batches",
-        "plots",
-        "rejected",
-        "lost_batches",
-        "window_plots",
-        "tracks_confirmed",
-        "tracks_tentative",
-        "last_time_s",
-        "restarts",
-        "window_evicted",
-        "expired",
-    )
-
-    def status(self) -> dict[str, Any]:
-        return {k: getattr(self, k) for k in self._STATUS}
+    site: RadarSite
+    status: RadarStatus
 
 
 @dataclass(frozen=True)
@@ -168,7 +140,7 @@ class Snapshot:
         return {
             "method": self.method,
             "prefix": self.prefix,
-            "radars": [r.status() for r in self.radar_rows],
+            "radars": [r.status.model_dump() for r in self.radar_rows],
             "pairs_confirmed": sum(v.confirmed for v in self.pair_views),
             "pairs_tentative": sum(v.tentative for v in self.pair_views),
             "correlation": self.correlation,
@@ -180,5 +152,5 @@ class Snapshot:
         return {"uptime_s": 0.0, "zenoh": {"mode": "none", "listen": [], "connect": []}, **self.status_core()}
 
     def radars(self) -> list[dict[str, Any]]:
-        keys = ("batches", "plots", "rejected", "lost_batches", "last_time_s")
-        return [{**r.site, **{k: getattr(r, k) for k in keys}} for r in self.radar_rows]
+        keys = {"batches", "plots", "rejected", "lost_batches", "last_time_s"}
+        return [{**r.site.model_dump(), **r.status.model_dump(include=keys)} for r in self.radar_rows]
