@@ -19,7 +19,9 @@ from typing import Any, Literal
 import numpy as np
 
 from service.geo import Site, ecef_to_geodetic, enu_rotation, geodetic_to_ecef
+from service.pipeline.tracking_stage import to_geometry
 from service.wire.keys import Keys
+from service.wire.models import RadarSite
 
 
 @dataclass(frozen=True)
@@ -42,29 +44,16 @@ class RadarSpec:
     sectors: int = 8
     two_d: bool = False  # a 2-D radar sends altitude_m (e.g. Mode C) instead of elevation
 
+    def wire_site(self) -> RadarSite:
+        """The radar's ``RadarSite`` (the fields of the same names; biases stay unknown)."""
+        return RadarSite(**{name: getattr(self, name) for name in RadarSite.model_fields})
+
     def site(self) -> Site:
-        return Site(
-            self.radar_id,
-            self.latitude_deg,
-            self.longitude_deg,
-            self.altitude_m,
-            self.range_sigma_m,
-            self.azimuth_sigma_deg,
-            self.elevation_sigma_deg,
-            self.scan_period_s,
-        )
+        """The numerics' view of :meth:`wire_site`, as the service builds it."""
+        return to_geometry(self.wire_site())
 
     def site_message(self) -> dict[str, Any]:
-        return {
-            "radar_id": self.radar_id,
-            "latitude_deg": self.latitude_deg,
-            "longitude_deg": self.longitude_deg,
-            "altitude_m": self.altitude_m,
-            "range_sigma_m": self.range_sigma_m,
-            "azimuth_sigma_deg": self.azimuth_sigma_deg,
-            "elevation_sigma_deg": self.elevation_sigma_deg,
-            "scan_period_s": self.scan_period_s,
-        }
+        return self.wire_site().model_dump()
 
 
 @dataclass(frozen=True)
