@@ -53,8 +53,15 @@ def wait_subscribed(session: zenoh.Session, key: str, timeout: float = 10.0) -> 
 
 
 def put_json(session: zenoh.Session, key: str, body: Any) -> None:
+    """Put as a radar publisher should: blocking, so that a busy machine slows the
+    test down instead of dropping samples (Zenoh's default for ``put`` drops under congestion)."""
     payload = body if isinstance(body, bytes) else json.dumps(body).encode()
-    session.put(key, payload, encoding=zenoh.Encoding.APPLICATION_JSON)
+    session.put(
+        key,
+        payload,
+        encoding=zenoh.Encoding.APPLICATION_JSON,
+        congestion_control=zenoh.CongestionControl.BLOCK,
+    )
 
 
 @dataclass

@@ -37,6 +37,9 @@ from service.tracking.base import TrackTable
 log = logging.getLogger(__name__)
 
 Key = tuple[str, str]
+#: While waiting for the child (a free slot, an answer), check this often (s) that it and the
+#: threads talking to it are still there: a dead one is restarted instead of waited for.
+LIVENESS_CHECK_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -152,14 +155,16 @@ class RemoteCorrelation:
             while True:
                 inbox.put(answers.recv())
                 slots.release()
-        except (EOFError, OSError):
-            inbox.put(None)  # the child is gone
+        except Exception:  # EOF: the child is gone; anything else: the pipe cannot be trusted
+            inbox.put(None)
         finally:
             answers.close()
 
     # -- the pipe ----------------------------------------------------------------------------
     def _send(self, op: str, *args: Any) -> None:
-        self._slots.acquire()
+        while not self._slots.acquire(timeout=LIVENESS_CHECK_S):
+            if not (self._process.is_alive() and self._reader.is_alive() and self._writer.is_alive()):
+                self._lost("stopped answering")
         self._outbox.put((op, args))
         self._pending += 1
         self._apply(block=False)
@@ -168,9 +173,14 @@ class RemoteCorrelation:
         """Apply the answers received (``block``: wait until every message is answered)."""
         while self._pending:
             try:
-                answer = self._inbox.get(block=block)
+                answer = self._inbox.get(block=block, timeout=LIVENESS_CHECK_S if block else None)
             except queue.Empty:
-                return
+                if not block:
+                    return
+                if not (self._process.is_alive() and self._reader.is_alive()):
+                    self._lost("stopped answering")
+                    return
+                continue
             if answer is None:
                 self._lost("no answer")
                 return
