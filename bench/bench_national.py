@@ -3,19 +3,21 @@
 Prints figures, never asserts.  The simulated stream is generated before any clock starts
 (the simulator's cost is excluded; ``--cache FILE`` keeps it between runs).  Modes:
 
-* default, in process: the stream through an ``Engine`` in this process as fast as it goes,
-  with ``engine.snapshot()`` taken every ``--snapshot-every`` messages as the service node's
-  worker does when it lags (service/transport/node.py).  Three variants side by side in the
-  same run, interleaved (A, B, C, A, B, C, ... with ``--repeat N``) because the machine is
-  noisy: A, tracking alone (``max_site_distance_m=0``: no two sites are that close and the
-  scenario has no AIS source, so no pair is ever correlated); B, the full pipeline in one
-  process; C, the full pipeline with the correlation stage in a child process
-  (``Engine(config, correlation_process=True)``, as the service node runs it by default).
-  Per variant: x real time, plots/s, the time of full / tracking alone, correlation update
-  p50/p99 (B: every update, timed by a probe on the stage; C: the child's own figures in
-  ``snapshot.correlation``, its last 2 048 updates), peak RSS of the run (C: parent and child),
-  CPU time.  Then the accuracy of the last B run, whether C found the same pairs and biases,
-  and a block of rows for the README's performance table.
+* default, in process: the stream through an ``Engine`` as fast as it goes, with
+  ``engine.snapshot()`` taken every ``--snapshot-every`` messages as the service node's worker
+  does when it lags (service/transport/node.py); each run in a fresh process of its own (this
+  file with a hidden option, reading the stream from ``--cache`` or a temporary file), so that
+  a run's peak RSS is its own.  Three variants side by side in the same run, interleaved (A,
+  B, C, A, B, C, ... with ``--repeat N``) because the machine is noisy: A, tracking alone
+  (``max_site_distance_m=0``: no two sites are that close and the scenario has no AIS source,
+  so no pair is ever correlated); B, the full pipeline in one process; C, the full pipeline
+  with the correlation stage in a child process (``Engine(config, correlation_process=True)``,
+  as the service node runs it by default).  Per variant: x real time, plots/s, the time of
+  full / tracking alone, correlation update p50/p99 (B: every update, timed by a probe on the
+  stage; C: the child's own figures in ``snapshot.correlation``, its last 2 048 updates),
+  peak RSS of the run (C: parent and child), CPU time, and the cores other jobs took.  Then
+  the accuracy of the last B run, whether C found the same pairs and biases, and a block of
+  rows for the README's performance table.
 * ``--zenoh``: a ``ServiceNode`` in router mode on a free loopback port (multicast scouting
   off), its correlation in a child process as the service runs it (``--one-process``: in the
   node's process), and a client session publishing the stream with ``CongestionControl.BLOCK``
@@ -822,7 +824,8 @@ def explain_false(engine: Engine, snap: Snapshot, sc: Scenario) -> None:
             else:
                 what = "different aircraft"
             classes[what] = classes.get(what, 0) + 1
-            # the track of radar b on radar a's aircraft, if any: was the right partner there?
+            # radar b's track labelled with radar a's track's aircraft, if any (the pair the
+            # labels call right) and how far it is
             right = by_truth.get((b, la), [])
             right_km = (
                 min(np.linalg.norm(tracks[(b, t)][1] - pos_a) for t in right if (b, t) in tracks) / 1e3
@@ -832,7 +835,11 @@ def explain_false(engine: Engine, snap: Snapshot, sc: Scenario) -> None:
             lines.append(
                 f"    {a}/{p['track_a']} ({la}) ~ {b}/{p['track_b']} ({lb}): {what}; tracks "
                 f"{np.linalg.norm(pos_a - pos_b) / 1e3:.1f} km apart"
-                + (f", {b}'s track on {la} {right_km:.1f} km from {a}'s" if right else f", {b} has no {la}")
+                + (
+                    f", {b}'s track labelled {la} {right_km:.1f} km from {a}'s"
+                    if right
+                    else f", no track of {b} labelled {la}"
+                )
                 + f"; last plot {end - last_a:.0f} / {end - last_b:.0f} s before the end\n"
                 f"      {a}: {runs_text(runs_a)}\n      {b}: {runs_text(runs_b)}"
             )
