@@ -286,8 +286,7 @@ class Engine:
         """Pair sets and failures the correlation process answered since the last call."""
         if not isinstance(self.correlation, RemoteCorrelation):
             return []
-        views = self.correlation.views
-        out = [Outgoing(self.keys.pairs(*k), views[k].body) for k in self.correlation.take_ready()]
+        out = [Outgoing(self.keys.pairs(*k), view.body) for k, view in self.correlation.take_ready()]
         for source_id, detail in self.correlation.take_errors():
             key = self.keys.plots(source_id) if source_id else self.keys.errors
             out.append(self._reject(key, RejectionError("internal", detail, source_id or None), None))

@@ -7,6 +7,7 @@ from collections import Counter
 from typing import Any
 
 from service.engine import Engine, EngineConfig
+from service.pipeline.correlation_process import RemoteCorrelation
 from tests.scenario_helpers import scenario_messages
 
 
@@ -58,5 +59,34 @@ def test_a_failing_update_is_reported_and_the_process_goes_on() -> None:
         assert [e["reason"] for e in errors] == ["internal"]
         assert "correlation failed" in errors[0]["detail"]
         assert engine.snapshot().status_core()["pairs_confirmed"] > 0
+    finally:
+        engine.close()
+
+
+def test_a_killed_correlation_process_is_restarted_and_reported() -> None:
+    """The child dies (killed from outside): the engine does not wait for it, says so once as an
+    ``internal`` rejection, and correlates again with a fresh process."""
+    stream = scenario_messages("two-radar", duration_s=60.0)
+    engine = Engine(EngineConfig(), correlation_process=True)
+    try:
+        third = len(stream) // 3
+        for key, payload in stream[:third]:
+            engine.ingest(key, payload)
+        remote = engine.correlation
+        assert isinstance(remote, RemoteCorrelation)
+        remote._process.kill()
+        remote._process.join(10)
+        out = []
+        for key, payload in stream[third:]:
+            out.extend(engine.ingest(key, payload))
+        out.extend(engine.flush())
+        errors = [json.loads(o.payload) for o in out if o.key == "fusion/errors"]
+        assert remote.restarts == 1
+        assert [e["reason"] for e in errors] == ["internal"] and "died" in errors[0]["detail"]
+        assert (
+            engine.snapshot().status_core()["pairs_tentative"]
+            + engine.snapshot().status_core()["pairs_confirmed"]
+            > 0
+        )
     finally:
         engine.close()

@@ -94,7 +94,7 @@ class RemoteCorrelation:
         self.views: dict[Key, PairSetView] = {}
         self.biases: list[dict[str, Any]] = []
         self._timings: dict[str, Any] = {"updates": 0, "last_ms": 0.0, "p50_ms": 0.0, "p99_ms": 0.0}
-        self._ready: list[Key] = []
+        self._ready: list[tuple[Key, PairSetView]] = []
         self._errors: list[tuple[str, str]] = []
         self.restarts = 0
         self._start()
@@ -187,7 +187,7 @@ class RemoteCorrelation:
             self._pending -= 1
             for key, view in answer.updated:
                 self.views[key] = view
-                self._ready.append(key)
+                self._ready.append((key, view))
             if answer.biases is not None:
                 self.biases = answer.biases
             self._timings = answer.timings
@@ -204,8 +204,9 @@ class RemoteCorrelation:
         self._outbox.put(None)
         self._start()
 
-    def take_ready(self) -> list[Key]:
-        """Pairs updated since the last call (their views are current)."""
+    def take_ready(self) -> list[tuple[Key, PairSetView]]:
+        """Pair updates answered since the last call, in order, each with its own view (a pair
+        updated twice comes twice, as in process)."""
         ready, self._ready = self._ready, []
         return ready
 
@@ -219,7 +220,7 @@ class RemoteCorrelation:
         # Truth labels (evaluation only) are no input of correlation: not sent.
         unlabelled = replace(table, truth_id=np.full(len(table), None, dtype=object))
         self._send("radar", radar_id, geometry, unlabelled, time_s)
-        return self.take_ready()
+        return []  # the answers come later: :meth:`take_ready`
 
     def reference(self, source_id: str, time_s: float, *columns: Any) -> None:
         self._send("reference", source_id, time_s, *columns)
