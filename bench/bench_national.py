@@ -1530,9 +1530,9 @@ class ChildHeap:
 
 
 def where(frame: Any) -> str:
-    """A traceback frame as ``file:line``, the file relative to the repository or its package."""
+    """A traceback frame as ``file:line``, the file relative to site-packages or the repository."""
     path = Path(frame.filename)
-    for base in (ROOT, *(p for p in map(Path, sys.path) if p.name == "site-packages")):
+    for base in (*(p for p in map(Path, sys.path) if p.name == "site-packages"), ROOT):
         with contextlib.suppress(ValueError):
             return f"{path.relative_to(base)}:{frame.lineno}"
     return f"{'/'.join(path.parts[-3:])}:{frame.lineno}"
