@@ -101,6 +101,11 @@ def _service_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--radars", action="append", metavar="ID", help="radars this worker owns (repeatable; default all)"
     )
+    p.add_argument(
+        "--partition",
+        metavar="K/N",
+        help="worker K of N on one prefix (default 1/1); see `topofusion partition` for who owns what",
+    )
     p.add_argument("--log-level", help="logging level (default INFO)")
     p.add_argument("--config", metavar="FILE", help="engine parameters, TOML/YAML/JSON (see `config --show`)")
 
@@ -173,6 +178,7 @@ def settings_from(args: argparse.Namespace) -> Settings:
         ("window", "window_s"),
         ("initiator", "initiator"),
         ("radars", "radars"),
+        ("partition", "partition"),
         ("log_level", "log_level"),
         ("config", "config"),
     ]:

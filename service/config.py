@@ -12,7 +12,7 @@ field documented where it is defined (``service/pipeline/``, ``service/tracking/
    any case; the value is read as JSON when it parses, else as a string), e.g.
    ``TOPOFUSION_ENGINE__SEQUENCER__MAX_CLOCK_SKEW_S=120``;
 4. the command-line flags and settings of the contract (``--method``, ``--window``,
-   ``--initiator``, ``--sites``, ``--prefix``).
+   ``--initiator``, ``--sites``, ``--prefix``, ``--partition``).
 
 An unknown key or a bad value stops the start with a message naming the key
 (``correlation.svd.alpha_postion: unknown key``).  ``topofusion config --show`` prints the
@@ -33,7 +33,9 @@ from pydantic import TypeAdapter, ValidationError
 
 from service.correlation import CorrelationParams
 from service.pipeline.correlation_stage import CadenceParams
+from service.pipeline.partition import Partition
 from service.pipeline.sequencer import SequencerParams
+from service.pipeline.track_exchange import ExchangeParams
 from service.pipeline.tracking_stage import SiteParams
 from service.reference import ReferenceParams
 from service.tracking.params import TrackerParams
@@ -68,6 +70,10 @@ class EngineConfig:
     tracking: TrackerParams = field(default_factory=TrackerParams)
     #: Every pair correlator: prediction, each method, the pair book, registration.
     correlation: CorrelationParams = field(default_factory=CorrelationParams)
+    #: This worker's share of a partitioned network (setting ``TOPOFUSION_PARTITION``, K/N).
+    partition: Partition = field(default_factory=Partition)
+    #: How partitioned workers send each other track states.
+    exchange: ExchangeParams = field(default_factory=ExchangeParams)
 
 
 class ConfigError(ValueError):

@@ -25,21 +25,26 @@ from pydantic import TypeAdapter, ValidationError
 
 from service.config import EngineConfig
 from service.correlation import PairCorrelator
+from service.correlation.registration import RegistrationRowsData
 from service.geo import Site
 from service.pipeline.correlation_process import RemoteCorrelation
-from service.pipeline.correlation_stage import CorrelationStage
+from service.pipeline.correlation_stage import CorrelationStage, SharedRows
 from service.pipeline.errors import RejectionError
 from service.pipeline.read_model import RadarRow, Snapshot, track_batch
 from service.pipeline.sequencer import RADAR, REFERENCE, Release, Sequencer, SourceClock
+from service.pipeline.track_exchange import StatesReceiver, StatesSender
 from service.pipeline.tracking_stage import SiteChange, TrackerFactory, TrackingStage
-from service.tracking.base import PlotColumns, Tracker
+from service.tracking.base import PlotColumns, Tracker, TrackTable
 from service.wire.keys import Keys
 from service.wire.models import (
     MAX_PAYLOAD_BYTES,
     AisBatch,
+    BiasSet,
     PlotBatch,
     RadarSite,
     RadarStatus,
+    RegistrationRows,
+    TrackStates,
     rejection_reason,
 )
 from service.wire.outputs import encode, rejection
@@ -118,7 +123,23 @@ def plot_columns(batch: PlotBatch) -> PlotColumns:
     )
 
 
-def _parse(model: type[Any], payload: bytes, source_id: str) -> Any:
+def _rows_body(r: SharedRows) -> dict[str, Any]:
+    """The ``RegistrationRows`` payload of rows an owned pair added."""
+    rows = r.rows
+    return {
+        "source_a": r.source_a,
+        "source_b": r.source_b,
+        "reference": r.reference,
+        "time_s": rows.time_s,
+        "track_a": rows.track_a.tolist(),
+        "track_b": rows.track_b.tolist(),
+        "p_a": rows.p_a.tolist(),
+        "p_b": rows.p_b.tolist(),
+        "s": rows.s.reshape(len(rows), 9).tolist(),
+    }
+
+
+def _parse(model: type[Any], payload: bytes, source_id: str | None) -> Any:
     try:
         return model.model_validate_json(payload)
     except ValidationError as exc:
@@ -149,10 +170,20 @@ class Engine:
         self.tracking = TrackingStage(tracker_factory or tracker_for(self.config), self.config.site)
         c = self.config
         self.correlation: CorrelationStage | RemoteCorrelation
+        stage_args = (c.method, c.cadence, c.reference, c.correlation, c.partition)
         if correlation_process:
-            self.correlation = RemoteCorrelation(c.method, c.cadence, c.reference, c.correlation)
+            self.correlation = RemoteCorrelation(*stage_args)
         else:
-            self.correlation = CorrelationStage(c.method, c.cadence, c.reference, c.correlation)
+            self.correlation = CorrelationStage(*stage_args)
+        self.partition = c.partition
+        #: Partitioned: the correlation stage's input, every radar's tables (own and peers')
+        #: and the references, in data-time order (see "Partitioned workers" above).
+        self.merger = Sequencer(self.config.sequencer)
+        self.sender = StatesSender(self.config.exchange)
+        self.receiver = StatesReceiver()
+        #: The joint bias estimate as the bias worker last published it (other workers).
+        self.published_biases: dict[str, Any] | None = None
+        self._biases_sent: object = None
         self.plots: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
         self._snapshot: Snapshot | None = None
@@ -184,14 +215,21 @@ class Engine:
     def ingest(self, key: str, payload: bytes, receive_time_s: float | None = None) -> list[Outgoing]:
         """Validate and apply one input message; returns what to publish.  Never raises on input."""
         kind = self.keys.classify(key)
+        peer = self.keys.classify_peer(key) if kind is None and not self.partition.whole else None
         try:
+            if len(payload) > MAX_PAYLOAD_BYTES:
+                raise RejectionError(
+                    "too_large",
+                    f"payload of {len(payload)} bytes > {MAX_PAYLOAD_BYTES}",
+                    kind[1] if kind else None,
+                )
+            if peer is not None:
+                return self._ingest_peer(peer[0], peer[1], payload)
             if kind is None:
                 raise RejectionError("schema", f"not an input key of prefix {self.config.prefix!r}: {key}")
             what, source_id = kind
-            if len(payload) > MAX_PAYLOAD_BYTES:
-                raise RejectionError(
-                    "too_large", f"payload of {len(payload)} bytes > {MAX_PAYLOAD_BYTES}", source_id
-                )
+            if what == "plots" and not self.partition.owns(source_id):
+                return []  # another worker's radar: not even parsed
             if what == "site":
                 site: RadarSite = _parse(RadarSite, payload, source_id)
                 _check_body_id("radar_id", site.radar_id, source_id)
@@ -203,14 +241,25 @@ class Engine:
                 self._admit_reference(source_id, payload)
             return self._process(self.sequencer.release())
         except RejectionError as rejection:
-            return [self._reject(key, rejection, receive_time_s)]
+            return self._rejected(key, rejection, receive_time_s, peer is not None)
         except Exception as exc:  # a bug must cost one message, never the service
             internal = RejectionError("internal", f"{type(exc).__name__}: {exc}", kind[1] if kind else None)
-            return [self._reject(key, internal, receive_time_s)]
+            return self._rejected(key, internal, receive_time_s, peer is not None)
+
+    def _rejected(
+        self, key: str, rej: RejectionError, receive_time_s: float | None, peer: bool
+    ) -> list[Outgoing]:
+        """A rejected message: counted and reported, by the worker that owns its source (every
+        worker sees every input; one reports it, as one worker alone would)."""
+        if not peer and not self.partition.owns(rej.source_id or key):
+            return []
+        return [self._reject(key, rej, receive_time_s)]
 
     def flush(self) -> list[Outgoing]:
         """Release every held batch regardless of the watermark (end of a replay or shutdown)."""
         out = self._process(self.sequencer.flush())
+        if not self.partition.whole:
+            out.extend(self._correlate(self.merger.flush()))
         self.correlation.finish()
         out.extend(self._remote_results())
         self._snapshot = None
@@ -225,8 +274,12 @@ class Engine:
         return Outgoing(self.keys.errors, lambda: body)
 
     def _set_site(self, site: RadarSite) -> None:
-        evicted = self.sequencer.announce(site.radar_id, RADAR)
-        self._drop(evicted)
+        # Partitioned: every worker holds every site (the geometry of every pair it may
+        # correlate); only the owner's sequencer waits for the radar's batches.
+        if self.partition.owns(site.radar_id):
+            self._drop(self.sequencer.announce(site.radar_id, RADAR))
+        if not self.partition.whole:
+            self.merger.announce(site.radar_id, RADAR)
         change = self.tracking.set_site(site)
         if change is SiteChange.MOVED:
             self.correlation.moved(self.tracking.radars[site.radar_id].geometry)
@@ -265,34 +318,67 @@ class Engine:
             self._snapshot = None
             try:
                 if rel.kind == REFERENCE:
-                    if rel.expiry:
-                        self.correlation.silent(rel.source_id)
-                    else:
-                        self._process_reference(rel.source_id, rel.item, rel.time_s)
+                    self._process_reference(rel)
                 elif rel.expiry:
                     out.extend(self._process_radar(rel.source_id, None, rel.time_s))
                 else:
                     out.extend(self._process_radar(rel.source_id, rel.item, rel.time_s))
             except Exception as exc:  # a bug costs this batch's outputs, never the service
-                detail = f"processing failed: {type(exc).__name__}: {exc}"
-                key = (
-                    self.keys.ais(rel.source_id) if rel.kind == REFERENCE else self.keys.plots(rel.source_id)
-                )
-                out.append(self._reject(key, RejectionError("internal", detail, rel.source_id), None))
+                out.append(self._internal(rel, exc))
+        if not self.partition.whole:
+            out.extend(self._correlate(self.merger.release()))
         out.extend(self._remote_results())
         return out
 
+    def _internal(self, rel: Release, exc: Exception) -> Outgoing:
+        detail = f"processing failed: {type(exc).__name__}: {exc}"
+        key = self.keys.ais(rel.source_id) if rel.kind == REFERENCE else self.keys.plots(rel.source_id)
+        return self._reject(key, RejectionError("internal", detail, rel.source_id), None)
+
     def _remote_results(self) -> list[Outgoing]:
-        """Pair sets and failures the correlation process answered since the last call."""
-        if not isinstance(self.correlation, RemoteCorrelation):
-            return []
-        out = [Outgoing(self.keys.pairs(*k), view.body) for k, view in self.correlation.take_ready()]
-        for source_id, detail in self.correlation.take_errors():
-            key = self.keys.plots(source_id) if source_id else self.keys.errors
-            out.append(self._reject(key, RejectionError("internal", detail, source_id or None), None))
+        """Pair sets and failures the correlation process answered since the last call, the
+        registration rows to share and the biases to publish (partitioned workers)."""
+        out = []
+        if isinstance(self.correlation, RemoteCorrelation):
+            out = [Outgoing(self.keys.pairs(*k), view.body) for k, view in self.correlation.take_ready()]
+            for source_id, detail in self.correlation.take_errors():
+                key = self.keys.plots(source_id) if source_id else self.keys.errors
+                out.append(self._reject(key, RejectionError("internal", detail, source_id or None), None))
+        if not self.partition.whole:
+            out.extend(self._partition_outputs())
         return out
 
-    def _process_reference(self, source_id: str, batch: AisBatch, clock: float) -> None:
+    def _partition_outputs(self) -> list[Outgoing]:
+        out = [
+            Outgoing(self.keys.registration(*r.key), lambda r=r: _rows_body(r))  # type: ignore[misc]
+            for r in self.correlation.take_rows()
+        ]
+        biases = self.correlation.biases
+        if self.partition.solves_biases and biases is not self._biases_sent and biases:
+            self._biases_sent = biases
+            body = {
+                "time_s": max(b["time_s"] for b in biases),
+                "partition": str(self.partition),
+                "biases": list(biases),
+            }
+            out.append(Outgoing(self.keys.biases, lambda: body))
+        return out
+
+    def _process_reference(self, rel: Release) -> None:
+        if not self.partition.whole:
+            # Into the merger, which orders it with every worker's radar tables; its expiry is
+            # the merger's own (same data-time rule), so the local one is not passed on.
+            if not rel.expiry:
+                self.merger.accept(
+                    self.merger.check(rel.source_id, REFERENCE, rel.item.seq, rel.time_s), rel.item
+                )
+            return
+        if rel.expiry:
+            self.correlation.silent(rel.source_id)
+        else:
+            self._reference_to_correlation(rel.source_id, rel.item, rel.time_s)
+
+    def _reference_to_correlation(self, source_id: str, batch: AisBatch, clock: float) -> None:
         r = batch.reports
         self.correlation.reference(
             source_id,
@@ -312,10 +398,93 @@ class Engine:
         else:
             table = self.tracking.update(radar_id, plots, clock)
         out = [Outgoing(self.keys.tracks(radar_id), lambda: track_batch(radar_id, clock, table))]
+        canonical = table.by_id()
+        if not self.partition.whole:
+            # Every message is a change on top of the previous one: built now, encoded when sent.
+            body = self.sender.states(radar_id, canonical, clock)
+            out.append(Outgoing(self.keys.track_states(radar_id), lambda: body))
+            self.merger.accept(self.merger.check(radar_id, RADAR, body["seq"], clock), canonical)
+            return out
+        return out + self._correlate_radar(radar_id, canonical, clock)
+
+    def _correlate_radar(self, radar_id: str, table: TrackTable, clock: float) -> list[Outgoing]:
         geometry = self.tracking.radars[radar_id].geometry
-        for key in self.correlation.radar(radar_id, geometry, table, clock):
-            out.append(Outgoing(self.keys.pairs(*key), self.correlation.views[key].body))
+        return [
+            Outgoing(self.keys.pairs(*key), self.correlation.views[key].body)
+            for key in self.correlation.radar(radar_id, geometry, table, clock)
+        ]
+
+    # -- partitioned workers -------------------------------------------------------------
+    def _correlate(self, released: Iterable[Release]) -> list[Outgoing]:
+        """The merger's releases (every radar's tables and the references in data-time order)
+        into the correlation stage, which correlates the pairs this worker owns."""
+        out: list[Outgoing] = []
+        for rel in released:
+            self._snapshot = None
+            try:
+                if rel.kind == REFERENCE:
+                    if rel.expiry:
+                        self.correlation.silent(rel.source_id)
+                    else:
+                        self._reference_to_correlation(rel.source_id, rel.item, rel.time_s)
+                elif not rel.expiry and rel.source_id in self.tracking.radars:
+                    # (an expired radar's owner sends the table its tracks coasted out to)
+                    out.extend(self._correlate_radar(rel.source_id, rel.item, rel.time_s))
+            except Exception as exc:  # a bug costs this update's outputs, never the service
+                out.append(self._internal(rel, exc))
         return out
+
+    def _ingest_peer(self, kind: str, ids: tuple[str, ...], payload: bytes) -> list[Outgoing]:
+        """What another worker of the partitioned network published for the others."""
+        if kind == "track_states":
+            radar_id = ids[0]
+            if self.partition.owns(radar_id):
+                return []  # our own, heard back
+            msg: TrackStates = _parse(TrackStates, payload, radar_id)
+            _check_body_id("radar_id", msg.radar_id, radar_id)
+            if radar_id not in self.tracking.radars:
+                raise RejectionError("unknown_radar", f"no site known for radar {radar_id!r}", radar_id)
+            adm = self.merger.check(radar_id, RADAR, msg.seq, msg.time_s)
+            table = self.receiver.apply(msg)
+            if table is not None:
+                self.merger.accept(adm, table)
+            self._snapshot = None
+            return self._correlate(self.merger.release()) + self._remote_results()
+        if kind == "registration":
+            if not self.partition.solves_biases:
+                return []
+            rows: RegistrationRows = _parse(RegistrationRows, payload, ids[0])
+            if sorted((rows.source_a, rows.source_b)) != sorted(ids):
+                raise RejectionError(
+                    "schema", f"sources {rows.source_a}, {rows.source_b} != key {ids}", ids[0]
+                )
+            if self.partition.owns_pair(rows.source_a, rows.source_b):
+                return []  # our own pair
+            site_a = self._geometry(rows.source_a)
+            site_b = None if rows.reference else self._geometry(rows.source_b)
+            k = len(rows.p_a)
+            data = RegistrationRowsData(
+                rows.time_s,
+                np.asarray(rows.track_a, dtype=str),
+                np.asarray(rows.track_b, dtype=str),
+                np.asarray(rows.p_a, dtype=float).reshape(k, 3),
+                np.asarray(rows.p_b, dtype=float).reshape(k, 3),
+                np.asarray(rows.s, dtype=float).reshape(k, 3, 3),
+            )
+            self.correlation.mirror_rows((ids[0], ids[1]), site_a, site_b, data)
+            return []
+        if kind == "biases":
+            if not self.partition.solves_biases:
+                self.published_biases = _parse(BiasSet, payload, None).model_dump()
+                self._snapshot = None
+            return []
+        return []  # worker status: the transport's
+
+    def _geometry(self, radar_id: str) -> Any:
+        radar = self.tracking.radars.get(radar_id)
+        if radar is None:
+            raise RejectionError("unknown_radar", f"no site known for radar {radar_id!r}", radar_id)
+        return radar.geometry
 
     # -- read model ----------------------------------------------------------------------
     def snapshot(self) -> Snapshot:
@@ -328,7 +497,15 @@ class Engine:
         tracks = {}
         rows = []
         sources = self.sequencer.sources
+        for rid in self.receiver.radars():
+            held = self.merger.sources.get(rid)
+            tracks[rid] = (
+                held.last_time_s or 0.0 if held else 0.0,
+                self.receiver.table(rid) or TrackTable.empty(),
+            )
         for rid, r in sorted(self.tracking.radars.items()):
+            if not self.partition.owns(rid):
+                continue
             clock = sources.get(rid)
             tracks[rid] = (
                 clock.released_time_s if clock and clock.released_time_s is not None else 0.0,
@@ -358,7 +535,11 @@ class Engine:
             tracks=tracks,
             radar_rows=rows,
             pair_views=self.correlation.pair_views(),
-            biases_all=list(self.correlation.biases),
+            biases_all=list(
+                self.correlation.biases
+                if self.partition.solves_biases or self.published_biases is None
+                else self.published_biases["biases"]
+            ),
             correlation=self.correlation.timings(),
             rejected=dict(sorted(self.rejected.items())),
             method=self.config.method,

@@ -119,6 +119,48 @@ EXAMPLES: dict[str, Any] = {
         "pairs_used": 35,
         "time_s": 1763769604.0,
     },
+    "TrackStates": {
+        "radar_id": "A",
+        "seq": 12,
+        "time_s": 1763769604.0,
+        "full": False,
+        "count": 48,
+        "removed": ["A-9"],
+        "tracks": {
+            "track_id": ["A-17"],
+            "confirmed": [True],
+            "time_s": [1763769603.4],
+            "position_ecef_m": [[-2.7e6, 4.7e6, 3.3e6]],
+            "velocity_ecef_mps": [[120.0, -80.0, 0.5]],
+            "covariance": [[float(40000 if i % 7 == 0 and i < 21 else 25 if i % 7 == 0 else 0) for i in range(36)]],
+            "plots": [12],
+        },
+    },
+    "RegistrationRows": {
+        "source_a": "A",
+        "source_b": "B",
+        "reference": False,
+        "time_s": 1763769604.0,
+        "track_a": ["A-17"],
+        "track_b": ["B-4"],
+        "p_a": [[-2.7e6, 4.7e6, 3.3e6]],
+        "p_b": [[-2.7003e6, 4.7001e6, 3.3002e6]],
+        "s": [[80000.0, 0.0, 0.0, 0.0, 80000.0, 0.0, 0.0, 0.0, 80000.0]],
+    },
+    "BiasSet": {
+        "time_s": 1763769604.0,
+        "partition": "1/2",
+        "biases": [
+            {
+                "radar_id": "A",
+                "range_bias_m": 148.2,
+                "azimuth_bias_deg": 0.148,
+                "elevation_bias_deg": 0.0,
+                "pairs_used": 40,
+                "time_s": 1763769604.0,
+            }
+        ],
+    },
     "RadarInfo": {
         "radar_id": "A",
         "latitude_deg": 31.20,

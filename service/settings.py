@@ -42,6 +42,9 @@ class Settings(BaseSettings):
     #: Partitioning several workers by radar is configuration: each subscribes to its own
     #: radars, and ``get {prefix}/pairs/**`` gathers every worker's pairs.
     radars: Annotated[list[str], NoDecode] = Field(default_factory=list)
+    #: ``K/N``: worker K of N on one prefix; together the N workers give the results of one
+    #: (``service.pipeline.partition``: which worker owns which radar and radar pair).
+    partition: str = Field(default="1/1", pattern=r"^\s*\d+\s*/\s*\d+\s*$")
     #: Capacity of the queue between Zenoh callbacks and the worker (samples).
     queue_size: int = Field(default=4096, ge=1)
     log_level: str = "INFO"
@@ -52,6 +55,13 @@ class Settings(BaseSettings):
     correlation_process: bool = True
 
     _split_listen = field_validator("zenoh_listen", "zenoh_connect", "radars", mode="before")(_split)
+
+    @field_validator("partition")
+    @classmethod
+    def _partition(cls, value: str) -> str:
+        from service.pipeline.partition import Partition
+
+        return str(Partition.parse(value))
 
     @field_validator("radars")
     @classmethod
@@ -64,7 +74,8 @@ class Settings(BaseSettings):
 
 def engine_config(settings: Settings) -> EngineConfig:
     """The engine's configuration: defaults < config file < ``TOPOFUSION_ENGINE__*`` < the
-    contract's flags and settings (method, window, initiator, sites, prefix) where given.
+    contract's flags and settings (method, window, initiator, sites, prefix, partition) where
+    given.
 
     Raises :class:`service.config.ConfigError` naming the key of a bad value.
     """
@@ -82,6 +93,11 @@ def engine_config(settings: Settings) -> EngineConfig:
     ):
         if name in given or key not in data:
             data[key] = getattr(settings, name)
+    if "partition" in given or "partition" not in data:
+        from service.pipeline.partition import Partition
+
+        p = Partition.parse(settings.partition)
+        data["partition"] = {"index": p.index, "count": p.count}
     if settings.sites is not None:
         data["sites"] = load_sites(settings.sites)
     return engine_config_from(data)

@@ -39,6 +39,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from typing import Protocol
 
 import numpy as np
 
@@ -56,6 +57,7 @@ from service.correlation.registration import (
     RadarBias,
     RegistrationMemory,
     RegistrationParams,
+    RegistrationRowsData,
     compensate,
     solve_biases,
     to_estimates,
@@ -149,6 +151,8 @@ class PairCorrelator:
         self.site_b = site_b
         self.book = PairBook(self.params.book)
         self.memory = RegistrationMemory(site_a, site_b)
+        #: The rows the last update added to the memory (None: none).
+        self.last_rows: RegistrationRowsData | None = None
         self.solution: BiasSolution | None = None
         self._solved_s = float("-inf")
         self.last_update_ms: float = 0.0
@@ -229,9 +233,12 @@ class PairCorrelator:
         pa_idx, pb_idx = _lookup_pairs(
             raw_a.track_id, raw_b.track_id, self.book.track_a[conf], self.book.track_b[conf], sorters
         )
+        self.last_rows = None
         if len(pa_idx):
             cap = prm.registration.registered_rows_per_update if self.registered else None
-            self.memory.add(time_s, raw_a, raw_b, pa_idx, pb_idx, prm.registration, max_rows=cap)
+            self.last_rows = self.memory.add(
+                time_s, raw_a, raw_b, pa_idx, pb_idx, prm.registration, max_rows=cap
+            )
         if self.method == "svd-topology" and prm.use_registration and len(self.memory):
             # Re-solve on a data-time schedule once registered (every update before that).
             due = (
@@ -255,7 +262,7 @@ class PairCorrelator:
 
 
 def joint_solution(
-    correlators: Sequence[PairCorrelator],
+    correlators: Sequence[PairCorrelator | _HasMemory],
     time_s: float,
     params: RegistrationParams | None = None,
     initial: BiasSolution | None = None,
@@ -268,9 +275,16 @@ def joint_solution(
     prior-driven for poorly spread geometry.  Radars without confirmed pairs are omitted.
     ``initial``: the previous joint solution, a warm start (same fixed point, fewer steps).
     """
-    prm = params or (correlators[0].params.registration if correlators else RegistrationParams())
+    first = correlators[0] if correlators else None
+    prm = params or (first.params.registration if isinstance(first, PairCorrelator) else RegistrationParams())
     mems = [c.memory for c in correlators if len(c.memory)]
     return solve_biases(mems, time_s, prm, initial=initial)
+
+
+class _HasMemory(Protocol):
+    """A mirror of another worker's pair: its registration memory only."""
+
+    memory: RegistrationMemory
 
 
 def estimate_biases(

@@ -193,6 +193,21 @@ _SHAPES: dict[str, tuple[int, ...]] = {
 _DTYPES: dict[str, type] = {"w_ok": bool, "pair": str}
 
 
+@dataclass(frozen=True)
+class RegistrationRowsData:
+    """The defining columns of the rows one update added to a :class:`RegistrationMemory`."""
+
+    time_s: float
+    track_a: np.ndarray
+    track_b: np.ndarray
+    p_a: np.ndarray  # (k, 3) raw ECEF of the A side
+    p_b: np.ndarray  # (k, 3)
+    s: np.ndarray  # (k, 3, 3) sum of the two position covariances
+
+    def __len__(self) -> int:
+        return int(self.p_a.shape[0])
+
+
 class RegistrationMemory:
     """Recent confirmed-pair rows of one radar pair (raw, uncompensated positions).
 
@@ -274,9 +289,10 @@ class RegistrationMemory:
         ib: np.ndarray,
         params: RegistrationParams,
         max_rows: int | None = None,
-    ) -> None:
+    ) -> RegistrationRowsData:
         """Remember the pairs ``(ia[k], ib[k])`` of one update; at most ``max_rows`` of them
-        (default ``params.max_rows_per_update``), evenly spread over the given order."""
+        (default ``params.max_rows_per_update``), evenly spread over the given order.  Returns
+        the rows' defining columns (:meth:`add_rows`)."""
         cap = params.max_rows_per_update if max_rows is None else max_rows
         if len(ia) > cap:
             # One pick per stride of len/cap pairs, at a phase that advances by the golden
@@ -287,24 +303,37 @@ class RegistrationMemory:
             pick = np.minimum(((np.arange(cap) + phase) * stride).astype(np.intp), len(ia) - 1)
             ia, ib = ia[pick], ib[pick]
         self._adds += 1
-        ga = bias_jacobian(self.site_a, a.position[ia])
-        gb = (
-            bias_jacobian(self.site_b, b.position[ib])
-            if self.site_b is not None
-            else np.zeros((len(ib), 3, 3))
+        id_a, id_b = np.asarray(a.track_id[ia], dtype=str), np.asarray(b.track_id[ib], dtype=str)
+        return self.add_rows(
+            time_s, id_a, id_b, a.position[ia], b.position[ib], a.pos_cov[ia] + b.pos_cov[ib], params
         )
-        s = a.pos_cov[ia] + b.pos_cov[ib]
+
+    def add_rows(
+        self,
+        time_s: float,
+        track_a: np.ndarray,
+        track_b: np.ndarray,
+        p_a: np.ndarray,
+        p_b: np.ndarray,
+        s: np.ndarray,
+        params: RegistrationParams,
+    ) -> RegistrationRowsData:
+        """Remember the rows of one update given by what defines them (the pairs' track ids,
+        raw ECEF positions and the sum ``s`` of their position covariances); every other
+        column is derived here.  Returns those defining columns: another process that adds
+        the same rows in the same order holds the same memory (partitioned workers)."""
+        ga = bias_jacobian(self.site_a, p_a)
+        gb = bias_jacobian(self.site_b, p_b) if self.site_b is not None else np.zeros((len(p_b), 3, 3))
         w, w_ok = inv3(s)
         gat_w = np.swapaxes(ga, 1, 2) @ w
         gbt_w = np.swapaxes(gb, 1, 2) @ w
-        id_a, id_b = np.asarray(a.track_id[ia], dtype=str), np.asarray(b.track_id[ib], dtype=str)
-        pair = np.char.add(np.char.add(id_a, "\x1f"), id_b)
+        pair = np.char.add(np.char.add(track_a, "\x1f"), track_b)
         self._append(
             {
-                "time": np.full(len(ia), float(time_s)),
+                "time": np.full(len(p_a), float(time_s)),
                 "pair": pair,
-                "p_a": a.position[ia],
-                "p_b": b.position[ib],
+                "p_a": p_a,
+                "p_b": p_b,
                 "g_a": ga,
                 "g_b": gb,
                 "s": s,
@@ -317,7 +346,7 @@ class RegistrationMemory:
                 "hbb": gbt_w @ gb,
             }
         )
-        self._updates.append((float(time_s), len(ia)))
+        self._updates.append((float(time_s), len(p_a)))
         # Forget whole updates from the front: older than the memory, or beyond the row cap.
         # (A solve also leaves out rows outside its own window, should data time step back.)
         while self._updates and (
@@ -325,6 +354,7 @@ class RegistrationMemory:
             or (len(self._updates) > 1 and len(self) > params.max_rows)
         ):
             self._start += self._updates.pop(0)[1]
+        return RegistrationRowsData(float(time_s), track_a, track_b, p_a, p_b, s)
 
     def current(self, time_s: float) -> np.ndarray:
         """Mask of rows within memory (data time) of ``time_s``."""

@@ -21,15 +21,17 @@ import logging
 import multiprocessing as mp
 import queue
 import threading
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from multiprocessing.connection import Connection
 from typing import Any
 
 import numpy as np
 
 from service.correlation import CorrelationParams
+from service.correlation.registration import RegistrationRowsData
 from service.geo import Site
-from service.pipeline.correlation_stage import CadenceParams, CorrelationStage
+from service.pipeline.correlation_stage import CadenceParams, CorrelationStage, SharedRows
+from service.pipeline.partition import Partition
 from service.pipeline.read_model import PairSetView
 from service.reference import ReferenceParams
 from service.tracking.base import TrackTable
@@ -50,6 +52,7 @@ class Answer:
     biases: list[dict[str, Any]] | None  # None: unchanged
     timings: dict[str, Any]
     error: tuple[str, str] | None = None  # (source id, detail) when the message failed
+    rows: list[SharedRows] = field(default_factory=list)  # partitioned: rows for the bias worker
 
 
 def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
@@ -74,7 +77,8 @@ def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
         biases = stage.biases if stage.biases is not biases_before else None
         if keys or timings is None:  # timings change only with pair updates
             timings = stage.timings()
-        answers.send(Answer([(k, stage.views[k]) for k in keys], biases, timings, error))
+        rows = stage.take_rows()
+        answers.send(Answer([(k, stage.views[k]) for k in keys], biases, timings, error, rows))
     answers.close()
 
 
@@ -87,15 +91,17 @@ class RemoteCorrelation:
         cadence: CadenceParams | None = None,
         reference: ReferenceParams | None = None,
         correlation: CorrelationParams | None = None,
+        partition: Partition | None = None,
         max_in_flight: int = 64,
     ) -> None:
-        self._args = (method, cadence, reference, correlation)
+        self._args = (method, cadence, reference, correlation, partition)
         self.max_in_flight = max_in_flight
         self.views: dict[Key, PairSetView] = {}
         self.biases: list[dict[str, Any]] = []
         self._timings: dict[str, Any] = {"updates": 0, "last_ms": 0.0, "p50_ms": 0.0, "p99_ms": 0.0}
         self._ready: list[tuple[Key, PairSetView]] = []
         self._errors: list[tuple[str, str]] = []
+        self._rows: list[SharedRows] = []
         self.restarts = 0
         self._start()
 
@@ -193,6 +199,7 @@ class RemoteCorrelation:
             self._timings = answer.timings
             if answer.error is not None:
                 self._errors.append(answer.error)
+            self._rows.extend(answer.rows)
 
     def _lost(self, what: str) -> None:
         code = self._process.exitcode
@@ -209,6 +216,11 @@ class RemoteCorrelation:
         updated twice comes twice, as in process)."""
         ready, self._ready = self._ready, []
         return ready
+
+    def take_rows(self) -> list[SharedRows]:
+        """Registration rows the owned pairs added (answered since the last call)."""
+        rows, self._rows = self._rows, []
+        return rows
 
     def take_errors(self) -> list[tuple[str, str]]:
         """``(source id, detail)`` of the messages that failed since the last call."""
@@ -233,6 +245,9 @@ class RemoteCorrelation:
 
     def moved(self, site: Site) -> None:
         self._send("moved", site)
+
+    def mirror_rows(self, key: Key, site_a: Site, site_b: Site | None, rows: RegistrationRowsData) -> None:
+        self._send("mirror_rows", key, site_a, site_b, rows)
 
     def finish(self) -> None:
         """Solve the final biases and wait until every message is answered."""

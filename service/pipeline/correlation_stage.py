@@ -17,6 +17,11 @@ Cost follows tracks, not ids:
   ``max_reference_range_m`` of the radar;
 * the joint bias solve over every pair runs once per ``bias_interval_s`` of data time, inside
   the update that crosses it: never because someone read the result.
+
+Partitioned (``--partition K/N``, :mod:`.partition`): the stage correlates only the pairs its
+worker owns, and hands out the registration rows each update adds (:meth:`take_rows`) for
+the worker that solves the joint bias estimate, which mirrors every other worker's rows
+(:meth:`mirror_rows`) and solves over all of them: the same memories one worker would hold.
 """
 
 from __future__ import annotations
@@ -29,8 +34,14 @@ from typing import Any
 import numpy as np
 
 from service.correlation import CorrelationParams, PairCorrelator, joint_solution
-from service.correlation.registration import BiasSolution, to_estimates
+from service.correlation.registration import (
+    BiasSolution,
+    RegistrationMemory,
+    RegistrationRowsData,
+    to_estimates,
+)
 from service.geo import Site
+from service.pipeline.partition import Partition
 from service.pipeline.read_model import PairSetView
 from service.reference import ReferenceParams, ReferenceTracks
 from service.tracking.base import TrackTable
@@ -62,6 +73,24 @@ class CadenceParams:
     bias_interval_s: float = 30.0
 
 
+@dataclass
+class MirroredPair:
+    """Another worker's pair: only its registration memory (the joint bias solve's input)."""
+
+    memory: RegistrationMemory
+
+
+@dataclass(frozen=True)
+class SharedRows:
+    """Rows an owned pair's update added, for the bias worker (``RegistrationRows`` on the wire)."""
+
+    key: tuple[str, str]
+    source_a: str  # the memory's A side: a radar
+    source_b: str
+    reference: bool  # source_b is a bias-free reference source
+    rows: RegistrationRowsData
+
+
 @dataclass(frozen=True)
 class Source:
     """What the stage needs of one partner at an update."""
@@ -86,8 +115,10 @@ class CorrelationStage:
         params: CadenceParams | None = None,
         reference: ReferenceParams | None = None,
         correlation: CorrelationParams | None = None,
+        partition: Partition | None = None,
     ) -> None:
         self.method = method
+        self.partition = partition or Partition()
         self.params = params or CadenceParams()
         self.reference_params = reference or ReferenceParams()
         self.correlation_params = correlation or CorrelationParams()
@@ -103,6 +134,12 @@ class CorrelationStage:
         self._radars: dict[str, tuple[Site, TrackTable]] = {}
         self._references: dict[str, ReferenceTracks] = {}
         self._silent: set[str] = set()
+        #: Other workers' pairs (the bias worker of a partitioned network).
+        self.mirrors: dict[tuple[str, str], MirroredPair] = {}
+        #: Rows the owned pairs added since :meth:`take_rows` (partitioned, not the bias worker).
+        self._rows_out: list[SharedRows] = []
+        self._share_rows = not self.partition.whole and not self.partition.solves_biases
+        self._solves = self.partition.solves_biases
 
     # -- the sources ---------------------------------------------------------------------------
     def reference(
@@ -132,6 +169,8 @@ class CorrelationStage:
             del self.correlators[key]
             self.views.pop(key, None)
             self.next_due.pop(key, None)
+        for key in [k for k in self.mirrors if source_id in k]:
+            del self.mirrors[key]
 
     def moved(self, site: Site) -> None:
         """A radar moved: its pairs keep their books but re-register from scratch.
@@ -149,6 +188,34 @@ class CorrelationStage:
             new = PairCorrelator(old.method, a, b, old.params)  # same parameters, new geometry
             new.book = old.book
             self.correlators[key] = new
+        for key in [k for k in self.mirrors if site.site_id in k]:
+            del self.mirrors[key]  # its owner re-registers it from scratch too
+
+    # -- the joint bias estimate of a partitioned network -------------------------------------
+    def take_rows(self) -> list[SharedRows]:
+        """Rows added by owned pairs since the last call (only a partitioned worker that does
+        not solve the biases)."""
+        out, self._rows_out = self._rows_out, []
+        return out
+
+    def mirror_rows(
+        self, key: tuple[str, str], site_a: Site, site_b: Site | None, rows: RegistrationRowsData
+    ) -> None:
+        """Rows another worker's pair ``key`` added (``site_b`` None: a reference source)."""
+        if not self._solves or key in self.correlators:
+            return
+        mirror = self.mirrors.get(key)
+        if mirror is None:
+            mirror = self.mirrors[key] = MirroredPair(RegistrationMemory(site_a, site_b))
+        mirror.memory.add_rows(
+            rows.time_s,
+            rows.track_a,
+            rows.track_b,
+            rows.p_a,
+            rows.p_b,
+            rows.s,
+            self.correlation_params.registration,
+        )
 
     def _partners(self, radar_id: str) -> list[Source]:
         """Every other radar and every live reference source, in id order."""
@@ -193,6 +260,8 @@ class CorrelationStage:
         for other in others:
             key = (min(radar.source_id, other.source_id), max(radar.source_id, other.source_id))
             corr = self.correlators.get(key)
+            if corr is None and not self.partition.owns_pair(*key):
+                continue
             if time_s < self.next_due.get(key, -np.inf):
                 continue
             if corr is None and min(radar.confirmed, other.confirmed) < p.min_confirmed_tracks:
@@ -220,22 +289,33 @@ class CorrelationStage:
             self.timings_ms.append(self.last_ms)
             self.views[key] = PairSetView.of(key, corr, time_s)
             updated.append(key)
-        if updated and time_s >= self._next_bias_s:
+            if self._share_rows and corr.last_rows is not None:
+                self._rows_out.append(
+                    SharedRows(
+                        key, corr.site_a.site_id, second.source_id, corr.site_b is None, corr.last_rows
+                    )
+                )
+        if updated and self._solves and time_s >= self._next_bias_s:
             self._solve_biases(time_s)
         return updated
 
     def finish(self) -> None:
         """End of the input: the joint bias estimate at the last update's data time."""
         times = [c.time_s for c in self.correlators.values() if np.isfinite(c.time_s)]
-        if times:
+        times += [float(m.memory.time[-1]) for m in self.mirrors.values() if len(m.memory)]
+        if times and self._solves:
             self._solve_biases(max(times))
 
     def _solve_biases(self, time_s: float) -> None:
         # Warm-started from the previous solve: the rows changed little since, so one or two
         # Gauss-Newton steps reach the same fixed point a cold solve does.
-        self._joint = joint_solution(
-            list(self.correlators.values()), time_s, self.correlation_params.registration, self._joint
-        )
+        # In key order: one worker and the bias worker of N sum the same rows in the same order.
+        everything: dict[tuple[str, str], PairCorrelator | MirroredPair] = {
+            **self.mirrors,
+            **self.correlators,
+        }
+        pairs = [everything[k] for k in sorted(everything)]
+        self._joint = joint_solution(pairs, time_s, self.correlation_params.registration, self._joint)
         self.biases = [b for b in map(bias_dict, to_estimates(self._joint, time_s)) if b is not None]
         self._next_bias_s = time_s + self.params.bias_interval_s
 

@@ -111,6 +111,32 @@ class TrackTable:
             self.truth_id[index],
         )
 
+    def by_id(self) -> TrackTable:
+        """The same tracks with rows in ``track_id`` order: the canonical order in which
+        correlation reads a table, so that a table rebuilt from what another process sent is
+        the same table row for row (partitioned workers)."""
+        if len(self) < 2:
+            return self
+        order = np.argsort(self.track_id, kind="stable")
+        if np.all(order[1:] > order[:-1]):
+            return self
+        return self.take(order)
+
+    @staticmethod
+    def concat(parts: list[TrackTable]) -> TrackTable:
+        if not parts:
+            return TrackTable.empty()
+        return TrackTable(
+            np.concatenate([p.track_id for p in parts]),
+            np.concatenate([p.confirmed for p in parts]),
+            np.concatenate([p.time_s for p in parts]),
+            np.concatenate([p.position_ecef_m for p in parts]),
+            np.concatenate([p.velocity_ecef_mps for p in parts]),
+            np.concatenate([p.covariance for p in parts]),
+            np.concatenate([p.plots for p in parts]),
+            np.concatenate([p.truth_id for p in parts]),
+        )
+
 
 class Tracker(ABC):
     """Per-radar tracker: a sliding window of plots plus the tracks grown from it.

@@ -13,13 +13,40 @@ from typing import Literal
 
 from pydantic import BaseModel
 
-from service.wire.models import AisBatch, PairSet, PlotBatch, RadarSite, Rejection, Status, TrackBatch
+from service.wire.models import (
+    AisBatch,
+    BiasSet,
+    PairSet,
+    PlotBatch,
+    RadarSite,
+    RegistrationRows,
+    Rejection,
+    Status,
+    TrackBatch,
+    TrackStates,
+)
 from service.wire.vocabulary import ID_REGEX
 
-KeyKind = Literal["site", "plots", "ais", "tracks", "pairs", "errors", "status", "other"]
+KeyKind = Literal[
+    "site",
+    "plots",
+    "ais",
+    "tracks",
+    "pairs",
+    "errors",
+    "status",
+    "track_states",
+    "registration",
+    "biases",
+    "worker_status",
+    "other",
+]
 
 #: Kinds the service consumes: replay republishes only these unless told to include all keys.
 INPUT_KINDS: frozenset[KeyKind] = frozenset({"site", "plots", "ais"})
+
+#: Kinds partitioned workers publish for each other (and take from each other).
+PEER_KINDS: frozenset[KeyKind] = frozenset({"track_states", "registration", "biases", "worker_status"})
 
 #: Payload model per key kind (contract §1 table).
 MODEL_BY_KIND: dict[KeyKind, type[BaseModel]] = {
@@ -30,6 +57,10 @@ MODEL_BY_KIND: dict[KeyKind, type[BaseModel]] = {
     "pairs": PairSet,
     "errors": Rejection,
     "status": Status,
+    "track_states": TrackStates,
+    "registration": RegistrationRows,
+    "biases": BiasSet,
+    "worker_status": Status,
 }
 
 #: Each kind's key after ``{prefix}/``, its ids captured.
@@ -41,6 +72,10 @@ _SHAPES: tuple[tuple[KeyKind, str], ...] = (
     ("pairs", rf"pairs/({ID_REGEX})/({ID_REGEX})"),
     ("errors", r"errors"),
     ("status", r"status"),
+    ("track_states", rf"radar/({ID_REGEX})/track-states"),
+    ("registration", rf"registration/({ID_REGEX})/({ID_REGEX})"),
+    ("biases", r"biases"),
+    ("worker_status", r"workers/([0-9]{1,6})/status"),
 )
 
 
@@ -85,6 +120,21 @@ class Keys:
     def pairs(self, radar_a: str, radar_b: str) -> str:
         return f"{self.prefix}/pairs/{radar_a}/{radar_b}"
 
+    def track_states(self, radar_id: str) -> str:
+        return f"{self.prefix}/radar/{radar_id}/track-states"
+
+    def registration(self, source_a: str, source_b: str) -> str:
+        """Rows of the pair ``source_a``, ``source_b`` (in string order in the key)."""
+        a, b = sorted((source_a, source_b))
+        return f"{self.prefix}/registration/{a}/{b}"
+
+    def worker(self, index: int) -> str:
+        """A partitioned worker's liveliness token."""
+        return f"{self.prefix}/workers/{index}"
+
+    def worker_status(self, index: int) -> str:
+        return f"{self.prefix}/workers/{index}/status"
+
     def input(self, kind: str, source_id: str) -> str:
         """The input key of ``kind`` (``site``, ``plots`` or ``ais``) for a source."""
         return {"site": self.site, "plots": self.plots, "ais": self.ais}[kind](source_id)
@@ -102,6 +152,25 @@ class Keys:
         return f"{self.prefix}/pairs/**"
 
     @property
+    def biases(self) -> str:
+        return f"{self.prefix}/biases"
+
+    @property
+    def workers(self) -> str:
+        """Every worker's liveliness token."""
+        return f"{self.prefix}/workers/*"
+
+    @property
+    def peer_inputs(self) -> tuple[str, ...]:
+        """What partitioned workers take from each other."""
+        return (
+            f"{self.prefix}/radar/*/track-states",
+            f"{self.prefix}/registration/*/*",
+            self.biases,
+            f"{self.prefix}/workers/*/status",
+        )
+
+    @property
     def ais_inputs(self) -> str:
         return f"{self.prefix}/ais/*/reports"
 
@@ -109,3 +178,8 @@ class Keys:
         """``("site"|"plots"|"ais", id)`` for an input key of this prefix, else ``None``."""
         kind, ids = parse_key(key, self.prefix)
         return (kind, ids[0]) if kind in INPUT_KINDS else None
+
+    def classify_peer(self, key: str) -> tuple[KeyKind, tuple[str, ...]] | None:
+        """The kind and ids of a key partitioned workers exchange, else ``None``."""
+        kind, ids = parse_key(key, self.prefix)
+        return (kind, ids) if kind in PEER_KINDS else None

@@ -206,6 +206,78 @@ class Rejection(OutModel):
     time_s: float | None = Field(default=None, description="batch data time when known, else receipt time")
 
 
+# -- worker-to-worker payloads (partitioned workers, docs/contract.md "Scale-out") -----------
+
+#: At most this many tracks in one ``TrackStates`` (a radar's whole table).
+MAX_TRACKS = 100_000
+#: Bound on ECEF coordinates (m) and velocities (m/s) a peer may send: far beyond the Earth.
+MAX_ECEF_M = 1e8
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Ecef = Annotated[float, Field(ge=-MAX_ECEF_M, le=MAX_ECEF_M, allow_inf_nan=False)]
+Vec3 = tuple[Ecef, Ecef, Ecef]
+#: A row-major 6x6 covariance of ``[position, velocity]`` (m, m/s).
+Covariance = Annotated[list[Finite], Field(min_length=36, max_length=36)]
+#: A row-major 3x3 covariance (m^2).
+Covariance3 = Annotated[list[Finite], Field(min_length=9, max_length=9)]
+
+
+class TrackStateColumns(WireModel):
+    """One row per track: what correlation needs of a radar's tracks (state and covariance)."""
+
+    track_id: Annotated[list[str], Field(max_length=MAX_TRACKS)]
+    confirmed: Annotated[list[bool], Field(max_length=MAX_TRACKS)]
+    time_s: Annotated[list[TimeS], Field(max_length=MAX_TRACKS)]
+    position_ecef_m: Annotated[list[Vec3], Field(max_length=MAX_TRACKS)]
+    velocity_ecef_mps: Annotated[list[Vec3], Field(max_length=MAX_TRACKS)]
+    covariance: Annotated[list[Covariance], Field(max_length=MAX_TRACKS)]
+    plots: Annotated[list[Annotated[int, Field(ge=0)]], Field(max_length=MAX_TRACKS)]
+    truth_id: Annotated[list[str | None], Field(max_length=MAX_TRACKS)] | None = Field(
+        default=None, description="simulation only, as in TrackBatch"
+    )
+
+    @model_validator(mode="after")
+    def _check_lengths(self) -> TrackStateColumns:
+        _equal_lengths({name: getattr(self, name) for name in type(self).model_fields})
+        return self
+
+
+class TrackStates(WireModel):
+    """A radar's tracks as its owner's correlation sees them, for the workers that correlate
+    its pairs: the whole table (``full``) or the rows changed since ``seq - 1`` and the ids
+    that left (``removed``).  ``time_s`` is the data time the table is valid at."""
+
+    radar_id: SourceId
+    seq: Seq
+    time_s: TimeS
+    full: bool
+    count: Annotated[int, Field(ge=0, le=MAX_TRACKS)] | None = Field(
+        default=None, description="tracks in the table once this message is applied (a check)"
+    )
+    removed: Annotated[list[str], Field(max_length=MAX_TRACKS)] = Field(default_factory=list)
+    tracks: TrackStateColumns
+
+
+class RegistrationRows(WireModel):
+    """The confirmed-pair rows one pair update added to its registration memory (joint bias
+    estimate): row ``k`` pairs track ``track_a[k]`` of ``source_a`` (a radar) with
+    ``track_b[k]`` of ``source_b`` (a radar, or a bias-free reference when ``reference``)."""
+
+    source_a: SourceId
+    source_b: SourceId
+    reference: bool = False
+    time_s: TimeS
+    track_a: Annotated[list[str], Field(max_length=MAX_TRACKS)]
+    track_b: Annotated[list[str], Field(max_length=MAX_TRACKS)]
+    p_a: Annotated[list[Vec3], Field(max_length=MAX_TRACKS)]
+    p_b: Annotated[list[Vec3], Field(max_length=MAX_TRACKS)]
+    s: Annotated[list[Covariance3], Field(max_length=MAX_TRACKS)]
+
+    @model_validator(mode="after")
+    def _check_lengths(self) -> RegistrationRows:
+        _equal_lengths({n: getattr(self, n) for n in ("track_a", "track_b", "p_a", "p_b", "s")})
+        return self
+
+
 class ZenohInfo(OutModel):
     mode: str
     listen: list[str]
@@ -236,6 +308,28 @@ class CorrelationTimings(OutModel):
     p99_ms: float
 
 
+class WorkerInfo(OutModel):
+    """One worker of a partitioned network as this worker sees it."""
+
+    partition: str = Field(description="K/N")
+    alive: bool = Field(description="its Zenoh liveliness token is present")
+    radars: list[str] = Field(description="radars it tracks (from its last status)")
+    pair_sets: int = Field(description="radar pairs it correlates (from its last status)")
+    status_age_s: float | None = Field(description="wall seconds since its last status; null: none yet")
+
+
+class PartitionStatus(OutModel):
+    """Who owns what in a partitioned network (``--partition K/N``)."""
+
+    partition: str = Field(description="this worker, K/N")
+    count: int
+    bias_worker: int = Field(description="the partition that solves the joint bias estimate")
+    workers: list[WorkerInfo]
+    missing: list[int] = Field(
+        description="partitions with no live worker: their radars and pairs are absent"
+    )
+
+
 class Status(OutModel):
     uptime_s: float
     method: str
@@ -247,6 +341,9 @@ class Status(OutModel):
     correlation: CorrelationTimings
     rejected: dict[str, int]
     queue: dict[str, int] = Field(default_factory=dict, description="ingest queue depth, capacity, dropped")
+    partition: PartitionStatus | None = Field(
+        default=None, description="partitioned workers only: who owns what, which partitions are missing"
+    )
 
 
 class RadarInfo(RadarSite):
@@ -266,6 +363,14 @@ class BiasEstimate(OutModel):
     elevation_bias_deg: float
     pairs_used: int
     time_s: float
+
+
+class BiasSet(OutModel):
+    """The joint bias estimate as the worker that solves it publishes it (``{prefix}/biases``)."""
+
+    time_s: float | None = Field(description="data time of the solve; null before the first")
+    partition: str = Field(description="the worker that solved it, K/N")
+    biases: list[BiasEstimate]
 
 
 # -- rejection reasons ---------------------------------------------------------------------
@@ -314,4 +419,7 @@ WIRE_MODELS: dict[str, type[BaseModel]] = {
     "Status": Status,
     "BiasEstimate": BiasEstimate,
     "RadarInfo": RadarInfo,
+    "TrackStates": TrackStates,
+    "RegistrationRows": RegistrationRows,
+    "BiasSet": BiasSet,
 }
