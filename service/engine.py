@@ -544,4 +544,5 @@ class Engine:
             rejected=dict(sorted(self.rejected.items())),
             method=self.config.method,
             prefix=self.config.prefix,
+            sites={rid: r.site for rid, r in self.tracking.radars.items()},
         )

@@ -132,7 +132,9 @@ EXAMPLES: dict[str, Any] = {
             "time_s": [1763769603.4],
             "position_ecef_m": [[-2.7e6, 4.7e6, 3.3e6]],
             "velocity_ecef_mps": [[120.0, -80.0, 0.5]],
-            "covariance": [[float(40000 if i % 7 == 0 and i < 21 else 25 if i % 7 == 0 else 0) for i in range(36)]],
+            "covariance": [
+                [float(40000 if i % 7 == 0 and i < 21 else 25 if i % 7 == 0 else 0) for i in range(36)]
+            ],
             "plots": [12],
         },
     },

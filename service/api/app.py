@@ -79,7 +79,7 @@ def create_app(
 
     @app.get("/radars", response_model=list[RadarInfo])
     def radars(node: NodeDep) -> list[dict[str, Any]]:
-        return node.snapshot.radars()
+        return node.radars()
 
     @app.get(
         "/radars/{radar_id}/tracks",
@@ -99,7 +99,7 @@ def create_app(
         radar_b: Annotated[str | None, Query()] = None,
         status: StatusFilter = "confirmed",
     ) -> list[dict[str, Any]]:
-        return node.snapshot.pair_sets(radar_a, radar_b, status)
+        return node.pair_sets(radar_a, radar_b, status)
 
     @app.get("/biases", response_model=list[BiasEstimate])
     def biases(node: NodeDep) -> list[dict[str, Any]]:

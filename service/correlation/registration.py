@@ -60,6 +60,10 @@ class RegistrationParams:
     #: so 10 min (measured on the two-radar scenario: range-bias error RMS 6 % at 600 s vs 7 %
     #: at 300 s, elevation 4 % vs 12 %) rather than 5.
     memory_s: float = 600.0
+    #: Rows are kept this long beyond ``memory_s`` (s), so that a solve for a moment up to
+    #: this long before the newest row still finds every row of its window (the joint solve
+    #: runs ``CadenceParams.bias_lag_s`` behind the data clock).
+    keep_extra_s: float = 30.0
     #: Cap on remembered pair rows per radar pair (oldest updates dropped first).  Solving only
     #: sums cached per-row pieces, so the whole ``memory_s`` of a busy pair fits (40 pairs every
     #: second for 600 s is 24 000 rows).
@@ -350,7 +354,7 @@ class RegistrationMemory:
         # Forget whole updates from the front: older than the memory, or beyond the row cap.
         # (A solve also leaves out rows outside its own window, should data time step back.)
         while self._updates and (
-            self._updates[0][0] < time_s - params.memory_s
+            self._updates[0][0] < time_s - params.memory_s - params.keep_extra_s
             or (len(self._updates) > 1 and len(self) > params.max_rows)
         ):
             self._start += self._updates.pop(0)[1]

@@ -69,8 +69,15 @@ class CadenceParams:
     #: The joint bias estimate over every pair is solved once per this many data seconds.
     #: Biases drift over hours and the estimate averages ``RegistrationParams.memory_s`` of
     #: confirmed pairs; a national network's solve (66 pairs, a million rows) costs about
-    #: 150 ms, so every 30 s it costs 5 ms per data second.
+    #: 150 ms, so every 30 s it costs 5 ms per data second.  The solves are at multiples of
+    #: it (data time since the epoch).
     bias_interval_s: float = 30.0
+    #: The solve for time ``T`` runs once the data clock has passed ``T`` by this much (s), over
+    #: the rows up to ``T``: in a partitioned network the bias worker then holds every other
+    #: worker's rows up to ``T`` (they lag it by their release and the network, about a scan),
+    #: so its estimate is the one a single worker makes.  Biases drift over hours: an estimate
+    #: ten seconds old costs nothing.
+    bias_lag_s: float = 10.0
 
 
 @dataclass
@@ -295,8 +302,8 @@ class CorrelationStage:
                         key, corr.site_a.site_id, second.source_id, corr.site_b is None, corr.last_rows
                     )
                 )
-        if updated and self._solves and time_s >= self._next_bias_s:
-            self._solve_biases(time_s)
+        if self._solves:
+            self._solve_due(time_s)
         return updated
 
     def finish(self) -> None:
@@ -315,9 +322,25 @@ class CorrelationStage:
             **self.correlators,
         }
         pairs = [everything[k] for k in sorted(everything)]
-        self._joint = joint_solution(pairs, time_s, self.correlation_params.registration, self._joint)
+        joint = joint_solution(pairs, time_s, self.correlation_params.registration, self._joint)
+        if joint is None:
+            return  # no rows in its window (e.g. a clock far ahead): the grid time stays due
+        self._next_bias_s = time_s
+        self._joint = joint
         self.biases = [b for b in map(bias_dict, to_estimates(self._joint, time_s)) if b is not None]
-        self._next_bias_s = time_s + self.params.bias_interval_s
+
+    def _solve_due(self, clock_s: float) -> None:
+        """Solve for the latest grid time ``T`` (a multiple of ``bias_interval_s``) with
+        ``T + bias_lag_s <= clock_s`` not solved yet, over the rows of ``[T - memory_s, T]``.
+
+        The grid and the lag make the solve a function of the rows alone: the bias worker of a
+        partitioned network has every other worker's rows up to ``T`` by then, so it solves
+        what one worker would, at the same ``T``, whichever worker correlated what.
+        """
+        p = self.params
+        grid = np.floor((clock_s - p.bias_lag_s) / p.bias_interval_s) * p.bias_interval_s
+        if grid > self._next_bias_s:
+            self._solve_biases(float(grid))
 
     def pair_views(self) -> list[PairSetView]:
         return [self.views[k] for k in sorted(self.views)]

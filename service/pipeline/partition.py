@@ -4,14 +4,14 @@
 (a radar id, a reference source id, a radar pair ``"a/b"`` with ``a < b``) has exactly one
 owner: the worker ``k`` with the highest weight
 
-    w(k, name) = first 8 bytes, big-endian, of BLAKE2b("{k}/{N}:{name}", digest_size=8)
+    w(k, name) = the 8-byte BLAKE2b digest of the UTF-8 text "{k}:{name}", big-endian
 
 (ties, which need a 64-bit collision, go to the lower ``k``).  The assignment depends only on
 the name and on N, so an operator can predict it (``topofusion partition``), every worker
 computes the same answer without talking to the others, and a name never moves while N stays
-the same.  Changing N moves about ``1/N`` of the names (the property rendezvous hashing is
-chosen for), but as the weights include N, a re-partitioned network is simply a new
-assignment; workers of one network must agree on N.
+the same.  A weight does not depend on N, so going from N to N+1 workers moves only the names
+the new worker wins, about ``1/(N+1)`` of them, and nothing else (the property rendezvous
+hashing is chosen for).  Workers of one network must agree on N.
 
 The owner of a radar tracks it (takes its plots, publishes its tracks and track states) and
 reports the rejections of its messages; the owner of a pair correlates it.  A reference source
@@ -37,7 +37,7 @@ _SPEC = re.compile(r"^\s*(\d+)\s*/\s*(\d+)\s*$")
 def _owner(name: str, count: int) -> int:
     best, owner = -1, 1
     for k in range(1, count + 1):
-        digest = hashlib.blake2b(f"{k}/{count}:{name}".encode(), digest_size=8).digest()
+        digest = hashlib.blake2b(f"{k}:{name}".encode(), digest_size=8).digest()
         weight = int.from_bytes(digest, "big")
         if weight > best:
             best, owner = weight, k

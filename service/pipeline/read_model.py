@@ -112,6 +112,8 @@ class Snapshot:
     rejected: dict[str, int]
     method: str
     prefix: str
+    #: Every known site (a partitioned worker knows every radar's, tracks only its own).
+    sites: dict[str, RadarSite] = field(default_factory=dict)
     _batches: dict[tuple[str, str], dict[str, Any]] = field(default_factory=dict, compare=False, repr=False)
 
     def track_batch(self, radar_id: str, status: str = "confirmed") -> dict[str, Any] | None:

@@ -8,9 +8,21 @@ Threads (README "Architecture"):
   reader and pushes back to publishers using ``CongestionControl.BLOCK``; only if that
   wait times out is a sample dropped, and every drop is counted (``/status``
   ``queue.dropped``, metric ``topofusion_queue_dropped_total``) and logged.
-* One worker thread takes samples in arrival order, calls ``engine.ingest`` and publishes
-  what it returns, then swaps in a new immutable :class:`~service.engine.Snapshot`.
+* One worker thread takes samples in arrival order, calls ``engine.ingest``, hands what it
+  returns to the publisher thread, then swaps in a new immutable
+  :class:`~service.engine.Snapshot`.
+* One publisher thread puts the outputs.  The worker never waits on the network: partitioned
+  workers publish to each other, and a worker blocked on a put to a peer whose queue is full
+  while that peer is blocked on a put to it would stall both (the outbox is bounded by count,
+  ``outbox_size``; beyond it the worker waits).
 * Queryables and HTTP handlers read the latest snapshot without locks.
+
+Partitioned (``--partition K/N``): the worker declares a liveliness token
+``{prefix}/workers/{K}``, puts its own status on ``{prefix}/workers/{K}/status`` every
+``status_interval_s`` (wall clock: this is operations, not data), and keeps the other workers'
+latest statuses, so that ``/status`` (HTTP and ``get {prefix}/status``) describes the whole
+network and says which partitions are missing.  Plots of radars another worker owns are
+dropped in the Zenoh callback, before the queue.
 """
 
 from __future__ import annotations
@@ -22,11 +34,13 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+import orjson
 import zenoh
 
 from service.engine import Engine, EngineConfig, Outgoing, Snapshot
+from service.pipeline.partition import BIAS_WORKER
 from service.transport.session import ZenohOptions, open_session
-from service.wire.keys import Keys
+from service.wire.keys import Keys, parse_key
 from service.wire.outputs import encode
 
 log = logging.getLogger(__name__)
@@ -62,6 +76,10 @@ class RateLimitedLog:
             self._suppressed[reason] = self._suppressed.get(reason, 0) + 1
 
 
+def _age(worker: tuple[float | None, list[str], int] | None) -> float | None:
+    return round(worker[0], 3) if worker is not None and worker[0] is not None else None
+
+
 class ServiceNode:
     """Owns the Zenoh session and the worker; start/stop are idempotent."""
 
@@ -74,14 +92,25 @@ class ServiceNode:
         session: zenoh.Session | None = None,
         radars: tuple[str, ...] = (),
         correlation_process: bool = True,
+        outbox_size: int = 65536,
+        status_interval_s: float = 1.0,
+        peer_query_timeout_s: float = 2.0,
     ) -> None:
+        self.peer_query_timeout_s = peer_query_timeout_s
         self.engine = Engine(engine_config, correlation_process=correlation_process)
+        self.partition = engine_config.partition
+        self.status_interval_s = status_interval_s
+        self.outbox: queue.Queue[Any] = queue.Queue(maxsize=outbox_size)
+        #: Partitioned: the other workers' latest statuses (raw, by K) and who is alive.
+        self._peer_status: dict[int, tuple[float, bytes]] = {}
+        self._alive: set[int] = set()
+        self._publisher: threading.Thread | None = None
         self.keys = Keys(engine_config.prefix)
         self.zenoh_options = zenoh_options
         self.queue: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
         self.queue_stats = QueueStats(capacity=queue_size)
         self.put_timeout_s = put_timeout_s
-        self.radars = radars
+        self.radar_filter = radars
         self.snapshot: Snapshot = self.engine.snapshot()
         self.started_at = time.monotonic()
         self.not_ready_reason = "not started"
@@ -123,6 +152,18 @@ class ServiceNode:
             s.declare_queryable(self.keys.status, self._on_status_query),
             s.declare_queryable(self.keys.pairs_all, self._on_pairs_query),
         ]
+        if not self.partition.whole:
+            self._declared += [
+                s.declare_subscriber(
+                    self.keys.worker_statuses, zenoh.handlers.Callback(self._on_worker_status, indirect=False)
+                ),
+                s.liveliness().declare_subscriber(self.keys.workers, self._on_worker_token, history=True),
+                s.liveliness().declare_token(self.keys.worker(self.partition.index)),
+            ]
+        self._publisher = threading.Thread(
+            target=self._send_outputs, name="topofusion-publisher", daemon=True
+        )
+        self._publisher.start()
         self._worker = threading.Thread(target=self._run, name="topofusion-worker", daemon=True)
         self._worker.start()
         self.not_ready_reason = ""
@@ -135,10 +176,12 @@ class ServiceNode:
         )
 
     def _input_keys(self) -> list[str]:
-        """Every radar's inputs, or only the owned radars' (partitioning by configuration)."""
-        ids = self.radars or ("*",)
+        """Every radar's inputs (or only those of ``--radars``), and what partitioned workers
+        send each other."""
+        ids = self.radar_filter or ("*",)
         radar_keys = [k for rid in ids for k in (self.keys.site(rid), self.keys.plots(rid))]
-        return [*radar_keys, self.keys.ais_inputs]
+        peer = list(self.keys.peer_inputs) if not self.partition.whole else []
+        return [*radar_keys, self.keys.ais_inputs, *[k for k in peer if "/workers/" not in k]]
 
     def stop(self, timeout_s: float = 5.0) -> None:
         """Stop taking samples, finish the queue, close the session (bounded by ``timeout_s``)."""
@@ -158,6 +201,12 @@ class ServiceNode:
             except queue.Full:
                 log.warning("worker queue full at shutdown; abandoning %d samples", self.queue.qsize())
             self._worker.join(timeout=timeout_s)
+        if self._publisher is not None:
+            try:
+                self.outbox.put(_STOP, timeout=timeout_s)
+            except queue.Full:
+                log.warning("outbox full at shutdown; abandoning %d outputs", self.outbox.qsize())
+            self._publisher.join(timeout=timeout_s)
         for pub, _ in self._publishers.values():
             try:
                 pub.undeclare()
@@ -175,12 +224,35 @@ class ServiceNode:
 
     # -- Zenoh callbacks (no work here) ----------------------------------------------------------
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        item = (str(sample.key_expr), sample.payload.to_bytes(), time.time())
+        key = str(sample.key_expr)
+        if not self.partition.whole and key.endswith("/plots"):
+            kind, ids = parse_key(key, self.keys.prefix)
+            if kind == "plots" and not self.partition.owns(ids[0]):
+                return  # another worker's radar
+        item = (key, sample.payload.to_bytes(), time.time())
         try:
             self.queue.put(item, timeout=self.put_timeout_s)
         except queue.Full:
             self.queue_stats.dropped += 1
             log.error("ingest queue full for %.1f s: dropped a sample on %s", self.put_timeout_s, item[0])
+
+    def _on_worker_status(self, sample: zenoh.Sample) -> None:
+        kind, ids = parse_key(str(sample.key_expr), self.keys.prefix)
+        if kind == "worker_status" and int(ids[0]) != self.partition.index:
+            self._peer_status[int(ids[0])] = (time.monotonic(), sample.payload.to_bytes())
+
+    def _on_worker_token(self, sample: zenoh.Sample) -> None:
+        index = str(sample.key_expr).rsplit("/", 1)[-1]
+        if not index.isdigit():
+            return
+        if sample.kind == zenoh.SampleKind.PUT:
+            self._alive.add(int(index))
+        else:
+            self._alive.discard(int(index))
+            if int(index) != self.partition.index:
+                log.warning(
+                    "worker %s/%d left (its radars and pairs are missing)", index, self.partition.count
+                )
 
     def _on_status_query(self, query: zenoh.Query) -> None:
         query.reply(self.keys.status, encode(self.status()), encoding=zenoh.Encoding.APPLICATION_JSON)
@@ -194,14 +266,23 @@ class ServiceNode:
 
     # -- worker ------------------------------------------------------------------------------
     def _run(self) -> None:
+        next_status = 0.0
         while True:
-            item = self.queue.get()
+            try:
+                item = self.queue.get(timeout=self.status_interval_s)
+            except queue.Empty:
+                item = None
             if item is _STOP:
                 break
-            self._handle(*item)
-            self.queue_stats.high_water = max(self.queue_stats.high_water, self.queue.qsize() + 1)
-            if self.queue.empty() or self.processed % 64 == 0:
-                self.snapshot = self.engine.snapshot()
+            if item is not None:
+                self._handle(*item)
+                self.queue_stats.high_water = max(self.queue_stats.high_water, self.queue.qsize() + 1)
+                if self.queue.empty() or self.processed % 64 == 0:
+                    self.snapshot = self.engine.snapshot()
+            if not self.partition.whole and time.monotonic() >= next_status:
+                next_status = time.monotonic() + self.status_interval_s
+                own = self._own_status()
+                self._publish([Outgoing(self.keys.worker_status(self.partition.index), lambda own=own: own)])  # type: ignore[misc]
         self._publish(self.engine.flush())
         self.snapshot = self.engine.snapshot()
 
@@ -215,6 +296,18 @@ class ServiceNode:
         self._publish(out)
 
     def _publish(self, out: list[Outgoing]) -> None:
+        """Hand outputs to the publisher thread (waits only when its outbox is full)."""
+        if out:
+            self.outbox.put(out)
+
+    def _send_outputs(self) -> None:
+        while True:
+            out = self.outbox.get()
+            if out is _STOP:
+                break
+            self._put(out)
+
+    def _put(self, out: list[Outgoing]) -> None:
         """Put each output whose key has a subscriber (an output nobody hears is never encoded).
 
         A new publisher learns of the subscribers that already exist a round trip after it is
@@ -232,7 +325,16 @@ class ServiceNode:
             try:
                 entry = self._publishers.get(msg.key)
                 if entry is None:
-                    pub = session.declare_publisher(msg.key, encoding=zenoh.Encoding.APPLICATION_JSON)
+                    # What partitioned workers send each other must not be dropped under load
+                    # (a lost track-states message costs that radar until its next full table).
+                    peer = self.keys.classify_peer(msg.key) is not None
+                    pub = session.declare_publisher(
+                        msg.key,
+                        encoding=zenoh.Encoding.APPLICATION_JSON,
+                        congestion_control=zenoh.CongestionControl.BLOCK
+                        if peer
+                        else zenoh.CongestionControl.DROP,
+                    )
                     entry = self._publishers[msg.key] = [pub, UNCONDITIONAL_PUTS]
                 pub, fresh = entry
                 if errors or fresh > 0 or pub.matching_status.matching:
@@ -242,9 +344,9 @@ class ServiceNode:
                 log.exception("publish failed on %s", msg.key)
 
     # -- views ---------------------------------------------------------------------------------
-    def status(self) -> dict[str, Any]:
+    def _own_status(self) -> dict[str, Any]:
         snap = self.snapshot
-        return {
+        own: dict[str, Any] = {
             "uptime_s": round(time.monotonic() - self.started_at, 3),
             "zenoh": {
                 "mode": self.zenoh_options.effective_mode,
@@ -259,3 +361,120 @@ class ServiceNode:
                 "dropped": self.queue_stats.dropped,
             },
         }
+        if not self.partition.whole:
+            own["partition"] = self._partition_section(
+                {self.partition.index: (0.0, [r["radar_id"] for r in own["radars"]], len(snap.pair_views))}
+            )
+        return own
+
+    def _partition_section(self, workers: dict[int, tuple[float | None, list[str], int]]) -> dict[str, Any]:
+        alive = self._alive | {self.partition.index}
+        n = self.partition.count
+        return {
+            "partition": str(self.partition),
+            "count": n,
+            "bias_worker": BIAS_WORKER,
+            "workers": [
+                {
+                    "partition": f"{k}/{n}",
+                    "alive": k in alive,
+                    "radars": workers[k][1] if k in workers else [],
+                    "pair_sets": workers[k][2] if k in workers else 0,
+                    "status_age_s": _age(workers.get(k)),
+                }
+                for k in range(1, n + 1)
+            ],
+            "missing": [k for k in range(1, n + 1) if k not in alive],
+        }
+
+    def status(self) -> dict[str, Any]:
+        """This worker's status; partitioned, the whole network's: every live worker's radars,
+        pairs and rejections from its latest status, and which partitions are missing."""
+        own = self._own_status()
+        if self.partition.whole:
+            return own
+        now = time.monotonic()
+        peers: dict[int, tuple[float, dict[str, Any]]] = {}
+        for k, (seen, raw) in list(self._peer_status.items()):
+            if k in self._alive:
+                try:
+                    peers[k] = (now - seen, orjson.loads(raw))
+                except orjson.JSONDecodeError:
+                    continue
+        radars = {r["radar_id"]: r for r in own["radars"]}
+        rejected = dict(own["rejected"])
+        corr = dict(own["correlation"])
+        workers: dict[int, tuple[float | None, list[str], int]] = {
+            self.partition.index: (
+                0.0,
+                sorted(radars),
+                own["partition"]["workers"][self.partition.index - 1]["pair_sets"],
+            )
+        }
+        for k, (age, st) in sorted(peers.items()):
+            try:
+                for r in st["radars"]:
+                    radars.setdefault(r["radar_id"], r)
+                own["pairs_confirmed"] += int(st["pairs_confirmed"])
+                own["pairs_tentative"] += int(st["pairs_tentative"])
+                for reason, count in st["rejected"].items():
+                    rejected[reason] = rejected.get(reason, 0) + int(count)
+                c = st["correlation"]
+                corr["updates"] += int(c["updates"])
+                corr["p50_ms"] = max(corr["p50_ms"], float(c["p50_ms"]))
+                corr["p99_ms"] = max(corr["p99_ms"], float(c["p99_ms"]))
+                mine = st["partition"]["workers"][k - 1]
+                workers[k] = (age, list(mine["radars"]), int(mine["pair_sets"]))
+            except (KeyError, TypeError, ValueError, IndexError):
+                log.debug("malformed status of worker %d", k)
+        own["radars"] = [radars[k] for k in sorted(radars)]
+        own["rejected"] = dict(sorted(rejected.items()))
+        own["correlation"] = corr
+        own["partition"] = self._partition_section(workers)
+        return own
+
+    def radars(self) -> list[dict[str, Any]]:
+        """``GET /radars``; partitioned, every radar of the network with its owner's counters."""
+        own = self.snapshot.radars()
+        if self.partition.whole:
+            return own
+        seen = {r["radar_id"] for r in own}
+        keys = ("batches", "plots", "rejected", "lost_batches", "last_time_s")
+        counters = {r["radar_id"]: r for r in self.status()["radars"]}
+        others = []
+        for rid, site in sorted(self.snapshot.sites.items()):
+            if rid not in seen:
+                c = counters.get(rid, {})
+                others.append(
+                    {**site.model_dump(), **{k: c.get(k, 0 if k != "last_time_s" else None) for k in keys}}
+                )
+        return sorted(own + others, key=lambda r: str(r["radar_id"]))
+
+    def pair_sets(
+        self, radar_a: str | None = None, radar_b: str | None = None, status: str = "confirmed"
+    ) -> list[dict[str, Any]]:
+        """``GET /pairs``; partitioned, the other workers' pair sets too (a Zenoh ``get``)."""
+        own = self.snapshot.pair_sets(radar_a, radar_b, status)
+        if self.partition.whole or self._session is None:
+            return own
+        have = {(p["radar_a"], p["radar_b"]) for p in self.snapshot.pair_sets(radar_a, radar_b, "all")}
+        wanted = {x for x in (radar_a, radar_b) if x is not None}
+        out = list(own)
+        replies = self._session.get(
+            self.keys.pairs_all, consolidation=zenoh.ConsolidationMode.NONE, timeout=self.peer_query_timeout_s
+        )
+        for reply in replies:
+            if reply.ok is None:
+                continue
+            try:
+                body = orjson.loads(reply.ok.payload.to_bytes())
+                key = (body["radar_a"], body["radar_b"])
+            except (orjson.JSONDecodeError, KeyError, TypeError):
+                continue
+            if key in have or not wanted <= set(key):
+                continue
+            have.add(key)
+            if status != "all":
+                body = {**body, "pairs": [p for p in body.get("pairs", []) if p.get("status") == status]}
+            out.append(body)
+        return sorted(out, key=lambda p: (p["radar_a"], p["radar_b"]))

@@ -161,6 +161,10 @@ class Keys:
         return f"{self.prefix}/workers/*"
 
     @property
+    def worker_statuses(self) -> str:
+        return f"{self.prefix}/workers/*/status"
+
+    @property
     def peer_inputs(self) -> tuple[str, ...]:
         """What partitioned workers take from each other."""
         return (
