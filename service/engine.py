@@ -30,6 +30,7 @@ from service.geo import Site
 from service.pipeline.correlation_process import RemoteCorrelation
 from service.pipeline.correlation_stage import CorrelationStage, SharedRows
 from service.pipeline.errors import RejectionError
+from service.pipeline.merger import TableMerger
 from service.pipeline.read_model import RadarRow, Snapshot, track_batch
 from service.pipeline.sequencer import RADAR, REFERENCE, Release, Sequencer, SourceClock
 from service.pipeline.track_exchange import StatesReceiver, StatesSender
@@ -45,6 +46,7 @@ from service.wire.models import (
     RadarStatus,
     RegistrationRows,
     TrackStates,
+    WorkerClock,
     rejection_reason,
 )
 from service.wire.outputs import encode, rejection
@@ -178,7 +180,12 @@ class Engine:
         self.partition = c.partition
         #: Partitioned: the correlation stage's input, every radar's tables (own and peers')
         #: and the references, in data-time order (see "Partitioned workers" above).
-        self.merger = Sequencer(self.config.sequencer)
+        self.merger = TableMerger()
+        #: Partitioned: the workers whose liveliness token is present (the transport tells).
+        self.alive: set[int] = set(range(1, self.partition.count + 1))
+        self._clock_sent: dict[str, Any] | None = None
+        #: Partitioned: each other worker's ``correlated_s`` (the bias worker waits for them).
+        self._correlated_by: dict[int, float] = {}
         self.sender = StatesSender(self.config.exchange)
         self.receiver = StatesReceiver()
         #: The joint bias estimate as the bias worker last published it (other workers).
@@ -278,8 +285,6 @@ class Engine:
         # correlate); only the owner's sequencer waits for the radar's batches.
         if self.partition.owns(site.radar_id):
             self._drop(self.sequencer.announce(site.radar_id, RADAR))
-        if not self.partition.whole:
-            self.merger.announce(site.radar_id, RADAR)
         change = self.tracking.set_site(site)
         if change is SiteChange.MOVED:
             self.correlation.moved(self.tracking.radars[site.radar_id].geometry)
@@ -326,9 +331,71 @@ class Engine:
             except Exception as exc:  # a bug costs this batch's outputs, never the service
                 out.append(self._internal(rel, exc))
         if not self.partition.whole:
-            out.extend(self._correlate(self.merger.release()))
+            self.merger.progress(self.partition.index, self.sequencer.last_limit)
+            out.extend(self._correlate(self._merged()))
         out.extend(self._remote_results())
         return out
+
+    def _merged(self) -> Iterable[Release]:
+        """What the merger may release.  The bias worker's correlation stays within
+        ``bias_lag_s`` of every other worker's (``correlated_s``), so that when it solves for
+        a time ``T`` it holds every row up to ``T`` (``CorrelationStage._solve_due``)."""
+        cap = np.inf
+        if self.partition.solves_biases:
+            others = self.alive - {self.partition.index}
+            cap = min((self._correlated_by.get(k, -np.inf) for k in others), default=np.inf)
+            cap += self.config.cadence.bias_lag_s
+        return self.merger.release(self._owners(), cap)
+
+    @property
+    def answers_pending(self) -> bool:
+        """The correlation process has not answered everything sent to it yet."""
+        return isinstance(self.correlation, RemoteCorrelation) and self.correlation.pending > 0
+
+    def poll(self) -> list[Outgoing]:
+        """What the correlation process answered while no input came (an idle service must
+        still publish the last pair updates)."""
+        if not isinstance(self.correlation, RemoteCorrelation):
+            return []
+        self.correlation.poll()
+        out = self._remote_results()
+        if out:
+            self._snapshot = None
+        return out
+
+    def set_alive(self, workers: set[int]) -> None:
+        """The workers that are up (liveliness): the merger waits for these only."""
+        self.alive = set(workers) | {self.partition.index}
+
+    def _owners(self) -> set[int]:
+        """The live workers the merger waits for: those owning a known radar, and this one."""
+        owners = {self.partition.owner(rid) for rid in self.tracking.radars}
+        return (owners & self.alive) | {self.partition.index}
+
+    def _clock(self) -> list[Outgoing]:
+        """This worker's progress for the others (:class:`~service.pipeline.merger.TableMerger`),
+        when it changed: how far it released, and its radars' data clocks."""
+        released = self.sequencer.last_limit
+        merged = self.merger.last_limit
+        correlated = (
+            self.correlation.correlated_through(merged)
+            if isinstance(self.correlation, RemoteCorrelation)
+            else merged
+        )
+        body = {
+            "partition": str(self.partition),
+            "released_s": float(released) if np.isfinite(released) else None,
+            "correlated_s": float(correlated) if np.isfinite(correlated) else None,
+            "clocks": {
+                rid: s.last_time_s
+                for rid, s in sorted(self.sequencer.sources.items())
+                if s.kind == RADAR and not s.foreign and s.last_time_s is not None
+            },
+        }
+        if body == self._clock_sent:
+            return []
+        self._clock_sent = body
+        return [Outgoing(self.keys.worker_clock(self.partition.index), lambda: body)]
 
     def _internal(self, rel: Release, exc: Exception) -> Outgoing:
         detail = f"processing failed: {type(exc).__name__}: {exc}"
@@ -346,6 +413,7 @@ class Engine:
                 out.append(self._reject(key, RejectionError("internal", detail, source_id or None), None))
         if not self.partition.whole:
             out.extend(self._partition_outputs())
+            out.extend(self._clock())  # after the rows: it says they are all out
         return out
 
     def _partition_outputs(self) -> list[Outgoing]:
@@ -366,12 +434,9 @@ class Engine:
 
     def _process_reference(self, rel: Release) -> None:
         if not self.partition.whole:
-            # Into the merger, which orders it with every worker's radar tables; its expiry is
-            # the merger's own (same data-time rule), so the local one is not passed on.
-            if not rel.expiry:
-                self.merger.accept(
-                    self.merger.check(rel.source_id, REFERENCE, rel.item.seq, rel.time_s), rel.item
-                )
+            # Into the merger, which orders it with every worker's radar tables.
+            seq = 0 if rel.expiry else rel.item.seq
+            self.merger.push(REFERENCE, rel.source_id, seq, rel.time_s, rel.item, expiry=rel.expiry)
             return
         if rel.expiry:
             self.correlation.silent(rel.source_id)
@@ -403,7 +468,8 @@ class Engine:
             # Every message is a change on top of the previous one: built now, encoded when sent.
             body = self.sender.states(radar_id, canonical, clock)
             out.append(Outgoing(self.keys.track_states(radar_id), lambda: body))
-            self.merger.accept(self.merger.check(radar_id, RADAR, body["seq"], clock), canonical)
+            body["expiry"] = plots is None
+            self.merger.push(RADAR, radar_id, body["seq"], clock, canonical, expiry=plots is None)
             return out
         return out + self._correlate_radar(radar_id, canonical, clock)
 
@@ -444,12 +510,24 @@ class Engine:
             _check_body_id("radar_id", msg.radar_id, radar_id)
             if radar_id not in self.tracking.radars:
                 raise RejectionError("unknown_radar", f"no site known for radar {radar_id!r}", radar_id)
-            adm = self.merger.check(radar_id, RADAR, msg.seq, msg.time_s)
             table = self.receiver.apply(msg)
             if table is not None:
-                self.merger.accept(adm, table)
+                self.merger.push(RADAR, radar_id, msg.seq, msg.time_s, table, expiry=msg.expiry)
             self._snapshot = None
-            return self._correlate(self.merger.release()) + self._remote_results()
+            return []  # released once its owner says how far it has published (worker_clock)
+        if kind == "worker_clock":
+            clock: WorkerClock = _parse(WorkerClock, payload, None)
+            worker = int(ids[0])
+            if clock.partition != f"{worker}/{self.partition.count}":
+                raise RejectionError("schema", f"worker {clock.partition} on the key of worker {worker}")
+            if worker == self.partition.index:
+                return []
+            for rid, c in clock.clocks.items():
+                if not self.partition.owns(rid):
+                    self.sequencer.observe(rid, c)
+            self.merger.progress(worker, clock.released_s if clock.released_s is not None else -np.inf)
+            self._correlated_by[worker] = clock.correlated_s if clock.correlated_s is not None else -np.inf
+            return self._process(self.sequencer.release())
         if kind == "registration":
             if not self.partition.solves_biases:
                 return []
@@ -498,11 +576,7 @@ class Engine:
         rows = []
         sources = self.sequencer.sources
         for rid in self.receiver.radars():
-            held = self.merger.sources.get(rid)
-            tracks[rid] = (
-                held.last_time_s or 0.0 if held else 0.0,
-                self.receiver.table(rid) or TrackTable.empty(),
-            )
+            tracks[rid] = self.receiver.latest(rid)
         for rid, r in sorted(self.tracking.radars.items()):
             if not self.partition.owns(rid):
                 continue

@@ -163,6 +163,12 @@ EXAMPLES: dict[str, Any] = {
             }
         ],
     },
+    "WorkerClock": {
+        "partition": "2/3",
+        "released_s": 1763769603.5,
+        "correlated_s": 1763769601.0,
+        "clocks": {"A": 1763769604.0, "C": 1763769603.5},
+    },
     "RadarInfo": {
         "radar_id": "A",
         "latitude_deg": 31.20,

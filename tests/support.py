@@ -73,14 +73,19 @@ class RunningService:
 
 @contextlib.contextmanager
 def running_service(
-    router: str, config: EngineConfig | None = None, radars: tuple[str, ...] = ()
+    router: str,
+    config: EngineConfig | None = None,
+    radars: tuple[str, ...] = (),
+    correlation_process: bool = True,
 ) -> Iterator[RunningService]:
     """The real service in-process: a client session to ``router``, the worker, uvicorn on a free port."""
     holder: dict[str, ServiceNode] = {}
 
     def factory() -> ServiceNode:
         options = ZenohOptions(mode="client", connect=(router,))
-        holder["node"] = ServiceNode(config or EngineConfig(), options, radars=radars)
+        holder["node"] = ServiceNode(
+            config or EngineConfig(), options, radars=radars, correlation_process=correlation_process
+        )
         return holder["node"]
 
     app = create_app(factory)

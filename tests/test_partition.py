@@ -16,6 +16,7 @@ from service.engine import Engine, EngineConfig, Outgoing
 from service.pipeline.partition import Partition
 from service.pipeline.track_exchange import StatesReceiver, StatesSender, changed_rows
 from service.tracking.base import TrackTable
+from service.wire.keys import Keys
 from service.wire.models import TrackStates
 from tests.scenario_helpers import scenario_messages
 
@@ -158,11 +159,8 @@ def test_a_peer_rebuilds_the_owners_tables_bit_for_bit_and_recovers_from_a_gap()
 
 
 # -- N engines give the pair updates of one --------------------------------------------------
-PEER_KEYS = ("/track-states", "/biases")
-
-
 def _is_peer(key: str) -> bool:
-    return key.endswith(PEER_KEYS) or "/registration/" in key
+    return Keys("fusion").classify_peer(key) is not None
 
 
 def _run_one(msgs: list[tuple[str, bytes]]) -> tuple[dict[str, list[bytes]], Engine]:

@@ -321,6 +321,7 @@ class RegistrationMemory:
         p_b: np.ndarray,
         s: np.ndarray,
         params: RegistrationParams,
+        prune: bool = True,
     ) -> RegistrationRowsData:
         """Remember the rows of one update given by what defines them (the pairs' track ids,
         raw ECEF positions and the sum ``s`` of their position covariances); every other
@@ -351,14 +352,20 @@ class RegistrationMemory:
             }
         )
         self._updates.append((float(time_s), len(p_a)))
-        # Forget whole updates from the front: older than the memory, or beyond the row cap.
-        # (A solve also leaves out rows outside its own window, should data time step back.)
+        if prune:
+            self.prune(time_s, params)
+        return RegistrationRowsData(float(time_s), track_a, track_b, p_a, p_b, s)
+
+    def prune(self, time_s: float, params: RegistrationParams) -> None:
+        """Forget whole updates from the front: older than the memory before ``time_s`` (and
+        ``keep_extra_s``), or beyond the row cap.  (A solve also leaves out rows outside its
+        own window, should data time step back.)  A mirror of another worker's pair prunes
+        for the time it solves at, not for its newest rows, which may be far ahead of it."""
         while self._updates and (
             self._updates[0][0] < time_s - params.memory_s - params.keep_extra_s
             or (len(self._updates) > 1 and len(self) > params.max_rows)
         ):
             self._start += self._updates.pop(0)[1]
-        return RegistrationRowsData(float(time_s), track_a, track_b, p_a, p_b, s)
 
     def current(self, time_s: float) -> np.ndarray:
         """Mask of rows within memory (data time) of ``time_s``."""
@@ -385,9 +392,13 @@ def solve_biases(
     is the same: the estimate is converged on a row set the outlier test leaves unchanged.
     """
     prm = params or RegistrationParams()
-    ids = sorted({m.site_a.site_id for m in memories} | {m.site_b.site_id for m in memories if m.site_b})
-    if not ids:
+    # Only memories with rows in the window take part: the radars solved for are those the
+    # window's rows observe, whatever else a memory holds (older, or newer than ``time_s``).
+    rows = [(m, m.current(time_s) & (m.time >= time_s - prm.memory_s)) for m in memories]
+    rows = [(m, r) for m, r in rows if r.any()]
+    if not rows:
         return None
+    ids = sorted({m.site_a.site_id for m, _ in rows} | {m.site_b.site_id for m, _ in rows if m.site_b})
     col = {rid: k for k, rid in enumerate(ids)}
     n = 3 * len(ids)
     prior = np.tile(
@@ -398,9 +409,6 @@ def solve_biases(
         ],
         len(ids),
     )
-    rows = [(m, m.current(time_s) & (m.time >= time_s - prm.memory_s)) for m in memories]
-    if sum(int(r.sum()) for _, r in rows) == 0:
-        return None
     # Each memory's rows in force, read once.  Gauss-Newton on the exact model: the residual
     # of a row at the current estimate is the difference of the two positions with their biases
     # removed exactly (:func:`remove_bias`); the normal matrix is the cached one at the

@@ -21,6 +21,7 @@ import logging
 import multiprocessing as mp
 import queue
 import threading
+from collections import deque
 from dataclasses import dataclass, field, replace
 from multiprocessing.connection import Connection
 from typing import Any
@@ -102,6 +103,8 @@ class RemoteCorrelation:
         self._ready: list[tuple[Key, PairSetView]] = []
         self._errors: list[tuple[str, str]] = []
         self._rows: list[SharedRows] = []
+        #: Data times of the radar messages sent and not answered yet, oldest first.
+        self._unanswered: deque[float | None] = deque()
         self.restarts = 0
         self._start()
 
@@ -172,6 +175,7 @@ class RemoteCorrelation:
             if not (self._process.is_alive() and self._reader.is_alive() and self._writer.is_alive()):
                 self._lost("stopped answering")
         self._outbox.put((op, args))
+        self._unanswered.append(float(args[3]) if op == "radar" else None)
         self._pending += 1
         self._apply(block=False)
 
@@ -191,6 +195,8 @@ class RemoteCorrelation:
                 self._lost("no answer")
                 return
             self._pending -= 1
+            if self._unanswered:
+                self._unanswered.popleft()
             for key, view in answer.updated:
                 self.views[key] = view
                 self._ready.append((key, view))
@@ -207,9 +213,25 @@ class RemoteCorrelation:
         detail = f"correlation process died ({what}); its pairs and registration start afresh"
         self._errors.append(("", detail))
         self.restarts += 1
+        self._unanswered.clear()
         self._process.kill()
         self._outbox.put(None)
         self._start()
+
+    def correlated_through(self, released_s: float) -> float:
+        """Data time up to which every update has been answered, given that everything up to
+        ``released_s`` was sent."""
+        pending = [t for t in self._unanswered if t is not None]
+        return float(np.nextafter(pending[0], -np.inf)) if pending else released_s
+
+    @property
+    def pending(self) -> int:
+        """Messages sent and not answered yet."""
+        return self._pending
+
+    def poll(self) -> None:
+        """Take the answers that arrived (without waiting): an idle engine hands them out."""
+        self._apply(block=False)
 
     def take_ready(self) -> list[tuple[Key, PairSetView]]:
         """Pair updates answered since the last call, in order, each with its own view (a pair

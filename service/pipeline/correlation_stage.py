@@ -222,6 +222,7 @@ class CorrelationStage:
             rows.p_b,
             rows.s,
             self.correlation_params.registration,
+            prune=False,  # pruned for the times it is solved at (its rows may be far ahead)
         )
 
     def _partners(self, radar_id: str) -> list[Source]:
@@ -316,6 +317,8 @@ class CorrelationStage:
     def _solve_biases(self, time_s: float) -> None:
         # Warm-started from the previous solve: the rows changed little since, so one or two
         # Gauss-Newton steps reach the same fixed point a cold solve does.
+        for mirror in self.mirrors.values():
+            mirror.memory.prune(time_s, self.correlation_params.registration)
         # In key order: one worker and the bias worker of N sum the same rows in the same order.
         everything: dict[tuple[str, str], PairCorrelator | MirroredPair] = {
             **self.mirrors,

@@ -50,7 +50,7 @@ from service.pipeline.errors import RejectionError
 #: Kinds of source, in their release order at equal data time.
 REFERENCE, RADAR = 0, 1
 #: Heap entries of this kind are expiry events, after every batch of the same data time.
-_EXPIRE = 2
+EXPIRE = 2
 
 
 @dataclass(frozen=True)
@@ -97,6 +97,8 @@ class SourceClock:
     expired: bool = False
     #: Consensus data clock when the source was announced (its site arrived).
     announced_s: float = -np.inf
+    #: Another worker's radar (partitioned): only its clock is known here (:meth:`observe`).
+    foreign: bool = False
     pending: deque[tuple[float, int, Any]] = field(default_factory=deque)
 
 
@@ -141,6 +143,8 @@ class Sequencer:
         self._heap: list[tuple[float, int, str, int]] = []
         self._expiry_due: dict[str, float] = {}
         self._first_clock = np.inf
+        #: The data time up to which the last :meth:`release` released.
+        self.last_limit = -np.inf
 
     # -- sources ---------------------------------------------------------------------------
     def announce(self, source_id: str, kind: int) -> list[str]:
@@ -172,6 +176,19 @@ class Sequencer:
         del self.sources[victim]
         self._expiry_due.pop(victim, None)
         return [victim]
+
+    def observe(self, source_id: str, clock_s: float) -> None:
+        """Another worker's radar has accepted batches up to ``clock_s`` (partitioned workers):
+        it takes part in the consensus, the watermark and its lag rule like a radar of this
+        worker, so every worker releases at the pace one worker would; it never has batches
+        here.  A radar this worker holds itself is left alone."""
+        src = self.sources.get(source_id)
+        if src is None:
+            if len(self.sources) >= self.params.max_sources:
+                return  # bounded like every source; this one then simply holds nothing back
+            src = self.sources[source_id] = SourceClock(RADAR, announced_s=self.consensus(), foreign=True)
+        if src.foreign:
+            src.last_time_s = max(clock_s, src.last_time_s if src.last_time_s is not None else -np.inf)
 
     def forget(self, source_id: str) -> None:
         """Drop a source that holds no pending batch (its state left the engine)."""
@@ -287,10 +304,11 @@ class Sequencer:
     def release(self, until: float | None = None) -> Iterator[Release]:
         """Release held batches and expiries up to ``until`` (default: the watermark)."""
         limit = self.watermark() if until is None else until
+        self.last_limit = max(self.last_limit, limit)
         while self._heap and self._heap[0][0] <= limit:
             clock, kind, source_id, _ = heapq.heappop(self._heap)
             src = self.sources.get(source_id)
-            if kind == _EXPIRE:
+            if kind == EXPIRE:
                 if src is not None and not src.pending and self._expiry_due.get(source_id) == clock:
                     del self._expiry_due[source_id]
                     src.expired = True
@@ -305,7 +323,7 @@ class Sequencer:
             else:
                 due = clock + self.params.source_expiry_s
                 self._expiry_due[source_id] = due
-                heapq.heappush(self._heap, (due, _EXPIRE, source_id, 0))
+                heapq.heappush(self._heap, (due, EXPIRE, source_id, 0))
             src.released_time_s = clock
             yield Release(kind, source_id, clock, item)
 

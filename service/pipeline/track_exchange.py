@@ -136,7 +136,7 @@ class StatesReceiver:
     """A peer's side: every remote radar's table, rebuilt from the owner's messages."""
 
     def __init__(self) -> None:
-        self._tables: dict[str, tuple[int, TrackTable]] = {}
+        self._tables: dict[str, tuple[int, TrackTable, float]] = {}
         #: Messages that could not be applied (a gap before them), per radar.
         self.gaps: Counter[str] = Counter()
 
@@ -160,12 +160,17 @@ class StatesReceiver:
             self.gaps[msg.radar_id] += 1
             self._tables.pop(msg.radar_id, None)
             return None
-        self._tables[msg.radar_id] = (msg.seq, table)
+        self._tables[msg.radar_id] = (msg.seq, table, msg.time_s)
         return table
 
     def table(self, radar_id: str) -> TrackTable | None:
         held = self._tables.get(radar_id)
         return held[1] if held else None
+
+    def latest(self, radar_id: str) -> tuple[float, TrackTable]:
+        """The data time and table of the last message applied (an empty table if none)."""
+        held = self._tables.get(radar_id)
+        return (held[2], held[1]) if held else (0.0, TrackTable.empty())
 
     def radars(self) -> list[str]:
         return sorted(self._tables)

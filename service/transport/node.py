@@ -46,6 +46,8 @@ from service.wire.outputs import encode
 log = logging.getLogger(__name__)
 
 _STOP = object()
+#: How often (s) an idle worker takes the correlation process's late answers.
+IDLE_POLL_S = 0.05
 #: Puts a new publisher makes before trusting its matching status (see ``_publish``).
 UNCONDITIONAL_PUTS = 8
 
@@ -104,6 +106,7 @@ class ServiceNode:
         #: Partitioned: the other workers' latest statuses (raw, by K) and who is alive.
         self._peer_status: dict[int, tuple[float, bytes]] = {}
         self._alive: set[int] = set()
+        self._alive_changed = False
         self._publisher: threading.Thread | None = None
         self.keys = Keys(engine_config.prefix)
         self.zenoh_options = zenoh_options
@@ -181,7 +184,7 @@ class ServiceNode:
         ids = self.radar_filter or ("*",)
         radar_keys = [k for rid in ids for k in (self.keys.site(rid), self.keys.plots(rid))]
         peer = list(self.keys.peer_inputs) if not self.partition.whole else []
-        return [*radar_keys, self.keys.ais_inputs, *[k for k in peer if "/workers/" not in k]]
+        return [*radar_keys, self.keys.ais_inputs, *peer]
 
     def stop(self, timeout_s: float = 5.0) -> None:
         """Stop taking samples, finish the queue, close the session (bounded by ``timeout_s``)."""
@@ -245,6 +248,7 @@ class ServiceNode:
         index = str(sample.key_expr).rsplit("/", 1)[-1]
         if not index.isdigit():
             return
+        self._alive_changed = True
         if sample.kind == zenoh.SampleKind.PUT:
             self._alive.add(int(index))
         else:
@@ -268,12 +272,21 @@ class ServiceNode:
     def _run(self) -> None:
         next_status = 0.0
         while True:
+            # Idle with answers of the correlation process still to come: look again soon.
+            wait = IDLE_POLL_S if self.engine.answers_pending else self.status_interval_s
             try:
-                item = self.queue.get(timeout=self.status_interval_s)
+                item = self.queue.get(timeout=wait)
             except queue.Empty:
                 item = None
+                out = self.engine.poll()
+                if out:
+                    self._publish(out)
+                    self.snapshot = self.engine.snapshot()
             if item is _STOP:
                 break
+            if self._alive_changed:
+                self._alive_changed = False
+                self.engine.set_alive(set(self._alive))
             if item is not None:
                 self._handle(*item)
                 self.queue_stats.high_water = max(self.queue_stats.high_water, self.queue.qsize() + 1)

@@ -24,6 +24,7 @@ from service.wire.models import (
     Status,
     TrackBatch,
     TrackStates,
+    WorkerClock,
 )
 from service.wire.vocabulary import ID_REGEX
 
@@ -39,6 +40,7 @@ KeyKind = Literal[
     "registration",
     "biases",
     "worker_status",
+    "worker_clock",
     "other",
 ]
 
@@ -46,7 +48,9 @@ KeyKind = Literal[
 INPUT_KINDS: frozenset[KeyKind] = frozenset({"site", "plots", "ais"})
 
 #: Kinds partitioned workers publish for each other (and take from each other).
-PEER_KINDS: frozenset[KeyKind] = frozenset({"track_states", "registration", "biases", "worker_status"})
+PEER_KINDS: frozenset[KeyKind] = frozenset(
+    {"track_states", "registration", "biases", "worker_status", "worker_clock"}
+)
 
 #: Payload model per key kind (contract §1 table).
 MODEL_BY_KIND: dict[KeyKind, type[BaseModel]] = {
@@ -61,6 +65,7 @@ MODEL_BY_KIND: dict[KeyKind, type[BaseModel]] = {
     "registration": RegistrationRows,
     "biases": BiasSet,
     "worker_status": Status,
+    "worker_clock": WorkerClock,
 }
 
 #: Each kind's key after ``{prefix}/``, its ids captured.
@@ -76,6 +81,7 @@ _SHAPES: tuple[tuple[KeyKind, str], ...] = (
     ("registration", rf"registration/({ID_REGEX})/({ID_REGEX})"),
     ("biases", r"biases"),
     ("worker_status", r"workers/([0-9]{1,6})/status"),
+    ("worker_clock", r"workers/([0-9]{1,6})/clock"),
 )
 
 
@@ -135,6 +141,9 @@ class Keys:
     def worker_status(self, index: int) -> str:
         return f"{self.prefix}/workers/{index}/status"
 
+    def worker_clock(self, index: int) -> str:
+        return f"{self.prefix}/workers/{index}/clock"
+
     def input(self, kind: str, source_id: str) -> str:
         """The input key of ``kind`` (``site``, ``plots`` or ``ais``) for a source."""
         return {"site": self.site, "plots": self.plots, "ais": self.ais}[kind](source_id)
@@ -166,12 +175,13 @@ class Keys:
 
     @property
     def peer_inputs(self) -> tuple[str, ...]:
-        """What partitioned workers take from each other."""
+        """What partitioned workers' engines take from each other (in arrival order with the
+        inputs; the workers' statuses are the transport's own)."""
         return (
             f"{self.prefix}/radar/*/track-states",
             f"{self.prefix}/registration/*/*",
             self.biases,
-            f"{self.prefix}/workers/*/status",
+            f"{self.prefix}/workers/*/clock",
         )
 
     @property

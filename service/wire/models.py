@@ -254,7 +254,22 @@ class TrackStates(WireModel):
         default=None, description="tracks in the table once this message is applied (a check)"
     )
     removed: Annotated[list[str], Field(max_length=MAX_TRACKS)] = Field(default_factory=list)
+    expiry: bool = Field(default=False, description="the table the radar's tracks coasted to when it expired")
     tracks: TrackStateColumns
+
+
+class WorkerClock(WireModel):
+    """A partitioned worker's progress, put after every input it took: how far it has
+    released (every table up to ``released_s`` is published before this message) and the
+    data clock of each radar it owns (what it has accepted)."""
+
+    partition: Annotated[str, Field(pattern=r"^[0-9]{1,6}/[0-9]{1,6}$")]
+    released_s: TimeS | None = None
+    correlated_s: TimeS | None = Field(
+        default=None,
+        description="every correlation update up to this data time is done and its rows are published",
+    )
+    clocks: Annotated[dict[SourceId, TimeS], Field(max_length=MAX_TRACKS)] = Field(default_factory=dict)
 
 
 class RegistrationRows(WireModel):
@@ -422,4 +437,5 @@ WIRE_MODELS: dict[str, type[BaseModel]] = {
     "TrackStates": TrackStates,
     "RegistrationRows": RegistrationRows,
     "BiasSet": BiasSet,
+    "WorkerClock": WorkerClock,
 }

@@ -1,0 +1,77 @@
+"""The correlation input of a partitioned worker: every radar's tables in data-time order.
+
+Each worker tracks its own radars and releases their batches in data-time order (its
+:class:`~.sequencer.Sequencer`, which also hears the other workers' radar clocks, so its
+watermark is the network's).  The tables it releases go to the other workers
+(:mod:`.track_exchange`); the tables every worker released reach each correlating worker in
+arrival order.  The merger puts them back into the order one worker would have released them
+in, ``(time_s, kind, source_id, seq)``, without ever waiting on wall time:
+
+* every worker says how far it has released (``released_s``: all its tables up to that data
+  time are published before the message that says so, ``{prefix}/workers/{K}/clock``);
+* an item is released once every live worker that owns a radar has released that far.
+
+Since each worker publishes in release order and a session's messages arrive in the order they
+were put, everything at or below that limit has arrived: the release order is one worker's,
+whatever the interleaving on arrival.  A worker that is gone (its liveliness token left) is
+not waited for; its radars are missing until it is back.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+from collections.abc import Iterable, Iterator
+from typing import Any
+
+import numpy as np
+
+from service.pipeline.sequencer import EXPIRE, Release
+
+
+class TableMerger:
+    """A heap of released items of every worker, released up to the slowest live owner."""
+
+    def __init__(self) -> None:
+        #: Data time up to which each worker has published everything it released.
+        self.released: dict[int, float] = {}
+        self._heap: list[tuple[float, int, str, int, int, int, Any]] = []
+        self._tie = itertools.count()
+        #: Everything up to this data time has been released.
+        self.last_limit = -np.inf
+
+    def __len__(self) -> int:
+        return len(self._heap)
+
+    def push(
+        self, kind: int, source_id: str, seq: int, time_s: float, item: Any, expiry: bool = False
+    ) -> None:
+        """A released item: a radar's table (``kind`` RADAR) or a reference batch; ``expiry``:
+        the source expired (ordered after every batch of the same data time, as released)."""
+        order_kind = EXPIRE if expiry else kind
+        heapq.heappush(self._heap, (time_s, order_kind, source_id, seq, next(self._tie), kind, item))
+
+    def progress(self, worker: int, released_s: float) -> None:
+        """Worker ``worker`` has published every table up to ``released_s`` (a restarted worker
+        starts again from its own clock)."""
+        self.released[worker] = released_s
+
+    def limit(self, owners: Iterable[int]) -> float:
+        """Data time up to which every one of ``owners`` (the live workers owning radars) has
+        published."""
+        return min((self.released.get(k, -np.inf) for k in owners), default=np.inf)
+
+    def release(self, owners: Iterable[int], cap: float = np.inf) -> Iterator[Release]:
+        """Release what every live owner has published; at most up to ``cap`` (the bias
+        worker's correlation stays behind every other worker's, see ``Engine``)."""
+        yield from self._until(min(self.limit(owners), cap))
+
+    def flush(self) -> Iterator[Release]:
+        """Everything held (shutdown)."""
+        yield from self._until(np.inf)
+
+    def _until(self, limit: float) -> Iterator[Release]:
+        self.last_limit = max(self.last_limit, limit)
+        while self._heap and self._heap[0][0] <= limit:
+            time_s, _order, source_id, _seq, _tie, kind, item = heapq.heappop(self._heap)
+            yield Release(kind, source_id, time_s, item)

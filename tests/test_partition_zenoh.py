@@ -1,0 +1,149 @@
+"""Partitioned workers on a real Zenoh router: two workers give one worker's results.
+
+One worker runs on prefix ``one``, workers 1/2 and 2/2 on prefix ``two``; a client puts the
+same stream under both prefixes.  Each pair's PairSet updates on ``two`` are those on ``one``
+(the newest may still be held back at the end of the input), including the pairs whose two
+radars the two workers track; the joint bias estimate is one the single worker made, and every
+worker serves it; ``/status``, ``/pairs`` and ``get {prefix}/...`` describe the whole network.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import threading
+from collections import defaultdict
+from collections.abc import Iterator
+from typing import Any
+
+import orjson
+import zenoh
+
+from service.engine import EngineConfig
+from service.pipeline.partition import Partition
+from tests.scenario_helpers import scenario_messages
+from tests.support import RunningService, put_json, running_service, wait_for, wait_subscribed
+
+
+class Collector:
+    """Every sample under a key expression, in arrival order, by key."""
+
+    def __init__(self, session: zenoh.Session, key_expr: str) -> None:
+        self.by_key: dict[str, list[bytes]] = defaultdict(list)
+        self._lock = threading.Lock()
+        self._sub = session.declare_subscriber(key_expr, self._on)
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        with self._lock:
+            self.by_key[str(sample.key_expr)].append(sample.payload.to_bytes())
+
+    def snapshot(self) -> dict[str, list[bytes]]:
+        with self._lock:
+            return {k: list(v) for k, v in self.by_key.items()}
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
+@contextlib.contextmanager
+def network(router: str) -> Iterator[tuple[RunningService, RunningService, RunningService]]:
+    with (
+        running_service(router, EngineConfig(prefix="one"), correlation_process=False) as one,
+        running_service(
+            router, EngineConfig(prefix="two", partition=Partition(1, 2)), correlation_process=False
+        ) as w1,
+        running_service(
+            router, EngineConfig(prefix="two", partition=Partition(2, 2))
+        ) as w2,  # its own process
+    ):
+        yield one, w1, w2
+
+
+def _batches(svc: RunningService) -> int:
+    return sum(r["batches"] for r in svc.http.get("/status").json()["radars"])
+
+
+def _settled(collectors: list[Collector]) -> Any:
+    last: list[Any] = []
+
+    def same_twice() -> bool:
+        now = [{k: len(v) for k, v in c.snapshot().items()} for c in collectors]
+        stable = now == last[-1:][0] if last else False
+        last.append(now)
+        return stable
+
+    return same_twice
+
+
+def test_two_workers_give_the_results_of_one(router: str, client: zenoh.Session) -> None:
+    stream = scenario_messages("three-radar", duration_s=150.0, seed=2)
+    n_batches = sum(k.endswith("/plots") for k, _ in stream)
+    pairs_one, pairs_two = Collector(client, "one/pairs/**"), Collector(client, "two/pairs/**")
+    biases_two = Collector(client, "two/biases")
+    try:
+        with network(router) as (one, w1, w2):
+            for prefix in ("one", "two"):
+                wait_subscribed(client, f"{prefix}/radar/A/plots")
+            wait_for(lambda: not w1.http.get("/status").json()["partition"]["missing"], timeout=15)
+            sites = [(k, p) for k, p in stream if k.endswith("/site")]
+            for key, payload in sites:  # first, until every worker has them: then all hear the plots
+                for prefix in ("one", "two"):
+                    put_json(client, prefix + key.removeprefix("fusion"), payload)
+            for svc in (one, w1, w2):
+                wait_for(lambda svc=svc: len(svc.http.get("/radars").json()) == 3, timeout=15)
+            for key, payload in stream[len(sites) :]:
+                for prefix in ("one", "two"):
+                    put_json(client, prefix + key.removeprefix("fusion"), payload)
+            wait_for(lambda: _batches(one) == n_batches, timeout=120)
+            wait_for(lambda: _batches(w1) == n_batches, timeout=120)  # w1's /status: the whole network
+            wait_for(_settled([pairs_one, pairs_two, biases_two]), timeout=60, interval=1.0)
+
+            one_pairs, two_pairs = pairs_one.snapshot(), pairs_two.snapshot()
+            status = w1.http.get("/status").json()
+            status2 = w2.http.get("/status").json()
+            http_pairs = {
+                w: s.http.get("/pairs", params={"status": "all"}).json() for w, s in (("1", w1), ("2", w2))
+            }
+            single_pairs = one.http.get("/pairs", params={"status": "all"}).json()
+            single_biases = one.http.get("/biases").json()
+            worker_biases = [w1.http.get("/biases").json(), w2.http.get("/biases").json()]
+            gathered = {str(r.ok.key_expr) for r in client.get("two/pairs/**") if r.ok is not None}
+            zstatus = [orjson.loads(r.ok.payload.to_bytes()) for r in client.get("two/status") if r.ok]
+            published = [orjson.loads(b)["biases"] for b in biases_two.snapshot()["two/biases"]]
+    finally:
+        for c in (pairs_one, pairs_two, biases_two):
+            c.close()
+
+    # Pair updates: the same, update for update, each pair from one worker only.
+    assert sorted(two_pairs) == [k.replace("one/", "two/", 1) for k in sorted(one_pairs)] and one_pairs
+    for key, want in one_pairs.items():
+        got = two_pairs[key.replace("one/", "two/", 1)]
+        assert len(want) - 1 <= len(got) <= len(want), key
+        assert got == want[: len(got)], key
+    owner = Partition(1, 2).owner
+    crossing = [k for k in one_pairs if len({owner(r) for r in k.split("/")[-2:]}) == 2]
+    assert crossing, "no pair whose radars two workers track"
+    # Every worker's HTTP port answers for the whole network.
+    assert http_pairs["1"] == http_pairs["2"]
+    assert [(p["radar_a"], p["radar_b"]) for p in http_pairs["1"]] == [
+        (p["radar_a"], p["radar_b"]) for p in single_pairs
+    ]
+    assert gathered == set(two_pairs)
+    assert (
+        sorted(r["radar_id"] for r in status["radars"])
+        == ["A", "B", "C"]
+        == sorted(r["radar_id"] for r in status2["radars"])
+    )
+    assert status["partition"]["missing"] == [] and [w["alive"] for w in status["partition"]["workers"]] == [
+        True,
+        True,
+    ]
+    assert sorted(itertools.chain.from_iterable(w["radars"] for w in status["partition"]["workers"])) == [
+        "A",
+        "B",
+        "C",
+    ]
+    assert len(zstatus) == 1 and sorted(r["radar_id"] for r in zstatus[0]["radars"]) == ["A", "B", "C"]
+    # Biases: worker 1 solves; its estimate is one the single worker made, served by both.
+    assert single_biases and single_biases in published[-2:]
+    assert worker_biases[0] == worker_biases[1] == published[-1]
