@@ -33,7 +33,7 @@ from service.pipeline.errors import RejectionError
 from service.pipeline.merger import TableMerger
 from service.pipeline.read_model import RadarRow, Snapshot, track_batch
 from service.pipeline.sequencer import RADAR, REFERENCE, Release, Sequencer, SourceClock
-from service.pipeline.track_exchange import StatesReceiver, StatesSender
+from service.pipeline.track_exchange import StatesReceiver, StatesSender, decode_states
 from service.pipeline.tracking_stage import SiteChange, TrackerFactory, TrackingStage
 from service.tracking.base import PlotColumns, Tracker, TrackTable
 from service.wire.keys import Keys
@@ -45,7 +45,6 @@ from service.wire.models import (
     RadarSite,
     RadarStatus,
     RegistrationRows,
-    TrackStates,
     WorkerClock,
     rejection_reason,
 )
@@ -363,6 +362,22 @@ class Engine:
             self._snapshot = None
         return out
 
+    def progress(self) -> dict[str, Any]:
+        """Partitioned: how far this worker has got (``/status`` ``partition.progress``)."""
+
+        def finite(x: float) -> float | None:
+            return float(x) if np.isfinite(x) else None
+
+        return {
+            "released_s": finite(self.sequencer.last_limit),
+            "merged_s": finite(self.merger.last_limit),
+            "held": len(self.merger),
+            "state_gaps": sum(self.receiver.gaps.values()),
+            "waiting_for": sorted(
+                k for k in self._owners() if self.merger.released.get(k, -np.inf) <= self.merger.last_limit
+            ),
+        }
+
     def set_alive(self, workers: set[int]) -> None:
         """The workers that are up (liveliness): the merger waits for these only."""
         self.alive = set(workers) | {self.partition.index}
@@ -506,7 +521,7 @@ class Engine:
             radar_id = ids[0]
             if self.partition.owns(radar_id):
                 return []  # our own, heard back
-            msg: TrackStates = _parse(TrackStates, payload, radar_id)
+            msg = decode_states(payload, radar_id)
             _check_body_id("radar_id", msg.radar_id, radar_id)
             if radar_id not in self.tracking.radars:
                 raise RejectionError("unknown_radar", f"no site known for radar {radar_id!r}", radar_id)
@@ -619,4 +634,5 @@ class Engine:
             method=self.config.method,
             prefix=self.config.prefix,
             sites={rid: r.site for rid, r in self.tracking.radars.items()},
+            progress=self.progress() if not self.partition.whole else {},
         )

@@ -5,20 +5,32 @@ from __future__ import annotations
 
 import hashlib
 import itertools
+import json
 import random
 from collections import defaultdict
+from pathlib import Path
 
 import numpy as np
-import orjson
 import pytest
+from pydantic import ValidationError
 
 from service.engine import Engine, EngineConfig, Outgoing
+from service.pipeline.errors import RejectionError
 from service.pipeline.partition import Partition
-from service.pipeline.track_exchange import StatesReceiver, StatesSender, changed_rows
+from service.pipeline.track_exchange import (
+    StatesMessage,
+    StatesReceiver,
+    StatesSender,
+    changed_rows,
+    decode_states,
+)
 from service.tracking.base import TrackTable
 from service.wire.keys import Keys
 from service.wire.models import TrackStates
+from service.wire.outputs import encode
 from tests.scenario_helpers import scenario_messages
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 # -- ownership ------------------------------------------------------------------------------
@@ -122,8 +134,10 @@ def test_changed_rows_matches_its_reference_form() -> None:
         t = new
 
 
-def _through_the_wire(body: dict[str, object]) -> TrackStates:
-    return TrackStates.model_validate_json(orjson.dumps(body))
+def _through_the_wire(body: dict[str, object]) -> StatesMessage:
+    payload = encode(body)
+    TrackStates.model_validate_json(payload)  # what is sent is what the contract's model says
+    return decode_states(payload, "A")
 
 
 def test_a_peer_rebuilds_the_owners_tables_bit_for_bit_and_recovers_from_a_gap() -> None:
@@ -232,3 +246,59 @@ def test_n_engines_give_the_pair_updates_of_one(n: int, seed: int) -> None:
     for engine in engines:
         assert engine.rejected == {}
         assert not engine.receiver.gaps
+
+
+def _states_cases() -> list[tuple[str, object]]:
+    """A valid ``TrackStates`` and hostile variants of it (contract-shaped and not)."""
+    good = json.loads((ROOT / "schemas" / "examples" / "TrackStates.json").read_text())
+    cases: list[tuple[str, object]] = [("valid", good)]
+
+    def variant(name: str, path: list[str], value: object) -> None:
+        body = json.loads(json.dumps(good))
+        node = body
+        for p in path[:-1]:
+            node = node[p]
+        if value is _DROP:
+            del node[path[-1]]
+        else:
+            node[path[-1]] = value
+        cases.append((name, body))
+
+    variant("no tracks", ["tracks"], _DROP)
+    variant("seq negative", ["seq"], -1)
+    variant("seq float", ["seq"], 1.5)
+    variant("time far", ["time_s"], 1e12)
+    variant("time string", ["time_s"], "now")
+    variant("bad radar id", ["radar_id"], "a b")
+    variant("full not bool", ["full"], 1)
+    variant("short covariance", ["tracks", "covariance"], [[1.0] * 35])
+    variant("ragged columns", ["tracks", "plots"], [1, 2])
+    variant("negative plots", ["tracks", "plots"], [-1])
+    variant("plots float", ["tracks", "plots"], [1.5])
+    variant("huge position", ["tracks", "position_ecef_m"], [[1e9, 0.0, 0.0]])
+    variant("nested junk", ["tracks", "velocity_ecef_mps"], [["x", 0, 0]])
+    variant("confirmed int", ["tracks", "confirmed"], [1])
+    variant("ids not strings", ["tracks", "track_id"], [17])
+    variant("removed not strings", ["removed"], [3])
+    variant("truth wrong length", ["tracks", "truth_id"], ["a", "b"])
+    return cases
+
+
+_DROP = object()
+
+
+@pytest.mark.parametrize(("name", "body"), _states_cases(), ids=[c[0] for c in _states_cases()])
+def test_fast_states_decoder_agrees_with_the_model(name: str, body: object) -> None:
+    payload = json.dumps(body).encode()
+    try:
+        TrackStates.model_validate_json(payload)
+        model_ok = True
+    except ValidationError:
+        model_ok = False
+    try:
+        decode_states(payload, "A")
+        fast_ok = True
+    except RejectionError:
+        fast_ok = False
+    assert fast_ok == model_ok, name
+    assert model_ok == (name == "valid")

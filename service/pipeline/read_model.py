@@ -114,6 +114,8 @@ class Snapshot:
     prefix: str
     #: Every known site (a partitioned worker knows every radar's, tracks only its own).
     sites: dict[str, RadarSite] = field(default_factory=dict)
+    #: Partitioned: how far this worker has got (``Engine.progress``).
+    progress: dict[str, Any] = field(default_factory=dict)
     _batches: dict[tuple[str, str], dict[str, Any]] = field(default_factory=dict, compare=False, repr=False)
 
     def track_batch(self, radar_id: str, status: str = "confirmed") -> dict[str, Any] | None:

@@ -378,6 +378,7 @@ class ServiceNode:
             own["partition"] = self._partition_section(
                 {self.partition.index: (0.0, [r["radar_id"] for r in own["radars"]], len(snap.pair_views))}
             )
+            own["partition"]["progress"] = snap.progress
         return own
 
     def _partition_section(self, workers: dict[int, tuple[float | None, list[str], int]]) -> dict[str, Any]:
@@ -443,7 +444,9 @@ class ServiceNode:
         own["radars"] = [radars[k] for k in sorted(radars)]
         own["rejected"] = dict(sorted(rejected.items()))
         own["correlation"] = corr
+        progress = own["partition"]["progress"]
         own["partition"] = self._partition_section(workers)
+        own["partition"]["progress"] = progress
         return own
 
     def radars(self) -> list[dict[str, Any]]:

@@ -8,9 +8,9 @@ validation rules; :func:`rejection_reason` maps a pydantic error onto the contra
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictInt, ValidationError, model_validator
 from pydantic_core import PydanticCustomError
 
 from service.wire.vocabulary import ID_PATTERN, RejectionReason
@@ -225,12 +225,12 @@ class TrackStateColumns(WireModel):
     """One row per track: what correlation needs of a radar's tracks (state and covariance)."""
 
     track_id: Annotated[list[str], Field(max_length=MAX_TRACKS)]
-    confirmed: Annotated[list[bool], Field(max_length=MAX_TRACKS)]
+    confirmed: Annotated[list[StrictBool], Field(max_length=MAX_TRACKS)]
     time_s: Annotated[list[TimeS], Field(max_length=MAX_TRACKS)]
     position_ecef_m: Annotated[list[Vec3], Field(max_length=MAX_TRACKS)]
     velocity_ecef_mps: Annotated[list[Vec3], Field(max_length=MAX_TRACKS)]
     covariance: Annotated[list[Covariance], Field(max_length=MAX_TRACKS)]
-    plots: Annotated[list[Annotated[int, Field(ge=0)]], Field(max_length=MAX_TRACKS)]
+    plots: Annotated[list[Annotated[StrictInt, Field(ge=0)]], Field(max_length=MAX_TRACKS)]
     truth_id: Annotated[list[str | None], Field(max_length=MAX_TRACKS)] | None = Field(
         default=None, description="simulation only, as in TrackBatch"
     )
@@ -247,14 +247,16 @@ class TrackStates(WireModel):
     that left (``removed``).  ``time_s`` is the data time the table is valid at."""
 
     radar_id: SourceId
-    seq: Seq
+    seq: Annotated[StrictInt, Field(ge=0, le=MAX_SEQ)]
     time_s: TimeS
-    full: bool
-    count: Annotated[int, Field(ge=0, le=MAX_TRACKS)] | None = Field(
+    full: StrictBool
+    count: Annotated[StrictInt, Field(ge=0, le=MAX_TRACKS)] | None = Field(
         default=None, description="tracks in the table once this message is applied (a check)"
     )
     removed: Annotated[list[str], Field(max_length=MAX_TRACKS)] = Field(default_factory=list)
-    expiry: bool = Field(default=False, description="the table the radar's tracks coasted to when it expired")
+    expiry: StrictBool = Field(
+        default=False, description="the table the radar's tracks coasted to when it expired"
+    )
     tracks: TrackStateColumns
 
 
@@ -342,6 +344,12 @@ class PartitionStatus(OutModel):
     workers: list[WorkerInfo]
     missing: list[int] = Field(
         description="partitions with no live worker: their radars and pairs are absent"
+    )
+    progress: dict[str, Any] = Field(
+        default_factory=dict,
+        description="this worker's data clocks: released_s (its tables), merged_s (every worker's, in "
+        "order), correlated_s, held (tables waiting for a slower worker), state_gaps (track-state messages "
+        "that could not be applied)",
     )
 
 

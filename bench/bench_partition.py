@@ -1,0 +1,384 @@
+"""Scale-out benchmark: the ``national`` scenario through 1 and N partitioned workers on Zenoh.
+
+Prints figures, never asserts.  Each run starts a Zenoh router (a router-mode session in this
+process, on a free loopback port, multicast scouting off) and ``N`` workers as the operator
+runs them (``topofusion run --partition K/N`` subprocesses, clients of the router, each with
+its correlation process unless ``--one-process``), announces the sites, then publishes the
+stream as fast as the workers take it (``CongestionControl.BLOCK``, as a replay at
+``--speed 0``).  A client subscribed to ``{prefix}/pairs/**`` stamps every PairSet it receives.
+The run ends when worker 1's ``/status`` (the whole network's) counts every batch and no
+PairSet came for two seconds; its wall time is from the first plot batch put to the last
+PairSet received.  Configurations run side by side, interleaved (``--workers 1,2`` with
+``--repeat R``: 1, 2, 1, 2, ...), because the machine is noisy.
+
+Per run: x real time (data seconds over wall seconds), CPU seconds of each worker's process
+tree (worker and correlation process) and of this process (router and publisher), peak RSS of
+every worker process, and accuracy from worker 1's HTTP port (the whole network): share of
+confirmed pairs whose two tracks follow the same aircraft (the simulator's ``truth_id``,
+evaluation only) and pair completeness.  ``--traffic`` also subscribes to ``{prefix}/**`` and
+reports messages and bytes per data second by key kind (the subscriber makes every output
+be sent, so those runs are slower: their speed is not comparable).
+
+Run: .venv/bin/python bench/bench_partition.py [--duration 300] [--seed 1] [--workers 1,2]
+     [--repeat 1] [--one-process] [--traffic] [--cache FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import pickle
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import httpx
+import zenoh
+
+from service.transport.session import ZenohOptions, open_session
+from service.wire.keys import parse_key
+from topofusion_lab.scenarios.catalog import get_scenario
+from topofusion_lab.scenarios.simulator import wire_messages
+
+TOPOFUSION = str(Path(sys.executable).parent / "topofusion")
+PREFIX = "fusion"
+TICK = os.sysconf("SC_CLK_TCK")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait(predicate: Any, timeout_s: float, what: str) -> None:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        try:
+            if predicate():
+                return
+        except (httpx.HTTPError, KeyError, ValueError):
+            pass
+        time.sleep(0.1)
+    raise SystemExit(f"timed out waiting for {what}")
+
+
+# -- processes -------------------------------------------------------------------------------
+def children(pid: int) -> list[int]:
+    out = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                stat = Path(f"/proc/{entry}/stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.append(int(entry))
+    return out
+
+
+def tree(pid: int) -> list[int]:
+    pids = [pid]
+    for child in children(pid):
+        pids += tree(child)
+    return pids
+
+
+def cpu_s(pid: int) -> float:
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / TICK
+
+
+def peak_mb(pid: int) -> float:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return 0.0
+
+
+@dataclass
+class Worker:
+    index: int
+    count: int
+    port: int
+    proc: subprocess.Popen[bytes]
+    cpu0: dict[int, float] = field(default_factory=dict)
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def get(self, path: str, **params: Any) -> Any:
+        return httpx.get(self.url + path, params=params, timeout=30).json()
+
+    def tree_cpu(self) -> float:
+        return sum(cpu_s(p) - self.cpu0.get(p, 0.0) for p in tree(self.proc.pid))
+
+
+def start_workers(n: int, endpoint: str, one_process: bool) -> list[Worker]:
+    workers = []
+    for k in range(1, n + 1):
+        port = free_port()
+        env = {key: v for key, v in os.environ.items() if not key.startswith("TOPOFUSION_")}
+        env.update(
+            TOPOFUSION_PARTITION=f"{k}/{n}",
+            TOPOFUSION_ZENOH_MODE="client",
+            TOPOFUSION_ZENOH_CONNECT=endpoint,
+            TOPOFUSION_HTTP_PORT=str(port),
+            TOPOFUSION_PREFIX=PREFIX,
+            TOPOFUSION_LOG_LEVEL="WARNING",
+            TOPOFUSION_CORRELATION_PROCESS="false" if one_process else "true",
+        )
+        cmd = [TOPOFUSION, "run"]
+        if os.environ.get("BENCH_PROFILE_DIR"):  # cProfile each worker's main process
+            out = Path(os.environ["BENCH_PROFILE_DIR"]) / f"worker-{k}-of-{n}.prof"
+            cmd = [sys.executable, "-m", "cProfile", "-o", str(out), *cmd]
+        proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        workers.append(Worker(k, n, port, proc))
+    for w in workers:
+        wait(lambda w=w: httpx.get(w.url + "/readyz", timeout=2).status_code == 200, 60, f"worker {w.index}")
+    if n > 1:
+        wait(lambda: workers[0].get("/status")["partition"]["missing"] == [], 30, "every worker alive")
+    return workers
+
+
+def stop_workers(workers: list[Worker]) -> None:
+    for w in workers:
+        w.proc.send_signal(signal.SIGTERM)
+    for w in workers:
+        try:
+            w.proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            w.proc.kill()
+            w.proc.wait()
+
+
+# -- the stream and its truth ----------------------------------------------------------------
+def make_stream(duration_s: float, seed: int, cache: Path | None) -> list[tuple[str, bytes]]:
+    sc = replace(get_scenario("national"), duration_s=duration_s)
+    tag = hashlib.sha256(repr((sc, seed)).encode()).hexdigest()[:16]
+    if cache is not None and cache.exists():
+        with cache.open("rb") as f:
+            stored, stream = pickle.load(f)
+        if stored == tag:
+            return list(stream)
+    stream = list(wire_messages(sc, seed, PREFIX))
+    if cache is not None:
+        with cache.open("wb") as f:
+            pickle.dump((tag, stream), f)
+    return stream
+
+
+def accuracy(w: Worker, radars: list[str]) -> tuple[int, int, int, int]:
+    """(correct, false, found, common) from the whole network's pairs and tracks."""
+    truth: dict[tuple[str, str], str | None] = {}
+    confirmed: dict[str, set[str]] = {}
+    for rid in radars:
+        batch = w.get(f"/radars/{rid}/tracks", status="all")
+        confirmed[rid] = set()
+        for t in batch["tracks"]:
+            truth[(rid, t["track_id"])] = t["truth_id"]
+            if t["status"] == "confirmed" and t["truth_id"] is not None:
+                confirmed[rid].add(t["truth_id"])
+    correct = false = found = common = 0
+    for ps in w.get("/pairs", status="confirmed"):
+        a, b = ps["radar_a"], ps["radar_b"]
+        good = set()
+        for p in ps["pairs"]:
+            ta, tb = truth.get((a, p["track_a"])), truth.get((b, p["track_b"]))
+            if ta is not None and ta == tb:
+                correct += 1
+                good.add(ta)
+            elif (a, p["track_a"]) in truth and (b, p["track_b"]) in truth:
+                false += 1
+        both = confirmed.get(a, set()) & confirmed.get(b, set())
+        common += len(both)
+        found += len(both & good)
+    return correct, false, found, common
+
+
+# -- one run -----------------------------------------------------------------------------------
+@dataclass
+class Result:
+    workers: int
+    x_real_time: float
+    wall_s: float
+    cpu_workers: list[float]
+    cpu_bench: float
+    peaks: list[list[float]]
+    correct: int
+    false: int
+    found: int
+    common: int
+    pair_sets: int
+    traffic: dict[str, list[float]]
+
+
+def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argparse.Namespace) -> Result:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(ZenohOptions(mode="router", listen=(endpoint,)))
+    workers = start_workers(n, endpoint, args.one_process)
+    client = open_session(ZenohOptions(mode="client", connect=(endpoint,)))
+    last_pairs = [0.0, 0]
+    lock = threading.Lock()
+    traffic: dict[str, list[float]] = defaultdict(lambda: [0, 0])
+
+    def on_pairs(sample: zenoh.Sample) -> None:
+        with lock:
+            last_pairs[0] = time.perf_counter()
+            last_pairs[1] += 1
+
+    def on_any(sample: zenoh.Sample) -> None:
+        kind, _ = parse_key(str(sample.key_expr), PREFIX)
+        with lock:
+            t = traffic[kind]
+            t[0] += 1
+            t[1] += len(sample.payload.to_bytes())
+
+    subs = [client.declare_subscriber(f"{PREFIX}/pairs/**", on_pairs)]
+    if args.traffic:
+        subs.append(client.declare_subscriber(f"{PREFIX}/**", on_any))
+    pubs: dict[str, Any] = {}
+
+    def put(key: str, payload: bytes) -> None:
+        pub = pubs.get(key)
+        if pub is None:
+            pub = pubs[key] = client.declare_publisher(
+                key,
+                encoding=zenoh.Encoding.APPLICATION_JSON,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                reliability=zenoh.Reliability.RELIABLE,
+            )
+        pub.put(payload)
+
+    try:
+        time.sleep(1.0)
+        sites = [(k, p) for k, p in stream if k.endswith("/site")]
+        radars = sorted(json.loads(p)["radar_id"] for _, p in sites)
+        for key, payload in sites:
+            put(key, payload)
+        for w in workers:
+            wait(lambda w=w: len(w.get("/radars")) == len(radars), 30, f"sites at worker {w.index}")
+        n_batches = sum(k.endswith("/plots") for k, _ in stream)
+        for w in workers:
+            w.cpu0 = {p: cpu_s(p) for p in tree(w.proc.pid)}
+        bench_cpu0 = time.process_time()
+        t0 = time.perf_counter()
+        progress = time.monotonic()
+        for i, (key, payload) in enumerate(stream[len(sites) :]):
+            put(key, payload)
+            if time.monotonic() - progress > 10:
+                progress = time.monotonic()
+                print(f"#   published {i}/{len(stream)}", file=sys.stderr, flush=True)
+
+        def batches() -> int:
+            return sum(r["batches"] for r in workers[0].get("/status")["radars"])
+
+        wait(lambda: batches() == n_batches, 3600, "every batch counted")
+
+        def quiet() -> bool:
+            with lock:
+                return time.perf_counter() - last_pairs[0] > 2.0
+
+        wait(quiet, 3600, "the last pair updates")
+        wall = last_pairs[0] - t0
+        cpu_workers = [w.tree_cpu() for w in workers]
+        cpu_bench = time.process_time() - bench_cpu0
+        peaks = [[peak_mb(p) for p in tree(w.proc.pid)] for w in workers]
+        correct, false, found, common = accuracy(workers[0], radars)
+        pair_sets = len(workers[0].get("/pairs", status="all"))
+    finally:
+        for s in subs:
+            s.undeclare()
+        client.close()
+        stop_workers(workers)
+        router.close()
+    return Result(
+        n,
+        data_s / wall,
+        wall,
+        cpu_workers,
+        cpu_bench,
+        peaks,
+        correct,
+        false,
+        found,
+        common,
+        pair_sets,
+        {k: [v[0] / data_s, v[1] / data_s] for k, v in traffic.items()},
+    )
+
+
+def report(r: Result) -> None:
+    judged = max(r.correct + r.false, 1)
+    peaks = "; ".join("+".join(f"{p:.0f}" for p in w) for w in r.peaks)
+    print(
+        f"  {r.workers} worker(s): {r.x_real_time:5.1f}x real time (wall {r.wall_s:.1f} s); CPU s per worker "
+        f"{', '.join(f'{c:.1f}' for c in r.cpu_workers)} (bench process {r.cpu_bench:.1f}); peak RSS MB per "
+        f"worker (process+children) {peaks}"
+    )
+    print(
+        f"    pairs: {r.correct + r.false} confirmed in {r.pair_sets} radar pairs, correct {r.correct} "
+        f"({100 * r.correct / judged:.2f}%), false {r.false}; completeness {r.found}/{r.common} "
+        f"({100 * r.found / max(r.common, 1):.1f}%)"
+    )
+    if r.traffic:
+        print("    Zenoh traffic per data second, by key kind (messages, kB):")
+        for kind, (msgs, nbytes) in sorted(r.traffic.items(), key=lambda kv: -kv[1][1]):
+            print(f"      {kind:14s} {msgs:8.1f} msg/s {nbytes / 1e3:9.1f} kB/s")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--duration", type=float, default=300.0, help="data seconds (default 300)")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--workers", default="1,2", help="worker counts, side by side (default 1,2)")
+    p.add_argument("--repeat", type=int, default=1)
+    p.add_argument("--one-process", action="store_true", help="workers without their correlation process")
+    p.add_argument("--traffic", action="store_true", help="count every message by key kind (slower)")
+    p.add_argument("--cache", type=Path, help="keep the generated stream in this file")
+    args = p.parse_args()
+    counts = [int(x) for x in args.workers.split(",")]
+    stream = make_stream(args.duration, args.seed, args.cache)
+    plots = sum(len(json.loads(pl)["plots"]["time_s"]) for k, pl in stream if k.endswith("/plots"))
+    times = [json.loads(pl)["time_s"] for k, pl in stream if k.endswith("/plots")]
+    data_s = max(times) - min(times)
+    print(
+        f"# national scenario, {args.duration:g} s of data (seed {args.seed}): {len(stream)} messages, "
+        f"{plots} plots; workers {'without' if args.one_process else 'with'} their correlation process; "
+        f"{os.cpu_count()} cores"
+    )
+    print(f"# command: {' '.join(sys.argv)}")
+    results: dict[int, list[Result]] = defaultdict(list)
+    for rep in range(args.repeat):
+        for n in counts:
+            print(f"# run {rep + 1}/{args.repeat}: {n} worker(s)", file=sys.stderr, flush=True)
+            r = one_run(n, stream, data_s, args)
+            results[n].append(r)
+            report(r)
+    base = counts[0]
+    for n in counts[1:]:
+        ratios = [b.x_real_time / a.x_real_time for a, b in zip(results[base], results[n], strict=True)]
+        print(
+            f"# {n} workers / {base}: {', '.join(f'{x:.2f}' for x in ratios)} "
+            f"(median {sorted(ratios)[len(ratios) // 2]:.2f})"
+        )
+
+
+if __name__ == "__main__":
+    main()
