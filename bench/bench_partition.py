@@ -6,9 +6,10 @@ runs them (``topofusion run --partition K/N`` subprocesses, clients of the route
 its correlation process unless ``--one-process``), announces the sites, then publishes the
 stream as fast as the workers take it (``CongestionControl.BLOCK``, as a replay at
 ``--speed 0``).  A client subscribed to ``{prefix}/pairs/**`` stamps every PairSet it receives.
-The run ends when worker 1's ``/status`` (the whole network's) counts every batch and no
-PairSet came for two seconds; its wall time is from the first plot batch put to the last
-PairSet received.  Configurations run side by side, interleaved (``--workers 1,2`` with
+The run ends when worker 1's ``/status`` (the whole network's) counts every batch, every
+worker's queue is empty and its merge has reached the network's release clock, and no PairSet
+came for two seconds; its wall time is from the first plot batch put to the last PairSet
+received.  Configurations run side by side, interleaved (``--workers 1,2`` with
 ``--repeat R``: 1, 2, 1, 2, ...), because the machine is noisy.
 
 Per run: x real time (data seconds over wall seconds), CPU seconds of each worker's process
@@ -291,9 +292,21 @@ def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argpar
 
         wait(lambda: batches() == n_batches, 3600, "every batch counted")
 
+        def caught_up() -> bool:
+            """Every queue empty and every worker's merge at the network's release clock."""
+            statuses = [w.get("/status") for w in workers]
+            if any(st["queue"]["depth"] for st in statuses):
+                return False
+            if n == 1:
+                return True
+            progress = [st["partition"]["progress"] for st in statuses]
+            released = min(p["released_s"] or 0.0 for p in progress)
+            return all((p["merged_s"] or 0.0) >= released for p in progress)
+
         def quiet() -> bool:
             with lock:
-                return time.perf_counter() - last_pairs[0] > 2.0
+                silent = time.perf_counter() - last_pairs[0] > 2.0
+            return silent and caught_up()
 
         wait(quiet, 3600, "the last pair updates")
         wall = last_pairs[0] - t0

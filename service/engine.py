@@ -183,6 +183,7 @@ class Engine:
         #: Partitioned: the workers whose liveliness token is present (the transport tells).
         self.alive: set[int] = set(range(1, self.partition.count + 1))
         self._clock_sent: dict[str, Any] | None = None
+        self._progress_sent: dict[str, Any] | None = None
         #: Partitioned: each other worker's ``correlated_s`` (the bias worker waits for them).
         self._correlated_by: dict[int, float] = {}
         self.sender = StatesSender(self.config.exchange)
@@ -388,29 +389,40 @@ class Engine:
         return (owners & self.alive) | {self.partition.index}
 
     def _clock(self) -> list[Outgoing]:
-        """This worker's progress for the others (:class:`~service.pipeline.merger.TableMerger`),
-        when it changed: how far it released, and its radars' data clocks."""
-        released = self.sequencer.last_limit
+        """This worker's state for the others, when it changed: its progress (how far it has
+        released and correlated, :class:`~service.pipeline.merger.TableMerger`) and its radars'
+        data clocks (the network watermark, :meth:`Sequencer.observe`)."""
+
+        def finite(x: float) -> float | None:
+            return float(x) if np.isfinite(x) else None
+
         merged = self.merger.last_limit
         correlated = (
             self.correlation.correlated_through(merged)
             if isinstance(self.correlation, RemoteCorrelation)
             else merged
         )
-        body = {
+        progress = {
             "partition": str(self.partition),
-            "released_s": float(released) if np.isfinite(released) else None,
-            "correlated_s": float(correlated) if np.isfinite(correlated) else None,
+            "released_s": finite(self.sequencer.last_limit),
+            "correlated_s": finite(correlated),
+        }
+        clocks = {
+            "partition": str(self.partition),
             "clocks": {
                 rid: s.last_time_s
                 for rid, s in sorted(self.sequencer.sources.items())
                 if s.kind == RADAR and not s.foreign and s.last_time_s is not None
             },
         }
-        if body == self._clock_sent:
-            return []
-        self._clock_sent = body
-        return [Outgoing(self.keys.worker_clock(self.partition.index), lambda: body)]
+        out = []
+        if progress != self._progress_sent:
+            self._progress_sent = progress
+            out.append(Outgoing(self.keys.worker_progress(self.partition.index), lambda: progress))
+        if clocks != self._clock_sent:
+            self._clock_sent = clocks
+            out.append(Outgoing(self.keys.worker_clock(self.partition.index), lambda: clocks))
+        return out
 
     def _internal(self, rel: Release, exc: Exception) -> Outgoing:
         detail = f"processing failed: {type(exc).__name__}: {exc}"
@@ -529,19 +541,23 @@ class Engine:
             if table is not None:
                 self.merger.push(RADAR, radar_id, msg.seq, msg.time_s, table, expiry=msg.expiry)
             self._snapshot = None
-            return []  # released once its owner says how far it has published (worker_clock)
-        if kind == "worker_clock":
+            return []  # released once its owner says how far it has published (worker_progress)
+        if kind in ("worker_clock", "worker_progress"):
             clock: WorkerClock = _parse(WorkerClock, payload, None)
             worker = int(ids[0])
             if clock.partition != f"{worker}/{self.partition.count}":
                 raise RejectionError("schema", f"worker {clock.partition} on the key of worker {worker}")
             if worker == self.partition.index:
                 return []
-            for rid, c in clock.clocks.items():
-                if not self.partition.owns(rid):
-                    self.sequencer.observe(rid, c)
-            self.merger.progress(worker, clock.released_s if clock.released_s is not None else -np.inf)
-            self._correlated_by[worker] = clock.correlated_s if clock.correlated_s is not None else -np.inf
+            if kind == "worker_clock":
+                for rid, c in clock.clocks.items():
+                    if not self.partition.owns(rid):
+                        self.sequencer.observe(rid, c)
+            else:
+                self.merger.progress(worker, clock.released_s if clock.released_s is not None else -np.inf)
+                self._correlated_by[worker] = (
+                    clock.correlated_s if clock.correlated_s is not None else -np.inf
+                )
             return self._process(self.sequencer.release())
         if kind == "registration":
             if not self.partition.solves_biases:

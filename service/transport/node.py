@@ -40,7 +40,7 @@ import zenoh
 from service.engine import Engine, EngineConfig, Outgoing, Snapshot
 from service.pipeline.partition import BIAS_WORKER
 from service.transport.session import ZenohOptions, open_session
-from service.wire.keys import Keys, parse_key
+from service.wire.keys import PRIORITY_KINDS, Keys, parse_key
 from service.wire.outputs import encode
 
 log = logging.getLogger(__name__)
@@ -111,6 +111,9 @@ class ServiceNode:
         self.keys = Keys(engine_config.prefix)
         self.zenoh_options = zenoh_options
         self.queue: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
+        #: Partitioned: the other workers' messages, taken before inputs (see ``_next_item``).
+        self.peer_queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._items = threading.Semaphore(0)  # one release per item put on either queue
         self.queue_stats = QueueStats(capacity=queue_size)
         self.put_timeout_s = put_timeout_s
         self.radar_filter = radars
@@ -201,6 +204,7 @@ class ServiceNode:
         if self._worker is not None:
             try:
                 self.queue.put(_STOP, timeout=timeout_s)
+                self._items.release()
             except queue.Full:
                 log.warning("worker queue full at shutdown; abandoning %d samples", self.queue.qsize())
             self._worker.join(timeout=timeout_s)
@@ -233,8 +237,14 @@ class ServiceNode:
             if kind == "plots" and not self.partition.owns(ids[0]):
                 return  # another worker's radar
         item = (key, sample.payload.to_bytes(), time.time())
+        peer = self.keys.classify_peer(key) if not self.partition.whole else None
+        if peer is not None and peer[0] in PRIORITY_KINDS:
+            self.peer_queue.put(item)
+            self._items.release()
+            return
         try:
             self.queue.put(item, timeout=self.put_timeout_s)
+            self._items.release()
         except queue.Full:
             self.queue_stats.dropped += 1
             log.error("ingest queue full for %.1f s: dropped a sample on %s", self.put_timeout_s, item[0])
@@ -274,10 +284,8 @@ class ServiceNode:
         while True:
             # Idle with answers of the correlation process still to come: look again soon.
             wait = IDLE_POLL_S if self.engine.answers_pending else self.status_interval_s
-            try:
-                item = self.queue.get(timeout=wait)
-            except queue.Empty:
-                item = None
+            item = self._next_item(wait)
+            if item is None:
                 out = self.engine.poll()
                 if out:
                     self._publish(out)
@@ -298,6 +306,18 @@ class ServiceNode:
                 self._publish([Outgoing(self.keys.worker_status(self.partition.index), lambda own=own: own)])  # type: ignore[misc]
         self._publish(self.engine.flush())
         self.snapshot = self.engine.snapshot()
+
+    def _next_item(self, wait: float) -> Any:
+        """The next message, the other workers' tables, rows and progress first: they only move
+        the correlation along (in data-time order whatever the order they are taken in), while
+        inputs queued before them would otherwise keep the merger waiting and the tables piling
+        up.  None: nothing came for ``wait`` s."""
+        if not self._items.acquire(timeout=wait):
+            return None
+        try:
+            return self.peer_queue.get_nowait()
+        except queue.Empty:
+            return self.queue.get_nowait()
 
     def _handle(self, key: str, payload: bytes, received: float) -> None:
         self.processed += 1

@@ -41,6 +41,7 @@ KeyKind = Literal[
     "biases",
     "worker_status",
     "worker_clock",
+    "worker_progress",
     "other",
 ]
 
@@ -49,8 +50,12 @@ INPUT_KINDS: frozenset[KeyKind] = frozenset({"site", "plots", "ais"})
 
 #: Kinds partitioned workers publish for each other (and take from each other).
 PEER_KINDS: frozenset[KeyKind] = frozenset(
-    {"track_states", "registration", "biases", "worker_status", "worker_clock"}
+    {"track_states", "registration", "biases", "worker_status", "worker_clock", "worker_progress"}
 )
+#: Peer kinds a worker takes ahead of its inputs (node.py): they only move the correlation on.
+#: A worker's radar clocks (``worker_clock``) stay in arrival order with the inputs: taken
+#: early, they would make this worker's own radars look behind the network.
+PRIORITY_KINDS: frozenset[KeyKind] = frozenset({"track_states", "registration", "biases", "worker_progress"})
 
 #: Payload model per key kind (contract §1 table).
 MODEL_BY_KIND: dict[KeyKind, type[BaseModel]] = {
@@ -66,6 +71,7 @@ MODEL_BY_KIND: dict[KeyKind, type[BaseModel]] = {
     "biases": BiasSet,
     "worker_status": Status,
     "worker_clock": WorkerClock,
+    "worker_progress": WorkerClock,
 }
 
 #: Each kind's key after ``{prefix}/``, its ids captured.
@@ -82,6 +88,7 @@ _SHAPES: tuple[tuple[KeyKind, str], ...] = (
     ("biases", r"biases"),
     ("worker_status", r"workers/([0-9]{1,6})/status"),
     ("worker_clock", r"workers/([0-9]{1,6})/clock"),
+    ("worker_progress", r"workers/([0-9]{1,6})/progress"),
 )
 
 
@@ -144,6 +151,9 @@ class Keys:
     def worker_clock(self, index: int) -> str:
         return f"{self.prefix}/workers/{index}/clock"
 
+    def worker_progress(self, index: int) -> str:
+        return f"{self.prefix}/workers/{index}/progress"
+
     def input(self, kind: str, source_id: str) -> str:
         """The input key of ``kind`` (``site``, ``plots`` or ``ais``) for a source."""
         return {"site": self.site, "plots": self.plots, "ais": self.ais}[kind](source_id)
@@ -182,6 +192,7 @@ class Keys:
             f"{self.prefix}/registration/*/*",
             self.biases,
             f"{self.prefix}/workers/*/clock",
+            f"{self.prefix}/workers/*/progress",
         )
 
     @property
