@@ -128,7 +128,11 @@ class Worker:
         return httpx.get(self.url + path, params=params, timeout=30).json()
 
     def tree_cpu(self) -> float:
-        return sum(cpu_s(p) - self.cpu0.get(p, 0.0) for p in tree(self.proc.pid))
+        return sum(self.cpus())
+
+    def cpus(self) -> list[float]:
+        """CPU s of the worker process and each of its children since the run started."""
+        return [cpu_s(p) - self.cpu0.get(p, 0.0) for p in tree(self.proc.pid)]
 
 
 def start_workers(n: int, endpoint: str, one_process: bool) -> list[Worker]:
@@ -149,7 +153,12 @@ def start_workers(n: int, endpoint: str, one_process: bool) -> list[Worker]:
         if os.environ.get("BENCH_PROFILE_DIR"):  # cProfile each worker's main process
             out = Path(os.environ["BENCH_PROFILE_DIR"]) / f"worker-{k}-of-{n}.prof"
             cmd = [sys.executable, "-m", "cProfile", "-o", str(out), *cmd]
-        proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        log = open(
+            Path(os.environ.get("BENCH_LOG_DIR", "/dev"))
+            / (f"worker-{k}-of-{n}.log" if "BENCH_LOG_DIR" in os.environ else "null"),
+            "w",
+        )
+        proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=log)
         workers.append(Worker(k, n, port, proc))
     for w in workers:
         wait(lambda w=w: httpx.get(w.url + "/readyz", timeout=2).status_code == 200, 60, f"worker {w.index}")
@@ -228,6 +237,7 @@ class Result:
     common: int
     pair_sets: int
     traffic: dict[str, list[float]]
+    sequences: dict[str, list[bytes]]
 
 
 def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argparse.Namespace) -> Result:
@@ -239,10 +249,13 @@ def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argpar
     lock = threading.Lock()
     traffic: dict[str, list[float]] = defaultdict(lambda: [0, 0])
 
+    sequences: dict[str, list[bytes]] = defaultdict(list)
+
     def on_pairs(sample: zenoh.Sample) -> None:
         with lock:
             last_pairs[0] = time.perf_counter()
             last_pairs[1] += 1
+            sequences[str(sample.key_expr)].append(sample.payload.to_bytes())
 
     def on_any(sample: zenoh.Sample) -> None:
         kind, _ = parse_key(str(sample.key_expr), PREFIX)
@@ -311,10 +324,12 @@ def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argpar
         wait(quiet, 3600, "the last pair updates")
         wall = last_pairs[0] - t0
         cpu_workers = [w.tree_cpu() for w in workers]
+        print(f"#   CPU s by process: {[[round(c, 1) for c in w.cpus()] for w in workers]}", file=sys.stderr)
         cpu_bench = time.process_time() - bench_cpu0
         peaks = [[peak_mb(p) for p in tree(w.proc.pid)] for w in workers]
         correct, false, found, common = accuracy(workers[0], radars)
         pair_sets = len(workers[0].get("/pairs", status="all"))
+        print(f"#   status: {workers[0].get('/status')['pairs_confirmed']} confirmed pairs", file=sys.stderr)
     finally:
         for s in subs:
             s.undeclare()
@@ -334,6 +349,7 @@ def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argpar
         common,
         pair_sets,
         {k: [v[0] / data_s, v[1] / data_s] for k, v in traffic.items()},
+        dict(sequences),
     )
 
 
@@ -365,6 +381,7 @@ def main() -> None:
     p.add_argument("--one-process", action="store_true", help="workers without their correlation process")
     p.add_argument("--traffic", action="store_true", help="count every message by key kind (slower)")
     p.add_argument("--cache", type=Path, help="keep the generated stream in this file")
+    p.add_argument("--compare", action="store_true", help="list the radar pairs whose updates differ")
     args = p.parse_args()
     counts = [int(x) for x in args.workers.split(",")]
     stream = make_stream(args.duration, args.seed, args.cache)
@@ -386,6 +403,22 @@ def main() -> None:
             report(r)
     base = counts[0]
     for n in counts[1:]:
+        # Same stream, same pair updates?  (The newest update of a pair may be held back.)
+        a, b = results[base][0].sequences, results[n][0].sequences
+        same = sum(
+            b.get(k, [])[: len(v)] == v[: len(b.get(k, []))] and len(b.get(k, [])) >= len(v) - 1
+            for k, v in a.items()
+        )
+        print(f"# pair update sequences equal to {base} worker(s)'s: {same}/{len(a)} radar pairs")
+        if args.compare:
+            for k in sorted(a):
+                x, y = a[k], b.get(k, [])
+                d = next((i for i in range(min(len(x), len(y))) if x[i] != y[i]), None)
+                if d is not None:
+                    print(
+                        f"#   {k}: {len(x)} vs {len(y)} updates, first difference at {d}: "
+                        f"{json.loads(x[d])['time_s']} / {json.loads(y[d])['time_s']}"
+                    )
         ratios = [b.x_real_time / a.x_real_time for a, b in zip(results[base], results[n], strict=True)]
         print(
             f"# {n} workers / {base}: {', '.join(f'{x:.2f}' for x in ratios)} "

@@ -124,6 +124,10 @@ def plot_columns(batch: PlotBatch) -> PlotColumns:
     )
 
 
+def _finite(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
 def _rows_body(r: SharedRows) -> dict[str, Any]:
     """The ``RegistrationRows`` payload of rows an owned pair added."""
     rows = r.rows
@@ -184,6 +188,7 @@ class Engine:
         self.alive: set[int] = set(range(1, self.partition.count + 1))
         self._clock_sent: dict[str, Any] | None = None
         self._progress_sent: dict[str, Any] | None = None
+        self._idle = False
         #: Partitioned: each other worker's ``correlated_s`` (the bias worker waits for them).
         self._correlated_by: dict[int, float] = {}
         self.sender = StatesSender(self.config.exchange)
@@ -349,16 +354,28 @@ class Engine:
 
     @property
     def answers_pending(self) -> bool:
-        """The correlation process has not answered everything sent to it yet."""
-        return isinstance(self.correlation, RemoteCorrelation) and self.correlation.pending > 0
+        """The correlation process has not answered everything sent to it yet, or a progress
+        message is held back (``poll`` sends both)."""
+        if isinstance(self.correlation, RemoteCorrelation) and self.correlation.pending > 0:
+            return True
+        return (
+            not self.partition.whole
+            and self._progress_sent is not None
+            and (self._progress_sent["released_s"] != _finite(self.sequencer.last_limit))
+        )
 
     def poll(self) -> list[Outgoing]:
         """What the correlation process answered while no input came (an idle service must
         still publish the last pair updates)."""
-        if not isinstance(self.correlation, RemoteCorrelation):
+        if isinstance(self.correlation, RemoteCorrelation):
+            self.correlation.poll()
+        elif self.partition.whole:
             return []
-        self.correlation.poll()
-        out = self._remote_results()
+        self._idle = True
+        try:
+            out = self._remote_results()
+        finally:
+            self._idle = False
         if out:
             self._snapshot = None
         return out
@@ -388,6 +405,23 @@ class Engine:
         owners = {self.partition.owner(rid) for rid in self.tracking.radars}
         return (owners & self.alive) | {self.partition.index}
 
+    def _due(self, new: dict[str, Any], sent: dict[str, Any] | None, fields: tuple[str, ...]) -> bool:
+        """A progress or clock message is sent once a value moved ``exchange.step_s`` of data
+        time (or appeared), and whenever anything moved while idle (``poll``): a message per
+        input would cost the peers more than the tables they carry."""
+        if sent is None or new == sent:
+            return sent is None
+        if self._idle:
+            return True
+        old = sent.get("clocks", sent)
+        now = new.get("clocks", new)
+        step = self.config.exchange.step_s
+        return any(
+            (now.get(f) is not None) != (old.get(f) is not None)
+            or (now.get(f) is not None and now[f] - old[f] >= step)
+            for f in fields
+        ) or set(now) != set(old)
+
     def _clock(self) -> list[Outgoing]:
         """This worker's state for the others, when it changed: its progress (how far it has
         released and correlated, :class:`~service.pipeline.merger.TableMerger`) and its radars'
@@ -416,10 +450,10 @@ class Engine:
             },
         }
         out = []
-        if progress != self._progress_sent:
+        if self._due(progress, self._progress_sent, ("released_s", "correlated_s")):
             self._progress_sent = progress
             out.append(Outgoing(self.keys.worker_progress(self.partition.index), lambda: progress))
-        if clocks != self._clock_sent:
+        if self._due(clocks, self._clock_sent, tuple(clocks["clocks"])):
             self._clock_sent = clocks
             out.append(Outgoing(self.keys.worker_clock(self.partition.index), lambda: clocks))
         return out

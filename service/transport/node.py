@@ -46,6 +46,9 @@ from service.wire.outputs import encode
 log = logging.getLogger(__name__)
 
 _STOP = object()
+#: Readers' snapshot is rebuilt at most this often (s) while messages keep coming (and when
+#: the worker falls idle): a partitioned worker takes a message from the others every few ms.
+SNAPSHOT_MIN_S = 0.05
 #: How often (s) an idle worker takes the correlation process's late answers.
 IDLE_POLL_S = 0.05
 #: Puts a new publisher makes before trusting its matching status (see ``_publish``).
@@ -96,7 +99,8 @@ class ServiceNode:
         correlation_process: bool = True,
         outbox_size: int = 65536,
         status_interval_s: float = 1.0,
-        peer_query_timeout_s: float = 2.0,
+        peer_query_timeout_s: float = 10.0,
+        peer_grace_s: float = 15.0,
     ) -> None:
         self.peer_query_timeout_s = peer_query_timeout_s
         self.engine = Engine(engine_config, correlation_process=correlation_process)
@@ -106,7 +110,10 @@ class ServiceNode:
         #: Partitioned: the other workers' latest statuses (raw, by K) and who is alive.
         self._peer_status: dict[int, tuple[float, bytes]] = {}
         self._alive: set[int] = set()
-        self._alive_changed = False
+        #: Workers whose token left, and when (monotonic): waited for until ``peer_grace_s``.
+        self._gone_at: dict[int, float] = {}
+        self._waited: set[int] | None = None
+        self.peer_grace_s = peer_grace_s
         self._publisher: threading.Thread | None = None
         self.keys = Keys(engine_config.prefix)
         self.zenoh_options = zenoh_options
@@ -159,6 +166,10 @@ class ServiceNode:
             s.declare_queryable(self.keys.pairs_all, self._on_pairs_query),
         ]
         if not self.partition.whole:
+            # A worker not seen yet is waited for as one that just left: for peer_grace_s.
+            self._gone_at = {
+                k: time.monotonic() for k in range(1, self.partition.count + 1) if k != self.partition.index
+            }
             self._declared += [
                 s.declare_subscriber(
                     self.keys.worker_statuses, zenoh.handlers.Callback(self._on_worker_status, indirect=False)
@@ -258,11 +269,12 @@ class ServiceNode:
         index = str(sample.key_expr).rsplit("/", 1)[-1]
         if not index.isdigit():
             return
-        self._alive_changed = True
         if sample.kind == zenoh.SampleKind.PUT:
             self._alive.add(int(index))
+            self._gone_at.pop(int(index), None)
         else:
             self._alive.discard(int(index))
+            self._gone_at[int(index)] = time.monotonic()
             if int(index) != self.partition.index:
                 log.warning(
                     "worker %s/%d left (its radars and pairs are missing)", index, self.partition.count
@@ -281,6 +293,7 @@ class ServiceNode:
     # -- worker ------------------------------------------------------------------------------
     def _run(self) -> None:
         next_status = 0.0
+        last_snapshot = 0.0
         while True:
             # Idle with answers of the correlation process still to come: look again soon.
             wait = IDLE_POLL_S if self.engine.answers_pending else self.status_interval_s
@@ -289,23 +302,38 @@ class ServiceNode:
                 out = self.engine.poll()
                 if out:
                     self._publish(out)
-                    self.snapshot = self.engine.snapshot()
+                self.snapshot = self.engine.snapshot()  # (cached by the engine when unchanged)
+                last_snapshot = time.monotonic()
             if item is _STOP:
                 break
-            if self._alive_changed:
-                self._alive_changed = False
-                self.engine.set_alive(set(self._alive))
+            if not self.partition.whole:
+                self._update_waited()
             if item is not None:
                 self._handle(*item)
                 self.queue_stats.high_water = max(self.queue_stats.high_water, self.queue.qsize() + 1)
-                if self.queue.empty() or self.processed % 64 == 0:
+                # A fresh snapshot when the inputs run dry, at most every SNAPSHOT_MIN_S (the
+                # other workers' messages keep coming in between), and every 64 messages.
+                now = time.monotonic()
+                if self.processed % 64 == 0 or (self.queue.empty() and now - last_snapshot >= SNAPSHOT_MIN_S):
                     self.snapshot = self.engine.snapshot()
+                    last_snapshot = now
             if not self.partition.whole and time.monotonic() >= next_status:
                 next_status = time.monotonic() + self.status_interval_s
                 own = self._own_status()
                 self._publish([Outgoing(self.keys.worker_status(self.partition.index), lambda own=own: own)])  # type: ignore[misc]
         self._publish(self.engine.flush())
         self.snapshot = self.engine.snapshot()
+
+    def _update_waited(self) -> None:
+        """The workers the merger waits for: those alive, and those whose token left less than
+        ``peer_grace_s`` ago.  A token that leaves and comes back (a session that lost its
+        router for a moment under load) must not make the others stop waiting: they would
+        correlate without its tables and take them late, out of order."""
+        now = time.monotonic()
+        waited = set(self._alive) | {k for k, t in self._gone_at.items() if now - t < self.peer_grace_s}
+        if waited != self._waited:
+            self._waited = waited
+            self.engine.set_alive(waited)
 
     def _next_item(self, wait: float) -> Any:
         """The next message, the other workers' tables, rows and progress first: they only move
