@@ -21,7 +21,7 @@ reports messages and bytes per data second by key kind (the subscriber makes eve
 be sent, so those runs are slower: their speed is not comparable).
 
 Run: .venv/bin/python bench/bench_partition.py [--duration 300] [--seed 1] [--workers 1,2]
-     [--repeat 1] [--one-process] [--traffic] [--cache FILE]
+     [--repeat 1] [--one-process] [--traffic] [--cache FILE] [--compare] [--logs DIR]
 """
 
 from __future__ import annotations
@@ -135,7 +135,7 @@ class Worker:
         return [cpu_s(p) - self.cpu0.get(p, 0.0) for p in tree(self.proc.pid)]
 
 
-def start_workers(n: int, endpoint: str, one_process: bool) -> list[Worker]:
+def start_workers(n: int, endpoint: str, one_process: bool, log_dir: Path | None = None) -> list[Worker]:
     workers = []
     for k in range(1, n + 1):
         port = free_port()
@@ -149,16 +149,10 @@ def start_workers(n: int, endpoint: str, one_process: bool) -> list[Worker]:
             TOPOFUSION_LOG_LEVEL="WARNING",
             TOPOFUSION_CORRELATION_PROCESS="false" if one_process else "true",
         )
-        cmd = [TOPOFUSION, "run"]
-        if os.environ.get("BENCH_PROFILE_DIR"):  # cProfile each worker's main process
-            out = Path(os.environ["BENCH_PROFILE_DIR"]) / f"worker-{k}-of-{n}.prof"
-            cmd = [sys.executable, "-m", "cProfile", "-o", str(out), *cmd]
-        log = open(
-            Path(os.environ.get("BENCH_LOG_DIR", "/dev"))
-            / (f"worker-{k}-of-{n}.log" if "BENCH_LOG_DIR" in os.environ else "null"),
-            "w",
-        )
-        proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=log)
+        # --logs DIR keeps each worker's log (e.g. "worker 2/2 left" when a session flaps)
+        log_path = Path(log_dir) / f"worker-{k}-of-{n}.log" if log_dir else Path(os.devnull)
+        with log_path.open("w") as log:
+            proc = subprocess.Popen([TOPOFUSION, "run"], env=env, stdout=subprocess.DEVNULL, stderr=log)
         workers.append(Worker(k, n, port, proc))
     for w in workers:
         wait(lambda w=w: httpx.get(w.url + "/readyz", timeout=2).status_code == 200, 60, f"worker {w.index}")
@@ -243,7 +237,7 @@ class Result:
 def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argparse.Namespace) -> Result:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(ZenohOptions(mode="router", listen=(endpoint,)))
-    workers = start_workers(n, endpoint, args.one_process)
+    workers = start_workers(n, endpoint, args.one_process, args.logs)
     client = open_session(ZenohOptions(mode="client", connect=(endpoint,)))
     last_pairs = [0.0, 0]
     lock = threading.Lock()
@@ -382,6 +376,7 @@ def main() -> None:
     p.add_argument("--traffic", action="store_true", help="count every message by key kind (slower)")
     p.add_argument("--cache", type=Path, help="keep the generated stream in this file")
     p.add_argument("--compare", action="store_true", help="list the radar pairs whose updates differ")
+    p.add_argument("--logs", type=Path, help="write each worker's log into this folder")
     args = p.parse_args()
     counts = [int(x) for x in args.workers.split(",")]
     stream = make_stream(args.duration, args.seed, args.cache)

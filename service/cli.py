@@ -246,6 +246,7 @@ def serve(settings: Settings, demo: argparse.Namespace | None = None) -> int:
         queue_size=settings.queue_size,
         radars=tuple(settings.radars),
         correlation_process=settings.correlation_process,
+        peer_grace_s=settings.peer_grace_s,
     )
     node.open()
 

@@ -396,9 +396,14 @@ class Engine:
             ),
         }
 
-    def set_alive(self, workers: set[int]) -> None:
-        """The workers that are up (liveliness): the merger waits for these only."""
+    def set_alive(self, workers: set[int]) -> list[Outgoing]:
+        """The workers that are up (liveliness): the merger waits for these only.  Returns
+        what the merge then lets through (a worker that left no longer holds it back)."""
         self.alive = set(workers) | {self.partition.index}
+        if self.partition.whole:
+            return []
+        self._snapshot = None
+        return self._correlate(self._merged()) + self._remote_results()
 
     def _owners(self) -> set[int]:
         """The live workers the merger waits for: those owning a known radar, and this one."""

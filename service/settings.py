@@ -53,6 +53,10 @@ class Settings(BaseSettings):
     #: Run the correlation stage in its own process, so that tracking and correlation use two
     #: cores (same results; ``false``: one process, e.g. where processes cannot be started).
     correlation_process: bool = True
+    #: Partitioned: a worker whose Zenoh liveliness token left is still waited for this long
+    #: (s, wall clock) before the others correlate without its radars: a session that loses
+    #: its router for a moment (a lease missed under load) must not reorder anything.
+    peer_grace_s: float = Field(default=15.0, ge=0)
 
     _split_listen = field_validator("zenoh_listen", "zenoh_connect", "radars", mode="before")(_split)
 

@@ -333,7 +333,7 @@ class ServiceNode:
         waited = set(self._alive) | {k for k, t in self._gone_at.items() if now - t < self.peer_grace_s}
         if waited != self._waited:
             self._waited = waited
-            self.engine.set_alive(waited)
+            self._publish(self.engine.set_alive(waited))
 
     def _next_item(self, wait: float) -> Any:
         """The next message, the other workers' tables, rows and progress first: they only move

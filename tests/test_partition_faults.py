@@ -1,0 +1,144 @@
+"""Partitioned workers as an operator runs them (``topofusion run --partition K/2``), and faults.
+
+Worker 2 is killed (SIGKILL) half-way: worker 1 goes on with what it owns, and ``/status``
+says partition 2 is missing.  Worker 2 is started again: it rebuilds what it owns from the
+input that follows, and the network is whole again.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import httpx
+import zenoh
+
+from service.pipeline.partition import Partition
+from tests.scenario_helpers import scenario_messages
+from tests.support import free_port, put_json, wait_for, wait_subscribed
+
+TOPOFUSION = str(Path(sys.executable).parent / "topofusion")
+
+
+@contextmanager
+def worker(k: int, router: str, port: int) -> Iterator[subprocess.Popen[bytes]]:
+    env = {key: v for key, v in os.environ.items() if not key.startswith("TOPOFUSION_")}
+    env.update(
+        TOPOFUSION_PARTITION=f"{k}/2",
+        TOPOFUSION_ZENOH_MODE="client",
+        TOPOFUSION_ZENOH_CONNECT=router,
+        TOPOFUSION_HTTP_PORT=str(port),
+        TOPOFUSION_CORRELATION_PROCESS="false",
+        TOPOFUSION_PEER_GRACE_S="2",
+        TOPOFUSION_LOG_LEVEL="WARNING",
+    )
+    proc = subprocess.Popen(
+        [TOPOFUSION, "run"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    try:
+        wait_for(lambda: _get(port, "/readyz") is not None or proc.poll() is not None, timeout=60)
+        assert proc.poll() is None, f"worker {k} exited with {proc.returncode}"
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(timeout=10)
+
+
+def _get(port: int, path: str, **params: Any) -> Any:
+    try:
+        r = httpx.get(f"http://127.0.0.1:{port}{path}", params=params, timeout=5)
+    except httpx.HTTPError:
+        return None
+    return r.json() if r.status_code == 200 else None
+
+
+def _batches(port: int, radars: list[str]) -> int:
+    st = _get(port, "/status")
+    return sum(r["batches"] for r in st["radars"] if r["radar_id"] in radars) if st else -1
+
+
+def _latest_pair_time(port: int, a: str, b: str) -> float:
+    sets = _get(port, "/pairs", radar_a=a, radar_b=b, status="all") or []
+    return max((s["time_s"] for s in sets), default=0.0)
+
+
+def test_a_killed_worker_leaves_the_rest_going_and_a_restarted_one_rebuilds(
+    router: str, client: zenoh.Session
+) -> None:
+    stream = scenario_messages("national", duration_s=150.0, seed=3, targets=150)
+    sites = [(k, p) for k, p in stream if k.endswith("/site")]
+    batches = [(k, p) for k, p in stream if k.endswith("/plots")]
+    radars = sorted(json.loads(p)["radar_id"] for _, p in sites)
+    one, two = Partition(1, 2), Partition(2, 2)
+    mine = [r for r in radars if one.owns(r)]
+    theirs = [r for r in radars if two.owns(r)]
+    # a pair worker 1 owns whose radars it tracks itself, and one it owns across partitions
+    inside = next((a, b) for a, b in itertools.combinations(mine, 2) if one.owns_pair(a, b))
+    across = next((a, b) for a, b in itertools.product(mine, theirs) if one.owns_pair(a, b))
+    thirds = [batches[: len(batches) // 3], batches[len(batches) // 3 : 2 * len(batches) // 3]]
+    thirds.append(batches[2 * len(batches) // 3 :])
+    p1, p2 = free_port(), free_port()
+
+    def put_all(messages: list[tuple[str, bytes]]) -> None:
+        for key, payload in messages:
+            put_json(client, key, payload)
+
+    def end_time(messages: list[tuple[str, bytes]]) -> float:
+        return float(json.loads(messages[-1][1])["time_s"])
+
+    with worker(1, router, p1):
+        with worker(2, router, p2) as w2:
+            wait_subscribed(client, "fusion/radar/N01/site")
+            wait_for(
+                lambda: (_get(p1, "/status") or {}).get("partition", {}).get("missing") == [], timeout=30
+            )
+            put_all(sites)
+            wait_for(lambda: len(_get(p1, "/radars") or []) == len(radars) == len(_get(p2, "/radars") or []))
+            put_all(thirds[0])
+            n_first = sum(json.loads(p)["radar_id"] in mine for _, p in thirds[0])
+            wait_for(lambda: _batches(p1, mine) == n_first, timeout=60)
+            wait_for(lambda: _latest_pair_time(p1, *across) > 0, timeout=60)
+            w2.kill()  # SIGKILL: no goodbye
+            w2.wait(timeout=10)
+
+        # Worker 1 says which partition is missing, and goes on with what it owns.
+        wait_for(lambda: _get(p1, "/status")["partition"]["missing"] == [2], timeout=30)
+        status = _get(p1, "/status")
+        assert [w["alive"] for w in status["partition"]["workers"]] == [True, False]
+        before = _latest_pair_time(p1, *inside)
+        put_all(thirds[1])
+        n_two = n_first + sum(json.loads(p)["radar_id"] in mine for _, p in thirds[1])
+        wait_for(lambda: _batches(p1, mine) == n_two, timeout=60)
+        wait_for(lambda: _latest_pair_time(p1, *inside) > before, timeout=60)
+        assert _latest_pair_time(p1, *inside) >= end_time(thirds[1]) - 30
+        # The dead worker's radars are missing from the network's status (their last tracks
+        # stay with worker 1 and coast out as a silent radar's do).
+        assert sorted(r["radar_id"] for r in _get(p1, "/status")["radars"]) == mine
+        stalled = _latest_pair_time(p1, *across)
+
+        # Worker 2 comes back: it rebuilds what it owns from the input that follows.
+        with worker(2, router, p2):
+            wait_for(lambda: _get(p1, "/status")["partition"]["missing"] == [], timeout=30)
+            put_all(sites)  # (a restarted worker learns sites again; see README "Scale-out")
+            wait_for(lambda: len(_get(p2, "/radars") or []) == len(radars))
+            put_all(thirds[2])
+            n_theirs = sum(json.loads(p)["radar_id"] in theirs for _, p in thirds[2])
+            wait_for(lambda: _batches(p2, theirs) == n_theirs, timeout=60)
+            wait_for(lambda: _latest_pair_time(p1, *across) > stalled, timeout=60)
+            wait_for(lambda: sorted(r["radar_id"] for r in _get(p1, "/status")["radars"]) == radars)
+            tracks = _get(p2, f"/radars/{theirs[0]}/tracks")
+            assert tracks["tracks"], "the restarted worker has confirmed tracks again"
+            assert _get(p1, f"/radars/{theirs[0]}/tracks")["tracks"], "and worker 1 holds them too"
