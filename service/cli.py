@@ -157,6 +157,10 @@ def build_parser() -> argparse.ArgumentParser:
     cfg.add_argument("--show", action="store_true", help="print it (YAML) with its defaults")
     cfg.add_argument("--config", metavar="FILE", help="a config file to apply (TOML/YAML/JSON)")
     cfg.add_argument("--format", choices=("yaml", "json"), default="yaml")
+    part = sub.add_parser("partition", help="which worker of N owns which radar and radar pair")
+    part.add_argument("--count", type=int, required=True, metavar="N", help="number of workers")
+    part.add_argument("--sites", metavar="FILE", help="the radars of a sites file (a JSON list of RadarSite)")
+    part.add_argument("ids", nargs="*", metavar="ID", help="radar or reference source ids")
     sch = sub.add_parser("schemas", help="write JSON Schemas of every payload into schemas/")
     sch.add_argument("--out", default="schemas", help="output folder (default ./schemas)")
     return parser
@@ -186,6 +190,35 @@ def settings_from(args: argparse.Namespace) -> Settings:
         if value is not None:
             overrides[key] = value
     return Settings(**overrides)
+
+
+def partition_main(args: argparse.Namespace) -> int:
+    """``topofusion partition --count N``: each worker's radars and radar pairs (rendezvous
+    hashing, docs/contract.md §4.6), with each worker's share."""
+    import itertools
+
+    from service.engine import load_sites
+    from service.pipeline.partition import Partition
+
+    if args.count < 1:
+        print("--count must be at least 1", file=sys.stderr)
+        return 2
+    ids = list(args.ids)
+    if args.sites:
+        ids += [s.radar_id for s in load_sites(args.sites)]
+    ids = sorted(set(ids))
+    if not ids:
+        print("give radar ids or --sites FILE", file=sys.stderr)
+        return 2
+    pairs = list(itertools.combinations(ids, 2))
+    for k in range(1, args.count + 1):
+        p = Partition(k, args.count)
+        radars = [i for i in ids if p.owns(i)]
+        owned = [f"{a}/{b}" for a, b in pairs if p.owns_pair(a, b)]
+        print(f"worker {k}/{args.count}: {len(radars)} radars, {len(owned)} of {len(pairs)} pairs")
+        print(f"  radars: {' '.join(radars) or '-'}")
+        print(f"  pairs:  {' '.join(owned) or '-'}")
+    return 0
 
 
 def config_main(args: argparse.Namespace) -> int:
@@ -489,6 +522,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return evaluate_main(args)
         if args.command == "schemas":
             return schemas_main(args)
+        if args.command == "partition":
+            return partition_main(args)
         if args.command == "config":
             return config_main(args)
         if args.command == "healthcheck":

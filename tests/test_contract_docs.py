@@ -581,7 +581,7 @@ def test_checks_catch_drift_in_the_contract(contract: str) -> None:
     assert http_problems(broken("`GET /healthz`", "`GET /health`"), routes, api)
     assert http_problems(broken("`GET /picture` | **planned**", "`GET /biases` | **planned**"), routes, api)
     assert settings_problems(broken("TOPOFUSION_HTTP_PORT", "TOPOFUSION_HTTP_PRT"))
-    assert settings_problems(broken("`TOPOFUSION_PARTITION` (**planned**)", "`TOPOFUSION_PARTITION`"))
+    assert settings_problems(broken("`TOPOFUSION_STATE_DIR` (**planned**)", "`TOPOFUSION_STATE_DIR`"))
     assert cli_problems(broken("`topofusion schemas`", "`topofusion schema`"))
     assert cli_problems(broken("`--http-port PORT`", "`--http-prt PORT`"))
     assert method_problems(broken("`gmm`, `cfar`.", "`gmm2`, `cfar`."))
