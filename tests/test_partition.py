@@ -7,6 +7,8 @@ import hashlib
 import itertools
 import json
 import random
+import subprocess
+import sys
 from collections import defaultdict
 from pathlib import Path
 
@@ -302,3 +304,18 @@ def test_fast_states_decoder_agrees_with_the_model(name: str, body: object) -> N
         fast_ok = False
     assert fast_ok == model_ok, name
     assert model_ok == (name == "valid")
+
+
+def test_partition_command_prints_the_assignment_the_workers_use() -> None:
+    ids = [f"R{i}" for i in range(7)]
+    exe = str(Path(sys.executable).parent / "topofusion")
+    out = subprocess.run([exe, "partition", "--count", "3", *ids], capture_output=True, text=True, check=True)
+    blocks = out.stdout.split("worker ")[1:]
+    assert len(blocks) == 3
+    for k, block in enumerate(blocks, start=1):
+        radars = block.split("radars:")[1].split("\n")[0].split()
+        pairs = block.split("pairs:")[1].split()
+        p = Partition(k, 3)
+        assert radars == [i for i in ids if p.owns(i)] or (radars == ["-"] and not any(map(p.owns, ids)))
+        want = [f"{a}/{b}" for a, b in itertools.combinations(ids, 2) if p.owns_pair(a, b)]
+        assert pairs == want or (pairs == ["-"] and not want)
