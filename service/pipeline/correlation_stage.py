@@ -224,6 +224,8 @@ class CorrelationStage:
             self.correlation_params.registration,
             prune=False,  # pruned for the times it is solved at (its rows may be far ahead)
         )
+        # ... but never beyond the row cap, whatever a peer sends between two solves
+        mirror.memory.prune(-np.inf, self.correlation_params.registration)
 
     def _partners(self, radar_id: str) -> list[Source]:
         """Every other radar and every live reference source, in id order."""
