@@ -301,6 +301,8 @@ class Engine:
             self.tracking.drop(sid)
             self.plots.pop(sid, None)
             self.correlation.forget(sid)
+            self.sender.forget(sid)
+            self.receiver.forget(sid)
 
     def _admit_plots(self, radar_id: str, payload: bytes) -> None:
         batch: PlotBatch = _parse(PlotBatch, payload, radar_id)
@@ -383,12 +385,9 @@ class Engine:
     def progress(self) -> dict[str, Any]:
         """Partitioned: how far this worker has got (``/status`` ``partition.progress``)."""
 
-        def finite(x: float) -> float | None:
-            return float(x) if np.isfinite(x) else None
-
         return {
-            "released_s": finite(self.sequencer.last_limit),
-            "merged_s": finite(self.merger.last_limit),
+            "released_s": _finite(self.sequencer.last_limit),
+            "merged_s": _finite(self.merger.last_limit),
             "held": len(self.merger),
             "state_gaps": sum(self.receiver.gaps.values()),
             "waiting_for": sorted(
@@ -432,9 +431,6 @@ class Engine:
         released and correlated, :class:`~service.pipeline.merger.TableMerger`) and its radars'
         data clocks (the network watermark, :meth:`Sequencer.observe`)."""
 
-        def finite(x: float) -> float | None:
-            return float(x) if np.isfinite(x) else None
-
         merged = self.merger.last_limit
         correlated = (
             self.correlation.correlated_through(merged)
@@ -443,8 +439,8 @@ class Engine:
         )
         progress = {
             "partition": str(self.partition),
-            "released_s": finite(self.sequencer.last_limit),
-            "correlated_s": finite(correlated),
+            "released_s": _finite(self.sequencer.last_limit),
+            "correlated_s": _finite(correlated),
         }
         clocks = {
             "partition": str(self.partition),

@@ -91,7 +91,7 @@ def changed_rows(old: TrackTable, new: TrackTable) -> tuple[np.ndarray, np.ndarr
 
 
 def states_body(
-    radar_id: str, seq: int, time_s: float, table: TrackTable, full: bool, removed: np.ndarray
+    radar_id: str, seq: int, time_s: float, table: TrackTable, full: bool, removed: np.ndarray, count: int
 ) -> dict[str, Any]:
     """The ``TrackStates`` payload of ``table``'s rows (numpy columns: encoded as they are)."""
     n = len(table)
@@ -112,7 +112,7 @@ def states_body(
         "seq": seq,
         "time_s": time_s,
         "full": full,
-        "count": None,  # filled by the sender
+        "count": count,
         "removed": removed.tolist(),
         "tracks": columns,
     }
@@ -241,13 +241,12 @@ class StatesSender:
         full = last is None or not (last[2] <= time_s < last[2] + self.params.full_interval_s)
         seq = 1 if last is None else last[0] + 1
         if full or last is None:
-            body = states_body(radar_id, seq, time_s, table, True, np.empty(0, dtype=str))
+            body = states_body(radar_id, seq, time_s, table, True, np.empty(0, dtype=str), len(table))
             full_s = time_s
         else:
             changed, removed = changed_rows(last[1], table)
-            body = states_body(radar_id, seq, time_s, table.take(changed), False, removed)
+            body = states_body(radar_id, seq, time_s, table.take(changed), False, removed, len(table))
             full_s = last[2]
-        body["count"] = len(table)
         self._sent[radar_id] = (seq, table, full_s)
         return body
 
@@ -281,10 +280,6 @@ class StatesReceiver:
             return None
         self._tables[msg.radar_id] = (msg.seq, table, msg.time_s)
         return table
-
-    def table(self, radar_id: str) -> TrackTable | None:
-        held = self._tables.get(radar_id)
-        return held[1] if held else None
 
     def latest(self, radar_id: str) -> tuple[float, TrackTable]:
         """The data time and table of the last message applied (an empty table if none)."""
