@@ -7,6 +7,20 @@ candidates are taken as they are).  An assigned pair is then declared *ambiguous
 decision) when another accepted candidate of either of its tracks costs less than
 ``margin`` more -- a likelihood ratio of ``exp(margin / 2)`` for chi-square costs.  This is
 what keeps the false-correlation rate low for targets closer than the radars can resolve.
+
+With ``unmatched_cost`` given (the *joint* rule) the margin is measured between the chosen
+assignment and the best alternative *assignment* that contains the rival, not the rival pair
+alone: taking rival ``(x, y)`` breaks the assigned pairs ``(x, px)`` and ``(py, y)``, whose
+tracks ``py`` and ``px`` are then either paired with each other (when that is a candidate)
+or left unmatched, each lost match costing ``unmatched_cost``::
+
+    regret(x, y) = c_xy + min(c_{py,px}, unmatched_cost) - c_{x,px} - c_{py,y}
+
+(terms of pairs that do not exist dropped).  Each broken pair's margin is the smallest regret
+of the alternatives that break it.  For chi-square costs this is the log-likelihood ratio
+(times two) between the two joint hypotheses, so two close targets whose two pairings are
+each only somewhat better than the crossed ones are resolved by the sum of both differences
+(the single-pair rule saw one).  Alternatives changing more than two pairs are not looked at.
 """
 
 from __future__ import annotations
@@ -41,12 +55,59 @@ def _second_best(keys: IntArray, cost: FloatArray) -> tuple[FloatArray, FloatArr
     return best, second
 
 
+def _joint_regret(
+    ia: IntArray, ib: IntArray, c: FloatArray, assigned: BoolArray, unmatched_cost: float
+) -> FloatArray:
+    """Per candidate: the smallest regret (module docstring) of an alternative breaking it (inf
+    for candidates not assigned, or assigned without a rival)."""
+    n = ia.shape[0]
+    regret = np.full(n, np.inf)
+    if n == 0:
+        return regret
+    na = int(ia.max()) + 1
+    nb = int(ib.max()) + 1
+    pair_of_a = np.full(na, -1, dtype=np.intp)  # the assigned candidate of each A row
+    pair_of_b = np.full(nb, -1, dtype=np.intp)
+    sel = np.flatnonzero(assigned)
+    pair_of_a[ia[sel]] = sel
+    pair_of_b[ib[sel]] = sel
+    riv = np.flatnonzero(~assigned)
+    if riv.size == 0:
+        return regret
+    x, y = ia[riv], ib[riv]
+    kx = pair_of_a[x]  # assigned pair (x, px), -1 if none
+    ky = pair_of_b[y]  # assigned pair (py, y)
+    cx = np.where(kx >= 0, c[np.maximum(kx, 0)], 0.0)
+    cy = np.where(ky >= 0, c[np.maximum(ky, 0)], 0.0)
+    # Re-pairing py with px: the cost of that candidate if it is one (a sparse lookup).
+    both = (kx >= 0) & (ky >= 0)
+    repair = np.full(riv.size, np.inf)
+    if both.any():
+        order = np.lexsort((ib, ia))
+        keys = ia[order].astype(np.int64) * nb + ib[order]
+        want = ia[ky[both]].astype(np.int64) * nb + ib[kx[both]]
+        pos = np.minimum(np.searchsorted(keys, want), n - 1)
+        found = keys[pos] == want
+        repair[np.flatnonzero(both)] = np.where(found, c[order[pos]], np.inf)
+    rest = np.where(both, np.minimum(repair, unmatched_cost), 0.0)
+    r = c[riv] + rest - cx - cy
+    np.minimum.at(regret, kx[kx >= 0], r[kx >= 0])
+    np.minimum.at(regret, ky[ky >= 0], r[ky >= 0])
+    return regret
+
+
 def assign_unambiguous(
-    index_a: IntArray, index_b: IntArray, cost: FloatArray, accepted: BoolArray, margin: float
+    index_a: IntArray,
+    index_b: IntArray,
+    cost: FloatArray,
+    accepted: BoolArray,
+    margin: float,
+    unmatched_cost: float | None = None,
 ) -> tuple[BoolArray, BoolArray]:
     """Return ``(chosen, ambiguous)`` masks over the candidates.
 
     ``chosen``: the one-to-one assignment among accepted candidates minus the ambiguous ones.
+    ``unmatched_cost``: None, the single-pair margin; else the joint rule (module docstring).
     """
     n = index_a.shape[0]
     chosen = np.zeros(n, dtype=bool)
@@ -70,11 +131,14 @@ def assign_unambiguous(
         sel = np.zeros((ra.size, rb.size), dtype=bool)
         sel[r_idx[hit], c_idx[hit]] = True
         assigned[multi] = sel[rows, cols]
-    best_a, second_a = _second_best(ia, c)
-    best_b, second_b = _second_best(ib, c)
-    rival_a = np.where(c <= best_a, second_a, best_a)
-    rival_b = np.where(c <= best_b, second_b, best_b)
-    amb = assigned & ((rival_a - c < margin) | (rival_b - c < margin))
+    if unmatched_cost is not None:
+        amb = assigned & (_joint_regret(ia, ib, c, assigned, unmatched_cost) < margin)
+    else:
+        best_a, second_a = _second_best(ia, c)
+        best_b, second_b = _second_best(ib, c)
+        rival_a = np.where(c <= best_a, second_a, best_a)
+        rival_b = np.where(c <= best_b, second_b, best_b)
+        amb = assigned & ((rival_a - c < margin) | (rival_b - c < margin))
     chosen[acc] = assigned & ~amb
     ambiguous[acc] = amb
     return chosen, ambiguous

@@ -42,7 +42,20 @@ class Reason(IntEnum):
     UNEQUAL_LENGTH = 9  # no decision: sequences of unequal length (basic method)
     AMBIGUOUS = 10  # no decision: a competitor within the ambiguity margin
     NOT_ASSIGNED = 11  # accepted but lost the one-to-one assignment
+    HISTORY = 12  # rejected: the pair's accumulated evidence fails its test (:mod:`.evidence`)
 
+
+class Basis(IntEnum):
+    """What a pair's latest decision rested on (the wire's ``Pair.basis``; -1: none given)."""
+
+    TOPOLOGY = 0  # the topology-sequence match of one update (before registration)
+    REGISTERED = 1  # the bias-compensated chi-square of one update (once registered)
+    HISTORY = 2  # the accumulated evidence of the pair's history (:mod:`.evidence`)
+    REFERENCE = 3  # a bias-free reference source's report (AIS, ADS-B)
+
+
+#: The wire's words for :class:`Basis` (a test holds them equal to the contract's).
+BASIS_NAMES: tuple[str, ...] = tuple(b.name.lower() for b in Basis)
 
 #: Reasons meaning "could not decide" rather than "decided: not the same target".
 NO_DECISION_REASONS = np.array(
@@ -95,6 +108,9 @@ class Decisions:
     ``cost`` orders accepted candidates for the one-to-one assignment (lower is better,
     roughly a chi-square excess); ``statistic`` is the method's test statistic (for
     ``svd-topology`` the F statistic, chi-square over its degrees of freedom).
+    ``residual`` ``(n, 3)``, ``residual_cov`` ``(n, 3, 3)``: the position residual the decision
+    tested, in B's ENU frame, with its covariance (NaN where the method computed none); the
+    history evidence (:mod:`.evidence`) accumulates them.
     """
 
     index_a: IntArray
@@ -106,6 +122,8 @@ class Decisions:
     rotation_weight: FloatArray
     scale: FloatArray
     neighbors: NDArray[np.int64]
+    residual: FloatArray
+    residual_cov: FloatArray
     extras: dict[str, FloatArray] = field(default_factory=dict)
 
     def __len__(self) -> int:
@@ -126,6 +144,8 @@ class Decisions:
         rotation_weight: FloatArray | None = None,
         scale: FloatArray | None = None,
         neighbors: NDArray[np.int64] | None = None,
+        residual: FloatArray | None = None,
+        residual_cov: FloatArray | None = None,
     ) -> Decisions:
         n = int(index_a.shape[0])
         return Decisions(
@@ -138,6 +158,8 @@ class Decisions:
             np.full(n, np.nan) if rotation_weight is None else rotation_weight,
             np.full(n, np.nan) if scale is None else scale,
             np.zeros(n, dtype=np.int64) if neighbors is None else neighbors.astype(np.int64),
+            np.full((n, 3), np.nan) if residual is None else residual,
+            np.full((n, 3, 3), np.nan) if residual_cov is None else residual_cov,
         )
 
     @staticmethod
@@ -164,6 +186,8 @@ class Decisions:
             self.rotation_weight[index],
             self.scale[index],
             self.neighbors[index],
+            self.residual[index],
+            self.residual_cov[index],
             {k: v[index] for k, v in self.extras.items()},
         )
 

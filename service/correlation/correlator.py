@@ -44,12 +44,14 @@ from typing import Protocol
 import numpy as np
 
 from service.correlation.assignment import assign_unambiguous
-from service.correlation.base import Correlator, DecisionContext, Decisions
+from service.correlation.base import Basis, Correlator, DecisionContext, Decisions, Reason, TrackSnapshot
 from service.correlation.basic_topology import BasicTopologyCorrelator, BasicTopologyParams
 from service.correlation.cfar import CfarParams
+from service.correlation.evidence import EvidenceBook, EvidenceParams, registered_residuals
 from service.correlation.external import CfarCorrelator, GmmCorrelator
 from service.correlation.gmm import GmmParams
 from service.correlation.nearest import NearestCorrelator, NearestParams
+from service.correlation.pairkeys import find, pair_keys
 from service.correlation.pairs import PairBook, PairBookParams, PairState
 from service.correlation.prediction import PredictionParams, predict_snapshot
 from service.correlation.registration import (
@@ -79,8 +81,14 @@ class CorrelationParams:
     nearest: NearestParams = field(default_factory=NearestParams)
     gmm: GmmParams = field(default_factory=GmmParams)
     cfar: CfarParams = field(default_factory=CfarParams)
+    #: The sequential test over each candidate pair's history (``svd-topology``).
+    evidence: EvidenceParams = field(default_factory=EvidenceParams)
     #: Ambiguity margin of the one-to-one assignment (chi-square units; 6 ~ likelihood ratio 20).
     ambiguity_margin: float = 6.0
+    #: Ambiguity between joint assignments (None: between single pairs), see
+    #: :mod:`.assignment`: what losing one match costs, in chi-square units (8.3 = the
+    #: excess of a pair at the 1 % tail of 3 dof, ``EvidenceParams.null_chi2 - 3``).
+    unmatched_cost: float | None = 8.3
     #: Cost bonus for a candidate that is a currently confirmed pair (hysteresis from history).
     confirmed_bonus: float = 3.0
     #: Bias-compensate before deciding once registered (svd-topology only).
@@ -150,6 +158,12 @@ class PairCorrelator:
         self.site_a = site_a
         self.site_b = site_b
         self.book = PairBook(self.params.book)
+        #: Evidence over the candidate pairs' history (None: the method gives no residuals).
+        self.evidence = (
+            EvidenceBook(self.params.evidence)
+            if self.params.evidence.enabled and method == "svd-topology"
+            else None
+        )
         self.memory = RegistrationMemory(site_a, site_b)
         #: The rows the last update added to the memory (None: none).
         self.last_rows: RegistrationRowsData | None = None
@@ -179,12 +193,20 @@ class PairCorrelator:
         raw_b = predict_snapshot(tracks_b, self.site_b, time_s, prm.prediction)
         a, b = raw_a, raw_b
         ctx_kw: dict[str, object] = {}
-        if self.registered and self.solution is not None:
+        registered = self.registered
+        if registered and self.solution is not None:
             ba, pa = self.solution.of(self.site_a.site_id)
             bb, pb = self.solution.of(self.site_b.site_id if self.site_b else None)
             a, extra_a = compensate(raw_a, ba, pa)
             b, extra_b = compensate(raw_b, bb, pb)
             ctx_kw = {"registered": True, "registration_cov_a": extra_a, "registration_cov_b": extra_b}
+        ev = self.evidence
+        if ev is not None and registered:
+            # Every candidate within the gate is one look at its pair (no censoring by the
+            # decisions); a known pair outside it is no hypothesis any more.
+            ia_e, ib_e, r, s_noise, s_common = registered_residuals(a, b, extra_a, extra_b, ev.params)
+            ev.observe(time_s, a.track_id[ia_e], b.track_id[ib_e], r, s_noise, s_common)
+            ev.prune(time_s, a.track_id, b.track_id, unobserved_present=True)
         conf = self.book.confirmed
         sorters = (np.argsort(a.track_id), np.argsort(b.track_id))  # the rows of a, b and raw_a, raw_b
         ca_idx, cb_idx = _lookup_pairs(
@@ -194,8 +216,19 @@ class PairCorrelator:
         parts = []
         kept = self.correlator.reverify(a, b, ca_idx, cb_idx, ctx)
         if kept is not None:
-            # Kept pairs are decided; only the other tracks are candidate references.
             kept = kept.take(kept.accepted)
+            if ev is not None:
+                # A kept pair must also pass its history and be the best hypothesis of both its
+                # tracks (``keep_margin``); else it is decided in full with the rest.
+                e = find(ev.keys, pair_keys(a.track_id[kept.index_a], b.track_id[kept.index_b]))
+                bad = e < 0
+                ok = ~bad
+                bad[ok] = ev.rejected()[e[ok]] | ev.rivals_better(e[ok], ev.params.keep_margin)
+                kept = kept.take(~bad)
+                e = e[~bad]
+                hist = ev.looks[e] >= ev.params.min_looks
+                kept.extras["basis"] = np.where(hist, float(Basis.HISTORY), float(Basis.REGISTERED))
+            # Kept pairs are decided; only the other tracks are candidate references.
             parts.append(kept)
             ctx = replace(
                 ctx,
@@ -203,7 +236,9 @@ class PairCorrelator:
                 reference_b=_other_rows(len(b), kept.index_b),
             )
         self.last_reverified = len(kept) if kept is not None else 0
-        decided = self.correlator.decide(a, b, ctx)
+        decided = self._with_history(self.correlator.decide(a, b, ctx), a, b, time_s, registered)
+        if ev is not None and not registered:
+            ev.prune(time_s, a.track_id, b.track_id)
         cost = decided.cost
         if len(decided) and len(ca_idx):
             # Confirmed pairs by row indices (those present in both snapshots).
@@ -211,7 +246,12 @@ class PairCorrelator:
             is_conf = np.isin(decided.index_a * nb + decided.index_b, ca_idx * nb + cb_idx)
             cost = np.where(is_conf, cost - prm.confirmed_bonus, cost)
         chosen, _ambiguous = assign_unambiguous(
-            decided.index_a, decided.index_b, cost, decided.accepted, prm.ambiguity_margin
+            decided.index_a,
+            decided.index_b,
+            cost,
+            decided.accepted,
+            prm.ambiguity_margin,
+            prm.unmatched_cost if self.evidence is not None else None,
         )
         # Kept pairs share no track with the decided candidates: the assignment would take
         # each of them as it is (no rival), so they are chosen without it.
@@ -227,7 +267,12 @@ class PairCorrelator:
             sel.rotation_weight,
             sel.scale,
             sel.neighbors,
+            np.nan_to_num(sel.extras["basis"], nan=-1.0).astype(np.int8) if "basis" in sel.extras else None,
         )
+        if ev is not None:
+            e = find(ev.keys, self.book.keys)
+            prob = np.append(ev.probability(), np.nan)  # index -1: no entry
+            self.book.cols["probability"] = prob[e]
         # Registration rows from the confirmed pairs (raw, uncompensated positions).
         conf = self.book.confirmed
         pa_idx, pb_idx = _lookup_pairs(
@@ -255,6 +300,61 @@ class PairCorrelator:
         self.time_s = time_s
         self.updates += 1
         self.last_update_ms = (time.perf_counter() - t0) * 1e3
+
+    def _basis(self, dec: Decisions) -> np.ndarray:
+        """Each decision's :class:`~.base.Basis` code (as float; NaN: none to give)."""
+        if self.site_b is None:
+            return np.full(len(dec), float(Basis.REFERENCE))
+        if "stage" in dec.extras:
+            return np.where(dec.extras["stage"] >= 2, float(Basis.REGISTERED), float(Basis.TOPOLOGY))
+        if self.method == "basic-topology":
+            return np.full(len(dec), float(Basis.TOPOLOGY))
+        return np.full(len(dec), np.nan)
+
+    def _with_history(
+        self, dec: Decisions, a: TrackSnapshot, b: TrackSnapshot, time_s: float, registered: bool
+    ) -> Decisions:
+        """The update's decisions with the history evidence (:mod:`.evidence`) applied.
+
+        Before registration the topology fits' translations are this update's looks (once
+        registered :meth:`update` has taken them already, for every candidate).  A candidate
+        with at least ``min_looks`` looks is rejected when its accumulated test fails, and
+        otherwise accepted (whatever this update's own test said) and enters the assignment with
+        the accumulated statistic's excess ``q - 3`` as its cost, so the ambiguity margin is
+        applied to the history's log-likelihood ratio.
+        """
+        basis = self._basis(dec)
+        ev = self.evidence
+        if ev is None or len(dec) == 0:
+            dec.extras["basis"] = basis
+            return dec
+        if not registered:
+            look = np.isfinite(dec.residual).all(axis=1) & np.isfinite(dec.residual_cov).all(axis=(1, 2))
+            ev.observe(
+                time_s,
+                a.track_id[dec.index_a[look]],
+                b.track_id[dec.index_b[look]],
+                dec.residual[look],
+                dec.residual_cov[look],
+            )
+        e = find(ev.keys, pair_keys(a.track_id[dec.index_a], b.track_id[dec.index_b]))
+        e0 = np.maximum(e, 0)
+        hist = (e >= 0) & (ev.looks[e0] >= ev.params.min_looks) if len(ev) else np.zeros(len(dec), bool)
+        passed = ~ev.rejected()[e0] if len(ev) else np.zeros(len(dec), bool)
+        # With enough history the accumulated test decides, whichever way this update's own
+        # test went: one noisy update neither makes nor breaks a pair.
+        accepted = np.where(hist, passed, dec.accepted & ev.params.accept_without_history)
+        reason = np.where(
+            hist, np.where(passed, np.int8(Reason.ACCEPTED), np.int8(Reason.HISTORY)), dec.reason
+        ).astype(np.int8)
+        use = hist & passed
+        return replace(
+            dec,
+            accepted=accepted,
+            reason=reason,
+            cost=np.where(use, ev.q_rel[e0] - 3.0 if len(ev) else 0.0, dec.cost),
+            extras={**dec.extras, "basis": np.where(use, float(Basis.HISTORY), basis)},
+        )
 
     def pairs(self) -> list[PairState]:
         """Current pair book sorted by (track_a, track_b)."""

@@ -13,7 +13,11 @@ update's chosen single decisions, a miss otherwise.
   is dropped after ``drop_misses`` consecutive misses (it "stops passing"), or at once when
   one of its tracks has vanished from the input.
 
-``score = hits in the window / window``.  Stored columnar (numpy), updated with set
+``hit_fraction = hits in the window / window`` drives the logic above.  The published
+``score`` is the pair's probability of being right from its accumulated evidence
+(:mod:`.evidence`, set by the caller in ``probability``) where the method gives one, the hit
+fraction otherwise.  ``basis`` records what the pair's latest hit rested on
+(:class:`~.base.Basis`, -1: not given).  Stored columnar (numpy), updated with set
 operations on string keys: no Python loop over pairs.
 """
 
@@ -25,7 +29,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
-from service.correlation.base import FloatArray
+from service.correlation.base import BASIS_NAMES, FloatArray
+from service.correlation.pairkeys import isin_sorted as _isin
+from service.correlation.pairkeys import pair_keys as _keys
 
 
 @dataclass(frozen=True)
@@ -55,24 +61,7 @@ class PairState:
     hits: int
     first_time_s: float
     last_time_s: float
-
-
-_SEP = "\x1f"
-
-
-def _keys(a: NDArray[np.str_], b: NDArray[np.str_]) -> NDArray[np.str_]:
-    return np.char.add(np.char.add(a.astype(str), _SEP), b.astype(str))
-
-
-def _isin(x: NDArray[np.str_], y: NDArray[np.str_]) -> NDArray[np.bool_]:
-    """``np.isin(x, y)`` for string arrays by one sort of ``y`` and a binary search (``np.isin``
-    sorts both sides and their union; this is the book's most frequent operation)."""
-    x, y = np.asarray(x), np.asarray(y)
-    if x.shape[0] == 0 or y.shape[0] == 0:
-        return np.zeros(x.shape[0], dtype=bool)
-    ys = np.sort(y)
-    pos = np.minimum(np.searchsorted(ys, x), ys.shape[0] - 1)
-    return np.asarray(ys[pos] == x)
+    basis: str | None = None
 
 
 def _popcount(x: NDArray[np.uint32]) -> NDArray[np.int64]:
@@ -82,7 +71,7 @@ def _popcount(x: NDArray[np.uint32]) -> NDArray[np.int64]:
 class PairBook:
     """Columnar M-of-N book for one radar pair."""
 
-    _float_cols = ("statistic", "rotation_weight", "scale", "first_time_s", "last_time_s")
+    _float_cols = ("statistic", "rotation_weight", "scale", "first_time_s", "last_time_s", "probability")
 
     def __init__(self, params: PairBookParams | None = None) -> None:
         self.params = params or PairBookParams()
@@ -96,6 +85,7 @@ class PairBook:
         self.misses = np.empty(0, dtype=np.int64)
         self.confirmed = np.empty(0, dtype=bool)
         self.neighbors = np.empty(0, dtype=np.int64)
+        self.basis = np.empty(0, dtype=np.int8)
         self.cols: dict[str, FloatArray] = {c: np.empty(0) for c in self._float_cols}
 
     def __len__(self) -> int:
@@ -103,6 +93,12 @@ class PairBook:
 
     @property
     def score(self) -> FloatArray:
+        """The published score: the evidence probability where set, else the hit fraction."""
+        p = self.cols["probability"]
+        return np.where(np.isfinite(p), p, self.hit_fraction)
+
+    @property
+    def hit_fraction(self) -> FloatArray:
         mask = np.uint32((1 << self.params.window) - 1) if self.params.window < 32 else np.uint32(0xFFFFFFFF)
         return _popcount(self.history & mask) / float(self.params.window)
 
@@ -115,6 +111,7 @@ class PairBook:
         self.misses = self.misses[keep]
         self.confirmed = self.confirmed[keep]
         self.neighbors = self.neighbors[keep]
+        self.basis = self.basis[keep]
         self.cols = {k: v[keep] for k, v in self.cols.items()}
 
     def update(
@@ -128,6 +125,7 @@ class PairBook:
         rotation_weight: FloatArray,
         scale: FloatArray,
         neighbors: NDArray[np.int64],
+        basis: NDArray[np.int8] | None = None,
     ) -> None:
         """Score one update: ``chosen_*`` are this update's one-to-one single decisions.
 
@@ -141,6 +139,7 @@ class PairBook:
         statistic = np.clip(np.asarray(statistic, dtype=float), -1e6, 1e6)
         rotation_weight = np.asarray(rotation_weight, dtype=float)
         scale = np.asarray(scale, dtype=float)
+        basis = np.full(len(chosen_a), -1, dtype=np.int8) if basis is None else basis.astype(np.int8)
         new_keys = _keys(chosen_a, chosen_b)
         # Book pairs among the chosen ones, and which chosen pair each is (one sort, one search).
         hit = np.zeros(len(self), dtype=bool)
@@ -161,6 +160,7 @@ class PairBook:
             self.cols["scale"][hit] = scale[src]
             self.cols["last_time_s"][hit] = time_s
             self.neighbors[hit] = neighbors[src]
+            self.basis[hit] = basis[src]
         # Append the new pairs: the chosen ones no book pair found (chosen pairs are one-to-one,
         # so their keys are unique).
         fresh = np.ones(len(new_keys), dtype=bool)
@@ -175,22 +175,24 @@ class PairBook:
             self.misses = np.concatenate([self.misses, np.zeros(nf, dtype=np.int64)])
             self.confirmed = np.concatenate([self.confirmed, np.zeros(nf, dtype=bool)])
             self.neighbors = np.concatenate([self.neighbors, neighbors[fresh].astype(np.int64)])
+            self.basis = np.concatenate([self.basis, basis[fresh]])
             add = {
                 "statistic": statistic[fresh],
                 "rotation_weight": rotation_weight[fresh],
                 "scale": scale[fresh],
                 "first_time_s": np.full(nf, time_s),
                 "last_time_s": np.full(nf, time_s),
+                "probability": np.full(nf, np.nan),
             }
             self.cols = {k: np.concatenate([v, add[k]]) for k, v in self.cols.items()}
         # Drop.
-        score = self.score
+        score = self.hit_fraction
         gone = ~_isin(self.track_a, present_a) | ~_isin(self.track_b, present_b)
         stale_tent = ~self.confirmed & (score <= 0)
         stale_conf = self.confirmed & (self.misses >= prm.drop_misses)
         self._keep(~(gone | stale_tent | stale_conf))
         # Confirm.
-        score = self.score
+        score = self.hit_fraction
         idx = np.flatnonzero(~self.confirmed & (score * prm.window >= prm.confirm_hits - 1e-9))
         if idx.size:  # (the busy test only for these: in a steady state they are few)
             busy_a = self.track_a[self.confirmed]
@@ -229,6 +231,7 @@ class PairBook:
                 hits=int(self.hits[i]),
                 first_time_s=float(self.cols["first_time_s"][i]),
                 last_time_s=float(self.cols["last_time_s"][i]),
+                basis=BASIS_NAMES[self.basis[i]] if self.basis[i] >= 0 else None,
             )
             for i in order
         ]

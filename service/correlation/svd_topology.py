@@ -179,6 +179,10 @@ class SvdMatchResult:
     scale: FloatArray
     yaw_rad: FloatArray
     matched: NDArray[np.int64]
+    #: The position test's translation ``t`` (Eq. 4; B's ENU orientation) and its covariance
+    #: ``S_ref``: the residual the history evidence accumulates (NaN without a fit).
+    translation: FloatArray
+    translation_cov: FloatArray
 
 
 def chi2_upper(alpha: float, dof: FloatArray | float) -> FloatArray:
@@ -478,6 +482,8 @@ def svd_match(
         scale=np.where(degenerate, np.nan, c),
         yaw_rad=np.where(degenerate, np.nan, yaw + prior_yaw_rad),
         matched=m.astype(np.int64),
+        translation=np.where(no_dec[:, None], np.nan, t),
+        translation_cov=np.where(no_dec[:, None, None], np.nan, s_0 + cov_t),
     )
 
 
@@ -488,7 +494,7 @@ def _join_results(parts: list[tuple[NDArray[np.intp], SvdMatchResult]], n: int) 
     cols = {}
     for name in SvdMatchResult.__dataclass_fields__:
         first = getattr(parts[0][1], name)
-        out = np.empty(n, dtype=first.dtype)
+        out = np.empty((n, *first.shape[1:]), dtype=first.dtype)
         for idx, r in parts:
             out[idx] = getattr(r, name)
         cols[name] = out
@@ -641,7 +647,7 @@ class SvdTopologyCorrelator(Correlator):
         res = _join_results(parts, len(sub))
 
         def full(x: np.ndarray, fill: float) -> np.ndarray:
-            out = np.full(n, fill, dtype=x.dtype)
+            out = np.full((n, *x.shape[1:]), fill, dtype=x.dtype)
             out[sub] = x
             return out
 
@@ -673,6 +679,8 @@ class SvdTopologyCorrelator(Correlator):
             rotation_weight=np.where(stage >= 2, np.nan, full(res.rotation_weight, np.nan)),
             scale=np.where(stage >= 2, np.nan, full(res.scale, np.nan)),
             neighbors=full(res.matched, 0),
+            residual=full(res.translation, np.nan),
+            residual_cov=full(res.translation_cov, np.nan),
         )
         dec.extras["stage"] = stage
         dec.extras["yaw_rad"] = full(res.yaw_rad, np.nan)

@@ -59,6 +59,7 @@ def test_api_contract() -> None:
         "hits",
         "first_time_s",
         "last_time_s",
+        "basis",
     ]
     assert [f.name for f in dataclasses.fields(RadarBias)] == [
         "radar_id",

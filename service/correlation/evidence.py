@@ -1,0 +1,289 @@
+"""Evidence accumulated over a candidate pair's common history (the sequential test).
+
+One snapshot cannot tell two close aircraft apart when their separation is comparable to the
+radars' cross-range error; their history can: each update gives a new, partly independent
+look at the difference of the two tracks, and a false pairing keeps the two aircraft's
+separation while a true one averages towards zero.  This module keeps, per *candidate* pair
+``(i, j)`` of one radar pair (not only the pairs of the book: a candidate the one-to-one
+assignment refused as ambiguous keeps collecting evidence), the running mean of its residual
+and tests that mean.
+
+**Residual.**  Per update ``k`` a 3-vector ``r_k`` in B's ENU frame with the covariance
+``S_k`` of its random part and ``C_k`` of a part common to every update (the registration's
+own uncertainty: it does not average out):
+
+* before registration, the topology match's translation ``t`` (SVD paper Eq. (4), position
+  test of :mod:`.svd_topology`): the A reference predicted from its matched neighbours minus
+  the B reference, which the common bias of the neighbourhood leaves out; ``S_k`` is the
+  test's ``S_ref``, ``C_k = 0``;
+* once registered, the bias-compensated difference ``x_A - x_B`` (Eq. (2) model removed, see
+  :func:`.registration.compensate`) with ``S_k = P_A + P_B`` and ``C_k`` the covariance the
+  bias estimate adds on both sides.
+
+**Accumulation** (per entry, data time; ``dt`` since the entry's previous observation)::
+
+    d = exp(-dt / horizon_s)                        forgetting of old evidence
+    rho = exp(-dt / error_correlation_s)            correlation of successive track errors
+    W' = d W + 1,  rbar' = (d W rbar + r_k) / W',  Sbar' = (d W Sbar + S_k) / W'
+    n' = d n + (1 - rho) / (1 + rho)                 (n = 1 at the first observation)
+
+``n`` is the effective number of independent looks: for residuals correlated by ``rho`` from
+update to update (a tracker's errors are, AR(1)), the mean of ``m`` of them has the variance
+of ``n = 1 + (m - 1)(1 - rho)/(1 + rho)`` independent ones (exact for ``m = 2``, within 2 %
+for ``rho <= 0.5`` and asymptotically), so the same evidence is not counted twice.
+
+**Test.**  ``q = rbar^T (Sbar / n + C)^-1 rbar`` is chi-square with 3 dof for a true pair (the
+mean of zero-mean Gaussian residuals with that covariance); a false pair's ``rbar`` tends to
+the two aircraft's separation ``s`` while the covariance shrinks towards ``C``, so its ``q``
+grows about as ``n s^T Sbar^-1 s``.  Between two rival pairings sharing a track the
+log-likelihood ratio is ``(q_2 - q_1) / 2`` (equal covariances), the quantity the one-to-one
+assignment's ambiguity margin is set on: a pair ambiguous on one snapshot is resolved once
+``n`` is large enough, and stays ambiguous while it is not.  A pair with
+``q > chi2_{3}(1 - alpha)`` is rejected whatever its single update said.
+
+**Probability** (the published ``score``).  The posterior of pair ``(i, j)`` among the live
+hypotheses of its two tracks, each weighted by its Gaussian likelihood ``exp(-q / 2)``, plus
+the hypothesis that the track's partner is not among them (weight ``exp(-null_chi2 / 2)``)::
+
+    p_ij = L_ij / (sum_{j'} L_ij' + sum_{i'} L_i'j - L_ij + L_0)
+
+then mapped by a logistic calibration ``sigmoid(calibration_slope * logit(p) +
+calibration_offset)`` whose two parameters are fitted on simulated formations (the dense
+study in ``docs/evaluation``) and checked there by a reliability diagram and the Brier score.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from service.correlation.base import FloatArray, IntArray, TrackSnapshot
+from service.correlation.candidates import candidate_pairs
+from service.correlation.linalg import congruence, inv3, quad3
+from service.correlation.pairkeys import find, isin_sorted, pair_keys
+from service.correlation.svd_topology import chi2_upper
+
+
+@dataclass(frozen=True)
+class EvidenceParams:
+    """The sequential test over a pair's history (every threshold named)."""
+
+    #: Accumulate evidence over the pairs' history (False: every update decides on its own).
+    enabled: bool = True
+    #: Correlation time (s) of a track's estimation error: successive residuals correlate by
+    #: ``exp(-dt / error_correlation_s)``.  A Kalman track with a 4-12 s revisit and gains of
+    #: 0.3-0.5 keeps most of an error for 2-3 revisits: 20 s.
+    error_correlation_s: float = 20.0
+    #: Memory (s): evidence older than this counts ``1/e`` as much (aircraft manoeuvre, a
+    #: tracker may swap two tracks: the recent past matters most).
+    horizon_s: float = 300.0
+    #: An entry not observed for this long is forgotten (data time).
+    forget_after_s: float = 120.0
+    #: False-rejection probability of the accumulated test (3 dof); a pair beyond it is rejected.
+    alpha: float = 1e-3
+    #: Looks (updates that observed the pair) from which its accumulated test decides it and its
+    #: accumulated statistic is its cost in the one-to-one assignment (module docstring).
+    min_looks: int = 2
+    #: A confirmed pair is kept without a full decision only while no rival of either of its
+    #: tracks has an accumulated chi-square lower by more than this (0: it must be the best).
+    keep_margin: float = 0.0
+    #: Whether a candidate with fewer looks than ``min_looks`` may be accepted on its single
+    #: update's test (True) or must wait for its history (False).
+    accept_without_history: bool = False
+    #: Once registered, every pair of tracks closer than this (m, compensated ECEF) is looked
+    #: at on every update (a true pair's compensated difference is a few hundred metres).
+    registered_search_m: float = 5_000.0
+    #: ... and those whose compensated single-update chi-square (3 dof) exceeds this are no
+    #: hypotheses at all (99.999 %): their entry is removed.
+    registered_gate_chi2: float = 25.9
+    #: The "partner not among the candidates" hypothesis weighs as much as a pair at this
+    #: accumulated chi-square (3 dof; 11.3 = 1 % tail).
+    null_chi2: float = 11.3
+    #: Logistic calibration of the posterior (see the module docstring).
+    calibration_slope: float = 1.0
+    calibration_offset: float = 0.0
+
+
+def registered_residuals(
+    a: TrackSnapshot, b: TrackSnapshot, extra_a: FloatArray, extra_b: FloatArray, params: EvidenceParams
+) -> tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray]:
+    """The looks of one registered update: rows ``(ia, ib)`` of the bias-compensated snapshots
+    within the search distance and the gate, their residual ``x_A - x_B`` and its random and
+    common covariances (``P_A + P_B``; the registration's ``extra_a + extra_b``), all in B's
+    ENU orientation (A's for a reference source B)."""
+    ia, ib, _ = candidate_pairs(a.position, b.position, params.registered_search_m)
+    site = b.site if b.site is not None else a.site
+    rot = np.eye(3) if site is None else site.rotation  # ENU -> ECEF; its transpose back
+    r = (a.position[ia] - b.position[ib]) @ rot
+    s_noise = congruence(rot.T, a.pos_cov[ia] + b.pos_cov[ib])
+    s_common = congruence(rot.T, extra_a[ia] + extra_b[ib])
+    s_inv, ok = inv3(s_noise + s_common)
+    keep = ok & (quad3(r, s_inv) <= params.registered_gate_chi2)
+    return ia[keep], ib[keep], r[keep], s_noise[keep], s_common[keep]
+
+
+def accumulated_chi2(rbar: FloatArray, sbar: FloatArray, n_eff: FloatArray, common: FloatArray) -> FloatArray:
+    """``q = rbar^T (Sbar / n + C)^-1 rbar`` per entry (NaN where the covariance is singular)."""
+    if len(rbar) == 0:
+        return np.empty(0)
+    s_inv, ok = inv3(sbar / n_eff[:, None, None] + common)
+    return np.where(ok, quad3(rbar, s_inv), np.nan)
+
+
+class EvidenceBook:
+    """Columnar evidence of one radar pair's candidate pairs (see the module docstring)."""
+
+    _columns = (
+        *("track_a", "track_b", "keys", "weight", "n_eff", "rbar", "sbar", "common", "last_time_s"),
+        *("looks", "q", "q_rel"),
+    )
+
+    def __init__(self, params: EvidenceParams | None = None) -> None:
+        self.params = params or EvidenceParams()
+        self.track_a = np.empty(0, dtype=str)
+        self.track_b = np.empty(0, dtype=str)
+        self.keys = np.empty(0, dtype=str)
+        self.weight = np.empty(0)
+        self.n_eff = np.empty(0)
+        self.rbar = np.empty((0, 3))
+        self.sbar = np.empty((0, 3, 3))
+        self.common = np.empty((0, 3, 3))
+        self.last_time_s = np.empty(0)
+        self.looks = np.empty(0, dtype=np.int64)
+        #: The accumulated chi-square of every entry, as of its last observation ...
+        self.q = np.empty(0)
+        #: ... and without the common part ``C``: for comparing rivals, whose residuals share
+        #: the registration's error (it cancels from their likelihood ratio).
+        self.q_rel = np.empty(0)
+
+    def __len__(self) -> int:
+        return int(self.keys.shape[0])
+
+    def _keep(self, keep: NDArray[np.bool_]) -> None:
+        for name in self._columns:
+            setattr(self, name, getattr(self, name)[keep])
+
+    def observe(
+        self,
+        time_s: float,
+        track_a: NDArray[np.str_],
+        track_b: NDArray[np.str_],
+        residual: FloatArray,
+        noise_cov: FloatArray,
+        common_cov: FloatArray | None = None,
+    ) -> NDArray[np.intp]:
+        """Add one update's residuals of the pairs ``(track_a[k], track_b[k])`` (unique pairs).
+
+        A pair already observed at ``time_s`` keeps its evidence (one look per update).
+        Returns each pair's entry index (valid until the next change of the book).
+        """
+        prm = self.params
+        n = len(track_a)
+        if n == 0:
+            return np.empty(0, dtype=np.intp)
+        common = np.zeros((n, 3, 3)) if common_cov is None else common_cov
+        keys = pair_keys(track_a, track_b)
+        idx = find(self.keys, keys)
+        old = idx >= 0
+        upd = old.copy()
+        upd[old] = self.last_time_s[idx[old]] < time_s
+        if upd.any():
+            e = idx[upd]
+            dt = time_s - self.last_time_s[e]
+            decay = np.exp(-dt / prm.horizon_s)
+            rho = np.exp(-dt / prm.error_correlation_s)
+            w_old = decay * self.weight[e]
+            w_new = w_old + 1.0
+            self.rbar[e] = (w_old[:, None] * self.rbar[e] + residual[upd]) / w_new[:, None]
+            self.sbar[e] = (w_old[:, None, None] * self.sbar[e] + noise_cov[upd]) / w_new[:, None, None]
+            self.weight[e] = w_new
+            self.n_eff[e] = decay * self.n_eff[e] + (1.0 - rho) / (1.0 + rho)
+            self.common[e] = common[upd]
+            self.last_time_s[e] = time_s
+            self.looks[e] += 1
+            self._refresh(e)
+        fresh = np.flatnonzero(~old)
+        if fresh.size:
+            start = len(self)
+            self.track_a = np.concatenate([self.track_a, np.asarray(track_a)[fresh].astype(str)])
+            self.track_b = np.concatenate([self.track_b, np.asarray(track_b)[fresh].astype(str)])
+            self.keys = np.concatenate([self.keys, keys[fresh]])
+            self.weight = np.concatenate([self.weight, np.ones(fresh.size)])
+            self.n_eff = np.concatenate([self.n_eff, np.ones(fresh.size)])
+            self.rbar = np.concatenate([self.rbar, residual[fresh]])
+            self.sbar = np.concatenate([self.sbar, noise_cov[fresh]])
+            self.common = np.concatenate([self.common, common[fresh]])
+            self.last_time_s = np.concatenate([self.last_time_s, np.full(fresh.size, time_s)])
+            self.looks = np.concatenate([self.looks, np.ones(fresh.size, dtype=np.int64)])
+            self.q = np.concatenate([self.q, np.full(fresh.size, np.nan)])
+            self.q_rel = np.concatenate([self.q_rel, np.full(fresh.size, np.nan)])
+            idx = idx.copy()
+            idx[fresh] = start + np.arange(fresh.size)
+            self._refresh(idx[fresh])
+        return idx
+
+    def _refresh(self, e: NDArray[np.intp]) -> None:
+        """Recompute the tests of entries ``e`` from their accumulated state."""
+        rbar, sbar, n_eff = self.rbar[e], self.sbar[e], self.n_eff[e]
+        self.q[e] = accumulated_chi2(rbar, sbar, n_eff, self.common[e])
+        self.q_rel[e] = accumulated_chi2(rbar, sbar, n_eff, np.zeros_like(sbar))
+
+    def prune(
+        self,
+        time_s: float,
+        present_a: NDArray[np.str_],
+        present_b: NDArray[np.str_],
+        unobserved_present: bool = False,
+    ) -> None:
+        """Forget entries whose track left, or not observed for ``forget_after_s``; with
+        ``unobserved_present`` also those not observed at ``time_s`` although both tracks are
+        present (once registered every candidate within the gate is observed: one that was
+        not has failed the gate, and is no hypothesis any more)."""
+        if len(self) == 0:
+            return
+        here = isin_sorted(self.track_a, present_a) & isin_sorted(self.track_b, present_b)
+        keep = here & (self.last_time_s >= time_s - self.params.forget_after_s)
+        if unobserved_present:
+            keep &= self.last_time_s >= time_s
+        if not keep.all():
+            self._keep(keep)
+
+    def rejected(self) -> NDArray[np.bool_]:
+        """Entries whose accumulated test fails at ``alpha`` (3 dof)."""
+        return np.asarray(self.q > chi2_upper(self.params.alpha, 3))
+
+    def probability(self) -> FloatArray:
+        """Each entry's calibrated posterior (module docstring), NaN where its test is undefined."""
+        prm = self.params
+        n = len(self)
+        if n == 0:
+            return np.empty(0)
+        q = np.where(np.isfinite(self.q_rel), self.q_rel, np.inf)
+        # Likelihoods relative to the null hypothesis: exp(-(q - q0)/2), clipped (no overflow).
+        lik = np.exp(-0.5 * np.clip(q - prm.null_chi2, -600.0, 600.0))
+        _, inv_a = np.unique(self.track_a, return_inverse=True)
+        _, inv_b = np.unique(self.track_b, return_inverse=True)
+        sum_a = np.bincount(inv_a, lik)[inv_a]
+        sum_b = np.bincount(inv_b, lik)[inv_b]
+        p = lik / (sum_a + sum_b - lik + 1.0)
+        p = np.clip(p, 1e-9, 1.0 - 1e-9)
+        z = prm.calibration_slope * np.log(p / (1.0 - p)) + prm.calibration_offset
+        out = 1.0 / (1.0 + np.exp(-z))
+        return np.where(np.isfinite(self.q), out, np.nan)
+
+    def rivals_better(self, entries: NDArray[np.intp], margin: float) -> NDArray[np.bool_]:
+        """For entries ``entries``: is there a rival (an entry sharing one of its tracks) whose
+        accumulated chi-square is lower by more than ``margin``?"""
+        if len(entries) == 0 or len(self) == 0:
+            return np.zeros(len(entries), dtype=bool)
+        q = np.where(np.isfinite(self.q_rel), self.q_rel, np.inf)
+        ua, inv_a = np.unique(self.track_a, return_inverse=True)
+        ub, inv_b = np.unique(self.track_b, return_inverse=True)
+        best_a = np.full(len(ua), np.inf)
+        np.minimum.at(best_a, inv_a, q)
+        best_b = np.full(len(ub), np.inf)
+        np.minimum.at(best_b, inv_b, q)
+        mine = q[entries]
+        return np.asarray((best_a[inv_a[entries]] < mine - margin) | (best_b[inv_b[entries]] < mine - margin))

@@ -1,0 +1,35 @@
+"""String keys of track pairs and the set operations the books do on them (numpy, no loops)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+#: Separates the two track ids of a key (a control character: no track id contains it).
+SEP = "\x1f"
+
+
+def pair_keys(a: NDArray[np.str_], b: NDArray[np.str_]) -> NDArray[np.str_]:
+    """One string key per pair ``(a[k], b[k])``."""
+    return np.char.add(np.char.add(np.asarray(a).astype(str), SEP), np.asarray(b).astype(str))
+
+
+def find(keys: NDArray[np.str_], query: NDArray[np.str_]) -> NDArray[np.intp]:
+    """Index of each ``query`` key in ``keys`` (unique), -1 where absent (one sort, one search)."""
+    if len(keys) == 0 or len(query) == 0:
+        return np.full(len(query), -1, dtype=np.intp)
+    order = np.argsort(keys)
+    pos = np.minimum(np.searchsorted(keys, query, sorter=order), len(keys) - 1)
+    idx = order[pos]
+    return np.where(keys[idx] == query, idx, -1).astype(np.intp)
+
+
+def isin_sorted(x: NDArray[np.str_], y: NDArray[np.str_]) -> NDArray[np.bool_]:
+    """``np.isin(x, y)`` for string arrays by one sort of ``y`` and a binary search (``np.isin``
+    sorts both sides and their union; this is the books' most frequent operation)."""
+    x, y = np.asarray(x), np.asarray(y)
+    if x.shape[0] == 0 or y.shape[0] == 0:
+        return np.zeros(x.shape[0], dtype=bool)
+    ys = np.sort(y)
+    pos = np.minimum(np.searchsorted(ys, x), ys.shape[0] - 1)
+    return np.asarray(ys[pos] == x)
