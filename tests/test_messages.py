@@ -140,3 +140,11 @@ def test_the_wire_names_the_methods_the_numerics_have() -> None:
     from service.wire.vocabulary import METHODS
 
     assert METHODS == REGISTERED
+
+
+def test_the_wire_names_the_pair_bases_the_numerics_have() -> None:
+    """``Pair.basis`` words (service/wire/vocabulary.py) are the correlator's ``Basis`` names."""
+    from service.correlation.base import BASIS_NAMES
+    from service.wire.vocabulary import PAIR_BASES
+
+    assert PAIR_BASES == BASIS_NAMES

@@ -68,6 +68,7 @@ class PairSetView:
             "score": book.score[order],
             "neighbors": book.neighbors[order],
             "hits": book.hits[order],
+            "basis": book.basis[order],
             **{k: v[order] for k, v in book.cols.items()},  # fancy indexing copies
         }
         n_conf = int(np.count_nonzero(cols["confirmed"]))

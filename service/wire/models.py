@@ -13,7 +13,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictInt, ValidationError, model_validator
 from pydantic_core import PydanticCustomError
 
-from service.wire.vocabulary import ID_PATTERN, RejectionReason
+from service.wire.vocabulary import ID_PATTERN, PairBasis, RejectionReason
 
 #: At most this many plots (or AIS reports) per batch.
 MAX_BATCH_ITEMS = 100_000
@@ -177,17 +177,32 @@ class Pair(OutModel):
     track_a: str
     track_b: str
     status: Literal["tentative", "confirmed"]
-    score: Annotated[float, Field(ge=0, le=1)]
+    score: Annotated[
+        float,
+        Field(
+            ge=0,
+            le=1,
+            description="probability that the pair is right, from its accumulated evidence "
+            "(svd-topology; calibrated on simulated data, docs/evaluation/dense.md); other methods: "
+            "the share of the last updates whose decision chose the pair",
+        ),
+    ]
     statistic: float | None = Field(description="test statistic of the method; null if none was computed")
     rotation_weight: float | None = Field(
         description="weight of the fitted rotation (SVD paper §1.5); null when the decision fitted no "
         "rotation (e.g. bias-compensated chi-square association of a track with too few neighbours)"
     )
     scale: float | None = Field(description="scale of the fitted similarity; null when none was fitted")
-    neighbors: int
+    neighbors: int = Field(description="neighbours matched by the topology fit; 0 when no fit was made")
     hits: int
     first_time_s: float
     last_time_s: float
+    basis: PairBasis | None = Field(
+        default=None,
+        description="what the latest decision rested on: the topology match of one update, the "
+        "bias-compensated test of one update once registered, the pair's accumulated history, or a "
+        "bias-free reference source; null when the method does not say",
+    )
 
 
 class PairSet(OutModel):

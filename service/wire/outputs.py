@@ -14,6 +14,8 @@ import numpy as np
 import orjson
 from numpy.typing import NDArray
 
+from service.wire.vocabulary import PAIR_BASES
+
 
 def encode(obj: object) -> bytes:
     """Compact JSON for the wire (orjson: about 10x the standard library on these payloads).
@@ -91,7 +93,8 @@ PAIR_NULLABLE = ("statistic", "rotation_weight", "scale")
 
 def pair_rows(c: dict[str, np.ndarray]) -> list[dict[str, Any]]:
     """``PairSet.pairs`` from a pair book's columns (``track_a``, ``track_b``, ``confirmed``,
-    ``score``, the nullable floats, ``neighbors``, ``hits``, ``first_time_s``, ``last_time_s``)."""
+    ``score``, the nullable floats, ``neighbors``, ``hits``, ``first_time_s``, ``last_time_s``,
+    ``basis``: the codes of ``PAIR_BASES``, -1 for none)."""
     state = np.where(c["confirmed"], "confirmed", "tentative").tolist()
     return [
         {
@@ -106,8 +109,9 @@ def pair_rows(c: dict[str, np.ndarray]) -> list[dict[str, Any]]:
             "hits": h,
             "first_time_s": t0,
             "last_time_s": t1,
+            "basis": PAIR_BASES[bs] if bs >= 0 else None,
         }
-        for a, b, st, sc, stat, rw, scale, nb, h, t0, t1 in zip(
+        for a, b, st, sc, stat, rw, scale, nb, h, t0, t1, bs in zip(
             c["track_a"].tolist(),
             c["track_b"].tolist(),
             state,
@@ -117,6 +121,7 @@ def pair_rows(c: dict[str, np.ndarray]) -> list[dict[str, Any]]:
             c["hits"].tolist(),
             c["first_time_s"].tolist(),
             c["last_time_s"].tolist(),
+            c["basis"].tolist(),
             strict=True,
         )
     ]

@@ -25,6 +25,12 @@ def is_source_id(value: str) -> bool:
 Method = Literal["svd-topology", "basic-topology", "nearest", "gmm", "cfar"]
 METHODS: tuple[str, ...] = get_args(Method)
 
+#: ``Pair.basis``: what a pair's latest decision rested on (the topology match of one update,
+#: the bias-compensated test of one update once registered, the accumulated evidence of the
+#: pair's history, a bias-free reference source).
+PairBasis = Literal["topology", "registered", "history", "reference"]
+PAIR_BASES: tuple[str, ...] = get_args(PairBasis)
+
 #: ``Rejection.reason`` (contract §1).
 RejectionReason = Literal[
     "malformed_json",
