@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
-from topofusion_lab.scenarios.simulator import AisSpec, RadarSpec, Scenario
+from topofusion_lab.scenarios.simulator import AisSpec, FormationSpec, RadarSpec, Scenario
 
 # Two radars ~200 km apart (SVD paper, Section 3: random errors 200 m / 0.2 deg, systematic
 # errors 100 m / 0.1 deg); targets over the common area between them.
@@ -66,6 +66,74 @@ def _national_radars() -> tuple[RadarSpec, ...]:
             )
         )
     return tuple(out)
+
+
+def _offset(lat0: float, lon0: float, east_m: float, north_m: float) -> tuple[float, float]:
+    """The point ``east_m`` / ``north_m`` from ``(lat0, lon0)`` on a sphere (well under 1 km off
+    at a few hundred km; the sites are sent with the exact positions anyway)."""
+    lat = lat0 + north_m / 111_195.0
+    lon = lon0 + east_m / (111_195.0 * math.cos(math.radians(lat0)))
+    return round(lat, 5), round(lon, 5)
+
+
+# A tight formation seen by three en-route radars.  30 aircraft on a jittered 2 km lattice (6 x 5,
+# about 10 x 8 km, each moved up to 500 m along and across) fly together at 230 m/s, heading
+# 070, across the common coverage: 138 km in 10 min, centred on the scenario centre at half
+# time.  The radars stand 110-120 km from the centre on both sides of the track (A north, B
+# south, C north-north-east), so the ranges run from about 100 to 160 km.  Plot errors
+# 100-200 m / 0.12-0.2 deg (0.25-0.5 km across the line of sight); scans of 6-10 s.  Azimuth
+# biases of 0.3-0.4 deg (with range biases of 150-250 m) move each radar's picture 0.6-1 km,
+# and the signs make two radars' pictures of the formation 1.1-1.6 km apart (A-B, A-C) and
+# 0.5-1.3 km (B-C): about one lattice spacing, where the nearest aircraft of the other radar
+# is often the wrong one.  C, an older radar, detects with Pd 0.75.  ``FormationSpec.spacing_m``
+# and ``Scenario.targets`` are the knobs of a sweep
+# (``topofusion_lab.evaluation.formation_pipeline --spacing-m X --targets N``).
+_FORMATION_LAT, _FORMATION_LON = 50.0, 9.0
+#: Per radar: id, range from the centre m, bearing from the centre deg, range sigma m, azimuth
+#: sigma deg, scan period s, range bias m, azimuth bias deg, elevation bias deg, Pd.
+_FORMATION_RADARS = (
+    ("A", 110_000.0, 340.0, 100.0, 0.12, 8.0, 150.0, 0.30, 0.05, 0.95),
+    ("B", 120_000.0, 160.0, 150.0, 0.15, 10.0, -200.0, 0.40, -0.05, 0.92),
+    ("C", 115_000.0, 10.0, 200.0, 0.20, 6.0, 250.0, -0.35, 0.10, 0.75),
+)
+_FORMATION_HEADING_DEG, _FORMATION_SPEED_MPS, _FORMATION_DURATION_S = 70.0, 230.0, 600.0
+
+
+def _formation_radars() -> tuple[RadarSpec, ...]:
+    out = []
+    for rid, dist, bearing, rs, azs, period, rb, ab, eb, pd in _FORMATION_RADARS:
+        b = math.radians(bearing)
+        lat, lon = _offset(_FORMATION_LAT, _FORMATION_LON, dist * math.sin(b), dist * math.cos(b))
+        out.append(
+            RadarSpec(
+                rid,
+                lat,
+                lon,
+                range_sigma_m=rs,
+                azimuth_sigma_deg=azs,
+                scan_period_s=period,
+                range_bias_m=rb,
+                azimuth_bias_deg=ab,
+                elevation_bias_deg=eb,
+                pd=pd,
+                clutter_per_scan=20,
+                max_range_m=300_000.0,
+            )
+        )
+    return tuple(out)
+
+
+def _formation() -> FormationSpec:
+    half = _FORMATION_SPEED_MPS * _FORMATION_DURATION_S / 2.0  # centred at half time
+    h = math.radians(_FORMATION_HEADING_DEG)
+    return FormationSpec(
+        spacing_m=2_000.0,
+        jitter=0.25,
+        heading_deg=_FORMATION_HEADING_DEG,
+        speed_mps=_FORMATION_SPEED_MPS,
+        start_east_m=-half * math.sin(h),
+        start_north_m=-half * math.cos(h),
+    )
 
 
 SCENARIOS: dict[str, Scenario] = {
@@ -138,6 +206,20 @@ SCENARIOS: dict[str, Scenario] = {
         half_width_m=370_000.0,
         targets=1500,
         duration_s=600.0,
+    ),
+    "formation": Scenario(
+        name="formation",
+        description="3 en-route radars, 30 aircraft in formation 2 km apart, 0.3-0.4 deg "
+        "azimuth biases, one radar with Pd 0.75",
+        radars=_formation_radars(),
+        center_lat_deg=_FORMATION_LAT,
+        center_lon_deg=_FORMATION_LON,
+        half_width_m=150_000.0,  # holds the whole flight: no aircraft leaves the formation
+        targets=30,
+        speed_mps=(_FORMATION_SPEED_MPS, _FORMATION_SPEED_MPS),
+        altitude_m=(9_000.0, 10_000.0),
+        duration_s=_FORMATION_DURATION_S,
+        formation=_formation(),
     ),
 }
 #: The scenario of ``topofusion demo`` (runs until stopped).

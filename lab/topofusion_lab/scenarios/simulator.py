@@ -7,6 +7,9 @@ antenna turns clockwise from north once per ``scan_period_s``; a target at azimu
 seen at ``scan_start + az / 360 * period`` with probability ``pd``.  Its plot is the true polar
 position plus the radar's systematic bias plus Gaussian noise (the sigmas of its site).
 Uniform clutter is added per sector.  The scan is reported in ``sectors`` batches.
+
+A scenario with a ``formation`` (:class:`FormationSpec`) starts its targets together instead:
+on a jittered lattice around one point, all with one heading and speed (see there).
 """
 
 from __future__ import annotations
@@ -67,6 +70,31 @@ class AisSpec:
 
 
 @dataclass(frozen=True)
+class FormationSpec:
+    """All of a scenario's targets start as one formation: ``Scenario.targets`` aircraft on a
+    square lattice of ``spacing_m`` (rows of ``ceil(sqrt(N))`` abreast, across the heading, one
+    behind the other, the last row partly filled; the lattice centred on the formation's
+    centre), each moved by a uniform jitter of up to ``jitter`` x ``spacing_m`` along and
+    across; all fly
+    ``heading_deg`` (clockwise from north) at ``speed_mps``, at altitudes drawn from
+    ``Scenario.altitude_m``.  The formation's centre starts ``start_east_m`` / ``start_north_m``
+    from the scenario centre.  A target that leaves the area is replaced as ``Scenario.respawn``
+    says (no longer in formation): make the area hold the formation's whole flight.
+    """
+
+    spacing_m: float = 2_000.0
+    jitter: float = 0.25
+    heading_deg: float = 0.0
+    speed_mps: float = 230.0
+    start_east_m: float = 0.0
+    start_north_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (self.spacing_m > 0 and 0 <= self.jitter < 0.5):
+            raise ValueError(f"formation: spacing_m must be > 0 and jitter in [0, 0.5), not {self}")
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     description: str
@@ -97,6 +125,8 @@ class Scenario:
     #: random point inside the area would not do: targets born inside and not yet gone pile
     #: up towards the centre (national: +17 % in the inner quarter).
     respawn: Literal["edge", "uniform"] = "edge"
+    #: The targets start as one formation (``None``: each where and how ``_Targets`` draws it).
+    formation: FormationSpec | None = None
 
     def __post_init__(self) -> None:
         if self.respawn not in ("edge", "uniform"):
@@ -122,7 +152,32 @@ class _Targets:
         self.pos = np.zeros((n, 3))
         self.vel = np.zeros((n, 3))
         self.ids = np.empty(n, dtype=object)
-        self._spawn(np.arange(n), inside=True)
+        if sc.formation is None:
+            self._spawn(np.arange(n), inside=True)
+        else:
+            self._spawn_formation(sc.formation)
+
+    def _spawn_formation(self, f: FormationSpec) -> None:
+        """Every target in formation ``f`` (see :class:`FormationSpec`)."""
+        sc, rng, n = self.sc, self.rng, self.sc.targets
+        if n == 0:
+            return
+        cols = int(np.ceil(np.sqrt(n)))
+        rows = int(np.ceil(n / cols))
+        k = np.arange(n)
+        across = (k % cols - (cols - 1) / 2.0) * f.spacing_m
+        along = ((rows - 1) / 2.0 - k // cols) * f.spacing_m  # first row in front
+        along = along + rng.uniform(-f.jitter, f.jitter, n) * f.spacing_m
+        across = across + rng.uniform(-f.jitter, f.jitter, n) * f.spacing_m
+        h = np.radians(f.heading_deg)
+        ahead, right = np.array([np.sin(h), np.cos(h)]), np.array([np.cos(h), -np.sin(h)])
+        xy = np.array([f.start_east_m, f.start_north_m]) + along[:, None] * ahead + across[:, None] * right
+        self.pos[:, :2] = xy
+        self.pos[:, 2] = rng.uniform(*sc.altitude_m, n)
+        self.vel[:] = [f.speed_mps * ahead[0], f.speed_mps * ahead[1], 0.0]
+        for j in range(n):
+            self.count += 1
+            self.ids[j] = f"T{self.count}"
 
     def _spawn(self, idx: np.ndarray, inside: bool) -> None:
         sc, rng, k = self.sc, self.rng, len(idx)
