@@ -61,6 +61,7 @@ from scipy.spatial import cKDTree
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
+BoolArray = NDArray[np.bool_]
 
 _TINY = float(np.finfo(float).tiny)
 _EPS = float(np.finfo(float).eps)
@@ -126,6 +127,38 @@ class GmmParams:
     posterior_threshold: float = 0.5
     """Minimum posterior ``P(j | x_i)`` for ``C(i, j) = 1`` (Eq. (27))."""
 
+    sigma_floor_factor: float = 1.0
+    """Lower bound of the mixture variance from the tracks' own covariances, when the caller
+    gives them (``cov_a``, ``cov_b`` of :func:`gmm_associate`): ``sigma^2 >= factor * (mean
+    per-axis variance of A's tracks + that of B's)``, the spread the random errors alone give
+    the two tracks of one target.  The sigma^2 update of Eq. (25) is the mean squared distance
+    of each sample to the centroids it is given to; in a scene denser than the track errors
+    those are its *nearest* centroids, not its true ones, so the update shrinks sigma well
+    below the real track error (dense formation at 1.5 cross-range sigmas spacing: 140 m
+    against 265 m) and the posteriors of Eq. (21) become over-confident: false pairs then get
+    posteriors as high as true ones.  0 disables the floor."""
+
+    report_rivals: bool = True
+    """What the stream adapter (:class:`~service.correlation.external.GmmCorrelator`) hands the
+    one-to-one assignment.  True: every candidate of :func:`candidate_pairs` (the decisive
+    pairs of Eq. (27) and their rivals), each with cost ``-2 ln P``, so the assignment's
+    ambiguity margin (chi-square units) refuses a pair whose row or column holds a rival
+    within that likelihood ratio.  False: only the pairs of Eq. (27) as the paper decides them
+    (mutual maxima, always one-to-one: the margin never sees a rival)."""
+
+    candidate_gate_chi2: float = 13.8
+    """Squared distance to a fitted centroid over ``sigma^2`` up to which an A-B pair is a
+    candidate of the stream adapter even when its posterior is small (2 dof, 13.8 = 0.1 %
+    tail): a true pair stays in view of the caller on every update, whatever its rivals.  Such
+    a candidate is accepted only as described in :func:`candidate_pairs`."""
+
+    rival_posterior: float = 0.01
+    """Smallest posterior ``P(j | x_i)`` of a candidate handed on as a rival
+    (``report_rivals``).  A rival matters when its cost is within the margin ``m`` of the
+    chosen pair's, i.e. when its posterior is at least ``exp(-m / 2)`` (1/20 for ``m = 6``)
+    of a posterior above ``posterior_threshold``; 0.01 keeps every such rival for thresholds
+    down to 0.2."""
+
     min_spread_m: float = 1e-3
     """A track set whose points all lie within this distance (m) of each other per axis is
     degenerate (identical points): no decision."""
@@ -160,6 +193,11 @@ class GmmResult:
     """Final mixture standard deviation ``sigma`` in metres."""
     similarity: FloatArray = field(default_factory=lambda: np.empty((0, 0)))
     """Neighbourhood similarity matrix ``s_ij`` (M, N) of Eq. (10), for diagnostics."""
+    posterior_matrix: FloatArray = field(default_factory=lambda: np.empty((0, 0)))
+    """Final posteriors ``P(j | x_i)`` (M, N) of Eq. (21), row ``i`` = A-track; each row sums
+    to one minus the posterior of the outlier component."""
+    sigma_floor_m: float = 0.0
+    """The lower bound ``sigma`` was held to (``sigma_floor_factor``; 0: none)."""
 
     def __bool__(self) -> bool:
         return bool(self.index_a.size)
@@ -303,11 +341,71 @@ def _omega_floor(m: int, n: int, p: GmmParams) -> float:
     return p.omega_min
 
 
-def gmm_associate(pos_a: np.ndarray, pos_b: np.ndarray, params: GmmParams | None = None) -> GmmResult:
+def sigma_floor_m(cov_a: np.ndarray | None, cov_b: np.ndarray | None, params: GmmParams) -> float:
+    """The lower bound of the mixture's ``sigma`` (m) from the tracks' position covariances.
+
+    ``cov_a`` (M, d, d), ``cov_b`` (N, d, d) in the plane of the positions.  The relative
+    position of two tracks of one target has covariance ``P_a + P_b``; its mean variance per
+    axis over the tracks, ``(mean tr P_a + mean tr P_b) / d``, times ``sigma_floor_factor``, is
+    the variance the isotropic mixture of Eq. (13) may not go below.  0 when either is missing
+    or not finite (no floor).
+    """
+    if cov_a is None or cov_b is None or params.sigma_floor_factor <= 0.0:
+        return 0.0
+    ca, cb = np.asarray(cov_a, dtype=float), np.asarray(cov_b, dtype=float)
+    if ca.ndim != 3 or cb.ndim != 3 or ca.shape[0] == 0 or cb.shape[0] == 0:
+        return 0.0
+    dim = ca.shape[-1]
+    var = (np.trace(ca, axis1=1, axis2=2).mean() + np.trace(cb, axis1=1, axis2=2).mean()) / dim
+    if not np.isfinite(var) or var <= 0.0:
+        return 0.0
+    return float(np.sqrt(params.sigma_floor_factor * var))
+
+
+def candidate_pairs(
+    post: FloatArray, chi2: FloatArray, threshold: float, rival_floor: float, gate_chi2: float
+) -> tuple[IntArray, IntArray, BoolArray]:
+    """The candidates ``(i, j)`` handed to a one-to-one assignment, and which of them it may take.
+
+    ``post`` (M, N): posteriors ``P(j | x_i)`` of Eq. (21); ``chi2`` (M, N): squared distance
+    of A-track ``i`` to the fitted B centroid ``j`` over ``sigma^2``.
+
+    * Candidates: every ``(i, j)`` with ``P(j | x_i) > threshold`` (decisive, Eq. (27)), or
+      ``P(j | x_i) >= rival_floor``, or ``chi2 <= gate_chi2`` (a pair the fit does not rule
+      out, whatever its rivals: what an accumulation over updates needs to see).
+    * Accepted: the candidates in the row or the column of a decisive one -- the decisive
+      ones and their *rivals*.  Given costs ``-2 ln P``, an assignment with an ambiguity
+      margin then keeps a pair only when it beats every rival of its row and of its column by
+      that margin.  A rival itself is never kept (a decisive candidate of its row or column
+      costs less), nor is a candidate whose row and column hold no decisive one (the threshold
+      of Eq. (27)).
+
+    Row-major order.  Returns ``(index_a, index_b, accepted)``.
+    """
+    p = np.asarray(post, dtype=float)
+    if p.size == 0:
+        e = np.empty(0, dtype=np.intp)
+        return e, e.copy(), np.empty(0, dtype=bool)
+    strong = p > threshold
+    row, col = np.asarray(strong.any(axis=1)), np.asarray(strong.any(axis=0))
+    near: BoolArray = row[:, None] | col[None, :]
+    ia, ib = np.nonzero(strong | (p >= rival_floor) | (np.asarray(chi2) <= gate_chi2))
+    return ia.astype(np.intp), ib.astype(np.intp), near[ia, ib]
+
+
+def gmm_associate(
+    pos_a: np.ndarray,
+    pos_b: np.ndarray,
+    params: GmmParams | None = None,
+    cov_a: np.ndarray | None = None,
+    cov_b: np.ndarray | None = None,
+) -> GmmResult:
     """Associate radar A's tracks ``pos_a`` (M, d) with radar B's ``pos_b`` (N, d), d = 2 or 3.
 
     Both sets in metres in one local plane (or tangent frame) at one common time, each with its
-    own radar's systematic errors.  Degenerate inputs (fewer than 2 tracks on a side,
+    own radar's systematic errors.  ``cov_a`` (M, d, d) and ``cov_b`` (N, d, d): the tracks'
+    position covariances in the same plane, optional; given, they bound the mixture's sigma
+    from below (:func:`sigma_floor_m`).  Degenerate inputs (fewer than 2 tracks on a side,
     non-finite values, mismatched or unsupported dimensions, identical points) return an empty
     result whose ``reason`` says why; this function does not raise on data.
     """
@@ -341,6 +439,9 @@ def gmm_associate(pos_a: np.ndarray, pos_b: np.ndarray, params: GmmParams | None
     g = np.exp(-_sq_dist(y, y) / (2.0 * p.beta**2))
     w = np.zeros_like(y)
     sigma2 = float(np.sum(_sq_dist(x, y))) / (dim * m * n)  # CPD's initial sigma^2
+    floor_m = sigma_floor_m(cov_a, cov_b, p)
+    sigma2_lo = (floor_m / scale) ** 2
+    sigma2 = max(sigma2, sigma2_lo)
     omega_lo = _omega_floor(m, n, p)
     omega = float(np.clip(p.omega0, omega_lo, p.omega_max))
     sigma2_floor = 10.0 * _EPS
@@ -378,6 +479,7 @@ def gmm_associate(pos_a: np.ndarray, pos_b: np.ndarray, params: GmmParams | None
         # omega update, Eq. (25): omega_new = 1 - Np / M, smoothed by Eq. (26), alpha = 1/k.
         omega_new = 1.0 - n_p / m
         omega = float(np.clip(omega + (omega_new - omega) / k, omega_lo, p.omega_max))
+        sigma2 = max(sigma2, sigma2_lo)  # no tighter than the tracks' errors (sigma_floor_factor)
         if sigma2 <= sigma2_floor:
             sigma2 = sigma2_floor
             converged, reason = True, "converged (sigma collapsed: exact fit)"
@@ -407,4 +509,6 @@ def gmm_associate(pos_a: np.ndarray, pos_b: np.ndarray, params: GmmParams | None
         outlier_weight=omega,
         sigma_m=float(np.sqrt(sigma2)) * scale,
         similarity=sim,
+        posterior_matrix=pm,
+        sigma_floor_m=floor_m,
     )

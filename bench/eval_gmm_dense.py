@@ -1,0 +1,209 @@
+"""Dense-formation stream bench of the ``gmm`` and ``svd-topology`` correlators (evaluation only).
+
+A tight formation -- ``targets`` aircraft on a jittered square lattice, one heading, one speed,
+one flight level -- seen by two biased radars 200 km apart, fed scan by scan through
+:class:`service.correlation.PairCorrelator` exactly as the engine does.  The lattice spacing
+is ``ratio`` times the larger cross-range track error of the two radars at the formation
+(``track_noise_factor * azimuth sigma * range``, about 270 m here), so ``ratio`` 1 puts
+neighbours one cross-range sigma apart.  Track errors come from the lab's
+:class:`~topofusion_lab.evaluation.correlation_stream.RadarTrackSim` (systematic range /
+azimuth / elevation bias plus an AR(1) polar track error); azimuth biases are drawn with
+magnitudes uniform in 0.2-2 deg and random signs, range biases within +-500 m.  Radar A
+holds a track on a target with probability ``pd_a``, radar B (the one with the lower
+detection probability) with ``pd_b``, so some tracks have no counterpart.  ``truth_id`` is
+read for scoring only.
+
+Scores, per scan, of the pair book's *confirmed* pairs:
+
+* correct rate = correct confirmed pairs / common targets (confirmed tracks in both radars);
+* false rate = false confirmed pairs / confirmed pairs.
+
+Printed: means over the seeds of the late average (last half of the scans) and of the final
+scan.  Run::
+
+    .venv/bin/python bench/eval_gmm_dense.py [--seeds 5] [--ratios 1 1.5 2 3] [--targets 30]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from service.correlation import CorrelationParams, PairCorrelator
+from service.correlation.gmm import GmmParams
+from service.geo import Site
+from service.tracking.base import TrackTable
+from topofusion_lab.evaluation.correlation_scenario import make_sites
+from topofusion_lab.evaluation.correlation_stream import RadarBias, RadarTrackSim, StreamScenario
+
+
+@dataclass(frozen=True)
+class DenseScene:
+    """Numbers of one dense-formation stream."""
+
+    targets: int = 30
+    ratio: float = 1.5
+    """Lattice spacing / cross-range track error."""
+    jitter: float = 0.25
+    """Each aircraft is displaced uniformly within +-``jitter`` spacings per axis."""
+    centre_enu_m: tuple[float, float] = (100_000.0, 80_000.0)
+    """Formation centre in radar A's ENU frame (B is 200 km east: ~128 km from both)."""
+    altitude_m: float = 9_000.0
+    speed_mps: float = 220.0
+    scans: int = 40
+    pd_a: float = 0.95
+    pd_b: float = 0.75
+    azimuth_bias_deg: tuple[float, float] = (0.2, 2.0)
+    range_bias_m: float = 500.0
+    elevation_bias_deg: float = 0.1
+    stream: StreamScenario = field(default_factory=StreamScenario)
+
+
+def cross_range_sigma_m(scene: DenseScene, sites: tuple[Site, Site]) -> float:
+    """The larger of the two radars' cross-range track sigmas at the formation centre."""
+    a = sites[0]
+    centre = a.enu_to_ecef(np.array([*scene.centre_enu_m, scene.altitude_m]))
+    out = 0.0
+    for s in sites:
+        r, _, _ = s.ecef_to_polar(centre[None])
+        out = max(out, float(r[0]) * np.radians(s.azimuth_sigma_deg) * scene.stream.track_noise_factor)
+    return out
+
+
+def _bias(rng: np.random.Generator, scene: DenseScene) -> RadarBias:
+    sign = rng.choice([-1.0, 1.0], 3)
+    return RadarBias(
+        float(sign[0] * rng.uniform(0.0, scene.range_bias_m)),
+        float(sign[1] * rng.uniform(*scene.azimuth_bias_deg)),
+        float(sign[2] * rng.uniform(0.0, scene.elevation_bias_deg)),
+    )
+
+
+def make_formation(
+    rng: np.random.Generator, scene: DenseScene, spacing_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """ENU (radar A frame) positions and velocities of the formation's aircraft."""
+    n = scene.targets
+    cols = int(np.ceil(np.sqrt(n)))
+    k = np.arange(n)
+    grid = np.column_stack([k % cols, k // cols]).astype(float)
+    grid -= grid.mean(axis=0)
+    grid += rng.uniform(-scene.jitter, scene.jitter, grid.shape)
+    hdg = rng.uniform(0.0, 2.0 * np.pi)
+    c, s = np.cos(hdg), np.sin(hdg)
+    # Rows across the heading, columns along it.
+    xy = spacing_m * (grid @ np.array([[c, -s], [s, c]]).T) + np.array(scene.centre_enu_m)
+    pos = np.column_stack([xy, np.full(n, scene.altitude_m) + rng.uniform(-30.0, 30.0, n)])
+    vel = np.tile([scene.speed_mps * np.sin(hdg), scene.speed_mps * np.cos(hdg), 0.0], (n, 1))
+    return pos, vel
+
+
+Tables = list[tuple[TrackTable, TrackTable, float]]
+
+
+def make_tables(seed: int, scene: DenseScene) -> tuple[Tables, Site, Site]:
+    """The per-scan track tables of both radars (same for every method)."""
+    rng = np.random.default_rng(seed)
+    a, b = make_sites()
+    spacing = scene.ratio * cross_range_sigma_m(scene, (a, b))
+    pos0, vel = make_formation(rng, scene, spacing)
+    n = pos0.shape[0]
+    sc = scene.stream
+    ra = RadarTrackSim(rng, a, _bias(rng, scene), n, sc)
+    rb = RadarTrackSim(rng, b, _bias(rng, scene), n, sc)
+    held_a = {f"T{i}" for i in np.flatnonzero(rng.random(n) < scene.pd_a)}
+    held_b = {f"T{i}" for i in np.flatnonzero(rng.random(n) < scene.pd_b)}
+    tables = []
+    for k in range(scene.scans):
+        t0 = k * sc.scan_period_s
+        ta, tb = ra.table(a, pos0, vel, t0), rb.table(a, pos0, vel, t0)
+        ta = ta.take(np.flatnonzero([t in held_a for t in ta.truth_id]))
+        tb = tb.take(np.flatnonzero([t in held_b for t in tb.truth_id]))
+        tables.append((ta, tb, t0 + sc.scan_period_s))
+    return tables, a, b
+
+
+def score(corr: PairCorrelator, ta: TrackTable, tb: TrackTable) -> tuple[int, int, int]:
+    """(common targets, correct confirmed pairs, false confirmed pairs) after an update."""
+    truth_a = dict(zip(ta.track_id, ta.truth_id, strict=True))
+    truth_b = dict(zip(tb.track_id, tb.truth_id, strict=True))
+    conf_a = {truth_a[i] for i, c in zip(ta.track_id, ta.confirmed, strict=True) if c}
+    conf_b = {truth_b[i] for i, c in zip(tb.track_id, tb.confirmed, strict=True) if c}
+    ok = bad = 0
+    for p in corr.pairs():
+        if p.status == "confirmed":
+            if truth_a.get(p.track_a) == truth_b.get(p.track_b):
+                ok += 1
+            else:
+                bad += 1
+    return len(conf_a & conf_b), ok, bad
+
+
+def variants() -> dict[str, tuple[str, CorrelationParams]]:
+    """Label -> (method, params) compared by the bench."""
+    base = CorrelationParams()
+    paper = replace(GmmParams(), sigma_floor_factor=0.0, report_rivals=False)
+    return {
+        "gmm": ("gmm", base),
+        "gmm, as published (Eq. (27) pairs, EM sigma)": ("gmm", replace(base, gmm=paper)),
+        "svd-topology": ("svd-topology", base),
+    }
+
+
+def run(seed: int, scene: DenseScene, labels: list[str]) -> dict[str, np.ndarray]:
+    """Per label: rows (correct late, false late, correct final, false final, ms/update)."""
+    tables, a, b = make_tables(seed, scene)
+    late = max(1, scene.scans // 2)
+    out = {}
+    for label in labels:
+        method, params = variants()[label]
+        corr = PairCorrelator(method, a, b, params)
+        hist, ms = [], []
+        for ta, tb, t in tables:
+            corr.update(ta, tb, t)
+            ms.append(corr.last_update_ms)
+            hist.append(score(corr, ta, tb))
+        h = np.array(hist[-late:], dtype=float)
+        correct = h[:, 1] / np.maximum(h[:, 0], 1.0)
+        false = h[:, 2] / np.maximum(h[:, 1] + h[:, 2], 1.0)
+        out[label] = np.array([correct.mean(), false.mean(), correct[-1], false[-1], np.mean(ms)])
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seeds", type=int, default=5)
+    ap.add_argument("--first-seed", type=int, default=1)
+    ap.add_argument("--ratios", type=float, nargs="+", default=[1.0, 1.5, 2.0, 3.0])
+    ap.add_argument("--targets", type=int, default=30)
+    ap.add_argument("--scans", type=int, default=40)
+    ap.add_argument("--methods", nargs="+", default=list(variants()), choices=list(variants()))
+    args = ap.parse_args()
+    t0 = time.perf_counter()
+    a, b = make_sites()
+    print(
+        f"dense formation: {args.targets} aircraft, {args.scans} scans, seeds "
+        f"{args.first_seed}..{args.first_seed + args.seeds - 1}; cross-range track sigma "
+        f"{cross_range_sigma_m(DenseScene(), (a, b)):.0f} m; rates in % (late = last half of the scans)"
+    )
+    head = ("method", "ratio", "correct late", "false late", "correct final", "false final", "ms/update")
+    print(f"| {head[0]} | {' | '.join(head[1:])} |")
+    print("|---|" + "---:|" * (len(head) - 1))
+    for ratio in args.ratios:
+        scene = DenseScene(targets=args.targets, ratio=ratio, scans=args.scans)
+        rows = [run(s, scene, args.methods) for s in range(args.first_seed, args.first_seed + args.seeds)]
+        for label in args.methods:
+            m = np.mean([r[label] for r in rows], axis=0)
+            print(
+                f"| {label} | {ratio:g} | {100 * m[0]:.1f} | {100 * m[1]:.1f} | {100 * m[2]:.1f} | "
+                f"{100 * m[3]:.1f} | {m[4]:.1f} |",
+                flush=True,
+            )
+    print(f"({time.perf_counter() - t0:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()
