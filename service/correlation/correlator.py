@@ -46,10 +46,12 @@ import numpy as np
 from service.correlation.assignment import assign_unambiguous
 from service.correlation.base import Basis, Correlator, DecisionContext, Decisions, Reason, TrackSnapshot
 from service.correlation.basic_topology import BasicTopologyCorrelator, BasicTopologyParams
+from service.correlation.candidates import candidate_pairs
 from service.correlation.cfar import CfarParams
 from service.correlation.evidence import EvidenceBook, EvidenceParams, registered_residuals
 from service.correlation.external import CfarCorrelator, GmmCorrelator
 from service.correlation.gmm import GmmParams
+from service.correlation.group_offset import GroupOffsetParams, group_residuals
 from service.correlation.nearest import NearestCorrelator, NearestParams
 from service.correlation.pairkeys import find, pair_keys
 from service.correlation.pairs import PairBook, PairBookParams, PairState
@@ -83,6 +85,8 @@ class CorrelationParams:
     cfar: CfarParams = field(default_factory=CfarParams)
     #: The sequential test over each candidate pair's history (``svd-topology``).
     evidence: EvidenceParams = field(default_factory=EvidenceParams)
+    #: The local offset of a group of tracks, the looks before registration (``svd-topology``).
+    group: GroupOffsetParams = field(default_factory=GroupOffsetParams)
     #: Ambiguity margin of the one-to-one assignment (chi-square units; 6 ~ likelihood ratio 20).
     ambiguity_margin: float = 6.0
     #: Ambiguity between joint assignments (None: between single pairs), see
@@ -207,6 +211,12 @@ class PairCorrelator:
             ia_e, ib_e, r, s_noise, s_common = registered_residuals(a, b, extra_a, extra_b, ev.params)
             ev.observe(time_s, a.track_id[ia_e], b.track_id[ib_e], r, s_noise, s_common)
             ev.prune(time_s, a.track_id, b.track_id, unobserved_present=True)
+        elif ev is not None and prm.group.enabled:
+            # Before registration a reference inside a group is looked at against the group's
+            # local offset (the topology match's translations are the looks of the others).
+            gi, gj, _ = candidate_pairs(a.position, b.position, prm.svd.candidates.gate_m)
+            ok, r, s_noise, s_common = group_residuals(a, b, gi, gj, prm.group)
+            ev.observe(time_s, a.track_id[gi[ok]], b.track_id[gj[ok]], r, s_noise, s_common)
         conf = self.book.confirmed
         sorters = (np.argsort(a.track_id), np.argsort(b.track_id))  # the rows of a, b and raw_a, raw_b
         ca_idx, cb_idx = _lookup_pairs(

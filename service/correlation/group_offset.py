@@ -1,0 +1,130 @@
+"""The local offset of a group of tracks: what a formation gives before registration.
+
+In a formation (tens of aircraft a few hundred metres apart, one heading and speed) every
+reference's topology sequence looks like its neighbours': with the spacing comparable to the
+radars' cross-range error the neighbour pairing of the topology match (SVD paper Section 2
+step 2) cannot tell the lattice's elements apart, and nothing is decided.  The group as a
+whole still carries the registration: both radars see the same aircraft, displaced by the
+same local bias offset ``o`` (Eq. (2): the displacement varies with range and azimuth, by a
+few tens of metres over a group a few kilometres wide).
+
+For every candidate pair ``(i, j)`` the absolute difference ``D_ij = x_A,i - x_B,j`` (B's ENU
+orientation) is ``o + e_ij`` for the true pairs and ``o + (x_i - x_j) + e_ij`` for the others.
+Around each reference ``i`` the differences of the candidates of the *other* A tracks within
+``radius_m`` form a cloud whose densest point is ``o`` (the true pairs all sit there; the
+separations of the false ones are spread and, over a whole group, symmetric about it).  The
+offset ``o_i`` is found by mean shift with a Gaussian kernel over the horizontal
+differences, started at their mean and narrowed in ``bandwidths`` steps (multiples of the
+median relative noise), and the residual ``r_ij = D_ij - o_i`` with covariance ``P_A + P_B``
+is one look at the pair for the history evidence (:mod:`.evidence`); ``Cov(o_i)``, the
+kernel-weighted noise over the effective number of supporting candidates, is common to the
+pairs of the neighbourhood.  Leaving row ``i``'s own candidates out keeps a pair from
+supporting itself.  The translation-only model is the topology fit of Eq. (7) with the
+rotation and scale fixed at their prior (identity), over the whole neighbourhood and without
+element pairing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from service.correlation.base import FloatArray, IntArray, TrackSnapshot
+from service.correlation.linalg import congruence
+
+
+@dataclass(frozen=True)
+class GroupOffsetParams:
+    """The local-offset estimate of :mod:`.group_offset`."""
+
+    #: Use it (before registration, ``svd-topology``).
+    enabled: bool = True
+    #: Neighbourhood radius (m) around a reference whose other tracks' candidates vote.
+    radius_m: float = 5_000.0
+    #: Minimum other A tracks in the neighbourhood for an estimate (fewer: a formation is not
+    #: what the reference is in, and the topology match alone decides).
+    min_tracks: int = 4
+    #: Mean-shift kernel widths, in units of the median relative noise (coarse to fine).
+    bandwidths: tuple[float, ...] = (4.0, 2.0, 1.0, 1.0)
+    #: At most this many candidates vote in one neighbourhood (the nearest tracks' first):
+    #: bounds the work of a very dense picture.
+    max_votes: int = 4_000
+
+
+def group_residuals(
+    a: TrackSnapshot,
+    b: TrackSnapshot,
+    ia: IntArray,
+    ib: IntArray,
+    params: GroupOffsetParams,
+) -> tuple[NDArray[np.bool_], FloatArray, FloatArray, FloatArray]:
+    """Residuals of candidates ``(ia[k], ib[k])`` against their neighbourhood's offset.
+
+    Returns ``(ok, r, s_noise, s_common)``: which candidates got an estimate, and for those
+    the residual (B's ENU orientation; A's for a reference source B), its random covariance
+    and the offset's covariance (common to the neighbourhood).
+    """
+    n = len(ia)
+    ok = np.zeros(n, dtype=bool)
+    empty = (ok, np.empty((0, 3)), np.empty((0, 3, 3)), np.empty((0, 3, 3)))
+    if n == 0 or len(a) < params.min_tracks + 1:
+        return empty
+    site = b.site if b.site is not None else a.site
+    rot = np.eye(3) if site is None else site.rotation
+    d = (a.position[ia] - b.position[ib]) @ rot
+    s = congruence(rot.T, a.pos_cov[ia] + b.pos_cov[ib])
+    var_h = 0.5 * (s[:, 0, 0] + s[:, 1, 1])
+    # Votes: (reference row i, candidate c) with c's A track within radius of i, not i itself.
+    rows = np.unique(ia)
+    tree = cKDTree(a.position)
+    near = tree.sparse_distance_matrix(cKDTree(a.position[rows]), params.radius_m, output_type="ndarray")
+    k_track, i_ref = near["i"].astype(np.intp), rows[near["j"]]
+    keep = k_track != i_ref
+    k_track, i_ref = k_track[keep], i_ref[keep]
+    n_other = np.bincount(i_ref, minlength=len(a))
+    # Candidates by A track: c in [start[k], start[k + 1]) (ia is sorted by the gate).
+    order = np.argsort(ia, kind="stable")
+    counts = np.bincount(ia, minlength=len(a))
+    start = np.r_[0, np.cumsum(counts)]
+    cnt = counts[k_track]
+    vote_ref = np.repeat(i_ref, cnt)
+    offs = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    vote_c = order[np.repeat(start[k_track], cnt) + offs]
+    if vote_c.size == 0:
+        return empty
+    # Bound the work: at most max_votes per reference (votes of nearer tracks are not
+    # preferred; the cap only matters for pictures far denser than any formation).
+    by_ref = np.argsort(vote_ref, kind="stable")
+    vote_ref, vote_c = vote_ref[by_ref], vote_c[by_ref]
+    first = np.r_[0, np.flatnonzero(np.diff(vote_ref)) + 1]
+    rank = np.arange(vote_ref.size) - np.repeat(first, np.diff(np.r_[first, vote_ref.size]))
+    cap = rank < params.max_votes
+    vote_ref, vote_c = vote_ref[cap], vote_c[cap]
+    m = len(a)
+    # Mean shift per reference, all references at once (bincount over the votes).
+    w = np.ones(vote_c.size)
+    wsum = np.bincount(vote_ref, w, minlength=m)
+    off: FloatArray = np.stack([np.bincount(vote_ref, d[vote_c, k], minlength=m) for k in range(3)], 1)
+    off = off / np.maximum(wsum, 1e-300)[:, None]
+    scale = float(np.sqrt(np.median(var_h[vote_c]))) if vote_c.size else 1.0
+    for bw in params.bandwidths:
+        h2 = (bw * scale) ** 2
+        dd = d[vote_c, :2] - off[vote_ref, :2]
+        w = np.exp(-0.5 * (dd * dd).sum(axis=1) / h2)
+        wsum = np.bincount(vote_ref, w, minlength=m)
+        new = np.stack([np.bincount(vote_ref, w * d[vote_c, k], minlength=m) for k in range(3)], 1)
+        good = wsum > 1e-12
+        off[good] = new[good] / wsum[good, None]
+    # Covariance of the offset: the supporters' noise over their effective number.
+    w2sum = np.bincount(vote_ref, w * w, minlength=m)
+    n_support = np.where(w2sum > 0, wsum**2 / np.maximum(w2sum, 1e-300), 0.0)
+    s_mean = np.zeros((m, 9))
+    for k in range(9):
+        s_mean[:, k] = np.bincount(vote_ref, w * s[vote_c].reshape(-1, 9)[:, k], minlength=m)
+    s_mean = s_mean.reshape(m, 3, 3) / np.maximum(wsum, 1e-300)[:, None, None]
+    cov_off = s_mean / np.maximum(n_support, 1.0)[:, None, None]
+    ok = (n_other[ia] >= params.min_tracks) & (n_support[ia] >= 1.0) & (wsum[ia] > 1e-12)
+    return ok, (d - off[ia])[ok], s[ok], cov_off[ia][ok]
