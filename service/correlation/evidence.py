@@ -73,9 +73,11 @@ class EvidenceParams:
     #: Accumulate evidence over the pairs' history (False: every update decides on its own).
     enabled: bool = True
     #: Correlation time (s) of a track's estimation error: successive residuals correlate by
-    #: ``exp(-dt / error_correlation_s)``.  A Kalman track with a 4-12 s revisit and gains of
-    #: 0.3-0.5 keeps most of an error for 2-3 revisits: 20 s.
-    error_correlation_s: float = 20.0
+    #: ``exp(-dt / error_correlation_s)``.  45 s is the lab's track-error model (AR(1) with 0.8
+    #: from one 10 s scan to the next): a track keeps most of an error for several revisits.
+    #: Too short counts the same evidence twice (false pairs, overconfident score); too long
+    #: only resolves more slowly.
+    error_correlation_s: float = 45.0
     #: Memory (s): evidence older than this counts ``1/e`` as much (aircraft manoeuvre, a
     #: tracker may swap two tracks: the recent past matters most).
     horizon_s: float = 300.0
