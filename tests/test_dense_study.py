@@ -145,3 +145,11 @@ def test_tiny_run_writes_figures_and_tables(tmp_path: Path) -> None:
     assert "| 4 |" in md and "Brier score" in md
     for label in dense.labels():
         assert label in md
+
+
+def test_goal_from_is_the_smallest_ratio_after_which_every_ratio_meets_the_goal() -> None:
+    ok, bad = (0.96, 0.01, 1, 1), (0.5, 0.01, 1, 1)
+    noisy = (0.99, 0.05, 1, 1)  # correct enough, too many false
+    assert dense.goal_from([bad, ok, ok], (1.0, 2.0, 3.0)) == "2"
+    assert dense.goal_from([ok, noisy, ok], (1.0, 2.0, 3.0)) == "3"
+    assert dense.goal_from([ok, ok, bad], (1.0, 2.0, 3.0)) == "not met up to 3"
