@@ -33,6 +33,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from service.correlation import CorrelationParams, PairCorrelator
+from service.correlation.evidence import EvidenceBook
 from service.correlation.gmm import GmmParams
 from service.geo import Site
 from service.tracking.base import TrackTable
@@ -142,15 +143,41 @@ def score(corr: PairCorrelator, ta: TrackTable, tb: TrackTable) -> tuple[int, in
     return len(conf_a & conf_b), ok, bad
 
 
-def variants() -> dict[str, tuple[str, CorrelationParams]]:
+#: The variant for which the bench turns on the correlator's history evidence
+#: (:mod:`service.correlation.evidence`), which the correlator keeps for ``svd-topology``
+#: only: what ``gmm`` does with its own residuals accumulated over the updates.
+HISTORY = "gmm + history evidence (enabled by the bench)"
+
+
+def variants(scene: DenseScene | None = None) -> dict[str, tuple[str, CorrelationParams]]:
     """Label -> (method, params) compared by the bench."""
     base = CorrelationParams()
-    paper = replace(GmmParams(), sigma_floor_factor=0.0, report_rivals=False)
+    sc = (scene or DenseScene()).stream
+    # As published: Eq. (27)'s pairs, every one accepted; sigma from EM alone; beta = 2 only.
+    paper = replace(GmmParams(), sigma_floor_factor=0.0, report_rivals=False, min_kernel_width_m=0.0)
+    # The history evidence with the simulated tracks' error correlation time, and with gmm's
+    # residuals as its only looks (the group-offset looks of svd-topology switched off).
+    history = replace(
+        base,
+        evidence=replace(
+            base.evidence, error_correlation_s=-sc.scan_period_s / float(np.log(sc.noise_correlation))
+        ),
+        group=replace(base.group, enabled=False),
+    )
     return {
         "gmm": ("gmm", base),
         "gmm, as published (Eq. (27) pairs, EM sigma)": ("gmm", replace(base, gmm=paper)),
+        HISTORY: ("gmm", history),
         "svd-topology": ("svd-topology", base),
     }
+
+
+def make_correlator(label: str, scene: DenseScene, a: Site, b: Site) -> PairCorrelator:
+    method, params = variants(scene)[label]
+    corr = PairCorrelator(method, a, b, params)
+    if label == HISTORY:
+        corr.evidence = EvidenceBook(params.evidence)
+    return corr
 
 
 def run(seed: int, scene: DenseScene, labels: list[str]) -> dict[str, np.ndarray]:
@@ -159,8 +186,7 @@ def run(seed: int, scene: DenseScene, labels: list[str]) -> dict[str, np.ndarray
     late = max(1, scene.scans // 2)
     out = {}
     for label in labels:
-        method, params = variants()[label]
-        corr = PairCorrelator(method, a, b, params)
+        corr = make_correlator(label, scene, a, b)
         hist, ms = [], []
         for ta, tb, t in tables:
             corr.update(ta, tb, t)
