@@ -46,6 +46,21 @@ Design choices the text leaves open (each is a parameter of :class:`GmmParams`):
   itself: with the true bias offset removed, an optimal one-to-one assignment reaches only 0.80
   at the first period; by period 10 (20 s, the box spreading) the method gets 0.90 and from
   period 25 on 0.97-1.0, about 0.93 averaged over the run, the paper's "about 0.9".
+* the kernel is at least ``min_kernel_width_m`` wide in metres: the part of the biases that
+  is not a rigid motion varies over the scale of the range (Eq. (6) against Eq. (7)), and a
+  kernel of ``beta = 2`` spreads on a formation a few km across lets the field chase the
+  random errors;
+* given the tracks' covariances, ``sigma`` is kept at or above the relative error of two tracks
+  of one target (``sigma_floor_factor``): in scenes as dense as the errors the update of
+  Eq. (25) shrinks it to the nearest-centroid spread and the posteriors become over-confident.
+
+For a stream (:class:`~service.correlation.external.GmmCorrelator`), :func:`candidate_pairs`
+extends Eq. (27): the decisive pairs are handed on with their rivals, so that a one-to-one
+assignment with an ambiguity margin refuses a close call instead of guessing, together with
+every pair the fit does not rule out (what an accumulation over updates must see).  Where one
+snapshot cannot separate aircraft spaced like the random errors, no choice of these
+parameters can: ``docs/evaluation/gmm_dense.md`` measures how far one snapshot, and an
+accumulation of them, get.
 
 Everything is vectorised over tracks and track pairs; only the EM iterations loop.
 """

@@ -12,6 +12,7 @@ from service.correlation.base import DecisionContext, Reason, TrackSnapshot
 from service.correlation.external import GmmCorrelator
 from service.correlation.gmm import GmmParams, candidate_pairs, gmm_associate, sigma_floor_m
 from tests.correlation_support import snapshot_of
+from topofusion_lab.evaluation.correlation_gmm_scene import paper_scene
 from topofusion_lab.evaluation.correlation_scenario import make_sites
 
 # -- plain reference forms -------------------------------------------------------------------
@@ -182,3 +183,24 @@ def test_degenerate_snapshot_gives_no_decisions() -> None:
     )
     dec = GmmCorrelator().decide(sa, one, DecisionContext(time_s=0.0))
     assert len(dec) == 0
+
+
+def test_kernel_width_bound_on_the_papers_scene() -> None:
+    """At period 10 of the paper's scene (20 aircraft a few km apart) a kernel of beta = 2
+    spreads lets the field chase the random errors; 20 km in metres gives fewer false pairs
+    and no fewer correct ones."""
+    rng = np.random.default_rng(11)
+    scenes = [paper_scene(rng, at_period=10) for _ in range(10)]
+
+    def count(params: GmmParams) -> tuple[int, int]:
+        ok = bad = 0
+        for pa, pb, ia, ib in scenes:
+            r = gmm_associate(pa, pb, params)
+            good = ia[r.index_a] == ib[r.index_b]
+            ok, bad = ok + int(good.sum()), bad + int((~good).sum())
+        return ok, bad
+
+    ok_free, bad_free = count(GmmParams(min_kernel_width_m=0.0))
+    ok, bad = count(GmmParams())
+    assert ok >= ok_free
+    assert bad < bad_free
