@@ -44,14 +44,22 @@ from typing import Protocol
 import numpy as np
 
 from service.correlation.assignment import assign_unambiguous
-from service.correlation.base import Basis, Correlator, DecisionContext, Decisions, Reason, TrackSnapshot
+from service.correlation.base import (
+    NO_DECISION_REASONS,
+    Basis,
+    Correlator,
+    DecisionContext,
+    Decisions,
+    Reason,
+    TrackSnapshot,
+)
 from service.correlation.basic_topology import BasicTopologyCorrelator, BasicTopologyParams
-from service.correlation.candidates import candidate_pairs
 from service.correlation.cfar import CfarParams
 from service.correlation.evidence import EvidenceBook, EvidenceParams, registered_residuals
 from service.correlation.external import CfarCorrelator, GmmCorrelator
 from service.correlation.gmm import GmmParams
 from service.correlation.group_offset import GroupOffsetParams, group_residuals
+from service.correlation.linalg import inv3, quad3
 from service.correlation.nearest import NearestCorrelator, NearestParams
 from service.correlation.pairkeys import find, pair_keys
 from service.correlation.pairs import PairBook, PairBookParams, PairState
@@ -66,7 +74,7 @@ from service.correlation.registration import (
     solve_biases,
     to_estimates,
 )
-from service.correlation.svd_topology import SvdTopologyCorrelator, SvdTopologyParams
+from service.correlation.svd_topology import SvdTopologyCorrelator, SvdTopologyParams, chi2_upper
 from service.geo import Site
 from service.tracking.base import TrackTable
 
@@ -89,10 +97,6 @@ class CorrelationParams:
     group: GroupOffsetParams = field(default_factory=GroupOffsetParams)
     #: Ambiguity margin of the one-to-one assignment (chi-square units; 6 ~ likelihood ratio 20).
     ambiguity_margin: float = 6.0
-    #: Ambiguity between joint assignments (None: between single pairs), see
-    #: :mod:`.assignment`: what losing one match costs, in chi-square units (8.3 = the
-    #: excess of a pair at the 1 % tail of 3 dof, ``EvidenceParams.null_chi2 - 3``).
-    unmatched_cost: float | None = 8.3
     #: Cost bonus for a candidate that is a currently confirmed pair (hysteresis from history).
     confirmed_bonus: float = 3.0
     #: Bias-compensate before deciding once registered (svd-topology only).
@@ -211,12 +215,6 @@ class PairCorrelator:
             ia_e, ib_e, r, s_noise, s_common = registered_residuals(a, b, extra_a, extra_b, ev.params)
             ev.observe(time_s, a.track_id[ia_e], b.track_id[ib_e], r, s_noise, s_common)
             ev.prune(time_s, a.track_id, b.track_id, unobserved_present=True)
-        elif ev is not None and prm.group.enabled:
-            # Before registration a reference inside a group is looked at against the group's
-            # local offset (the topology match's translations are the looks of the others).
-            gi, gj, _ = candidate_pairs(a.position, b.position, prm.svd.candidates.gate_m)
-            ok, r, s_noise, s_common = group_residuals(a, b, gi, gj, prm.group)
-            ev.observe(time_s, a.track_id[gi[ok]], b.track_id[gj[ok]], r, s_noise, s_common)
         conf = self.book.confirmed
         sorters = (np.argsort(a.track_id), np.argsort(b.track_id))  # the rows of a, b and raw_a, raw_b
         ca_idx, cb_idx = _lookup_pairs(
@@ -235,8 +233,7 @@ class PairCorrelator:
                 ok = ~bad
                 bad[ok] = ev.rejected()[e[ok]] | ev.rivals_better(e[ok], ev.params.keep_margin)
                 kept = kept.take(~bad)
-                e = e[~bad]
-                hist = ev.looks[e] >= ev.params.min_looks
+                hist = ev.looks[e[~bad]] >= ev.params.min_looks
                 kept.extras["basis"] = np.where(hist, float(Basis.HISTORY), float(Basis.REGISTERED))
             # Kept pairs are decided; only the other tracks are candidate references.
             parts.append(kept)
@@ -261,7 +258,8 @@ class PairCorrelator:
             cost,
             decided.accepted,
             prm.ambiguity_margin,
-            prm.unmatched_cost if self.evidence is not None else None,
+            # Joint ambiguity on the accumulated costs (None: single pairs, on one update's).
+            self.evidence.params.null_cost if self.evidence is not None else None,
         )
         # Kept pairs share no track with the decided candidates: the assignment would take
         # each of them as it is (no rival), so they are chosen without it.
@@ -326,45 +324,73 @@ class PairCorrelator:
     ) -> Decisions:
         """The update's decisions with the history evidence (:mod:`.evidence`) applied.
 
-        Before registration the topology fits' translations are this update's looks (once
-        registered :meth:`update` has taken them already, for every candidate).  A candidate
-        with at least ``min_looks`` looks is rejected when its accumulated test fails, and
-        otherwise accepted (whatever this update's own test said) and enters the assignment with
-        the accumulated statistic's excess ``q - 3`` as its cost, so the ambiguity margin is
-        applied to the history's log-likelihood ratio.
+        The looks: once registered every candidate's compensated residual (taken in
+        :meth:`update`); before, the residual of a candidate inside a group against the group's
+        local offset (:mod:`.group_offset`), which also decides the candidates the topology
+        could not.  A candidate with a source of looks is accepted only from ``min_looks``
+        looks on and while its accumulated test passes; it then enters the one-to-one
+        assignment with the accumulated statistic's excess ``q_rel - 3`` as its cost, so the
+        (joint) ambiguity margin is applied to the history's log-likelihood ratio.  A candidate
+        with no source of looks (outside any group before registration) is decided by its
+        update alone.
         """
+        prm = self.params
         basis = self._basis(dec)
         ev = self.evidence
         if ev is None or len(dec) == 0:
             dec.extras["basis"] = basis
             return dec
-        if not registered:
-            look = np.isfinite(dec.residual).all(axis=1) & np.isfinite(dec.residual_cov).all(axis=(1, 2))
-            ev.observe(
-                time_s,
-                a.track_id[dec.index_a[look]],
-                b.track_id[dec.index_b[look]],
-                dec.residual[look],
-                dec.residual_cov[look],
-            )
+        # Candidates with a source of looks this update: every one once registered (taken in
+        # update()); before, those inside a group.  The others are decided by their update.
+        sourced = np.full(len(dec), registered)
+        if not registered and prm.group.enabled:
+            dec, sourced = self._group_stage(dec, a, b, time_s)
         e = find(ev.keys, pair_keys(a.track_id[dec.index_a], b.track_id[dec.index_b]))
         e0 = np.maximum(e, 0)
-        hist = (e >= 0) & (ev.looks[e0] >= ev.params.min_looks) if len(ev) else np.zeros(len(dec), bool)
-        passed = ~ev.rejected()[e0] if len(ev) else np.zeros(len(dec), bool)
-        # With enough history the accumulated test decides, whichever way this update's own
-        # test went: one noisy update neither makes nor breaks a pair.
-        accepted = np.where(hist, passed, dec.accepted & ev.params.accept_without_history)
-        reason = np.where(
-            hist, np.where(passed, np.int8(Reason.ACCEPTED), np.int8(Reason.HISTORY)), dec.reason
-        ).astype(np.int8)
-        use = hist & passed
+        have = e >= 0
+        hist = have & (ev.looks[e0] >= ev.params.min_looks) if len(ev) else have
+        rej = hist & (ev.rejected()[e0] if len(ev) else False)
+        accepted = dec.accepted & ~rej & (hist | ~sourced | ev.params.accept_without_history)
+        reason = np.where(dec.accepted & rej, np.int8(Reason.HISTORY), dec.reason).astype(np.int8)
+        use = hist & accepted
         return replace(
             dec,
             accepted=accepted,
             reason=reason,
-            cost=np.where(use, ev.q_rel[e0] - 3.0 if len(ev) else 0.0, dec.cost),
+            cost=np.where(hist, (ev.q_rel[e0] - 3.0) if len(ev) else 0.0, dec.cost),
             extras={**dec.extras, "basis": np.where(use, float(Basis.HISTORY), basis)},
         )
+
+    def _group_stage(
+        self, dec: Decisions, a: TrackSnapshot, b: TrackSnapshot, time_s: float
+    ) -> tuple[Decisions, np.ndarray]:
+        """Candidates inside a group, against the group's local offset (before registration):
+        a look for the residual evidence, and the decision of those the topology could not
+        decide (chi-square with 3 dof at ``alpha_position``, cost ``q - 3``); also which
+        candidates got a look."""
+        assert self.evidence is not None
+        ok, r, s_noise, s_common = group_residuals(a, b, dec.index_a, dec.index_b, self.params.group)
+        rows = np.flatnonzero(ok)
+        if rows.size == 0:
+            return dec, ok
+        self.evidence.observe(
+            time_s, a.track_id[dec.index_a[rows]], b.track_id[dec.index_b[rows]], r, s_noise, s_common
+        )
+        s_inv, good = inv3(s_noise + s_common)
+        q = quad3(r, s_inv)
+        undecided = np.isin(dec.reason[rows], NO_DECISION_REASONS) & good
+        sub = rows[undecided]
+        q = q[undecided]
+        passed = q <= chi2_upper(self.params.svd.alpha_position, 3)
+        accepted = dec.accepted.copy()
+        accepted[sub] = passed
+        reason = dec.reason.copy()
+        reason[sub] = np.where(passed, Reason.ACCEPTED, Reason.GATE)
+        cost = dec.cost.copy()
+        cost[sub] = q - 3.0
+        statistic = dec.statistic.copy()
+        statistic[sub] = q / 3.0
+        return replace(dec, accepted=accepted, reason=reason, cost=cost, statistic=statistic), ok
 
     def pairs(self) -> list[PairState]:
         """Current pair book sorted by (track_a, track_b)."""

@@ -100,9 +100,10 @@ class EvidenceParams:
     #: ... and those whose compensated single-update chi-square (3 dof) exceeds this are no
     #: hypotheses at all (99.999 %): their entry is removed.
     registered_gate_chi2: float = 25.9
-    #: The "partner not among the candidates" hypothesis weighs as much as a pair at this
-    #: accumulated chi-square (3 dof; 11.3 = 1 % tail).
-    null_chi2: float = 11.3
+    #: What one lost match costs, in the costs' chi-square-excess units: the "partner not among
+    #: the candidates" hypothesis of the probability, and the joint ambiguity rule's unmatched
+    #: cost (:mod:`.assignment`); 8.3 = the excess of a 3-dof chi-square at its 1 % tail.
+    null_cost: float = 8.3
     #: Logistic calibration of the posterior (see the module docstring).
     calibration_slope: float = 1.0
     calibration_offset: float = 0.0
@@ -138,8 +139,8 @@ class EvidenceBook:
     """Columnar evidence of one radar pair's candidate pairs (see the module docstring)."""
 
     _columns = (
-        *("track_a", "track_b", "keys", "weight", "n_eff", "rbar", "sbar", "common", "last_time_s"),
-        *("looks", "q", "q_rel"),
+        *("track_a", "track_b", "keys"),
+        *("weight", "n_eff", "rbar", "sbar", "common", "res_time_s", "looks", "q", "q_rel"),
     )
 
     def __init__(self, params: EvidenceParams | None = None) -> None:
@@ -147,17 +148,17 @@ class EvidenceBook:
         self.track_a = np.empty(0, dtype=str)
         self.track_b = np.empty(0, dtype=str)
         self.keys = np.empty(0, dtype=str)
+        # The residual's running mean (module docstring) ...
         self.weight = np.empty(0)
         self.n_eff = np.empty(0)
         self.rbar = np.empty((0, 3))
         self.sbar = np.empty((0, 3, 3))
         self.common = np.empty((0, 3, 3))
-        self.last_time_s = np.empty(0)
+        self.res_time_s = np.empty(0)
         self.looks = np.empty(0, dtype=np.int64)
-        #: The accumulated chi-square of every entry, as of its last observation ...
+        #: ... its accumulated chi-square (NaN before the first residual) ...
         self.q = np.empty(0)
-        #: ... and without the common part ``C``: for comparing rivals, whose residuals share
-        #: the registration's error (it cancels from their likelihood ratio).
+        #: ... and the same without the common part ``C``.
         self.q_rel = np.empty(0)
 
     def __len__(self) -> int:
@@ -167,6 +168,40 @@ class EvidenceBook:
         for name in self._columns:
             setattr(self, name, getattr(self, name)[keep])
 
+    def _ensure(self, track_a: NDArray[np.str_], track_b: NDArray[np.str_]) -> NDArray[np.intp]:
+        """The entry of each pair ``(track_a[k], track_b[k])`` (unique pairs), new ones empty."""
+        keys = pair_keys(track_a, track_b)
+        idx = find(self.keys, keys)
+        fresh = np.flatnonzero(idx < 0)
+        if fresh.size:
+            m, start = fresh.size, len(self)
+            add = {
+                "track_a": np.asarray(track_a)[fresh].astype(str),
+                "track_b": np.asarray(track_b)[fresh].astype(str),
+                "keys": keys[fresh],
+                "weight": np.zeros(m),
+                "n_eff": np.zeros(m),
+                "rbar": np.zeros((m, 3)),
+                "sbar": np.zeros((m, 3, 3)),
+                "common": np.zeros((m, 3, 3)),
+                "res_time_s": np.full(m, -np.inf),
+                "looks": np.zeros(m, dtype=np.int64),
+                "q": np.full(m, np.nan),
+                "q_rel": np.full(m, np.nan),
+            }
+            for name in self._columns:
+                setattr(self, name, np.concatenate([getattr(self, name), add[name]]))
+            idx = idx.copy()
+            idx[fresh] = start + np.arange(m)
+        return idx
+
+    def _weights(self, dt: FloatArray, first: NDArray[np.bool_]) -> tuple[FloatArray, FloatArray]:
+        """Forgetting of the old evidence and the information of one more look (module docstring)."""
+        prm = self.params
+        decay = np.where(first, 0.0, np.exp(-np.where(first, 0.0, dt) / prm.horizon_s))
+        rho = np.exp(-np.where(first, 0.0, dt) / prm.error_correlation_s)
+        return decay, np.where(first, 1.0, (1.0 - rho) / (1.0 + rho))
+
     def observe(
         self,
         time_s: float,
@@ -175,59 +210,29 @@ class EvidenceBook:
         residual: FloatArray,
         noise_cov: FloatArray,
         common_cov: FloatArray | None = None,
-    ) -> NDArray[np.intp]:
-        """Add one update's residuals of the pairs ``(track_a[k], track_b[k])`` (unique pairs).
-
-        A pair already observed at ``time_s`` keeps its evidence (one look per update).
-        Returns each pair's entry index (valid until the next change of the book).
-        """
-        prm = self.params
+    ) -> None:
+        """Add one update's residuals of the pairs ``(track_a[k], track_b[k])`` (unique pairs);
+        a pair already observed at ``time_s`` keeps its evidence (one look per update)."""
         n = len(track_a)
         if n == 0:
-            return np.empty(0, dtype=np.intp)
+            return
         common = np.zeros((n, 3, 3)) if common_cov is None else common_cov
-        keys = pair_keys(track_a, track_b)
-        idx = find(self.keys, keys)
-        old = idx >= 0
-        upd = old.copy()
-        upd[old] = self.last_time_s[idx[old]] < time_s
-        if upd.any():
-            e = idx[upd]
-            dt = time_s - self.last_time_s[e]
-            decay = np.exp(-dt / prm.horizon_s)
-            rho = np.exp(-dt / prm.error_correlation_s)
-            w_old = decay * self.weight[e]
-            w_new = w_old + 1.0
-            self.rbar[e] = (w_old[:, None] * self.rbar[e] + residual[upd]) / w_new[:, None]
-            self.sbar[e] = (w_old[:, None, None] * self.sbar[e] + noise_cov[upd]) / w_new[:, None, None]
-            self.weight[e] = w_new
-            self.n_eff[e] = decay * self.n_eff[e] + (1.0 - rho) / (1.0 + rho)
-            self.common[e] = common[upd]
-            self.last_time_s[e] = time_s
-            self.looks[e] += 1
-            self._refresh(e)
-        fresh = np.flatnonzero(~old)
-        if fresh.size:
-            start = len(self)
-            self.track_a = np.concatenate([self.track_a, np.asarray(track_a)[fresh].astype(str)])
-            self.track_b = np.concatenate([self.track_b, np.asarray(track_b)[fresh].astype(str)])
-            self.keys = np.concatenate([self.keys, keys[fresh]])
-            self.weight = np.concatenate([self.weight, np.ones(fresh.size)])
-            self.n_eff = np.concatenate([self.n_eff, np.ones(fresh.size)])
-            self.rbar = np.concatenate([self.rbar, residual[fresh]])
-            self.sbar = np.concatenate([self.sbar, noise_cov[fresh]])
-            self.common = np.concatenate([self.common, common[fresh]])
-            self.last_time_s = np.concatenate([self.last_time_s, np.full(fresh.size, time_s)])
-            self.looks = np.concatenate([self.looks, np.ones(fresh.size, dtype=np.int64)])
-            self.q = np.concatenate([self.q, np.full(fresh.size, np.nan)])
-            self.q_rel = np.concatenate([self.q_rel, np.full(fresh.size, np.nan)])
-            idx = idx.copy()
-            idx[fresh] = start + np.arange(fresh.size)
-            self._refresh(idx[fresh])
-        return idx
-
-    def _refresh(self, e: NDArray[np.intp]) -> None:
-        """Recompute the tests of entries ``e`` from their accumulated state."""
+        idx = self._ensure(track_a, track_b)
+        upd = self.res_time_s[idx] < time_s
+        e = idx[upd]
+        if e.size == 0:
+            return
+        first = self.looks[e] == 0
+        decay, info = self._weights(time_s - self.res_time_s[e], first)
+        w_old = decay * self.weight[e]
+        w_new = w_old + 1.0
+        self.rbar[e] = (w_old[:, None] * self.rbar[e] + residual[upd]) / w_new[:, None]
+        self.sbar[e] = (w_old[:, None, None] * self.sbar[e] + noise_cov[upd]) / w_new[:, None, None]
+        self.weight[e] = w_new
+        self.n_eff[e] = decay * self.n_eff[e] + info
+        self.common[e] = common[upd]
+        self.res_time_s[e] = time_s
+        self.looks[e] += 1
         rbar, sbar, n_eff = self.rbar[e], self.sbar[e], self.n_eff[e]
         self.q[e] = accumulated_chi2(rbar, sbar, n_eff, self.common[e])
         self.q_rel[e] = accumulated_chi2(rbar, sbar, n_eff, np.zeros_like(sbar))
@@ -239,45 +244,44 @@ class EvidenceBook:
         present_b: NDArray[np.str_],
         unobserved_present: bool = False,
     ) -> None:
-        """Forget entries whose track left, or not observed for ``forget_after_s``; with
-        ``unobserved_present`` also those not observed at ``time_s`` although both tracks are
-        present (once registered every candidate within the gate is observed: one that was
+        """Forget entries whose track left, or not looked at for ``forget_after_s``; with
+        ``unobserved_present`` also those without a residual at ``time_s`` although both tracks
+        are present (once registered every candidate within the gate gets one: a pair that did
         not has failed the gate, and is no hypothesis any more)."""
         if len(self) == 0:
             return
         here = isin_sorted(self.track_a, present_a) & isin_sorted(self.track_b, present_b)
-        keep = here & (self.last_time_s >= time_s - self.params.forget_after_s)
+        keep = here & (self.res_time_s >= time_s - self.params.forget_after_s)
         if unobserved_present:
-            keep &= self.last_time_s >= time_s
+            keep &= self.res_time_s >= time_s
         if not keep.all():
             self._keep(keep)
 
     def rejected(self) -> NDArray[np.bool_]:
-        """Entries whose accumulated test fails at ``alpha`` (3 dof)."""
-        return np.asarray(self.q > chi2_upper(self.params.alpha, 3))
+        """Entries whose accumulated residual test fails at ``alpha`` (3 dof) after ``min_looks``."""
+        return np.asarray((self.looks >= self.params.min_looks) & (self.q > chi2_upper(self.params.alpha, 3)))
 
     def probability(self) -> FloatArray:
-        """Each entry's calibrated posterior (module docstring), NaN where its test is undefined."""
+        """Each entry's calibrated posterior (module docstring), NaN without a look."""
         prm = self.params
         n = len(self)
         if n == 0:
             return np.empty(0)
-        q = np.where(np.isfinite(self.q_rel), self.q_rel, np.inf)
-        # Likelihoods relative to the null hypothesis: exp(-(q - q0)/2), clipped (no overflow).
-        lik = np.exp(-0.5 * np.clip(q - prm.null_chi2, -600.0, 600.0))
+        have = np.isfinite(self.q_rel)
+        cost = np.where(have, self.q_rel - 3.0, np.inf)
+        # Likelihoods relative to the null hypothesis: exp(-(cost - null)/2), clipped.
+        lik = np.exp(-0.5 * np.clip(cost - prm.null_cost, -600.0, 600.0))
         _, inv_a = np.unique(self.track_a, return_inverse=True)
         _, inv_b = np.unique(self.track_b, return_inverse=True)
         sum_a = np.bincount(inv_a, lik)[inv_a]
         sum_b = np.bincount(inv_b, lik)[inv_b]
-        p = lik / (sum_a + sum_b - lik + 1.0)
-        p = np.clip(p, 1e-9, 1.0 - 1e-9)
+        p = np.clip(lik / (sum_a + sum_b - lik + 1.0), 1e-9, 1.0 - 1e-9)
         z = prm.calibration_slope * np.log(p / (1.0 - p)) + prm.calibration_offset
-        out = 1.0 / (1.0 + np.exp(-z))
-        return np.where(np.isfinite(self.q), out, np.nan)
+        return np.where(have, 1.0 / (1.0 + np.exp(-z)), np.nan)
 
     def rivals_better(self, entries: NDArray[np.intp], margin: float) -> NDArray[np.bool_]:
         """For entries ``entries``: is there a rival (an entry sharing one of its tracks) whose
-        accumulated chi-square is lower by more than ``margin``?"""
+        accumulated residual chi-square is lower by more than ``margin``?"""
         if len(entries) == 0 or len(self) == 0:
             return np.zeros(len(entries), dtype=bool)
         q = np.where(np.isfinite(self.q_rel), self.q_rel, np.inf)

@@ -11,11 +11,15 @@ few tens of metres over a group a few kilometres wide).
 For every candidate pair ``(i, j)`` the absolute difference ``D_ij = x_A,i - x_B,j`` (B's ENU
 orientation) is ``o + e_ij`` for the true pairs and ``o + (x_i - x_j) + e_ij`` for the others.
 Around each reference ``i`` the differences of the candidates of the *other* A tracks within
-``radius_m`` form a cloud whose densest point is ``o`` (the true pairs all sit there; the
-separations of the false ones are spread and, over a whole group, symmetric about it).  The
-offset ``o_i`` is found by mean shift with a Gaussian kernel over the horizontal
-differences, started at their mean and narrowed in ``bandwidths`` steps (multiples of the
-median relative noise), and the residual ``r_ij = D_ij - o_i`` with covariance ``P_A + P_B``
+``radius_m`` form a cloud whose densest point is ``o``: every true pair sits there, while a
+false pairing's difference is shared only by the pairings shifted by the same separation
+(fewer: the lattice's edge and its irregularity break the others).  Each candidate's
+*support* is the kernel-weighted count of the candidates of the other nearby tracks with
+nearly the same difference (kernel ``support_bandwidth`` times the median relative noise);
+the offset ``o_i`` starts at the best-supported difference among the reference's voters and
+is refined by mean shift (kernel widths ``bandwidths``).  (Starting from the mean instead
+converges to whichever lattice shift is nearest, one spacing off as often as not.)  The
+residual ``r_ij = D_ij - o_i`` with covariance ``P_A + P_B``
 is one look at the pair for the history evidence (:mod:`.evidence`); ``Cov(o_i)``, the
 kernel-weighted noise over the effective number of supporting candidates, is common to the
 pairs of the neighbourhood.  Leaving row ``i``'s own candidates out keeps a pair from
@@ -47,8 +51,13 @@ class GroupOffsetParams:
     #: Minimum other A tracks in the neighbourhood for an estimate (fewer: a formation is not
     #: what the reference is in, and the topology match alone decides).
     min_tracks: int = 4
-    #: Mean-shift kernel widths, in units of the median relative noise (coarse to fine).
-    bandwidths: tuple[float, ...] = (4.0, 2.0, 1.0, 1.0)
+    #: Kernel width of the support count, in units of the median relative noise.
+    support_bandwidth: float = 1.0
+    #: Mean-shift kernel widths after the best-supported start, in the same units.
+    bandwidths: tuple[float, ...] = (1.5, 1.0, 1.0)
+    #: At most this many (candidate, candidate) comparisons for the support counts of one
+    #: update; beyond it the offsets are not estimated (the topology match alone decides).
+    max_comparisons: int = 4_000_000
     #: At most this many candidates vote in one neighbourhood (the nearest tracks' first):
     #: bounds the work of a very dense picture.
     max_votes: int = 4_000
@@ -104,12 +113,20 @@ def group_residuals(
     cap = rank < params.max_votes
     vote_ref, vote_c = vote_ref[cap], vote_c[cap]
     m = len(a)
-    # Mean shift per reference, all references at once (bincount over the votes).
+    scale = float(np.sqrt(np.median(var_h[vote_c])))
+    support = _support(a, ia, d, counts, start, order, params, scale)
+    if support is None:
+        return empty
+    # Start: each reference's best-supported voter (ties: the first).
+    best = np.full(m, -1.0)
+    np.maximum.at(best, vote_ref, support[vote_c])
+    top = support[vote_c] >= best[vote_ref]
+    pick = np.full(m, -1, dtype=np.intp)
+    pick[vote_ref[top][::-1]] = vote_c[top][::-1]  # the first top voter of each reference
+    off: FloatArray = np.zeros((m, 3))
+    off[pick >= 0] = d[pick[pick >= 0]]
     w = np.ones(vote_c.size)
     wsum = np.bincount(vote_ref, w, minlength=m)
-    off: FloatArray = np.stack([np.bincount(vote_ref, d[vote_c, k], minlength=m) for k in range(3)], 1)
-    off = off / np.maximum(wsum, 1e-300)[:, None]
-    scale = float(np.sqrt(np.median(var_h[vote_c]))) if vote_c.size else 1.0
     for bw in params.bandwidths:
         h2 = (bw * scale) ** 2
         dd = d[vote_c, :2] - off[vote_ref, :2]
@@ -128,3 +145,35 @@ def group_residuals(
     cov_off = s_mean / np.maximum(n_support, 1.0)[:, None, None]
     ok = (n_other[ia] >= params.min_tracks) & (n_support[ia] >= 1.0) & (wsum[ia] > 1e-12)
     return ok, (d - off[ia])[ok], s[ok], cov_off[ia][ok]
+
+
+def _support(
+    a: TrackSnapshot,
+    ia: IntArray,
+    d: FloatArray,
+    counts: NDArray[np.intp],
+    start: NDArray[np.intp],
+    order: NDArray[np.intp],
+    params: GroupOffsetParams,
+    scale: float,
+) -> FloatArray | None:
+    """Each candidate's support: the kernel-weighted number of candidates of the *other* A
+    tracks within ``radius_m`` whose difference is nearly its own (None: over the bound)."""
+    rows = np.unique(ia)
+    tree = cKDTree(a.position[rows])
+    near = tree.sparse_distance_matrix(tree, params.radius_m, output_type="ndarray")
+    k1, k2 = rows[near["i"]], rows[near["j"]]
+    keep = k1 != k2
+    k1, k2 = k1[keep], k2[keep]
+    size = counts[k1] * counts[k2]
+    total = int(size.sum())
+    if total > params.max_comparisons:
+        return None
+    blk = np.repeat(np.arange(k1.size), size)
+    r = np.arange(total) - np.repeat(np.cumsum(size) - size, size)
+    n2 = counts[k2][blk]
+    c1 = order[start[k1][blk] + r // n2]
+    c2 = order[start[k2][blk] + r % n2]
+    dd = d[c1, :2] - d[c2, :2]
+    w = np.exp(-0.5 * (dd * dd).sum(axis=1) / (params.support_bandwidth * scale) ** 2)
+    return np.asarray(np.bincount(c1, w, minlength=len(ia)), dtype=float)
