@@ -108,9 +108,6 @@ class Decisions:
     ``cost`` orders accepted candidates for the one-to-one assignment (lower is better,
     roughly a chi-square excess); ``statistic`` is the method's test statistic (for
     ``svd-topology`` the F statistic, chi-square over its degrees of freedom).
-    ``residual`` ``(n, 3)``, ``residual_cov`` ``(n, 3, 3)``: the position residual the decision
-    tested, in B's ENU frame, with its covariance (NaN where the method computed none); the
-    history evidence (:mod:`.evidence`) accumulates them.
     """
 
     index_a: IntArray
@@ -122,8 +119,6 @@ class Decisions:
     rotation_weight: FloatArray
     scale: FloatArray
     neighbors: NDArray[np.int64]
-    residual: FloatArray
-    residual_cov: FloatArray
     extras: dict[str, FloatArray] = field(default_factory=dict)
 
     def __len__(self) -> int:
@@ -144,8 +139,6 @@ class Decisions:
         rotation_weight: FloatArray | None = None,
         scale: FloatArray | None = None,
         neighbors: NDArray[np.int64] | None = None,
-        residual: FloatArray | None = None,
-        residual_cov: FloatArray | None = None,
     ) -> Decisions:
         n = int(index_a.shape[0])
         return Decisions(
@@ -158,8 +151,6 @@ class Decisions:
             np.full(n, np.nan) if rotation_weight is None else rotation_weight,
             np.full(n, np.nan) if scale is None else scale,
             np.zeros(n, dtype=np.int64) if neighbors is None else neighbors.astype(np.int64),
-            np.full((n, 3), np.nan) if residual is None else residual,
-            np.full((n, 3, 3), np.nan) if residual_cov is None else residual_cov,
         )
 
     @staticmethod
@@ -186,8 +177,6 @@ class Decisions:
             self.rotation_weight[index],
             self.scale[index],
             self.neighbors[index],
-            self.residual[index],
-            self.residual_cov[index],
             {k: v[index] for k, v in self.extras.items()},
         )
 

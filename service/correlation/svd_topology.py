@@ -179,10 +179,6 @@ class SvdMatchResult:
     scale: FloatArray
     yaw_rad: FloatArray
     matched: NDArray[np.int64]
-    #: The position test's translation ``t`` (Eq. 4; B's ENU orientation) and its covariance
-    #: ``S_ref``: the residual the history evidence accumulates (NaN without a fit).
-    translation: FloatArray
-    translation_cov: FloatArray
 
 
 def chi2_upper(alpha: float, dof: FloatArray | float) -> FloatArray:
@@ -482,8 +478,6 @@ def svd_match(
         scale=np.where(degenerate, np.nan, c),
         yaw_rad=np.where(degenerate, np.nan, yaw + prior_yaw_rad),
         matched=m.astype(np.int64),
-        translation=np.where(no_dec[:, None], np.nan, t),
-        translation_cov=np.where(no_dec[:, None, None], np.nan, s_0 + cov_t),
     )
 
 
@@ -679,8 +673,6 @@ class SvdTopologyCorrelator(Correlator):
             rotation_weight=np.where(stage >= 2, np.nan, full(res.rotation_weight, np.nan)),
             scale=np.where(stage >= 2, np.nan, full(res.scale, np.nan)),
             neighbors=full(res.matched, 0),
-            residual=full(res.translation, np.nan),
-            residual_cov=full(res.translation_cov, np.nan),
         )
         dec.extras["stage"] = stage
         dec.extras["yaw_rad"] = full(res.yaw_rad, np.nan)
