@@ -35,8 +35,11 @@ from scipy.optimize import linear_sum_assignment
 
 from service.correlation import CorrelationParams, PairCorrelator
 from service.correlation.assignment import assign_unambiguous
+from service.correlation.base import DecisionContext
 from service.correlation.evidence import EvidenceBook
-from service.correlation.gmm import GmmParams
+from service.correlation.external import GmmCorrelator
+from service.correlation.gmm import GmmParams, gmm_associate
+from service.correlation.prediction import predict_snapshot
 from service.geo import Site
 from service.tracking.base import TrackTable
 from topofusion_lab.evaluation.correlation_scenario import make_sites
@@ -147,7 +150,7 @@ def score(corr: PairCorrelator, ta: TrackTable, tb: TrackTable) -> tuple[int, in
 
 #: The variant for which the bench turns on the correlator's history evidence
 #: (:mod:`service.correlation.evidence`), which the correlator keeps for ``svd-topology``
-#: only: what ``gmm`` does with its own residuals accumulated over the updates.
+#: only: gmm's decisions with the evidence's own looks accumulated over the updates.
 HISTORY = "gmm + history evidence (enabled by the bench)"
 
 
@@ -157,14 +160,12 @@ def variants(scene: DenseScene | None = None) -> dict[str, tuple[str, Correlatio
     sc = (scene or DenseScene()).stream
     # As published: Eq. (27)'s pairs, every one accepted; sigma from EM alone; beta = 2 only.
     paper = replace(GmmParams(), sigma_floor_factor=0.0, report_rivals=False, min_kernel_width_m=0.0)
-    # The history evidence with the simulated tracks' error correlation time, and with gmm's
-    # residuals as its only looks (the group-offset looks of svd-topology switched off).
+    # The history evidence with the simulated tracks' error correlation time.
     history = replace(
         base,
         evidence=replace(
             base.evidence, error_correlation_s=-sc.scan_period_s / float(np.log(sc.noise_correlation))
         ),
-        group=replace(base.group, enabled=False),
     )
     return {
         "gmm": ("gmm", base),
@@ -268,6 +269,86 @@ def oracle(seed: int, scene: DenseScene, margin: float | None = None) -> dict[st
     return out
 
 
+DIAGNOSIS = (
+    "EM sigma, beta=2 (m)",
+    "EM sigma, 20 km kernel (m)",
+    "sigma floor (m)",
+    "true-pair residual per axis (m)",
+    "registration error, beta=2 (m)",
+    "registration error, 20 km kernel (m)",
+    "as published: correct share of P>=0.9",
+    "single update, beta=2: false / decided",
+    "single update: false / decided",
+)
+
+
+def diagnose(seed: int, scene: DenseScene) -> np.ndarray:
+    """One snapshot at a time, the last half of the scans (evaluation only): the numbers of
+    ``docs/evaluation/gmm_dense.md``'s diagnosis, in the order of :data:`DIAGNOSIS`.
+
+    EM's sigma without the floor (``beta = 2`` alone, and with ``min_kernel_width_m``) against
+    the floor and against the true pairs' residual after the fit; the fit's registration error
+    (RMS over B's tracks of the fitted centroid minus B mapped by the affine transform fitted
+    to the true pairs); the share of correct pairs among the paper's decisions with posterior
+    >= 0.9; and the false share of the pairs the adapter's candidates leave to a one-to-one
+    assignment with the correlator's ambiguity margin (``beta = 2`` and default).  One row per
+    scan: six sizes, then (correct, decided), (false, decided), (false, decided).
+    """
+    tables, a, b = make_tables(seed, scene)
+    margin = CorrelationParams().ambiguity_margin
+    prm = GmmParams()
+    em_b2 = replace(prm, sigma_floor_factor=0.0, min_kernel_width_m=0.0)
+    em = replace(prm, sigma_floor_factor=0.0)
+    paper = replace(em_b2, report_rivals=False)
+    rows = []
+    for ta, tb, t in tables[-max(1, scene.scans // 2) :]:
+        sa, sb = predict_snapshot(ta, a, t), predict_snapshot(tb, b, t)
+        truth_a = dict(zip(ta.track_id, ta.truth_id, strict=True))
+        truth_b = dict(zip(tb.track_id, tb.truth_id, strict=True))
+        ida = np.array([truth_a[i] for i in sa.track_id])
+        idb = np.array([truth_b[i] for i in sb.track_id])
+        _, ra, rb = np.intersect1d(ida, idb, return_indices=True)
+        pos_a = sa.enu[:, :2]
+        pos_b = a.ecef_to_enu(sb.position)[:, :2]
+        rot = a.rotation
+        cov_a, cov_b = sa.enu_cov()[:, :2, :2], (rot.T @ sb.pos_cov @ rot)[:, :2, :2]
+        lin = np.column_stack([pos_b, np.ones(len(pos_b))])
+        fit, *_ = np.linalg.lstsq(lin[rb], pos_a[ra], rcond=None)
+        registered_b = lin @ fit
+        row = []
+        fits = {}
+        for name, p in (("b2", em_b2), ("em", em), ("def", prm)):
+            fits[name] = gmm_associate(pos_a, pos_b, p, cov_a, cov_b)
+        row += [fits["b2"].sigma_m, fits["em"].sigma_m, fits["def"].sigma_floor_m]
+        moved = pos_b + fits["def"].displacement
+        row.append(float(np.sqrt(np.mean((pos_a[ra] - moved[rb]) ** 2))))
+        for name in ("b2", "def"):
+            err = pos_b + fits[name].displacement - registered_b
+            row.append(float(np.sqrt(np.mean(np.sum(err**2, axis=1)))))
+        pub = gmm_associate(pos_a, pos_b, paper)
+        sure = pub.posterior >= 0.9
+        good = ida[pub.index_a[sure]] == idb[pub.index_b[sure]]
+        row += [float(good.sum()), float(sure.sum())]
+        for p in (replace(prm, min_kernel_width_m=0.0), prm):
+            dec = GmmCorrelator(p).decide(sa, sb, DecisionContext(time_s=t))
+            keep, _ = assign_unambiguous(dec.index_a, dec.index_b, dec.cost, dec.accepted, margin)
+            good = ida[dec.index_a[keep]] == idb[dec.index_b[keep]]
+            row += [float((~good).sum()), float(keep.sum())]
+        rows.append(row)
+    return np.array(rows, dtype=float)
+
+
+def diagnosis_table(seeds: range, scene: DenseScene) -> list[str]:
+    """The column of :data:`DIAGNOSIS` for one scene: means of the sizes, pooled shares (with
+    the number of pairs they are shares of)."""
+    r = np.concatenate([diagnose(s, scene) for s in seeds])
+    out = [f"{v:.0f}" for v in r[:, :6].mean(axis=0)]
+    for k in (6, 8, 10):
+        num, den = r[:, k].sum(), r[:, k + 1].sum()
+        out.append(f"{num / den:.2f} of {den:.0f}" if den else "none")
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=5)
@@ -277,7 +358,19 @@ def main() -> None:
     ap.add_argument("--scans", type=int, default=40)
     ap.add_argument("--methods", nargs="+", default=list(variants()), choices=list(variants()))
     ap.add_argument("--oracle", action="store_true", help="also the truth-registered bounds (oracle)")
+    ap.add_argument("--diagnose", action="store_true", help="one-snapshot diagnosis instead of the stream")
     args = ap.parse_args()
+    if args.diagnose:
+        print("| quantity | " + " | ".join(f"ratio {r:g}" for r in args.ratios) + " |")
+        print("|---|" + "---:|" * len(args.ratios))
+        seeds = range(args.first_seed, args.first_seed + args.seeds)
+        cols = [
+            diagnosis_table(seeds, DenseScene(targets=args.targets, ratio=r, scans=args.scans))
+            for r in args.ratios
+        ]
+        for k, name in enumerate(DIAGNOSIS):
+            print(f"| {name} | " + " | ".join(c[k] for c in cols) + " |")
+        return
     t0 = time.perf_counter()
     a, b = make_sites()
     print(

@@ -88,10 +88,6 @@ class GmmCorrelator(Correlator):
             ia, ib = res.index_a, res.index_b
             accepted = np.ones(ia.size, dtype=bool)
         post = res.posterior_matrix[ia, ib]
-        # The residual each decision rests on, for the caller's history evidence: A minus B's
-        # fitted centroid, with the random covariance of the two tracks (the fit's own error is
-        # common to the rivals of a track and cancels from their comparison), in B's ENU frame.
-        residual, residual_cov = self._in_b_frame(pos_a[ia] - moved[ib], cov_a[ia] + cov_b[ib], a, b)
         n = int(ia.size)
         return Decisions.build(
             ia,
@@ -102,28 +98,7 @@ class GmmCorrelator(Correlator):
             statistic=post,
             rotation_weight=np.ones(n),
             scale=np.ones(n),
-            residual=residual,
-            residual_cov=residual_cov,
         )
-
-    @staticmethod
-    def _in_b_frame(
-        r: np.ndarray, s: np.ndarray, a: TrackSnapshot, b: TrackSnapshot
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Horizontal residuals ``r`` (n, 2) and covariances ``s`` (n, 2, 2) in A's ENU plane as
-        3-D ones in B's ENU frame.  The fit is horizontal: the vertical residual is 0 (no
-        information) with the mean horizontal variance, so the matrix stays well conditioned."""
-        n = r.shape[0]
-        r3 = np.zeros((n, 3))
-        r3[:, :2] = r
-        s3 = np.zeros((n, 3, 3))
-        s3[:, :2, :2] = s
-        s3[:, 2, 2] = 0.5 * np.trace(s, axis1=1, axis2=2) if n else 0.0
-        site_b = b.site if b.site is not None else a.site
-        if a.site is None or site_b is None:
-            return r3, s3
-        m = site_b.rotation.T @ a.site.rotation  # A's ENU -> ECEF -> B's ENU
-        return r3 @ m.T, m @ s3 @ m.T
 
 
 class CfarCorrelator(Correlator):

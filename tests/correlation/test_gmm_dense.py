@@ -144,31 +144,6 @@ def test_paper_decision_guesses_on_close_targets() -> None:
     assert np.any(dec.index_a[chosen] >= close)
 
 
-def test_residuals_match_per_pair_reference() -> None:
-    sa, sb, _ = two_close_targets()
-    params = GmmParams()
-    dec = GmmCorrelator(params).decide(sa, sb, DecisionContext(time_s=0.0))
-    assert sa.site is not None and sb.site is not None
-    pos_a = sa.enu[:, :2]
-    pos_b = sa.site.ecef_to_enu(sb.position)[:, :2]
-    rot = sa.site.rotation
-    cov_a, cov_b = sa.enu_cov()[:, :2, :2], (rot.T @ sb.pos_cov @ rot)[:, :2, :2]
-    res = gmm_associate(pos_a, pos_b, params, cov_a, cov_b)
-    to_b = sb.site.rotation.T @ sa.site.rotation
-    for k in range(len(dec)):
-        i, j = dec.index_a[k], dec.index_b[k]
-        r = np.r_[pos_a[i] - (pos_b[j] + res.displacement[j]), 0.0]
-        s = np.zeros((3, 3))
-        s[:2, :2] = cov_a[i] + cov_b[j]
-        s[2, 2] = 0.5 * np.trace(cov_a[i] + cov_b[j])
-        np.testing.assert_allclose(dec.residual[k], to_b @ r, atol=1e-6)
-        np.testing.assert_allclose(dec.residual_cov[k], to_b @ s @ to_b.T, atol=1e-6)
-    # True pairs' residuals are consistent with their covariance (chi-square, 2 informative dof).
-    true = dec.index_a == dec.index_b
-    q = np.einsum("ni,nij,nj->n", dec.residual, np.linalg.inv(dec.residual_cov), dec.residual)
-    assert np.all(q[true] < 13.8)
-
-
 def test_degenerate_snapshot_gives_no_decisions() -> None:
     sa, sb, _ = two_close_targets()
     one = TrackSnapshot(
