@@ -3,6 +3,8 @@ the vectorised forms against.  Tests only: the service never calls them."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
@@ -127,3 +129,104 @@ def similarity_gls_reference(
     q = float(r @ big_w @ r + (theta - theta0) @ lam @ (theta - theta0))
     cov = np.linalg.inv(h)
     return theta, cov, q, float(np.trace(cov @ h_data))
+
+
+def joint_regret_reference(
+    ia: np.ndarray, ib: np.ndarray, c: np.ndarray, assigned: np.ndarray, unmatched_cost: float
+) -> np.ndarray:
+    """The joint rule's regret of each assigned candidate by enumerating, for every rival, the
+    alternative assignment it forces (the two broken pairs' tracks re-paired or unmatched)."""
+    n = len(ia)
+    regret = np.full(n, np.inf)
+    cost = {(int(ia[k]), int(ib[k])): float(c[k]) for k in range(n)}
+    chosen = [k for k in range(n) if assigned[k]]
+    by_a = {int(ia[k]): k for k in chosen}
+    by_b = {int(ib[k]): k for k in chosen}
+    for r in range(n):
+        if assigned[r]:
+            continue
+        x, y = int(ia[r]), int(ib[r])
+        kx, ky = by_a.get(x), by_b.get(y)
+        change = c[r]
+        if kx is not None:
+            change -= c[kx]
+        if ky is not None:
+            change -= c[ky]
+        if kx is not None and ky is not None:
+            change += min(cost.get((int(ia[ky]), int(ib[kx])), np.inf), unmatched_cost)
+        for k in (kx, ky):
+            if k is not None:
+                regret[k] = min(regret[k], change)
+    return regret
+
+
+def evidence_reference(
+    looks: list[tuple[float, np.ndarray, np.ndarray, np.ndarray]],
+    horizon_s: float,
+    correlation_s: float,
+) -> tuple[np.ndarray, float, float]:
+    """One pair's accumulated residual mean, effective looks and chi-square from its looks
+    ``(time, r, S, C)`` by the explicit weighted sums: weight ``exp(-(t_last - t_k) / horizon)``
+    on every look, the effective count by the recursion over the gaps."""
+    t_last = looks[-1][0]
+    w = np.array([np.exp(-(t_last - t) / horizon_s) for t, *_ in looks])
+    rbar = sum(wk * r for wk, (_, r, _, _) in zip(w, looks, strict=True)) / w.sum()
+    sbar = sum(wk * s for wk, (_, _, s, _) in zip(w, looks, strict=True)) / w.sum()
+    n_eff = 1.0
+    for (t0, *_), (t1, *_) in itertools.pairwise(looks):
+        rho = np.exp(-(t1 - t0) / correlation_s)
+        n_eff = np.exp(-(t1 - t0) / horizon_s) * n_eff + (1 - rho) / (1 + rho)
+    cov = sbar / n_eff + looks[-1][3]
+    return rbar, n_eff, float(rbar @ np.linalg.solve(cov, rbar))
+
+
+def group_offset_reference(
+    d: np.ndarray,
+    s: np.ndarray,
+    pos_a: np.ndarray,
+    ia: np.ndarray,
+    radius_m: float,
+    support_bandwidth: float,
+    iterations: int,
+    gate_chi2: float,
+) -> dict[int, tuple[np.ndarray, int]]:
+    """The local offset of every reference row and its number of matched candidates, by plain
+    loops: voters are the candidates of the other A tracks within ``radius_m``; start at the
+    best-supported voter; then per nearby track the candidate nearest the offset (within the
+    gate), the offset their mean."""
+    n = len(ia)
+    var_h = 0.5 * (s[:, 0, 0] + s[:, 1, 1])
+    voters = {
+        int(i): [c for c in range(n) if ia[c] != i and np.linalg.norm(pos_a[ia[c]] - pos_a[i]) <= radius_m]
+        for i in np.unique(ia)
+    }
+    every = sorted({c for v in voters.values() for c in v})
+    scale = float(np.sqrt(np.median(var_h[every])))
+    support = np.zeros(n)
+    for c in range(n):
+        for c2 in range(n):
+            near = np.linalg.norm(pos_a[ia[c]] - pos_a[ia[c2]]) <= radius_m
+            if ia[c2] != ia[c] and near:
+                dd = d[c, :2] - d[c2, :2]
+                support[c] += np.exp(-0.5 * dd @ dd / (support_bandwidth * scale) ** 2)
+    out = {}
+    for i, v in voters.items():
+        if not v:
+            continue
+        off = d[max(v, key=lambda c: (support[c], -v.index(c)))].copy()
+        matched = 0
+        for _ in range(iterations):
+            picks = []
+            for k in sorted({int(ia[c]) for c in v}):
+                mine = [c for c in v if ia[c] == k]
+                q = [
+                    float((d[c, :2] - off[:2]) @ np.linalg.solve(s[c, :2, :2], d[c, :2] - off[:2]))
+                    for c in mine
+                ]
+                if min(q) <= gate_chi2:
+                    picks.append(mine[int(np.argmin(q))])
+            if picks:
+                off = d[picks].mean(axis=0)
+            matched = len(picks)
+        out[i] = (off, matched)
+    return out

@@ -17,9 +17,11 @@ false pairing's difference is shared only by the pairings shifted by the same se
 *support* is the kernel-weighted count of the candidates of the other nearby tracks with
 nearly the same difference (kernel ``support_bandwidth`` times the median relative noise);
 the offset ``o_i`` starts at the best-supported difference among the reference's voters and
-is refined by mean shift (kernel widths ``bandwidths``).  (Starting from the mean instead
-converges to whichever lattice shift is nearest, one spacing off as often as not.)  The
-residual ``r_ij = D_ij - o_i`` with covariance ``P_A + P_B``
+is refined by matching: each nearby track's candidate nearest the offset (within a gate)
+and the offset their mean, a few times (iterated closest points with the translation-only
+model).  (Started from the mean of the differences, or refined by a kernel average, it
+settles on a lattice shift one spacing off as often as not, and registration follows it.)
+The residual ``r_ij = D_ij - o_i`` with covariance ``P_A + P_B``
 is one look at the pair for the history evidence (:mod:`.evidence`); ``Cov(o_i)``, the
 kernel-weighted noise over the effective number of supporting candidates, is common to the
 pairs of the neighbourhood.  Leaving row ``i``'s own candidates out keeps a pair from
@@ -53,8 +55,10 @@ class GroupOffsetParams:
     min_tracks: int = 4
     #: Kernel width of the support count, in units of the median relative noise.
     support_bandwidth: float = 1.0
-    #: Mean-shift kernel widths after the best-supported start, in the same units.
-    bandwidths: tuple[float, ...] = (1.5, 1.0, 1.0)
+    #: Refinements after the best-supported start: each nearby track's candidate nearest the
+    #: offset within ``gate_chi2`` (horizontal, 2 dof; 99 %), the offset their mean.
+    iterations: int = 3
+    gate_chi2: float = 9.21
     #: At most this many (candidate, candidate) comparisons for the support counts of one
     #: update; beyond it the offsets are not estimated (the topology match alone decides).
     max_comparisons: int = 4_000_000
@@ -113,7 +117,7 @@ def group_residuals(
     cap = rank < params.max_votes
     vote_ref, vote_c = vote_ref[cap], vote_c[cap]
     m = len(a)
-    scale = float(np.sqrt(np.median(var_h[vote_c])))
+    scale = float(np.sqrt(np.median(var_h[np.unique(vote_c)])))  # the voters' median noise
     support = _support(a, ia, d, counts, start, order, params, scale)
     if support is None:
         return empty
@@ -125,25 +129,35 @@ def group_residuals(
     pick[vote_ref[top][::-1]] = vote_c[top][::-1]  # the first top voter of each reference
     off: FloatArray = np.zeros((m, 3))
     off[pick >= 0] = d[pick[pick >= 0]]
-    w = np.ones(vote_c.size)
-    wsum = np.bincount(vote_ref, w, minlength=m)
-    for bw in params.bandwidths:
-        h2 = (bw * scale) ** 2
+    inv_h = np.linalg.inv(s[:, :2, :2] + 1e-9 * np.eye(2))  # horizontal, per candidate
+    track_of = ia[vote_c]
+    w = np.zeros(vote_c.size)
+    wsum = np.zeros(m)
+    for _ in range(params.iterations):
+        # Each nearby track's candidate nearest the current offset (horizontal Mahalanobis),
+        # within the gate; the offset is their mean.  (A matching, not a kernel average: the
+        # lattice-shifted pairings around the true offset then pull nothing.)
         dd = d[vote_c, :2] - off[vote_ref, :2]
-        w = np.exp(-0.5 * (dd * dd).sum(axis=1) / h2)
-        wsum = np.bincount(vote_ref, w, minlength=m)
+        q = np.einsum("ki,kij,kj->k", dd, inv_h[vote_c], dd)
+        key = vote_ref.astype(np.int64) * (m + 1) + track_of
+        by = np.lexsort((q, key))
+        first = np.r_[True, key[by][1:] != key[by][:-1]]
+        pick = by[first]
+        pick = pick[q[pick] <= params.gate_chi2]
+        w = np.zeros(vote_c.size)
+        w[pick] = 1.0
+        wsum = np.bincount(vote_ref, w, minlength=m).astype(float)
         new = np.stack([np.bincount(vote_ref, w * d[vote_c, k], minlength=m) for k in range(3)], 1)
-        good = wsum > 1e-12
+        good = wsum > 0
         off[good] = new[good] / wsum[good, None]
-    # Covariance of the offset: the supporters' noise over their effective number.
-    w2sum = np.bincount(vote_ref, w * w, minlength=m)
-    n_support = np.where(w2sum > 0, wsum**2 / np.maximum(w2sum, 1e-300), 0.0)
+    # Covariance of the offset: the matched candidates' noise over their number.
+    n_support = wsum
     s_mean = np.zeros((m, 9))
     for k in range(9):
         s_mean[:, k] = np.bincount(vote_ref, w * s[vote_c].reshape(-1, 9)[:, k], minlength=m)
     s_mean = s_mean.reshape(m, 3, 3) / np.maximum(wsum, 1e-300)[:, None, None]
     cov_off = s_mean / np.maximum(n_support, 1.0)[:, None, None]
-    ok = (n_other[ia] >= params.min_tracks) & (n_support[ia] >= 1.0) & (wsum[ia] > 1e-12)
+    ok = (n_other[ia] >= params.min_tracks) & (n_support[ia] >= params.min_tracks)
     return ok, (d - off[ia])[ok], s[ok], cov_off[ia][ok]
 
 

@@ -672,7 +672,7 @@ class SvdTopologyCorrelator(Correlator):
             # A stage 2 decision used no topology fit: no rotation weight or scale to report.
             rotation_weight=np.where(stage >= 2, np.nan, full(res.rotation_weight, np.nan)),
             scale=np.where(stage >= 2, np.nan, full(res.scale, np.nan)),
-            neighbors=full(res.matched, 0),
+            neighbors=np.where(stage >= 2, 0, full(res.matched, 0)),
         )
         dec.extras["stage"] = stage
         dec.extras["yaw_rad"] = full(res.yaw_rad, np.nan)
