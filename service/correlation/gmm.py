@@ -121,7 +121,8 @@ class GmmParams:
     to 1 km at 200 km.  A kernel narrower than that in metres (``beta = 2`` on a formation a
     few km across) only lets the displacement field chase the random errors, pulling a B
     centroid onto an A track without a counterpart (dense formation at 3 cross-range sigmas
-    spacing, decisive single-update pairs: 20 false of 107 without the bound, 1 of 57 with it).
+    spacing, decisive single-update pairs: 10 % of 241 false without the bound, 1 % of 128
+    with it; ``docs/evaluation/gmm_dense.md``).
     On the paper's own scene it raises the correct rate at period 10 from 0.91 to 0.94 and
     halves the false share (0.115 to 0.061); 10-50 km give the same."""
 
@@ -163,9 +164,9 @@ class GmmParams:
     of each sample to the centroids it is given to; in a scene denser than the track errors
     those are its *nearest* centroids, not its true ones, so the update shrinks sigma below
     the real residual of a true pair (dense formation at 1.5 cross-range sigmas spacing, true
-    pairs' residual about 300 m per axis after the fit: sigma 140 m with ``beta = 2`` alone,
-    240 m with ``min_kernel_width_m``), and the posteriors of Eq. (21) become over-confident:
-    false pairs then get posteriors as high as true ones.  0 disables the floor."""
+    pairs' residual 290 m per axis after the fit: sigma 160 m with ``beta = 2`` alone, 250 m
+    with ``min_kernel_width_m``), and the posteriors of Eq. (21) become over-confident: of the
+    pairs of Eq. (27) with posterior >= 0.9 there only 40 % are right.  0 disables the floor."""
 
     report_rivals: bool = True
     """What the stream adapter (:class:`~service.correlation.external.GmmCorrelator`) hands the
