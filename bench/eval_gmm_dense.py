@@ -19,9 +19,12 @@ Scores, per scan, of the pair book's *confirmed* pairs:
 * false rate = false confirmed pairs / confirmed pairs.
 
 Printed: means over the seeds of the late average (last half of the scans) and of the final
-scan.  Run::
+scan.  ``--oracle`` adds the truth-registered bounds (:func:`oracle`); ``--diagnose`` prints
+the one-snapshot diagnosis instead (:func:`diagnose`).  The results and their reading are in
+``docs/evaluation/gmm_dense.md``.  Run::
 
     .venv/bin/python bench/eval_gmm_dense.py [--seeds 5] [--ratios 1 1.5 2 3] [--targets 30]
+        [--methods ...] [--oracle] [--diagnose]
 """
 
 from __future__ import annotations
