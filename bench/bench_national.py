@@ -392,13 +392,25 @@ class Variant:
     process: bool
 
 
-def variants(full_only: bool) -> list[Variant]:
+def no_history_config() -> EngineConfig:
+    """The full pipeline without the pairs' history evidence (every update decides alone)."""
+    cfg = EngineConfig()
+    corr = replace(cfg.correlation, evidence=replace(cfg.correlation.evidence, enabled=False))
+    return replace(cfg, correlation=corr)
+
+
+def variants(full_only: bool, history_ab: bool = False) -> list[Variant]:
+    """The runs compared side by side; ``history_ab``: B against H, the same without the
+    history evidence (what the evidence costs and gives)."""
     out = [
         Variant("A", "tracking alone", tracking_alone_config(), False),
         Variant("B", "full, one process", EngineConfig(), False),
         Variant("C", "full, correlation process", EngineConfig(), True),
+        Variant("H", "full, one process, no history evidence", no_history_config(), False),
     ]
-    return out[1:] if full_only else out
+    if history_ab:
+        return [out[1], out[3]]
+    return out[1:3] if full_only else out[:3]
 
 
 @dataclass
@@ -918,7 +930,7 @@ def one_run(args: argparse.Namespace) -> None:
     Each run gets a process of its own so that its peak RSS is its own (a process keeps much
     of the memory a previous engine freed) and no run works on another's leftover heap.
     """
-    v = next(x for x in variants(False) if x.key == args.one_run)
+    v = next(x for x in variants(False) + variants(False, True) if x.key == args.one_run)
     sc = scenario(args.duration)
     stream = make_stream(sc, args.seed, args.cache)
     truth = survey(stream)
@@ -979,7 +991,7 @@ def run_inprocess(args: argparse.Namespace) -> None:
             cache = Path(stack.enter_context(tempfile.TemporaryDirectory())) / "stream.pickle"
         stream = make_stream(sc, args.seed, cache)
         truth = survey(stream)
-        chosen = variants(args.full_only)
+        chosen = variants(args.full_only, args.history_ab)
         data_s = header(
             sc,
             stream,
@@ -1003,7 +1015,7 @@ def run_inprocess(args: argparse.Namespace) -> None:
                     *("--one-run", v.key, "--round", str(rep + 1), "--cache", str(cache)),
                     *("--duration", str(args.duration), "--seed", str(args.seed)),
                     *("--snapshot-every", str(args.snapshot_every)),
-                    *(["--accuracy"] if last and v.key == judged else []),
+                    *(["--accuracy"] if last and v.key in (judged, "H") else []),
                     *(["--explain-false"] if last and v.key == judged and args.explain_false else []),
                 ]
                 done = subprocess.run(command_line, stdout=subprocess.PIPE, text=True, check=False)
@@ -1018,7 +1030,7 @@ def run_inprocess(args: argparse.Namespace) -> None:
                 if v.key == "C" and "B" in results and len(results["B"]) == rep + 1:
                     same = "the same" if summary.digest == results["B"][rep].digest else "NOT the same"
                     print(f"  confirmed pairs and biases: {same} as B's in this round")
-                if summary.accuracy:
+                if summary.accuracy and v.key == judged:
                     accuracy_figures = summary.accuracy
                 results.setdefault(v.key, []).append(summary)
         side_by_side(chosen, results, data_s, truth, args)
@@ -1764,6 +1776,11 @@ def main() -> None:
     parser.add_argument("--cache", type=Path, help="pickle file keeping the generated stream between runs")
     parser.add_argument("--repeat", type=int, default=1, help="rounds of the variants, interleaved")
     parser.add_argument("--full-only", action="store_true", help="skip the tracking-alone run")
+    parser.add_argument(
+        "--history-ab",
+        action="store_true",
+        help="compare the full pipeline with and without the pairs' history evidence (B against H)",
+    )
     parser.add_argument("--snapshot-every", type=int, default=64, help="messages between snapshots (0: none)")
     parser.add_argument(
         "--explain-false",
@@ -1781,7 +1798,7 @@ def main() -> None:
         "--soak-minutes", type=float, help="feed a never-ending stream for this many wall minutes"
     )
     # a run of the in-process mode, in a process of its own (see one_run)
-    parser.add_argument("--one-run", choices=("A", "B", "C"), help=argparse.SUPPRESS)
+    parser.add_argument("--one-run", choices=("A", "B", "C", "H"), help=argparse.SUPPRESS)
     parser.add_argument("--round", type=int, default=1, help=argparse.SUPPRESS)
     parser.add_argument("--accuracy", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--top", type=int, default=25, help="functions listed per profile order")

@@ -187,13 +187,14 @@ def group_offset_reference(
     ia: np.ndarray,
     radius_m: float,
     support_bandwidth: float,
+    starts: int,
     iterations: int,
     gate_chi2: float,
 ) -> dict[int, tuple[np.ndarray, int]]:
     """The local offset of every reference row and its number of matched candidates, by plain
-    loops: voters are the candidates of the other A tracks within ``radius_m``; start at the
-    best-supported voter; then per nearby track the candidate nearest the offset (within the
-    gate), the offset their mean."""
+    loops: voters are the candidates of the other A tracks within ``radius_m``; from each of
+    the ``starts`` best-supported voters, per nearby track the candidate nearest the offset
+    (within the gate), the offset their mean; the start matching the most tracks wins."""
     n = len(ia)
     var_h = 0.5 * (s[:, 0, 0] + s[:, 1, 1])
     voters = {
@@ -213,20 +214,23 @@ def group_offset_reference(
     for i, v in voters.items():
         if not v:
             continue
-        off = d[max(v, key=lambda c: (support[c], -v.index(c)))].copy()
-        matched = 0
-        for _ in range(iterations):
-            picks = []
-            for k in sorted({int(ia[c]) for c in v}):
-                mine = [c for c in v if ia[c] == k]
-                q = [
-                    float((d[c, :2] - off[:2]) @ np.linalg.solve(s[c, :2, :2], d[c, :2] - off[:2]))
-                    for c in mine
-                ]
-                if min(q) <= gate_chi2:
-                    picks.append(mine[int(np.argmin(q))])
-            if picks:
-                off = d[picks].mean(axis=0)
-            matched = len(picks)
-        out[i] = (off, matched)
+        results = []
+        for start in sorted(v, key=lambda c: -support[c])[:starts]:
+            off = d[start].copy()
+            matched, qsum = 0, 0.0
+            for _ in range(iterations):
+                picks, qs = [], []
+                for k in sorted({int(ia[c]) for c in v}):
+                    mine = [c for c in v if ia[c] == k]
+                    res = [d[c, :2] - off[:2] for c in mine]
+                    q = [float(x @ np.linalg.solve(s[c, :2, :2], x)) for c, x in zip(mine, res, strict=True)]
+                    if min(q) <= gate_chi2:
+                        picks.append(mine[int(np.argmin(q))])
+                        qs.append(min(q))
+                if picks:
+                    off = d[picks].mean(axis=0)
+                matched, qsum = len(picks), sum(qs)
+            results.append((matched, -qsum, off))
+        best = max(results, key=lambda x: (x[0], x[1]))
+        out[i] = (best[2], best[0])
     return out

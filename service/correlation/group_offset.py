@@ -16,11 +16,13 @@ false pairing's difference is shared only by the pairings shifted by the same se
 (fewer: the lattice's edge and its irregularity break the others).  Each candidate's
 *support* is the kernel-weighted count of the candidates of the other nearby tracks with
 nearly the same difference (kernel ``support_bandwidth`` times the median relative noise);
-the offset ``o_i`` starts at the best-supported difference among the reference's voters and
-is refined by matching: each nearby track's candidate nearest the offset (within a gate)
-and the offset their mean, a few times (iterated closest points with the translation-only
-model).  (Started from the mean of the differences, or refined by a kernel average, it
-settles on a lattice shift one spacing off as often as not, and registration follows it.)
+the offset ``o_i`` is refined from each of the ``starts`` best-supported differences among the
+reference's voters by matching: each nearby track's candidate nearest the offset (within a
+gate) and the offset their mean, a few times (iterated closest points with the
+translation-only model); the start whose matching pairs the most tracks wins (then the least
+total chi-square): a lattice shift of the true offset leaves an edge of the group unmatched.
+(Started from the mean of the differences, or refined by a kernel average, it settles on a
+lattice shift one spacing off as often as not, and registration follows it.)
 The residual ``r_ij = D_ij - o_i`` with covariance ``P_A + P_B``
 is one look at the pair for the history evidence (:mod:`.evidence`); ``Cov(o_i)``, the
 kernel-weighted noise over the effective number of supporting candidates, is common to the
@@ -55,7 +57,10 @@ class GroupOffsetParams:
     min_tracks: int = 4
     #: Kernel width of the support count, in units of the median relative noise.
     support_bandwidth: float = 1.0
-    #: Refinements after the best-supported start: each nearby track's candidate nearest the
+    #: Starts per reference: its this many best-supported voters, each refined (below); the
+    #: one matching the most tracks wins.
+    starts: int = 4
+    #: Refinements after each start: each nearby track's candidate nearest the
     #: offset within ``gate_chi2`` (horizontal, 2 dof; 99 %), the offset their mean.
     iterations: int = 3
     gate_chi2: float = 9.21
@@ -121,35 +126,58 @@ def group_residuals(
     support = _support(a, ia, d, counts, start, order, params, scale)
     if support is None:
         return empty
-    # Start: each reference's best-supported voter (ties: the first).
-    best = np.full(m, -1.0)
-    np.maximum.at(best, vote_ref, support[vote_c])
-    top = support[vote_c] >= best[vote_ref]
-    pick = np.full(m, -1, dtype=np.intp)
-    pick[vote_ref[top][::-1]] = vote_c[top][::-1]  # the first top voter of each reference
-    off: FloatArray = np.zeros((m, 3))
-    off[pick >= 0] = d[pick[pick >= 0]]
+    # Starts: each reference's ``starts`` best-supported voters.  A regular formation has a
+    # mode at every lattice shift, nearly as supported as the true one; the matching from each
+    # start decides, by the number of tracks it matches (the true offset matches the whole
+    # group, a shift loses an edge), then by the total chi-square.
+    k_st = max(1, params.starts)
+    by = np.lexsort((-support[vote_c], vote_ref))
+    first_v = np.r_[True, vote_ref[by][1:] != vote_ref[by][:-1]]
+    grp = np.cumsum(first_v) - 1
+    rank = np.arange(by.size) - np.flatnonzero(first_v)[grp]
+    chosen = by[rank < k_st]
+    ref_x = vote_ref[chosen] * k_st + rank[rank < k_st]  # expanded reference: (row, start)
+    mx = m * k_st
+    off_x: FloatArray = np.zeros((mx, 3))
+    off_x[ref_x] = d[vote_c[chosen]]
+    has_start = np.zeros(mx, dtype=bool)
+    has_start[ref_x] = True
+    # Every vote once per start of its reference.
+    vr = np.repeat(vote_ref, k_st) * k_st + np.tile(np.arange(k_st), vote_ref.size)
+    vc = np.repeat(vote_c, k_st)
+    live = has_start[vr]
+    vr, vc = vr[live], vc[live]
     inv_h = np.linalg.inv(s[:, :2, :2] + 1e-9 * np.eye(2))  # horizontal, per candidate
-    track_of = ia[vote_c]
-    w = np.zeros(vote_c.size)
-    wsum = np.zeros(m)
+    track_of = ia[vc]
+    w = np.zeros(vc.size)
+    wsum = np.zeros(mx)
+    qsum = np.zeros(mx)
     for _ in range(params.iterations):
         # Each nearby track's candidate nearest the current offset (horizontal Mahalanobis),
         # within the gate; the offset is their mean.  (A matching, not a kernel average: the
         # lattice-shifted pairings around the true offset then pull nothing.)
-        dd = d[vote_c, :2] - off[vote_ref, :2]
-        q = np.einsum("ki,kij,kj->k", dd, inv_h[vote_c], dd)
-        key = vote_ref.astype(np.int64) * (m + 1) + track_of
-        by = np.lexsort((q, key))
-        first = np.r_[True, key[by][1:] != key[by][:-1]]
-        pick = by[first]
+        dd = d[vc, :2] - off_x[vr, :2]
+        q = np.einsum("ki,kij,kj->k", dd, inv_h[vc], dd)
+        key = vr.astype(np.int64) * (m + 1) + track_of
+        order_q = np.lexsort((q, key))
+        first = np.r_[True, key[order_q][1:] != key[order_q][:-1]]
+        pick = order_q[first]
         pick = pick[q[pick] <= params.gate_chi2]
-        w = np.zeros(vote_c.size)
+        w = np.zeros(vc.size)
         w[pick] = 1.0
-        wsum = np.bincount(vote_ref, w, minlength=m).astype(float)
-        new = np.stack([np.bincount(vote_ref, w * d[vote_c, k], minlength=m) for k in range(3)], 1)
+        wsum = np.bincount(vr, w, minlength=mx).astype(float)
+        qsum = np.bincount(vr, w * q, minlength=mx).astype(float)
+        new = np.stack([np.bincount(vr, w * d[vc, k], minlength=mx) for k in range(3)], 1)
         good = wsum > 0
-        off[good] = new[good] / wsum[good, None]
+        off_x[good] = new[good] / wsum[good, None]
+    # The best start of each reference: most matches, then the least total chi-square.
+    score = np.where(has_start, wsum * 1e6 - np.minimum(qsum, 1e6 - 1), -np.inf).reshape(m, k_st)
+    best_k = np.argmax(score, axis=1)
+    sel_x = np.arange(m) * k_st + best_k
+    off = off_x[sel_x]
+    keep_vote = best_k[vr // k_st] == vr % k_st
+    vote_ref, vote_c, w = vr[keep_vote] // k_st, vc[keep_vote], w[keep_vote]
+    wsum = wsum[sel_x]
     # Covariance of the offset: the matched candidates' noise over their number.
     n_support = wsum
     s_mean = np.zeros((m, 9))

@@ -43,7 +43,8 @@ def test_evidence_accumulation_matches_the_reference() -> None:
 
 
 def test_evidence_prune_and_probability() -> None:
-    book = EvidenceBook()
+    # Uncalibrated: the posterior over one track's hypotheses (the calibration maps it onward).
+    book = EvidenceBook(EvidenceParams(calibration_slope=1.0, calibration_offset=0.0))
     s = np.broadcast_to(np.eye(3) * 100.0**2, (3, 3, 3)).copy()
     r = np.array([[10.0, 0, 0], [400.0, 0, 0], [0.0, 900.0, 0]])
     ta, tb = np.array(["A-1", "A-1", "A-2"]), np.array(["B-1", "B-2", "B-2"])
@@ -129,7 +130,7 @@ def test_group_offset_matches_the_reference_and_finds_the_offset() -> None:
     d = (sa.position[ia] - sb.position[ib]) @ b.rotation
     s = b.rotation.T @ (sa.pos_cov[ia] + sb.pos_cov[ib]) @ b.rotation
     ref = group_offset_reference(
-        d, s, sa.position, ia, prm.radius_m, prm.support_bandwidth, prm.iterations, prm.gate_chi2
+        d, s, sa.position, ia, prm.radius_m, prm.support_bandwidth, prm.starts, prm.iterations, prm.gate_chi2
     )
     assert ok.all()
     np.testing.assert_allclose(d[ok] - r, np.array([ref[int(i)][0] for i in ia[ok]]), atol=1e-6)

@@ -53,7 +53,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from service.correlation import PairCorrelator
+from service.correlation import CorrelationParams, PairCorrelator
 from service.geo import Site, ecef_to_geodetic, polar_to_enu
 from service.tracking.base import TrackTable
 from topofusion_lab.evaluation.correlation_scenario import SITE_LAT_DEG, SITE_LON_DEG
@@ -405,6 +405,26 @@ def rates(
 def brier(rec: Records) -> float:
     s, ok = np.asarray(rec.score), np.asarray(rec.score_ok, dtype=float)
     return float(np.mean((s - ok) ** 2)) if len(s) else float("nan")
+
+
+def fit_calibration(rec: Records, slope: float, offset: float) -> tuple[float, float]:
+    """The logistic calibration (``EvidenceParams.calibration_slope`` / ``_offset``) that makes
+    ``rec``'s scores, produced with ``slope`` and ``offset``, fit their outcomes best (maximum
+    likelihood, Newton's method on the two parameters over the uncalibrated log-odds)."""
+    s = np.clip(np.asarray(rec.score, dtype=float), 1e-9, 1 - 1e-9)
+    y = np.asarray(rec.score_ok, dtype=float)
+    raw = (np.log(s / (1 - s)) - offset) / slope
+    x = np.column_stack([raw, np.ones_like(raw)])
+    beta = np.array([1.0, 0.0])
+    for _ in range(50):
+        p = 1 / (1 + np.exp(-(x @ beta)))
+        grad = x.T @ (y - p)
+        hess = (x * (p * (1 - p))[:, None]).T @ x + 1e-9 * np.eye(2)
+        step = np.linalg.solve(hess, grad)
+        beta = beta + step
+        if np.abs(step).max() < 1e-10:
+            break
+    return float(beta[0]), float(beta[1])
 
 
 def reliability(rec: Records, bins: int = 10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -986,6 +1006,14 @@ def run(
             f"| {k / 10:.1f}-{(k + 1) / 10:.1f} | {count[k]:.0f} | "
             f"{'-' if not count[k] else f'{mean_s[k]:.3f}'} | {'-' if not count[k] else f'{frac[k]:.3f}'} |"
         )
+    ev = CorrelationParams().evidence
+    fit_a, fit_b = fit_calibration(pooled["svd-topology"], ev.calibration_slope, ev.calibration_offset)
+    md += [
+        "",
+        f"The service's calibration (`EvidenceParams`): slope {ev.calibration_slope:g}, offset "
+        f"{ev.calibration_offset:g}; the maximum-likelihood fit on these pairs: slope {fit_a:.3f}, "
+        f"offset {fit_b:.3f} (equal when the scores are calibrated on these scenes).",
+    ]
     cost = {m: float(np.mean([r.ms_per_update[m] for r in results])) for m in METHODS}
     md += [
         "",
