@@ -12,7 +12,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import httpx
@@ -106,3 +106,12 @@ def running_service(
         thread.join(timeout=10)
         sock.close()
         assert not thread.is_alive(), "uvicorn did not stop"
+
+
+def one_worker_config(**kw: object) -> EngineConfig:
+    """The one worker N partitioned workers equal: without the cycle step, which needs every
+    pair of a triangle in one place and is off in a partitioned worker (docs/contract.md)."""
+    cfg = EngineConfig(**kw)  # type: ignore[arg-type]
+    return replace(
+        cfg, correlation=replace(cfg.correlation, cycles=replace(cfg.correlation.cycles, enabled=False))
+    )

@@ -31,6 +31,7 @@ from service.wire.keys import Keys
 from service.wire.models import TrackStates
 from service.wire.outputs import encode
 from tests.scenario_helpers import scenario_messages
+from tests.support import one_worker_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -180,7 +181,7 @@ def _is_peer(key: str) -> bool:
 
 
 def _run_one(msgs: list[tuple[str, bytes]]) -> tuple[dict[str, list[bytes]], Engine]:
-    engine = Engine(EngineConfig())
+    engine = Engine(one_worker_config())
     pairs: dict[str, list[bytes]] = defaultdict(list)
     for key, payload in msgs:
         for o in engine.ingest(key, payload):

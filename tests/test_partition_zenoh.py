@@ -22,7 +22,14 @@ import zenoh
 from service.engine import EngineConfig
 from service.pipeline.partition import Partition
 from tests.scenario_helpers import scenario_messages
-from tests.support import RunningService, put_json, running_service, wait_for, wait_subscribed
+from tests.support import (
+    RunningService,
+    one_worker_config,
+    put_json,
+    running_service,
+    wait_for,
+    wait_subscribed,
+)
 
 
 class Collector:
@@ -48,7 +55,7 @@ class Collector:
 @contextlib.contextmanager
 def network(router: str) -> Iterator[tuple[RunningService, RunningService, RunningService]]:
     with (
-        running_service(router, EngineConfig(prefix="one"), correlation_process=False) as one,
+        running_service(router, one_worker_config(prefix="one"), correlation_process=False) as one,
         running_service(
             router, EngineConfig(prefix="two", partition=Partition(1, 2)), correlation_process=False
         ) as w1,

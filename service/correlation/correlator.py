@@ -55,6 +55,7 @@ from service.correlation.base import (
 )
 from service.correlation.basic_topology import BasicTopologyCorrelator, BasicTopologyParams
 from service.correlation.cfar import CfarParams
+from service.correlation.cycles import CycleParams, Implied, contradicted
 from service.correlation.evidence import EvidenceBook, EvidenceParams, registered_residuals
 from service.correlation.external import CfarCorrelator, GmmCorrelator
 from service.correlation.gmm import GmmParams
@@ -93,6 +94,8 @@ class CorrelationParams:
     cfar: CfarParams = field(default_factory=CfarParams)
     #: The sequential test over each candidate pair's history (``svd-topology``).
     evidence: EvidenceParams = field(default_factory=EvidenceParams)
+    #: Consistency around three radars (:mod:`.cycles`; used by the correlation stage).
+    cycles: CycleParams = field(default_factory=CycleParams)
     #: The local offset of a group of tracks, the looks before registration (``svd-topology``).
     group: GroupOffsetParams = field(default_factory=GroupOffsetParams)
     #: Ambiguity margin of the one-to-one assignment (chi-square units; 6 ~ likelihood ratio 20).
@@ -193,8 +196,11 @@ class PairCorrelator:
             and min(self.solution.pairs_used.values()) >= self.params.registration.min_pairs
         )
 
-    def update(self, tracks_a: TrackTable, tracks_b: TrackTable, time_s: float) -> None:
-        """One correlation update at data time ``time_s``."""
+    def update(
+        self, tracks_a: TrackTable, tracks_b: TrackTable, time_s: float, implied: Implied | None = None
+    ) -> None:
+        """One correlation update at data time ``time_s``; ``implied``: the pairs confirmed pairs
+        through third radars imply (:mod:`.cycles`; None: no cycle step)."""
         t0 = time.perf_counter()
         prm = self.params
         raw_a = predict_snapshot(tracks_a, self.site_a, time_s, prm.prediction)
@@ -234,6 +240,16 @@ class PairCorrelator:
                 bad[ok] = ev.rejected()[e[ok]] | ev.rivals_better(e[ok], ev.params.keep_margin)
                 kept = kept.take(~bad)
                 hist = ev.looks[e[~bad]] >= ev.params.min_looks
+            if implied is not None and len(implied) and len(kept):
+                # The weakest link of a contradicted cycle goes: decided afresh (module cycles).
+                ka, kb = a.track_id[kept.index_a], b.track_id[kept.index_b]
+                at = find(self.book.keys, pair_keys(ka, kb))
+                own = np.where(at >= 0, self.book.score[np.maximum(at, 0)], 0.0)
+                weak = contradicted(ka, kb, own, implied)
+                kept = kept.take(~weak)
+                if ev is not None:
+                    hist = hist[~weak]
+            if ev is not None:
                 kept.extras["basis"] = np.where(hist, float(Basis.HISTORY), float(Basis.REGISTERED))
             # Kept pairs are decided; only the other tracks are candidate references.
             parts.append(kept)
@@ -252,6 +268,14 @@ class PairCorrelator:
             nb = max(len(b), 1)
             is_conf = np.isin(decided.index_a * nb + decided.index_b, ca_idx * nb + cb_idx)
             cost = np.where(is_conf, cost - prm.confirmed_bonus, cost)
+        if implied is not None and len(implied) and len(decided):
+            # A candidate a chain through a third radar implies: the cycle's evidence.
+            strong = implied.strongest()
+            at = find(
+                pair_keys(strong.track_a, strong.track_b),
+                pair_keys(a.track_id[decided.index_a], b.track_id[decided.index_b]),
+            )
+            cost = np.where(at >= 0, cost - prm.cycles.bonus, cost)
         chosen, _ambiguous = assign_unambiguous(
             decided.index_a,
             decided.index_b,

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from service.correlation import CorrelationParams, PairCorrelator, joint_solution
+from service.correlation.cycles import Implied, implied_for
 from service.correlation.registration import (
     BiasSolution,
     RegistrationMemory,
@@ -293,7 +294,7 @@ class CorrelationStage:
             own = radar.tracks(time_s) if own is None else own
             other_table = table if table is not None else other.tracks(time_s)
             ta, tb = (own, other_table) if first is radar else (other_table, own)
-            corr.update(ta, tb, time_s)
+            corr.update(ta, tb, time_s, self._implied(key) if second.geometry is not None else None)
             self.updates += 1
             self.last_ms = float(corr.last_update_ms)
             self.timings_ms.append(self.last_ms)
@@ -308,6 +309,15 @@ class CorrelationStage:
         if self._solves:
             self._solve_due(time_s)
         return updated
+
+    def _implied(self, key: tuple[str, str]) -> Implied | None:
+        """The pairs of radar pair ``key`` that confirmed pairs through third radars imply
+        (:mod:`service.correlation.cycles`); None when the cycle step is off: disabled, or a
+        partitioned worker (it owns only some pairs of a triangle)."""
+        prm = self.correlation_params.cycles
+        if not (prm.enabled and self.partition.whole):
+            return None
+        return implied_for(key, self.correlators, prm.min_strength)
 
     def finish(self) -> None:
         """End of the input: the joint bias estimate at the last update's data time."""

@@ -54,6 +54,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from service.correlation import CorrelationParams, PairCorrelator
+from service.correlation.cycles import implied_for
 from service.geo import Site, ecef_to_geodetic, polar_to_enu
 from service.tracking.base import TrackTable
 from topofusion_lab.evaluation.correlation_scenario import SITE_LAT_DEG, SITE_LON_DEG
@@ -298,13 +299,13 @@ PairKey = tuple[str, str]
 def update_scan(
     correlators: Mapping[PairKey, PairCorrelator], tables: Mapping[str, TrackTable], time_s: float
 ) -> None:
-    """One scan's correlation: every radar pair's correlator updated with the two tables.
-
-    The one place where all radar pairs of a scan meet (a cross-pair step, such as cycle
-    consistency among three radars, belongs here).
-    """
+    """One scan's correlation: every radar pair's correlator updated with the two tables, in
+    the order the correlation stage would, each with the pairs the other two pairs of its
+    triangles imply (the service's cycle step, :mod:`service.correlation.cycles`)."""
     for (a, b), corr in correlators.items():
-        corr.update(tables[a], tables[b], time_s)
+        cycles = corr.params.cycles
+        implied = implied_for((a, b), correlators, cycles.min_strength) if cycles.enabled else None
+        corr.update(tables[a], tables[b], time_s, implied)
 
 
 # -- scoring -----------------------------------------------------------------------------
