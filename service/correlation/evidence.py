@@ -106,12 +106,12 @@ class EvidenceParams:
     null_cost: float = 8.3
     #: Logistic calibration of the posterior (see the module docstring): the maximum-likelihood
     #: fit over the published pairs of the dense-formation study's one-run scenes with seeds 7
-    #: and 11 (``topofusion_lab.evaluation.dense.fit_calibration``: 1.07 / 2.67 and 1.07 /
-    #: 2.25 on each, the mean taken); the study's own scenes (other seeds) are the held-out
+    #: and 11 (``topofusion_lab.evaluation.dense.fit_calibration``: 1.11 / 2.72 and 1.02 /
+    #: 2.39 on each, the mean taken); the study's own scenes (other seeds) are the held-out
     #: check.  The posterior alone is too modest: a track's rivals
     #: inside the gate are mostly far less likely than the null hypothesis weighs them.
     calibration_slope: float = 1.07
-    calibration_offset: float = 2.46
+    calibration_offset: float = 2.56
 
 
 def registered_residuals(
@@ -130,6 +130,25 @@ def registered_residuals(
     s_inv, ok = inv3(s_noise + s_common)
     keep = ok & (quad3(r, s_inv) <= params.registered_gate_chi2)
     return ia[keep], ib[keep], r[keep], s_noise[keep], s_common[keep]
+
+
+def posterior(
+    track_a: NDArray[np.str_], track_b: NDArray[np.str_], cost: FloatArray, params: EvidenceParams
+) -> FloatArray:
+    """The calibrated posterior of each hypothesis ``(track_a[k], track_b[k])`` of cost
+    ``cost[k]`` (chi-square excess, ``-2 ln`` likelihood up to a constant; inf: no hypothesis)
+    among the hypotheses sharing one of its tracks and the null one (module docstring)."""
+    if len(cost) == 0:
+        return np.empty(0)
+    # Likelihoods relative to the null hypothesis: exp(-(cost - null)/2), clipped.
+    lik = np.exp(-0.5 * np.clip(cost - params.null_cost, -600.0, 600.0))
+    _, inv_a = np.unique(track_a, return_inverse=True)
+    _, inv_b = np.unique(track_b, return_inverse=True)
+    sum_a = np.bincount(inv_a, lik)[inv_a]
+    sum_b = np.bincount(inv_b, lik)[inv_b]
+    p = np.clip(lik / (sum_a + sum_b - lik + 1.0), 1e-9, 1.0 - 1e-9)
+    z = params.calibration_slope * np.log(p / (1.0 - p)) + params.calibration_offset
+    return np.asarray(1.0 / (1.0 + np.exp(-z)))
 
 
 def accumulated_chi2(rbar: FloatArray, sbar: FloatArray, n_eff: FloatArray, common: FloatArray) -> FloatArray:
@@ -268,21 +287,9 @@ class EvidenceBook:
 
     def probability(self) -> FloatArray:
         """Each entry's calibrated posterior (module docstring), NaN without a look."""
-        prm = self.params
-        n = len(self)
-        if n == 0:
-            return np.empty(0)
         have = np.isfinite(self.q_rel)
-        cost = np.where(have, self.q_rel - 3.0, np.inf)
-        # Likelihoods relative to the null hypothesis: exp(-(cost - null)/2), clipped.
-        lik = np.exp(-0.5 * np.clip(cost - prm.null_cost, -600.0, 600.0))
-        _, inv_a = np.unique(self.track_a, return_inverse=True)
-        _, inv_b = np.unique(self.track_b, return_inverse=True)
-        sum_a = np.bincount(inv_a, lik)[inv_a]
-        sum_b = np.bincount(inv_b, lik)[inv_b]
-        p = np.clip(lik / (sum_a + sum_b - lik + 1.0), 1e-9, 1.0 - 1e-9)
-        z = prm.calibration_slope * np.log(p / (1.0 - p)) + prm.calibration_offset
-        return np.where(have, 1.0 / (1.0 + np.exp(-z)), np.nan)
+        p = posterior(self.track_a, self.track_b, np.where(have, self.q_rel - 3.0, np.inf), self.params)
+        return np.where(have, p, np.nan)
 
     def rivals_better(self, entries: NDArray[np.intp], margin: float) -> NDArray[np.bool_]:
         """For entries ``entries``: is there a rival (an entry sharing one of its tracks) whose
