@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from service.correlation import CorrelationParams
+from service.correlation.cycles import CycleParams
 from service.geo import Site
 from service.tracking.base import TrackTable
 from topofusion_lab.evaluation import dense
@@ -112,10 +114,14 @@ def test_update_scan_updates_every_radar_pair() -> None:
     seen = []
 
     class Fake:
+        """A correlator that records its updates (the cycle step off: no books to join)."""
+
+        params = CorrelationParams(cycles=CycleParams(enabled=False))
+
         def __init__(self, key: tuple[str, str]) -> None:
             self.key = key
 
-        def update(self, ta: TrackTable, tb: TrackTable, t: float) -> None:
+        def update(self, ta: TrackTable, tb: TrackTable, t: float, implied: object = None) -> None:
             seen.append((self.key, ta, tb, t))
 
     tables = {r: TrackTable.empty() for r in "ABC"}
