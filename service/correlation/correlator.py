@@ -56,7 +56,7 @@ from service.correlation.base import (
 from service.correlation.basic_topology import BasicTopologyCorrelator, BasicTopologyParams
 from service.correlation.cfar import CfarParams
 from service.correlation.cycles import CycleParams, Implied, contradicted
-from service.correlation.evidence import EvidenceBook, EvidenceParams, posterior, registered_residuals
+from service.correlation.evidence import EvidenceBook, EvidenceParams, registered_residuals
 from service.correlation.external import CfarCorrelator, GmmCorrelator
 from service.correlation.gmm import GmmParams
 from service.correlation.group_offset import GroupOffsetParams, group_residuals
@@ -302,21 +302,11 @@ class PairCorrelator:
             np.nan_to_num(sel.extras["basis"], nan=-1.0).astype(np.int8) if "basis" in sel.extras else None,
         )
         if ev is not None:
-            # A pair's probability: from its accumulated evidence; without any, from this
-            # update's decision among its rivals (the same posterior on the single costs);
-            # not decided this update, as it was.
-            prob = np.append(ev.probability(), np.nan)[find(ev.keys, self.book.keys)]  # -1: none
-            d_keys = pair_keys(a.track_id[decided.index_a], b.track_id[decided.index_b])
-            single = posterior(
-                a.track_id[decided.index_a],
-                b.track_id[decided.index_b],
-                np.where(decided.accepted, cost, np.inf),
-                ev.params,
-            )
-            at = find(d_keys, self.book.keys)
-            now = np.append(single, np.nan)[at]
-            prev = self.book.cols["probability"]
-            self.book.cols["probability"] = np.where(np.isfinite(prob), prob, np.where(at >= 0, now, prev))
+            # A pair's probability from its accumulated evidence; a pair with none (before
+            # registration and outside any group) keeps the hit fraction: one update's
+            # decision among a formation's rivals measured as no better than a guess there.
+            e = find(ev.keys, self.book.keys)
+            self.book.cols["probability"] = np.append(ev.probability(), np.nan)[e]  # -1: none
         # Registration rows from the confirmed pairs (raw, uncompensated positions).
         conf = self.book.confirmed
         pa_idx, pb_idx = _lookup_pairs(

@@ -420,8 +420,9 @@ def fit_calibration(rec: Records, slope: float, offset: float) -> tuple[float, f
     for _ in range(50):
         p = 1 / (1 + np.exp(-(x @ beta)))
         grad = x.T @ (y - p)
-        hess = (x * (p * (1 - p))[:, None]).T @ x + 1e-9 * np.eye(2)
+        hess = (x * (p * (1 - p))[:, None]).T @ x + 1e-6 * np.eye(2)
         step = np.linalg.solve(hess, grad)
+        step *= min(1.0, 1.0 / max(float(np.abs(step).max()), 1e-12))  # damped: no overshoot
         beta = beta + step
         if np.abs(step).max() < 1e-10:
             break
