@@ -159,3 +159,35 @@ def test_goal_from_is_the_smallest_ratio_after_which_every_ratio_meets_the_goal(
     assert dense.goal_from([bad, ok, ok], (1.0, 2.0, 3.0)) == "2"
     assert dense.goal_from([ok, noisy, ok], (1.0, 2.0, 3.0)) == "3"
     assert dense.goal_from([ok, ok, bad], (1.0, 2.0, 3.0)) == "not met up to 3"
+
+
+def test_score_is_calibrated_on_held_out_formations() -> None:
+    """The calibration was fitted on other seeds (EvidenceParams): on these formations the
+    scores of the pairs with accumulated evidence match how often they are right."""
+    from service.correlation.pairkeys import find
+
+    scores: list[float] = []
+    right: list[bool] = []
+    for k, ratio in enumerate((2.0, 3.0)):
+        scene = dense.DenseScene(aircraft=30, ratio=ratio, seed=(101, k, 0), scans=30)
+        setup = dense.draw_scene(scene)
+        sites = {r.site.site_id: r.site for r in setup.radars}
+        keys = dense.radar_pairs(list(sites))
+        corr = {key: dense.PairCorrelator("svd-topology", sites[key[0]], sites[key[1]]) for key in keys}
+        for tables, t in dense.simulate(setup):
+            dense.update_scan(corr, tables, t)
+            for (a, b), c in corr.items():
+                ev = c.evidence
+                assert ev is not None
+                have = find(ev.keys, c.book.keys) >= 0
+                truth_a = dict(zip(tables[a].track_id, tables[a].truth_id, strict=True))
+                truth_b = dict(zip(tables[b].track_id, tables[b].truth_id, strict=True))
+                for i in np.flatnonzero(have):
+                    scores.append(float(c.book.score[i]))
+                    right.append(truth_a.get(c.book.track_a[i]) == truth_b.get(c.book.track_b[i]))
+    rec = dense.Records(score=scores, score_ok=right)
+    assert len(scores) > 2_000
+    assert dense.brier(rec) < 0.08
+    mean_s, frac, count = dense.reliability(rec)
+    well = count >= 200  # bins with enough pairs to judge
+    assert well.sum() >= 2 and np.all(np.abs(mean_s[well] - frac[well]) < 0.15)
