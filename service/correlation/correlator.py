@@ -18,10 +18,21 @@ Per :meth:`PairCorrelator.update` (all in data time, deterministic):
    neighbour): new tracks, tentative pairs, failed re-checks.  A steady-state update then
    costs the prediction, the compensation and a vectorised test per confirmed pair, plus a
    topology match per track that needs a decision.
+   With the history evidence (:mod:`.evidence`, ``svd-topology``): every candidate's residual
+   is a look (once registered, every pair within the search distance; before, inside a group
+   against its local offset, :mod:`.group_offset`, which also decides the candidates the
+   topology could not); a kept pair must also pass its accumulated test and stay the best
+   hypothesis of both its tracks, and one a stronger chain through a third radar contradicts
+   is decided afresh (:mod:`.cycles`).  A decided candidate with a source of looks is accepted
+   from ``min_looks`` looks on while its accumulated test passes, at the cost ``q_rel - 3``.
 4. One-to-one assignment with an ambiguity margin (:mod:`.assignment`) of the decided
-   candidates (kept pairs share no track with them: nothing to assign).
+   candidates (kept pairs share no track with them: nothing to assign); with the history
+   evidence the margin is between joint assignments, and a candidate a chain through a third
+   radar implies has its cost lowered by the cycle bonus.
 5. The M-of-N book (:mod:`.pairs`); a kept pair scores a hit with the re-check's statistic
-   and NaN rotation weight and scale (null on the wire: no topology was fitted).
+   and NaN rotation weight and scale (null on the wire: no topology was fitted).  Each pair's
+   ``basis`` is what its latest hit rested on, its probability (the published ``score``) the
+   evidence's posterior (the hit fraction while it has no evidence).
 6. Confirmed pairs feed the registration memory (each row's normal-equation pieces computed
    once; once registered at most ``registered_rows_per_update`` rows, different pairs on
    successive updates), and the pair's own two-radar bias solution is refreshed for the next

@@ -12,13 +12,14 @@ and tests that mean.
 ``S_k`` of its random part and ``C_k`` of a part common to every update (the registration's
 own uncertainty: it does not average out):
 
-* before registration, the topology match's translation ``t`` (SVD paper Eq. (4), position
-  test of :mod:`.svd_topology`): the A reference predicted from its matched neighbours minus
-  the B reference, which the common bias of the neighbourhood leaves out; ``S_k`` is the
-  test's ``S_ref``, ``C_k = 0``;
 * once registered, the bias-compensated difference ``x_A - x_B`` (Eq. (2) model removed, see
-  :func:`.registration.compensate`) with ``S_k = P_A + P_B`` and ``C_k`` the covariance the
-  bias estimate adds on both sides.
+  :func:`.registration.compensate`) of every pair of tracks within ``registered_search_m``,
+  with ``S_k = P_A + P_B`` and ``C_k`` the covariance the bias estimate adds on both sides;
+* before registration, inside a group of tracks, the difference against the group's local
+  offset (:mod:`.group_offset`), ``C_k`` the offset's own covariance.  (The topology match's
+  translation ``t``, Eq. (4), is not used: its covariance ``S_ref`` overstated the spread of
+  true pairs' ``t`` several times over, so its looks accepted every lattice neighbour.)
+  Elsewhere before registration there is no look, and the update decides alone.
 
 **Accumulation** (per entry, data time; ``dt`` since the entry's previous observation)::
 
@@ -37,13 +38,16 @@ mean of zero-mean Gaussian residuals with that covariance); a false pair's ``rba
 the two aircraft's separation ``s`` while the covariance shrinks towards ``C``, so its ``q``
 grows about as ``n s^T Sbar^-1 s``.  Between two rival pairings sharing a track the
 log-likelihood ratio is ``(q_2 - q_1) / 2`` (equal covariances), the quantity the one-to-one
-assignment's ambiguity margin is set on: a pair ambiguous on one snapshot is resolved once
-``n`` is large enough, and stays ambiguous while it is not.  A pair with
-``q > chi2_{3}(1 - alpha)`` is rejected whatever its single update said.
+assignment's ambiguity margin is set on (the costs are ``q_rel - 3``, ``q_rel`` the same
+statistic without ``C``, common to rivals and so cancelling from their ratio): a pair
+ambiguous on one snapshot is resolved once ``n`` is large enough, and stays ambiguous while
+it is not.  From ``min_looks`` looks on, a pair with ``q > chi2_{3}(1 - alpha)`` is
+rejected whatever its single update said.
 
 **Probability** (the published ``score``).  The posterior of pair ``(i, j)`` among the live
-hypotheses of its two tracks, each weighted by its Gaussian likelihood ``exp(-q / 2)``, plus
-the hypothesis that the track's partner is not among them (weight ``exp(-null_chi2 / 2)``)::
+hypotheses of its two tracks, each weighted by its Gaussian likelihood ``exp(-cost / 2)``
+(``cost = q_rel - 3``), plus the hypothesis that the track's partner is not among them
+(weight ``exp(-null_cost / 2)``)::
 
     p_ij = L_ij / (sum_{j'} L_ij' + sum_{i'} L_i'j - L_ij + L_0)
 
