@@ -109,11 +109,11 @@ class EvidenceParams:
     #: cost (:mod:`.assignment`); 8.3 = the excess of a 3-dof chi-square at its 1 % tail.
     null_cost: float = 8.3
     #: Logistic calibration of the posterior (see the module docstring): the maximum-likelihood
-    #: fit over the published pairs of the dense-formation study's one-run scenes with seeds 7
-    #: and 11 (``topofusion_lab.evaluation.dense.fit_calibration``: 1.11 / 2.72 and 1.02 /
-    #: 2.39 on each, the mean taken); the study's own scenes (other seeds) are the held-out
-    #: check.  The posterior alone is too modest: a track's rivals
-    #: inside the gate are mostly far less likely than the null hypothesis weighs them.
+    #: fit over the pairs with accumulated evidence of the dense-formation study's one-run
+    #: scenes with seeds 7 and 11 (the study's ``fit_calibration``, docs/evaluation/dense.md:
+    #: 1.11 / 2.72 and 1.02 / 2.39 on each, the mean taken); other seeds are the held-out check
+    #: (a test).  The posterior alone is too modest: a track's rivals inside the gate are
+    #: mostly far less likely than the null hypothesis weighs them.
     calibration_slope: float = 1.07
     calibration_offset: float = 2.56
 
