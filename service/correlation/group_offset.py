@@ -64,8 +64,9 @@ class GroupOffsetParams:
     #: offset within ``gate_chi2`` (horizontal, 2 dof; 99 %), the offset their mean.
     iterations: int = 3
     gate_chi2: float = 9.21
-    #: At most this many (candidate, candidate) comparisons for the support counts of one
-    #: update; beyond it the offsets are not estimated (the topology match alone decides).
+    #: At most this many votes, and (candidate, candidate) comparisons for the support counts,
+    #: in one update; beyond it the offsets are not estimated (the topology match alone
+    #: decides).
     max_comparisons: int = 4_000_000
     #: At most this many candidates vote in one neighbourhood (the nearest tracks' first):
     #: bounds the work of a very dense picture.
@@ -108,6 +109,8 @@ def group_residuals(
     counts = np.bincount(ia, minlength=len(a))
     start = np.r_[0, np.cumsum(counts)]
     cnt = counts[k_track]
+    if int(cnt.sum()) > params.max_comparisons:
+        return empty  # a picture denser than any formation: bounded work, no offsets
     vote_ref = np.repeat(i_ref, cnt)
     offs = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
     vote_c = order[np.repeat(start[k_track], cnt) + offs]

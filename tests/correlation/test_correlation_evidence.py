@@ -194,3 +194,21 @@ def test_pair_fields_are_null_without_a_topology_fit() -> None:
     # The score is a probability, not a saturated hit fraction.
     scores = np.array([p.score for p in pairs])
     assert ((scores > 0) & (scores < 1)).all() and len(np.unique(scores)) > len(scores) // 2
+
+
+def test_group_offset_work_is_bounded_in_a_hostile_blob() -> None:
+    """Hundreds of tracks within a few hundred metres: the votes would grow with the cube of
+    their number; beyond the bound no offset is estimated, quickly and without the memory."""
+    from service.correlation.candidates import candidate_pairs
+    from topofusion_lab.evaluation.correlation_scenario import make_sites
+
+    rng = np.random.default_rng(9)
+    a, b = make_sites()
+    n = 400
+    enu = np.column_stack([rng.normal(0, 150, (n, 2)) + np.array([100_000.0, 50_000.0]), np.full(n, 9_000.0)])
+    sa = _snapshot(a, a.ecef_to_enu(a.enu_to_ecef(enu)), 100.0)
+    sb = _snapshot(b, b.ecef_to_enu(a.enu_to_ecef(enu)), 100.0)
+    ia, ib, _ = candidate_pairs(sa.position, sb.position, 10_000.0)
+    assert len(ia) == n * n
+    ok, r, _s, _c = group_residuals(sa, sb, ia, ib, GroupOffsetParams(max_comparisons=1_000_000))
+    assert not ok.any() and len(r) == 0
