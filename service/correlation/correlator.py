@@ -71,7 +71,7 @@ from service.correlation.evidence import EvidenceBook, EvidenceParams, registere
 from service.correlation.external import CfarCorrelator, GmmCorrelator
 from service.correlation.gmm import GmmParams
 from service.correlation.group_offset import GroupOffsetParams, group_residuals
-from service.correlation.linalg import inv3, quad3
+from service.correlation.linalg import chi2_upper, inv3, quad3
 from service.correlation.nearest import NearestCorrelator, NearestParams
 from service.correlation.pairkeys import find, pair_keys
 from service.correlation.pairs import PairBook, PairBookParams, PairState
@@ -86,7 +86,7 @@ from service.correlation.registration import (
     solve_biases,
     to_estimates,
 )
-from service.correlation.svd_topology import SvdTopologyCorrelator, SvdTopologyParams, chi2_upper
+from service.correlation.svd_topology import SvdTopologyCorrelator, SvdTopologyParams
 from service.geo import Site
 from service.tracking.base import TrackTable
 

@@ -65,9 +65,8 @@ from numpy.typing import NDArray
 
 from service.correlation.base import FloatArray, IntArray, TrackSnapshot
 from service.correlation.candidates import candidate_pairs
-from service.correlation.linalg import congruence, inv3, quad3
+from service.correlation.linalg import chi2_upper, congruence, inv3, quad3
 from service.correlation.pairkeys import find, isin_sorted, pair_keys
-from service.correlation.svd_topology import chi2_upper
 
 
 @dataclass(frozen=True)

@@ -65,7 +65,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import gammaincinv
 
 from service.correlation.base import (
     BoolArray,
@@ -78,7 +77,15 @@ from service.correlation.base import (
 )
 from service.correlation.candidates import CandidateParams, candidate_pairs
 from service.correlation.gls import similarity_gls_batch
-from service.correlation.linalg import congruence, inv3, mahalanobis2_h, quad3, quad3_large, yaw_congruence
+from service.correlation.linalg import (
+    chi2_upper,
+    congruence,
+    inv3,
+    mahalanobis2_h,
+    quad3,
+    quad3_large,
+    yaw_congruence,
+)
 from service.correlation.nearest import chi2_pairs
 from service.correlation.topology import TopologyParams, gather_points, neighbourhoods
 from service.correlation.umeyama import (
@@ -179,15 +186,6 @@ class SvdMatchResult:
     scale: FloatArray
     yaw_rad: FloatArray
     matched: NDArray[np.int64]
-
-
-def chi2_upper(alpha: float, dof: FloatArray | float) -> FloatArray:
-    """Upper ``alpha`` quantile of chi-square with ``dof`` degrees of freedom, ``chi2.ppf(1 - alpha, dof)``.
-
-    The same expression scipy evaluates (``2 gammaincinv(dof / 2, p)``), without
-    ``rv_continuous``'s per-call argument handling (a large share of a small call).
-    """
-    return np.asarray(2 * gammaincinv(np.asarray(dof, dtype=float) / 2, 1.0 - alpha))
 
 
 def _mutual_nearest(cost: FloatArray, gate: float) -> NDArray[np.intp]:
