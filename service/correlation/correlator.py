@@ -280,13 +280,12 @@ class PairCorrelator:
             is_conf = np.isin(decided.index_a * nb + decided.index_b, ca_idx * nb + cb_idx)
             cost = np.where(is_conf, cost - prm.confirmed_bonus, cost)
         if implied is not None and len(implied) and len(decided):
-            # A candidate a chain through a third radar implies: the cycle's evidence.
-            strong = implied.strongest()
-            at = find(
-                pair_keys(strong.track_a, strong.track_b),
-                pair_keys(a.track_id[decided.index_a], b.track_id[decided.index_b]),
-            )
-            cost = np.where(at >= 0, cost - prm.cycles.bonus, cost)
+            # A candidate a chain through a third radar implies: the cycle's evidence (by row
+            # indices, as the confirmed pairs above: no string keys over every candidate).
+            ia_i, ib_i = _lookup_pairs(a.track_id, b.track_id, implied.track_a, implied.track_b, sorters)
+            nb = max(len(b), 1)
+            is_implied = np.isin(decided.index_a * nb + decided.index_b, ia_i * nb + ib_i)
+            cost = np.where(is_implied, cost - prm.cycles.bonus, cost)
         chosen, _ambiguous = assign_unambiguous(
             decided.index_a,
             decided.index_b,

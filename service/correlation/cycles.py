@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.correlation.base import FloatArray
-from service.correlation.pairkeys import find, pair_keys
+from service.correlation.pairkeys import find
 
 
 @dataclass(frozen=True)
@@ -71,16 +71,6 @@ class Implied:
             np.concatenate([p.track_b for p in parts]),
             np.concatenate([p.strength for p in parts]),
         )
-
-    def strongest(self) -> Implied:
-        """One row per pair: its strongest chain."""
-        if len(self) == 0:
-            return self
-        keys = pair_keys(self.track_a, self.track_b)
-        order = np.lexsort((-self.strength, keys))
-        first = np.r_[True, keys[order][1:] != keys[order][:-1]]
-        k = order[first]
-        return Implied(self.track_a[k], self.track_b[k], self.strength[k])
 
 
 def implied_pairs(
