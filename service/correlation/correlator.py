@@ -157,6 +157,20 @@ def _lookup_pairs(
     return ia[ok].astype(np.intp), ib[ok].astype(np.intp)
 
 
+def _lookup_implied(
+    ids_a: np.ndarray, ids_b: np.ndarray, implied: Implied, sorters: tuple[np.ndarray, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The implied pairs present in both snapshots: their rows and strengths."""
+    if len(ids_a) == 0 or len(ids_b) == 0 or len(implied) == 0:
+        e = np.empty(0, dtype=np.intp)
+        return e, e.copy(), np.empty(0)
+    sa, sb = sorters
+    ia = sa[np.minimum(np.searchsorted(ids_a, implied.track_a, sorter=sa), len(sa) - 1)]
+    ib = sb[np.minimum(np.searchsorted(ids_b, implied.track_b, sorter=sb), len(sb) - 1)]
+    ok = (ids_a[ia] == implied.track_a) & (ids_b[ib] == implied.track_b)
+    return ia[ok].astype(np.intp), ib[ok].astype(np.intp), implied.strength[ok]
+
+
 def _other_rows(n: int, rows: np.ndarray) -> np.ndarray:
     """The rows ``0..n-1`` not in ``rows``, ascending."""
     free = np.ones(n, dtype=bool)
@@ -253,10 +267,10 @@ class PairCorrelator:
                 hist = ev.looks[e[~bad]] >= ev.params.min_looks
             if implied is not None and len(implied) and len(kept):
                 # The weakest link of a contradicted cycle goes: decided afresh (module cycles).
-                ka, kb = a.track_id[kept.index_a], b.track_id[kept.index_b]
-                at = find(self.book.keys, pair_keys(ka, kb))
+                at = find(self.book.keys, pair_keys(a.track_id[kept.index_a], b.track_id[kept.index_b]))
                 own = np.where(at >= 0, self.book.score[np.maximum(at, 0)], 0.0)
-                weak = contradicted(ka, kb, own, implied)
+                imp_a, imp_b, imp_s = _lookup_implied(a.track_id, b.track_id, implied, sorters)
+                weak = contradicted(kept.index_a, kept.index_b, own, imp_a, imp_b, imp_s, len(a), len(b))
                 kept = kept.take(~weak)
                 if ev is not None:
                     hist = hist[~weak]
@@ -282,7 +296,7 @@ class PairCorrelator:
         if implied is not None and len(implied) and len(decided):
             # A candidate a chain through a third radar implies: the cycle's evidence (by row
             # indices, as the confirmed pairs above: no string keys over every candidate).
-            ia_i, ib_i = _lookup_pairs(a.track_id, b.track_id, implied.track_a, implied.track_b, sorters)
+            ia_i, ib_i, _ = _lookup_implied(a.track_id, b.track_id, implied, sorters)
             nb = max(len(b), 1)
             is_implied = np.isin(decided.index_a * nb + decided.index_b, ia_i * nb + ib_i)
             cost = np.where(is_implied, cost - prm.cycles.bonus, cost)
@@ -316,7 +330,7 @@ class PairCorrelator:
             # registration and outside any group) keeps the hit fraction: one update's
             # decision among a formation's rivals measured as no better than a guess there.
             e = find(ev.keys, self.book.keys)
-            self.book.cols["probability"] = np.append(ev.probability(), np.nan)[e]  # -1: none
+            self.book.set_probability(np.append(ev.probability(), np.nan)[e])  # -1: none
         # Registration rows from the confirmed pairs (raw, uncompensated positions).
         conf = self.book.confirmed
         pa_idx, pb_idx = _lookup_pairs(

@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.correlation.base import FloatArray
-from service.correlation.pairkeys import find
+from service.correlation.pairs import StrongPairs
 
 
 @dataclass(frozen=True)
@@ -73,68 +73,56 @@ class Implied:
         )
 
 
-def implied_pairs(
-    x_of_xz: NDArray[np.str_],
-    z_of_xz: NDArray[np.str_],
-    score_xz: FloatArray,
-    z_of_zy: NDArray[np.str_],
-    y_of_zy: NDArray[np.str_],
-    score_zy: FloatArray,
-    min_strength: float,
-) -> Implied:
-    """The pairs ``x-y`` the confirmed pairs ``x-z`` and ``z-y`` imply (joined on ``z``), with
-    strength ``min(score_xz, score_zy)``, those at least ``min_strength``."""
-    strong_xz = np.flatnonzero(score_xz >= min_strength)
-    strong_zy = np.flatnonzero(score_zy >= min_strength)
-    if strong_xz.size == 0 or strong_zy.size == 0:
+def implied_pairs(xz: StrongPairs, x_first: bool, zy: StrongPairs, z_first: bool) -> Implied:
+    """The pairs ``x-y`` the strong confirmed pairs ``x-z`` (of book ``xz``, whose A side is X
+    when ``x_first``) and ``z-y`` (of ``zy``, A side Z when ``z_first``) imply, joined on
+    ``z``, with strength ``min(score_xz, score_zy)``."""
+    x_of_xz, z_of_xz = (xz.track_a, xz.track_b) if x_first else (xz.track_b, xz.track_a)
+    z_of_zy, y_of_zy = (zy.track_a, zy.track_b) if z_first else (zy.track_b, zy.track_a)
+    order = zy.order_a if z_first else zy.order_b
+    if len(z_of_xz) == 0 or len(z_of_zy) == 0:
         return Implied.empty()
-    at = find(np.asarray(z_of_zy)[strong_zy], np.asarray(z_of_xz)[strong_xz])
-    hit = at >= 0
-    i = strong_xz[hit]
-    j = strong_zy[at[hit]]
-    return Implied(
-        np.asarray(x_of_xz)[i].astype(str),
-        np.asarray(y_of_zy)[j].astype(str),
-        np.minimum(score_xz[i], score_zy[j]),
-    )
+    pos = np.minimum(np.searchsorted(z_of_zy, z_of_xz, sorter=order), len(order) - 1)
+    j = order[pos]
+    hit = z_of_zy[j] == z_of_xz
+    i = np.flatnonzero(hit)
+    j = j[hit]
+    return Implied(x_of_xz[i], y_of_zy[j], np.minimum(xz.score[i], zy.score[j]))
 
 
 def contradicted(
-    track_a: NDArray[np.str_], track_b: NDArray[np.str_], strength: FloatArray, implied: Implied
+    rows_a: NDArray[np.intp],
+    rows_b: NDArray[np.intp],
+    strength: FloatArray,
+    implied_a: NDArray[np.intp],
+    implied_b: NDArray[np.intp],
+    implied_strength: FloatArray,
+    n_a: int,
+    n_b: int,
 ) -> NDArray[np.bool_]:
-    """For pairs ``(track_a[k], track_b[k])`` of strength ``strength[k]``: does a stronger chain
-    name another partner for either track?"""
-    n = len(track_a)
-    if n == 0 or len(implied) == 0:
+    """For pairs of rows ``(rows_a[k], rows_b[k])`` of strength ``strength[k]``: does a stronger
+    chain (implied pairs by rows, of ``n_a`` A and ``n_b`` B rows) name another partner for
+    either row?  The strongest chain through each row counts."""
+    n = len(rows_a)
+    if n == 0 or len(implied_a) == 0:
         return np.zeros(n, dtype=bool)
     out = np.zeros(n, dtype=bool)
-    for mine, theirs, other_mine, other_theirs in (
-        (track_a, implied.track_a, track_b, implied.track_b),
-        (track_b, implied.track_b, track_a, implied.track_a),
+    order = np.argsort(implied_strength, kind="stable")  # assigned last = strongest
+    for mine, other_mine, imp_mine, imp_other, size in (
+        (rows_a, rows_b, implied_a, implied_b, n_a),
+        (rows_b, rows_a, implied_b, implied_a, n_b),
     ):
-        # The strongest chain through each track on this side.
-        order = np.lexsort((-implied.strength, theirs))
-        first = np.r_[True, theirs[order][1:] != theirs[order][:-1]]
-        k = order[first]
-        at = find(theirs[k], np.asarray(mine).astype(str))
-        hit = at >= 0
-        other = np.full(n, "", dtype=object)
-        other[hit] = other_theirs[k][at[hit]]
-        s = np.full(n, -np.inf)
-        s[hit] = implied.strength[k][at[hit]]
-        out |= hit & (other != np.asarray(other_mine).astype(str)) & (s > strength)
+        partner = np.full(size, -1, dtype=np.intp)
+        best = np.full(size, -np.inf)
+        partner[imp_mine[order]] = imp_other[order]
+        best[imp_mine[order]] = implied_strength[order]
+        p = partner[mine]
+        out |= (p >= 0) & (p != other_mine) & (best[mine] > strength)
     return out
 
 
 class _Book(Protocol):
-    @property
-    def track_a(self) -> NDArray[np.str_]: ...
-    @property
-    def track_b(self) -> NDArray[np.str_]: ...
-    @property
-    def confirmed(self) -> NDArray[np.bool_]: ...
-    @property
-    def score(self) -> FloatArray: ...
+    def strong_confirmed(self, min_score: float) -> StrongPairs: ...
 
 
 class _Site(Protocol):
@@ -153,14 +141,6 @@ class _Pair(Protocol):
     def site_b(self) -> _Site | None: ...
 
 
-def _confirmed(corr: _Pair, first: str) -> tuple[NDArray[np.str_], NDArray[np.str_], FloatArray]:
-    """A radar pair's confirmed pairs as (tracks of radar ``first``, tracks of the other, score)."""
-    book = corr.book
-    conf = book.confirmed
-    a, b, score = book.track_a[conf], book.track_b[conf], book.score[conf]
-    return (a, b, score) if corr.site_a.site_id == first else (b, a, score)
-
-
 def implied_for(
     key: tuple[str, str], correlators: Mapping[tuple[str, str], _Pair], min_strength: float
 ) -> Implied:
@@ -173,7 +153,12 @@ def implied_for(
         zy = correlators.get((min(z, y), max(z, y)))
         if xz is None or zy is None or xz.site_b is None or zy.site_b is None:
             continue
-        x_xz, z_xz, s_xz = _confirmed(xz, x)
-        z_zy, y_zy, s_zy = _confirmed(zy, z)
-        parts.append(implied_pairs(x_xz, z_xz, s_xz, z_zy, y_zy, s_zy, min_strength))
+        parts.append(
+            implied_pairs(
+                xz.book.strong_confirmed(min_strength),
+                xz.site_a.site_id == x,
+                zy.book.strong_confirmed(min_strength),
+                zy.site_a.site_id == z,
+            )
+        )
     return Implied.concat(parts)

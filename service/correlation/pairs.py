@@ -68,6 +68,18 @@ def _popcount(x: NDArray[np.uint32]) -> NDArray[np.int64]:
     return np.bitwise_count(x).astype(np.int64)
 
 
+@dataclass(frozen=True)
+class StrongPairs:
+    """A book's confirmed pairs of at least some score, with each side's sort order (what the
+    cycle step joins on, :mod:`.cycles`)."""
+
+    track_a: NDArray[np.str_]
+    track_b: NDArray[np.str_]
+    score: FloatArray
+    order_a: NDArray[np.intp]
+    order_b: NDArray[np.intp]
+
+
 class PairBook:
     """Columnar M-of-N book for one radar pair."""
 
@@ -87,6 +99,24 @@ class PairBook:
         self.neighbors = np.empty(0, dtype=np.int64)
         self.basis = np.empty(0, dtype=np.int8)
         self.cols: dict[str, FloatArray] = {c: np.empty(0) for c in self._float_cols}
+        #: Counts the changes of the book (:meth:`update`, a new probability column).
+        self.version = 0
+        self._strong: tuple[int, float, StrongPairs] | None = None
+
+    def strong_confirmed(self, min_score: float) -> StrongPairs:
+        """The confirmed pairs with ``score >= min_score`` (computed once per book version)."""
+        if self._strong is not None and self._strong[:2] == (self.version, min_score):
+            return self._strong[2]
+        keep = self.confirmed & (self.score >= min_score)
+        a, b = self.track_a[keep], self.track_b[keep]
+        out = StrongPairs(a, b, self.score[keep], np.argsort(a), np.argsort(b))
+        self._strong = (self.version, min_score, out)
+        return out
+
+    def set_probability(self, probability: FloatArray) -> None:
+        """The pairs' probability of being right (row for row; NaN: none, the hit fraction)."""
+        self.cols["probability"] = probability
+        self.version += 1
 
     def __len__(self) -> int:
         return int(self.track_a.shape[0])
@@ -136,6 +166,7 @@ class PairBook:
         statistics are clipped to +-1e6.
         """
         prm = self.params
+        self.version += 1
         statistic = np.clip(np.asarray(statistic, dtype=float), -1e6, 1e6)
         rotation_weight = np.asarray(rotation_weight, dtype=float)
         scale = np.asarray(scale, dtype=float)

@@ -6,59 +6,55 @@ import numpy as np
 
 from service.correlation import CorrelationParams
 from service.correlation.cycles import Implied, contradicted, implied_pairs
+from service.correlation.pairs import StrongPairs
 from service.pipeline.correlation_stage import CorrelationStage
 from service.pipeline.partition import Partition
 
 
-def _random_confirmed(rng: np.random.Generator, first: str, second: str, n: int) -> tuple:
-    """A one-to-one set of confirmed pairs between two radars' tracks, with scores."""
+def _strong(rng: np.random.Generator, first: str, second: str, n: int) -> StrongPairs:
+    """A one-to-one set of strong confirmed pairs between two radars' tracks."""
     a = np.array([f"{first}-{k}" for k in rng.permutation(n)[: n - 2]])
     b = np.array([f"{second}-{k}" for k in rng.permutation(n)[: n - 2]])
-    return a, b, rng.uniform(0.5, 1.0, len(a))
+    return StrongPairs(a, b, rng.uniform(0.5, 1.0, len(a)), np.argsort(a), np.argsort(b))
 
 
 def test_implied_pairs_match_the_plain_join() -> None:
     rng = np.random.default_rng(2)
     for _ in range(50):
-        x, zx, sxz = _random_confirmed(rng, "X", "Z", 12)
-        zy, y, szy = _random_confirmed(rng, "Z", "Y", 12)
-        got = implied_pairs(x, zx, sxz, zy, y, szy, 0.7)
-        want = {
-            (str(x[i]), str(y[j])): min(sxz[i], szy[j])
-            for i in range(len(x))
-            for j in range(len(zy))
-            if zx[i] == zy[j] and min(sxz[i], szy[j]) >= 0.7
-        }
-        assert (
-            dict(zip(zip(got.track_a.tolist(), got.track_b.tolist(), strict=True), got.strength, strict=True))
-            == want
-        )
+        xz = _strong(rng, "X", "Z", 12)
+        zy = _strong(rng, "Z", "Y", 12)
+        for x_first, z_first in ((True, True), (False, True), (True, False)):
+            xs, zs = (xz.track_a, xz.track_b) if x_first else (xz.track_b, xz.track_a)
+            zs2, ys = (zy.track_a, zy.track_b) if z_first else (zy.track_b, zy.track_a)
+            got = implied_pairs(xz, x_first, zy, z_first)
+            want = {
+                (str(xs[i]), str(ys[j])): min(xz.score[i], zy.score[j])
+                for i in range(len(xs))
+                for j in range(len(zs2))
+                if zs[i] == zs2[j]
+            }
+            pairs = zip(got.track_a.tolist(), got.track_b.tolist(), strict=True)
+            assert dict(zip(pairs, got.strength, strict=True)) == want
 
 
 def test_contradicted_matches_the_plain_rule() -> None:
     rng = np.random.default_rng(4)
-    for _ in range(50):
-        ta = np.array([f"X-{k}" for k in range(6)])
-        tb = np.array([f"Y-{k}" for k in rng.permutation(6)])
+    for _ in range(100):
+        rows_a = np.arange(6)
+        rows_b = rng.permutation(6)
         own = rng.uniform(0, 1, 6)
-        imp = Implied(
-            np.array([f"X-{k}" for k in rng.integers(0, 8, 5)]),
-            np.array([f"Y-{k}" for k in rng.integers(0, 8, 5)]),
-            rng.uniform(0, 1, 5),
-        )
-        got = contradicted(ta, tb, own, imp)
+        imp_a, imp_b, imp_s = rng.integers(0, 8, 5), rng.integers(0, 8, 5), rng.uniform(0, 1, 5)
+        got = contradicted(rows_a, rows_b, own, imp_a, imp_b, imp_s, 8, 8)
         for k in range(6):
-            # The strongest chain through each of the pair's tracks names another partner and
-            # is stronger than the pair.
+            # The strongest chain through each of the pair's rows names another partner and is
+            # stronger than the pair.
             want = False
-            for mine, theirs, partner, other in (
-                (ta[k], imp.track_a, tb[k], imp.track_b),
-                (tb[k], imp.track_b, ta[k], imp.track_a),
-            ):
-                rows = [r for r in range(len(imp)) if theirs[r] == mine]
-                if rows:
-                    r = max(rows, key=lambda r: (imp.strength[r], -r))
-                    want |= bool(other[r] != partner and imp.strength[r] > own[k])
+            sides = ((rows_a[k], imp_a, rows_b[k], imp_b), (rows_b[k], imp_b, rows_a[k], imp_a))
+            for mine, theirs, partner, other in sides:
+                through = [r for r in range(5) if theirs[r] == mine]
+                if through:
+                    r = max(through, key=lambda r: (imp_s[r], r))
+                    want |= bool(other[r] != partner and imp_s[r] > own[k])
             assert got[k] == want
 
 
