@@ -138,6 +138,25 @@ def make_correlator(method: str, params: CorrelationParams) -> Correlator:
         ) from None
 
 
+def _pair_rows(
+    ids_a: np.ndarray,
+    ids_b: np.ndarray,
+    pair_a: np.ndarray,
+    pair_b: np.ndarray,
+    sorters: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each pair ``(pair_a[k], pair_b[k])``: its rows in ``ids_a``/``ids_b`` and whether it
+    is present in both (``sorters``: the argsorts of ``ids_a`` and ``ids_b`` when known)."""
+    if len(ids_a) == 0 or len(ids_b) == 0 or len(pair_a) == 0:
+        e = np.zeros(len(pair_a), dtype=np.intp)
+        return e, e.copy(), np.zeros(len(pair_a), dtype=bool)
+    sa, sb = sorters if sorters is not None else (np.argsort(ids_a), np.argsort(ids_b))
+    ia = sa[np.minimum(np.searchsorted(ids_a, pair_a, sorter=sa), len(sa) - 1)]
+    ib = sb[np.minimum(np.searchsorted(ids_b, pair_b, sorter=sb), len(sb) - 1)]
+    ok = (ids_a[ia] == pair_a) & (ids_b[ib] == pair_b)
+    return ia.astype(np.intp), ib.astype(np.intp), ok
+
+
 def _lookup_pairs(
     ids_a: np.ndarray,
     ids_b: np.ndarray,
@@ -145,30 +164,9 @@ def _lookup_pairs(
     pair_b: np.ndarray,
     sorters: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Row indices in ``ids_a``/``ids_b`` of the pairs ``(pair_a, pair_b)`` present in both
-    (``sorters``: the argsorts of ``ids_a`` and ``ids_b`` when already known)."""
-    if len(ids_a) == 0 or len(ids_b) == 0 or len(pair_a) == 0:
-        e = np.empty(0, dtype=np.intp)
-        return e, e.copy()
-    sa, sb = sorters if sorters is not None else (np.argsort(ids_a), np.argsort(ids_b))
-    ia = sa[np.minimum(np.searchsorted(ids_a, pair_a, sorter=sa), len(sa) - 1)]
-    ib = sb[np.minimum(np.searchsorted(ids_b, pair_b, sorter=sb), len(sb) - 1)]
-    ok = (ids_a[ia] == pair_a) & (ids_b[ib] == pair_b)
-    return ia[ok].astype(np.intp), ib[ok].astype(np.intp)
-
-
-def _lookup_implied(
-    ids_a: np.ndarray, ids_b: np.ndarray, implied: Implied, sorters: tuple[np.ndarray, np.ndarray]
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The implied pairs present in both snapshots: their rows and strengths."""
-    if len(ids_a) == 0 or len(ids_b) == 0 or len(implied) == 0:
-        e = np.empty(0, dtype=np.intp)
-        return e, e.copy(), np.empty(0)
-    sa, sb = sorters
-    ia = sa[np.minimum(np.searchsorted(ids_a, implied.track_a, sorter=sa), len(sa) - 1)]
-    ib = sb[np.minimum(np.searchsorted(ids_b, implied.track_b, sorter=sb), len(sb) - 1)]
-    ok = (ids_a[ia] == implied.track_a) & (ids_b[ib] == implied.track_b)
-    return ia[ok].astype(np.intp), ib[ok].astype(np.intp), implied.strength[ok]
+    """Row indices in ``ids_a``/``ids_b`` of the pairs ``(pair_a, pair_b)`` present in both."""
+    ia, ib, ok = _pair_rows(ids_a, ids_b, pair_a, pair_b, sorters)
+    return ia[ok], ib[ok]
 
 
 def _other_rows(n: int, rows: np.ndarray) -> np.ndarray:
@@ -253,6 +251,10 @@ class PairCorrelator:
         )
         ctx = DecisionContext(time_s=time_s, confirmed_a=ca_idx, confirmed_b=cb_idx, **ctx_kw)  # type: ignore[arg-type]
         parts = []
+        if implied is not None:
+            # The implied pairs present in both snapshots, by rows (module cycles).
+            ia_i, ib_i, found = _pair_rows(a.track_id, b.track_id, implied.track_a, implied.track_b, sorters)
+            imp_a, imp_b, imp_s = ia_i[found], ib_i[found], implied.strength[found]
         kept = self.correlator.reverify(a, b, ca_idx, cb_idx, ctx)
         if kept is not None:
             kept = kept.take(kept.accepted)
@@ -269,7 +271,6 @@ class PairCorrelator:
                 # The weakest link of a contradicted cycle goes: decided afresh (module cycles).
                 at = find(self.book.keys, pair_keys(a.track_id[kept.index_a], b.track_id[kept.index_b]))
                 own = np.where(at >= 0, self.book.score[np.maximum(at, 0)], 0.0)
-                imp_a, imp_b, imp_s = _lookup_implied(a.track_id, b.track_id, implied, sorters)
                 weak = contradicted(kept.index_a, kept.index_b, own, imp_a, imp_b, imp_s, len(a), len(b))
                 kept = kept.take(~weak)
                 if ev is not None:
@@ -296,9 +297,8 @@ class PairCorrelator:
         if implied is not None and len(implied) and len(decided):
             # A candidate a chain through a third radar implies: the cycle's evidence (by row
             # indices, as the confirmed pairs above: no string keys over every candidate).
-            ia_i, ib_i, _ = _lookup_implied(a.track_id, b.track_id, implied, sorters)
             nb = max(len(b), 1)
-            is_implied = np.isin(decided.index_a * nb + decided.index_b, ia_i * nb + ib_i)
+            is_implied = np.isin(decided.index_a * nb + decided.index_b, imp_a * nb + imp_b)
             cost = np.where(is_implied, cost - prm.cycles.bonus, cost)
         chosen, _ambiguous = assign_unambiguous(
             decided.index_a,
