@@ -39,7 +39,9 @@ from service.tracking.base import PlotColumns, Tracker, TrackTable
 from service.wire.keys import Keys
 from service.wire.models import (
     MAX_PAYLOAD_BYTES,
+    AdsbBatch,
     AisBatch,
+    AisReportsModel,
     BiasSet,
     PlotBatch,
     RadarSite,
@@ -111,17 +113,24 @@ def plot_columns(batch: PlotBatch) -> PlotColumns:
     p = batch.plots
     n = len(p.time_s)
     nan = np.full(n, np.nan)
-    truth = np.empty(n, dtype=object)
-    if p.truth_id is not None:
-        truth[:] = p.truth_id
     return PlotColumns(
         time_s=np.asarray(p.time_s, dtype=float),
         range_m=np.asarray(p.range_m, dtype=float),
         azimuth_deg=np.asarray(p.azimuth_deg, dtype=float),
         elevation_deg=np.asarray(p.elevation_deg, dtype=float) if p.elevation_deg is not None else nan,
         altitude_m=np.asarray(p.altitude_m, dtype=float) if p.altitude_m is not None else nan.copy(),
-        truth_id=truth,
+        truth_id=_labels(p.truth_id, n),
+        mode_3a=_labels(p.mode_3a, n),
+        mode_s=_labels(p.mode_s, n),
     )
+
+
+def _labels(column: list[str | None] | None, n: int) -> np.ndarray:
+    """A wire label column as an object array (all None when left out)."""
+    out = np.full(n, None, dtype=object)
+    if column is not None:
+        out[:] = column
+    return out
 
 
 def _finite(x: float) -> float | None:
@@ -198,6 +207,8 @@ class Engine:
         self._biases_sent: object = None
         self.plots: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
+        #: Each reference source's input kind (``ais`` or ``adsb``): an id is one or the other.
+        self.reference_kinds: dict[str, str] = {}
         self._snapshot: Snapshot | None = None
         for site in self.config.sites:
             self._set_site(site)
@@ -250,7 +261,7 @@ class Engine:
             if what == "plots":
                 self._admit_plots(source_id, payload)
             else:
-                self._admit_reference(source_id, payload)
+                self._admit_reference(what, source_id, payload)
             return self._process(self.sequencer.release())
         except RejectionError as rejection:
             return self._rejected(key, rejection, receive_time_s, peer is not None)
@@ -298,6 +309,7 @@ class Engine:
 
     def _drop(self, source_ids: Iterable[str]) -> None:
         for sid in source_ids:
+            self.reference_kinds.pop(sid, None)
             self.tracking.drop(sid)
             self.plots.pop(sid, None)
             self.correlation.forget(sid)
@@ -315,11 +327,17 @@ class Engine:
         self.plots[radar_id] += len(plots)
         self._snapshot = None
 
-    def _admit_reference(self, source_id: str, payload: bytes) -> None:
-        batch: AisBatch = _parse(AisBatch, payload, source_id)
+    def _admit_reference(self, kind: str, source_id: str, payload: bytes) -> None:
+        """An AIS or ADS-B batch: one reference-source path for both (their reports differ
+        only in the id column and in the altitude ADS-B may give)."""
+        batch: AisBatch | AdsbBatch = _parse(AisBatch if kind == "ais" else AdsbBatch, payload, source_id)
         _check_body_id("source_id", batch.source_id, source_id)
+        held = self.reference_kinds.get(source_id)
+        if held is not None and held != kind:
+            raise RejectionError("schema", f"source id {source_id!r} is taken by an {held} source", source_id)
         adm = self.sequencer.check(source_id, REFERENCE, batch.seq, batch.time_s)
         self._drop(self.sequencer.accept(adm, batch))
+        self.reference_kinds[source_id] = kind
         self.plots[source_id] += len(batch.reports.time_s)
         self._snapshot = None
 
@@ -461,7 +479,11 @@ class Engine:
 
     def _internal(self, rel: Release, exc: Exception) -> Outgoing:
         detail = f"processing failed: {type(exc).__name__}: {exc}"
-        key = self.keys.ais(rel.source_id) if rel.kind == REFERENCE else self.keys.plots(rel.source_id)
+        key = (
+            self.keys.input(self.reference_kinds.get(rel.source_id, "ais"), rel.source_id)
+            if rel.kind == REFERENCE
+            else self.keys.plots(rel.source_id)
+        )
         return self._reject(key, RejectionError("internal", detail, rel.source_id), None)
 
     def _remote_results(self) -> list[Outgoing]:
@@ -505,15 +527,24 @@ class Engine:
         else:
             self._reference_to_correlation(rel.source_id, rel.item, rel.time_s)
 
-    def _reference_to_correlation(self, source_id: str, batch: AisBatch, clock: float) -> None:
+    def _reference_to_correlation(self, source_id: str, batch: AisBatch | AdsbBatch, clock: float) -> None:
         r = batch.reports
+        if isinstance(r, AisReportsModel):
+            ids, altitude = np.asarray(r.mmsi, dtype=str), np.zeros(len(r.time_s))  # vessels: sea level
+        else:
+            ids = np.asarray(r.icao24, dtype=str)
+            altitude = np.full(len(r.time_s), np.nan)  # not reported: see ReferenceTracks.add
+            if r.altitude_m is not None:
+                altitude = np.array([np.nan if a is None else a for a in r.altitude_m], dtype=float)
         self.correlation.reference(
             source_id,
             clock,
             np.asarray(r.time_s, dtype=float),
-            np.asarray(r.mmsi, dtype=str),
+            ids,
             np.asarray(r.latitude_deg, dtype=float),
             np.asarray(r.longitude_deg, dtype=float),
+            altitude,
+            "ais" if isinstance(batch, AisBatch) else "adsb",
         )
 
     def _process_radar(self, radar_id: str, plots: PlotColumns | None, clock: float) -> list[Outgoing]:

@@ -42,6 +42,18 @@ EXAMPLES: dict[str, Any] = {
             "longitude_deg": [122.31, 122.45],
         },
     },
+    "AdsbBatch": {
+        "source_id": "ads-b",
+        "seq": 3,
+        "time_s": 1763769604.0,
+        "reports": {
+            "time_s": [1763769603.1],
+            "icao24": ["3c6444"],
+            "latitude_deg": [48.71],
+            "longitude_deg": [2.36],
+            "altitude_m": [10363.0],
+        },
+    },
     "TrackBatch": {
         "radar_id": "A",
         "time_s": 1763769604.0,
@@ -57,6 +69,8 @@ EXAMPLES: dict[str, Any] = {
                 "velocity_ecef_mps": [120.0, -80.0, 0.5],
                 "plots": 12,
                 "truth_id": None,
+                "mode_3a": "7000",
+                "mode_s": "3c6444",
             }
         ],
     },

@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from service.geo import Site
 from service.tracking.base import PlotColumns, Tracker, TrackTable
+from service.tracking.identity import LatestCodes
 from service.tracking.manager import TrackManager
 
 _NONE = np.array(None, dtype=object)
@@ -164,12 +165,15 @@ class TruthTally:
 
 
 class TruthLabelledTracker(Tracker):
-    """A :class:`TrackManager` whose tracks carry the truth of their plots (``truth_id``)."""
+    """A :class:`TrackManager` whose tracks carry the truth of their plots (``truth_id``) and
+    their latest identity codes (``mode_3a``, ``mode_s``: :mod:`service.tracking.identity`),
+    all from the plots that joined each track."""
 
     def __init__(self, inner: TrackManager) -> None:
         self.inner = inner
         super().__init__(inner.site, inner.window_s)
         self.tally = TruthTally()
+        self.codes = {"mode_3a": LatestCodes(), "mode_s": LatestCodes()}
 
     @property
     def site(self) -> Site:
@@ -181,12 +185,20 @@ class TruthLabelledTracker(Tracker):
 
     def update(self, plots: PlotColumns, time_s: float) -> None:
         self.inner.update(plots, time_s)
-        self.tally.add_chunks([(uid, joined.truth_id) for uid, joined in self.inner.joined])
+        joined = self.inner.joined
+        self.tally.add_chunks([(uid, plots.truth_id) for uid, plots in joined])
         self.tally.keep(self.inner.uids)
+        for name, codes in self.codes.items():
+            codes.add_chunks([(uid, plots.time_s, getattr(plots, name)) for uid, plots in joined])
+            codes.keep(self.inner.uids)
 
     def tracks(self) -> TrackTable:
         table = self.inner.tracks()
-        return replace(table, truth_id=self.tally.of(self.inner.uids)) if len(table) else table
+        if not len(table):
+            return table
+        uids = self.inner.uids
+        m3a, ms = (codes.of(uids) for codes in self.codes.values())
+        return replace(table, truth_id=self.tally.of(uids), mode_3a=m3a, mode_s=ms)
 
     @property
     def window_plots(self) -> int:

@@ -235,11 +235,13 @@ def value_problems(text: str) -> list[str]:
             continue
         at = head.index("value")
         for cells, line in rows:
-            m = re.fullmatch(r"`(\w+)\.(\w+)`", cells[-1])
+            m = re.fullmatch(r"`(\w+)\.([\w.]+)`", cells[-1])
             if m is None or m.group(1) not in CODE_ROOTS:
                 problems.append(f"code cell is not `Root.name` of {sorted(CODE_ROOTS)}: {line}")
                 continue
-            code = getattr(CODE_ROOTS[m.group(1)], m.group(2), None)
+            code: Any = CODE_ROOTS[m.group(1)]
+            for part in m.group(2).split("."):
+                code = getattr(code, part, None)
             number = NUMBER.search(cells[at])
             if code is None or number is None:
                 problems.append(f"{cells[-1]}: no such code name, or no number in the value: {line}")
@@ -353,6 +355,7 @@ def built_keys(keys: Keys) -> set[str]:
         keys.site(s["radar_id"]),
         keys.plots(s["radar_id"]),
         keys.ais(s["source_id"]),
+        keys.adsb(s["source_id"]),
         keys.tracks(s["radar_id"]),
         keys.pairs(s["radar_a"], s["radar_b"]),
         keys.errors,

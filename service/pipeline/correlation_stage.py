@@ -44,7 +44,7 @@ from service.correlation.registration import (
 from service.geo import Site
 from service.pipeline.partition import Partition
 from service.pipeline.read_model import PairSetView
-from service.reference import ReferenceParams, ReferenceTracks
+from service.reference import ReferenceKind, ReferenceParams, ReferenceTracks
 from service.tracking.base import TrackTable
 from service.wire.outputs import bias_dict
 
@@ -158,10 +158,14 @@ class CorrelationStage:
         ids: np.ndarray,
         latitude_deg: np.ndarray,
         longitude_deg: np.ndarray,
+        altitude_m: np.ndarray,
+        kind: ReferenceKind,
     ) -> None:
-        """A released batch of a reference source's reports."""
-        refs = self._references.setdefault(source_id, ReferenceTracks(self.reference_params))
-        refs.add(report_time_s, ids, latitude_deg, longitude_deg, time_s)
+        """A released batch of a reference source's reports (``altitude_m`` NaN: not reported)."""
+        refs = self._references.get(source_id)
+        if refs is None or refs.kind != kind:
+            refs = self._references[source_id] = ReferenceTracks(self.reference_params, kind)
+        refs.add(report_time_s, ids, latitude_deg, longitude_deg, altitude_m, time_s)
         self._silent.discard(source_id)
 
     def silent(self, source_id: str) -> None:

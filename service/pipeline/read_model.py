@@ -37,6 +37,8 @@ def track_batch(radar_id: str, time_s: float, tracks: TrackTable, status: str = 
         "velocity_ecef_mps": tracks.velocity_ecef_mps,
         "plots": tracks.plots,
         "truth_id": tracks.truth_id,
+        "mode_3a": tracks.mode_3a,
+        "mode_s": tracks.mode_s,
     }
     return {"radar_id": radar_id, "time_s": time_s, "tracks": track_rows(columns)}
 

@@ -203,6 +203,9 @@ class Sequencer:
         p = self.params
         src = self.sources.get(source_id)
         restart, lost = False, 0
+        if src is not None and src.kind != kind:
+            what = "a radar" if src.kind == RADAR else "a reference source"
+            raise RejectionError("schema", f"source id {source_id!r} is taken by {what}", source_id)
         if src is not None and src.last_seq is not None:
             last_time = src.last_time_s if src.last_time_s is not None else -np.inf
             if seq <= src.last_seq:

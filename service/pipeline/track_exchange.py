@@ -32,6 +32,9 @@ from service.tracking.base import TrackTable
 from service.wire.models import MAX_ECEF_M, MAX_TIME_S, MAX_TRACKS
 from service.wire.vocabulary import is_source_id
 
+#: The label columns a table carries besides its state (sent only when one is set).
+LABELS = ("truth_id", "mode_3a", "mode_s")
+
 
 @dataclass(frozen=True)
 class ExchangeParams:
@@ -84,7 +87,8 @@ def changed_rows(old: TrackTable, new: TrackTable) -> tuple[np.ndarray, np.ndarr
     same &= np.all(old.position_ecef_m[pos] == new.position_ecef_m, axis=1)
     same &= np.all(old.velocity_ecef_mps[pos] == new.velocity_ecef_mps, axis=1)
     same &= np.all(old.covariance[pos].reshape(n, 36) == new.covariance.reshape(n, 36), axis=1)
-    same &= old.truth_id[pos] == new.truth_id
+    for name in LABELS:
+        same &= getattr(old, name)[pos] == getattr(new, name)
     kept = np.zeros(len(old), dtype=bool)
     kept[pos[known]] = True
     return ~same, old.track_id[~kept]
@@ -104,9 +108,10 @@ def states_body(
         "covariance": np.ascontiguousarray(table.covariance, dtype=float).reshape(n, 36),
         "plots": np.ascontiguousarray(table.plots, dtype=np.int64),
     }
-    truth = table.truth_id.tolist()
-    if any(t is not None for t in truth):
-        columns["truth_id"] = truth
+    for name in LABELS:
+        labels = getattr(table, name).tolist()
+        if any(x is not None for x in labels):
+            columns[name] = labels
     return {
         "radar_id": radar_id,
         "seq": seq,
@@ -213,18 +218,24 @@ def decode_states(payload: bytes, radar_id: str) -> StatesMessage:
         raise _fail("out_of_range", "tracks.time_s or tracks.plots", radar_id)
     if np.any(np.abs(pos) > MAX_ECEF_M) or np.any(np.abs(vel) > MAX_ECEF_M):
         raise _fail("out_of_range", "tracks position or velocity", radar_id)
-    truth = np.empty(n, dtype=object)
-    labels = cols.get("truth_id")
+    label = {name: _label_column(cols, name, n, radar_id) for name in LABELS}
+    rows = TrackTable(np.asarray(ids, dtype=str), c, t, pos, vel, cov.reshape(n, 6, 6), npl, **label).by_id()
+    return StatesMessage(rid, seq, float(time_s), full, count, np.asarray(removed, dtype=str), expiry, rows)
+
+
+def _label_column(cols: dict[str, Any], name: str, n: int, radar_id: str) -> np.ndarray:
+    """An optional label column (strings or nulls), all None when left out."""
+    out = np.full(n, None, dtype=object)
+    labels = cols.get(name)
     if labels is not None:
         if (
             not isinstance(labels, list)
             or len(labels) != n
             or not all(x is None or isinstance(x, str) for x in labels)
         ):
-            raise _fail("schema", "tracks.truth_id", radar_id)
-        truth[:] = labels
-    rows = TrackTable(np.asarray(ids, dtype=str), c, t, pos, vel, cov.reshape(n, 6, 6), npl, truth).by_id()
-    return StatesMessage(rid, seq, float(time_s), full, count, np.asarray(removed, dtype=str), expiry, rows)
+            raise _fail("schema", f"tracks.{name}", radar_id)
+        out[:] = labels
+    return out
 
 
 class StatesSender:

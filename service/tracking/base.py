@@ -18,6 +18,13 @@ from service.geo import Site
 FloatArray = NDArray[np.float64]
 
 
+def _fill_labels(table: object, n: int, names: tuple[str, ...]) -> None:
+    """Label columns left out (None) become ``n`` Nones (frozen dataclasses: set once here)."""
+    for name in names:
+        if getattr(table, name) is None:
+            object.__setattr__(table, name, np.full(n, None, dtype=object))
+
+
 @dataclass(frozen=True)
 class PlotColumns:
     """One batch of one radar's plots, columnar, all arrays of equal length ``n``.
@@ -25,6 +32,8 @@ class PlotColumns:
     ``elevation_deg`` is NaN where the radar gave none; ``altitude_m`` is NaN where none was
     given (a 2-D radar with neither: altitude 0 is assumed by the measurement model).
     ``truth_id`` is for evaluation only: no algorithm may read it, trackers only carry it.
+    ``mode_3a`` and ``mode_s`` are the plots' identity codes (real radar data, strings or None;
+    left out: all None).
     """
 
     time_s: FloatArray
@@ -33,6 +42,11 @@ class PlotColumns:
     elevation_deg: FloatArray
     altitude_m: FloatArray
     truth_id: NDArray[np.object_]
+    mode_3a: NDArray[np.object_] = None  # type: ignore[assignment]  # filled by __post_init__
+    mode_s: NDArray[np.object_] = None  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        _fill_labels(self, self.time_s.shape[0], ("mode_3a", "mode_s"))
 
     def __len__(self) -> int:
         return int(self.time_s.shape[0])
@@ -50,6 +64,8 @@ class PlotColumns:
             self.elevation_deg[index],
             self.altitude_m[index],
             self.truth_id[index],
+            self.mode_3a[index],
+            self.mode_s[index],
         )
 
     @staticmethod
@@ -63,6 +79,8 @@ class PlotColumns:
             np.concatenate([p.elevation_deg for p in parts]),
             np.concatenate([p.altitude_m for p in parts]),
             np.concatenate([p.truth_id for p in parts]),
+            np.concatenate([p.mode_3a for p in parts]),
+            np.concatenate([p.mode_s for p in parts]),
         )
 
 
@@ -72,6 +90,7 @@ class TrackTable:
 
     States are in ECEF as the radar sees them: its systematic errors are *not* removed.
     ``covariance`` is the 6x6 covariance of ``[position, velocity]`` in ECEF.
+    ``mode_3a`` / ``mode_s``: the latest identity codes of each track's plots (None: none seen).
     """
 
     track_id: NDArray[np.str_]
@@ -82,6 +101,11 @@ class TrackTable:
     covariance: FloatArray  # (n, 6, 6)
     plots: NDArray[np.int64]
     truth_id: NDArray[np.object_]
+    mode_3a: NDArray[np.object_] = None  # type: ignore[assignment]  # filled by __post_init__
+    mode_s: NDArray[np.object_] = None  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        _fill_labels(self, self.track_id.shape[0], ("mode_3a", "mode_s"))
 
     def __len__(self) -> int:
         return int(self.track_id.shape[0])
@@ -109,6 +133,8 @@ class TrackTable:
             self.covariance[index],
             self.plots[index],
             self.truth_id[index],
+            self.mode_3a[index],
+            self.mode_s[index],
         )
 
     def by_id(self) -> TrackTable:
@@ -135,6 +161,8 @@ class TrackTable:
             np.concatenate([p.covariance for p in parts]),
             np.concatenate([p.plots for p in parts]),
             np.concatenate([p.truth_id for p in parts]),
+            np.concatenate([p.mode_3a for p in parts]),
+            np.concatenate([p.mode_s for p in parts]),
         )
 
 

@@ -198,7 +198,7 @@ class ServiceNode:
         ids = self.radar_filter or ("*",)
         radar_keys = [k for rid in ids for k in (self.keys.site(rid), self.keys.plots(rid))]
         peer = list(self.keys.peer_inputs) if not self.partition.whole else []
-        return [*radar_keys, self.keys.ais_inputs, *peer]
+        return [*radar_keys, self.keys.ais_inputs, self.keys.adsb_inputs, *peer]
 
     def stop(self, timeout_s: float = 5.0) -> None:
         """Stop taking samples, finish the queue, close the session (bounded by ``timeout_s``)."""

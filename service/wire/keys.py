@@ -14,6 +14,7 @@ from typing import Literal
 from pydantic import BaseModel
 
 from service.wire.models import (
+    AdsbBatch,
     AisBatch,
     BiasSet,
     PairSet,
@@ -32,6 +33,7 @@ KeyKind = Literal[
     "site",
     "plots",
     "ais",
+    "adsb",
     "tracks",
     "pairs",
     "errors",
@@ -46,7 +48,9 @@ KeyKind = Literal[
 ]
 
 #: Kinds the service consumes: replay republishes only these unless told to include all keys.
-INPUT_KINDS: frozenset[KeyKind] = frozenset({"site", "plots", "ais"})
+INPUT_KINDS: frozenset[KeyKind] = frozenset({"site", "plots", "ais", "adsb"})
+#: Input kinds of bias-free reference sources (their reports are reference tracks).
+REFERENCE_KINDS: frozenset[KeyKind] = frozenset({"ais", "adsb"})
 
 #: Kinds partitioned workers publish for each other (and take from each other).
 PEER_KINDS: frozenset[KeyKind] = frozenset(
@@ -62,6 +66,7 @@ MODEL_BY_KIND: dict[KeyKind, type[BaseModel]] = {
     "site": RadarSite,
     "plots": PlotBatch,
     "ais": AisBatch,
+    "adsb": AdsbBatch,
     "tracks": TrackBatch,
     "pairs": PairSet,
     "errors": Rejection,
@@ -80,6 +85,7 @@ _SHAPES: tuple[tuple[KeyKind, str], ...] = (
     ("plots", rf"radar/({ID_REGEX})/plots"),
     ("tracks", rf"radar/({ID_REGEX})/tracks"),
     ("ais", rf"ais/({ID_REGEX})/reports"),
+    ("adsb", rf"adsb/({ID_REGEX})/reports"),
     ("pairs", rf"pairs/({ID_REGEX})/({ID_REGEX})"),
     ("errors", r"errors"),
     ("status", r"status"),
@@ -127,6 +133,9 @@ class Keys:
     def ais(self, source_id: str) -> str:
         return f"{self.prefix}/ais/{source_id}/reports"
 
+    def adsb(self, source_id: str) -> str:
+        return f"{self.prefix}/adsb/{source_id}/reports"
+
     def tracks(self, radar_id: str) -> str:
         return f"{self.prefix}/radar/{radar_id}/tracks"
 
@@ -155,8 +164,8 @@ class Keys:
         return f"{self.prefix}/workers/{index}/progress"
 
     def input(self, kind: str, source_id: str) -> str:
-        """The input key of ``kind`` (``site``, ``plots`` or ``ais``) for a source."""
-        return {"site": self.site, "plots": self.plots, "ais": self.ais}[kind](source_id)
+        """The input key of ``kind`` (``site``, ``plots``, ``ais`` or ``adsb``) for a source."""
+        return {"site": self.site, "plots": self.plots, "ais": self.ais, "adsb": self.adsb}[kind](source_id)
 
     @property
     def errors(self) -> str:
@@ -199,8 +208,12 @@ class Keys:
     def ais_inputs(self) -> str:
         return f"{self.prefix}/ais/*/reports"
 
+    @property
+    def adsb_inputs(self) -> str:
+        return f"{self.prefix}/adsb/*/reports"
+
     def classify(self, key: str) -> tuple[str, str] | None:
-        """``("site"|"plots"|"ais", id)`` for an input key of this prefix, else ``None``."""
+        """``("site"|"plots"|"ais"|"adsb", id)`` for an input key of this prefix, else ``None``."""
         kind, ids = parse_key(key, self.prefix)
         return (kind, ids[0]) if kind in INPUT_KINDS else None
 

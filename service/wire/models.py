@@ -1,6 +1,6 @@
 """Pydantic models of every payload of the contract (docs/contract.md): the only wire definitions.
 
-Input models (``RadarSite``, ``PlotBatch``, ``AisBatch``) carry all of the contract's
+Input models (``RadarSite``, ``PlotBatch``, ``AisBatch``, ``AdsbBatch``) carry all of the contract's
 validation rules; :func:`rejection_reason` maps a pydantic error onto the contract's
 ``Rejection.reason`` vocabulary so that one model gives both the JSON Schema and the checks.
 """
@@ -8,7 +8,7 @@ validation rules; :func:`rejection_reason` maps a pydantic error onto the contra
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictInt, ValidationError, model_validator
 from pydantic_core import PydanticCustomError
@@ -47,6 +47,16 @@ Sigma = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 #: Largest accepted ``seq``: a signed 64-bit integer (what every publisher's counter fits in).
 MAX_SEQ = 2**63 - 1
 Seq = Annotated[int, Field(ge=0, le=MAX_SEQ)]
+#: An ASTERIX data source identifier octet (SAC or SIC, I048/010, I034/010).
+SourceOctet = Annotated[int, Field(ge=0, le=255)]
+#: Mode 3/A code: 4 octal digits (contract §4.1).
+Mode3A = Annotated[str, Field(pattern=r"^[0-7]{4}$")]
+#: ICAO 24-bit aircraft address: 6 lower-case hex digits (Mode S, ADS-B ``icao24``).
+Icao24 = Annotated[str, Field(pattern=r"^[0-9a-f]{6}$")]
+#: Barometric flight level (FL = 100 ft): the valid ranges of ASTERIX I048/090 (-12 to 1270)
+#: and I021/145 (-15 to 1500), with a little room below.
+MIN_FLIGHT_LEVEL, MAX_FLIGHT_LEVEL = -20.0, 1500.0
+FlightLevel = Annotated[float, Field(ge=MIN_FLIGHT_LEVEL, le=MAX_FLIGHT_LEVEL, allow_inf_nan=False)]
 
 
 class WireModel(BaseModel):
@@ -66,12 +76,22 @@ class RadarSite(WireModel):
     azimuth_sigma_deg: Sigma = 0.2
     elevation_sigma_deg: Sigma = 0.2
     scan_period_s: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 4.0
+    sac: SourceOctet | None = Field(default=None, description="ASTERIX system area code (I048/010)")
+    sic: SourceOctet | None = Field(default=None, description="ASTERIX system identification code")
 
 
-def _equal_lengths(columns: dict[str, Sequence[object] | None]) -> None:
+_Columns = TypeVar("_Columns", bound=BaseModel)
+
+
+def _equal_lengths(model: _Columns, names: Sequence[str] | None = None) -> _Columns:
+    """A columnar model's columns (``names``, default every field; absent optional ones aside)
+    have one length."""
+    fields = type(model).model_fields if names is None else names
+    columns: dict[str, Sequence[object] | None] = {n: getattr(model, n) for n in fields}
     lengths = {name: len(col) for name, col in columns.items() if col is not None}
     if len(set(lengths.values())) > 1:
         raise ValueError(f"columns must have equal lengths, got {lengths}")
+    return model
 
 
 class PlotColumnsModel(WireModel):
@@ -86,20 +106,19 @@ class PlotColumnsModel(WireModel):
         default=None,
         description="simulation only: carried to tracks for evaluation, never read by algorithms",
     )
+    mode_3a: Annotated[list[Mode3A | None], Field(max_length=MAX_BATCH_ITEMS)] | None = Field(
+        default=None, description="Mode 3/A code per plot, 4 octal digits (null: none)"
+    )
+    mode_s: Annotated[list[Icao24 | None], Field(max_length=MAX_BATCH_ITEMS)] | None = Field(
+        default=None, description="Mode S address per plot, 6 lower-case hex digits (null: none)"
+    )
+    flight_level: Annotated[list[FlightLevel | None], Field(max_length=MAX_BATCH_ITEMS)] | None = Field(
+        default=None, description="barometric flight level per plot (FL = 100 ft; null: none)"
+    )
 
     @model_validator(mode="after")
     def _check_lengths(self) -> PlotColumnsModel:
-        _equal_lengths(
-            {
-                "time_s": self.time_s,
-                "range_m": self.range_m,
-                "azimuth_deg": self.azimuth_deg,
-                "elevation_deg": self.elevation_deg,
-                "altitude_m": self.altitude_m,
-                "truth_id": self.truth_id,
-            }
-        )
-        return self
+        return _equal_lengths(self)
 
 
 class PlotBatch(WireModel):
@@ -129,15 +148,7 @@ class AisReportsModel(WireModel):
 
     @model_validator(mode="after")
     def _check_lengths(self) -> AisReportsModel:
-        _equal_lengths(
-            {
-                "time_s": self.time_s,
-                "mmsi": self.mmsi,
-                "latitude_deg": self.latitude_deg,
-                "longitude_deg": self.longitude_deg,
-            }
-        )
-        return self
+        return _equal_lengths(self)
 
 
 class AisBatch(WireModel):
@@ -145,6 +156,29 @@ class AisBatch(WireModel):
     seq: Seq
     time_s: TimeS
     reports: AisReportsModel
+
+
+class AdsbReportsModel(WireModel):
+    time_s: Annotated[list[TimeS], Field(max_length=MAX_BATCH_ITEMS)]
+    icao24: Annotated[list[Icao24], Field(max_length=MAX_BATCH_ITEMS)]
+    latitude_deg: Annotated[list[Latitude], Field(max_length=MAX_BATCH_ITEMS)]
+    longitude_deg: Annotated[list[Longitude], Field(max_length=MAX_BATCH_ITEMS)]
+    altitude_m: Annotated[list[Altitude | None], Field(max_length=MAX_BATCH_ITEMS)] | None = Field(
+        default=None, description="geometric height above the WGS-84 ellipsoid (null: not reported)"
+    )
+
+    @model_validator(mode="after")
+    def _check_lengths(self) -> AdsbReportsModel:
+        return _equal_lengths(self)
+
+
+class AdsbBatch(WireModel):
+    """ADS-B position reports (contract §4.2): each ``icao24`` is one bias-free reference track."""
+
+    source_id: SourceId
+    seq: Seq
+    time_s: TimeS
+    reports: AdsbReportsModel
 
 
 # -- output models -------------------------------------------------------------------------
@@ -165,6 +199,8 @@ class Track(OutModel):
     velocity_ecef_mps: tuple[float, float, float]
     plots: int
     truth_id: str | None = None
+    mode_3a: str | None = Field(default=None, description="the latest Mode 3/A code of the track's plots")
+    mode_s: str | None = Field(default=None, description="the latest Mode S address of the track's plots")
 
 
 class TrackBatch(OutModel):
@@ -249,11 +285,12 @@ class TrackStateColumns(WireModel):
     truth_id: Annotated[list[str | None], Field(max_length=MAX_TRACKS)] | None = Field(
         default=None, description="simulation only, as in TrackBatch"
     )
+    mode_3a: Annotated[list[str | None], Field(max_length=MAX_TRACKS)] | None = None
+    mode_s: Annotated[list[str | None], Field(max_length=MAX_TRACKS)] | None = None
 
     @model_validator(mode="after")
     def _check_lengths(self) -> TrackStateColumns:
-        _equal_lengths({name: getattr(self, name) for name in type(self).model_fields})
-        return self
+        return _equal_lengths(self)
 
 
 class TrackStates(WireModel):
@@ -306,8 +343,7 @@ class RegistrationRows(WireModel):
 
     @model_validator(mode="after")
     def _check_lengths(self) -> RegistrationRows:
-        _equal_lengths({n: getattr(self, n) for n in ("track_a", "track_b", "p_a", "p_b", "s")})
-        return self
+        return _equal_lengths(self, ("track_a", "track_b", "p_a", "p_b", "s"))
 
 
 class ZenohInfo(OutModel):
@@ -451,6 +487,7 @@ WIRE_MODELS: dict[str, type[BaseModel]] = {
     "RadarSite": RadarSite,
     "PlotBatch": PlotBatch,
     "AisBatch": AisBatch,
+    "AdsbBatch": AdsbBatch,
     "TrackBatch": TrackBatch,
     "PairSet": PairSet,
     "Rejection": Rejection,

@@ -39,7 +39,7 @@ def nullable(x: NDArray[np.float64]) -> list[float | None]:
 def track_rows(c: dict[str, np.ndarray]) -> list[dict[str, Any]]:
     """``TrackBatch.tracks`` from a radar's track columns (``track_id``, ``confirmed``,
     ``time_s``, ``latitude_deg``, ``longitude_deg``, ``altitude_m``, ``position_ecef_m``,
-    ``velocity_ecef_mps``, ``plots``, ``truth_id``)."""
+    ``velocity_ecef_mps``, ``plots``, ``truth_id``, ``mode_3a``, ``mode_s``)."""
     state = np.where(c["confirmed"], "confirmed", "tentative").tolist()
     return [
         {
@@ -53,8 +53,10 @@ def track_rows(c: dict[str, np.ndarray]) -> list[dict[str, Any]]:
             "velocity_ecef_mps": v,
             "plots": n,
             "truth_id": truth,
+            "mode_3a": m3a,
+            "mode_s": ms,
         }
-        for tid, st, t, la, lo, al, p, v, n, truth in zip(
+        for tid, st, t, la, lo, al, p, v, n, truth, m3a, ms in zip(
             c["track_id"].tolist(),
             state,
             c["time_s"].tolist(),
@@ -65,6 +67,8 @@ def track_rows(c: dict[str, np.ndarray]) -> list[dict[str, Any]]:
             c["velocity_ecef_mps"].tolist(),
             c["plots"].tolist(),
             c["truth_id"].tolist(),
+            c["mode_3a"].tolist(),
+            c["mode_s"].tolist(),
             strict=True,
         )
     ]

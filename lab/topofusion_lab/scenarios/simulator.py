@@ -46,6 +46,12 @@ class RadarSpec:
     max_range_m: float = 350_000.0
     sectors: int = 8
     two_d: bool = False  # a 2-D radar sends altitude_m (e.g. Mode C) instead of elevation
+    #: ASTERIX data source identifier (sent with the site; the ASTERIX bridge maps by it).
+    sac: int | None = None
+    sic: int | None = None
+    #: A secondary (Mode S) radar: each target's plots carry its Mode 3/A code, Mode S address
+    #: and flight level (:func:`identity_of`); clutter carries none.
+    identity: bool = False
 
     def wire_site(self) -> RadarSite:
         """The radar's ``RadarSite`` (the fields of the same names; biases stay unknown)."""
@@ -67,6 +73,29 @@ class AisSpec:
     report_period_s: float = 10.0
     batch_period_s: float = 10.0
     stride: int = 1
+
+
+@dataclass(frozen=True)
+class AdsbSpec:
+    """An ADS-B receiver: every ``stride``-th target reports its GNSS position and geometric
+    height (errors ``position_sigma_m`` / ``height_sigma_m``, 1-sigma) every
+    ``report_period_s``; one batch per ``batch_period_s``.  A share ``no_height`` of reports
+    leaves the height out (null)."""
+
+    source_id: str
+    report_period_s: float = 1.0
+    batch_period_s: float = 2.0
+    stride: int = 1
+    position_sigma_m: float = 10.0
+    height_sigma_m: float = 15.0
+    no_height: float = 0.0
+
+
+def identity_of(name: str) -> tuple[str, str]:
+    """A simulated target's Mode 3/A code and Mode S address (a function of its name, the way
+    a transponder's codes belong to the aircraft): what the target transmits, not truth labels."""
+    number = int(name[1:])
+    return f"{(number * 37) % 4096:04o}", f"{(0x3C0000 + number * 7919) % 0x1000000:06x}"
 
 
 @dataclass(frozen=True)
@@ -111,6 +140,8 @@ class Scenario:
     start_time_s: float = 1_763_769_600.0  # 2025-11-22T00:00:00Z
     #: Cooperative reporters (AIS) of the targets' true positions.
     ais: tuple[AisSpec, ...] = ()
+    #: ADS-B receivers of the targets' own positions and heights.
+    adsb: tuple[AdsbSpec, ...] = ()
     extra: dict[str, Any] = field(default_factory=dict)
     #: Where a target that left the area is replaced.  ``"edge"`` (every catalog scenario):
     #: on the circle inscribed in the area, heading for its centre within +-34 deg, so the
@@ -135,7 +166,7 @@ class Scenario:
 
 @dataclass(frozen=True)
 class SimMessage:
-    """One message to publish: ``kind`` is ``site``, ``plots`` or ``ais``."""
+    """One message to publish: ``kind`` is ``site``, ``plots``, ``ais`` or ``adsb``."""
 
     time_s: float
     kind: str
@@ -268,6 +299,16 @@ def generate(sc: Scenario, seed: int = 0) -> Iterator[SimMessage]:
                 body = _ais_batch(a, targets, center, rot, t, (k + 1) * a.batch_period_s, sc.start_time_s)
                 body["seq"] = seqs[a.source_id]
                 yield SimMessage(body["time_s"], "ais", a.source_id, body)
+        for b in sc.adsb:
+            k0 = int(np.floor(t / b.batch_period_s + 1e-9))
+            k1 = int(np.floor(t_next / b.batch_period_s + 1e-9))
+            for k in range(k0, k1):
+                seqs[b.source_id] = seqs.get(b.source_id, 0) + 1
+                body = _adsb_batch(
+                    b, targets, center, rot, t, (k + 1) * b.batch_period_s, sc.start_time_s, rng
+                )
+                body["seq"] = seqs[b.source_id]
+                yield SimMessage(body["time_s"], "adsb", b.source_id, body)
         targets.advance(t_next - t)
         t = t_next
 
@@ -336,11 +377,65 @@ def _sector_batch(
     else:
         plots["elevation_deg"] = [round(float(np.clip(x, -90, 90)), 5) for x in ee[order]]
     plots["truth_id"] = [truth[i] for i in order]
+    if r.identity:
+        codes = [identity_of(x) if x is not None else (None, None) for x in truth]
+        fl = np.round(np.r_[alt[: len(idx)] / 30.48, np.full(nc, np.nan)] * 4.0) / 4.0  # ISA: FL = ft / 100
+        plots["mode_3a"] = [codes[i][0] for i in order]
+        plots["mode_s"] = [codes[i][1] for i in order]
+        plots["flight_level"] = [None if np.isnan(fl[i]) else float(fl[i]) for i in order]
     return {
         "radar_id": r.radar_id,
         "seq": 0,
         "time_s": round(t0 + (k + 1) * period / sectors, 6),
         "plots": plots,
+    }
+
+
+def _adsb_batch(
+    b: AdsbSpec,
+    targets: _Targets,
+    center: np.ndarray,
+    rot: np.ndarray,
+    t_now: float,
+    t_end: float,
+    t0: float,
+    rng: np.random.Generator,
+) -> dict[str, Any]:
+    """Reports of every ``stride``-th target at each report time in the batch period."""
+    idx = np.arange(0, len(targets.ids), b.stride)
+    times = np.arange(t_end - b.batch_period_s + b.report_period_s, t_end + 1e-9, b.report_period_s)
+    rows_t: list[float] = []
+    rows_id: list[str] = []
+    rows_lat: list[float] = []
+    rows_lon: list[float] = []
+    rows_alt: list[float | None] = []
+    for tr in times:
+        enu = targets.pos[idx] + targets.vel[idx] * (tr - t_now)
+        enu = enu + rng.normal(0.0, 1.0, enu.shape) * [
+            b.position_sigma_m,
+            b.position_sigma_m,
+            b.height_sigma_m,
+        ]
+        lat, lon, alt = ecef_to_geodetic(enu @ rot.T + center)
+        dropped = rng.random(len(idx)) < b.no_height
+        rows_t += [round(t0 + float(tr), 3)] * len(idx)
+        rows_id += [identity_of(str(targets.ids[i]))[1] for i in idx]
+        rows_lat += [round(float(x), 7) for x in lat]
+        rows_lon += [round(float(x), 7) for x in lon]
+        rows_alt += [
+            None if d else round(float(a), 1) for a, d in zip(np.atleast_1d(alt), dropped, strict=True)
+        ]
+    return {
+        "source_id": b.source_id,
+        "seq": 0,
+        "time_s": round(t0 + t_end, 6),
+        "reports": {
+            "time_s": rows_t,
+            "icao24": rows_id,
+            "latitude_deg": rows_lat,
+            "longitude_deg": rows_lon,
+            "altitude_m": rows_alt,
+        },
     }
 
 
