@@ -1,0 +1,88 @@
+"""The one real public capture (cat_034_048.pcap, docs/asterix-decoders.md §3) read end to end.
+
+The file is GPL-3.0-or-later and is never committed: tests/asterix/real_capture.py fetches the
+pinned asterix-decoder 0.7.11 sdist at test time, checks it and caches the capture outside the
+repository; these tests skip, saying what failed, when that is not possible (offline).
+Set TOPOFUSION_ASTERIX_CAPTURE to a local copy to run them without the network.
+"""
+
+from __future__ import annotations
+
+import collections
+import ipaddress
+from datetime import datetime, timezone
+from pathlib import Path
+
+import pytest
+
+from service.asterix.capture import Datagram, detect_format, read_datagrams
+from tests.asterix.real_capture import real_capture
+
+
+@pytest.fixture(scope="module")
+def capture_path() -> Path:
+    path, problem = real_capture()
+    if path is None:
+        pytest.skip(f"real ASTERIX capture not available: {problem}")
+    return path
+
+
+@pytest.fixture(scope="module")
+def datagrams(capture_path: Path) -> list[Datagram]:
+    counters: collections.Counter[str] = collections.Counter()
+    read = list(read_datagrams(capture_path, counters))
+    assert not counters, counters  # every frame is a UDP datagram: nothing skipped
+    return read
+
+
+def data_blocks(payload: bytes) -> list[bytes]:
+    """The payload cut into ASTERIX data blocks by their CAT/LEN headers (asserting they tile it)."""
+    blocks = []
+    position = 0
+    while position < len(payload):
+        assert position + 3 <= len(payload)
+        length = int.from_bytes(payload[position + 1 : position + 3], "big")
+        assert length >= 3 and position + length <= len(payload)
+        blocks.append(payload[position : position + length])
+        position += length
+    assert position == len(payload)  # the data blocks' LENs sum to the UDP payload's length
+    return blocks
+
+
+def test_capture_is_pcap_of_100_udp_frames(capture_path: Path, datagrams: list[Datagram]) -> None:
+    assert detect_format(capture_path.read_bytes()[:4]) == "pcap"
+    assert len(datagrams) == 100
+
+
+def test_payloads_are_whole_cat034_and_cat048_data_blocks(datagrams: list[Datagram]) -> None:
+    categories: collections.Counter[int] = collections.Counter()
+    for datagram in datagrams:
+        assert datagram.payload[0] in (34, 48)
+        blocks = data_blocks(datagram.payload)
+        categories.update(block[0] for block in blocks)
+    assert categories == {48: 86, 34: 34}  # as docs/asterix-decoders.md §3 counts them
+
+
+def test_addresses_are_the_radar_feeds(datagrams: list[Datagram]) -> None:
+    for datagram in datagrams:
+        source, _, source_port = datagram.source.rpartition(":")
+        group, _, group_port = datagram.destination.rpartition(":")
+        assert source in ("10.17.58.183", "10.17.58.184") and int(source_port) > 0
+        assert ipaddress.ip_address(group).is_multicast and int(group_port) > 0
+    assert len({datagram.destination for datagram in datagrams}) == 14
+
+
+def test_times_lie_on_2016_05_05_and_span_0_44_s(datagrams: list[Datagram]) -> None:
+    times = [datagram.time_s for datagram in datagrams]
+    assert all(t is not None for t in times)
+    stamps = [t for t in times if t is not None]
+    assert stamps == sorted(stamps)
+    days = {datetime.fromtimestamp(t, timezone.utc).date().isoformat() for t in stamps}
+    assert days == {"2016-05-05"}
+    assert stamps[-1] - stamps[0] == pytest.approx(0.4446, abs=0.001)
+
+
+# ---------------------------------------------------------------------------------------------
+# Decoding (service/asterix/decode.py): assertions on the decoded records of this capture go here,
+# using the `datagrams` fixture above (128 CAT048 target reports from SAC 25 and 7 SICs; 34 CAT034
+# records, 32 sector crossings and 2 north markers, per docs/asterix-decoders.md §3).
