@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from service.asterix.capture import Datagram, detect_format, read_datagrams
+from tests.asterix import real_capture as real_capture_module
 from tests.asterix.real_capture import real_capture
 
 
@@ -80,6 +81,35 @@ def test_times_lie_on_2016_05_05_and_span_0_44_s(datagrams: list[Datagram]) -> N
     days = {datetime.fromtimestamp(t, timezone.utc).date().isoformat() for t in stamps}
     assert days == {"2016-05-05"}
     assert stamps[-1] - stamps[0] == pytest.approx(0.4446, abs=0.001)
+
+
+def test_cache_hit_needs_no_network(capture_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    def offline(*args: object, **kwargs: object) -> None:
+        raise OSError("the network was used")
+
+    monkeypatch.setattr(real_capture_module.urllib.request, "urlopen", offline)
+    monkeypatch.setattr(real_capture_module.subprocess, "run", offline)
+    real_capture.cache_clear()
+    try:
+        assert real_capture() == (capture_path, "")
+    finally:
+        real_capture.cache_clear()
+
+
+def test_local_copy_must_be_the_capture(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    other = tmp_path / "other.pcap"
+    other.write_bytes(b"not the capture")
+    monkeypatch.setenv(real_capture_module.ENV_VAR, str(other))
+    real_capture.cache_clear()
+    try:
+        path, problem = real_capture()
+        assert path is None and "sha256" in problem and str(other) in problem
+        monkeypatch.setenv(real_capture_module.ENV_VAR, str(tmp_path / "absent.pcap"))
+        real_capture.cache_clear()
+        path, problem = real_capture()
+        assert path is None and "cannot read it" in problem
+    finally:
+        real_capture.cache_clear()
 
 
 # ---------------------------------------------------------------------------------------------
