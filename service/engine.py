@@ -717,4 +717,5 @@ class Engine:
             prefix=self.config.prefix,
             sites={rid: r.site for rid, r in self.tracking.radars.items()},
             progress=self.progress() if not self.partition.whole else {},
+            adsb_sources=frozenset(k for k, kind in self.reference_kinds.items() if kind == "adsb"),
         )

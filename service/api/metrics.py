@@ -57,6 +57,28 @@ class NodeCollector(Collector):
         pairs.add_metric(["confirmed"], status["pairs_confirmed"])
         pairs.add_metric(["tentative"], status["pairs_tentative"])
         yield pairs
+        ident = status.get("identity") or {"by_pair": []}
+        with_s = GaugeMetricFamily(
+            "topofusion_identity_pairs_with_mode_s",
+            "Confirmed pairs whose two tracks both carry a Mode S address",
+            labels=["radar_a", "radar_b"],
+        )
+        equal = GaugeMetricFamily(
+            "topofusion_identity_mode_s_equal",
+            "Of those, the pairs whose two Mode S addresses are equal",
+            labels=["radar_a", "radar_b"],
+        )
+        for row in ident["by_pair"]:
+            with_s.add_metric([row["radar_a"], row["radar_b"]], row["pairs_with_mode_s"])
+            equal.add_metric([row["radar_a"], row["radar_b"]], row["mode_s_equal"])
+        yield with_s
+        yield equal
+        agreement = ident.get("agreement")
+        yield GaugeMetricFamily(
+            "topofusion_identity_agreement",
+            "Share of confirmed pairs with Mode S on both tracks whose addresses are equal (NaN: none)",
+            value=float("nan") if agreement is None else agreement,
+        )
         corr = status["correlation"]
         yield CounterMetricFamily(
             "topofusion_correlation_updates", "Correlation updates", value=corr["updates"]

@@ -83,6 +83,8 @@ class TrackSnapshot:
     enu: FloatArray
     enu_velocity: FloatArray
     compensated: bool = False
+    #: Each track's Mode S address (None: none); None: the source gave none at all.
+    mode_s: NDArray[np.object_] | None = None
 
     def __len__(self) -> int:
         return int(self.track_id.shape[0])

@@ -53,6 +53,7 @@ from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.correlation.assignment import assign_unambiguous
 from service.correlation.base import (
@@ -90,6 +91,8 @@ from service.correlation.svd_topology import SvdTopologyCorrelator, SvdTopologyP
 from service.geo import Site
 from service.tracking.base import TrackTable
 
+_NONE = np.array(None, dtype=object)
+
 
 @dataclass(frozen=True)
 class CorrelationParams:
@@ -115,6 +118,11 @@ class CorrelationParams:
     confirmed_bonus: float = 3.0
     #: Bias-compensate before deciding once registered (svd-topology only).
     use_registration: bool = True
+    #: Mode S addresses as association evidence: a candidate pair whose two tracks carry
+    #: different addresses is never chosen, and a kept pair that comes to differ is decided
+    #: afresh.  Off by default: the association then rests on kinematics alone, and the
+    #: identity quality figure (``/status`` ``identity``) is an independent check of it.
+    identity_veto: bool = False
 
 
 #: Each method's correlator, built from its section of :class:`CorrelationParams`.  The names
@@ -275,6 +283,11 @@ class PairCorrelator:
                 kept = kept.take(~weak)
                 if ev is not None:
                     hist = hist[~weak]
+            if prm.identity_veto:
+                same = ~_identities_differ(a, b, kept)
+                kept = kept.take(same)
+                if ev is not None:
+                    hist = hist[same]
             if ev is not None:
                 kept.extras["basis"] = np.where(hist, float(Basis.HISTORY), float(Basis.REGISTERED))
             # Kept pairs are decided; only the other tracks are candidate references.
@@ -286,6 +299,8 @@ class PairCorrelator:
             )
         self.last_reverified = len(kept) if kept is not None else 0
         decided = self._with_history(self.correlator.decide(a, b, ctx), a, b, time_s, registered)
+        if prm.identity_veto:
+            decided = replace(decided, accepted=decided.accepted & ~_identities_differ(a, b, decided))
         if ev is not None and not registered:
             ev.prune(time_s, a.track_id, b.track_id)
         cost = decided.cost
@@ -478,3 +493,12 @@ def estimate_biases(
 ) -> list[RadarBias]:
     """:func:`joint_solution` as one :class:`RadarBias` per radar."""
     return to_estimates(joint_solution(correlators, time_s, params), time_s)
+
+
+def _identities_differ(a: TrackSnapshot, b: TrackSnapshot, d: Decisions) -> NDArray[np.bool_]:
+    """Candidates whose two tracks both carry a Mode S address, and different ones."""
+    if a.mode_s is None or b.mode_s is None or not len(d):
+        return np.zeros(len(d), dtype=bool)
+    sa, sb = a.mode_s[d.index_a], b.mode_s[d.index_b]
+    both = np.not_equal(sa, _NONE, dtype=bool) & np.not_equal(sb, _NONE, dtype=bool)
+    return np.asarray(both & (sa != sb), dtype=bool)

@@ -114,4 +114,5 @@ def predict_snapshot(
         site=site,
         enu=enu,
         enu_velocity=enu_v,
+        mode_s=table.mode_s[rows],
     )

@@ -618,6 +618,7 @@ def compensate(
         enu=enu,
         enu_velocity=enu_v,
         compensated=True,
+        mode_s=snapshot.mode_s,
     )
     return out, extra
 

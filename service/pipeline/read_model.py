@@ -13,10 +13,13 @@ from typing import Any
 
 import numpy as np
 
+from service.correlation.pairkeys import find
 from service.geo import ecef_to_geodetic
 from service.tracking.base import TrackTable
 from service.wire.models import RadarSite, RadarStatus
 from service.wire.outputs import pair_rows, track_rows
+
+_NONE = np.array(None, dtype=object)
 
 
 def track_batch(radar_id: str, time_s: float, tracks: TrackTable, status: str = "all") -> dict[str, Any]:
@@ -119,6 +122,8 @@ class Snapshot:
     sites: dict[str, RadarSite] = field(default_factory=dict)
     #: Partitioned: how far this worker has got (``Engine.progress``).
     progress: dict[str, Any] = field(default_factory=dict)
+    #: The ADS-B sources (their track ids are Mode S addresses).
+    adsb_sources: frozenset[str] = frozenset()
     _batches: dict[tuple[str, str], dict[str, Any]] = field(default_factory=dict, compare=False, repr=False)
 
     def track_batch(self, radar_id: str, status: str = "confirmed") -> dict[str, Any] | None:
@@ -152,7 +157,45 @@ class Snapshot:
             "pairs_tentative": sum(v.tentative for v in self.pair_views),
             "correlation": self.correlation,
             "rejected": self.rejected,
+            "identity": self.identity(),
         }
+
+    def _mode_s(self, source_id: str, track_ids: np.ndarray) -> np.ndarray:
+        """The Mode S address of each of a source's tracks (None: none, or unknown track)."""
+        if source_id in self.adsb_sources:
+            return track_ids.astype(object)
+        out = np.full(track_ids.shape[0], None, dtype=object)
+        held = self.tracks.get(source_id)
+        if held is not None and track_ids.shape[0]:
+            table = held[1]
+            at = find(table.track_id, track_ids)
+            out[at >= 0] = table.mode_s[at[at >= 0]]
+        return out
+
+    def identity(self) -> dict[str, Any]:
+        """Identity quality (contract §4.1): among confirmed pairs whose two tracks both carry
+        a Mode S address, how many have equal addresses; overall and per source pair."""
+        rows: list[dict[str, Any]] = []
+        for v in self.pair_views:
+            if not v.confirmed:
+                continue
+            c = v.columns["confirmed"]
+            a = self._mode_s(v.radar_a, v.columns["track_a"][c])
+            b = self._mode_s(v.radar_b, v.columns["track_b"][c])
+            both = np.not_equal(a, _NONE, dtype=bool) & np.not_equal(b, _NONE, dtype=bool)
+            if both.any():
+                equal = int(np.count_nonzero(a[both] == b[both]))
+                rows.append(
+                    {
+                        "radar_a": v.radar_a,
+                        "radar_b": v.radar_b,
+                        "pairs_with_mode_s": int(both.sum()),
+                        "mode_s_equal": equal,
+                    }
+                )
+        n = int(sum(r["pairs_with_mode_s"] for r in rows))
+        k = int(sum(r["mode_s_equal"] for r in rows))
+        return {"pairs_with_mode_s": n, "mode_s_equal": k, "agreement": k / n if n else None, "by_pair": rows}
 
     def status(self) -> dict[str, Any]:
         """Status without process-level fields (the node adds uptime, zenoh and queue)."""

@@ -404,6 +404,22 @@ class PartitionStatus(OutModel):
     )
 
 
+class IdentityPair(OutModel):
+    radar_a: str
+    radar_b: str
+    pairs_with_mode_s: int
+    mode_s_equal: int
+
+
+class IdentityQuality(OutModel):
+    """Confirmed pairs whose two tracks both carry a Mode S address, and how many agree."""
+
+    pairs_with_mode_s: int
+    mode_s_equal: int
+    agreement: float | None = Field(description="mode_s_equal / pairs_with_mode_s; null when none")
+    by_pair: list[IdentityPair] = Field(default_factory=list)
+
+
 class Status(OutModel):
     uptime_s: float
     method: str
@@ -417,6 +433,11 @@ class Status(OutModel):
     queue: dict[str, int] = Field(default_factory=dict, description="ingest queue depth, capacity, dropped")
     partition: PartitionStatus | None = Field(
         default=None, description="partitioned workers only: who owns what, which partitions are missing"
+    )
+    identity: IdentityQuality | None = Field(
+        default=None,
+        description="identity quality (contract 4.1): confirmed pairs whose tracks both carry a Mode S "
+        "address, and the share with equal addresses",
     )
 
 
