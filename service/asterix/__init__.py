@@ -1,0 +1,1 @@
+"""ASTERIX input: decoding, captures and the bridge to the contract's payloads."""
