@@ -144,6 +144,14 @@ def build_parser() -> argparse.ArgumentParser:
     _zenoh_flags(rep, default_mode="client")
     recording.add_replay_arguments(rep)
 
+    from service.asterix import command as asterix
+
+    ast = sub.add_parser(
+        "asterix", help="bridge an ASTERIX feed (CAT048/034/021; UDP, pcap, raw) to the service"
+    )
+    _zenoh_flags(ast, default_mode="client")
+    asterix.add_arguments(ast)
+
     ev = sub.add_parser("evaluate", help="Monte Carlo evaluation: tables and PNG figures")
     ev.add_argument("--out", default="evaluation", help="output folder (default ./evaluation)")
     ev.add_argument("--runs", type=int, help="Monte Carlo runs per point (default: each study's full count)")
@@ -518,6 +526,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.prefix = settings.prefix
             fn = recording.record_main if args.command == "record" else recording.replay_main
             return int(fn(args, zenoh_options(settings, default_mode="client")))
+        if args.command == "asterix":
+            from service.asterix.command import asterix_main
+
+            settings = settings_from(args)
+            options = zenoh_options(settings, default_mode="client")
+            return asterix_main(args, options, settings.prefix, settings.sites, _stop_on_signals())
         if args.command == "evaluate":
             return evaluate_main(args)
         if args.command == "schemas":

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -112,17 +112,25 @@ def tracker_for(config: EngineConfig) -> TrackerFactory:
 def plot_columns(batch: PlotBatch) -> PlotColumns:
     p = batch.plots
     n = len(p.time_s)
-    nan = np.full(n, np.nan)
     return PlotColumns(
         time_s=np.asarray(p.time_s, dtype=float),
         range_m=np.asarray(p.range_m, dtype=float),
         azimuth_deg=np.asarray(p.azimuth_deg, dtype=float),
-        elevation_deg=np.asarray(p.elevation_deg, dtype=float) if p.elevation_deg is not None else nan,
-        altitude_m=np.asarray(p.altitude_m, dtype=float) if p.altitude_m is not None else nan.copy(),
+        elevation_deg=_floats(p.elevation_deg, n),
+        altitude_m=_floats(p.altitude_m, n),
         truth_id=_labels(p.truth_id, n),
         mode_3a=_labels(p.mode_3a, n),
         mode_s=_labels(p.mode_s, n),
     )
+
+
+def _floats(column: Sequence[float | None] | None, n: int) -> np.ndarray:
+    """A wire column of numbers or nulls as floats, NaN for null (all NaN when left out)."""
+    if column is None:
+        return np.full(n, np.nan)
+    if None in column:
+        return np.array([np.nan if x is None else x for x in column], dtype=float)
+    return np.asarray(column, dtype=float)
 
 
 def _labels(column: list[str | None] | None, n: int) -> np.ndarray:

@@ -101,7 +101,9 @@ class PlotColumnsModel(WireModel):
     range_m: Annotated[list[Range], Field(max_length=MAX_BATCH_ITEMS)]
     azimuth_deg: Annotated[list[Azimuth], Field(max_length=MAX_BATCH_ITEMS)]
     elevation_deg: Annotated[list[Elevation], Field(max_length=MAX_BATCH_ITEMS)] | None = None
-    altitude_m: Annotated[list[Altitude], Field(max_length=MAX_BATCH_ITEMS)] | None = None
+    altitude_m: Annotated[list[Altitude | None], Field(max_length=MAX_BATCH_ITEMS)] | None = Field(
+        default=None, description="height above the WGS-84 ellipsoid per plot (null: not known)"
+    )
     truth_id: Annotated[list[str | None], Field(max_length=MAX_BATCH_ITEMS)] | None = Field(
         default=None,
         description="simulation only: carried to tracks for evaluation, never read by algorithms",
