@@ -65,6 +65,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, metavar="S", help="UDP: stop after S wall seconds")
     p.add_argument("--adsb-id", default="adsb", help="source id of the ADS-B reports (default adsb)")
     p.add_argument(
+        "--adsb-batch", type=float, default=1.0, metavar="S", help="data seconds per ADS-B batch (default 1)"
+    )
+    p.add_argument(
         "--max-batch", type=float, default=2.0, metavar="S", help="batch length of a radar without CAT034"
     )
     p.add_argument(
@@ -225,8 +228,13 @@ def asterix_main(
         dt.datetime.combine(args.date, dt.time(), tzinfo=dt.timezone.utc).timestamp() if args.date else None
     )
     clock = DayClock(start if start is not None else today_midnight_s())
+    if args.adsb_batch <= 0 or args.max_batch <= 0:
+        raise ValueError("asterix: --adsb-batch and --max-batch must be > 0")
     params = BridgeParams(
-        adsb_source_id=args.adsb_id, max_batch_s=args.max_batch, altitude_from_fl=not args.no_fl_altitude
+        adsb_source_id=args.adsb_id,
+        adsb_batch_s=args.adsb_batch,
+        max_batch_s=args.max_batch,
+        altitude_from_fl=not args.no_fl_altitude,
     )
     bridge = AsterixBridge(list(sites), params, clock)
     session = open_tool_session(options, "asterix")
