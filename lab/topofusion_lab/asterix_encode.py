@@ -1,7 +1,9 @@
 """A fast hand-written ASTERIX encoder for tests, benchmarks and simulations.
 
-It writes the report tuples of ``service.asterix.decode`` as data blocks of CAT048 (ed. 1.32),
-CAT034 (ed. 1.29) and CAT021 (ed. 2.7), with a minimal valid item set per record.  libasterix
+It writes the report tuples of ``service.asterix.decode`` as data blocks of the EUROCONTROL
+ASTERIX categories 048 "Monoradar Target Reports" (edition 1.32), 034 "Transmission of
+Monoradar Service Messages" (edition 1.29) and 021 "ADS-B Target Reports" (edition 2.7), with a
+minimal valid item set per record.  libasterix
 encodes at about 2 400 records/s; this is plain ``struct``/integer packing (tests check it
 byte for byte against libasterix, tests/asterix/test_asterix_encode.py).
 

@@ -13,12 +13,13 @@ is stepped over with the exact length rule of its edition, so that no known item
 
 **Speed.** Each distinct FSPEC of a category is turned into one straight-line Python function
 (source generated from per-item snippets, compiled once and cached): no per-item dispatch at run
-time.  A radar sends a handful of distinct FSPECs, so the cache stays small; it is bounded
-(``_Category.cache_max``) so that hostile input cannot grow memory without bound, and an FSPEC
-is compiled (about 0.2 ms) on its second sighting only, so that corrupt or hostile data does not
-make the decoder compile for every record.  The first sighting, and every FSPEC once the cache
-is full, go through the generic path: an FSPEC walk with one ``if``/``elif`` branch per FRN,
-generated from the same snippets (one source of truth for both paths).
+time.  A radar sends a handful of distinct FSPECs, so the cache stays small.  It is bounded
+(``_Category.cache_max`` functions of about 3 kB; no FSPEC longer than the UAP needs is kept)
+so that hostile input cannot grow memory without bound, and an FSPEC is compiled (about 0.2 ms)
+on its second sighting only, so that corrupt or hostile data does not make the decoder compile
+for every record.  The first sighting, and every FSPEC once the cache is full, go through the
+generic path: an FSPEC walk with one ``if``/``elif`` branch per FRN, generated from the same
+snippets (one source of truth for both paths).
 
 **Robustness.** A data block is atomic: if any record of it cannot be framed (FSPEC past the
 block, an FRN that is spare or beyond the UAP, an item past the block's LEN, an inconsistent
@@ -370,6 +371,8 @@ class _Category:
             while b[q] & 1:
                 q += 1
             q += 1
+            if q - p > self.fspec_max:  # names FRNs beyond the UAP; never a key of seen/cache
+                raise FramingError(f"CAT{self.cat:03d} FSPEC of {q - p} octets")
             f = cache.get(b[p:q])
             if f is None:
                 # Compiled on its second sighting (a radar repeats its few FSPECs all the time;

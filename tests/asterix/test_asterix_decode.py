@@ -524,6 +524,7 @@ def test_hostile_input_costs_linear_time(monkeypatch: pytest.MonkeyPatch) -> Non
     rnd = random.Random(9)
     junk = [bytes((48, 0xFF, 0xFF)) + b"\xff" * 65532, bytes((21, 0xFF, 0xFF)) + b"\x81" * 65532]
     junk.append(bytes((48, 0xFF, 0xFF)) + bytes(rnd.getrandbits(8) | 0x80 for _ in range(65532)))
+    junk.append(bytes((48, 0xFF, 0xFF)) + b"\x81" * 30000 + b"\x80" + bytes(35531))  # a 30 001-octet FSPEC
     fixed = [frn for frn, item in enumerate(UAP048) if item is not None and item.kind == "F" and frn > 1]
     records = []
     for _ in range(3000):
@@ -546,4 +547,5 @@ def test_hostile_input_costs_linear_time(monkeypatch: pytest.MonkeyPatch) -> Non
         decode_datagram(_blk(48, b"".join(records[i : i + 1000])), d)
     assert len(d.cat048) == 3000 and not d.errors
     assert len(cat.cache) < 50
+    assert all(len(k) <= 4 for k in cat.seen)  # no FSPEC longer than the UAP's is remembered
     assert time.perf_counter() - t0 < 2.0
