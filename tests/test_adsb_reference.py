@@ -224,3 +224,30 @@ def test_latest_codes_equals_the_plain_form() -> None:
         want = latest_codes_reference(every)
         uids = np.arange(15, dtype=np.int64)
         assert codes.of(uids).tolist() == [want.get(u) for u in range(15)]
+
+
+@pytest.mark.parametrize(
+    ("column", "values", "reason"),
+    [
+        ("mode_3a", ["7000", "8000"], "schema"),  # not octal
+        ("mode_s", ["3c6444", "3c644"], "schema"),  # 5 digits
+        ("flight_level", [330.0, 5000.0], "out_of_range"),
+        ("flight_level", [330.0], "schema"),  # length
+        ("altitude_m", [9000.0, 2e6], "out_of_range"),
+    ],
+)
+def test_bad_identity_columns_reject_the_batch_and_change_nothing(
+    column: str, values: list[object], reason: str
+) -> None:
+    site = {"radar_id": "A", "latitude_deg": 31.0, "longitude_deg": 118.0}
+    plots = {"time_s": [99.0, 99.5], "range_m": [5e4, 6e4], "azimuth_deg": [10.0, 20.0]}
+    engine = Engine(EngineConfig())
+    engine.ingest("fusion/radar/A/site", json.dumps(site).encode())
+    bad = {"radar_id": "A", "seq": 1, "time_s": 100.0, "plots": {**plots, column: values}}
+    (o,) = engine.ingest("fusion/radar/A/plots", json.dumps(bad).encode(), receive_time_s=0.0)
+    assert json.loads(o.payload)["reason"] == reason
+    assert engine.radars["A"].last_seq is None
+    ok = {"radar_id": "A", "seq": 1, "time_s": 100.0, "plots": {**plots, "mode_s": ["3c6444", None]}}
+    assert [x.key for x in engine.ingest("fusion/radar/A/plots", json.dumps(ok).encode())] == [
+        "fusion/radar/A/tracks"
+    ]

@@ -135,13 +135,18 @@ def test_a_real_capture_through_udp(capture: Path, router: str, tmp_path: Path) 
 
             wait_for(listening, timeout=30)
             assert proc.poll() is None, "".join(seen)
+            junk = [b"\x30\x00", b"\x30\x00\x09\xff\xff\xff\xff\xff\xff", b"\x3e\x00\x04\x00", b"garbage!"]
             with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
-                for p in payloads:
+                for i, p in enumerate(payloads):
                     tx.sendto(p, ("127.0.0.1", port))
+                    if i % 25 == 0:  # malformed datagrams in between: counted, never fatal
+                        tx.sendto(junk[(i // 25) % len(junk)], ("127.0.0.1", port))
             wait_for(lambda: sum(plots_by_radar(svc).values()) > 0, timeout=30)
             proc.send_signal(signal.SIGINT)  # what is still held is sent on stop
             assert proc.wait(timeout=30) == 0
             text = "".join(seen) + output(lines)
         check_service(svc, expected)
-    assert f"{len(payloads)} datagrams" in text, text
+    assert f"{len(payloads) + 4} datagrams" in text, text
+    assert "blocks_truncated 2" in text and "blocks_undecodable 1" in text, text
+    assert "blocks_unsupported_category 1" in text, text
     assert "Traceback" not in text
