@@ -62,7 +62,7 @@ class RadarSpec:
         return to_geometry(self.wire_site())
 
     def site_message(self) -> dict[str, Any]:
-        return self.wire_site().model_dump()
+        return self.wire_site().model_dump(exclude_none=True)  # sac/sic only when set
 
 
 @dataclass(frozen=True)
