@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from service.asterix.capture import Datagram, detect_format, read_datagrams
+from service.asterix.decode import Decoded, decode_datagram
 from tests.asterix import real_capture as real_capture_module
 from tests.asterix.real_capture import real_capture
 
@@ -113,6 +114,30 @@ def test_local_copy_must_be_the_capture(tmp_path: Path, monkeypatch: pytest.Monk
 
 
 # ---------------------------------------------------------------------------------------------
-# Decoding (service/asterix/decode.py): assertions on the decoded records of this capture go here,
-# using the `datagrams` fixture above (128 CAT048 target reports from SAC 25 and 7 SICs; 34 CAT034
-# records, 32 sector crossings and 2 north markers, per docs/asterix-decoders.md §3).
+# Decoding (service/asterix/decode.py)
+
+
+def test_the_capture_decodes_whole(datagrams: list[Datagram]) -> None:
+    """128 CAT048 target reports from SAC 25 and 7 SICs, 34 CAT034 records (32 sector
+    crossings, 2 north markers), per docs/asterix-decoders.md §3; nothing dropped."""
+    out = Decoded()
+    for d in datagrams:
+        decode_datagram(d.payload, out)
+    assert not out.errors and not out.cat021
+    assert len(out.cat048) == 128
+    assert {(r.sac, r.sic) for r in out.cat048} == {(25, s) for s in (11, 12, 13, 14, 201, 204, 205)}
+    assert collections.Counter(m.message_type for m in out.cat034) == {2: 32, 1: 2}
+    positioned = [r for r in out.cat048 if r.rho_m is not None and r.theta_deg is not None]
+    assert len(positioned) == 126
+    assert all(0 < r.rho_m < 500_000 and 0 <= r.theta_deg < 360 for r in positioned)  # type: ignore[operator]
+    # the time of day agrees with the capture's time stamps (2016-05-05, UTC): a report is
+    # sent within 2.5 s of its detection, but for the two reports without a position (SIC 13, 20 s old)
+    lags = []
+    for d in datagrams:
+        one = Decoded()
+        decode_datagram(d.payload, one)
+        assert d.time_s is not None
+        lags += [d.time_s % 86_400 - r.tod_s for r in one.cat048]  # type: ignore[operator]
+    assert all(0 <= x < 30 for x in lags)
+    assert sum(x < 2.5 for x in lags) == len(lags) - 2
+    assert all(r.mode_s is None or len(r.mode_s) == 6 for r in out.cat048)
