@@ -9,11 +9,13 @@ from typing import Any
 
 import numpy as np
 import pytest
+import zenoh
 
 from service.correlation.correlator import CorrelationParams
 from service.engine import Engine, EngineConfig
 from service.reference import ReferenceParams, ReferenceTracks
 from service.tracking.identity import LatestCodes
+from tests.support import put_json, running_service, wait_for, wait_subscribed
 from topofusion_lab.scenarios.catalog import get_scenario
 from topofusion_lab.scenarios.simulator import AdsbSpec, identity_of, wire_messages
 
@@ -251,3 +253,25 @@ def test_bad_identity_columns_reject_the_batch_and_change_nothing(
     assert [x.key for x in engine.ingest("fusion/radar/A/plots", json.dumps(ok).encode())] == [
         "fusion/radar/A/tracks"
     ]
+
+
+def test_adsb_over_zenoh_and_the_identity_figure_over_http(router: str, client: zenoh.Session) -> None:
+    """The node subscribes to ADS-B sources; /status and /metrics serve the identity figure."""
+    stream = lone_radar_stream(duration_s=240.0)
+    with running_service(router) as svc:
+        wait_subscribed(client, "fusion/adsb/adsb-1/reports")
+        wait_subscribed(client, "fusion/radar/A/plots")
+        for key, payload in stream:
+            put_json(client, key, payload)
+
+        def identity() -> dict[str, Any] | None:
+            ident = svc.http.get("/status").json()["identity"]
+            return ident if ident["pairs_with_mode_s"] >= 20 else None
+
+        ident = wait_for(identity, timeout=60)
+        assert ident["agreement"] == ident["mode_s_equal"] / ident["pairs_with_mode_s"] >= 0.95
+        pairs = svc.http.get("/pairs", params={"radar_a": "adsb-1"}).json()
+        assert [(ps["radar_a"], ps["radar_b"], ps["method"]) for ps in pairs] == [("A", "adsb-1", "cfar")]
+        metrics = svc.http.get("/metrics").text
+        assert 'topofusion_identity_pairs_with_mode_s{radar_a="A",radar_b="adsb-1"}' in metrics
+        assert "topofusion_identity_agreement " in metrics
