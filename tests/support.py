@@ -20,7 +20,7 @@ import uvicorn
 import zenoh
 
 from service.api.app import create_app
-from service.engine import EngineConfig
+from service.engine import Engine, EngineConfig, Outgoing
 from service.transport.node import ServiceNode
 from service.transport.session import ZenohOptions
 
@@ -106,6 +106,19 @@ def running_service(
         thread.join(timeout=10)
         sock.close()
         assert not thread.is_alive(), "uvicorn did not stop"
+
+
+def run_engine(
+    messages: list[tuple[str, bytes]], config: EngineConfig | None = None
+) -> tuple[Engine, list[Outgoing]]:
+    """Every message through a fresh engine (receipt time 0), then a flush: the engine and what
+    it published."""
+    engine = Engine(config or EngineConfig())
+    out = []
+    for key, payload in messages:
+        out.extend(engine.ingest(key, payload, receive_time_s=0.0))
+    out.extend(engine.flush())
+    return engine, out
 
 
 def one_worker_config(**kw: object) -> EngineConfig:

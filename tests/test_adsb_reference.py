@@ -15,20 +15,11 @@ from service.correlation.correlator import CorrelationParams
 from service.engine import Engine, EngineConfig
 from service.reference import ReferenceParams, ReferenceTracks
 from service.tracking.identity import LatestCodes
-from tests.support import put_json, running_service, wait_for, wait_subscribed
+from tests.support import put_json, run_engine, running_service, wait_for, wait_subscribed
 from topofusion_lab.scenarios.catalog import get_scenario
 from topofusion_lab.scenarios.simulator import AdsbSpec, identity_of, wire_messages
 
 BIAS = {"range_bias_m": 300.0, "azimuth_bias_deg": 0.25, "elevation_bias_deg": 0.05}
-
-
-def run(messages: list[tuple[str, bytes]], config: EngineConfig | None = None) -> tuple[Engine, list[Any]]:
-    engine = Engine(config or EngineConfig())
-    out = []
-    for key, payload in messages:
-        out.extend(engine.ingest(key, payload, receive_time_s=0.0))
-    out.extend(engine.flush())
-    return engine, out
 
 
 def lone_radar_stream(duration_s: float = 420.0, seed: int = 3) -> list[tuple[str, bytes]]:
@@ -48,7 +39,7 @@ def lone_radar_stream(duration_s: float = 420.0, seed: int = 3) -> list[tuple[st
 
 @pytest.fixture(scope="module")
 def lone() -> tuple[Engine, list[Any]]:
-    return run(lone_radar_stream())
+    return run_engine(lone_radar_stream())
 
 
 def truth_of(engine: Engine, radar: str) -> dict[str, str | None]:
@@ -134,7 +125,7 @@ def test_identity_veto_setting_is_off_by_default_and_forbids_conflicting_pairs()
     t1 = identity_of("T1")[1]
 
     def pairs_of_t1(config: EngineConfig | None) -> list[dict[str, Any]]:
-        engine, _ = run(swapped, config)
+        engine, _ = run_engine(swapped, config)
         (ps,) = engine.snapshot().pair_sets(status="confirmed")
         return [p for p in ps["pairs"] if p["track_b"] == t1]
 

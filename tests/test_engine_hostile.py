@@ -15,17 +15,9 @@ import pytest
 from service.engine import Engine, EngineConfig
 from service.pipeline.sequencer import SequencerParams
 from tests.scenario_helpers import scenario_messages
+from tests.support import run_engine
 
 Stream = list[tuple[str, bytes]]
-
-
-def run(messages: Stream, config: EngineConfig | None = None) -> tuple[Engine, list[Any]]:
-    engine = Engine(config or EngineConfig())
-    out = []
-    for key, payload in messages:
-        out.extend(engine.ingest(key, payload, receive_time_s=0.0))
-    out.extend(engine.flush())
-    return engine, out
 
 
 def results(engine: Engine, radars: tuple[str, ...] = ("A", "B")) -> dict[str, Any]:
@@ -48,7 +40,7 @@ def stream() -> Stream:
 
 @pytest.fixture(scope="module")
 def baseline(stream: Stream) -> tuple[Engine, list[Any]]:
-    return run(stream)
+    return run_engine(stream)
 
 
 def batches(stream: Stream, radar: str) -> list[tuple[int, dict[str, Any]]]:
@@ -66,7 +58,7 @@ def test_batch_far_in_the_future_is_rejected_and_costs_nothing(
     future = {**body, "seq": body["seq"] + 1, "time_s": body["time_s"] + 1e9}
     future["plots"] = {**body["plots"], "time_s": [body["time_s"] + 1e9] * len(body["plots"]["time_s"])}
     # It carries the seq of the next honest batch: rejected whole, it never happened.
-    engine, out = run(insert_after(stream, i, [("fusion/radar/A/plots", json.dumps(future).encode())]))
+    engine, out = run_engine(insert_after(stream, i, [("fusion/radar/A/plots", json.dumps(future).encode())]))
     (err,) = errors(out)
     assert err["reason"] == "out_of_range" and "ahead of the other sources" in err["detail"]
     assert results(engine) == results(baseline[0])
@@ -87,7 +79,7 @@ def test_future_source_first_cannot_hold_or_release_the_others(
         ("fusion/radar/R/plots", json.dumps(rogue).encode()),
     ]
     rest = [m for m in stream if not m[0].endswith("/site")]
-    engine, out = run([*sites, *head, *rest])
+    engine, out = run_engine([*sites, *head, *rest])
     assert errors(out) == []  # first: nothing to measure it against
     assert results(engine) == results(baseline[0])
     later = {**rogue, "seq": 2, "time_s": rogue["time_s"] + 4}
@@ -103,7 +95,7 @@ def test_absurd_seq_jump_is_rejected_and_the_radar_goes_on(
         ("fusion/radar/B/plots", json.dumps({**body, "seq": 10**30}).encode()),  # beyond int64
         ("fusion/radar/B/plots", json.dumps({**body, "seq": body["seq"] + 10**6}).encode()),  # in int64
     ]
-    engine, out = run(insert_after(stream, i, extra))
+    engine, out = run_engine(insert_after(stream, i, extra))
     assert [e["reason"] for e in errors(out)] == ["out_of_range", "out_of_range"]
     assert "skips" in errors(out)[1]["detail"]
     assert results(engine) == results(baseline[0])
@@ -135,11 +127,11 @@ def test_publisher_restart_is_recognised_not_locked_out(stream: Stream) -> None:
     restarted = list(stream)
     for n, (j, b) in enumerate(b_batches[k:]):
         restarted[j] = (restarted[j][0], json.dumps({**b, "seq": n + 1}).encode())
-    engine, out = run(restarted)
+    engine, out = run_engine(restarted)
     assert errors(out) == []
     assert engine.radars["B"].restarts == 1
     assert engine.radars["B"].batches == len(b_batches)
-    base, _ = run(stream)
+    base, _ = run_engine(stream)
     assert results(engine) == results(base)
     # a true duplicate is still one: the first batch after the restart, sent again
     j, _ = b_batches[k]
@@ -160,7 +152,7 @@ def test_site_resent_slightly_moved_changes_nothing(
             jitter = (n % 2) * 1e-6  # 1e-6 deg of latitude is 0.11 m
             moved = {**site_b, "latitude_deg": site_b["latitude_deg"] + jitter}
             mixed.append(("fusion/radar/B/site", json.dumps(moved).encode()))
-    engine, out = run(mixed)
+    engine, out = run_engine(mixed)
     assert errors(out) == []
     assert results(engine) == results(baseline[0])
     assert engine.snapshot().status_core()["pairs_confirmed"] > 10
@@ -208,7 +200,7 @@ def test_many_fake_radar_ids_cost_nothing(stream: Stream, baseline: tuple[Engine
             )
         )
     i, _ = batches(stream, "A")[0]
-    engine, out = run(insert_after(stream, i, extra))
+    engine, out = run_engine(insert_after(stream, i, extra))
     assert errors(out) == []
     assert results(engine) == results(baseline[0])
     assert set(engine.correlation.correlators) == {("A", "B")}

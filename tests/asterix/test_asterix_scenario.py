@@ -17,7 +17,7 @@ import pytest
 
 from service.engine import Engine, EngineConfig
 from service.wire.keys import Keys
-from tests.asterix.test_asterix_service import bridge, output
+from tests.asterix.test_asterix_service import bridge, output, wait_listening
 from tests.support import free_port, running_service, wait_for
 from topofusion_lab.asterix_scenario import asterix_datagrams, at_asterix_resolution
 from topofusion_lab.scenarios.catalog import get_scenario
@@ -107,15 +107,7 @@ def test_a_scenario_through_asterix_over_udp_equals_its_json_input(router: str, 
         args = ["--udp", f"127.0.0.1:{port}", "--sites", str(sites), "--connect", router]
         args += ["--date", date, "--adsb-batch", "2"]
         with bridge(args) as (proc, lines):
-            seen: list[str] = []
-
-            def listening() -> bool:
-                while not lines.empty():
-                    seen.append(lines.get())
-                return any("listening on" in x for x in seen) or proc.poll() is not None
-
-            wait_for(listening, timeout=30)
-            assert proc.poll() is None, "".join(seen)
+            seen = wait_listening(proc, lines)
             with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
                 for i, d in enumerate(datagrams):
                     tx.sendto(d, ("127.0.0.1", port))

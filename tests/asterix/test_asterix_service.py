@@ -80,6 +80,20 @@ def bridge(args: list[str]) -> Iterator[tuple[subprocess.Popen[str], queue.Queue
         proc.stdout.close()
 
 
+def wait_listening(proc: subprocess.Popen[str], lines: queue.Queue[str]) -> list[str]:
+    """Wait until the bridge says it listens on its UDP endpoints; the lines it wrote so far."""
+    seen: list[str] = []
+
+    def listening() -> bool:
+        while not lines.empty():
+            seen.append(lines.get())
+        return any("listening on" in x for x in seen) or proc.poll() is not None
+
+    wait_for(listening, timeout=30)
+    assert proc.poll() is None, "".join(seen)
+    return seen
+
+
 def output(lines: queue.Queue[str]) -> str:
     out = []
     while not lines.empty():
@@ -126,15 +140,7 @@ def test_a_real_capture_through_udp(capture: Path, router: str, tmp_path: Path) 
     with running_service(router, EngineConfig(sites=tuple(sites()))) as svc:
         args = ["--udp", f"127.0.0.1:{port}", "--sites", str(sites_file), "--connect", router]
         with bridge(args) as (proc, lines):
-            seen: list[str] = []
-
-            def listening() -> bool:
-                while not lines.empty():
-                    seen.append(lines.get())
-                return any("listening on" in x for x in seen) or proc.poll() is not None
-
-            wait_for(listening, timeout=30)
-            assert proc.poll() is None, "".join(seen)
+            seen = wait_listening(proc, lines)
             junk = [b"\x30\x00", b"\x30\x00\x09\xff\xff\xff\xff\xff\xff", b"\x3e\x00\x04\x00", b"garbage!"]
             with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
                 for i, p in enumerate(payloads):
