@@ -156,7 +156,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--out", default="evaluation", help="output folder (default ./evaluation)")
     ev.add_argument("--runs", type=int, help="Monte Carlo runs per point (default: each study's full count)")
     ev.add_argument("--seed", type=int, default=0)
-    ev.add_argument("--only", choices=("initiation", "correlation", "dense"), help="run one study only")
+    ev.add_argument(
+        "--only", choices=("initiation", "correlation", "dense", "adsb"), help="run one study only"
+    )
 
     sub.add_parser(
         "healthcheck", help="exit 0 if the local service answers GET /healthz (container HEALTHCHECK)"
@@ -460,7 +462,7 @@ def _stop_on_signals() -> threading.Event:
     return stop
 
 
-STUDIES = ("initiation", "correlation", "dense")
+STUDIES = ("initiation", "correlation", "dense", "adsb")
 
 
 def evaluate_main(args: argparse.Namespace) -> int:
