@@ -234,3 +234,51 @@ def group_offset_reference(
         best = max(results, key=lambda x: (x[0], x[1]))
         out[i] = (best[2], best[0])
     return out
+
+
+def system_groups_reference(n: int, source: list[int], links: list[tuple[int, int, float]]) -> list[int]:
+    """Plain form of :func:`service.fusion.system_tracks.groups`: every link strongest first
+    (ties by member rows), joined unless the two groups share a source; groups numbered by
+    their smallest member."""
+    parent = list(range(n))
+    sources = [{s} for s in source]
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            k = parent[k]
+        return k
+
+    for a, b, _ in sorted(links, key=lambda x: (-x[2], x[0], x[1])):
+        ra, rb = root(a), root(b)
+        if ra != rb and not sources[ra] & sources[rb]:
+            parent[rb] = ra
+            sources[ra] |= sources[rb]
+    roots = [root(k) for k in range(n)]
+    first: dict[int, int] = {}
+    for k, r in enumerate(roots):
+        first.setdefault(r, k)
+    order = sorted(first, key=lambda r: first[r])
+    return [order.index(r) for r in roots]
+
+
+def fuse_reference(
+    x: list[np.ndarray], p: list[np.ndarray], reference: list[bool]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Plain form of one group's fusion: fast covariance intersection of the radar members,
+    references added in information form."""
+    radar = [k for k, r in enumerate(reference) if not r]
+    weights = [1.0 / np.trace(p[k]) for k in radar]
+    total = sum(weights)
+    info = np.zeros((3, 3))
+    vec = np.zeros(3)
+    for w, k in zip(weights, radar, strict=True):
+        pk = np.linalg.inv(p[k])
+        info += w / total * pk
+        vec += w / total * pk @ x[k]
+    for k, r in enumerate(reference):
+        if r:
+            pk = np.linalg.inv(p[k])
+            info += pk
+            vec += pk @ x[k]
+    cov = np.linalg.inv(info)
+    return cov @ vec, cov

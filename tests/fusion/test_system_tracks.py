@@ -1,0 +1,131 @@
+"""System tracks (service/fusion/system_tracks.py): groups, numbers and fused states, against
+plain reference forms and on cases whose answer is known."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.fusion.system_tracks import Members, SystemTracker, fuse, groups
+from tests.reference_forms import fuse_reference, system_groups_reference
+
+
+def members(
+    source: list[str], track: list[str], reference: list[bool] | None = None, seed: int = 0
+) -> Members:
+    rng = np.random.default_rng(seed)
+    n = len(source)
+    a = rng.normal(size=(n, 3, 3))
+    cov = a @ np.swapaxes(a, 1, 2) * 100.0 + np.eye(3) * 50.0
+    return Members(
+        source=np.array(source),
+        track_id=np.array(track),
+        reference=np.array(reference or [False] * n),
+        confirmed=np.ones(n, dtype=bool),
+        position=rng.normal(size=(n, 3)) * 100.0,
+        velocity=rng.normal(size=(n, 3)) * 10.0,
+        pos_cov=cov,
+        vel_cov=cov / 100.0,
+    )
+
+
+def test_groups_equal_the_plain_form_on_random_graphs() -> None:
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        n = int(rng.integers(1, 25))
+        source = rng.integers(0, 4, n)
+        m = int(rng.integers(0, 2 * n))
+        a, b = rng.integers(0, n, m), rng.integers(0, n, m)
+        keep = source[a] != source[b]  # links join tracks of two sources
+        a, b = a[keep], b[keep]
+        score = rng.choice([0.5, 0.7, 0.9, 0.99], a.shape[0])  # ties too
+        got = groups(n, source.astype(np.int64), a.astype(np.int64), b.astype(np.int64), score)
+        want = system_groups_reference(
+            n, source.tolist(), list(zip(a.tolist(), b.tolist(), score.tolist(), strict=True))
+        )
+        assert got.tolist() == want
+
+
+def test_a_chain_through_two_tracks_of_one_radar_loses_its_weakest_link() -> None:
+    # A1 - B1 - A2: B1 goes with the stronger of its two links
+    got = groups(3, np.array([0, 1, 0]), np.array([0, 1]), np.array([1, 2]), np.array([0.6, 0.95]))
+    assert got.tolist() == [0, 1, 1]
+
+
+def test_fusion_equals_the_plain_form() -> None:
+    m = members(
+        ["A", "B", "C", "ads", "A", "B"],
+        ["1", "1", "1", "x", "2", "2"],
+        [False, False, False, True, False, False],
+    )
+    group = np.array([0, 0, 0, 0, 1, 1])
+    pos, vel, pos_cov, vel_cov = fuse(m, group, 2)
+    for g in range(2):
+        rows = np.flatnonzero(group == g)
+        ref = [bool(m.reference[k]) for k in rows]
+        x, p = fuse_reference([m.position[k] for k in rows], [m.pos_cov[k] for k in rows], ref)
+        np.testing.assert_allclose(pos[g], x, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(pos_cov[g], p, rtol=1e-9, atol=1e-9)
+        v, pv = fuse_reference([m.velocity[k] for k in rows], [m.vel_cov[k] for k in rows], ref)
+        np.testing.assert_allclose(vel[g], v, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(vel_cov[g], pv, rtol=1e-9, atol=1e-9)
+
+
+def test_covariance_intersection_is_consistent_with_correlated_members() -> None:
+    """Two radars whose errors share a common part (correlation 0.8): the CI covariance covers
+    the real error of the fused state, where information-form fusion would not."""
+    rng = np.random.default_rng(2)
+    sigma, rho, n = 100.0, 0.8, 20_000
+    common = rng.normal(size=(n, 3)) * sigma * np.sqrt(rho)
+    own = rng.normal(size=(2, n, 3)) * sigma * np.sqrt(1 - rho)
+    err = common[None] + own  # (2, n, 3): each radar's error
+    cov = np.eye(3) * sigma**2
+    m = Members(
+        source=np.array(["A", "B"] * n),
+        track_id=np.arange(2 * n).astype(str),
+        reference=np.zeros(2 * n, dtype=bool),
+        confirmed=np.ones(2 * n, dtype=bool),
+        position=np.swapaxes(err, 0, 1).reshape(-1, 3),
+        velocity=np.zeros((2 * n, 3)),
+        pos_cov=np.broadcast_to(cov, (2 * n, 3, 3)).copy(),
+        vel_cov=np.broadcast_to(cov, (2 * n, 3, 3)).copy(),
+    )
+    pos, _, pos_cov, _ = fuse(m, np.repeat(np.arange(n), 2), n)
+    nees = np.einsum("ni,nij,nj->n", pos, np.linalg.inv(pos_cov), pos).mean() / 3.0
+    assert nees <= 1.05  # consistent (information form: (1 + rho) = 1.8)
+
+
+def test_numbers_follow_the_aircraft_and_are_never_reused() -> None:
+    tracker = SystemTracker()
+    m1 = members(["A", "B", "A"], ["1", "7", "2"])
+    s1 = tracker.update(m1, np.array([0]), np.array([1]), np.array([0.9]))
+    assert s1.number.tolist() == [1, 2]  # {A1, B7}, {A2}
+    assert s1.member_group.tolist() == [0, 0, 1]
+    # B7 is now seen with A2, A1 is gone, a C track joins: numbers stay with their members
+    m2 = members(["B", "A", "C"], ["7", "2", "3"])
+    s2 = tracker.update(m2, np.array([0, 0]), np.array([1, 2]), np.array([0.9, 0.9]))
+    # {B7, A2, C3}: B7 had 1, A2 had 2 -> tie, the oldest (1) stays; 2 is not reused later
+    assert s2.number.tolist() == [1]
+    m3 = members(["A", "B"], ["2", "9"])
+    s3 = tracker.update(m3, np.array([], dtype=np.int64), np.array([], dtype=np.int64), np.array([]))
+    assert s3.number.tolist() == [1, 3]  # A2 keeps 1; B9 is new: 3, not 2
+    assert tracker.next_number == 4
+
+
+def test_a_split_keeps_the_number_with_the_larger_part() -> None:
+    tracker = SystemTracker()
+    m = members(["A", "B", "C"], ["1", "1", "1"])
+    tracker.update(m, np.array([0, 1]), np.array([1, 2]), np.array([0.9, 0.9]))
+    s = tracker.update(m, np.array([0]), np.array([1]), np.array([0.9]))  # C1 leaves the group
+    assert s.number.tolist() == [1, 2]
+    assert s.member_group.tolist() == [0, 0, 1]
+
+
+def test_a_reference_alone_is_no_system_track_and_status_follows_members() -> None:
+    tracker = SystemTracker()
+    m = members(["A", "ads", "ads"], ["1", "x", "y"], [False, True, True])
+    m = Members(**{**m.__dict__, "confirmed": np.array([False, True, True])})
+    s = tracker.update(m, np.array([0]), np.array([1]), np.array([0.9]))
+    assert s.member_group.tolist() == [0, 0, -1]
+    assert s.confirmed.tolist() == [True]
+    assert s.position_sigma_m()[0] == pytest.approx(np.sqrt(np.trace(s.pos_cov[0]) / 3))
