@@ -213,6 +213,7 @@ class Engine:
         #: The joint bias estimate as the bias worker last published it (other workers).
         self.published_biases: dict[str, Any] | None = None
         self._biases_sent: object = None
+        self._system_sent: object = None
         self.plots: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
         #: Each reference source's input kind (``ais`` or ``adsb``): an id is one or the other.
@@ -506,6 +507,11 @@ class Engine:
         if not self.partition.whole:
             out.extend(self._partition_outputs())
             out.extend(self._clock())  # after the rows: it says they are all out
+        view = self.correlation.system_view
+        if view is not None and view is not self._system_sent:
+            self._system_sent = view
+            self._snapshot = None
+            out.append(Outgoing(self.keys.system_tracks, lambda: view.body("confirmed")))
         return out
 
     def _partition_outputs(self) -> list[Outgoing]:
@@ -726,4 +732,5 @@ class Engine:
             sites={rid: r.site for rid, r in self.tracking.radars.items()},
             progress=self.progress() if not self.partition.whole else {},
             adsb_sources=frozenset(k for k, kind in self.reference_kinds.items() if kind == "adsb"),
+            system=self.correlation.system_view,
         )

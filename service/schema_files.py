@@ -95,6 +95,23 @@ EXAMPLES: dict[str, Any] = {
             }
         ],
     },
+    "SystemTrackBatch": {
+        "time_s": 1763769604.0,
+        "system_tracks": [
+            {
+                "system_track_id": "T-12",
+                "status": "confirmed",
+                "time_s": 1763769603.8,
+                "latitude_deg": 48.71,
+                "longitude_deg": 2.36,
+                "altitude_m": 10360.0,
+                "position_ecef_m": [4.2e6, 1.7e5, 4.7e6],
+                "velocity_ecef_mps": [120.0, -80.0, 0.5],
+                "position_sigma_m": 85.0,
+                "members": [{"radar_id": "A", "track_id": "A-17"}, {"radar_id": "B", "track_id": "B-4"}],
+            }
+        ],
+    },
     "Rejection": {
         "key": "fusion/radar/A/plots",
         "radar_id": "A",

@@ -361,6 +361,7 @@ def built_keys(keys: Keys) -> set[str]:
         keys.errors,
         keys.status,
         keys.pairs_all,
+        keys.system_tracks,
     }
 
 
@@ -416,17 +417,23 @@ def operation_problems(doc: dict[str, Any]) -> list[str]:
     if subscribed != set(node._input_keys()):
         problems.append(f"receive operations {sorted(subscribed)} != subscriptions {node._input_keys()}")
     answered = {render(a) for a in operation_channels(doc, "receive", reply=True)}
-    if answered != {keys.status, keys.pairs_all}:
+    if answered != {keys.status, keys.pairs_all, keys.system_tracks}:
         problems.append(f"request/reply operations {sorted(answered)} != queryables")
     for op in doc["operations"].values():
         if "reply" in op:
             reply_key = render(resolve(doc, op["reply"]["channel"]["$ref"])["address"])
-            if reply_key not in (keys.status, keys.pairs(SAMPLE_IDS["radar_a"], SAMPLE_IDS["radar_b"])):
+            replies = (
+                keys.status,
+                keys.system_tracks,
+                keys.pairs(SAMPLE_IDS["radar_a"], SAMPLE_IDS["radar_b"]),
+            )
+            if reply_key not in replies:
                 problems.append(f"reply channel {reply_key} is not a key the queryables reply on")
     sent = {render(a) for a in operation_channels(doc, "send", reply=False)}
     outputs = {
         keys.tracks(SAMPLE_IDS["radar_id"]),
         keys.pairs(SAMPLE_IDS["radar_a"], SAMPLE_IDS["radar_b"]),
+        keys.system_tracks,
         keys.errors,
     }
     if sent != outputs:

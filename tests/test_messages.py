@@ -121,8 +121,10 @@ def test_everything_the_engine_publishes_is_valid_against_models_and_schemas() -
         schemas.setdefault(name, json.loads((SCHEMAS / f"{name}.schema.json").read_text()))
         jsonschema.validate(body, schemas[name])
         seen.add(kind)
-    assert seen == {"tracks", "pairs", "errors"}
+    assert seen == {"tracks", "pairs", "system_tracks", "errors"}
     snap = engine.snapshot()
+    for status in ("confirmed", "tentative", "all"):
+        WIRE_MODELS["SystemTrackBatch"].model_validate(snap.system_tracks(status))
     for ps in snap.pair_sets(status="all"):
         WIRE_MODELS["PairSet"].model_validate(ps)
     for tb in snap.track_batches("all"):

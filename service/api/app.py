@@ -12,7 +12,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from service.api.metrics import registry_for
 from service.transport.node import ServiceNode
-from service.wire.models import BiasEstimate, PairSet, RadarInfo, Status, TrackBatch
+from service.wire.models import BiasEstimate, PairSet, RadarInfo, Status, SystemTrackBatch, TrackBatch
 
 StatusFilter = Literal["confirmed", "tentative", "all"]
 
@@ -100,6 +100,10 @@ def create_app(
         status: StatusFilter = "confirmed",
     ) -> list[dict[str, Any]]:
         return node.pair_sets(radar_a, radar_b, status)
+
+    @app.get("/system-tracks", response_model=SystemTrackBatch)
+    def system_tracks(node: NodeDep, status: StatusFilter = "confirmed") -> dict[str, Any]:
+        return node.snapshot.system_tracks(status)
 
     @app.get("/biases", response_model=list[BiasEstimate])
     def biases(node: NodeDep) -> list[dict[str, Any]]:

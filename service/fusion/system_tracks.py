@@ -35,11 +35,10 @@ from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from service.correlation.pairkeys import SEP  # a member's key: source, SEP, track id
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
-
-#: Separates source and track id in a member's key (no id contains it).
-_SEP = "\x1f"
 
 
 @dataclass(frozen=True)
@@ -59,7 +58,7 @@ class Members:
         return int(self.source.shape[0])
 
     def keys(self) -> NDArray[np.str_]:
-        return np.char.add(np.char.add(self.source.astype(str), _SEP), self.track_id.astype(str))
+        return np.char.add(np.char.add(self.source.astype(str), SEP), self.track_id.astype(str))
 
 
 @dataclass(frozen=True)

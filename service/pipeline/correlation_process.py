@@ -33,7 +33,7 @@ from service.correlation.registration import RegistrationRowsData
 from service.geo import Site
 from service.pipeline.correlation_stage import CadenceParams, CorrelationStage, SharedRows
 from service.pipeline.partition import Partition
-from service.pipeline.read_model import PairSetView
+from service.pipeline.read_model import PairSetView, SystemTrackView
 from service.reference import ReferenceParams
 from service.tracking.base import TrackTable
 
@@ -54,6 +54,7 @@ class Answer:
     timings: dict[str, Any]
     error: tuple[str, str] | None = None  # (source id, detail) when the message failed
     rows: list[SharedRows] = field(default_factory=list)  # partitioned: rows for the bias worker
+    system: SystemTrackView | None = None  # new system tracks, if the message made them
 
 
 def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
@@ -66,6 +67,7 @@ def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
             break
         op, args = msg
         biases_before = stage.biases
+        system_before = stage.system_view
         keys: list[Key] = []
         error = None
         try:
@@ -79,7 +81,8 @@ def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
         if keys or timings is None:  # timings change only with pair updates
             timings = stage.timings()
         rows = stage.take_rows()
-        answers.send(Answer([(k, stage.views[k]) for k in keys], biases, timings, error, rows))
+        system = stage.system_view if stage.system_view is not system_before else None
+        answers.send(Answer([(k, stage.views[k]) for k in keys], biases, timings, error, rows, system))
     answers.close()
 
 
@@ -99,6 +102,7 @@ class RemoteCorrelation:
         self.max_in_flight = max_in_flight
         self.views: dict[Key, PairSetView] = {}
         self.biases: list[dict[str, Any]] = []
+        self.system_view: SystemTrackView | None = None
         self._timings: dict[str, Any] = {"updates": 0, "last_ms": 0.0, "p50_ms": 0.0, "p99_ms": 0.0}
         self._ready: list[tuple[Key, PairSetView]] = []
         self._errors: list[tuple[str, str]] = []
@@ -202,6 +206,8 @@ class RemoteCorrelation:
                 self._ready.append((key, view))
             if answer.biases is not None:
                 self.biases = answer.biases
+            if answer.system is not None:
+                self.system_view = answer.system
             self._timings = answer.timings
             if answer.error is not None:
                 self._errors.append(answer.error)

@@ -41,9 +41,11 @@ from service.correlation.registration import (
     RegistrationRowsData,
     to_estimates,
 )
+from service.fusion.members import members_and_links
+from service.fusion.system_tracks import SystemTracker
 from service.geo import Site
 from service.pipeline.partition import Partition
-from service.pipeline.read_model import PairSetView
+from service.pipeline.read_model import PairSetView, SystemTrackView
 from service.reference import ReferenceKind, ReferenceParams, ReferenceTracks
 from service.tracking.base import TrackTable
 from service.wire.outputs import bias_dict
@@ -79,6 +81,10 @@ class CadenceParams:
     #: so its estimate is the one a single worker makes.  Biases drift over hours: an estimate
     #: ten seconds old costs nothing.
     bias_lag_s: float = 10.0
+    #: System tracks (contract §4.4) are rebuilt once per this many data seconds, at its
+    #: multiples; 0 turns them off.  A rebuild costs in proportion to the network's tracks
+    #: and confirmed pairs (national network: see bench/bench_national.py).
+    system_interval_s: float = 1.0
 
 
 @dataclass
@@ -148,6 +154,10 @@ class CorrelationStage:
         self._rows_out: list[SharedRows] = []
         self._share_rows = not self.partition.whole and not self.partition.solves_biases
         self._solves = self.partition.solves_biases
+        #: System tracks: one worker only (a partitioned worker holds only its own pairs).
+        self.system_tracker = SystemTracker()
+        self.system_view: SystemTrackView | None = None
+        self._next_system_s = -np.inf
 
     # -- the sources ---------------------------------------------------------------------------
     def reference(
@@ -312,7 +322,32 @@ class CorrelationStage:
                 )
         if self._solves:
             self._solve_due(time_s)
+        self._system_due(time_s)
         return updated
+
+    def _system_due(self, clock_s: float) -> None:
+        step = self.params.system_interval_s
+        if step <= 0 or not self.partition.whole:
+            return
+        grid = float(np.floor(clock_s / step) * step)
+        if grid >= self._next_system_s:
+            self._next_system_s = grid + step
+            self._system(clock_s)
+
+    def _system(self, time_s: float) -> None:
+        """Rebuild the system tracks at ``time_s`` (:mod:`service.fusion`)."""
+        books = []
+        for (s1, s2), corr in sorted(self.correlators.items()):
+            first = corr.site_a.site_id
+            books.append((first, s2 if s1 == first else s1, corr.book))
+        references = {
+            sid: ref.table(time_s) for sid, ref in self._references.items() if sid not in self._silent
+        }
+        members, la, lb, score = members_and_links(
+            time_s, self._radars, references, books, self._joint, self.correlation_params.prediction
+        )
+        tracks = self.system_tracker.update(members, la, lb, score)
+        self.system_view = SystemTrackView.of(time_s, tracks, members)
 
     def _implied(self, key: tuple[str, str]) -> Implied | None:
         """The pairs of radar pair ``key`` that confirmed pairs through third radars imply
@@ -329,6 +364,8 @@ class CorrelationStage:
         times += [float(m.memory.time[-1]) for m in self.mirrors.values() if len(m.memory)]
         if times and self._solves:
             self._solve_biases(max(times))
+        if times and self.partition.whole and self.params.system_interval_s > 0:
+            self._system(max(times))
 
     def _solve_biases(self, time_s: float) -> None:
         # Warm-started from the previous solve: the rows changed little since, so one or two

@@ -99,6 +99,83 @@ class PairSetView:
 
 
 @dataclass(frozen=True)
+class SystemTrackView:
+    """The system tracks of one update: copied columns, the ``SystemTrackBatch`` built when read."""
+
+    time_s: float
+    number: np.ndarray
+    confirmed: np.ndarray
+    position: np.ndarray
+    velocity: np.ndarray
+    sigma_m: np.ndarray
+    #: Per system track, its members ``(source, track id)`` in source order.
+    members: list[list[tuple[str, str]]]
+    _cache: dict[str, dict[str, Any]] = field(default_factory=dict, compare=False, repr=False)
+
+    @staticmethod
+    def of(time_s: float, tracks: Any, members: Any) -> SystemTrackView:
+        """From :class:`~service.fusion.system_tracks.SystemTracks` and their ``Members``."""
+        rows = np.flatnonzero(tracks.member_group >= 0)
+        rows = rows[np.lexsort((members.source[rows], tracks.member_group[rows]))]
+        cuts = np.searchsorted(tracks.member_group[rows], np.arange(1, len(tracks)))
+        pairs = list(zip(members.source[rows].tolist(), members.track_id[rows].tolist(), strict=True))
+        bounds = [0, *cuts.tolist(), len(pairs)]
+        return SystemTrackView(
+            time_s,
+            tracks.number.copy(),
+            tracks.confirmed.copy(),
+            tracks.position.copy(),
+            tracks.velocity.copy(),
+            tracks.position_sigma_m(),
+            [pairs[bounds[k] : bounds[k + 1]] for k in range(len(tracks))],
+        )
+
+    def __len__(self) -> int:
+        return int(self.number.shape[0])
+
+    def body(self, status: str = "confirmed") -> dict[str, Any]:
+        """The contract's ``SystemTrackBatch``, tracks filtered by ``status``."""
+        got = self._cache.get(status)
+        if got is not None:
+            return got
+        keep = np.ones(len(self), dtype=bool)
+        if status == "confirmed":
+            keep = self.confirmed
+        elif status == "tentative":
+            keep = ~self.confirmed
+        idx = np.flatnonzero(keep)
+        lat, lon, alt = (np.atleast_1d(c) for c in ecef_to_geodetic(self.position[idx].reshape(-1, 3)))
+        tracks = [
+            {
+                "system_track_id": f"T-{n}",
+                "status": "confirmed" if c else "tentative",
+                "time_s": self.time_s,
+                "latitude_deg": la,
+                "longitude_deg": lo,
+                "altitude_m": al,
+                "position_ecef_m": p,
+                "velocity_ecef_mps": v,
+                "position_sigma_m": s,
+                "members": [{"radar_id": src, "track_id": tid} for src, tid in self.members[k]],
+            }
+            for k, n, c, la, lo, al, p, v, s in zip(
+                idx.tolist(),
+                self.number[idx].tolist(),
+                self.confirmed[idx].tolist(),
+                lat.tolist(),
+                lon.tolist(),
+                alt.tolist(),
+                self.position[idx].tolist(),
+                self.velocity[idx].tolist(),
+                self.sigma_m[idx].tolist(),
+                strict=True,
+            )
+        ]
+        got = self._cache[status] = {"time_s": self.time_s, "system_tracks": tracks}
+        return got
+
+
+@dataclass(frozen=True)
 class RadarRow:
     """One radar's site and counters (``/radars``, ``/status``), in the wire's own models."""
 
@@ -124,6 +201,8 @@ class Snapshot:
     progress: dict[str, Any] = field(default_factory=dict)
     #: The ADS-B sources (their track ids are Mode S addresses).
     adsb_sources: frozenset[str] = frozenset()
+    #: The latest system tracks (None before the first).
+    system: SystemTrackView | None = None
     _batches: dict[tuple[str, str], dict[str, Any]] = field(default_factory=dict, compare=False, repr=False)
 
     def track_batch(self, radar_id: str, status: str = "confirmed") -> dict[str, Any] | None:
@@ -147,6 +226,12 @@ class Snapshot:
 
     def biases(self) -> list[dict[str, Any]]:
         return list(self.biases_all)
+
+    def system_tracks(self, status: str = "confirmed") -> dict[str, Any]:
+        """``SystemTrackBatch`` (``time_s`` null before the first system tracks)."""
+        if self.system is None:
+            return {"time_s": None, "system_tracks": []}
+        return self.system.body(status)
 
     def status_core(self) -> dict[str, Any]:
         return {

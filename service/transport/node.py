@@ -164,6 +164,7 @@ class ServiceNode:
         self._declared += [
             s.declare_queryable(self.keys.status, self._on_status_query),
             s.declare_queryable(self.keys.pairs_all, self._on_pairs_query),
+            s.declare_queryable(self.keys.system_tracks, self._on_system_query),
         ]
         if not self.partition.whole:
             # A worker not seen yet is waited for as one that just left: for peer_grace_s.
@@ -282,6 +283,10 @@ class ServiceNode:
 
     def _on_status_query(self, query: zenoh.Query) -> None:
         query.reply(self.keys.status, encode(self.status()), encoding=zenoh.Encoding.APPLICATION_JSON)
+
+    def _on_system_query(self, query: zenoh.Query) -> None:
+        body = encode(self.snapshot.system_tracks("confirmed"))
+        query.reply(self.keys.system_tracks, body, encoding=zenoh.Encoding.APPLICATION_JSON)
 
     def _on_pairs_query(self, query: zenoh.Query) -> None:
         wanted = query.key_expr

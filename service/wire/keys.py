@@ -23,6 +23,7 @@ from service.wire.models import (
     RegistrationRows,
     Rejection,
     Status,
+    SystemTrackBatch,
     TrackBatch,
     TrackStates,
     WorkerClock,
@@ -36,6 +37,7 @@ KeyKind = Literal[
     "adsb",
     "tracks",
     "pairs",
+    "system_tracks",
     "errors",
     "status",
     "track_states",
@@ -69,6 +71,7 @@ MODEL_BY_KIND: dict[KeyKind, type[BaseModel]] = {
     "adsb": AdsbBatch,
     "tracks": TrackBatch,
     "pairs": PairSet,
+    "system_tracks": SystemTrackBatch,
     "errors": Rejection,
     "status": Status,
     "track_states": TrackStates,
@@ -87,6 +90,7 @@ _SHAPES: tuple[tuple[KeyKind, str], ...] = (
     ("ais", rf"ais/({ID_REGEX})/reports"),
     ("adsb", rf"adsb/({ID_REGEX})/reports"),
     ("pairs", rf"pairs/({ID_REGEX})/({ID_REGEX})"),
+    ("system_tracks", r"system/tracks"),
     ("errors", r"errors"),
     ("status", r"status"),
     ("track_states", rf"radar/({ID_REGEX})/track-states"),
@@ -174,6 +178,10 @@ class Keys:
     @property
     def status(self) -> str:
         return f"{self.prefix}/status"
+
+    @property
+    def system_tracks(self) -> str:
+        return f"{self.prefix}/system/tracks"
 
     @property
     def pairs_all(self) -> str:

@@ -251,6 +251,33 @@ class PairSet(OutModel):
     pairs: list[Pair]
 
 
+class SystemTrackMember(OutModel):
+    radar_id: str = Field(description="a radar id or a reference source's id")
+    track_id: str
+
+
+class SystemTrack(OutModel):
+    """One target's fused, bias-compensated state (contract §4.4)."""
+
+    system_track_id: str = Field(
+        description="unique, never reused; stays with the target while any member lives"
+    )
+    status: Literal["tentative", "confirmed"]
+    time_s: float
+    latitude_deg: float
+    longitude_deg: float
+    altitude_m: float
+    position_ecef_m: tuple[float, float, float]
+    velocity_ecef_mps: tuple[float, float, float]
+    position_sigma_m: float = Field(description="RMS position error per axis, sqrt(trace(P) / 3)")
+    members: list[SystemTrackMember]
+
+
+class SystemTrackBatch(OutModel):
+    time_s: float | None = Field(description="data time of the system tracks; null before the first")
+    system_tracks: list[SystemTrack]
+
+
 class Rejection(OutModel):
     key: str
     radar_id: str | None = None
@@ -513,6 +540,7 @@ WIRE_MODELS: dict[str, type[BaseModel]] = {
     "AdsbBatch": AdsbBatch,
     "TrackBatch": TrackBatch,
     "PairSet": PairSet,
+    "SystemTrackBatch": SystemTrackBatch,
     "Rejection": Rejection,
     "Status": Status,
     "BiasEstimate": BiasEstimate,

@@ -1,0 +1,128 @@
+"""The members and links of the system tracks at one data time (see :mod:`.system_tracks`).
+
+Each radar's tracks (tentative ones too: a radar track alone is a tentative or confirmed system
+track of one member) are extrapolated to the update's time and bias-compensated with the
+current joint estimate, their covariance widened by what the estimate's own uncertainty adds
+(:func:`~service.correlation.registration.compensate`).  Reference tracks (AIS, ADS-B) are
+extrapolated only.  The links are the confirmed pairs of every pair book, with their score.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from dataclasses import replace
+
+import numpy as np
+
+from service.correlation.pairkeys import SEP, find
+from service.correlation.pairs import PairBook
+from service.correlation.prediction import PredictionParams, predict_snapshot
+from service.correlation.registration import BiasSolution, compensate
+from service.fusion.system_tracks import FloatArray, IntArray, Members
+from service.geo import Site
+from service.tracking.base import TrackTable
+
+
+def members_and_links(
+    time_s: float,
+    radars: Mapping[str, tuple[Site, TrackTable]],
+    references: Mapping[str, TrackTable],
+    books: Iterable[tuple[str, str, PairBook]],
+    solution: BiasSolution | None,
+    prediction: PredictionParams,
+) -> tuple[Members, IntArray, IntArray, FloatArray]:
+    """Members (radars in id order, then references) and the links ``(row a, row b, score)``;
+    ``books``: ``(source of track_a, source of track_b, book)``."""
+    every = replace(prediction, confirmed_only=False)
+    parts: list[Members] = []
+    for rid in sorted(radars):
+        site, table = radars[rid]
+        snap = predict_snapshot(table, site, time_s, every)
+        extra = np.zeros((len(snap), 3, 3))
+        if solution is not None and len(snap):
+            snap, extra = compensate(snap, *solution.of(rid))
+        parts.append(
+            _members(
+                rid,
+                False,
+                table,
+                snap.track_id,
+                snap.position,
+                snap.velocity,
+                snap.pos_cov + extra,
+                snap.vel_cov,
+            )
+        )
+    for sid in sorted(references):
+        table = references[sid]
+        snap = predict_snapshot(table, None, time_s, every)
+        parts.append(
+            _members(
+                sid, True, table, snap.track_id, snap.position, snap.velocity, snap.pos_cov, snap.vel_cov
+            )
+        )
+    members = _concat(parts)
+    keys = members.keys()
+    la, lb, sc = [], [], []
+    for source_a, source_b, book in books:
+        conf = book.confirmed
+        if not conf.any():
+            continue
+        a = find(keys, _keys(source_a, book.track_a[conf]))
+        b = find(keys, _keys(source_b, book.track_b[conf]))
+        ok = (a >= 0) & (b >= 0)
+        la.append(a[ok])
+        lb.append(b[ok])
+        sc.append(np.asarray(book.score[conf], dtype=float)[ok])
+    if not la:
+        return members, np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64), np.empty(0)
+    return (
+        members,
+        np.concatenate(la).astype(np.int64),
+        np.concatenate(lb).astype(np.int64),
+        np.concatenate(sc),
+    )
+
+
+def _keys(source: str, track_ids: np.ndarray) -> np.ndarray:
+    return np.char.add(source + SEP, np.asarray(track_ids).astype(str))
+
+
+def _members(
+    source: str,
+    reference: bool,
+    table: TrackTable,
+    track_id: np.ndarray,
+    position: FloatArray,
+    velocity: FloatArray,
+    pos_cov: FloatArray,
+    vel_cov: FloatArray,
+) -> Members:
+    at = find(table.track_id.astype(str), track_id.astype(str))
+    n = track_id.shape[0]
+    return Members(
+        source=np.full(n, source),
+        track_id=track_id.astype(str),
+        reference=np.full(n, reference),
+        confirmed=table.confirmed[at] if n else np.empty(0, dtype=bool),
+        position=position,
+        velocity=velocity,
+        pos_cov=pos_cov,
+        vel_cov=vel_cov,
+    )
+
+
+def _concat(parts: list[Members]) -> Members:
+    if not parts:
+        e = np.empty(0)
+        return Members(
+            e.astype(str),
+            e.astype(str),
+            e.astype(bool),
+            e.astype(bool),
+            np.empty((0, 3)),
+            np.empty((0, 3)),
+            np.empty((0, 3, 3)),
+            np.empty((0, 3, 3)),
+        )
+    return Members(*(np.concatenate([getattr(p, f) for p in parts]) for f in Members.__dataclass_fields__))
