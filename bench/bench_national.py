@@ -283,6 +283,7 @@ class Probe:
     def __init__(self, engine: Engine) -> None:
         self.updates_ms: list[float] = []
         self.bias_ms: list[float] = []
+        self.system_ms: list[float] = []
         self.stage_s = float("nan")
         stage = correlation_stage(engine)
         if stage is None:
@@ -301,6 +302,18 @@ class Probe:
                     self.bias_ms.append(1e3 * (time.perf_counter() - t0))
 
             setattr(stage, "_solve_biases", timed_solve)  # noqa: B010 (as below)
+        # The system tracks' rebuild (contract 4.4), also inside an update.
+        rebuild = getattr(stage, "_system", None)
+        if callable(rebuild):
+
+            def timed_rebuild(*a: Any, **k: Any) -> Any:
+                t0 = time.perf_counter()
+                try:
+                    return rebuild(*a, **k)
+                finally:
+                    self.system_ms.append(1e3 * (time.perf_counter() - t0))
+
+            setattr(stage, "_system", timed_rebuild)  # noqa: B010 (as below)
 
         def timed(*a: Any, **k: Any) -> Any:
             before = int(stage.updates)
@@ -425,6 +438,7 @@ class RunResult:
     ingest_ms: np.ndarray
     updates_ms: np.ndarray
     bias_ms: np.ndarray
+    system_ms: np.ndarray
     stage_s: float
     wait_s: float  # C: the engine waiting for the child (bounded messages in flight)
     waits: int
@@ -540,6 +554,7 @@ def feed(
         ingest_ms=ingest_ms,
         updates_ms=np.asarray(probe.updates_ms),
         bias_ms=np.asarray(probe.bias_ms),
+        system_ms=np.asarray(probe.system_ms),
         stage_s=probe.stage_s,
         wait_s=waits.wait_s,
         waits=waits.waits,
@@ -626,6 +641,13 @@ def report_run(r: RunResult, data_s: float, truth: Truth, stream: Stream) -> Non
             print(
                 f"  bias solves (inside the stage): {r.bias_ms.size}, p50 {pct(r.bias_ms, 50):.0f} ms, "
                 f"max {r.bias_ms.max():.0f} ms, total {r.bias_ms.sum() / 1e3:.1f} s"
+            )
+        if r.system_ms.size:
+            n_sys = len(r.final.system.number) if r.final.system is not None else 0
+            print(
+                f"  system track rebuilds (inside the stage): {r.system_ms.size}, p50 "
+                f"{pct(r.system_ms, 50):.1f} ms, max {r.system_ms.max():.1f} ms, total "
+                f"{r.system_ms.sum() / 1e3:.1f} s; {n_sys} system tracks at the end"
             )
     else:
         print("  correlation: no update (as intended for tracking alone)")

@@ -160,7 +160,7 @@ def _fuse_block(
     info = _inv3(p)
     # covariance intersection of the radar members, fast trace weights (Niehsen 2002 form)
     inv_tr = np.where(radar, 1.0 / np.maximum(np.trace(p, axis1=1, axis2=2), 1e-12), 0.0)
-    total = np.bincount(group[radar], weights=inv_tr[radar], minlength=n)
+    total = np.bincount(group[radar], weights=inv_tr[radar], minlength=max(n, 1))
     w = np.where(radar, inv_tr / np.maximum(total[np.maximum(group, 0)], 1e-300), 0.0)
     big_i = np.zeros((n, 3, 3))
     big_y = np.zeros((n, 3))

@@ -26,6 +26,7 @@ the worker that solves the joint bias estimate, which mirrors every other worker
 
 from __future__ import annotations
 
+import logging
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -52,6 +53,8 @@ from service.wire.outputs import bias_dict
 
 #: Method used between a radar and a reference source.
 REFERENCE_METHOD = "cfar"
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -332,7 +335,10 @@ class CorrelationStage:
         grid = float(np.floor(clock_s / step) * step)
         if grid >= self._next_system_s:
             self._next_system_s = grid + step
-            self._system(clock_s)
+            try:
+                self._system(clock_s)
+            except Exception:  # a bug here must not cost the pair updates: the old view stays
+                log.exception("system tracks: rebuild at %.3f failed", clock_s)
 
     def _system(self, time_s: float) -> None:
         """Rebuild the system tracks at ``time_s`` (:mod:`service.fusion`)."""

@@ -18,9 +18,9 @@ def members(
     a = rng.normal(size=(n, 3, 3))
     cov = a @ np.swapaxes(a, 1, 2) * 100.0 + np.eye(3) * 50.0
     return Members(
-        source=np.array(source),
-        track_id=np.array(track),
-        reference=np.array(reference or [False] * n),
+        source=np.array(source, dtype=str),
+        track_id=np.array(track, dtype=str),
+        reference=np.array(reference or [False] * n, dtype=bool),
         confirmed=np.ones(n, dtype=bool),
         position=rng.normal(size=(n, 3)) * 100.0,
         velocity=rng.normal(size=(n, 3)) * 10.0,
@@ -129,3 +129,11 @@ def test_a_reference_alone_is_no_system_track_and_status_follows_members() -> No
     assert s.member_group.tolist() == [0, 0, -1]
     assert s.confirmed.tolist() == [True]
     assert s.position_sigma_m()[0] == pytest.approx(np.sqrt(np.trace(s.pos_cov[0]) / 3))
+
+
+def test_no_members_or_only_unlinked_references_give_no_system_track() -> None:
+    tracker = SystemTracker()
+    empty = np.empty(0, dtype=np.int64)
+    for m in (members([], []), members(["ads", "ads"], ["x", "y"], [True, True])):
+        s = tracker.update(m, empty, empty, np.empty(0))
+        assert len(s) == 0 and s.member_group.tolist() == [-1] * len(m)
