@@ -157,7 +157,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--runs", type=int, help="Monte Carlo runs per point (default: each study's full count)")
     ev.add_argument("--seed", type=int, default=0)
     ev.add_argument(
-        "--only", choices=("initiation", "correlation", "dense", "adsb"), help="run one study only"
+        "--only",
+        choices=("initiation", "correlation", "dense", "adsb", "system"),
+        help="run one study only",
     )
 
     sub.add_parser(
@@ -462,7 +464,7 @@ def _stop_on_signals() -> threading.Event:
     return stop
 
 
-STUDIES = ("initiation", "correlation", "dense", "adsb")
+STUDIES = ("initiation", "correlation", "dense", "adsb", "system")
 
 
 def evaluate_main(args: argparse.Namespace) -> int:
