@@ -213,7 +213,6 @@ class Engine:
         #: The joint bias estimate as the bias worker last published it (other workers).
         self.published_biases: dict[str, Any] | None = None
         self._biases_sent: object = None
-        self._system_sent: object = None
         self.plots: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
         #: Each reference source's input kind (``ais`` or ``adsb``): an id is one or the other.
@@ -507,11 +506,9 @@ class Engine:
         if not self.partition.whole:
             out.extend(self._partition_outputs())
             out.extend(self._clock())  # after the rows: it says they are all out
-        view = self.correlation.system_view
-        if view is not None and view is not self._system_sent:
-            self._system_sent = view
+        for view in self.correlation.take_system():
             self._snapshot = None
-            out.append(Outgoing(self.keys.system_tracks, lambda: view.body("confirmed")))
+            out.append(Outgoing(self.keys.system_tracks, lambda view=view: view.body("confirmed")))  # type: ignore[misc]
         return out
 
     def _partition_outputs(self) -> list[Outgoing]:

@@ -23,6 +23,7 @@ def run(messages: list[tuple[str, bytes]], process: bool) -> tuple[dict[str, Any
             "tracks": snap.track_batches("all"),
             "pairs": snap.pair_sets(status="all"),
             "biases": snap.biases(),
+            "system": snap.system_tracks("all"),
             "updates": snap.correlation["updates"],
         }, out
     finally:
@@ -35,10 +36,11 @@ def test_same_tracks_pairs_and_biases_as_in_process() -> None:
     remote, out_remote = run(stream, process=True)
     assert remote == local
     assert local["pairs"] and any(ps["pairs"] for ps in local["pairs"]) and local["biases"]
+    assert local["system"]["system_tracks"]
     # the same messages are published, pair sets only later in the sequence
     assert Counter((o.key, o.payload) for o in out_remote) == Counter((o.key, o.payload) for o in out_local)
-    tracks_order = [o.payload for o in out_remote if o.key.endswith("/tracks")]
-    assert tracks_order == [o.payload for o in out_local if o.key.endswith("/tracks")]
+    radar_tracks = [o.payload for o in out_remote if o.key.startswith("fusion/radar/")]
+    assert radar_tracks == [o.payload for o in out_local if o.key.startswith("fusion/radar/")]
 
 
 def test_a_failing_update_is_reported_and_the_process_goes_on() -> None:

@@ -67,7 +67,6 @@ def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
             break
         op, args = msg
         biases_before = stage.biases
-        system_before = stage.system_view
         keys: list[Key] = []
         error = None
         try:
@@ -81,7 +80,8 @@ def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
         if keys or timings is None:  # timings change only with pair updates
             timings = stage.timings()
         rows = stage.take_rows()
-        system = stage.system_view if stage.system_view is not system_before else None
+        rebuilt = stage.take_system()  # at most one per message
+        system = rebuilt[-1] if rebuilt else None
         answers.send(Answer([(k, stage.views[k]) for k in keys], biases, timings, error, rows, system))
     answers.close()
 
@@ -103,6 +103,7 @@ class RemoteCorrelation:
         self.views: dict[Key, PairSetView] = {}
         self.biases: list[dict[str, Any]] = []
         self.system_view: SystemTrackView | None = None
+        self._system_ready: list[SystemTrackView] = []
         self._timings: dict[str, Any] = {"updates": 0, "last_ms": 0.0, "p50_ms": 0.0, "p99_ms": 0.0}
         self._ready: list[tuple[Key, PairSetView]] = []
         self._errors: list[tuple[str, str]] = []
@@ -208,6 +209,7 @@ class RemoteCorrelation:
                 self.biases = answer.biases
             if answer.system is not None:
                 self.system_view = answer.system
+                self._system_ready.append(answer.system)
             self._timings = answer.timings
             if answer.error is not None:
                 self._errors.append(answer.error)
@@ -244,6 +246,11 @@ class RemoteCorrelation:
         updated twice comes twice, as in process)."""
         ready, self._ready = self._ready, []
         return ready
+
+    def take_system(self) -> list[SystemTrackView]:
+        """The system tracks rebuilt (answered) since the last call, oldest first."""
+        out, self._system_ready = self._system_ready, []
+        return out
 
     def take_rows(self) -> list[SharedRows]:
         """Registration rows the owned pairs added (answered since the last call)."""

@@ -160,6 +160,7 @@ class CorrelationStage:
         #: System tracks: one worker only (a partitioned worker holds only its own pairs).
         self.system_tracker = SystemTracker()
         self.system_view: SystemTrackView | None = None
+        self._system_out: list[SystemTrackView] = []
         self._next_system_s = -np.inf
 
     # -- the sources ---------------------------------------------------------------------------
@@ -354,6 +355,12 @@ class CorrelationStage:
         )
         tracks = self.system_tracker.update(members, la, lb, score)
         self.system_view = SystemTrackView.of(time_s, tracks, members)
+        self._system_out.append(self.system_view)
+
+    def take_system(self) -> list[SystemTrackView]:
+        """The system tracks rebuilt since the last call, oldest first."""
+        out, self._system_out = self._system_out, []
+        return out
 
     def _implied(self, key: tuple[str, str]) -> Implied | None:
         """The pairs of radar pair ``key`` that confirmed pairs through third radars imply
