@@ -63,13 +63,22 @@ def members_and_links(
         )
     members = _concat(parts)
     keys = members.keys()
+    order = np.argsort(keys)  # once: every book's tracks are looked up in it
+    sorted_keys = keys[order]
+
+    def rows(query: np.ndarray) -> np.ndarray:
+        if not sorted_keys.shape[0]:
+            return np.full(query.shape[0], -1, dtype=np.int64)
+        at = np.minimum(np.searchsorted(sorted_keys, query), sorted_keys.shape[0] - 1)
+        return np.where(sorted_keys[at] == query, order[at], -1)
+
     la, lb, sc = [], [], []
     for source_a, source_b, book in books:
         conf = book.confirmed
         if not conf.any():
             continue
-        a = find(keys, _keys(source_a, book.track_a[conf]))
-        b = find(keys, _keys(source_b, book.track_b[conf]))
+        a = rows(_keys(source_a, book.track_a[conf]))
+        b = rows(_keys(source_b, book.track_b[conf]))
         ok = (a >= 0) & (b >= 0)
         la.append(a[ok])
         lb.append(b[ok])

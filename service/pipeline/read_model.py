@@ -108,8 +108,11 @@ class SystemTrackView:
     position: np.ndarray
     velocity: np.ndarray
     sigma_m: np.ndarray
-    #: Per system track, its members ``(source, track id)`` in source order.
-    members: list[list[tuple[str, str]]]
+    #: The members ``(source, track id)``, grouped by system track (in source order within
+    #: one); system track ``k``'s are rows ``bounds[k]:bounds[k + 1]``.
+    member_source: np.ndarray
+    member_track: np.ndarray
+    bounds: np.ndarray
     _cache: dict[str, dict[str, Any]] = field(default_factory=dict, compare=False, repr=False)
 
     @staticmethod
@@ -117,9 +120,7 @@ class SystemTrackView:
         """From :class:`~service.fusion.system_tracks.SystemTracks` and their ``Members``."""
         rows = np.flatnonzero(tracks.member_group >= 0)
         rows = rows[np.lexsort((members.source[rows], tracks.member_group[rows]))]
-        cuts = np.searchsorted(tracks.member_group[rows], np.arange(1, len(tracks)))
-        pairs = list(zip(members.source[rows].tolist(), members.track_id[rows].tolist(), strict=True))
-        bounds = [0, *cuts.tolist(), len(pairs)]
+        bounds = np.searchsorted(tracks.member_group[rows], np.arange(len(tracks) + 1))
         return SystemTrackView(
             time_s,
             tracks.number.copy(),
@@ -127,7 +128,9 @@ class SystemTrackView:
             tracks.position.copy(),
             tracks.velocity.copy(),
             tracks.position_sigma_m(),
-            [pairs[bounds[k] : bounds[k + 1]] for k in range(len(tracks))],
+            members.source[rows],
+            members.track_id[rows],
+            bounds,
         )
 
     def __len__(self) -> int:
@@ -156,7 +159,14 @@ class SystemTrackView:
                 "position_ecef_m": p,
                 "velocity_ecef_mps": v,
                 "position_sigma_m": s,
-                "members": [{"radar_id": src, "track_id": tid} for src, tid in self.members[k]],
+                "members": [
+                    {"radar_id": src, "track_id": tid}
+                    for src, tid in zip(
+                        self.member_source[self.bounds[k] : self.bounds[k + 1]].tolist(),
+                        self.member_track[self.bounds[k] : self.bounds[k + 1]].tolist(),
+                        strict=True,
+                    )
+                ],
             }
             for k, n, c, la, lo, al, p, v, s in zip(
                 idx.tolist(),
