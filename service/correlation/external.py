@@ -18,9 +18,11 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike
+from scipy.stats import chi2
 
 from service.correlation import cfar, gmm
-from service.correlation.base import Correlator, DecisionContext, Decisions, Reason, TrackSnapshot
+from service.correlation.base import Correlator, DecisionContext, Decisions, IntArray, Reason, TrackSnapshot
+from service.geo import Site, enu_to_polar
 
 
 def _all_accepted(index_a: ArrayLike, index_b: ArrayLike, cost: ArrayLike, statistic: ArrayLike) -> Decisions:
@@ -102,7 +104,16 @@ class GmmCorrelator(Correlator):
 
 
 class CfarCorrelator(Correlator):
-    """Method ``cfar`` (Qi, Cui, Xiong, Wang): CA-CFAR confidential pairs, LS bias, 2nd association."""
+    """Method ``cfar`` (Qi, Cui, Xiong, Wang): CA-CFAR confidential pairs, LS bias, 2nd association.
+
+    Both sets as ``[range, azimuth]`` in radar A's polar frame with their covariances there
+    (:func:`.cfar.polar_covariance` of the predicted ENU covariances; B's ECEF covariance turned
+    into A's ENU frame).  :meth:`reverify` re-checks the stream's confirmed pairs by a
+    bias-compensated chi-square (:func:`.cfar.consistent_pairs`), so a right pair is not lost
+    when one update's CA-CFAR detection is poor; :meth:`decide` then associates the other tracks,
+    with the kept pairs as known pairs for the bias.  ``statistic`` = 1 for confidential and kept
+    pairs, 0 for second-stage ones; a kept pair's cost is its chi-square less its 2 dof.
+    """
 
     name = "cfar"
     requires_sites = False
@@ -110,11 +121,70 @@ class CfarCorrelator(Correlator):
     def __init__(self, params: cfar.CfarParams | None = None) -> None:
         self.params = params
 
+    @staticmethod
+    def _polar(s: TrackSnapshot, site: Site, rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``[range_m, azimuth_deg]`` of ``s``'s tracks (``rows``; None: all) in ``site``'s polar
+        frame, and their ``(n, 2, 2)`` covariances."""
+        pos = s.position if rows is None else s.position[rows]
+        cov = s.pos_cov if rows is None else s.pos_cov[rows]
+        enu = site.ecef_to_enu(pos)
+        r, az, _ = enu_to_polar(enu)
+        rot = site.rotation
+        return np.column_stack([r, az]), cfar.polar_covariance(enu, rot.T @ cov @ rot)
+
     def decide(self, a: TrackSnapshot, b: TrackSnapshot, context: DecisionContext) -> Decisions:
         if a.site is None:
             raise ValueError("cfar needs radar A's site (source B is the reference)")
-        ra, aza, _ = a.site.ecef_to_polar(a.position)
-        rb, azb, _ = a.site.ecef_to_polar(b.position)
-        res = cfar.cfar_associate(np.column_stack([rb, azb]), np.column_stack([ra, aza]), self.params)
-        conf = np.asarray(res.confident, dtype=bool)
-        return _all_accepted(res.index_radar, res.index_ref, np.where(conf, -1.0, 0.0), conf)
+        rad, crad = self._polar(a, a.site)
+        ref, cref = self._polar(b, a.site)
+        # Rows that may form candidate pairs (the context's reference rows); the confirmed pairs
+        # with both tracks outside them are the pairs the re-check kept: known pairs for the bias.
+        free_a = np.ones(len(a), dtype=bool)
+        free_b = np.ones(len(b), dtype=bool)
+        if context.reference_a is not None:
+            free_a[:] = False
+            free_a[context.reference_a] = True
+        if context.reference_b is not None:
+            free_b[:] = False
+            free_b[context.reference_b] = True
+        known = ~free_a[context.confirmed_a] & ~free_b[context.confirmed_b]
+        res = cfar.cfar_associate(
+            ref,
+            rad,
+            self.params,
+            cref,
+            crad,
+            known_ref=context.confirmed_b[known],
+            known_radar=context.confirmed_a[known],
+        )
+        ok = free_a[res.index_radar] & free_b[res.index_ref]
+        conf = np.asarray(res.confident, dtype=bool)[ok]
+        return _all_accepted(res.index_radar[ok], res.index_ref[ok], np.where(conf, -1.0, 0.0), conf)
+
+    def reverify(
+        self, a: TrackSnapshot, b: TrackSnapshot, ia: IntArray, ib: IntArray, context: DecisionContext
+    ) -> Decisions | None:
+        """Re-check the confirmed pairs ``(ia[k], ib[k])``: each pair's ``[range, azimuth]``
+        residual against the bias of the other confirmed pairs (Eqs. (17)-(18) of the paper,
+        leave-one-out, robust start; :func:`.cfar.consistent_pairs`), chi-square with 2 dof and
+        the covariance ``C_a + C_b + C_bias``, kept at ``keep_probability``.  None (every pair
+        decided afresh) without A's site or with fewer than ``min_kept_pairs`` pairs.  A kept
+        pair: ``cost = chi2 - 2``, ``statistic`` 1 (as a confidential pair)."""
+        p = self.params or cfar.CfarParams()
+        if a.site is None or len(ia) < max(2, p.min_kept_pairs):
+            return None
+        rad, crad = self._polar(a, a.site, ia)
+        ref, cref = self._polar(b, a.site, ib)
+        gate = float(chi2.ppf(p.keep_probability, df=2))
+        cons = cfar.consistent_pairs(cfar.polar_residuals(ref, rad), cref + crad, gate, p)
+        n = len(ia)
+        return Decisions.build(
+            np.asarray(ia, dtype=np.intp),
+            np.asarray(ib, dtype=np.intp),
+            accepted=cons.passed,
+            reason=np.where(cons.passed, Reason.ACCEPTED, Reason.GATE).astype(np.int8),
+            cost=cons.chi2 - 2.0,
+            statistic=np.ones(n),
+            rotation_weight=np.ones(n),
+            scale=np.ones(n),
+        )
