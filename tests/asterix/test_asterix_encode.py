@@ -14,10 +14,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from service.asterix.blocks import MAX_BLOCK, block, pack_blocks
 from service.asterix.decode import Cat021Report, Cat034Message, Cat048Report, Decoded, decode_datagram
 from topofusion_lab.asterix_encode import (
-    MAX_BLOCK,
-    block,
     encode_cat021_block,
     encode_cat021_blocks,
     encode_cat034_block,
@@ -25,7 +24,6 @@ from topofusion_lab.asterix_encode import (
     encode_cat048_block,
     encode_cat048_blocks,
     encode_cat048_record,
-    pack_blocks,
 )
 
 C048, C034, C021 = gen.Cat_048_1_32, gen.Cat_034_1_29, gen.Cat_021_2_7
