@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import gc
+import math
 import sys
 import threading
 import time
@@ -24,6 +25,7 @@ import orjson
 
 from service.asterix.bridge import DAY_S, AsterixBridge, BridgeParams, DayClock, Message
 from service.asterix.capture import CaptureError, Datagram, read_datagrams
+from service.asterix.cat062 import Cat062Track, encode_cat062_blocks
 from service.asterix.decode import Decoded, decode_datagram
 from service.asterix.udp import UdpEndpoint, UdpReceiver, parse_endpoint
 from service.wire.keys import Keys
@@ -72,6 +74,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--max-batch", type=float, default=2.0, metavar="S", help="batch length of a radar without CAT034"
     )
     p.add_argument(
+        "--out-udp",
+        action="append",
+        type=_endpoint,
+        default=[],
+        metavar="HOST:PORT",
+        help="write the service's system tracks as CAT062 to this UDP destination (repeatable)",
+    )
+    p.add_argument(
+        "--out-file", type=Path, metavar="PATH", help="append the system tracks as CAT062 data blocks"
+    )
+    p.add_argument(
+        "--system-sac", type=int, default=0, metavar="N", help="SAC of the CAT062 output (default 0)"
+    )
+    p.add_argument(
+        "--system-sic", type=int, default=1, metavar="N", help="SIC of the CAT062 output (default 1)"
+    )
+    p.add_argument(
         "--no-fl-altitude",
         action="store_true",
         help="leave altitude_m out where only a flight level is known (default: FL x 30.48 m)",
@@ -105,6 +124,102 @@ class Publisher:
     def sites(self, sites: Iterable[RadarSite]) -> None:
         for s in sites:
             self.put(self.keys.site(s.radar_id), s.model_dump_json(exclude_none=True).encode())
+
+
+class Cat062Writer:
+    """The service's system tracks (``{prefix}/system/tracks``) as CAT062, to UDP and/or a file.
+
+    Each ``SystemTrackBatch`` becomes CAT062 data blocks of at most one datagram each
+    (:mod:`.cat062`).  Track ages count from when this writer first saw a track; member radars
+    with a SAC/SIC in the sites give I062/340's sensor.
+    """
+
+    def __init__(
+        self,
+        sac: int,
+        sic: int,
+        sites: Iterable[RadarSite],
+        udp: list[UdpEndpoint],
+        path: Path | None,
+    ) -> None:
+        import socket
+
+        self.sac, self.sic = sac, sic
+        self.sensor = {s.radar_id: (s.sac, s.sic) for s in sites if s.sac is not None and s.sic is not None}
+        self._first: dict[str, float] = {}
+        self._udp = [(e.host, e.port) for e in udp]
+        self._sock = (
+            socket.socket(
+                socket.AF_INET6 if any(":" in h for h, _ in self._udp) else socket.AF_INET, socket.SOCK_DGRAM
+            )
+            if udp
+            else None
+        )
+        self._file = path.open("ab") if path is not None else None
+        self._lock = threading.Lock()
+        self.blocks = 0
+        self.tracks = 0
+        self.bad = 0
+
+    def write(self, payload: bytes) -> None:
+        try:
+            body = orjson.loads(payload)
+            tracks = self.tracks_of(body)
+        except (ValueError, KeyError, TypeError):
+            self.bad += 1  # not a SystemTrackBatch: nothing written
+            return
+        blocks = encode_cat062_blocks(tracks, self.sac, self.sic)
+        with self._lock:
+            for b in blocks:
+                for addr in self._udp:
+                    assert self._sock is not None
+                    self._sock.sendto(b, addr)
+                if self._file is not None:
+                    self._file.write(b)
+            if self._file is not None:
+                self._file.flush()
+            self.blocks += len(blocks)
+            self.tracks += len(tracks)
+
+    def tracks_of(self, body: dict[str, Any]) -> list[Cat062Track]:
+        time_s = float(body["time_s"])
+        out = []
+        seen: dict[str, float] = {}
+        for t in body["system_tracks"]:
+            tid = t["system_track_id"]
+            seen[tid] = self._first.get(tid, time_s)
+            lat, lon = math.radians(t["latitude_deg"]), math.radians(t["longitude_deg"])
+            vx, vy, vz = t["velocity_ecef_mps"]
+            east = -math.sin(lon) * vx + math.cos(lon) * vy
+            north = (
+                -math.sin(lat) * math.cos(lon) * vx - math.sin(lat) * math.sin(lon) * vy + math.cos(lat) * vz
+            )
+            sensor = next(
+                (self.sensor[m["radar_id"]] for m in t["members"] if m["radar_id"] in self.sensor), None
+            )
+            out.append(
+                Cat062Track(
+                    number=int(tid.rsplit("-", 1)[-1]),
+                    tod_s=time_s % DAY_S,
+                    latitude_deg=t["latitude_deg"],
+                    longitude_deg=t["longitude_deg"],
+                    east_mps=east,
+                    north_mps=north,
+                    confirmed=t["status"] == "confirmed",
+                    mono=len(t["members"]) == 1,
+                    age_s=min(time_s - seen[tid], 63.75),
+                    altitude_m=t["altitude_m"],
+                    sensor=sensor,
+                )
+            )
+        self._first = seen  # tracks gone are forgotten: memory bounded by the live tracks
+        return out
+
+    def close(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+        if self._file is not None:
+            self._file.close()
 
 
 def today_midnight_s() -> float:
@@ -207,15 +322,21 @@ def asterix_main(
     from service.engine import load_sites
     from service.transport.session import open_tool_session
 
-    if not args.file and not args.udp:
-        raise ValueError("asterix: give at least one --file or --udp input")
+    outputs = bool(args.out_udp or args.out_file)
+    if not args.file and not args.udp and not outputs:
+        raise ValueError(
+            "asterix: give at least one --file or --udp input, or an --out-udp/--out-file output"
+        )
+    for name in ("system_sac", "system_sic"):
+        if not 0 <= getattr(args, name) <= 255:
+            raise ValueError(f"asterix: --{name.replace('_', '-')} must be in 0..255")
     if args.speed < 0:
         raise ValueError("asterix: --speed must be >= 0")
-    if sites_path is None:
+    if sites_path is None and (args.file or args.udp):
         raise ValueError("asterix: --sites FILE (or TOPOFUSION_SITES) is needed to map SAC/SIC to radars")
-    sites = load_sites(sites_path)
+    sites = load_sites(sites_path) if sites_path is not None else ()
     mapped = [s for s in sites if s.sac is not None and s.sic is not None]
-    if not mapped:
+    if not mapped and sites:
         print(
             f"asterix: no site in {sites_path} has sac and sic: no radar report can be mapped",
             file=sys.stderr,
@@ -249,6 +370,12 @@ def asterix_main(
 
         publisher = Publisher(put, prefix)
         publisher.sites(mapped)
+        writer = None
+        if outputs:
+            writer = Cat062Writer(args.system_sac, args.system_sic, sites, args.out_udp, args.out_file)
+            out_sub = session.declare_subscriber(
+                Keys(prefix).system_tracks, lambda sample: writer.write(sample.payload.to_bytes())
+            )
         # Everything allocated so far lives for the whole run: out of the collector's scans,
         # which otherwise slow the decoder by up to 40 % (bench/bench_asterix_decode.py).
         gc.freeze()
@@ -259,9 +386,19 @@ def asterix_main(
             run.files(args.file)
             if args.udp and not stop.is_set():
                 run.udp(args.udp, args.duration)
+            elif not args.file and not args.udp:  # CAT062 output only: until stopped
+                print("asterix: writing system tracks as CAT062 until stopped", file=sys.stderr)
+                stop.wait(args.duration)
         finally:
             run.finish()
             print(run.summary(), file=sys.stderr)
+            if writer is not None:
+                out_sub.undeclare()
+                writer.close()
+                print(
+                    f"asterix: CAT062 out: {writer.tracks} tracks in {writer.blocks} data blocks",
+                    file=sys.stderr,
+                )
     finally:
         session.close()
     return 0

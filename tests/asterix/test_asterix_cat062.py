@@ -3,13 +3,23 @@ encoder of EUROCONTROL CAT062 edition 1.21, over realistic values."""
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import socket
+import time
+from pathlib import Path
 from typing import Any
 
+import pytest
+import zenoh
 from asterix import generated as gen
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from service.asterix.cat062 import Cat062Track, encode_cat062_blocks, encode_cat062_record
+from tests.asterix.test_asterix_service import bridge, output
+from tests.scenario_helpers import scenario_messages
+from tests.support import free_port, put_json, running_service, wait_for, wait_subscribed
 
 C062 = gen.Cat_062_1_21
 FT = 0.3048
@@ -65,3 +75,79 @@ def test_blocks_hold_every_track_in_order(ts: list[Cat062Track]) -> None:
     blocks = encode_cat062_blocks(ts, 1, 2, max_bytes=1400)
     assert all(len(b) <= 1400 and b[0] == 62 for b in blocks)
     assert b"".join(b[3:] for b in blocks) == b"".join(encode_cat062_record(t, 1, 2) for t in ts)
+
+
+def _decode_062(data: bytes) -> list[Any]:
+    """Every CAT062 record of ``data`` as libasterix reads it (the independent decoder)."""
+    from asterix.base import Bits, RawDatablock
+
+    blocks = RawDatablock.parse(Bits.from_bytes(data))
+    assert not isinstance(blocks, ValueError)
+    records = []
+    for b in blocks:
+        assert b.get_category() == 62
+        got = C062.cv_uap.parse(b.get_raw_records())
+        assert not isinstance(got, ValueError)
+        records += got
+    return records
+
+
+def test_the_bridge_writes_the_service_s_system_tracks_as_cat062(
+    router: str, client: zenoh.Session, tmp_path: Path
+) -> None:
+    port = free_port()
+    out_file = tmp_path / "tracks.ast"
+    stream = scenario_messages("three-radar", duration_s=60.0)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx:
+        rx.bind(("127.0.0.1", port))
+        rx.settimeout(0.2)
+        with running_service(router, correlation_process=False) as svc:
+            args = ["--connect", router, "--out-udp", f"127.0.0.1:{port}", "--out-file", str(out_file)]
+            with bridge([*args, "--system-sac", "9", "--system-sic", "7"]) as (proc, lines):
+                wait_for(
+                    lambda: "writing system tracks" in output(lines) or proc.poll() is not None, timeout=30
+                )
+                assert proc.poll() is None
+                wait_subscribed(client, "fusion/radar/A/plots")
+                wait_subscribed(client, "fusion/system/tracks")
+                for key, payload in stream:
+                    put_json(client, key, payload)
+                final = wait_for(
+                    lambda: (b := svc.http.get("/system-tracks").json())["system_tracks"] and b, timeout=60
+                )
+                datagrams = []
+
+                def received() -> bool:
+                    with contextlib.suppress(TimeoutError):
+                        datagrams.append(rx.recv(65535))
+                    return len(datagrams) >= 3
+
+                wait_for(received, timeout=30)
+                time.sleep(1.5)  # the rebuilds of the last data seconds reach the bridge
+                final = svc.http.get("/system-tracks").json()
+                proc.send_signal(signal.SIGINT)
+                assert proc.wait(timeout=30) == 0
+    records = _decode_062(out_file.read_bytes())
+    assert all(len(d) <= 1400 and d[0] == 62 for d in datagrams)
+    assert records
+    sac_sic = {
+        (
+            r.get_item("010").variation.get_item("SAC").variation.content.as_uint(),
+            r.get_item("010").variation.get_item("SIC").variation.content.as_uint(),
+        )
+        for r in records
+    }
+    assert sac_sic == {(9, 7)}
+    tod = final["time_s"] % 86_400
+    last = [r for r in records if abs(r.get_item("070").variation.content.as_quantity("s") - tod) < 0.01]
+    by_number = {r.get_item("040").variation.content.as_uint(): r for r in last}
+    want = {int(t["system_track_id"][2:]): t for t in final["system_tracks"]}
+    assert set(by_number) == set(want)
+    for n, t in want.items():
+        pos = by_number[n].get_item("105").variation
+        assert pos.get_item("LAT").variation.content.as_quantity("°") == pytest.approx(
+            t["latitude_deg"], abs=1e-5
+        )
+        assert pos.get_item("LON").variation.content.as_quantity("°") == pytest.approx(
+            t["longitude_deg"], abs=1e-5
+        )
