@@ -589,7 +589,9 @@ def test_checks_catch_drift_in_the_contract(contract: str) -> None:
 
     routes, api = app_routes(), api_paths()
     assert http_problems(broken("`GET /healthz`", "`GET /health`"), routes, api)
-    assert http_problems(broken("`GET /picture` | **planned**", "`GET /biases` | **planned**"), routes, api)
+    assert http_problems(
+        broken("| `GET /picture` | 200 HTML", "| `GET /picture` | **planned**: 200 HTML"), routes, api
+    )
     assert settings_problems(broken("TOPOFUSION_HTTP_PORT", "TOPOFUSION_HTTP_PRT"))
     assert settings_problems(broken("`TOPOFUSION_STATE_DIR` (**planned**)", "`TOPOFUSION_STATE_DIR`"))
     assert cli_problems(broken("`topofusion schemas`", "`topofusion schema`"))
