@@ -95,6 +95,12 @@ class Browser:
                 stderr=self._log,
                 pass_fds=(to_child, from_child),
             )
+        except OSError:
+            for fd in (self._to_browser, self._from_browser):
+                os.close(fd)
+            self._log.close()
+            shutil.rmtree(self._profile, ignore_errors=True)
+            raise
         finally:
             os.close(to_child)
             os.close(from_child)

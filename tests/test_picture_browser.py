@@ -40,8 +40,9 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 ROOT = Path(__file__).resolve().parents[1]
-#: Data seconds published at once, then the rest of the stream at SPEED times real time.
-OPENING_S, DURATION_S, SPEED = 60.0, 150.0, 5.0
+#: Data seconds published at once, then the rest of the stream at SPEED times real time (it
+#: lasts over a minute of wall time, far longer than the tests need: the fixture stops it).
+OPENING_S, DURATION_S, SPEED = 60.0, 400.0, 5.0
 
 needs_chromium = pytest.mark.skipif(
     not browser.available(),
@@ -320,6 +321,7 @@ def test_picture_renders_the_stream_and_follows_it(live: Live, page: browser.Pag
     assert len(rates) == 3, rates
 
     # it follows the stream: new snapshots, and the picture changes
+    assert not live.published.is_set(), "the stream ended before the test could watch it"
     first, updates = page.screenshot(), int(page.evaluate("document.body.dataset.updates"))
     assert png_size(first) == (1280, 800)
     time.sleep(3.0)
