@@ -47,6 +47,8 @@ def test_score_on_a_known_case() -> None:
             track("T-7", [("A", "a5")], (0.0, 0.0, 0.0), 10.0),  # V again, a second track of radar A
             track("T-8", [("C", "c2")], (0.0, 0.0, 0.0), 10.0, "tentative"),  # not scored
             track("T-9", [("A", "a6"), ("C", "c3")], (0.0, 0.0, 0.0), 10.0),  # mixed: S + clutter
+            # mixed: R, R and a track of Q that now follows R (a radar track gone over to R)
+            track("T-10", [("A", "a7"), ("B", "b7"), ("C", "c7")], (0.0, 0.0, 0.0), 10.0),
         ],
     }
     label = {
@@ -62,6 +64,9 @@ def test_score_on_a_known_case() -> None:
         ("C", "c2"): "U",
         ("A", "a6"): "S",
         ("C", "c3"): None,
+        ("A", "a7"): "R",
+        ("B", "b7"): "R",
+        ("C", "c7"): "Q",
     }
     seen = {"X", "Y", "Z", "W", "V", "U"}  # U: a confirmed radar track, no confirmed system track
     raw = {
@@ -71,19 +76,26 @@ def test_score_on_a_known_case() -> None:
         ("B", "b3"): P,  # no truth for W's second track (T-5): not scored
         ("A", "a4"): P + np.array([0.0, 0.0, 200.0]),
         ("A", "a5"): P + np.array([0.0, 0.0, 200.0]),
+        ("C", "c7"): P + np.array([0.0, 0.0, 300.0]),  # 300 m from R, 10 km from Q
     }
     asked: list[tuple[str, float]] = []
 
     def true(name: str, t: float) -> np.ndarray | None:
         asked.append((name, t))
-        return None if (name, len(asked)) == ("W", 3) else P
+        if name == "W" and asked.count((name, t)) == 2:
+            return None  # W's second system track (T-5): no true position
+        return P + np.array([10_000.0, 0.0, 0.0]) if name == "Q" else P
 
-    s = system.score(body, label, seen, raw, true)
-    assert (s.tracks, s.pure, s.mixed, s.clutter) == (8, 5, 2, 1)
-    assert s.purity == pytest.approx(5 / 7)
-    assert s.aircraft == 6  # X, Y, Z, W, V, S
+    age = {("A", "a3"): 300.0, ("B", "b3"): 12.0, ("A", "a4"): 200.0, ("A", "a5"): 100.0}
+    s = system.score(body, label, seen, raw, true, age, {("A", "a7"): 30.0})
+    assert (s.tracks, s.pure, s.mixed, s.mixed_swapped, s.clutter) == (9, 5, 3, 1, 1)
+    assert s.purity == pytest.approx(5 / 8)
+    assert s.aircraft == 8  # X, Y, Z, W, V, S, R, Q
     assert (s.duplicated, s.dup_radar, s.dup_mixed, s.dup_unlinked) == (2, 1, 0, 1)
-    assert s.duplicates == pytest.approx(2 / 6)
+    assert s.duplicates == pytest.approx(2 / 8)
+    # W's stray track (B/b3, of the track with fewer of its members: a tie, the first one kept)
+    # is 12 s old; V's stray track is 100 s old
+    assert sorted(s.stray_age) == [12.0, 100.0] and s.dup_young == 1
     assert (s.seen, s.covered, s.uncovered_mixed, s.uncovered_absent) == (6, 3, 2, 1)
     assert s.coverage == pytest.approx(0.5)
     assert {t for _, t in asked} == {1000.0}
@@ -91,6 +103,8 @@ def test_score_on_a_known_case() -> None:
     assert sorted(s.fused_err) == pytest.approx([0.0, 0.0, 50.0, 100.0])
     assert sorted(s.raw_err) == pytest.approx([200.0, 200.0, 500.0, 500.0, 1000.0])
     assert sorted(s.members) == [1, 1, 1, 2]
+    assert sorted(s.track_raw) == pytest.approx([200.0, 200.0, 500.0, 1000.0])
+    assert s.ratio_members(2) == pytest.approx(50.0 / 500.0)
     fused = math.sqrt((50.0**2 + 100.0**2) / 4)
     raw_rms = math.sqrt((2 * 200.0**2 + 2 * 500.0**2 + 1000.0**2) / 5)
     assert s.ratio == pytest.approx(fused / raw_rms)
@@ -98,11 +112,15 @@ def test_score_on_a_known_case() -> None:
     assert system.nees(s) == pytest.approx((1 / 3 + 1 / 3) / 4)
     kinds = [k for k, _ in s.cases]
     assert kinds.count("mixed") == 2
+    swap = next(t for k, t in s.cases if k == "mixed, a member now following the track's aircraft")
+    assert "a7=R (last plot 30 s before)" in swap and "c7 is 0.3 km from R, 10.0 km from Q" in swap
+    assert kinds.count("largest fused error") == 4
+    assert next(t for k, t in s.cases if k == "largest fused error").startswith("100 m, sigma 100 m: T-4")
     assert "duplicate: radar track duplicate" in kinds
     assert "duplicate: tracks of different radars not linked" in kinds
     # pooled, two of it: the same rates, twice the counts
     both = system.merge([s, s])
-    assert (both.tracks, both.purity, both.coverage) == (16, s.purity, s.coverage)
+    assert (both.snapshots, both.tracks, both.purity, both.coverage) == (2, 18, s.purity, s.coverage)
     v = system.verdict([s])
     assert v.purity == (False, False) and v.coverage == (False, False)
 
@@ -120,11 +138,13 @@ def test_snapshot_inputs_labels_and_predicts() -> None:
         plots=np.full(n, 5, dtype=np.int64),
         truth_id=np.array(["T1", "T2", None], dtype=object),
     )
-    label, seen, raw = system.snapshot_inputs({"A": table}, 100.0, 1.0)
-    assert label == {("A", "A-1"): "T1", ("A", "A-2"): "T2", ("A", "A-3"): None}
-    assert seen == {"T1"}  # T2 only tentative, A-3 clutter
-    assert raw[("A", "A-1")] == pytest.approx(pos[0] + [200.0, 0.0, 0.0])
-    assert raw[("A", "A-2")] == pytest.approx(pos[1])
+    got = system.snapshot_inputs({"A": table}, 100.0, 1.0, {"A": 4.0})
+    assert got.label == {("A", "A-1"): "T1", ("A", "A-2"): "T2", ("A", "A-3"): None}
+    assert got.seen == {"T1"}  # T2 only tentative, A-3 clutter
+    assert got.raw[("A", "A-1")] == pytest.approx(pos[0] + np.array([200.0, 0.0, 0.0]))
+    assert got.raw[("A", "A-2")] == pytest.approx(pos[1])
+    assert got.age_s == {("A", "A-1"): 20.0, ("A", "A-2"): 20.0, ("A", "A-3"): 20.0}
+    assert got.stale_s == {("A", "A-1"): 2.0, ("A", "A-2"): 0.0, ("A", "A-3"): 1.0}
 
 
 def test_truth_interpolates_and_extrapolates() -> None:
