@@ -103,6 +103,7 @@ def test_score_on_a_known_case() -> None:
     assert sorted(s.fused_err) == pytest.approx([0.0, 0.0, 50.0, 100.0])
     assert sorted(s.raw_err) == pytest.approx([200.0, 200.0, 500.0, 500.0, 1000.0])
     assert sorted(s.members) == [1, 1, 1, 2]
+    assert (s.single_age, s.single_dup) == ([300.0, 200.0, 100.0], [True, True, True])
     assert sorted(s.track_raw) == pytest.approx([200.0, 200.0, 500.0, 1000.0])
     assert s.ratio_members(2) == pytest.approx(50.0 / 500.0)
     fused = math.sqrt((50.0**2 + 100.0**2) / 4)

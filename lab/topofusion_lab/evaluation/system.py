@@ -157,6 +157,9 @@ class Scored:
     """The scoring of one snapshot's confirmed system tracks."""
 
     time_s: float
+    #: The checkpoint's data time (s from the start; the system tracks' ``time_s`` is up to a
+    #: second earlier); NaN for the final snapshot.
+    checkpoint_s: float = math.nan
     #: Snapshots pooled in it (:func:`merge`).
     snapshots: int = 1
     tracks: int = 0
@@ -196,6 +199,10 @@ class Scored:
     raw_members: list[int] = field(default_factory=list)
     #: Members of every confirmed system track (pure or not).
     all_members: list[int] = field(default_factory=list)
+    #: Per one-member pure track with a known truth (in ``fused_err`` order among them): its
+    #: radar track's age (s), and whether its aircraft is in another system track too.
+    single_age: list[float] = field(default_factory=list)
+    single_dup: list[bool] = field(default_factory=list)
     #: A few failing cases for the report: (kind, description).
     cases: list[tuple[str, str]] = field(default_factory=list)
 
@@ -264,6 +271,7 @@ def score(
     pure_aircraft: set[str] = set()
     mixed_aircraft: set[str] = set()
     worst: list[tuple[float, int]] = []
+    singles: list[tuple[str, Member]] = []
     tracks = [s for s in body["system_tracks"] if s["status"] == "confirmed"]
     for k, s in enumerate(tracks):
         members = [(m["radar_id"], m["track_id"]) for m in s["members"]]
@@ -295,6 +303,8 @@ def score(
         out.sigma.append(float(s["position_sigma_m"]))
         out.members.append(len(members))
         worst.append((err, k))
+        if len(members) == 1:
+            singles.append((name, members[0]))
         raw = [float(np.linalg.norm(raw_position[m] - true)) for m in members if m in raw_position]
         out.raw_err += raw
         out.raw_members += [len(members)] * len(raw)
@@ -309,6 +319,9 @@ def score(
             )
         )
     out.aircraft = len(tracks_of)
+    for name, m in singles:
+        out.single_age.append(age_s.get(m, math.inf))
+        out.single_dup.append(len(tracks_of[name]) > 1)
     for name, ks in tracks_of.items():
         if len(ks) < 2:
             continue
@@ -501,6 +514,7 @@ def run_one(job: Job) -> RunResult:
         if m.time_s - t0 >= next_check:
             got = _score_engine(engine, truth, t0, accel_psd, scan_s)
             if got is not None:
+                got[0].checkpoint_s = next_check
                 checkpoints.append(got[0])
                 registered.append(got[1])
             next_check += CHECK_S
@@ -599,6 +613,8 @@ def merge(parts: Sequence[Scored]) -> Scored:
             "raw_err",
             "raw_members",
             "all_members",
+            "single_age",
+            "single_dup",
             "stray_age",
             "cases",
         ):
@@ -608,7 +624,7 @@ def merge(parts: Sequence[Scored]) -> Scored:
 
 def settled(r: RunResult) -> Scored:
     """A run's checkpoints from :data:`WARMUP_S` on and its final snapshot, pooled."""
-    return merge([c for c in r.checkpoints if c.time_s >= WARMUP_S] + [r.final])
+    return merge([c for c in r.checkpoints if c.checkpoint_s >= WARMUP_S] + [r.final])
 
 
 def nees(s: Scored) -> float:
@@ -1115,8 +1131,14 @@ def _verdict_lines(conditions: Sequence[Condition], by_cond: Mapping[int, list[R
     ]
 
 
+def _share(mask: np.ndarray) -> float:
+    """Share of ``True`` (NaN when empty)."""
+    return float(np.mean(mask)) if mask.size else math.nan
+
+
 def _analysis(conditions: Sequence[Condition], by_cond: Mapping[int, list[RunResult]]) -> list[str]:
-    """Figures behind the failures, computed (the prose around them is in the docs)."""
+    """Why the goals are met or not: the mechanisms, with this run's figures (settled snapshots of
+    every run pooled)."""
     lines = ["", "### Why", ""]
     for i, cond in enumerate(conditions):
         res = by_cond.get(i, [])
@@ -1124,23 +1146,72 @@ def _analysis(conditions: Sequence[Condition], by_cond: Mapping[int, list[RunRes
             continue
         s = merge([settled(r) for r in res])
         name = cond.label.split(":")[0]
-        n, fe = np.asarray(s.members), np.asarray(s.fused_err)
+        n, fe, sg = np.asarray(s.members), np.asarray(s.fused_err), np.asarray(s.sigma)
         one = n == 1
         total = float(np.sum(fe**2))
-        young = _ratio(s.dup_young, s.duplicated)
         ages = np.asarray(s.stray_age)
-        lines.append(
-            f"* {name} (settled snapshots pooled): {s.duplicated} duplicated aircraft-snapshots, "
-            f"{s.dup_unlinked} of them with tracks of different radars not linked, {s.dup_radar} with two "
-            f"tracks of one radar, {s.dup_mixed} with a mixed track; the oldest stray track is younger "
-            f"than {YOUNG_S:.0f} s in {_pct(young, 1)} % of them (median stray age "
-            f"{_num(_q(ages[np.isfinite(ages)], 50), '.0f')} s).  Without those young stray tracks the "
-            f"duplicate rate would be {_pct(_ratio(s.duplicated - s.dup_young, s.aircraft))} %.  "
-            f"One-member system tracks are {_pct(float(np.mean(one)) if one.size else math.nan, 1)} % of "
-            f"the pure tracks and make {_pct(_ratio(float(np.sum(fe[one] ** 2)), total), 1)} % of the fused "
-            f"squared error; over the tracks of two or more members the ratio is "
-            f"{_f3(s.ratio_members(2))}, over all {_f3(s.ratio)}."
-        )
+        ages = ages[np.isfinite(ages)]
+        s_age, s_dup = np.asarray(s.single_age), np.asarray(s.single_dup, dtype=bool)
+        young_single = s_age < YOUNG_S
+        tail = fe**2 / np.maximum(sg, 1e-9) ** 2 > CHI2_3_99
+        mean_nees = nees(s)
+        lines += [
+            f"**{name}** ({len(res)} runs, {s.snapshots} settled snapshots, "
+            f"{s.tracks / max(s.snapshots, 1):.0f} confirmed system tracks and "
+            f"{s.seen / max(s.snapshots, 1):.0f} aircraft with a confirmed radar track per snapshot):",
+            "",
+            f"* *Purity* {_pct(s.purity)} %: {s.mixed} mixed tracks in all, {s.mixed_swapped} of them "
+            "with every member of another aircraft now nearer the track's aircraft than its own (a radar "
+            "track that went over to another aircraft: its label is the aircraft of most of its plots "
+            "over its whole life, so the fusion is right and the label is late); the others join a "
+            "clutter track, or tracks of two aircraft flying close (examples below).",
+            f"* *Duplicates* {_pct(s.duplicates)} %: {s.duplicated} duplicated aircraft-snapshots, "
+            f"{s.dup_unlinked} with tracks of different radars not linked, {s.dup_radar} with two tracks "
+            f"of one radar (a radar-tracker duplicate: two tracks of a source never share a system "
+            f"track), {s.dup_mixed} with a mixed track.  In {_pct(_ratio(s.dup_young, s.duplicated), 1)} % "
+            f"of them every stray track is younger than {YOUNG_S:.0f} s (median "
+            f"{_num(_q(ages, 50), '.0f')} s, figure below): a radar has just started a track on an "
+            "aircraft the other radars already hold (it comes into that radar's cover or over its radio "
+            "horizon, or the radar dropped its track and started a new one).  That track is a confirmed "
+            "system track of its own from its own confirmation on (a system track is confirmed when one "
+            "of its members is, contract §4.4), while its pairs with the other radars' tracks confirm "
+            "only some updates later: the pair book needs 3 hits (`PairBookParams`: 3 of 6 updates, "
+            "one update per scan, on confirmed radar tracks only).  Every aircraft coming into a "
+            "radar's view is a duplicate for those seconds; the more radars, each seeing part of the "
+            "traffic, the more often that happens.  Without the young stray tracks the "
+            f"rate would be {_pct(_ratio(s.duplicated - s.dup_young, s.aircraft))} %.",
+            f"* *Coverage* {_pct(s.coverage)} %: of {s.seen - s.covered} uncovered aircraft-snapshots, "
+            f"{s.uncovered_mixed} are in mixed tracks only and {s.uncovered_absent} in no confirmed "
+            "system track (a radar track confirmed after the last rebuild, at most 1 s before).",
+            f"* *Fused / raw* {_f3(s.ratio)}: one-member system tracks are {_pct(_share(one), 1)} % of "
+            f"the pure tracks and make {_pct(_ratio(float(np.sum(fe[one] ** 2)), total), 1)} % of the "
+            f"fused squared error; {_pct(_share(young_single), 1)} % of them are radar tracks younger "
+            f"than {YOUNG_S:.0f} s and {_pct(_share(s_dup), 1)} % the stray track of an aircraft held "
+            "by another system track.  A young track at long range is off by kilometres (plot noise "
+            "0.2 deg is 1 km across at 300 km, and as much in height); a one-member track is "
+            "compensated but not fused, so it keeps that error.  Over the tracks of two or more members "
+            f"the ratio is {_f3(s.ratio_members(2))}; the ratio of medians is "
+            f"{_f3(_ratio(_q(fe, 50), _q(s.raw_err, 50)))}.",
+            f"* *Sigma*: mean `e^2 / (3 sigma^2)` {_f2(mean_nees)} (error / sigma "
+            f"{_f2(math.sqrt(mean_nees))}): "
+            + (
+                "on the whole the stated sigma is larger than the error, as covariance intersection is "
+                "built to be (it assumes the worst correlation between the members), and the "
+                "compensation adds the bias estimate's own uncertainty.  "
+                if mean_nees < 1.0
+                else "on the whole the stated sigma is smaller than the error.  "
+            )
+            + f"{_pct(_share(tail))} % of the tracks lie beyond the chi-square 99 % bound (1 % if "
+            f"honest): {_pct(_share(tail[one]))} % of the one-member tracks, {_pct(_share(tail[~one]))} % "
+            "of the others"
+            + (
+                ": a one-member track's sigma is its radar track's covariance, too small for a young "
+                "track that started badly."
+                if _share(tail[one]) > 0.01
+                else "."
+            ),
+            "",
+        ]
     return lines
 
 
@@ -1163,7 +1234,7 @@ def _through_run(conditions: Sequence[Condition], by_cond: Mapping[int, list[Run
         for k in range(n_cp):
             cs = [r.checkpoints[k] for r in res]
             lines.append(
-                f"| {cond.label.split(':')[0]} | {_mean([c.time_s for c in cs]):.0f} | "
+                f"| {cond.label.split(':')[0]} | {_mean([c.checkpoint_s for c in cs]):.0f} | "
                 f"{_mean([r.registered[k] for r in res]):.1f} / {res[0].radars} | "
                 f"{_mean([c.tracks for c in cs]):.0f} | {_pct(_mean([c.purity for c in cs]))} | "
                 f"{_pct(_mean([c.duplicates for c in cs]))} | {_pct(_mean([c.coverage for c in cs]))} | "
