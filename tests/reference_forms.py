@@ -282,3 +282,71 @@ def fuse_reference(
             vec += pk @ x[k]
     cov = np.linalg.inv(info)
     return cov @ vec, cov
+
+
+def cfar_consistency_reference(
+    x: np.ndarray, s: np.ndarray, gate: float, inflate: bool, min_pairs: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """Plain form of :func:`service.correlation.cfar.consistent_pairs`, pair by pair: robust
+    start (per-component median), inliers within the gate of it, each pair against the mean of
+    the other inliers (a lone inlier: chi-square 0), inflation by the inliers' median
+    chi-square over ``2 ln 2``; returns bias, its covariance, chi-square, passed, inflation."""
+    n = len(x)
+    start = np.array([np.median(x[:, 0]), np.median(x[:, 1])])
+    inlier = [float((x[k] - start) @ np.linalg.solve(s[k], x[k] - start)) <= gate for k in range(n)]
+    members = [k for k in range(n) if inlier[k]]
+    q = np.zeros(n)
+    for k in range(n):
+        others = [o for o in members if o != k]
+        if not others:
+            q[k] = 0.0
+            continue
+        mean = sum(x[o] for o in others) / len(others)
+        cov = sum(s[o] for o in others) / len(others) ** 2
+        d = x[k] - mean
+        q[k] = float(d @ np.linalg.solve(s[k] + cov, d))
+    f = 1.0
+    if inflate and len(members) >= min_pairs:
+        f = max(1.0, float(np.median([q[k] for k in members])) / (2.0 * np.log(2.0)))
+    q = q / f
+    passed = np.array([q[k] <= gate for k in range(n)])
+    ok = [k for k in range(n) if passed[k]]
+    bias = sum(x[k] for k in ok) / len(ok)
+    bias_cov = f * sum(s[k] for k in ok) / len(ok) ** 2
+    return np.asarray(bias), np.asarray(bias_cov), q, passed, f
+
+
+def cfar_jump_log_bound_reference(
+    s: np.ndarray, sigma_minor: np.ndarray, sigma_major: np.ndarray, jumps: list[int]
+) -> list[float]:
+    """Plain form of :func:`service.correlation.cfar.jump_log_bound`: for each jump ``k`` the sum
+    over the entries ``q <= k`` (those with sigmas) of ``ln(erf(s_k / (sqrt2 s1_q)) erf(s_k /
+    (sqrt2 s2_q)))``, a zero sigma counting as no constraint."""
+    from math import erf, log, sqrt
+
+    out = []
+    for k in jumps:
+        total = 0.0
+        for q in range(min(k + 1, len(sigma_minor))):
+            f = 1.0
+            for sig in (sigma_minor[q], sigma_major[q]):
+                if sig > 0:
+                    f *= erf(s[k] / (sqrt(2.0) * sig))
+            total += log(f) if f > 0 else -np.inf
+        out.append(total)
+    return out
+
+
+def cfar_pair_chi2_reference(
+    ref: np.ndarray, comp: np.ndarray, ref_cov: np.ndarray, radar_cov: np.ndarray, extra: np.ndarray
+) -> np.ndarray:
+    """Plain form of :func:`service.correlation.cfar.pair_chi2`: every reference row against
+    every compensated radar row, ``r^T S^-1 r`` by ``np.linalg.solve``."""
+    out = np.zeros((len(ref), len(comp)))
+    for i in range(len(ref)):
+        for j in range(len(comp)):
+            dr = comp[j, 0] - ref[i, 0]
+            da = (comp[j, 1] - ref[i, 1] + 180.0) % 360.0 - 180.0
+            r = np.array([dr, da])
+            out[i, j] = r @ np.linalg.solve(ref_cov[i] + radar_cov[j] + extra, r)
+    return out

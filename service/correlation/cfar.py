@@ -31,7 +31,8 @@ jump to different-source distances.  Steps:
    final pairs (``CfarParams.refine_bias``; an addition to the paper).  The gate of each
    candidate is its own covariance ``S = C_ref + C_radar + C_bias`` in ``[range, azimuth]``
    (the bias model is additive there), so it grows with range as the radar's cross-range error
-   does and never depends on the CA-CFAR thresholds.
+   does and never depends on the CA-CFAR thresholds; an assigned pair with a rival candidate
+   within ``ambiguity_margin`` is left undecided (two targets closer than their errors).
 
 Covariances.  :func:`cfar_associate` takes each track's ``[range_m, azimuth_deg]`` covariance
 (the stream's predicted covariances, :func:`polar_covariance`); without them a radar track
@@ -138,6 +139,13 @@ class CfarParams:
     freedom) on the bias-compensated residual ``[dr, dtheta]`` with its own covariance
     ``S = C_ref + C_radar + C_bias`` (the bias estimate's covariance; with the inflation of
     ``inflate_to_residuals``)."""
+
+    ambiguity_margin: float = 6.0
+    """Second stage (addition to the paper): an assigned pair is decided only when every other
+    gated candidate of its reference track and of its radar track has a chi-square at least this
+    much larger (6: a likelihood ratio of about 20, as ``CorrelationParams.ambiguity_margin``);
+    else both tracks stay undecided this update rather than guessed (two targets closer than
+    their errors).  0: the paper's plain 2-D assignment."""
 
     keep_probability: float = 0.999
     """Re-check of the stream's confirmed pairs (:func:`consistent_pairs`, used by
@@ -573,6 +581,27 @@ def pair_chi2(
     return quad2(r, s)
 
 
+def unambiguous(cost: np.ndarray, rows: np.ndarray, cols: np.ndarray, margin: float) -> BoolArray:
+    """For each assigned cell ``(rows[k], cols[k])`` of ``cost`` (inf: not a candidate): True when
+    every other finite entry of its row and of its column exceeds its cost by at least
+    ``margin`` (``CfarParams.ambiguity_margin``).  Vectorised with the two smallest entries of
+    each row and column."""
+    c = np.asarray(cost, dtype=float)
+    r_idx = np.asarray(rows, dtype=np.intp)
+    c_idx = np.asarray(cols, dtype=np.intp)
+    if r_idx.size == 0 or margin <= 0:
+        return np.ones(r_idx.size, dtype=bool)
+    m, n = c.shape
+    two_r = np.partition(c, 1, axis=1)[:, :2] if n > 1 else np.column_stack([c[:, 0], np.full(m, np.inf)])
+    two_c = np.partition(c, 1, axis=0)[:2, :].T if m > 1 else np.column_stack([c[0, :], np.full(n, np.inf)])
+    own = c[r_idx, c_idx]
+    # The best other entry: the second smallest when the cell is the smallest, else the smallest.
+    alt_r = np.where(own <= two_r[r_idx, 0], two_r[r_idx, 1], two_r[r_idx, 0])
+    alt_c = np.where(own <= two_c[c_idx, 0], two_c[c_idx, 1], two_c[c_idx, 0])
+    with np.errstate(invalid="ignore"):
+        return np.asarray((alt_r - own >= margin) & (alt_c - own >= margin))
+
+
 def _principal_sigmas(
     ref: FloatArray, rad: FloatArray, cref: FloatArray, crad: FloatArray, ii: IntArray, jj: IntArray
 ) -> tuple[FloatArray, FloatArray]:
@@ -736,7 +765,7 @@ def cfar_associate(
             big = gate + 1.0  # any cost above the gate marks "not allowed"; assigned ones are dropped
             cost = np.where(ok, q[np.ix_(r_any, c_any)], big)
             r, c = linear_sum_assignment(cost)
-            keep = ok[r, c]
+            keep = ok[r, c] & unambiguous(np.where(ok, cost, np.inf), r, c, p.ambiguity_margin)
             si, sj = rows[r_any[r[keep]]], cols[c_any[c[keep]]]
 
     index_ref = np.concatenate([ci, si]).astype(np.intp)
