@@ -21,9 +21,12 @@ pairs between them as *links*, each with its evidence (``score``).
    have errors of their own (GNSS), independent of the radars': they are added to the CI result
    in **information form**.  Positions and velocities are fused as two 3x3 blocks (the trackers'
    position-velocity cross-covariance is left out: what it adds is second order here).
-4. **Status.**  A system track is confirmed when one of its members is.  A radar track without
-   links is a system track of one member; a reference track becomes one only through a link
-   (a reference alone is not part of the radar picture).
+4. **Status.**  A system track is confirmed when one of its members is, but for a young lone
+   radar track near another system track that lacks its radar (:class:`SystemTrackParams`):
+   that is most likely a radar's new view of an aircraft already held, and stays tentative
+   until its pairs link it or it has stood alone long enough.  A radar track without links is
+   a system track of one member; a reference track becomes one only through a link (a
+   reference alone is not part of the radar picture).
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 from service.correlation.linalg import inv3
 from service.correlation.pairkeys import SEP  # a member's key: source, SEP, track id
@@ -181,19 +185,39 @@ def _group_sum(group: IntArray, values: FloatArray, n: int) -> FloatArray:
     )
 
 
+@dataclass(frozen=True)
+class SystemTrackParams:
+    """When a lone radar track is not (yet) a confirmed system track (module, step 4)."""
+
+    #: A one-member system track whose radar track joined the picture less than this long ago
+    #: (data s) ...
+    solo_hold_s: float = 60.0
+    #: ... and lies within this distance (m, bias-compensated) of another system track that has
+    #: no track of its radar stays tentative: most likely that radar's new view of an aircraft
+    #: the other holds (it came into the radar's cover, or the radar restarted its track), whose
+    #: pairs confirm a few scans later.  Both chosen from the system-track study
+    #: (docs/evaluation/system.md): such stray tracks are younger than a minute and sit within a
+    #: few kilometres (a young track at 300 km is off by up to about 1 km per 0.2 deg of noise).
+    solo_gate_m: float = 5_000.0
+
+
 class SystemTracker:
     """System tracks over time: the numbers their members carried before (module, step 2)."""
 
-    def __init__(self) -> None:
+    def __init__(self, params: SystemTrackParams | None = None) -> None:
+        self.params = params or SystemTrackParams()
         self._keys = np.empty(0, dtype=str)  # sorted member keys of the last update
         self._numbers = np.empty(0, dtype=np.int64)  # their system track numbers
+        self._since = np.empty(0)  # when each joined the picture (data s)
         self._next = 1
 
     @property
     def next_number(self) -> int:
         return self._next
 
-    def update(self, members: Members, link_a: IntArray, link_b: IntArray, score: FloatArray) -> SystemTracks:
+    def update(
+        self, members: Members, link_a: IntArray, link_b: IntArray, score: FloatArray, time_s: float = 0.0
+    ) -> SystemTracks:
         n = len(members)
         linked = np.zeros(n, dtype=bool)
         linked[link_a] = linked[link_b] = True
@@ -204,15 +228,67 @@ class SystemTracker:
         used, group = np.unique(group, return_inverse=True)
         group = group.astype(np.int64) - (1 if used.size and used[0] == -1 else 0)
         n_groups = int(used.size - (1 if used.size and used[0] == -1 else 0))
-        numbers = self._numbers_for(members.keys(), group, n_groups)
+        all_keys = members.keys()
+        since = self._since_of(all_keys, time_s)
+        numbers = self._numbers_for(all_keys, group, n_groups)
         pos, vel, pos_cov, vel_cov = fuse(members, group, n_groups)
         confirmed = np.zeros(n_groups, dtype=bool)
         member = group >= 0
         np.logical_or.at(confirmed, group[member], members.confirmed[member])
-        keys = members.keys()[member]
+        confirmed &= ~self._held_solo(members, source_code.astype(np.int64), group, since, pos, time_s)
+        keys = all_keys[member]
         order = np.argsort(keys)
         self._keys, self._numbers = keys[order], numbers[group[member]][order]
+        self._since = since[member][order]
         return SystemTracks(numbers, confirmed, pos, vel, pos_cov, vel_cov, group)
+
+    def _since_of(self, keys: NDArray[np.str_], time_s: float) -> FloatArray:
+        """When each member joined the picture (``time_s`` for new ones)."""
+        since = np.full(keys.shape[0], time_s)
+        if self._keys.shape[0] and keys.shape[0]:
+            at = np.minimum(np.searchsorted(self._keys, keys), self._keys.shape[0] - 1)
+            hit = self._keys[at] == keys
+            since[hit] = self._since[at[hit]]
+        return since
+
+    def _held_solo(
+        self,
+        members: Members,
+        source_code: IntArray,
+        group: IntArray,
+        since: FloatArray,
+        position: FloatArray,
+        time_s: float,
+    ) -> NDArray[np.bool_]:
+        """Groups held tentative: young lone radar tracks near another system track that has
+        no track of their radar (:class:`SystemTrackParams`)."""
+        p = self.params
+        n_groups = position.shape[0]
+        held = np.zeros(n_groups, dtype=bool)
+        member = np.flatnonzero(group >= 0)
+        size = np.bincount(group[member], minlength=n_groups)
+        solo = member[(size[group[member]] == 1) & ~members.reference[member]]
+        solo = solo[time_s - since[solo] < p.solo_hold_s]
+        if not solo.shape[0] or n_groups < 2:
+            return held
+        tree = cKDTree(position)
+        near = tree.query_ball_point(position[group[solo]], r=p.solo_gate_m)
+        # (group, source) pairs present, to ask "has that system track a track of this radar?"
+        n_src = int(source_code.max()) + 1
+        present = np.unique(group[member] * n_src + source_code[member])
+        lone_group = group[solo]
+        counts = np.fromiter((len(x) for x in near), dtype=np.int64, count=len(near))
+        cand = (
+            np.concatenate([np.asarray(x, dtype=np.int64) for x in near])
+            if counts.sum()
+            else np.empty(0, np.int64)
+        )
+        owner = np.repeat(np.arange(solo.shape[0]), counts)
+        other = cand != lone_group[owner]
+        has_radar = np.isin(cand * n_src + source_code[solo][owner], present)
+        hit = other & ~has_radar
+        held[lone_group[np.unique(owner[hit])]] = True
+        return held
 
     def _numbers_for(self, keys: NDArray[np.str_], group: IntArray, n_groups: int) -> IntArray:
         member = np.flatnonzero(group >= 0)

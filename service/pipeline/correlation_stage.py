@@ -353,7 +353,7 @@ class CorrelationStage:
         members, la, lb, score = members_and_links(
             time_s, self._radars, references, books, self._joint, self.correlation_params.prediction
         )
-        tracks = self.system_tracker.update(members, la, lb, score)
+        tracks = self.system_tracker.update(members, la, lb, score, time_s)
         self.system_view = SystemTrackView.of(time_s, tracks, members)
         self._system_out.append(self.system_view)
 

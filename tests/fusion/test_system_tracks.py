@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.fusion.system_tracks import Members, SystemTracker, fuse, groups
+from service.fusion.system_tracks import Members, SystemTracker, SystemTrackParams, fuse, groups
 from tests.reference_forms import fuse_reference, system_groups_reference
 
 
@@ -137,3 +137,24 @@ def test_no_members_or_only_unlinked_references_give_no_system_track() -> None:
     for m in (members([], []), members(["ads", "ads"], ["x", "y"], [True, True])):
         s = tracker.update(m, empty, empty, np.empty(0))
         assert len(s) == 0 and s.member_group.tolist() == [-1] * len(m)
+
+
+def test_a_young_lone_track_near_a_system_track_without_its_radar_waits() -> None:
+    """A radar's new track of an aircraft another system track holds stays tentative until it
+    is linked or has stood alone ``solo_hold_s``; a lone track elsewhere, or next to a system
+    track that has a track of its radar, is confirmed at once."""
+    tracker = SystemTracker(SystemTrackParams(solo_hold_s=60.0, solo_gate_m=5_000.0))
+    m = members(["A", "B", "C", "C", "A"], ["1", "1", "1", "2", "2"])
+    pos = np.array([[0.0, 0, 0], [100, 0, 0], [1_000, 0, 0], [50_000, 0, 0], [-4_500, 0, 0]])
+    m = Members(**{**m.__dict__, "position": pos})
+    link = (np.array([0]), np.array([1]), np.array([0.9]))
+    s = tracker.update(m, *link, time_s=0.0)
+    # groups: {A1, B1}, {C1} near it without C -> held, {C2} far -> confirmed, {A2} near but A there
+    by_member = {
+        k: bool(s.confirmed[g]) for k, g in zip(["A1", "B1", "C1", "C2", "A2"], s.member_group, strict=True)
+    }
+    assert by_member == {"A1": True, "B1": True, "C1": False, "C2": True, "A2": True}
+    s = tracker.update(m, *link, time_s=59.0)
+    assert not s.confirmed[s.member_group[2]]
+    s = tracker.update(m, *link, time_s=60.0)  # stood alone long enough
+    assert s.confirmed[s.member_group[2]]
