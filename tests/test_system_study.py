@@ -119,6 +119,9 @@ def test_score_on_a_known_case() -> None:
     assert next(t for k, t in s.cases if k == "largest fused error").startswith("100 m, sigma 100 m: T-4")
     assert "duplicate: radar track duplicate" in kinds
     assert "duplicate: tracks of different radars not linked" in kinds
+    # what-if: one-member tracks of radar tracks younger than 150 s held back (T-5, T-7)
+    held = system.score(body, label, seen, raw, true, age, hold_young_s=150.0)
+    assert (held.tracks, held.duplicated, held.covered) == (7, 0, 3)
     # pooled, two of it: the same rates, twice the counts
     both = system.merge([s, s])
     assert (both.snapshots, both.tracks, both.purity, both.coverage) == (2, 18, s.purity, s.coverage)
