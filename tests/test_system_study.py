@@ -49,6 +49,9 @@ def test_score_on_a_known_case() -> None:
             track("T-9", [("A", "a6"), ("C", "c3")], (0.0, 0.0, 0.0), 10.0),  # mixed: S + clutter
             # mixed: R, R and a track of Q that now follows R (a radar track gone over to R)
             track("T-10", [("A", "a7"), ("B", "b7"), ("C", "c7")], (0.0, 0.0, 0.0), 10.0),
+            # K only in two tentative system tracks (two radars' young tracks holding each other back)
+            track("T-11", [("A", "a8")], (0.0, 0.0, 0.0), 10.0, "tentative"),
+            track("T-12", [("B", "b8")], (0.0, 0.0, 0.0), 10.0, "tentative"),
         ],
     }
     label = {
@@ -67,8 +70,11 @@ def test_score_on_a_known_case() -> None:
         ("A", "a7"): "R",
         ("B", "b7"): "R",
         ("C", "c7"): "Q",
+        ("A", "a8"): "K",
+        ("B", "b8"): "K",
     }
-    seen = {"X", "Y", "Z", "W", "V", "U"}  # U: a confirmed radar track, no confirmed system track
+    # U, K: a confirmed radar track in tentative system tracks only; O: in no system track at all
+    seen = {"X", "Y", "Z", "W", "V", "U", "K", "O"}
     raw = {
         ("A", "a1"): P + np.array([300.0, 400.0, 0.0]),  # 500 m
         ("B", "b1"): P + np.array([0.0, 0.0, 500.0]),  # 500 m
@@ -96,8 +102,9 @@ def test_score_on_a_known_case() -> None:
     # W's stray track (B/b3, of the track with fewer of its members: a tie, the first one kept)
     # is 12 s old; V's stray track is 100 s old
     assert sorted(s.stray_age) == [12.0, 100.0] and s.dup_young == 1
-    assert (s.seen, s.covered, s.uncovered_mixed, s.uncovered_absent) == (6, 3, 2, 1)
-    assert s.coverage == pytest.approx(0.5)
+    assert (s.seen, s.covered, s.uncovered_mixed) == (8, 3, 2)
+    assert (s.uncovered_held, s.uncovered_held_apart, s.uncovered_absent) == (2, 1, 1)
+    assert s.coverage == pytest.approx(3 / 8)
     assert {t for _, t in asked} == {1000.0}
     # pure tracks with a truth: T-1 (50 m, 2 members), T-4 (100 m), T-6, T-7 (0 m); T-5 has none
     assert sorted(s.fused_err) == pytest.approx([0.0, 0.0, 50.0, 100.0])
@@ -113,6 +120,7 @@ def test_score_on_a_known_case() -> None:
     assert system.nees(s) == pytest.approx((1 / 3 + 1 / 3) / 4)
     kinds = [k for k, _ in s.cases]
     assert kinds.count("mixed") == 2
+    assert kinds.count("uncovered, in tentative system tracks only") == 2
     swap = next(t for k, t in s.cases if k == "mixed, a member now following the track's aircraft")
     assert "a7=R (last plot 30 s before)" in swap and "c7 is 0.3 km from R, 10.0 km from Q" in swap
     assert kinds.count("largest fused error") == 4

@@ -52,8 +52,10 @@ from typing import Any
 
 import numpy as np
 
+from service.correlation.pairs import PairBookParams
 from service.correlation.prediction import predict_states
 from service.engine import Engine
+from service.fusion.system_tracks import SystemTrackParams
 from service.geo import geodetic_to_ecef
 from service.tracking.base import TrackTable
 from service.wire.keys import Keys
@@ -187,6 +189,9 @@ class Scored:
     seen: int = 0
     covered: int = 0
     uncovered_mixed: int = 0
+    #: ... in tentative system tracks only (of them: in two or more), in no system track at all.
+    uncovered_held: int = 0
+    uncovered_held_apart: int = 0
     uncovered_absent: int = 0
     #: Per pure system track with a known truth: fused error (m), its sigma (m), members, and
     #: the RMS raw error of its members (m).
@@ -251,7 +256,8 @@ def score(
     max_cases: int = 6,
     hold_young_s: float | None = None,
 ) -> Scored:
-    """Score a ``SystemTrackBatch`` (its confirmed tracks).
+    """Score a ``SystemTrackBatch`` (its confirmed tracks; the tentative ones tell where an
+    uncovered aircraft is).
 
     ``label``: each radar track's aircraft (None: clutter; a member missing from it counts as
     clutter); ``seen``: aircraft holding a confirmed radar track; ``raw_position``: each radar
@@ -279,6 +285,8 @@ def score(
         tracks = [
             s for s in tracks if len(s["members"]) > 1 or age_s.get(_members(s)[0], math.inf) >= hold_young_s
         ]
+    counted = {id(s) for s in tracks}
+    tentative = [s for s in body["system_tracks"] if id(s) not in counted]
     for k, s in enumerate(tracks):
         members = [(m["radar_id"], m["track_id"]) for m in s["members"]]
         names = {label.get(m) for m in members}
@@ -354,7 +362,20 @@ def score(
     out.covered = len(seen & pure_aircraft)
     missing = seen - pure_aircraft
     out.uncovered_mixed = len(missing & mixed_aircraft)
-    out.uncovered_absent = len(missing - mixed_aircraft)
+    held: dict[str, list[int]] = {}
+    for k, s in enumerate(tentative):
+        for n in {label.get(m) for m in _members(s)} - {None}:
+            held.setdefault(str(n), []).append(k)
+    for name in sorted(missing - mixed_aircraft):
+        where = held.get(name, [])
+        if not where:
+            out.uncovered_absent += 1
+            continue
+        out.uncovered_held += 1
+        out.uncovered_held_apart += len(where) > 1
+        kind = "uncovered, in tentative system tracks only"
+        if len([c for c in out.cases if c[0] == kind]) < max_cases:
+            out.cases.append((kind, f"{name}: " + " | ".join(describe(tentative[k]) for k in where)))
     return out
 
 
@@ -488,7 +509,7 @@ def _score_engine(
     """The snapshot scored, and scored again with young one-member tracks held back (a
     what-if), and the radars with a bias estimate."""
     snap = engine.snapshot()
-    body = snap.system_tracks("confirmed")
+    body = snap.system_tracks("all")
     if body["time_s"] is None:
         return None
     tables = {rid: table for rid, (_, table) in snap.tracks.items()}
@@ -619,6 +640,8 @@ def merge(parts: Sequence[Scored]) -> Scored:
             "seen",
             "covered",
             "uncovered_mixed",
+            "uncovered_held",
+            "uncovered_held_apart",
             "uncovered_absent",
         ):
             setattr(out, f, getattr(out, f) + getattr(p, f))
@@ -826,6 +849,7 @@ def _cause_row(label: str, scores: Sequence[Scored]) -> str:
         f"{mean(lambda s: per(s, s.dup_unlinked))}) | "
         f"{_hi([_ratio(s.dup_young, s.duplicated) for s in scores], _pct)} | "
         f"{mean(lambda s: per(s, s.seen - s.covered))} ({mean(lambda s: per(s, s.uncovered_mixed))} / "
+        f"{mean(lambda s: per(s, s.uncovered_held))} ({mean(lambda s: per(s, s.uncovered_held_apart))}) / "
         f"{mean(lambda s: per(s, s.uncovered_absent))}) |"
     )
 
@@ -835,7 +859,7 @@ CAUSE_HEAD = [
     "every other member now nearer the track's aircraft) | clutter-only "
     "tracks | duplicated aircraft (radar duplicate / one track mixed / not linked) | duplicated aircraft "
     f"whose stray tracks are all < {YOUNG_S:.0f} s old (%) | uncovered aircraft (in a mixed track only / "
-    "in none) |",
+    "in tentative system tracks only (in two or more) / in none) |",
     "|---|---:|---:|---:|---:|---:|---:|---:|",
 ]
 
@@ -1042,7 +1066,9 @@ def report(
         "process; the simulator's wire messages); the system tracks are the engine's own "
         '(`snapshot().system_tracks("confirmed")`, contract §4.4), rebuilt every second of data time '
         "from every radar's tracks, bias-compensated with the joint estimate (solved every 30 s), and "
-        "the confirmed pairs.  Nothing is tuned for this study.  *national*: 12 radars on a 250 km ring, "
+        "the confirmed pairs; a young lone radar track near another system track that lacks its radar "
+        "stays tentative for a while (`SystemTrackParams`).  Nothing is tuned for this study.  "
+        "*national*: 12 radars on a 250 km ring, "
         "1 500 aircraft over a 740 km square, biases 150-450 m / 0.1-0.4 deg (the catalog's), clutter "
         "20-50 plots per scan, Pd 0.90-0.95, scans of 4-6 s, plot noise 200 m / 0.2 deg / 0.2 deg "
         "elevation; *three-radar*: 3 radars, 80 aircraft, biases 100-150 m / 0.1-0.15 deg, the same "
@@ -1171,11 +1197,11 @@ def _what_if(conditions: Sequence[Condition], by_cond: Mapping[int, list[RunResu
         "",
         "### What if a lone new radar track waited?",
         "",
-        "Evaluation only, nothing of the service changed: the same snapshots scored again with every "
-        f"one-member system track whose radar track is younger than {YOUNG_S:.0f} s counted as "
-        "tentative (left out of the confirmed picture), as a system track would be if a lone radar "
-        "track had to wait for its pairs before its system track is confirmed.  Coverage pays for the "
-        "aircraft held by such a track alone.",
+        "Evaluation only, nothing of the service changed: the service holds a young lone radar track "
+        "back only near another system track that lacks its radar (`SystemTrackParams`); here the same "
+        f"snapshots are scored again with every one-member system track whose radar track is younger "
+        f"than {YOUNG_S:.0f} s (plots x scan period) counted as tentative, wherever it is.  Coverage "
+        "pays for the aircraft held by such a track alone.",
         "",
         *HEADLINE_HEAD,
         *rows,
@@ -1206,6 +1232,7 @@ def _analysis(conditions: Sequence[Condition], by_cond: Mapping[int, list[RunRes
         young_single = s_age < YOUNG_S
         tail = fe**2 / np.maximum(sg, 1e-9) ** 2 > CHI2_3_99
         mean_nees = nees(s)
+        book, solo = PairBookParams(), SystemTrackParams()
         lines += [
             f"**{name}** ({len(res)} runs, {s.snapshots} settled snapshots, "
             f"{s.tracks / max(s.snapshots, 1):.0f} confirmed system tracks and "
@@ -1216,25 +1243,34 @@ def _analysis(conditions: Sequence[Condition], by_cond: Mapping[int, list[RunRes
             "track that went over to another aircraft: its label is the aircraft of most of its plots "
             "over its whole life, so the fusion is right and the label is late); the others join a "
             "clutter track, or tracks of two aircraft flying close (examples below).",
-            f"* *Duplicates* {_pct(s.duplicates)} %: {s.duplicated} duplicated aircraft-snapshots, "
+            f"* *Duplicates* {_pct(s.duplicates)} %: {s.duplicated} duplicated aircraft-snapshots: "
             f"{s.dup_unlinked} with tracks of different radars not linked, {s.dup_radar} with two tracks "
             f"of one radar (a radar-tracker duplicate: two tracks of a source never share a system "
-            f"track), {s.dup_mixed} with a mixed track.  In {_pct(_ratio(s.dup_young, s.duplicated), 1)} % "
-            f"of them every stray track is younger than {YOUNG_S:.0f} s (median "
-            f"{_num(_q(ages, 50), '.0f')} s, figure below): a radar has just started a track on an "
-            "aircraft the other radars already hold (it comes into that radar's cover or over its radio "
-            "horizon, or the radar dropped its track and started a new one).  That track is a confirmed "
-            "system track of its own from its own confirmation on (a system track is confirmed when one "
-            "of its members is, contract §4.4), while its pairs with the other radars' tracks confirm "
-            "only some updates later: the pair book needs 3 hits (`PairBookParams`: 3 of 6 updates, "
-            "one update per scan, on confirmed radar tracks only).  Every aircraft coming into a "
-            "radar's view is a duplicate for those seconds; the more radars, each seeing part of the "
-            "traffic, the more often that happens.  Without the young stray tracks the "
-            f"rate would be {_pct(_ratio(s.duplicated - s.dup_young, s.aircraft))} %.",
+            f"track), {s.dup_mixed} with a mixed track (a radar track gone over to another aircraft, "
+            "see purity: each of the two aircraft's system tracks then holds a track of the other).  In "
+            f"{_pct(_ratio(s.dup_young, s.duplicated), 1)} % of them every stray track is younger than "
+            f"{YOUNG_S:.0f} s (median {_num(_q(ages, 50), '.0f')} s, figure below).  A radar's new track "
+            "on an aircraft the other radars already hold (it comes into that radar's cover or over its "
+            "radio horizon, or the radar restarted its track) has no confirmed pair for its first scans: "
+            f"the pair book confirms a pair after {book.confirm_hits} hits in {book.window} updates "
+            "(`PairBookParams`; one update per scan, of confirmed radar tracks).  The service holds such "
+            f"a lone track tentative while it is younger than {solo.solo_hold_s:.0f} s and lies within "
+            f"{solo.solo_gate_m / 1000:.0f} km of another system track that has no track of its radar "
+            "(`SystemTrackParams`); a young stray track farther off is a duplicate until its pairs "
+            "confirm.  Without the young stray tracks the rate would be "
+            f"{_pct(_ratio(s.duplicated - s.dup_young, s.aircraft))} %.",
             f"* *Coverage* {_pct(s.coverage)} %: of {s.seen - s.covered} uncovered aircraft-snapshots, "
-            f"{s.uncovered_mixed} are in mixed tracks only and {s.uncovered_absent} in no confirmed "
-            "system track (its confirmed radar track is no member: confirmed since the last rebuild, "
-            "at most 1 s before, or without a plot for more than the prediction's `max_age_s`, 60 s).",
+            f"{s.uncovered_mixed} are in mixed tracks only, {s.uncovered_held} in tentative system tracks "
+            f"only and {s.uncovered_absent} in no system track at all (a confirmed radar track that is no "
+            "member: confirmed since the last rebuild, at most 1 s before, or without a plot for more "
+            "than the prediction's `max_age_s`, 60 s).  The tentative ones are young lone tracks the "
+            "service holds back (`SystemTrackParams`) although no confirmed system track holds their "
+            f"aircraft: {s.uncovered_held_apart} in two or more tentative system tracks (a new "
+            "aircraft's tracks from different radars, each held back by the other's system track "
+            "nearby, which has no track of its radar: the hold does not ask whether that system track "
+            f"is confirmed itself, so both wait for their pair, or {solo.solo_hold_s:.0f} s), "
+            f"{s.uncovered_held - s.uncovered_held_apart} in one (held near a system track of another "
+            "aircraft, or of clutter).",
             f"* *Fused / raw* {_f3(s.ratio)}: one-member system tracks are {_pct(_share(one), 1)} % of "
             f"the pure tracks and make {_pct(_ratio(float(np.sum(fe[one] ** 2)), total), 1)} % of the "
             f"fused squared error; {_pct(_share(young_single), 1)} % of them are radar tracks younger "
