@@ -160,6 +160,7 @@ class Cat062Writer:
         self.blocks = 0
         self.tracks = 0
         self.bad = 0
+        self.send_errors = 0
 
     def write(self, payload: bytes) -> None:
         try:
@@ -173,7 +174,10 @@ class Cat062Writer:
             for b in blocks:
                 for addr in self._udp:
                     assert self._sock is not None
-                    self._sock.sendto(b, addr)
+                    try:
+                        self._sock.sendto(b, addr)
+                    except OSError:  # an unreachable destination must not stop the others
+                        self.send_errors += 1
                 if self._file is not None:
                     self._file.write(b)
             if self._file is not None:

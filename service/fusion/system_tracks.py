@@ -286,7 +286,15 @@ class SystemTracker:
         owner = np.repeat(np.arange(solo.shape[0]), counts)
         other = cand != lone_group[owner]
         has_radar = np.isin(cand * n_src + source_code[solo][owner], present)
-        hit = other & ~has_radar
+        # Two young lone tracks (one new aircraft seen by two radars at once) must not hold
+        # each other back: of those, the one that joined first (then the lower group) stands.
+        young = np.zeros(n_groups, dtype=bool)
+        young[lone_group] = True
+        joined = np.full(n_groups, np.inf)
+        joined[lone_group] = since[solo]
+        mine = lone_group[owner]
+        earlier = (joined[cand] < joined[mine]) | ((joined[cand] == joined[mine]) & (cand < mine))
+        hit = other & ~has_radar & (~young[cand] | earlier)
         held[lone_group[np.unique(owner[hit])]] = True
         return held
 

@@ -158,3 +158,12 @@ def test_a_young_lone_track_near_a_system_track_without_its_radar_waits() -> Non
     assert not s.confirmed[s.member_group[2]]
     s = tracker.update(m, *link, time_s=60.0)  # stood alone long enough
     assert s.confirmed[s.member_group[2]]
+
+
+def test_two_young_lone_tracks_of_one_new_aircraft_do_not_hold_each_other_back() -> None:
+    tracker = SystemTracker(SystemTrackParams(solo_hold_s=60.0, solo_gate_m=5_000.0))
+    m = members(["A", "B"], ["1", "1"])
+    m = Members(**{**m.__dict__, "position": np.array([[0.0, 0, 0], [800.0, 0, 0]])})
+    empty = np.empty(0, dtype=np.int64)
+    s = tracker.update(m, empty, empty, np.empty(0), time_s=100.0)
+    assert s.confirmed.tolist() == [True, False]  # one stands (the lower group), one waits
