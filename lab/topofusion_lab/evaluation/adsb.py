@@ -51,7 +51,6 @@ import os
 import pathlib
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -60,6 +59,7 @@ import numpy as np
 from service.engine import Engine
 from service.tracking.base import TrackTable
 from service.wire.keys import Keys
+from topofusion_lab.evaluation.jobs import ratio, run_jobs
 from topofusion_lab.scenarios.catalog import get_scenario
 from topofusion_lab.scenarios.simulator import AdsbSpec, RadarSpec, Scenario, generate, identity_of
 
@@ -532,26 +532,10 @@ def make_jobs(
 
 
 def _run_all(jobs: list[Job], workers: int, progress: Callable[[str], None]) -> list[RunResult]:
-    t0 = time.perf_counter()
-    out: list[RunResult] = []
-    if workers <= 1 or len(jobs) <= 1:
-        for k, job in enumerate(jobs):
-            out.append(run_one(job))
-            progress(f"  adsb: run {k + 1}/{len(jobs)} [{time.perf_counter() - t0:.0f} s]")
-        return out
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        futures = [pool.submit(run_one, job) for job in jobs]
-        for k, fut in enumerate(as_completed(futures)):
-            out.append(fut.result())
-            progress(f"  adsb: run {k + 1}/{len(jobs)} [{time.perf_counter() - t0:.0f} s]")
-    return sorted(out, key=lambda r: (r.index, r.seed))
+    return sorted(run_jobs(run_one, jobs, workers, progress, "adsb"), key=lambda r: (r.index, r.seed))
 
 
 # -- summary ------------------------------------------------------------------------------
-
-
-def _ratio(num: float, den: float) -> float:
-    return num / den if den else math.nan
 
 
 @dataclass
@@ -589,15 +573,15 @@ def radar_runs(results: Iterable[RunResult]) -> list[RadarRun]:
             cps = [k for k in r.checkpoints if k.settled_common]
             out.append(
                 RadarRun(
-                    _ratio(c.found, c.common),
-                    _ratio(c.settled_found, c.settled_common),
-                    _ratio(c.correct, c.confirmed),
-                    _ratio(c.false, c.confirmed),
-                    _ratio(c.settled_false, c.settled_confirmed),
-                    _ratio(sum(k.settled_found for k in cps), sum(k.settled_common for k in cps)),
-                    _ratio(sum(k.false for k in r.checkpoints), sum(k.confirmed for k in r.checkpoints)),
-                    _ratio(sum(k.settled_found < GOAL_COMPLETE * k.settled_common for k in cps), len(cps)),
-                    _ratio(
+                    ratio(c.found, c.common),
+                    ratio(c.settled_found, c.settled_common),
+                    ratio(c.correct, c.confirmed),
+                    ratio(c.false, c.confirmed),
+                    ratio(c.settled_false, c.settled_confirmed),
+                    ratio(sum(k.settled_found for k in cps), sum(k.settled_common for k in cps)),
+                    ratio(sum(k.false for k in r.checkpoints), sum(k.confirmed for k in r.checkpoints)),
+                    ratio(sum(k.settled_found < GOAL_COMPLETE * k.settled_common for k in cps), len(cps)),
+                    ratio(
                         sum(d < SHORT_UPDATE * b for d, b in r.updates if b), sum(b > 0 for _, b in r.updates)
                     ),
                     _mean([min(1.0, d / b) for d, b in r.updates if b]),
@@ -808,7 +792,7 @@ def _group_tables(
         rr = radar_runs(res)
         v = verdict(rr)
         verdicts.append((cond, v))
-        ident = [_ratio(r.identity_equal, r.identity_pairs) for r in res]
+        ident = [ratio(r.identity_equal, r.identity_pairs) for r in res]
         final.append(
             f"| {cond.label} | {len(res)} x {cond.radars} | {_mean([r.confirmed for r in rr]):.0f} | "
             f"{_mean([r.common for r in rr]):.0f} | "
@@ -1018,7 +1002,7 @@ def run(
         f"Missed aircraft: of the {sum(c.settled_common for c in finals)} settled common aircraft on the "
         f"final snapshots, {missed} had no correct pair; {unpaired} of them had neither a track nor "
         f"the address in any confirmed pair (their pair had been dropped, or not yet confirmed).  "
-        f"{short} of the {len(updates)} `cfar` updates ({_pct(_ratio(short, len(updates)))} %) were "
+        f"{short} of the {len(updates)} `cfar` updates ({_pct(ratio(short, len(updates)))} %) were "
         "short.",
     ]
     if short:

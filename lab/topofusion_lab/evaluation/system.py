@@ -46,7 +46,6 @@ import pathlib
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -59,6 +58,7 @@ from service.fusion.system_tracks import SystemTrackParams
 from service.geo import geodetic_to_ecef
 from service.tracking.base import TrackTable
 from service.wire.keys import Keys
+from topofusion_lab.evaluation.jobs import ratio, run_jobs
 from topofusion_lab.scenarios.catalog import get_scenario
 from topofusion_lab.scenarios.simulator import AdsbSpec, Scenario, generate, identity_of
 
@@ -213,32 +213,32 @@ class Scored:
 
     @property
     def purity(self) -> float:
-        return _ratio(self.pure, self.pure + self.mixed)
+        return ratio(self.pure, self.pure + self.mixed)
 
     @property
     def duplicates(self) -> float:
-        return _ratio(self.duplicated, self.aircraft)
+        return ratio(self.duplicated, self.aircraft)
 
     @property
     def coverage(self) -> float:
-        return _ratio(self.covered, self.seen)
+        return ratio(self.covered, self.seen)
 
     @property
     def ratio(self) -> float:
         """RMS fused error / RMS raw error, the raw one over every member (the headline)."""
-        return _ratio(_rms(self.fused_err), _rms(self.raw_err))
+        return ratio(_rms(self.fused_err), _rms(self.raw_err))
 
     @property
     def ratio_per_track(self) -> float:
         """RMS fused error / RMS over tracks of each track's members' RMS raw error (each
         aircraft weighs the same on both sides)."""
-        return _ratio(_rms(self.fused_err), _rms(self.track_raw))
+        return ratio(_rms(self.fused_err), _rms(self.track_raw))
 
     def ratio_members(self, at_least: int) -> float:
         """The headline ratio over the system tracks of at least ``at_least`` members."""
         n, rn = np.asarray(self.members), np.asarray(self.raw_members)
         fe, re = np.asarray(self.fused_err), np.asarray(self.raw_err)
-        return _ratio(_rms(fe[n >= at_least]), _rms(re[rn >= at_least]))
+        return ratio(_rms(fe[n >= at_least]), _rms(re[rn >= at_least]))
 
 
 #: A stray track younger than this (s) is a new radar track whose pairs have not confirmed yet.
@@ -594,26 +594,10 @@ def make_jobs(runs: int, seed: int, conditions: Sequence[Condition] = CONDITIONS
 
 
 def _run_all(jobs: list[Job], workers: int, progress: Callable[[str], None]) -> list[RunResult]:
-    t0 = time.perf_counter()
-    out: list[RunResult] = []
-    if workers <= 1 or len(jobs) <= 1:
-        for k, job in enumerate(jobs):
-            out.append(run_one(job))
-            progress(f"  system: run {k + 1}/{len(jobs)} [{time.perf_counter() - t0:.0f} s]")
-    else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            futures = [pool.submit(run_one, job) for job in jobs]
-            for k, fut in enumerate(as_completed(futures)):
-                out.append(fut.result())
-                progress(f"  system: run {k + 1}/{len(jobs)} [{time.perf_counter() - t0:.0f} s]")
-    return sorted(out, key=lambda r: (r.index, r.run))
+    return sorted(run_jobs(run_one, jobs, workers, progress, "system"), key=lambda r: (r.index, r.run))
 
 
 # -- summary ------------------------------------------------------------------------------
-
-
-def _ratio(num: float, den: float) -> float:
-    return num / den if den else math.nan
 
 
 def _rms(xs: Sequence[float] | np.ndarray) -> float:
@@ -777,7 +761,7 @@ def _hi(xs: list[float], fmt: Callable[[float], str]) -> str:
 
 def _error_row(label: str, scores: Sequence[Scored]) -> str:
     def medians(s: Scored) -> float:
-        return _ratio(_q(s.fused_err, 50), _q(s.raw_err, 50))
+        return ratio(_q(s.fused_err, 50), _q(s.raw_err, 50))
 
     return (
         f"| {label} | {_hi([_q(s.fused_err, 50) for s in scores], _m)} | "
@@ -847,7 +831,7 @@ def _cause_row(label: str, scores: Sequence[Scored]) -> str:
         f"{mean(lambda s: per(s, s.clutter))} | {mean(lambda s: per(s, s.duplicated))} "
         f"({mean(lambda s: per(s, s.dup_radar))} / {mean(lambda s: per(s, s.dup_mixed))} / "
         f"{mean(lambda s: per(s, s.dup_unlinked))}) | "
-        f"{_hi([_ratio(s.dup_young, s.duplicated) for s in scores], _pct)} | "
+        f"{_hi([ratio(s.dup_young, s.duplicated) for s in scores], _pct)} | "
         f"{mean(lambda s: per(s, s.seen - s.covered))} ({mean(lambda s: per(s, s.uncovered_mixed))} / "
         f"{mean(lambda s: per(s, s.uncovered_held))} ({mean(lambda s: per(s, s.uncovered_held_apart))}) / "
         f"{mean(lambda s: per(s, s.uncovered_absent))}) |"
@@ -879,8 +863,8 @@ def _by_members(label: str, s: Scored) -> list[str]:
             continue
         out.append(
             f"| {label} | {name} | {_pct(float(np.mean(k)), 1)} | {_m(_rms(fe[k]))} | {_m(_q(fe[k], 50))} | "
-            f"{_m(_rms(re[kr]))} | {_f3(_ratio(_rms(fe[k]), _rms(re[kr])))} | "
-            f"{_pct(_ratio(float(np.sum(fe[k] ** 2)), total), 1)} | "
+            f"{_m(_rms(re[kr]))} | {_f3(ratio(_rms(fe[k]), _rms(re[kr])))} | "
+            f"{_pct(ratio(float(np.sum(fe[k] ** 2)), total), 1)} | "
             f"{_f2(float(np.mean(fe[k] ** 2 / (3 * sg[k] ** 2))))} |"
         )
     return out
@@ -1248,7 +1232,7 @@ def _analysis(conditions: Sequence[Condition], by_cond: Mapping[int, list[RunRes
             f"of one radar (a radar-tracker duplicate: two tracks of a source never share a system "
             f"track), {s.dup_mixed} with a mixed track (a radar track gone over to another aircraft, "
             "see purity: each of the two aircraft's system tracks then holds a track of the other).  In "
-            f"{_pct(_ratio(s.dup_young, s.duplicated), 1)} % of them every stray track is younger than "
+            f"{_pct(ratio(s.dup_young, s.duplicated), 1)} % of them every stray track is younger than "
             f"{YOUNG_S:.0f} s (median {_num(_q(ages, 50), '.0f')} s, figure below).  A radar's new track "
             "on an aircraft the other radars already hold (it comes into that radar's cover or over its "
             "radio horizon, or the radar restarted its track) has no confirmed pair for its first scans: "
@@ -1258,7 +1242,7 @@ def _analysis(conditions: Sequence[Condition], by_cond: Mapping[int, list[RunRes
             f"{solo.solo_gate_m / 1000:.0f} km of another system track that has no track of its radar "
             "(`SystemTrackParams`); a young stray track farther off is a duplicate until its pairs "
             "confirm.  Without the young stray tracks the rate would be "
-            f"{_pct(_ratio(s.duplicated - s.dup_young, s.aircraft))} %.",
+            f"{_pct(ratio(s.duplicated - s.dup_young, s.aircraft))} %.",
             f"* *Coverage* {_pct(s.coverage)} %: of {s.seen - s.covered} uncovered aircraft-snapshots, "
             f"{s.uncovered_mixed} are in mixed tracks only, {s.uncovered_held} in tentative system tracks "
             f"only and {s.uncovered_absent} in no system track at all (a confirmed radar track that is no "
@@ -1272,14 +1256,14 @@ def _analysis(conditions: Sequence[Condition], by_cond: Mapping[int, list[RunRes
             f"{s.uncovered_held - s.uncovered_held_apart} in one (held near a system track of another "
             "aircraft, or of clutter).",
             f"* *Fused / raw* {_f3(s.ratio)}: one-member system tracks are {_pct(_share(one), 1)} % of "
-            f"the pure tracks and make {_pct(_ratio(float(np.sum(fe[one] ** 2)), total), 1)} % of the "
+            f"the pure tracks and make {_pct(ratio(float(np.sum(fe[one] ** 2)), total), 1)} % of the "
             f"fused squared error; {_pct(_share(young_single), 1)} % of them are radar tracks younger "
             f"than {YOUNG_S:.0f} s and {_pct(_share(s_dup), 1)} % the stray track of an aircraft held "
             "by another system track.  A young track at long range is off by kilometres (plot noise "
             "0.2 deg is 1 km across at 300 km, and as much in height); a one-member track is "
             "compensated but not fused, so it keeps that error.  Over the tracks of two or more members "
             f"the ratio is {_f3(s.ratio_members(2))}; the ratio of medians is "
-            f"{_f3(_ratio(_q(fe, 50), _q(s.raw_err, 50)))}.",
+            f"{_f3(ratio(_q(fe, 50), _q(s.raw_err, 50)))}.",
             f"* *Sigma*: mean `e^2 / (3 sigma^2)` {_f2(mean_nees)} (error / sigma "
             f"{_f2(math.sqrt(mean_nees))}): "
             + (
