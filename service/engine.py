@@ -544,9 +544,7 @@ class Engine:
             ids, altitude = np.asarray(r.mmsi, dtype=str), np.zeros(len(r.time_s))  # vessels: sea level
         else:
             ids = np.asarray(r.icao24, dtype=str)
-            altitude = np.full(len(r.time_s), np.nan)  # not reported: see ReferenceTracks.add
-            if r.altitude_m is not None:
-                altitude = np.array([np.nan if a is None else a for a in r.altitude_m], dtype=float)
+            altitude = _floats(r.altitude_m, len(r.time_s))  # NaN: not reported (ReferenceTracks.add)
         self.correlation.reference(
             source_id,
             clock,

@@ -65,6 +65,14 @@ class WireModel(BaseModel):
     model_config = ConfigDict(extra="ignore", frozen=True)
 
 
+class ColumnsModel(WireModel):
+    """Base of columnar models: every column present has the length of the others."""
+
+    @model_validator(mode="after")
+    def _check_lengths(self) -> ColumnsModel:
+        return _equal_lengths(self)
+
+
 class RadarSite(WireModel):
     """A radar's position and random (not systematic) 1-sigma errors."""
 
@@ -94,7 +102,7 @@ def _equal_lengths(model: _Columns, names: Sequence[str] | None = None) -> _Colu
     return model
 
 
-class PlotColumnsModel(WireModel):
+class PlotColumnsModel(ColumnsModel):
     """Columnar plots: one array per field, all of equal length."""
 
     time_s: Annotated[list[TimeS], Field(max_length=MAX_BATCH_ITEMS)]
@@ -118,10 +126,6 @@ class PlotColumnsModel(WireModel):
         default=None, description="barometric flight level per plot (FL = 100 ft; null: none)"
     )
 
-    @model_validator(mode="after")
-    def _check_lengths(self) -> PlotColumnsModel:
-        return _equal_lengths(self)
-
 
 class PlotBatch(WireModel):
     radar_id: SourceId
@@ -142,15 +146,11 @@ class PlotBatch(WireModel):
         return self
 
 
-class AisReportsModel(WireModel):
+class AisReportsModel(ColumnsModel):
     time_s: Annotated[list[TimeS], Field(max_length=MAX_BATCH_ITEMS)]
     mmsi: Annotated[list[Annotated[str, Field(pattern=r"^[0-9]{1,9}$")]], Field(max_length=MAX_BATCH_ITEMS)]
     latitude_deg: Annotated[list[Latitude], Field(max_length=MAX_BATCH_ITEMS)]
     longitude_deg: Annotated[list[Longitude], Field(max_length=MAX_BATCH_ITEMS)]
-
-    @model_validator(mode="after")
-    def _check_lengths(self) -> AisReportsModel:
-        return _equal_lengths(self)
 
 
 class AisBatch(WireModel):
@@ -160,7 +160,7 @@ class AisBatch(WireModel):
     reports: AisReportsModel
 
 
-class AdsbReportsModel(WireModel):
+class AdsbReportsModel(ColumnsModel):
     time_s: Annotated[list[TimeS], Field(max_length=MAX_BATCH_ITEMS)]
     icao24: Annotated[list[Icao24], Field(max_length=MAX_BATCH_ITEMS)]
     latitude_deg: Annotated[list[Latitude], Field(max_length=MAX_BATCH_ITEMS)]
@@ -168,10 +168,6 @@ class AdsbReportsModel(WireModel):
     altitude_m: Annotated[list[Altitude | None], Field(max_length=MAX_BATCH_ITEMS)] | None = Field(
         default=None, description="geometric height above the WGS-84 ellipsoid (null: not reported)"
     )
-
-    @model_validator(mode="after")
-    def _check_lengths(self) -> AdsbReportsModel:
-        return _equal_lengths(self)
 
 
 class AdsbBatch(WireModel):
@@ -301,7 +297,7 @@ Covariance = Annotated[list[Finite], Field(min_length=36, max_length=36)]
 Covariance3 = Annotated[list[Finite], Field(min_length=9, max_length=9)]
 
 
-class TrackStateColumns(WireModel):
+class TrackStateColumns(ColumnsModel):
     """One row per track: what correlation needs of a radar's tracks (state and covariance)."""
 
     track_id: Annotated[list[str], Field(max_length=MAX_TRACKS)]
@@ -316,10 +312,6 @@ class TrackStateColumns(WireModel):
     )
     mode_3a: Annotated[list[str | None], Field(max_length=MAX_TRACKS)] | None = None
     mode_s: Annotated[list[str | None], Field(max_length=MAX_TRACKS)] | None = None
-
-    @model_validator(mode="after")
-    def _check_lengths(self) -> TrackStateColumns:
-        return _equal_lengths(self)
 
 
 class TrackStates(WireModel):
