@@ -108,6 +108,11 @@ def _service_flags(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--log-level", help="logging level (default INFO)")
     p.add_argument("--config", metavar="FILE", help="engine parameters, TOML/YAML/JSON (see `config --show`)")
+    p.add_argument(
+        "--state-dir",
+        metavar="DIR",
+        help="keep sites, biases, registration memory, seq and the track-id epoch here across restarts",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -197,6 +202,7 @@ def settings_from(args: argparse.Namespace) -> Settings:
         ("partition", "partition"),
         ("log_level", "log_level"),
         ("config", "config"),
+        ("state_dir", "state_dir"),
     ]:
         value = getattr(args, flag, None)
         if value is not None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from service.wire.vocabulary import Method, is_source_id
@@ -47,6 +47,27 @@ class Settings(BaseSettings):
     partition: str = Field(default="1/1", pattern=r"^\s*\d+\s*/\s*\d+\s*$")
     #: Capacity of the queue between Zenoh callbacks and the worker (samples).
     queue_size: int = Field(default=4096, ge=1)
+    #: The same queue's capacity in payload bytes: one message of the largest size a payload
+    #: may have (16 MiB, contract §3) always fits.
+    queue_bytes: int = Field(default=256 * 1024 * 1024, ge=16 * 1024 * 1024)
+    #: The longest a Zenoh callback waits for room in a full queue (s) before it drops the
+    #: sample (counted by key): in router mode Zenoh's network thread carries everyone's
+    #: traffic, and a longer wait would stall it.
+    queue_wait_s: float = Field(default=0.5, ge=0, le=10)
+    #: On SIGTERM/SIGINT: how long (s, wall clock) the worker may take to finish the queued
+    #: input and publish its last outputs; what is left then is counted and logged.  Keep it
+    #: under the container's stop timeout (the deploy files give 30 s for 20 s).
+    stop_grace_s: float = Field(default=20.0, ge=0)
+    #: ``/readyz`` is 503 while input has waited in the queue this long (s, wall clock) with
+    #: the worker taking none of it.
+    stall_s: float = Field(default=30.0, gt=0)
+    #: Where what takes minutes to learn survives a restart (``service.state``); ``None``: nothing.
+    state_dir: Path | None = None
+    #: Data time (s) between two periodic state writes.
+    state_interval_s: float = Field(default=30.0, gt=0)
+    #: When set, every HTTP endpoint but ``/healthz`` and ``/readyz`` needs
+    #: ``Authorization: Bearer <token>``.
+    api_token: SecretStr | None = None
     log_level: str = "INFO"
     #: Engine parameter file (TOML, YAML or JSON; ``service.config``); ``None``: defaults.
     config: Path | None = None
