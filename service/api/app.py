@@ -2,15 +2,20 @@
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from typing import Annotated, Any, Literal
+from urllib.parse import parse_qsl, quote, unquote, urlencode
 
 from fastapi import Depends, FastAPI, HTTPException, Query, Request
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
-from fastapi.responses import HTMLResponse, JSONResponse, Response
+from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from starlette.requests import cookie_parser
+from starlette.types import ASGIApp, Receive, Scope, Send
 
 from service.api.metrics import registry_for
 from service.api.picture import add_picture
@@ -98,15 +103,150 @@ def add_offline_docs(app: FastAPI) -> None:
     app.add_route("/redoc", redoc, include_in_schema=False)
 
 
+#: What a probe or a load balancer calls without credentials (contract §4.6).
+OPEN_PATHS = frozenset({"/healthz", "/readyz"})
+#: A browser can add no header to a page load or to an EventSource: ``GET /picture?token=...``
+#: trades the token for a cookie that the page's own requests (its script, styles and feed)
+#: then carry, and sends the browser on to the address without it.
+PICTURE_PATH = "/picture"
+TOKEN_QUERY = "token"
+TOKEN_COOKIE = "topofusion_token"
+
+
+def _route_path(scope: Scope) -> str:
+    """The path the app routes on: without the server's ``root_path`` (as Starlette strips it)."""
+    path: str = scope["path"]
+    root: str = scope.get("root_path", "")
+    if root and path.startswith(root) and path[len(root) : len(root) + 1] in ("", "/"):
+        return path[len(root) :]
+    return path
+
+
+class BearerTokenMiddleware:
+    """Every request but :data:`OPEN_PATHS` needs ``Authorization: Bearer <token>`` or the
+    picture's cookie (:data:`TOKEN_COOKIE`); anything else is 401 with ``WWW-Authenticate: Bearer``.
+
+    Plain ASGI rather than Starlette's ``BaseHTTPMiddleware``: it wraps the mounted static apps
+    as well as the routes, and it hands the response through untouched, so that the picture's
+    server-sent events keep streaming.  Both sides are hashed (SHA-256) before
+    ``hmac.compare_digest``: the time a comparison takes says nothing about the token, not even
+    its length.  The token is never logged.
+    """
+
+    def __init__(self, app: ASGIApp, token: str) -> None:
+        if not token:
+            raise ValueError("an empty API token would let anyone in")
+        self.app = app
+        self._digest = hashlib.sha256(token.encode()).digest()
+
+    def _valid(self, given: bytes) -> bool:
+        return hmac.compare_digest(hashlib.sha256(given).digest(), self._digest)
+
+    def _presented(self, scope: Scope) -> list[bytes]:
+        """The credentials a request carries: a bearer token and the picture's cookie."""
+        out = []
+        for name, value in scope["headers"]:
+            if name == b"authorization":
+                scheme, _, credentials = value.strip().partition(b" ")
+                if scheme.lower() == b"bearer":
+                    out.append(credentials.strip())
+            elif name == b"cookie":
+                cookie = cookie_parser(value.decode("latin-1")).get(TOKEN_COOKIE)
+                if cookie is not None:
+                    out.append(unquote(cookie).encode())
+        return out
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] not in ("http", "websocket"):  # the lifespan
+            await self.app(scope, receive, send)
+            return
+        path = _route_path(scope)
+        if path in OPEN_PATHS:
+            await self.app(scope, receive, send)
+            return
+        if scope["type"] == "http" and scope["method"] == "GET" and path == PICTURE_PATH:
+            query = parse_qsl(scope["query_string"].decode("latin-1"), keep_blank_values=True)
+            given = [v for k, v in query if k == TOKEN_QUERY]
+            if given:
+                if len(given) == 1 and self._valid(given[0].encode()):
+                    rest = [(k, v) for k, v in query if k != TOKEN_QUERY]
+                    await self._to_cookie(scope, given[0], rest)(scope, receive, send)
+                else:
+                    await self._refuse(scope, "invalid token", receive, send)
+                return
+        presented = self._presented(scope)
+        # every credential is compared, so that a wrong header beside a good cookie costs the same
+        if any([self._valid(p) for p in presented]):
+            await self.app(scope, receive, send)
+            return
+        detail = "invalid token" if presented else "missing token: send Authorization: Bearer <token>"
+        await self._refuse(scope, detail, receive, send)
+
+    @staticmethod
+    def _to_cookie(scope: Scope, token: str, rest: list[tuple[str, str]]) -> Response:
+        location = scope.get("root_path", "") + PICTURE_PATH + (f"?{urlencode(rest)}" if rest else "")
+        # no-referrer and no-store: the address that held the token goes nowhere else
+        response = RedirectResponse(
+            location, status_code=303, headers={"Cache-Control": "no-store", "Referrer-Policy": "no-referrer"}
+        )
+        response.set_cookie(
+            TOKEN_COOKIE,
+            quote(token, safe=""),  # any token, as cookie-safe characters
+            path="/",
+            httponly=True,  # out of reach of scripts
+            samesite="strict",  # never sent with another site's requests
+            secure=scope.get("scheme") == "https",
+        )
+        return response
+
+    @staticmethod
+    async def _refuse(scope: Scope, detail: str, receive: Receive, send: Send) -> None:
+        if scope["type"] == "websocket":
+            await send({"type": "websocket.close", "code": 1008, "reason": "unauthorized"})
+            return
+        response = JSONResponse(
+            {"detail": detail},
+            status_code=401,
+            headers={"WWW-Authenticate": "Bearer", "Cache-Control": "no-store"},
+        )
+        await response(scope, receive, send)
+
+
+def _document_bearer(app: FastAPI) -> None:
+    """The OpenAPI document says which operations need the token (Swagger UI's "Authorize")."""
+    plain = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            schema = plain()
+            schemes = schema.setdefault("components", {}).setdefault("securitySchemes", {})
+            schemes["bearer"] = {"type": "http", "scheme": "bearer"}
+            for path, operations in schema.get("paths", {}).items():
+                if path in OPEN_PATHS:
+                    continue
+                for operation in operations.values():
+                    operation["security"] = [{"bearer": []}]
+                    operation.setdefault("responses", {})["401"] = {"description": "no valid token"}
+            app.openapi_schema = schema
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
 def create_app(
     node_factory: Callable[[], ServiceNode],
     on_started: Callable[[ServiceNode], None] | None = None,
     on_stopping: Callable[[ServiceNode], None] | None = None,
+    *,
+    api_token: str | None = None,
 ) -> FastAPI:
     """An app whose lifespan starts ``node_factory()`` and stops it on shutdown.
 
     ``on_started`` / ``on_stopping`` run right after the node starts and right before it
-    stops (the demo starts and stops its simulator there).
+    stops (the demo starts and stops its simulator there).  ``api_token``
+    (``TOPOFUSION_API_TOKEN``): every endpoint but ``/healthz`` and ``/readyz`` needs it
+    (:class:`BearerTokenMiddleware`); ``None`` or empty (an unset variable that compose passes
+    through as ``""``): none does.
     """
 
     @asynccontextmanager
@@ -190,4 +330,8 @@ def create_app(
     # The operator picture (contract §4.5): its page, its live feed, its script and styles.
     add_picture(app)
     app.mount(PICTURE_ASSETS, StaticFiles(packages=[("service.api", "static")]), name="static")
+    if api_token:
+        # around the router: every request meets it before any route, mount or exception handler
+        app.add_middleware(BearerTokenMiddleware, token=api_token)
+        _document_bearer(app)
     return app
