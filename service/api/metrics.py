@@ -1,22 +1,156 @@
-"""Prometheus exposition, computed from the node's snapshot at scrape time."""
+"""Prometheus exposition, computed from the node's snapshot at scrape time.
+
+Every family is built from ``node.status()`` and the bias estimates (``GET /biases``) when
+scraped, so that ``/metrics`` and ``/status`` never disagree.  Two figures need a clock the
+snapshot does not hold, and are measured here in wall time:
+
+* a radar's data lag: now minus its data clock (``last_time_s``);
+* a radar's update rate: batches per wall second over about ``RATE_WINDOW_S``, from the
+  ``batches`` counter as this collector saw it at earlier scrapes.  Wall seconds, not data
+  seconds: a silent radar's data clock stops, so a rate in data time would keep its last value
+  for ever, while the wall rate falls to 0 (docs/operations/metrics.md).
+
+The registry also carries prometheus_client's process, platform and garbage-collector
+collectors, and ``topofusion_build_info``.
+"""
 
 from __future__ import annotations
 
+import math
+import platform
+import threading
+import time
+from collections import deque
 from collections.abc import Iterator
+from importlib.metadata import PackageNotFoundError, version
+from typing import Any
 
 from prometheus_client import CollectorRegistry
-from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
+from prometheus_client.gc_collector import GCCollector
+from prometheus_client.platform_collector import PlatformCollector
+from prometheus_client.process_collector import ProcessCollector
 from prometheus_client.registry import Collector
 
 from service.transport.node import ServiceNode
+from service.wire.vocabulary import REJECTION_REASONS
+
+#: A radar's update rate is measured over (about) this much wall time (s): a minute averages
+#: several scans of the slowest radars (12 s), and a silent radar reads 0 within it.
+RATE_WINDOW_S = 60.0
+#: Counter readings are kept at most once per this many seconds (bounds the memory whatever
+#: the scrape rate), and a rate is measured over at least this long.
+RATE_SAMPLE_S = 1.0
+#: Bias families: (metric name, ``BiasEstimate`` field, help).
+BIAS_GAUGES = (
+    ("topofusion_bias_range_m", "range_bias_m", "Estimated range bias (m)"),
+    ("topofusion_bias_azimuth_deg", "azimuth_bias_deg", "Estimated azimuth bias (deg)"),
+    ("topofusion_bias_elevation_deg", "elevation_bias_deg", "Estimated elevation bias (deg)"),
+    ("topofusion_bias_range_sigma_m", "range_bias_sigma_m", "1-sigma of the range bias estimate (m)"),
+    ("topofusion_bias_azimuth_sigma_deg", "azimuth_bias_sigma_deg", "1-sigma of the azimuth bias (deg)"),
+    (
+        "topofusion_bias_elevation_sigma_deg",
+        "elevation_bias_sigma_deg",
+        "1-sigma of the elevation bias (deg)",
+    ),
+    ("topofusion_bias_pairs_used", "pairs_used", "Confirmed pairs of the latest update in the bias solve"),
+)
+
+
+def _distribution_version(name: str) -> str:
+    try:
+        return version(name)
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown"
+
+
+class RateMeter:
+    """Per radar, batches per wall second over about ``RATE_WINDOW_S``, from counter readings.
+
+    Each scrape hands in the counters; the rate is the increase since the newest reading at
+    least ``window_s`` old (or, until there is one, the oldest), over the wall time between.
+    NaN until a radar has a reading at least ``sample_s`` old (two scrapes a moment apart
+    would give 0 or some huge rate).  A counter that went down (the radar was forgotten and
+    came back) starts the radar afresh.
+    """
+
+    def __init__(self, window_s: float = RATE_WINDOW_S, sample_s: float = RATE_SAMPLE_S) -> None:
+        self.window_s = window_s
+        self.sample_s = sample_s
+        self._readings: dict[str, deque[tuple[float, int]]] = {}
+        self._lock = threading.Lock()  # scrapes run on the HTTP server's worker threads
+
+    def rates(self, counters: dict[str, int], now: float) -> dict[str, float]:
+        out = {}
+        with self._lock:
+            for rid in set(self._readings) - set(counters):
+                del self._readings[rid]
+            for rid, n in counters.items():
+                seen = self._readings.setdefault(rid, deque())
+                if seen and n < seen[-1][1]:
+                    seen.clear()
+                while len(seen) >= 2 and now - seen[1][0] >= self.window_s:
+                    seen.popleft()
+                base = seen[0] if seen else None
+                span = now - base[0] if base is not None else 0.0
+                out[rid] = (n - base[1]) / span if base is not None and span >= self.sample_s else math.nan
+                if not seen or now - seen[-1][0] >= self.sample_s:
+                    seen.append((now, n))
+        return out
 
 
 class NodeCollector(Collector):
     def __init__(self, node: ServiceNode) -> None:
         self.node = node
+        self.rates = RateMeter()
+        self.build = {
+            "version": _distribution_version("topofusion"),
+            "python": platform.python_version(),
+            "zenoh": _distribution_version("eclipse-zenoh"),
+        }
 
     def collect(self) -> Iterator[Metric]:
         status = self.node.status()
+        yield from self._radars(status)
+        rejected = CounterMetricFamily("topofusion_rejected", "Rejected messages", labels=["reason"])
+        # Every reason from the start: a reason's first rejection is then an increase from 0,
+        # which rate() and increase() see (a series that appears at 1 shows no increase).
+        for reason, n in {**dict.fromkeys(REJECTION_REASONS, 0), **status["rejected"]}.items():
+            rejected.add_metric([reason], n)
+        yield rejected
+        pairs = GaugeMetricFamily("topofusion_pairs", "Correlated pairs", labels=["status"])
+        pairs.add_metric(["confirmed"], status["pairs_confirmed"])
+        pairs.add_metric(["tentative"], status["pairs_tentative"])
+        yield pairs
+        yield from self._identity(status)
+        yield from self._correlation(status["correlation"])
+        yield from self._biases()
+        q = status["queue"]
+        yield GaugeMetricFamily("topofusion_queue_depth", "Samples waiting for the worker", value=q["depth"])
+        yield GaugeMetricFamily(
+            "topofusion_queue_capacity", "Samples the ingest queue holds at most", value=q["capacity"]
+        )
+        yield GaugeMetricFamily(
+            "topofusion_queue_bytes", "Payload bytes waiting for the worker", value=q.get("bytes", 0)
+        )
+        yield GaugeMetricFamily(
+            "topofusion_queue_capacity_bytes",
+            "Payload bytes the ingest queue holds at most (0: not reported)",
+            value=q.get("capacity_bytes", 0),
+        )
+        yield CounterMetricFamily(
+            "topofusion_queue_dropped", "Samples dropped on a full queue", value=q["dropped"]
+        )
+        yield GaugeMetricFamily("topofusion_uptime_seconds", "Process uptime", value=status["uptime_s"])
+        info = GaugeMetricFamily(
+            "topofusion_build_info",
+            "Always 1: the service's version and those of Python and Zenoh",
+            labels=list(self.build),
+        )
+        info.add_metric(list(self.build.values()), 1)
+        yield info
+
+    def _radars(self, status: dict[str, Any]) -> Iterator[Metric]:
         batches = CounterMetricFamily("topofusion_batches", "Accepted plot batches", labels=["radar"])
         plots = CounterMetricFamily("topofusion_plots", "Accepted plots", labels=["radar"])
         lost = CounterMetricFamily(
@@ -37,6 +171,20 @@ class NodeCollector(Collector):
             "1 while the radar has sent nothing for the expiry time",
             labels=["radar"],
         )
+        lag = GaugeMetricFamily(
+            "topofusion_radar_data_lag_seconds",
+            "Wall clock now minus the radar's newest data time (s)",
+            labels=["radar"],
+        )
+        rate = GaugeMetricFamily(
+            "topofusion_radar_update_rate_hz",
+            f"Accepted batches per wall second over the last {RATE_WINDOW_S:.0f} s (NaN: one reading yet)",
+            labels=["radar"],
+        )
+        now = time.time()
+        rates = self.rates.rates(
+            {r["radar_id"]: int(r["batches"]) for r in status["radars"]}, time.monotonic()
+        )
         for r in status["radars"]:
             rid = r["radar_id"]
             batches.add_metric([rid], r["batches"])
@@ -48,15 +196,12 @@ class NodeCollector(Collector):
             evicted.add_metric([rid], r["window_evicted"])
             restarts.add_metric([rid], r["restarts"])
             expired.add_metric([rid], float(r["expired"]))
-        yield from (batches, plots, lost, window, tracks, evicted, restarts, expired)
-        rejected = CounterMetricFamily("topofusion_rejected", "Rejected messages", labels=["reason"])
-        for reason, n in status["rejected"].items():
-            rejected.add_metric([reason], n)
-        yield rejected
-        pairs = GaugeMetricFamily("topofusion_pairs", "Correlated pairs", labels=["status"])
-        pairs.add_metric(["confirmed"], status["pairs_confirmed"])
-        pairs.add_metric(["tentative"], status["pairs_tentative"])
-        yield pairs
+            if r["last_time_s"] is not None:  # before its first batch a radar has no data to lag
+                lag.add_metric([rid], now - float(r["last_time_s"]))
+            rate.add_metric([rid], rates[rid])
+        yield from (batches, plots, lost, window, tracks, evicted, restarts, expired, lag, rate)
+
+    def _identity(self, status: dict[str, Any]) -> Iterator[Metric]:
         ident = status.get("identity") or {"by_pair": []}
         with_s = GaugeMetricFamily(
             "topofusion_identity_pairs_with_mode_s",
@@ -77,9 +222,10 @@ class NodeCollector(Collector):
         yield GaugeMetricFamily(
             "topofusion_identity_agreement",
             "Share of confirmed pairs with Mode S on both tracks whose addresses are equal (NaN: none)",
-            value=float("nan") if agreement is None else agreement,
+            value=math.nan if agreement is None else agreement,
         )
-        corr = status["correlation"]
+
+    def _correlation(self, corr: dict[str, Any]) -> Iterator[Metric]:
         yield CounterMetricFamily(
             "topofusion_correlation_updates", "Correlation updates", value=corr["updates"]
         )
@@ -89,15 +235,30 @@ class NodeCollector(Collector):
         p.add_metric(["0.5"], corr["p50_ms"])
         p.add_metric(["0.99"], corr["p99_ms"])
         yield p
-        q = status["queue"]
-        yield GaugeMetricFamily("topofusion_queue_depth", "Samples waiting for the worker", value=q["depth"])
-        yield CounterMetricFamily(
-            "topofusion_queue_dropped", "Samples dropped on a full queue", value=q["dropped"]
+        yield HistogramMetricFamily(
+            "topofusion_correlation_duration_seconds",
+            "Pair update time, every update since the start (s)",
+            buckets=list(corr["duration_buckets"].items()),
+            sum_value=corr["duration_sum_s"],
         )
-        yield GaugeMetricFamily("topofusion_uptime_seconds", "Process uptime", value=status["uptime_s"])
+
+    def _biases(self) -> Iterator[Metric]:
+        """The joint bias estimate, as ``GET /biases`` answers it (a radar without one: none)."""
+        biases = self.node.snapshot.biases()
+        for name, field, text in BIAS_GAUGES:
+            gauge = GaugeMetricFamily(name, text, labels=["radar"])
+            for b in biases:
+                if b.get(field) is not None:  # a sigma may be null: not known
+                    gauge.add_metric([b["radar_id"]], b[field])
+            yield gauge
 
 
 def registry_for(node: ServiceNode) -> CollectorRegistry:
+    """The service's own registry: its node's families, and the process (CPU, memory, open
+    files; Linux), the Python platform and the garbage collector."""
     registry = CollectorRegistry()
     registry.register(NodeCollector(node))
+    ProcessCollector(registry=registry)
+    PlatformCollector(registry=registry)
+    GCCollector(registry=registry)
     return registry

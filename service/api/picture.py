@@ -144,15 +144,22 @@ def build_snapshot(
     for b in snap.biases():
         site = by_site.get(b["radar_id"], {})
         n = max(1, int(b["pairs_used"]))
-        # Approximate 1-sigma: the contract's BiasEstimate carries no covariance, so the page
-        # shows the radar's random errors over the square root of the pairs used.
+        # The estimate's own 1-sigma; where it is not known (null, or a bias worker of an
+        # older version), an approximation: the radar's random errors over the square root
+        # of the pairs used.
+        range_sigma = b.get("range_bias_sigma_m")
+        azimuth_sigma = b.get("azimuth_bias_sigma_deg")
+        if range_sigma is None:
+            range_sigma = float(site.get("range_sigma_m", 200.0)) / math.sqrt(n)
+        if azimuth_sigma is None:
+            azimuth_sigma = float(site.get("azimuth_sigma_deg", 0.2)) / math.sqrt(n)
         biases.append(
             {
                 "radar_id": b["radar_id"],
                 "range_m": _r(b["range_bias_m"], 1),
                 "azimuth_deg": _r(b["azimuth_bias_deg"], 4),
-                "range_sigma_m": _r(float(site.get("range_sigma_m", 200.0)) / math.sqrt(n), 1),
-                "azimuth_sigma_deg": _r(float(site.get("azimuth_sigma_deg", 0.2)) / math.sqrt(n), 4),
+                "range_sigma_m": _r(range_sigma, 1),
+                "azimuth_sigma_deg": _r(azimuth_sigma, 4),
                 "pairs_used": int(b["pairs_used"]),
                 "time_s": b["time_s"],
             }

@@ -106,7 +106,9 @@ class RadarBias:
     """One radar's estimated systematic errors (``GET /biases``).
 
     ``pairs_used``: confirmed pairs (over all radar pairs involving this radar) of the latest
-    update that entered the least squares; earlier remembered updates are used as well.
+    update that entered the least squares; earlier remembered updates are used as well.  The
+    ``*_sigma_*`` are the 1-sigma of each bias (:meth:`BiasSolution.std`, cluster-robust once
+    enough track pairs entered).
     """
 
     radar_id: str
@@ -115,6 +117,9 @@ class RadarBias:
     elevation_bias_deg: float
     pairs_used: int
     time_s: float
+    range_bias_sigma_m: float
+    azimuth_bias_sigma_deg: float
+    elevation_bias_sigma_deg: float
 
 
 @dataclass(frozen=True)
@@ -626,6 +631,7 @@ def compensate(
 def to_estimates(solution: BiasSolution | None, time_s: float) -> list[RadarBias]:
     if solution is None:
         return []
+    std = solution.std()
     return [
         RadarBias(
             radar_id=rid,
@@ -634,6 +640,9 @@ def to_estimates(solution: BiasSolution | None, time_s: float) -> list[RadarBias
             elevation_bias_deg=float(np.degrees(solution.bias[k, 2])),
             pairs_used=int(solution.pairs_used[rid]),
             time_s=float(time_s),
+            range_bias_sigma_m=float(std[k, 0]),
+            azimuth_bias_sigma_deg=float(np.degrees(std[k, 1])),
+            elevation_bias_sigma_deg=float(np.degrees(std[k, 2])),
         )
         for k, rid in enumerate(solution.radar_ids)
     ]

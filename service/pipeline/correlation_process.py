@@ -31,7 +31,7 @@ import numpy as np
 from service.correlation import CorrelationParams
 from service.correlation.registration import RegistrationRowsData
 from service.geo import Site
-from service.pipeline.correlation_stage import CadenceParams, CorrelationStage, SharedRows
+from service.pipeline.correlation_stage import CadenceParams, CorrelationStage, SharedRows, timings_dict
 from service.pipeline.partition import Partition
 from service.pipeline.read_model import PairSetView, SystemTrackView
 from service.reference import ReferenceParams
@@ -104,7 +104,8 @@ class RemoteCorrelation:
         self.biases: list[dict[str, Any]] = []
         self.system_view: SystemTrackView | None = None
         self._system_ready: list[SystemTrackView] = []
-        self._timings: dict[str, Any] = {"updates": 0, "last_ms": 0.0, "p50_ms": 0.0, "p99_ms": 0.0}
+        #: The child's latest ``timings()`` (its update time histogram with them).
+        self._timings: dict[str, Any] = timings_dict()
         self._ready: list[tuple[Key, PairSetView]] = []
         self._errors: list[tuple[str, str]] = []
         self._rows: list[SharedRows] = []

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from typing import Any
 
@@ -53,6 +53,15 @@ from service.wire.outputs import bias_dict
 
 #: Method used between a radar and a reference source.
 REFERENCE_METHOD = "cfar"
+#: Upper bounds (s) of the pair update time histogram (``/status`` ``correlation``
+#: ``duration_buckets``, Prometheus ``le``): a pair of a few tracks takes about a millisecond,
+#: a national network's busiest pairs tens, and anything near the scan period (seconds) is an
+#: update that falls behind the radars.
+DURATION_BUCKETS_S = np.array([0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0])
+#: The bucket names: each bound as Python writes it, then ``+Inf`` (every update).
+DURATION_LABELS = (*(repr(float(b)) for b in DURATION_BUCKETS_S), "+Inf")
+#: Pair update times kept for the quantiles (``p50_ms``, ``p99_ms``).
+RECENT_UPDATES = 2048
 
 log = logging.getLogger(__name__)
 
@@ -142,9 +151,13 @@ class CorrelationStage:
         self.correlators: dict[tuple[str, str], PairCorrelator] = {}
         self.views: dict[tuple[str, str], PairSetView] = {}
         self.next_due: dict[tuple[str, str], float] = {}
-        self.timings_ms: deque[float] = deque(maxlen=2048)
+        self.timings_ms: deque[float] = deque(maxlen=RECENT_UPDATES)
         self.updates = 0
         self.last_ms = 0.0
+        #: Every update's time, not only the recent ones: updates per bucket of
+        #: ``DURATION_BUCKETS_S`` (the last one above them all), and their sum (s).
+        self.duration_counts = np.zeros(len(DURATION_LABELS), dtype=np.int64)
+        self.duration_sum_s = 0.0
         self.biases: list[dict[str, Any]] = []
         self._next_bias_s = -np.inf
         self._joint: BiasSolution | None = None
@@ -316,6 +329,9 @@ class CorrelationStage:
             self.updates += 1
             self.last_ms = float(corr.last_update_ms)
             self.timings_ms.append(self.last_ms)
+            # side="left": a time equal to a bound counts in that bound's bucket (``le``)
+            self.duration_counts[np.searchsorted(DURATION_BUCKETS_S, self.last_ms / 1000.0)] += 1
+            self.duration_sum_s += self.last_ms / 1000.0
             self.views[key] = PairSetView.of(key, corr, time_s)
             updated.append(key)
             if self._share_rows and corr.last_rows is not None:
@@ -415,10 +431,30 @@ class CorrelationStage:
         return [self.views[k] for k in sorted(self.views)]
 
     def timings(self) -> dict[str, Any]:
-        t = np.asarray(self.timings_ms) if self.timings_ms else np.zeros(1)
-        return {
-            "updates": self.updates,
-            "last_ms": round(self.last_ms, 3),
-            "p50_ms": round(float(np.percentile(t, 50)), 3),
-            "p99_ms": round(float(np.percentile(t, 99)), 3),
-        }
+        return timings_dict(
+            self.updates, self.last_ms, self.timings_ms, self.duration_counts, self.duration_sum_s
+        )
+
+
+def timings_dict(
+    updates: int = 0,
+    last_ms: float = 0.0,
+    recent_ms: Collection[float] = (),
+    duration_counts: np.ndarray | None = None,
+    duration_sum_s: float = 0.0,
+) -> dict[str, Any]:
+    """``/status`` ``correlation`` (``CorrelationTimings``); without arguments: before any update.
+
+    ``duration_buckets`` is cumulative, as Prometheus wants it: the updates that took at most
+    each bound; its ``+Inf`` is every update.
+    """
+    t = np.asarray(recent_ms) if len(recent_ms) else np.zeros(1)
+    counts = np.zeros(len(DURATION_LABELS), dtype=np.int64) if duration_counts is None else duration_counts
+    return {
+        "updates": updates,
+        "last_ms": round(last_ms, 3),
+        "p50_ms": round(float(np.percentile(t, 50)), 3),
+        "p99_ms": round(float(np.percentile(t, 99)), 3),
+        "duration_buckets": dict(zip(DURATION_LABELS, np.cumsum(counts).tolist(), strict=True)),
+        "duration_sum_s": duration_sum_s,
+    }

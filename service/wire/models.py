@@ -395,6 +395,12 @@ class CorrelationTimings(OutModel):
     last_ms: float
     p50_ms: float
     p99_ms: float
+    duration_buckets: dict[str, int] = Field(
+        default_factory=dict,
+        description="every update's time as a cumulative histogram: by upper bound in seconds "
+        "(Prometheus le; the last, +Inf, counts every update), the updates that took at most it",
+    )
+    duration_sum_s: float = Field(default=0.0, description="the sum of every update's time (s)")
 
 
 class WorkerInfo(OutModel):
@@ -479,6 +485,15 @@ class BiasEstimate(OutModel):
     elevation_bias_deg: float
     pairs_used: int
     time_s: float
+    range_bias_sigma_m: float | None = Field(
+        default=None, description="1-sigma of range_bias_m (cluster-robust); null: not known"
+    )
+    azimuth_bias_sigma_deg: float | None = Field(
+        default=None, description="1-sigma of azimuth_bias_deg (cluster-robust); null: not known"
+    )
+    elevation_bias_sigma_deg: float | None = Field(
+        default=None, description="1-sigma of elevation_bias_deg (cluster-robust); null: not known"
+    )
 
 
 class BiasSet(OutModel):

@@ -75,9 +75,13 @@ def track_rows(c: dict[str, np.ndarray]) -> list[dict[str, Any]]:
 
 
 def bias_dict(b: Any) -> dict[str, Any] | None:
+    """``BiasEstimate`` of a radar's bias (``RadarBias``); None without a finite estimate."""
     values = (b.range_bias_m, b.azimuth_bias_deg, b.elevation_bias_deg)
     if not all(np.isfinite(v) for v in values):
         return None
+    # a 1-sigma that is not finite is null ("not known"), the estimate still stands
+    sigma_names = ("range_bias_sigma_m", "azimuth_bias_sigma_deg", "elevation_bias_sigma_deg")
+    sigmas = {k: float(v) if np.isfinite(v := getattr(b, k)) else None for k in sigma_names}
     return {
         "radar_id": b.radar_id,
         "range_bias_m": float(b.range_bias_m),
@@ -85,6 +89,7 @@ def bias_dict(b: Any) -> dict[str, Any] | None:
         "elevation_bias_deg": float(b.elevation_bias_deg),
         "pairs_used": int(b.pairs_used),
         "time_s": float(b.time_s),
+        **sigmas,
     }
 
 

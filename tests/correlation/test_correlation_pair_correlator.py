@@ -68,6 +68,9 @@ def test_api_contract() -> None:
         "elevation_bias_deg",
         "pairs_used",
         "time_s",
+        "range_bias_sigma_m",
+        "azimuth_bias_sigma_deg",
+        "elevation_bias_sigma_deg",
     ]
 
 
