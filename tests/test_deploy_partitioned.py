@@ -147,10 +147,20 @@ def test_compose_workers_share_one_definition() -> None:
         svc = json.loads(json.dumps(svc))
         svc.get("environment", {}).pop("TOPOFUSION_PARTITION", None)
         svc.pop("ports", None)
+        svc.pop("volumes", None)
         return svc
 
     workers = list(_compose_workers().values())
     assert all(differences_removed(w) == differences_removed(workers[0]) for w in workers)
+    # what differs: the partition, the host port, and the state volume (a state file is one
+    # partition's: a worker refuses another's)
+    state = [
+        v["source"]
+        for w in workers
+        for v in w["volumes"]
+        if v["target"] == w["environment"]["TOPOFUSION_STATE_DIR"]
+    ]
+    assert len(state) == len(set(state)) == len(workers)
 
 
 def test_compose_names_only_what_exists() -> None:
