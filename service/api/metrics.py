@@ -142,6 +142,11 @@ class NodeCollector(Collector):
             "topofusion_queue_dropped", "Samples dropped on a full queue", value=q["dropped"]
         )
         yield GaugeMetricFamily("topofusion_uptime_seconds", "Process uptime", value=status["uptime_s"])
+        yield GaugeMetricFamily(
+            "topofusion_ready",
+            "1 while GET /readyz answers 200 (it says why not)",
+            value=float(self.node.ready),
+        )
         info = GaugeMetricFamily(
             "topofusion_build_info",
             "Always 1: the service's version and those of Python and Zenoh",
