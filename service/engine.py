@@ -9,6 +9,10 @@ read model (:meth:`Engine.snapshot`) is immutable views whose JSON is built only
 A message is checked whole before anything changes: a rejected message changes no state, and
 a released batch whose processing fails is rolled back by its stage (the tracker applies a
 batch whole or not at all) and reported as ``internal``.
+
+What a restart keeps (contract §4.6 "State") is :meth:`Engine.export_state`, an
+:class:`EngineState` that :mod:`service.state` writes and gives back to
+:meth:`Engine.restore_state` at the next start.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from __future__ import annotations
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -34,7 +39,7 @@ from service.pipeline.merger import TableMerger
 from service.pipeline.read_model import RadarRow, Snapshot, track_batch
 from service.pipeline.sequencer import RADAR, REFERENCE, Release, Sequencer, SourceClock
 from service.pipeline.track_exchange import StatesReceiver, StatesSender, decode_states
-from service.pipeline.tracking_stage import SiteChange, TrackerFactory, TrackingStage
+from service.pipeline.tracking_stage import SiteChange, TrackerFactory, TrackingStage, to_geometry
 from service.tracking.base import PlotColumns, Tracker, TrackTable
 from service.wire.keys import Keys
 from service.wire.models import (
@@ -52,7 +57,16 @@ from service.wire.models import (
 )
 from service.wire.outputs import encode, rejection
 
-__all__ = ["Engine", "EngineConfig", "Outgoing", "RejectionError", "Snapshot", "load_sites", "plot_columns"]
+__all__ = [
+    "Engine",
+    "EngineConfig",
+    "EngineState",
+    "Outgoing",
+    "RejectionError",
+    "Snapshot",
+    "load_sites",
+    "plot_columns",
+]
 
 
 class Outgoing:
@@ -94,8 +108,10 @@ def load_sites(path: str | Path) -> tuple[RadarSite, ...]:
         raise ValueError(f"sites file {p} is not a JSON list of RadarSite: {exc}") from None
 
 
-def tracker_for(config: EngineConfig) -> TrackerFactory:
-    """The tracker of each radar: the configured initiator, window and parameters."""
+def tracker_for(config: EngineConfig, epoch: Callable[[], int] = lambda: 0) -> TrackerFactory:
+    """The tracker of each radar: the configured initiator, window and parameters, its track
+    ids numbered from the id epoch ``epoch()`` gives when the tracker is made (at the radar's
+    first batch; :meth:`Engine.restore_state`)."""
     from service.tracking import make_tracker
     from service.truth_labels import TruthLabelledTracker
 
@@ -103,10 +119,45 @@ def tracker_for(config: EngineConfig) -> TrackerFactory:
 
     def factory(site: Site, radar_id: str) -> Tracker:
         # TrackBatch.truth_id (evaluation only) is tallied outside the tracker
-        tracker = make_tracker(site, config.window_s, config.initiator, radar_id, config.tracking)
+        tracker = make_tracker(
+            site, config.window_s, config.initiator, radar_id, config.tracking, epoch=epoch()
+        )
         return TruthLabelledTracker(tracker)
 
     return factory
+
+
+@dataclass(frozen=True)
+class EngineState:
+    """What the engine keeps across a restart (contract §4.6 "State"; :mod:`service.state`
+    writes and reads it), in plain values and numpy arrays.
+
+    ``sites``: every radar's ``RadarSite``; ``sources``: each source's latest ``seq`` and data
+    clock (:meth:`Sequencer.export_state`); ``reference_kinds``: each reference source's input
+    kind (``ais`` or ``adsb``); ``published_biases``: the ``BiasSet`` the bias worker last
+    published (another partitioned worker's ``GET /biases``); ``correlation``: the registration
+    memories and the joint bias solution (:meth:`CorrelationStage.export_state`);
+    ``data_clock_s``: the newest data clock when taken (None: no data yet).  Tracks and pair
+    books are not kept: the input that follows rebuilds them.
+    """
+
+    sites: list[dict[str, Any]]
+    sources: list[dict[str, Any]]
+    reference_kinds: dict[str, str]
+    published_biases: dict[str, Any] | None
+    correlation: dict[str, Any]
+    data_clock_s: float | None
+
+    def summary(self) -> str:
+        """One line of what it holds (for the log)."""
+        memories = self.correlation["memories"]
+        rows = sum(len(m["rows"]["time"]) for m in memories)
+        joint = self.correlation["joint"]
+        return (
+            f"{len(self.sites)} radar sites, {len(self.sources)} source clocks, "
+            f"{len(memories)} registration memories ({rows} rows), "
+            f"biases of {len(joint['radar_ids']) if joint else 0} radars"
+        )
 
 
 def plot_columns(batch: PlotBatch) -> PlotColumns:
@@ -189,7 +240,11 @@ class Engine:
         self.config = config or EngineConfig()
         self.keys = Keys(self.config.prefix)
         self.sequencer = Sequencer(self.config.sequencer)
-        self.tracking = TrackingStage(tracker_factory or tracker_for(self.config), self.config.site)
+        #: The track-id epoch (:meth:`restore_state`): 0 unless a state directory says otherwise.
+        self.epoch = 0
+        self.tracking = TrackingStage(
+            tracker_factory or tracker_for(self.config, lambda: self.epoch), self.config.site
+        )
         c = self.config
         self.correlation: CorrelationStage | RemoteCorrelation
         stage_args = (c.method, c.cadence, c.reference, c.correlation, c.partition)
@@ -241,6 +296,72 @@ class Engine:
         """Stop the correlation process, if any (the engine's only resource)."""
         if isinstance(self.correlation, RemoteCorrelation):
             self.correlation.close()
+
+    # -- kept across a restart (service.state) -------------------------------------------------
+    @property
+    def data_clock_s(self) -> float:
+        """The newest data clock of an accepted batch (-inf: none yet); never goes back."""
+        return self.sequencer.newest_s
+
+    def export_state(self) -> EngineState:
+        """What a restart keeps (:class:`EngineState`), taken between two messages.  With the
+        correlation in its own process this waits until it has answered everything sent to it,
+        so the state is of one moment."""
+        clock = self.data_clock_s
+        return EngineState(
+            sites=[r.site.model_dump(mode="json") for _, r in sorted(self.tracking.radars.items())],
+            sources=self.sequencer.export_state(),
+            reference_kinds=dict(sorted(self.reference_kinds.items())),
+            published_biases=self.published_biases,
+            correlation=self.correlation.export_state(),
+            data_clock_s=clock if np.isfinite(clock) else None,
+        )
+
+    def restore_state(self, state: EngineState | None, epoch: int) -> None:
+        """Take what :meth:`export_state` gave, before any input (``None``: nothing but the epoch).
+
+        New radar tracks (each radar's tracker is made at its next batch) and new system tracks
+        are numbered from the first number of id epoch ``epoch``
+        (:func:`~service.tracking.base.first_number`), so no id of an earlier start comes again
+        (a ``tracker_factory`` given to the engine numbers its own).  A saved site of a radar
+        the configuration names gives way to the configuration's; the others come back as if
+        announced again.  Everything is read before anything changes: a state that is not one
+        raises (``KeyError``, ``TypeError``, ``ValueError``) and leaves the engine as it was.
+        """
+        configured = {site.radar_id for site in self.config.sites}
+        sites: list[RadarSite] = []
+        sources: list[tuple[float, str, int, int]] = []
+        kinds: dict[str, str] = {}
+        published = None
+        if state is not None:
+            sites = [
+                site
+                for site in (RadarSite.model_validate(s) for s in state.sites)
+                if site.radar_id not in configured
+            ]
+            sources = Sequencer.read_state(state.sources)
+            kinds = {str(k): str(v) for k, v in state.reference_kinds.items()}
+            if not set(kinds.values()) <= {"ais", "adsb"}:
+                raise ValueError(f"reference kinds {sorted(set(kinds.values()))}")
+            if state.published_biases is not None:
+                try:
+                    published = BiasSet.model_validate(state.published_biases).model_dump()
+                except ValidationError:  # of an older wire model: the bias worker's next one comes
+                    published = None
+        geometries = {rid: r.geometry for rid, r in self.tracking.radars.items()}
+        geometries.update({site.radar_id: to_geometry(site) for site in sites})
+        self.correlation.restore_state(None if state is None else state.correlation, epoch, geometries)
+        # from here on nothing raises
+        self.epoch = epoch
+        for site in sites:
+            try:
+                self._set_site(site)
+            except RejectionError:  # more sites than the sequencer holds (max_sources): the rest wait
+                break
+        self.sequencer.restore_state(sources)
+        self.reference_kinds.update(kinds)
+        self.published_biases = published
+        self._snapshot = None
 
     # -- ingest ------------------------------------------------------------------------
     def ingest(self, key: str, payload: bytes, receive_time_s: float | None = None) -> list[Outgoing]:

@@ -32,8 +32,9 @@ the relative bias even where the split between the radars is prior-driven.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, fields
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -332,34 +333,87 @@ class RegistrationMemory:
         raw ECEF positions and the sum ``s`` of their position covariances); every other
         column is derived here.  Returns those defining columns: another process that adds
         the same rows in the same order holds the same memory (partitioned workers)."""
+        pair = np.char.add(np.char.add(track_a, "\x1f"), track_b)
+        self._append({"time": np.full(len(p_a), float(time_s)), **self._rows_of(pair, p_a, p_b, s)})
+        self._updates.append((float(time_s), len(p_a)))
+        if prune:
+            self.prune(time_s, params)
+        return RegistrationRowsData(float(time_s), track_a, track_b, p_a, p_b, s)
+
+    def _rows_of(
+        self, pair: np.ndarray, p_a: np.ndarray, p_b: np.ndarray, s: np.ndarray
+    ) -> dict[str, np.ndarray]:
+        """Every column of rows but ``time``: the defining ones and the pieces derived here."""
         ga = bias_jacobian(self.site_a, p_a)
         gb = bias_jacobian(self.site_b, p_b) if self.site_b is not None else np.zeros((len(p_b), 3, 3))
         w, w_ok = inv3(s)
         gat_w = np.swapaxes(ga, 1, 2) @ w
         gbt_w = np.swapaxes(gb, 1, 2) @ w
-        pair = np.char.add(np.char.add(track_a, "\x1f"), track_b)
-        self._append(
-            {
-                "time": np.full(len(p_a), float(time_s)),
-                "pair": pair,
-                "p_a": p_a,
-                "p_b": p_b,
-                "g_a": ga,
-                "g_b": gb,
-                "s": s,
-                "w": w,
-                "w_ok": w_ok,
-                "gaw": gat_w,
-                "gbw": gbt_w,
-                "haa": gat_w @ ga,
-                "hab": gat_w @ gb,
-                "hbb": gbt_w @ gb,
-            }
-        )
-        self._updates.append((float(time_s), len(p_a)))
-        if prune:
-            self.prune(time_s, params)
-        return RegistrationRowsData(float(time_s), track_a, track_b, p_a, p_b, s)
+        return {
+            "pair": pair,
+            "p_a": p_a,
+            "p_b": p_b,
+            "g_a": ga,
+            "g_b": gb,
+            "s": s,
+            "w": w,
+            "w_ok": w_ok,
+            "gaw": gat_w,
+            "gbw": gbt_w,
+            "haa": gat_w @ ga,
+            "hab": gat_w @ gb,
+            "hbb": gbt_w @ gb,
+        }
+
+    # -- kept across a restart (service.state) ------------------------------------------------
+    def export(self) -> dict[str, Any]:
+        """What defines the memory (the other columns are derived again by :meth:`restored`):
+        the live rows' ``time``, ``pair``, ``p_a``, ``p_b`` and ``s``, each remembered update's
+        time and row count, and the updates taken (the phase of the rows' pick).
+
+        Bounded as the memory is: at most ``max_rows`` rows plus one update's (``max_rows`` +
+        ``max_rows_per_update``), about 130 bytes a row plus 4 bytes per character of the two
+        track ids.  The columns are views, not copies: the live rows of a buffer are never
+        written again (rows are appended past them, pruning moves the start, compaction makes
+        new buffers), so the export stays as it was while the memory goes on."""
+        return {
+            "time": self.time,
+            "pair": self.pair,
+            "p_a": self.p_a,
+            "p_b": self.p_b,
+            "s": self.s,
+            "update_time": np.array([t for t, _ in self._updates], dtype=float),
+            "update_rows": np.array([k for _, k in self._updates], dtype=np.int64),
+            "adds": self._adds,
+        }
+
+    @classmethod
+    def restored(cls, site_a: Site, site_b: Site | None, state: Mapping[str, Any]) -> RegistrationMemory:
+        """The memory :meth:`export` gave, its derived columns made again from ``site_a`` and
+        ``site_b`` (the sites it was measured from).  ``ValueError`` if the columns disagree."""
+        time = np.asarray(state["time"], dtype=float)
+        n = time.shape[0]
+        cols = {
+            "pair": np.asarray(state["pair"], dtype=str),
+            "p_a": np.asarray(state["p_a"], dtype=float),
+            "p_b": np.asarray(state["p_b"], dtype=float),
+            "s": np.asarray(state["s"], dtype=float),
+        }
+        update_time = np.asarray(state["update_time"], dtype=float)
+        update_rows = np.asarray(state["update_rows"], dtype=np.int64)
+        for name, col in cols.items():
+            if col.shape != (n, *_SHAPES[name]):
+                raise ValueError(f"registration memory column {name} of shape {col.shape}, {n} rows")
+        if update_time.shape != update_rows.shape or int(update_rows.sum()) != n or (update_rows < 0).any():
+            raise ValueError(f"registration memory updates of {update_rows.sum()} rows, {n} rows")
+        memory = cls(site_a, site_b)
+        if n:
+            memory._append(
+                {"time": time, **memory._rows_of(cols["pair"], cols["p_a"], cols["p_b"], cols["s"])}
+            )
+        memory._updates = list(zip(update_time.tolist(), update_rows.tolist(), strict=True))
+        memory._adds = int(state["adds"])
+        return memory
 
     def prune(self, time_s: float, params: RegistrationParams) -> None:
         """Forget whole updates from the front: older than the memory before ``time_s`` (and
@@ -626,6 +680,37 @@ def compensate(
         mode_s=snapshot.mode_s,
     )
     return out, extra
+
+
+def solution_state(solution: BiasSolution) -> dict[str, Any]:
+    """A joint solution as plain values and arrays, every field (service.state keeps it)."""
+    return {f.name: getattr(solution, f.name) for f in fields(BiasSolution)}
+
+
+def solution_from_state(state: Mapping[str, Any]) -> BiasSolution:
+    """The solution :func:`solution_state` gave; ``ValueError`` if its arrays disagree."""
+    sol = BiasSolution(
+        **{
+            **state,
+            "radar_ids": tuple(str(r) for r in state["radar_ids"]),
+            "bias": np.asarray(state["bias"], dtype=float),
+            "covariance": np.asarray(state["covariance"], dtype=float),
+            "pairs_used": {str(k): int(v) for k, v in state["pairs_used"].items()},
+            "model_covariance": (
+                None
+                if state.get("model_covariance") is None
+                else np.asarray(state["model_covariance"], float)
+            ),
+        }
+    )
+    n = len(sol.radar_ids)
+    if (
+        sol.bias.shape != (n, 3)
+        or sol.covariance.shape != (3 * n, 3 * n)
+        or set(sol.pairs_used) != set(sol.radar_ids)
+    ):
+        raise ValueError(f"bias solution of {n} radars with biases of shape {sol.bias.shape}")
+    return sol
 
 
 def to_estimates(solution: BiasSolution | None, time_s: float) -> list[RadarBias]:

@@ -12,8 +12,10 @@ pairs between them as *links*, each with its evidence (``score``).
    loop over their links; all others are found by one sparse connected-components pass.
 2. **Numbers.**  A group takes the number most of its members had (ties: the oldest number); a
    number two groups claim (a split) stays with the one that holds more of its old members,
-   the other takes a new number.  Numbers are never reused, so a number follows its aircraft
-   through member changes: a radar leaving or joining changes the members, not the number.
+   the other takes a new number.  Numbers are never reused (nor across restarts with a state
+   directory: each start numbers from its epoch's first number), so a number follows its
+   aircraft through member changes: a radar leaving or joining changes the members, not the
+   number.
 3. **State.**  Members of radars are fused by **covariance intersection** with the fast
    trace weights ``w_i ~ 1/tr P_i``: their errors are correlated (one target's manoeuvres enter
    every radar's track; all biases come from one joint solution), with a cross-covariance nobody
@@ -41,6 +43,7 @@ from scipy.spatial import cKDTree
 
 from service.correlation.linalg import inv3
 from service.correlation.pairkeys import SEP  # a member's key: source, SEP, track id
+from service.tracking.base import first_number
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -204,12 +207,15 @@ class SystemTrackParams:
 class SystemTracker:
     """System tracks over time: the numbers their members carried before (module, step 2)."""
 
-    def __init__(self, params: SystemTrackParams | None = None) -> None:
+    def __init__(self, params: SystemTrackParams | None = None, epoch: int = 0) -> None:
+        """``epoch``: the service's start with its state directory (``service.state``); numbers
+        begin at :func:`~service.tracking.base.first_number` of it, so none is reused across
+        restarts."""
         self.params = params or SystemTrackParams()
         self._keys = np.empty(0, dtype=str)  # sorted member keys of the last update
         self._numbers = np.empty(0, dtype=np.int64)  # their system track numbers
         self._since = np.empty(0)  # when each joined the picture (data s)
-        self._next = 1
+        self._next = first_number(epoch)
 
     @property
     def next_number(self) -> int:

@@ -22,6 +22,7 @@ import multiprocessing as mp
 import queue
 import threading
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from multiprocessing.connection import Connection
 from typing import Any
@@ -55,6 +56,7 @@ class Answer:
     error: tuple[str, str] | None = None  # (source id, detail) when the message failed
     rows: list[SharedRows] = field(default_factory=list)  # partitioned: rows for the bias worker
     system: SystemTrackView | None = None  # new system tracks, if the message made them
+    result: Any = None  # what the stage's call returned (``export_state``; None for the others)
 
 
 def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
@@ -69,11 +71,12 @@ def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
         biases_before = stage.biases
         keys: list[Key] = []
         error = None
+        result = None
         try:
             if op == "radar":
                 keys = stage.radar(*args)
             else:
-                getattr(stage, op)(*args)
+                result = getattr(stage, op)(*args)
         except Exception as exc:  # a bug costs this message's pair updates, never the stage
             error = (str(args[0]) if args else "", f"correlation failed: {type(exc).__name__}: {exc}")
         biases = stage.biases if stage.biases is not biases_before else None
@@ -82,7 +85,9 @@ def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
         rows = stage.take_rows()
         rebuilt = stage.take_system()  # at most one per message
         system = rebuilt[-1] if rebuilt else None
-        answers.send(Answer([(k, stage.views[k]) for k in keys], biases, timings, error, rows, system))
+        answers.send(
+            Answer([(k, stage.views[k]) for k in keys], biases, timings, error, rows, system, result)
+        )
     answers.close()
 
 
@@ -112,6 +117,8 @@ class RemoteCorrelation:
         #: Data times of the radar messages sent and not answered yet, oldest first.
         self._unanswered: deque[float | None] = deque()
         self.restarts = 0
+        #: The last answer applied (:meth:`_call` reads its result).
+        self._last: Answer | None = None
         self._start()
 
     def _start(self) -> None:
@@ -201,6 +208,7 @@ class RemoteCorrelation:
                 self._lost("no answer")
                 return
             self._pending -= 1
+            self._last = answer
             if self._unanswered:
                 self._unanswered.popleft()
             for key, view in answer.updated:
@@ -215,6 +223,22 @@ class RemoteCorrelation:
             if answer.error is not None:
                 self._errors.append(answer.error)
             self._rows.extend(answer.rows)
+
+    def _call(self, op: str, *args: Any) -> Any:
+        """Send one message and wait for its answer (and every earlier one's): what the stage's
+        call returned.  ``RuntimeError`` if the call failed or the child died meanwhile (the
+        failure is raised here, not reported as a failed message)."""
+        restarts = self.restarts
+        self._send(op, *args)
+        self._apply(block=True)
+        answer = self._last
+        if self.restarts != restarts or answer is None:
+            raise RuntimeError(f"correlation process died during {op}")
+        if answer.error is not None:
+            if answer.error in self._errors:
+                self._errors.remove(answer.error)
+            raise RuntimeError(answer.error[1])
+        return answer.result
 
     def _lost(self, what: str) -> None:
         code = self._process.exitcode
@@ -284,6 +308,17 @@ class RemoteCorrelation:
 
     def mirror_rows(self, key: Key, site_a: Site, site_b: Site | None, rows: RegistrationRowsData) -> None:
         self._send("mirror_rows", key, site_a, site_b, rows)
+
+    def export_state(self) -> dict[str, Any]:
+        """:meth:`CorrelationStage.export_state` of the child, once it has answered everything
+        sent before (the engine's state is then of the same moment)."""
+        state: dict[str, Any] = self._call("export_state")
+        return state
+
+    def restore_state(self, state: Mapping[str, Any] | None, epoch: int, sites: Mapping[str, Site]) -> None:
+        """:meth:`CorrelationStage.restore_state` in the child (its biases come back with the
+        answer).  A child started afresh later (it died) starts without it."""
+        self._call("restore_state", state, epoch, dict(sites))
 
     def finish(self) -> None:
         """Solve the final biases and wait until every message is answered."""

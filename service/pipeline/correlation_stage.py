@@ -28,8 +28,8 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from collections.abc import Callable, Collection
-from dataclasses import dataclass
+from collections.abc import Callable, Collection, Mapping
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -40,6 +40,8 @@ from service.correlation.registration import (
     BiasSolution,
     RegistrationMemory,
     RegistrationRowsData,
+    solution_from_state,
+    solution_state,
     to_estimates,
 )
 from service.fusion.members import members_and_links
@@ -321,6 +323,7 @@ class CorrelationStage:
                 corr = self.correlators[key] = PairCorrelator(
                     method, first.geometry, second.geometry, self.correlation_params
                 )
+                self._adopt(key, corr)
             self.next_due[key] = time_s + self._interval(radar.geometry, other.geometry)
             own = radar.tracks(time_s) if own is None else own
             other_table = table if table is not None else other.tracks(time_s)
@@ -410,9 +413,13 @@ class CorrelationStage:
         joint = joint_solution(pairs, time_s, self.correlation_params.registration, self._joint)
         if joint is None:
             return  # no rows in its window (e.g. a clock far ahead): the grid time stays due
+        self._set_joint(joint, time_s)
+
+    def _set_joint(self, joint: BiasSolution, time_s: float) -> None:
+        """The joint solution for ``time_s`` and the biases it gives (``GET /biases``)."""
         self._next_bias_s = time_s
         self._joint = joint
-        self.biases = [b for b in map(bias_dict, to_estimates(self._joint, time_s)) if b is not None]
+        self.biases = [b for b in map(bias_dict, to_estimates(joint, time_s)) if b is not None]
 
     def _solve_due(self, clock_s: float) -> None:
         """Solve for the latest grid time ``T`` (a multiple of ``bias_interval_s``) with
@@ -430,10 +437,85 @@ class CorrelationStage:
     def pair_views(self) -> list[PairSetView]:
         return [self.views[k] for k in sorted(self.views)]
 
+    # -- kept across a restart (service.state) -------------------------------------------------
+    def export_state(self) -> dict[str, Any]:
+        """What a restart keeps of the stage (contract §4.6 "State"): every pair's registration
+        memory (owned and mirrored pairs, :meth:`RegistrationMemory.export`, with the sites it
+        was measured from) and the joint bias solution with its time.  Pair books, reference
+        tracks and the sources' tables are not kept: the input that follows rebuilds them.
+        Plain values and numpy arrays; the arrays are views that later input leaves as they are."""
+        memories = {k: p.memory for k, p in self.mirrors.items()}
+        memories.update({k: c.memory for k, c in self.correlators.items()})
+        return {
+            "memories": [
+                {
+                    "key": list(key),
+                    "site_a": _site_state(m.site_a),
+                    "site_b": None if m.site_b is None else _site_state(m.site_b),
+                    "rows": m.export(),
+                }
+                for key, m in sorted(memories.items())
+                if len(m)
+            ],
+            "joint": None if self._joint is None else solution_state(self._joint),
+            "joint_time_s": self._next_bias_s,
+        }
+
+    def restore_state(self, state: Mapping[str, Any] | None, epoch: int, sites: Mapping[str, Site]) -> None:
+        """Take what :meth:`export_state` gave (``None``: nothing), before any input.
+
+        Each registration memory waits as a mirror until its pair's correlator is made, which
+        then takes it over (:meth:`_adopt`): the pair registers at its first update instead of
+        after minutes of confirmed pairs.  A memory of a radar that is not at the same place in
+        ``sites`` now (its site moved or is unknown) is left out: its rows were measured from
+        elsewhere.  The joint solution and biases are those of before.  New system tracks are
+        numbered from ``epoch``'s first number.  Everything is read before anything changes
+        (``KeyError``, ``TypeError`` or ``ValueError`` on a state that is not one)."""
+        mirrors: dict[tuple[str, str], MirroredPair] = {}
+        joint: tuple[BiasSolution, float] | None = None
+        if state is not None:
+            for kept in state["memories"]:
+                key = (str(kept["key"][0]), str(kept["key"][1]))
+                site_a = sites.get(kept["site_a"]["site_id"])
+                site_b = None if kept["site_b"] is None else sites.get(kept["site_b"]["site_id"])
+                if (
+                    key[0] < key[1]
+                    and site_a is not None
+                    and _same_place(kept["site_a"], site_a)
+                    and (kept["site_b"] is None or _same_place(kept["site_b"], site_b))
+                ):
+                    mirrors[key] = MirroredPair(RegistrationMemory.restored(site_a, site_b, kept["rows"]))
+            if state["joint"] is not None:
+                joint = (solution_from_state(state["joint"]), float(state["joint_time_s"]))
+        self.system_tracker = SystemTracker(self.system_tracker.params, epoch)
+        self.mirrors = mirrors
+        if joint is not None:
+            self._set_joint(*joint)
+
+    def _adopt(self, key: tuple[str, str], corr: PairCorrelator) -> None:
+        """A new pair takes over the registration memory a restart kept of it (held as a mirror
+        until now; a move of its radar since has dropped it, :meth:`moved`)."""
+        kept = self.mirrors.pop(key, None)
+        if kept is not None and kept.memory.site_a.site_id == corr.site_a.site_id:
+            corr.memory = kept.memory
+
     def timings(self) -> dict[str, Any]:
         return timings_dict(
             self.updates, self.last_ms, self.timings_ms, self.duration_counts, self.duration_sum_s
         )
+
+
+def _site_state(site: Site) -> dict[str, Any]:
+    return {f.name: getattr(site, f.name) for f in fields(Site) if f.init}
+
+
+def _same_place(saved: Mapping[str, Any], now: Site | None) -> bool:
+    """A site now at the position it was saved with (sigmas and scan period may differ)."""
+    return now is not None and (saved["latitude_deg"], saved["longitude_deg"], saved["altitude_m"]) == (
+        now.latitude_deg,
+        now.longitude_deg,
+        now.altitude_m,
+    )
 
 
 def timings_dict(

@@ -145,6 +145,8 @@ class Sequencer:
         self._first_clock = np.inf
         #: The data time up to which the last :meth:`release` released.
         self.last_limit = -np.inf
+        #: The newest data clock of an accepted batch (-inf: none yet); never goes back.
+        self.newest_s = -np.inf
 
     # -- sources ---------------------------------------------------------------------------
     def announce(self, source_id: str, kind: int) -> list[str]:
@@ -271,12 +273,53 @@ class Sequencer:
         src.restarts += adm.restart
         clock = max(adm.time_s, src.last_time_s if src.last_time_s is not None else -np.inf)
         src.last_time_s = clock
+        self.newest_s = max(self.newest_s, clock)
         src.expired = False
         self._expiry_due.pop(adm.source_id, None)
         if not src.pending:
             heapq.heappush(self._heap, (clock, adm.kind, adm.source_id, adm.seq))
         src.pending.append((clock, adm.seq, item))
         return evicted
+
+    # -- kept across a restart (service.state) -------------------------------------------------
+    def export_state(self) -> list[dict[str, Any]]:
+        """Each source's kind, latest ``seq`` and data clock: after a restart its numbering goes
+        on (a repeated ``seq`` is a duplicate, a gap counts lost batches) and so does its clock.
+        Sources that never sent a batch, and other workers' radars, are left out."""
+        return [
+            {"source_id": sid, "kind": s.kind, "seq": s.last_seq, "time_s": s.last_time_s}
+            for sid, s in sorted(self.sources.items())
+            if s.last_seq is not None and s.last_time_s is not None and not s.foreign
+        ]
+
+    @staticmethod
+    def read_state(sources: list[dict[str, Any]]) -> list[tuple[float, str, int, int]]:
+        """What :meth:`export_state` gave, checked: ``(clock, source id, kind, seq)``, newest
+        clock first (``KeyError``, ``TypeError`` or ``ValueError`` if it is not that)."""
+        kept = []
+        for entry in sources:
+            kind, seq, clock = int(entry["kind"]), int(entry["seq"]), float(entry["time_s"])
+            if kind not in (REFERENCE, RADAR) or not np.isfinite(clock):
+                raise ValueError(f"source {entry['source_id']!r}: kind {kind}, clock {clock}")
+            kept.append((clock, str(entry["source_id"]), kind, seq))
+        return sorted(kept, reverse=True)
+
+    def restore_state(self, kept: list[tuple[float, str, int, int]]) -> None:
+        """Take the sources :meth:`read_state` read, before any batch.  Counters start at zero;
+        each source is silent since its clock, so it expires ``source_expiry_s`` after it unless
+        it reports again.  At most ``max_sources`` are held (the newest clocks)."""
+        for clock, sid, kind, seq in kept:
+            src = self.sources.get(sid)
+            if src is None:
+                if len(self.sources) >= self.params.max_sources:
+                    continue
+                src = self.sources[sid] = SourceClock(kind)
+            if src.kind != kind:
+                continue  # an id of another kind now (a site says it is a radar): not this source
+            src.last_seq, src.last_time_s, src.released_time_s = seq, clock, clock
+            self.newest_s = max(self.newest_s, clock)
+            self._expiry_due[sid] = due = clock + self.params.source_expiry_s
+            heapq.heappush(self._heap, (due, EXPIRE, sid, 0))
 
     def count_rejected(self, source_id: str | None) -> None:
         src = self.sources.get(source_id) if source_id is not None else None

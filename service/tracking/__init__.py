@@ -15,7 +15,7 @@ Memory and work per update are bounded whatever a batch holds (``TrackerParams.b
 from __future__ import annotations
 
 from service.geo import Site
-from service.tracking.base import PlotColumns, Tracker, TrackTable
+from service.tracking.base import PlotColumns, Tracker, TrackTable, first_number
 from service.tracking.initiators import INITIATORS, get_initiator
 from service.tracking.manager import TrackManager
 from service.tracking.params import TrackerParams
@@ -42,14 +42,24 @@ def make_tracker(
     initiator: str = "logic",
     id_prefix: str = "T",
     params: TrackerParams | None = None,
+    epoch: int = 0,
 ) -> TrackManager:
     """A tracker for one radar.
 
     ``window_s`` None: ``max(DEFAULT_WINDOW_S, 3 * site.scan_period_s)`` so that the window
     always spans three looks.  ``initiator`` is one of :data:`INITIATORS` (``ValueError``
-    naming them otherwise).  Track ids are ``f"{id_prefix}-{n}"``, ``n`` from 1, never reused.
+    naming them otherwise).  Track ids are ``f"{id_prefix}-{n}"``, ``n`` from
+    ``first_number(epoch)`` (1 in epoch 0), never reused: ``epoch`` counts the service's starts
+    with one state directory (``service.state``), so ids are not reused across restarts either.
     """
     get_initiator(initiator)  # fail early with the list of names
     if window_s is None:
         window_s = max(DEFAULT_WINDOW_S, 3.0 * site.scan_period_s)
-    return TrackManager(site, float(window_s), initiator=initiator, id_prefix=id_prefix, params=params)
+    return TrackManager(
+        site,
+        float(window_s),
+        initiator=initiator,
+        id_prefix=id_prefix,
+        params=params,
+        first_number=first_number(epoch),
+    )

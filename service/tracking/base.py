@@ -17,6 +17,18 @@ from service.geo import Site
 
 FloatArray = NDArray[np.float64]
 
+#: Track numbers one start of the service may give (per radar, and for system tracks).  With a
+#: state directory (``service.state``) start ``E`` (an epoch, 0 the first) numbers from
+#: :func:`first_number` ``(E)``, so no number is given twice across restarts.
+TRACK_IDS_PER_EPOCH = 10**9
+
+
+def first_number(epoch: int) -> int:
+    """The first track number of start ``epoch`` (0: the first start, numbers from 1)."""
+    if epoch < 0:
+        raise ValueError(f"epoch {epoch} < 0")
+    return epoch * TRACK_IDS_PER_EPOCH + 1
+
 
 def _fill_labels(table: object, n: int, names: tuple[str, ...]) -> None:
     """Label columns left out (None) become ``n`` Nones (frozen dataclasses: set once here)."""

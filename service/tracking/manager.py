@@ -23,10 +23,11 @@ are never written in place; the rows of the assigned tracks' states that are wri
 are saved first and restored on failure) and keeps them only once every step has succeeded,
 so a batch that fails part-way leaves the tracker exactly as it was.
 
-Track ids ``{prefix}-{n}`` count from 1 and are never reused.  Every update records which
-plots joined which track (:attr:`TrackManager.joined`, plots with all their columns); the
-manager itself only carries them.  Per-track labels from the plots (the simulator's truth, for
-evaluation) are kept outside the tracker, by :mod:`service.truth_labels`.
+Track ids ``{prefix}-{n}`` count from ``first_number`` (1 unless a restart's epoch says
+otherwise, :func:`~service.tracking.base.first_number`) and are never reused.  Every update
+records which plots joined which track (:attr:`TrackManager.joined`, plots with all their
+columns); the manager itself only carries them.  Per-track labels from the plots (the
+simulator's truth, for evaluation) are kept outside the tracker, by :mod:`service.truth_labels`.
 """
 
 from __future__ import annotations
@@ -228,7 +229,10 @@ class TrackManager(Tracker):
         initiator: str = "logic",
         id_prefix: str = "T",
         params: TrackerParams | None = None,
+        first_number: int = 1,
     ) -> None:
+        """``first_number``: the number of the first track's id (``f"{id_prefix}-{n}"``); the
+        track uids inside stay 1, 2, ... (the truth tally packs them into 32 bits)."""
         super().__init__(site, window_s)
         self.params = params if params is not None else TrackerParams()
         mp = self.params.manager
@@ -237,6 +241,8 @@ class TrackManager(Tracker):
         self.initiator = initiator
         self._initiate = get_initiator(initiator)
         self.id_prefix = id_prefix
+        #: A track's id number is its uid plus this (:func:`~service.tracking.base.first_number`).
+        self._id_offset = first_number - 1
         self._window = PlotWindow(window_s, self.params.bounds.max_window_plots)
         self._next_uid = 1
         self.last_time_s = -np.inf
@@ -345,7 +351,7 @@ class TrackManager(Tracker):
             big = _ecef_block(rot)
             cov = big @ tr.P @ big.T
         # The width of the longest id (the highest uid), as a table built from the strings has.
-        width = len(self.id_prefix) + 1 + len(str(int(tr.uid.max())))
+        width = len(self.id_prefix) + 1 + len(str(int(tr.uid.max()) + self._id_offset))
         return TrackTable(
             tr.ids.astype(f"<U{width}"),
             tr.confirmed.copy(),
@@ -498,7 +504,7 @@ class TrackManager(Tracker):
             np.zeros(k, dtype=np.int64),
             popcount(hist) >= p.manager.confirm_m,
             births.plots[ok],
-            np.char.add(f"{self.id_prefix}-", uid.astype(str)),
+            np.char.add(f"{self.id_prefix}-", (uid + self._id_offset).astype(str)),
             big @ births.P[ok] @ big.T,
         )
         # Plots of accepted groups leave the window; label -> uid of the new track.
