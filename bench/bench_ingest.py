@@ -127,7 +127,7 @@ def bench_node(batches: list[tuple[str, bytes]], radars: list[str], window_only:
         while sum(r.batches for r in node.engine.radars.values()) < total or not node.queue.empty():
             time.sleep(0.001)
         elapsed = time.perf_counter() - t0
-        assert node.queue_stats.dropped == 0
+        assert node.queue.dropped_total == 0
         return elapsed
     finally:
         client.close()

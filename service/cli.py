@@ -290,14 +290,19 @@ def serve(settings: Settings, demo: argparse.Namespace | None = None) -> int:
     options = zenoh_options(settings)
     extras = _DemoExtras(demo, settings.prefix) if demo is not None else None
 
-    # Open Zenoh before the HTTP server, so that a refused endpoint is one clear error line.
+    # Open Zenoh before the HTTP server, so that a configuration Zenoh refuses is one clear
+    # error line; a router that cannot be reached yet is waited for (the node retries).
     node = ServiceNode(
         config,
         options,
         queue_size=settings.queue_size,
+        queue_bytes=settings.queue_bytes,
+        queue_wait_s=settings.queue_wait_s,
         radars=tuple(settings.radars),
         correlation_process=settings.correlation_process,
         peer_grace_s=settings.peer_grace_s,
+        stop_grace_s=settings.stop_grace_s,
+        stall_s=settings.stall_s,
     )
     node.open()
 
@@ -309,7 +314,15 @@ def serve(settings: Settings, demo: argparse.Namespace | None = None) -> int:
         on_started=extras.start if extras else None,
         on_stopping=extras.stop if extras else None,
     )
-    server = uvicorn.Server(
+
+    class Server(uvicorn.Server):
+        def handle_exit(self, sig: int, frame: Any) -> None:
+            # Take no more input the moment the signal comes: the HTTP server first closes
+            # its connections, and only then does the lifespan stop the node.
+            node.stop_input()
+            super().handle_exit(sig, frame)
+
+    server = Server(
         uvicorn.Config(
             app,
             host=settings.http_host,

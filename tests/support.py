@@ -77,14 +77,21 @@ def running_service(
     config: EngineConfig | None = None,
     radars: tuple[str, ...] = (),
     correlation_process: bool = True,
+    wait_ready: bool = True,
+    **node_kw: Any,
 ) -> Iterator[RunningService]:
-    """The real service in-process: a client session to ``router``, the worker, uvicorn on a free port."""
+    """The real service in-process: a client session to ``router``, the worker, uvicorn on a free
+    port (``node_kw``: more of :class:`ServiceNode`'s parameters)."""
     holder: dict[str, ServiceNode] = {}
 
     def factory() -> ServiceNode:
         options = ZenohOptions(mode="client", connect=(router,))
         holder["node"] = ServiceNode(
-            config or EngineConfig(), options, radars=radars, correlation_process=correlation_process
+            config or EngineConfig(),
+            options,
+            radars=radars,
+            correlation_process=correlation_process,
+            **node_kw,
         )
         return holder["node"]
 
@@ -99,7 +106,8 @@ def running_service(
     try:
         with httpx.Client(base_url=base, timeout=10.0) as http:
             wait_for(lambda: server.started, timeout=15)
-            wait_for(lambda: http.get("/readyz").status_code == 200, timeout=15)
+            if wait_ready:
+                wait_for(lambda: http.get("/readyz").status_code == 200, timeout=15)
             yield RunningService(holder["node"], http, base)
     finally:
         server.should_exit = True

@@ -22,9 +22,10 @@ TOPOFUSION = str(Path(sys.executable).parent / "topofusion")
 
 
 @contextmanager
-def process(args: list[str]) -> Iterator[subprocess.Popen[str]]:
+def process(args: list[str], settings: dict[str, str] | None = None) -> Iterator[subprocess.Popen[str]]:
+    """`topofusion ARGS` with no TOPOFUSION_* setting but ``settings``; killed if still running."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    env = {k: v for k, v in env.items() if not k.startswith("TOPOFUSION_")}
+    env = {k: v for k, v in env.items() if not k.startswith("TOPOFUSION_")} | (settings or {})
     proc = subprocess.Popen(
         [TOPOFUSION, *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
     )

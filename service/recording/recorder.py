@@ -1,8 +1,9 @@
 """Recording Zenoh samples: subscriber callback -> bounded queue -> writer thread -> MCAP.
 
-The Zenoh callback only stamps the receipt time and appends to :class:`SampleQueue` (no
-blocking, no Zenoh calls: zenoh-python ``docs/concepts.rst``).  The queue is bounded in samples
-and bytes; when it is full the sample is *dropped and counted per key*, never silently: the
+The Zenoh callback only stamps the receipt time and appends to a
+:class:`~service.transport.ingest_queue.BoundedQueue` (no blocking, no Zenoh calls:
+zenoh-python ``docs/concepts.rst``).  The queue is bounded in samples and bytes; when it is
+full the sample is *dropped and counted per key*, never silently: the
 :class:`RecordReport` carries the counts, and the command prints them and exits non-zero.
 """
 
@@ -11,13 +12,13 @@ from __future__ import annotations
 import contextlib
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from service.recording.writer import RecordingWriter
+from service.transport.ingest_queue import BoundedQueue
 
 #: Queue bounds: enough for tens of seconds of a large site's traffic while the disk stalls.
 DEFAULT_QUEUE_SAMPLES = 100_000
@@ -32,62 +33,6 @@ class ReceivedSample:
     payload: bytes
     log_time_ns: int
     publish_time_ns: int | None
-
-
-class SampleQueue:
-    """A FIFO bounded by sample count and payload bytes whose ``offer`` never blocks."""
-
-    def __init__(
-        self, max_samples: int = DEFAULT_QUEUE_SAMPLES, max_bytes: int = DEFAULT_QUEUE_BYTES
-    ) -> None:
-        self.max_samples = max_samples
-        self.max_bytes = max_bytes
-        self._items: deque[ReceivedSample] = deque()
-        self._bytes = 0
-        self._cond = threading.Condition()
-        self._closed = False
-        self.dropped: dict[str, int] = {}
-        self.high_water = 0
-
-    def offer(self, item: ReceivedSample) -> bool:
-        """Append ``item``; False (and counted in :attr:`dropped`) when full or closed."""
-        with self._cond:
-            size = len(item.payload)
-            full = len(self._items) >= self.max_samples or (
-                self._items and self._bytes + size > self.max_bytes
-            )
-            if full or self._closed:
-                self.dropped[item.key] = self.dropped.get(item.key, 0) + 1
-                return False
-            self._items.append(item)
-            self._bytes += size
-            self.high_water = max(self.high_water, len(self._items))
-            self._cond.notify()
-            return True
-
-    def take(self, timeout_s: float) -> list[ReceivedSample]:
-        """Everything queued (waiting up to ``timeout_s`` for something); [] once closed and empty."""
-        with self._cond:
-            if not self._items and not self._closed:
-                self._cond.wait(timeout_s)
-            items = list(self._items)
-            self._items.clear()
-            self._bytes = 0
-            return items
-
-    def close(self) -> None:
-        with self._cond:
-            self._closed = True
-            self._cond.notify_all()
-
-    @property
-    def closed_and_empty(self) -> bool:
-        with self._cond:
-            return self._closed and not self._items
-
-    def __len__(self) -> int:
-        with self._cond:
-            return len(self._items)
 
 
 @dataclass
@@ -170,7 +115,7 @@ class Recorder:
         self.key_expr = key_expr
         self._session = session
         self._clock_ns = clock_ns
-        self.queue = SampleQueue(max_queue_samples, max_queue_bytes)
+        self.queue = BoundedQueue(max_queue_samples, max_queue_bytes)
         self._writer = RecordingWriter(output, prefix, metadata={"key_expr": key_expr})
         self._thread = threading.Thread(target=self._write_loop, name="mcap-writer", daemon=True)
         self._subscriber: Any = None
@@ -181,14 +126,10 @@ class Recorder:
     def _on_sample(self, sample: Any) -> None:
         # Runs on a Zenoh thread: stamp, copy the bytes out, enqueue. Nothing else.
         received = self._clock_ns()
-        self.queue.offer(
-            ReceivedSample(
-                key=str(sample.key_expr),
-                payload=sample.payload.to_bytes(),
-                log_time_ns=received,
-                publish_time_ns=ntp64_to_unix_ns(sample.timestamp),
-            )
-        )
+        key = str(sample.key_expr)
+        payload = sample.payload.to_bytes()
+        item = ReceivedSample(key, payload, received, ntp64_to_unix_ns(sample.timestamp))
+        self.queue.put(item, len(payload), key)
 
     def start(self) -> Recorder:
         self._started = time.monotonic()
@@ -201,7 +142,7 @@ class Recorder:
         dirty = False
         try:
             while not self.queue.closed_and_empty:
-                for item in self.queue.take(timeout_s=0.2):
+                for item in self.queue.take_all(timeout_s=0.2):
                     self._writer.write(item.key, item.payload, item.log_time_ns, item.publish_time_ns)
                     dirty = True
                 now = time.monotonic()
@@ -236,7 +177,7 @@ class Recorder:
             key_expr=self.key_expr,
             messages_by_key={k: c.messages for k, c in totals.items()},
             bytes_by_key={k: c.bytes for k, c in totals.items()},
-            dropped_by_key=dict(self.queue.dropped),
+            dropped_by_key=self.queue.dropped_counts(),
             file_bytes=file_bytes,
             duration_s=time.monotonic() - self._started if self._started else 0.0,
             queue_high_water=self.queue.high_water,

@@ -3,11 +3,20 @@
 Threads (README "Architecture"):
 
 * Zenoh's network thread runs the subscriber callbacks (directly, so that samples keep their
-  wire order across keys), which only put ``(key, bytes, time)`` on a bounded queue.  When
-  the queue is full the callback waits (up to ``put_timeout_s``), which stalls Zenoh's
-  reader and pushes back to publishers using ``CongestionControl.BLOCK``; only if that
-  wait times out is a sample dropped, and every drop is counted (``/status``
-  ``queue.dropped``, metric ``topofusion_queue_dropped_total``) and logged.
+  wire order across keys), which only put ``(key, bytes, time)`` on a queue bounded in
+  samples and in bytes (:class:`~service.transport.ingest_queue.BoundedQueue`).  When the
+  queue is full the callback waits, at most ``queue_wait_s``, which pushes back on
+  publishers using ``CongestionControl.BLOCK``; in router mode the same thread carries
+  everybody's traffic, so the wait is short, and only after it is a sample dropped: every
+  drop is counted by key (``/status`` ``queue.dropped`` and ``queue.dropped_by_key``) and
+  logged.
+* A watcher thread follows the Zenoh connection (``/readyz`` says ``no zenoh connection``
+  while a client or a peer with connect endpoints has lost them all; both changes are
+  logged).  A client whose router is not up yet keeps trying with back-off on a connector
+  thread while the HTTP port answers (``connecting to zenoh``).
+* A stop (SIGTERM/SIGINT) undeclares the input subscribers first, gives the worker
+  ``stop_grace_s`` to finish the queue, publishes the final outputs, and logs how many
+  queued samples were processed and how many, if any, were left (contract §4.6).
 * One worker thread takes samples in arrival order, calls ``engine.ingest``, hands what it
   returns to the publisher thread, then swaps in a new immutable
   :class:`~service.engine.Snapshot`.
@@ -31,7 +40,6 @@ import logging
 import queue
 import threading
 import time
-from dataclasses import dataclass
 from typing import Any
 
 import orjson
@@ -39,7 +47,8 @@ import zenoh
 
 from service.engine import Engine, EngineConfig, Outgoing, Snapshot
 from service.pipeline.partition import BIAS_WORKER
-from service.transport.session import ZenohOptions, open_session
+from service.transport.ingest_queue import BoundedQueue
+from service.transport.session import RETRY_FIRST_S, RETRY_MAX_S, ZenohOptions, open_session
 from service.wire.keys import PRIORITY_KINDS, Keys, parse_key
 from service.wire.outputs import encode
 
@@ -53,20 +62,25 @@ SNAPSHOT_MIN_S = 0.05
 IDLE_POLL_S = 0.05
 #: Puts a new publisher makes before trusting its matching status (see ``_publish``).
 UNCONDITIONAL_PUTS = 8
-
-
-@dataclass
-class QueueStats:
-    capacity: int
-    dropped: int = 0
-    high_water: int = 0
+#: How often (s) the watcher looks at the Zenoh connection: a lost router shows within this.
+CONNECTION_POLL_S = 0.25
+#: A drop on a full queue is logged at most this often per key (s), with the count since.
+DROP_LOG_INTERVAL_S = 10.0
+#: Zenoh's message when none of a client's connect endpoints answers: the one open failure
+#: that is retried (a router not up yet); any other is a configuration error.
+UNREACHABLE = "Unable to connect"
 
 
 class RateLimitedLog:
-    """Logs a rejection reason at most once per ``interval_s``, with a count of the rest."""
+    """Logs ``what (reason): message`` at most once per ``interval_s`` and reason, with a count
+    of the rest."""
 
-    def __init__(self, interval_s: float = 10.0) -> None:
+    def __init__(
+        self, interval_s: float = 10.0, what: str = "rejected", level: int = logging.WARNING
+    ) -> None:
         self.interval_s = interval_s
+        self.what = what
+        self.level = level
         self._last: dict[str, float] = {}
         self._suppressed: dict[str, int] = {}
 
@@ -75,7 +89,7 @@ class RateLimitedLog:
         if now - self._last.get(reason, -1e9) >= self.interval_s:
             extra = self._suppressed.pop(reason, 0)
             suffix = f" (+{extra} more since last report)" if extra else ""
-            log.warning("rejected (%s): %s%s", reason, message, suffix)
+            log.log(self.level, "%s (%s): %s%s", self.what, reason, message, suffix)
             self._last[reason] = now
         else:
             self._suppressed[reason] = self._suppressed.get(reason, 0) + 1
@@ -93,7 +107,7 @@ class ServiceNode:
         engine_config: EngineConfig,
         zenoh_options: ZenohOptions,
         queue_size: int = 4096,
-        put_timeout_s: float = 10.0,
+        queue_wait_s: float = 0.5,
         session: zenoh.Session | None = None,
         radars: tuple[str, ...] = (),
         correlation_process: bool = True,
@@ -101,6 +115,9 @@ class ServiceNode:
         status_interval_s: float = 1.0,
         peer_query_timeout_s: float = 10.0,
         peer_grace_s: float = 15.0,
+        queue_bytes: int = 256 * 1024 * 1024,
+        stop_grace_s: float = 20.0,
+        stall_s: float = 30.0,
     ) -> None:
         self.peer_query_timeout_s = peer_query_timeout_s
         self.engine = Engine(engine_config, correlation_process=correlation_process)
@@ -117,24 +134,40 @@ class ServiceNode:
         self._publisher: threading.Thread | None = None
         self.keys = Keys(engine_config.prefix)
         self.zenoh_options = zenoh_options
-        self.queue: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
+        self.queue = BoundedQueue(queue_size, queue_bytes)
         #: Partitioned: the other workers' messages, taken before inputs (see ``_next_item``).
         self.peer_queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._items = threading.Semaphore(0)  # one release per item put on either queue
-        self.queue_stats = QueueStats(capacity=queue_size)
-        self.put_timeout_s = put_timeout_s
+        self.queue_wait_s = queue_wait_s
+        self.stop_grace_s = stop_grace_s
+        self.stall_s = stall_s
+        self._drop_log = RateLimitedLog(DROP_LOG_INTERVAL_S, "dropped on a full ingest queue", logging.ERROR)
         self.radar_filter = radars
         self.snapshot: Snapshot = self.engine.snapshot()
         self.started_at = time.monotonic()
-        self.not_ready_reason = "not started"
         self.processed = 0
+        #: Of those, plot batches (said at a stop).
+        self.processed_plots = 0
+        #: When the worker last took a sample or found none (monotonic): progress, for /readyz.
+        self._last_take = time.monotonic()
+        #: Whether the session reaches what it must (see ``_linked_now``); the watcher's view.
+        self._linked = True
+        self._connecting = False
+        self._inputs: list[Any] = []
         self._own_session = session is None
         self._session: zenoh.Session | None = session
         self._declared: list[Any] = []
         self._publishers: dict[str, list[Any]] = {}  # key -> [publisher, unconditional puts left]
         self._worker: threading.Thread | None = None
         self._rejections = RateLimitedLog()
+        #: Set when the stop begins (input taken no more); ``_stopped``: :meth:`stop` ran.
         self._stopping = threading.Event()
+        self._stopped = False
+        self._stop_began = 0.0
+        self._stop_deadline = float("inf")
+        self._queued_at_stop = 0
+        #: Queued samples a stop left unprocessed (None before a stop).
+        self.unprocessed_at_stop: int | None = None
 
     # -- lifecycle -------------------------------------------------------------------------
     @property
@@ -143,25 +176,60 @@ class ServiceNode:
             raise RuntimeError("node not started")
         return self._session
 
-    def open(self) -> None:
-        """Open the Zenoh session (if not given one); raises ``RuntimeError`` saying why not."""
+    def open(self) -> bool:
+        """Open the Zenoh session (if not given one): True when open, False when the router
+        cannot be reached yet (:meth:`start` then keeps trying); raises ``RuntimeError``
+        saying why for any other failure (a configuration error)."""
         if self._session is None:
-            self._session = open_session(self.zenoh_options)
+            try:
+                self._session = open_session(self.zenoh_options)
+            except RuntimeError as exc:
+                if UNREACHABLE not in str(exc):
+                    raise
+                log.warning("%s; retrying with back-off", exc)
+                return False
+        return True
 
     def start(self) -> None:
-        if self._worker is not None:
+        """Start the worker on an open session, or, while the router cannot be reached, a
+        connector that opens it with back-off and starts the worker then."""
+        if self._worker is not None or self._connecting:
             return
-        self.open()
+        if not self.open():
+            self._connecting = True
+            threading.Thread(target=self._connect, name="topofusion-connect", daemon=True).start()
+            return
+        self._start_on_session()
+
+    def _connect(self) -> None:
+        wait = RETRY_FIRST_S
+        while not self._stopping.wait(wait):
+            try:
+                if self.open():
+                    break
+            except RuntimeError:
+                log.exception("cannot open the Zenoh session")
+                return
+            wait = min(2 * wait, RETRY_MAX_S)
+        else:
+            return
+        if self._stopping.is_set():
+            return
+        log.info("zenoh router reached")
+        self._start_on_session()
+        self._connecting = False
+
+    def _start_on_session(self) -> None:
         s = self.session
         # Direct (not "indirect") callbacks: zenoh-python otherwise runs each subscriber's
         # callback on its own thread, and a site could then reach the queue after the plots
         # that followed it on the wire.  Run on Zenoh's network thread, the callbacks keep the
         # wire order across keys, and a full queue pushes back on the link itself.
-        self._declared = [
+        self._inputs = [
             s.declare_subscriber(key, zenoh.handlers.Callback(self._on_sample, indirect=False))
             for key in self._input_keys()
         ]
-        self._declared += [
+        self._declared = [
             s.declare_queryable(self.keys.status, self._on_status_query),
             s.declare_queryable(self.keys.pairs_all, self._on_pairs_query),
             s.declare_queryable(self.keys.system_tracks, self._on_system_query),
@@ -184,7 +252,8 @@ class ServiceNode:
         self._publisher.start()
         self._worker = threading.Thread(target=self._run, name="topofusion-worker", daemon=True)
         self._worker.start()
-        self.not_ready_reason = ""
+        self._linked = self._linked_now()
+        threading.Thread(target=self._watch, name="topofusion-watch", daemon=True).start()
         log.info(
             "zenoh session open (mode=%s, listen=%s, connect=%s), prefix %r",
             self.zenoh_options.effective_mode,
@@ -201,31 +270,67 @@ class ServiceNode:
         peer = list(self.keys.peer_inputs) if not self.partition.whole else []
         return [*radar_keys, self.keys.ais_inputs, self.keys.adsb_inputs, *peer]
 
-    def stop(self, timeout_s: float = 5.0) -> None:
-        """Stop taking samples, finish the queue, close the session (bounded by ``timeout_s``)."""
+    def stop_input(self, grace_s: float | None = None) -> None:
+        """Take no more input: undeclare the input subscribers, and give the worker ``grace_s``
+        (default ``stop_grace_s``) from now to finish the queue.  The first step of a stop: the
+        HTTP server calls it as soon as the signal comes.  Idempotent."""
         if self._stopping.is_set():
             return
         self._stopping.set()
-        self.not_ready_reason = "shutting down"
+        self._stop_began = time.monotonic()
+        self._stop_deadline = self._stop_began + (self.stop_grace_s if grace_s is None else grace_s)
+        inputs, self._inputs = self._inputs, []
+        for d in inputs:
+            try:
+                d.undeclare()
+            except Exception:  # already gone with the session
+                log.debug("undeclare failed", exc_info=True)
+        self._queued_at_stop = self.queue.qsize() + self.peer_queue.qsize()
+
+    def stop(self, grace_s: float | None = None) -> None:
+        """Stop taking input, let the worker finish the queue for up to ``grace_s`` (default
+        ``stop_grace_s``), publish the final outputs, close the session.  Idempotent."""
+        if self._stopped:
+            return
+        self._stopped = True
+        self.stop_input(grace_s)
+        grace = self._stop_deadline - self._stop_began
+        queued = self._queued_at_stop
+        if self._worker is not None:
+            self.queue.put_anyway(_STOP)
+            self._items.release()
+            self._worker.join()  # bounded: the worker gives up the queue at the deadline
+            left = [item for item in self.queue.items() if item is not _STOP]
+            plots = sum(1 for key, _, _ in left if key.endswith("/plots"))
+            if left:
+                log.error(
+                    "stop: the %.1f s grace ran out: %d of %d queued samples left unprocessed "
+                    "(%d plot batches); %d plot batches processed in all",
+                    grace,
+                    len(left),
+                    queued,
+                    plots,
+                    self.processed_plots,
+                )
+            else:
+                log.info(
+                    "stop: processed all %d queued samples in %.1f s; 0 left unprocessed; "
+                    "%d plot batches processed in all",
+                    queued,
+                    time.monotonic() - self._stop_began,
+                    self.processed_plots,
+                )
+            self.unprocessed_at_stop = len(left)
         for d in self._declared:
             try:
                 d.undeclare()
             except Exception:  # already gone with the session
                 log.debug("undeclare failed", exc_info=True)
         self._declared = []
-        if self._worker is not None:
-            try:
-                self.queue.put(_STOP, timeout=timeout_s)
-                self._items.release()
-            except queue.Full:
-                log.warning("worker queue full at shutdown; abandoning %d samples", self.queue.qsize())
-            self._worker.join(timeout=timeout_s)
         if self._publisher is not None:
-            try:
-                self.outbox.put(_STOP, timeout=timeout_s)
-            except queue.Full:
-                log.warning("outbox full at shutdown; abandoning %d outputs", self.outbox.qsize())
-            self._publisher.join(timeout=timeout_s)
+            # The final outputs: whatever the worker handed over, put before the session closes.
+            self.outbox.put(_STOP)
+            self._publisher.join()
         for pub, _ in self._publishers.values():
             try:
                 pub.undeclare()
@@ -238,8 +343,64 @@ class ServiceNode:
         self._session = None
 
     @property
+    def not_ready_reason(self) -> str:
+        """Why ``/readyz`` is 503 (contract §4.6), or "" when ready."""
+        if self._stopping.is_set():
+            return "shutting down"
+        if self._connecting:
+            return "connecting to zenoh"
+        if self._session is None or self._worker is None:
+            return "not started"
+        if not self._worker.is_alive():
+            return "worker not running"
+        if not self._linked:
+            return "no zenoh connection"
+        if self.stalled:
+            return "worker stalled"
+        return ""
+
+    @property
     def ready(self) -> bool:
-        return self._session is not None and self._worker is not None and self._worker.is_alive()
+        return not self.not_ready_reason
+
+    @property
+    def stalled(self) -> bool:
+        """Input has waited ``stall_s`` with the worker taking none of it."""
+        waiting = not self.queue.empty() or not self.peer_queue.empty()
+        return waiting and time.monotonic() - self._last_take > self.stall_s
+
+    def _linked_now(self) -> bool:
+        """Whether the session reaches a router or peer, where it must: a client always, a
+        peer or router only when told to connect somewhere (one with no connect endpoint
+        stands alone, and its publishers connect to it)."""
+        session = self._session
+        if session is None:
+            return False
+        if self.zenoh_options.effective_mode != "client" and not self.zenoh_options.effective_connect():
+            return True
+        try:
+            info = session.info
+            return bool(info.routers_zid()) or bool(info.peers_zid())
+        except Exception:  # the session is closing
+            return False
+
+    def _watch(self) -> None:
+        """Follow the connection (wall clock, operations); say when it is lost and back."""
+        lost_at = 0.0
+        while not self._stopping.wait(CONNECTION_POLL_S):
+            linked = self._linked_now()
+            if linked == self._linked:
+                continue
+            self._linked = linked
+            if not linked:
+                lost_at = time.monotonic()
+                log.error(
+                    "zenoh connection lost: no router or peer of %s reachable; /readyz is 503 "
+                    "until it is back (inputs published meanwhile do not arrive: seq gaps count them)",
+                    self.zenoh_options.effective_connect() or "the session",
+                )
+            else:
+                log.warning("zenoh connection back after %.1f s", time.monotonic() - lost_at)
 
     # -- Zenoh callbacks (no work here) ----------------------------------------------------------
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -254,12 +415,10 @@ class ServiceNode:
             self.peer_queue.put(item)
             self._items.release()
             return
-        try:
-            self.queue.put(item, timeout=self.put_timeout_s)
+        if self.queue.put(item, len(item[1]), key, self.queue_wait_s):
             self._items.release()
-        except queue.Full:
-            self.queue_stats.dropped += 1
-            log.error("ingest queue full for %.1f s: dropped a sample on %s", self.put_timeout_s, item[0])
+        elif not self._stopping.is_set():
+            self._drop_log.warn(key, f"no room for {self.queue_wait_s:.2f} s")
 
     def _on_worker_status(self, sample: zenoh.Sample) -> None:
         kind, ids = parse_key(str(sample.key_expr), self.keys.prefix)
@@ -309,13 +468,12 @@ class ServiceNode:
                     self._publish(out)
                 self.snapshot = self.engine.snapshot()  # (cached by the engine when unchanged)
                 last_snapshot = time.monotonic()
-            if item is _STOP:
-                break
+            if item is _STOP or time.monotonic() >= self._stop_deadline:
+                break  # (the deadline: a stop's grace ran out; stop() counts what is left)
             if not self.partition.whole:
                 self._update_waited()
             if item is not None:
                 self._handle(*item)
-                self.queue_stats.high_water = max(self.queue_stats.high_water, self.queue.qsize() + 1)
                 # A fresh snapshot when the inputs run dry, at most every SNAPSHOT_MIN_S (the
                 # other workers' messages keep coming in between), and every 64 messages.
                 now = time.monotonic()
@@ -345,7 +503,9 @@ class ServiceNode:
         the correlation along (in data-time order whatever the order they are taken in), while
         inputs queued before them would otherwise keep the merger waiting and the tables piling
         up.  None: nothing came for ``wait`` s."""
-        if not self._items.acquire(timeout=wait):
+        took = self._items.acquire(timeout=wait)
+        self._last_take = time.monotonic()
+        if not took:
             return None
         try:
             return self.peer_queue.get_nowait()
@@ -354,6 +514,7 @@ class ServiceNode:
 
     def _handle(self, key: str, payload: bytes, received: float) -> None:
         self.processed += 1
+        self.processed_plots += key.endswith("/plots")
         try:
             out = self.engine.ingest(key, payload, received)
         except Exception:  # engine.ingest never raises on input; this is a last resort
@@ -420,12 +581,7 @@ class ServiceNode:
                 "connect": self.zenoh_options.effective_connect(),
             },
             **snap.status_core(),
-            "queue": {
-                "depth": self.queue.qsize(),
-                "capacity": self.queue_stats.capacity,
-                "high_water": self.queue_stats.high_water,
-                "dropped": self.queue_stats.dropped,
-            },
+            "queue": self.queue_status(),
         }
         if not self.partition.whole:
             own["partition"] = self._partition_section(
@@ -433,6 +589,19 @@ class ServiceNode:
             )
             own["partition"]["progress"] = snap.progress
         return own
+
+    def queue_status(self) -> dict[str, Any]:
+        """``/status`` ``queue``: depth and bounds, and the drops by key (contract §4.6)."""
+        dropped = self.queue.dropped_counts()
+        return {
+            "depth": self.queue.qsize(),
+            "capacity": self.queue.max_items,
+            "high_water": self.queue.high_water,
+            "dropped": sum(dropped.values()),
+            "bytes": self.queue.nbytes(),
+            "capacity_bytes": self.queue.max_bytes,
+            "dropped_by_key": dropped,
+        }
 
     def _partition_section(self, workers: dict[int, tuple[float | None, list[str], int]]) -> dict[str, Any]:
         alive = self._alive | {self.partition.index}

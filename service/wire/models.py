@@ -447,6 +447,20 @@ class IdentityQuality(OutModel):
     by_pair: list[IdentityPair] = Field(default_factory=list)
 
 
+class QueueStatus(OutModel):
+    """The ingest queue between Zenoh and the worker (contract §4.6)."""
+
+    depth: int = Field(description="samples waiting for the worker")
+    capacity: int = Field(description="bound in samples (TOPOFUSION_QUEUE_SIZE)")
+    high_water: int = Field(description="the most samples ever waiting at once")
+    dropped: int = Field(description="samples dropped on a full queue")
+    bytes: int = Field(default=0, description="payload bytes waiting")
+    capacity_bytes: int = Field(default=0, description="bound in payload bytes (TOPOFUSION_QUEUE_BYTES)")
+    dropped_by_key: dict[str, int] = Field(
+        default_factory=dict, description="the drops by key expression (at most 1024 keys, the rest summed)"
+    )
+
+
 class Status(OutModel):
     uptime_s: float
     method: str
@@ -457,7 +471,7 @@ class Status(OutModel):
     pairs_tentative: int
     correlation: CorrelationTimings
     rejected: dict[str, int]
-    queue: dict[str, int] = Field(default_factory=dict, description="ingest queue depth, capacity, dropped")
+    queue: QueueStatus | None = Field(default=None, description="the ingest queue")
     partition: PartitionStatus | None = Field(
         default=None, description="partitioned workers only: who owns what, which partitions are missing"
     )

@@ -91,7 +91,7 @@ def live_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[LiveRun
             pub.close()
             rec_session.close()
         assert report.dropped == 0 and report.error is None
-        assert node.processed == inputs and node.queue_stats.dropped == 0
+        assert node.processed == inputs and node.queue.dropped_total == 0
         recorded_inputs = sum(n for k, n in report.messages_by_key.items() if k.endswith(("/site", "/plots")))
         assert recorded_inputs == inputs
         assert any(k.endswith("/tracks") for k in report.messages_by_key)  # outputs are recorded too
@@ -119,7 +119,7 @@ def _replay_into_fresh_service(path: Path, endpoint: str, inputs: int, extra: li
     finally:
         node.stop()
         probe.close()
-    assert node.processed == inputs and node.queue_stats.dropped == 0
+    assert node.processed == inputs and node.queue.dropped_total == 0
     return node
 
 

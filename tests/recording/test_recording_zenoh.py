@@ -28,8 +28,9 @@ from service.recording import (
     replay_main,
 )
 from service.recording.publisher import ZenohReplayPublisher
-from service.recording.recorder import ReceivedSample, Recorder, RecordReport, SampleQueue
+from service.recording.recorder import ReceivedSample, Recorder, RecordReport
 from service.recording.replay import paced
+from service.transport.ingest_queue import BoundedQueue
 from service.transport.session import ZenohOptions, open_session
 
 TRACKS = f"{PREFIX}/radar/A/tracks"
@@ -132,13 +133,14 @@ def test_record_stops_after_duration_and_reports(tmp_path: Path, session_factory
 
 
 def test_full_queue_drops_are_counted_per_key_and_reported_loudly() -> None:
-    q = SampleQueue(max_samples=2, max_bytes=10**6)
+    q = BoundedQueue(max_items=2, max_bytes=10**6)
     for i in range(5):
-        q.offer(ReceivedSample(key=f"k/{i % 2}", payload=b"x", log_time_ns=i, publish_time_ns=None))
+        key = f"k/{i % 2}"
+        q.put(ReceivedSample(key=key, payload=b"x", log_time_ns=i, publish_time_ns=None), 1, key)
     assert len(q) == 2 and q.dropped == {"k/0": 2, "k/1": 1}
-    big = SampleQueue(max_samples=100, max_bytes=10)
-    assert big.offer(ReceivedSample("a", b"x" * 50, 0, None))  # one oversized sample still passes
-    assert not big.offer(ReceivedSample("a", b"x", 0, None))
+    big = BoundedQueue(max_items=100, max_bytes=10)
+    assert big.put(ReceivedSample("a", b"x" * 50, 0, None), 50, "a")  # one oversized sample still passes
+    assert not big.put(ReceivedSample("a", b"x", 0, None), 1, "a")
     report = RecordReport(path="f.mcap", key_expr="x/**", messages_by_key={"k/0": 1}, bytes_by_key={"k/0": 1})
     report.dropped_by_key = dict(q.dropped)
     assert any(line.startswith("WARNING: 3 samples DROPPED") for line in report.lines())

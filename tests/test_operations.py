@@ -1,0 +1,306 @@
+"""Operating the service (contract §4.6): the ingest queue's bounds, honest readiness through a
+router outage and a stalled worker, a start before the router, and a stop under load.
+
+Real parts only: Zenoh routers and clients on free loopback ports (multicast scouting off),
+real HTTP, and `topofusion run` as a subprocess stopped by its own pid.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import signal
+import threading
+import time
+from collections import Counter
+from typing import Any
+
+import httpx
+import pytest
+import zenoh
+
+from service.engine import EngineConfig
+from service.transport.ingest_queue import MAX_DROP_KEYS, OTHER_KEYS, BoundedQueue
+from service.transport.node import ServiceNode
+from service.transport.session import ZenohOptions, open_session
+from tests.scenario_helpers import scenario_messages
+from tests.support import free_port, put_json, running_service, wait_for, wait_subscribed
+from tests.test_cli_process import process
+
+
+def plot_batch(n: int, radar: str = "A", t0: float = 1_000.0) -> dict[str, Any]:
+    return {
+        "radar_id": radar,
+        "seq": n,
+        "scan_time_s": t0 + 4.0 * n,
+        "plots": {"time_s": [t0 + 4.0 * n], "range_m": [50_000.0], "azimuth_deg": [10.0]},
+    }
+
+
+# -- the queue's bounds ------------------------------------------------------------------------
+
+
+def test_bounded_queue_bounds_count_and_bytes_and_counts_drops_by_key() -> None:
+    q = BoundedQueue(max_items=3, max_bytes=100)
+    assert q.put("a", 60, "k/a") and not q.put("b", 60, "k/b")  # 120 bytes > 100
+    assert q.put("c", 40, "k/c") and q.put("d", 0, "k/d") and not q.put("e", 0, "k/e")  # 3 items
+    assert q.dropped == {"k/b": 1, "k/e": 1} and q.nbytes() == 100
+    assert [q.get_nowait() for _ in range(3)] == ["a", "c", "d"] and q.nbytes() == 0
+    assert q.put("big", 10_000, "k/big")  # one sample always fits an empty queue
+    assert not q.put("x", 1, "k/x")
+    # a waiting producer gets in as soon as the consumer makes room, not at its deadline
+    threading.Timer(0.1, q.get_nowait).start()
+    t0 = time.monotonic()
+    assert q.put("y", 1, "k/y", timeout_s=5.0)
+    assert time.monotonic() - t0 < 2.0
+    # drops on made-up keys are bounded in number of keys
+    flood = BoundedQueue(max_items=1, max_bytes=10)
+    flood.put("first", 1, "k")
+    for i in range(MAX_DROP_KEYS + 50):
+        flood.put(i, 1, f"junk/{i}")
+    counts = flood.dropped_counts()
+    assert len(counts) == MAX_DROP_KEYS + 1 and counts[OTHER_KEYS] == 50
+    assert flood.dropped_total == MAX_DROP_KEYS + 50
+
+
+def test_a_full_queue_never_blocks_zenoh_beyond_the_bound(router: str, client: zenoh.Session) -> None:
+    """The worker is held on purpose; Zenoh's callback waits at most `queue_wait_s` per sample,
+    the drops are counted by key, and every sample is either processed or counted dropped."""
+    bound = 0.2
+    node = ServiceNode(
+        EngineConfig(),
+        ZenohOptions(mode="client", connect=(router,)),
+        queue_size=2,
+        queue_wait_s=bound,
+        correlation_process=False,
+    )
+    gate = threading.Event()
+    real_ingest = node.engine.ingest
+
+    def held_ingest(*args: Any, **kwargs: Any) -> Any:
+        gate.wait(timeout=30)
+        return real_ingest(*args, **kwargs)
+
+    node.engine.ingest = held_ingest  # type: ignore[method-assign]
+    callback_s: list[float] = []
+    real_callback = node._on_sample
+
+    def timed_callback(sample: zenoh.Sample) -> None:  # Zenoh's network thread runs this
+        t0 = time.monotonic()
+        real_callback(sample)
+        callback_s.append(time.monotonic() - t0)
+
+    node._on_sample = timed_callback  # type: ignore[method-assign]
+    node.start()
+    try:
+        wait_subscribed(client, "fusion/radar/A/plots")
+        sent = Counter[str]()
+        for n in range(1, 9):
+            for radar in ("A", "B"):
+                put_json(client, f"fusion/radar/{radar}/plots", plot_batch(n, radar))
+                sent[f"fusion/radar/{radar}/plots"] += 1
+        wait_for(lambda: len(callback_s) == sum(sent.values()), timeout=30)
+        assert max(callback_s) < bound + 0.15, max(callback_s)
+        dropped = node.status()["queue"]["dropped_by_key"]
+        assert set(dropped) == set(sent) and sum(dropped.values()) > 0
+        gate.set()
+        wait_for(
+            lambda: node.queue.empty() and node.processed + node.queue.dropped_total == sum(sent.values())
+        )
+        status = node.status()
+        assert status["queue"]["dropped"] == sum(dropped.values())
+        assert status["queue"]["capacity"] == 2 and status["queue"]["dropped_by_key"] == dropped
+    finally:
+        gate.set()
+        node.stop()
+
+
+# -- readiness ---------------------------------------------------------------------------------
+
+
+def test_readyz_follows_a_router_outage_and_counts_are_exact() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    options = ZenohOptions(mode="router", listen=(endpoint,))
+    router = open_session(options)
+    publisher: zenoh.Session | None = None
+    try:
+        with running_service(endpoint, correlation_process=False) as svc:
+            publisher = open_session(ZenohOptions(mode="client", connect=(endpoint,)))
+            stream = [(k, p) for k, p in scenario_messages("two-radar", duration_s=120.0) if "/A/" in k]
+            site = next(p for k, p in stream if k.endswith("/site"))
+            batches = [(k, p) for k, p in stream if k.endswith("/plots")][:24]
+            wait_subscribed(publisher, "fusion/radar/A/plots")
+            put_json(publisher, "fusion/radar/A/site", site)
+            for key, payload in batches[:8]:
+                put_json(publisher, key, payload)
+
+            def row() -> dict[str, Any]:
+                radars = svc.http.get("/status").json()["radars"]
+                return radars[0] if radars else {"batches": 0, "lost_batches": 0}
+
+            wait_for(lambda: row()["batches"] == 8)
+
+            router.close()  # the router dies
+            wait_for(lambda: svc.http.get("/readyz").status_code == 503, timeout=10)
+            assert svc.http.get("/readyz").json()["reason"] == "no zenoh connection"
+            assert svc.http.get("/healthz").status_code == 200
+            for key, payload in batches[8:16]:  # published into the outage: lost on the way
+                put_json(publisher, key, payload)
+
+            router = open_session(options)  # back on the same endpoint
+            wait_for(lambda: svc.http.get("/readyz").status_code == 200, timeout=20)
+            wait_for(lambda: bool(publisher.info.routers_zid()), timeout=20)
+            wait_subscribed(publisher, "fusion/radar/A/plots", timeout=20)
+            for key, payload in batches[16:]:
+                put_json(publisher, key, payload)
+
+            wait_for(lambda: row()["batches"] == 16, timeout=20)
+            last_seq = json.loads(batches[-1][1])["seq"]
+            first_seq = json.loads(batches[0][1])["seq"]
+            assert row()["batches"] + row()["lost_batches"] == last_seq - first_seq + 1 == 24
+            assert row()["lost_batches"] == 8
+            assert svc.http.get("/status").json()["rejected"] == {}
+    finally:
+        if publisher is not None:
+            publisher.close()
+        router.close()
+
+
+def test_readyz_says_a_stalled_worker_and_recovers(router: str, client: zenoh.Session) -> None:
+    with running_service(router, correlation_process=False, stall_s=0.5) as svc:
+        gate = threading.Event()
+        real_ingest = svc.node.engine.ingest
+
+        def held_ingest(*args: Any, **kwargs: Any) -> Any:
+            gate.wait(timeout=30)
+            return real_ingest(*args, **kwargs)
+
+        svc.node.engine.ingest = held_ingest  # type: ignore[method-assign]
+        try:
+            wait_subscribed(client, "fusion/radar/A/plots")
+            for n in range(1, 4):
+                put_json(client, "fusion/radar/A/plots", plot_batch(n))
+            wait_for(lambda: svc.http.get("/readyz").status_code == 503, timeout=10)
+            assert svc.http.get("/readyz").json()["reason"] == "worker stalled"
+        finally:
+            gate.set()
+        wait_for(lambda: svc.http.get("/readyz").status_code == 200, timeout=10)
+
+
+# -- start before the router, stop under load ----------------------------------------------------
+
+
+def _get(url: str) -> httpx.Response | None:
+    try:
+        return httpx.get(url, timeout=2)
+    except httpx.HTTPError:
+        return None
+
+
+def test_a_service_started_before_its_router_waits_for_it() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    hport = free_port()
+    url = f"http://127.0.0.1:{hport}"
+    args = ["run", "--mode", "client", "--connect", endpoint, "--http-port", str(hport)]
+    with process(args) as proc:
+        wait_for(lambda: _get(url + "/healthz") is not None or proc.poll() is not None, timeout=30)
+        assert proc.poll() is None
+        ready = _get(url + "/readyz")
+        assert ready is not None and ready.status_code == 503
+        assert ready.json()["reason"] == "connecting to zenoh"
+        time.sleep(1.0)  # a few attempts with back-off
+        router = open_session(ZenohOptions(mode="router", listen=(endpoint,)))
+        try:
+            wait_for(lambda: (r := _get(url + "/readyz")) is not None and r.status_code == 200, timeout=30)
+            publisher = open_session(ZenohOptions(mode="client", connect=(endpoint,)))
+            try:
+                stream = scenario_messages("two-radar", duration_s=20.0)
+                wait_subscribed(publisher, "fusion/radar/A/plots")
+                for key, payload in stream:
+                    put_json(publisher, key, payload)
+                n = sum(k.endswith("/plots") for k, _ in stream)
+                wait_for(lambda: sum(r["batches"] for r in httpx.get(url + "/status").json()["radars"]) == n)
+            finally:
+                publisher.close()
+            proc.send_signal(signal.SIGTERM)
+            out, _ = proc.communicate(timeout=30)
+        finally:
+            router.close()
+    assert proc.returncode == 0, out
+    assert "retrying with back-off" in out and "zenoh router reached" in out
+    assert "Traceback" not in out, out
+
+
+STOP_LINE = re.compile(
+    r"stop: (?:processed all (\d+) queued samples|.* (\d+) of (\d+) queued samples left unprocessed)"
+    r".* (\d+) plot batches processed in all"
+)
+
+
+def _stop_under_load(
+    stream: list[tuple[str, bytes]], grace_s: float
+) -> tuple[str, Counter[str], Counter[str]]:
+    """`topofusion run` takes ``stream`` faster than it can process it and gets SIGTERM with
+    half of it queued: its output, the plot batches sent by radar and the `TrackBatch`es received by radar."""
+    zport, hport = free_port(), free_port()
+    listen = f"tcp/127.0.0.1:{zport}"
+    url = f"http://127.0.0.1:{hport}"
+    args = ["run", "--mode", "peer", "--listen", listen, "--http-port", str(hport)]
+    env = {"TOPOFUSION_STOP_GRACE_S": str(grace_s)}
+    received = Counter[str]()
+    sent = Counter(json.loads(p)["radar_id"] for k, p in stream if k.endswith("/plots"))
+    with process(args, env) as proc:
+        wait_for(lambda: (r := _get(url + "/readyz")) is not None and r.status_code == 200, timeout=30)
+        session = open_session(ZenohOptions(mode="client", connect=(listen,)))
+        try:
+
+            def on_tracks(sample: zenoh.Sample) -> None:
+                received[str(sample.key_expr).split("/")[2]] += 1
+
+            tracks = session.declare_subscriber("fusion/radar/*/tracks", on_tracks)
+            wait_subscribed(session, "fusion/radar/A/plots")
+            for key, payload in stream:
+                put_json(session, key, payload)
+
+            # The signal once the service has taken (queued) at least half of the stream; what
+            # is still on its way then is not taken at all.
+            wait_for(lambda: httpx.get(url + "/status").json()["queue"]["depth"] >= len(stream) // 2)
+            proc.send_signal(signal.SIGTERM)
+            out, _ = proc.communicate(timeout=grace_s + 30)
+            time.sleep(0.5)  # the last puts on their way
+            tracks.undeclare()
+        finally:
+            session.close()
+    assert proc.returncode == 0, out
+    assert "Traceback" not in out, out
+    return out, sent, received
+
+
+@pytest.fixture(scope="module")
+def heavy_stream() -> list[tuple[str, bytes]]:
+    """A stream the worker needs seconds for, published in a fraction of that."""
+    return scenario_messages("two-radar", duration_s=400.0)
+
+
+def test_sigterm_under_load_drains_the_queue_and_publishes_the_final_outputs(
+    heavy_stream: list[tuple[str, bytes]],
+) -> None:
+    out, sent, received = _stop_under_load(heavy_stream, grace_s=60.0)
+    line = STOP_LINE.search(out)
+    assert line is not None and line.group(1) is not None, out
+    assert int(line.group(1)) > 0, "nothing was queued at SIGTERM: the test did not load the service"
+    # One TrackBatch per plot batch processed: the queue's outputs were all published.  (What
+    # was still in flight on the network at the signal never reached the service.)
+    assert sum(received.values()) == int(line.group(4)) <= sum(sent.values())
+
+
+def test_sigterm_with_a_short_grace_counts_exactly_what_it_leaves(
+    heavy_stream: list[tuple[str, bytes]],
+) -> None:
+    out, sent, received = _stop_under_load(heavy_stream, grace_s=0.5)
+    line = STOP_LINE.search(out)
+    assert line is not None and line.group(2) is not None, out
+    left, queued = int(line.group(2)), int(line.group(3))
+    assert 0 < left <= queued
+    plots_left = int(re.search(r"\((\d+) plot batches\)", out).group(1))  # type: ignore[union-attr]
+    assert sum(received.values()) == int(line.group(4)) <= sum(sent.values()) - plots_left
