@@ -19,6 +19,7 @@ import socket
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from functools import partial
 from html.parser import HTMLParser
 from typing import Any
 from urllib.parse import unquote, urljoin
@@ -122,7 +123,7 @@ def services() -> Iterator[Services]:
                     put_json(client, key, payload)
                 for svc, headers in ((guarded, _bearer(TOKEN)), (plain, {})):
                     with svc.client(headers=headers) as http:
-                        wait_for(lambda h=http: h.get("/radars/A/tracks").status_code == 200, timeout=30)
+                        wait_for(partial(_answers, http, "/radars/A/tracks"), timeout=30)
                 yield Services(guarded, plain, logs)
         finally:
             client.close()
@@ -130,6 +131,10 @@ def services() -> Iterator[Services]:
         router.close()
         root.removeHandler(logs)
         root.setLevel(previous)
+
+
+def _answers(http: httpx.Client, url: str) -> bool:
+    return http.get(url).status_code == 200
 
 
 def _bearer(token: str) -> dict[str, str]:
