@@ -303,6 +303,7 @@ def serve(settings: Settings, demo: argparse.Namespace | None = None) -> int:
         peer_grace_s=settings.peer_grace_s,
         stop_grace_s=settings.stop_grace_s,
         stall_s=settings.stall_s,
+        state=_state_keeper(settings, config),
     )
     node.open()
 
@@ -313,6 +314,7 @@ def serve(settings: Settings, demo: argparse.Namespace | None = None) -> int:
         node_factory,
         on_started=extras.start if extras else None,
         on_stopping=extras.stop if extras else None,
+        api_token=settings.api_token.get_secret_value() if settings.api_token else None,
     )
 
     class Server(uvicorn.Server):
@@ -345,6 +347,15 @@ def serve(settings: Settings, demo: argparse.Namespace | None = None) -> int:
     if not server.started:
         return 1  # start-up failed (e.g. port in use or Zenoh refused): uvicorn logged why
     return 0
+
+
+def _state_keeper(settings: Settings, config: Any) -> Any:
+    """The ``--state-dir`` keeper of this worker, or None."""
+    if settings.state_dir is None:
+        return None
+    from service.state import StateKeeper
+
+    return StateKeeper(settings.state_dir, config.prefix, str(config.partition), settings.state_interval_s)
 
 
 class _DemoExtras:
@@ -571,7 +582,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except LabMissingError as exc:
         print(f"topofusion: {exc}", file=sys.stderr)
         return 2
-    except (ValueError, FileNotFoundError, RuntimeError) as exc:  # ConfigError is a ValueError
+    except (ValueError, OSError, RuntimeError) as exc:  # ConfigError is a ValueError
         print(f"topofusion: {exc}", file=sys.stderr)
         return 2
     parser.error(f"unknown command {args.command}")

@@ -81,6 +81,13 @@ class Settings(BaseSettings):
 
     _split_listen = field_validator("zenoh_listen", "zenoh_connect", "radars", mode="before")(_split)
 
+    @field_validator("zenoh_config", "sites", "config", "state_dir", "api_token", mode="before")
+    @classmethod
+    def _empty_is_none(cls, value: object) -> object:
+        # An empty variable (e.g. compose's ``${TOPOFUSION_API_TOKEN:-}``) means "not set": not
+        # the working directory, not a token of length zero.
+        return None if isinstance(value, str) and not value.strip() else value
+
     @field_validator("partition")
     @classmethod
     def _partition(cls, value: str) -> str:

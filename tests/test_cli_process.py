@@ -35,6 +35,8 @@ def process(args: list[str], settings: dict[str, str] | None = None) -> Iterator
         if proc.poll() is None:
             proc.kill()  # only reached when a test failed before stopping it
             proc.wait(timeout=10)
+        if proc.stdout is not None:
+            proc.stdout.close()  # (a test that killed the process itself did not read it)
 
 
 def _http_ready(url: str) -> bool:

@@ -47,6 +47,7 @@ import zenoh
 
 from service.engine import Engine, EngineConfig, Outgoing, Snapshot
 from service.pipeline.partition import BIAS_WORKER
+from service.state import StateKeeper
 from service.transport.ingest_queue import BoundedQueue
 from service.transport.session import RETRY_FIRST_S, RETRY_MAX_S, ZenohOptions, open_session
 from service.wire.keys import PRIORITY_KINDS, Keys, parse_key
@@ -118,6 +119,7 @@ class ServiceNode:
         queue_bytes: int = 256 * 1024 * 1024,
         stop_grace_s: float = 20.0,
         stall_s: float = 30.0,
+        state: StateKeeper | None = None,
     ) -> None:
         self.peer_query_timeout_s = peer_query_timeout_s
         self.engine = Engine(engine_config, correlation_process=correlation_process)
@@ -141,6 +143,11 @@ class ServiceNode:
         self.queue_wait_s = queue_wait_s
         self.stop_grace_s = stop_grace_s
         self.stall_s = stall_s
+        #: ``--state-dir``: restored here, before any input (``OSError`` when the directory
+        #: cannot be used), written on data time and at a stop.
+        self.state = state
+        if state is not None:
+            state.restore(self.engine)
         self._drop_log = RateLimitedLog(DROP_LOG_INTERVAL_S, "dropped on a full ingest queue", logging.ERROR)
         self.radar_filter = radars
         self.snapshot: Snapshot = self.engine.snapshot()
@@ -321,6 +328,8 @@ class ServiceNode:
                     self.processed_plots,
                 )
             self.unprocessed_at_stop = len(left)
+            if self.state is not None:
+                self.state.save(self.engine)
         for d in self._declared:
             try:
                 d.undeclare()
@@ -474,6 +483,8 @@ class ServiceNode:
                 self._update_waited()
             if item is not None:
                 self._handle(*item)
+                if self.state is not None:
+                    self.state.maybe_save(self.engine)
                 # A fresh snapshot when the inputs run dry, at most every SNAPSHOT_MIN_S (the
                 # other workers' messages keep coming in between), and every 64 messages.
                 now = time.monotonic()
@@ -659,6 +670,11 @@ class ServiceNode:
                 corr["updates"] += int(c["updates"])
                 corr["p50_ms"] = max(corr["p50_ms"], float(c["p50_ms"]))
                 corr["p99_ms"] = max(corr["p99_ms"], float(c["p99_ms"]))
+                theirs = c.get("duration_buckets", {})
+                corr["duration_buckets"] = {
+                    le: n + int(theirs.get(le, 0)) for le, n in corr["duration_buckets"].items()
+                }
+                corr["duration_sum_s"] += float(c.get("duration_sum_s", 0.0))
                 mine = st["partition"]["workers"][k - 1]
                 workers[k] = (age, list(mine["radars"]), int(mine["pair_sets"]))
             except (KeyError, TypeError, ValueError, IndexError):
