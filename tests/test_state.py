@@ -140,6 +140,33 @@ def test_a_restart_keeps_sites_biases_seq_and_moves_the_id_epoch(
         engine.close()
 
 
+def _later(payload: bytes, shift_s: float) -> bytes:
+    """A plot batch as it would come ``shift_s`` later (batch and plot times)."""
+    body = json.loads(payload)
+    body["time_s"] += shift_s
+    body["plots"]["time_s"] = [t + shift_s for t in body["plots"]["time_s"]]
+    return json.dumps(body).encode()
+
+
+def test_a_restart_after_an_hour_down_takes_the_radars_at_once(
+    written: Path, stream: list[tuple[str, bytes]], tmp_path: Path
+) -> None:
+    """The kept clocks are an hour old when the data comes back: they judge each radar's own
+    numbering, not whether the new batches' clocks are plausible (they would all look an hour
+    ahead of the kept ones)."""
+    shutil.copy(written, tmp_path / STATE)
+    engine = Engine(EngineConfig())
+    StateKeeper(tmp_path, "fusion", "1/1").restore(engine)
+    assert [r["expired"] for r in engine.snapshot().status_core()["radars"]] == [True, True]
+    rest = _split(stream)[1]
+    out = _feed(engine, [(k, _later(p, 3600.0)) for k, p in rest])
+    assert _errors(out) == []
+    for rid in ("A", "B"):
+        radar = _radar(engine, rid)
+        assert radar["batches"] == sum(k == f"fusion/radar/{rid}/plots" for k, _ in rest)
+        assert radar["lost_batches"] == 0 and not radar["expired"] and radar["tracks_confirmed"] > 0
+
+
 def _damaged(written: Path, directory: Path, how: str) -> StateKeeper:
     """A copy of ``written`` in ``directory``, damaged ``how``; the keeper that will read it."""
     path = directory / STATE

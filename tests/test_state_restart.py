@@ -9,7 +9,6 @@ count) and started again with the same directory.
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 from pathlib import Path
@@ -18,18 +17,10 @@ from typing import Any
 import httpx
 import zenoh
 
+from service.state.fileformat import decode
 from tests.scenario_helpers import scenario_messages
 from tests.support import free_port, put_json, wait_for, wait_subscribed
-from tests.test_cli_process import TOPOFUSION, _http_ready
-
-
-def _start(args: list[str]) -> subprocess.Popen[str]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("TOPOFUSION_")}
-    # a write every 10 s of data time: the last one comes after the last bias solve of the run
-    env.update(PYTHONUNBUFFERED="1", TOPOFUSION_STATE_INTERVAL_S="10")
-    return subprocess.Popen(
-        [TOPOFUSION, *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
-    )
+from tests.test_cli_process import _http_ready, process
 
 
 def _ready(proc: subprocess.Popen[str], url: str) -> None:
@@ -66,61 +57,69 @@ def test_a_killed_service_comes_back_with_sites_biases_and_fresh_track_ids(
     url = f"http://127.0.0.1:{hport}"
     args = ["run", "--mode", "client", "--connect", router, "--http-port", str(hport)]
     args += ["--prefix", "fusion", "--state-dir", str(tmp_path / "state")]
-    procs = []
+    # a write every 10 s of data time: the last one comes after the last bias solve of the run
+    settings = {"TOPOFUSION_STATE_INTERVAL_S": "10"}
     try:
-        proc = _start(args)
-        procs.append(proc)
-        _ready(proc, url)
-        wait_subscribed(client, "fusion/radar/A/plots")
-        wait_subscribed(client, "fusion/radar/A/site")
-        for key, payload in first:
-            put_json(client, key, payload)
-        n_first = sum(k.endswith("/plots") for k, _ in first)
-        wait_for(lambda: _batches(url) == n_first, timeout=60)
-        before = wait_for(lambda: len(_biases(url)) == 2 and _biases(url), timeout=30)
-        # every track the killed run published has come (a late one must not count as after):
-        # its batches are released up to the radars' common clock, the older of their last
-        times = {
-            r: [json.loads(p)["time_s"] for k, p in first if k == f"fusion/radar/{r}/plots"] for r in newest
+        with process(args, settings) as proc:
+            _ready(proc, url)
+            wait_subscribed(client, "fusion/radar/A/plots")
+            wait_subscribed(client, "fusion/radar/A/site")
+            for key, payload in first:
+                put_json(client, key, payload)
+            n_first = sum(k.endswith("/plots") for k, _ in first)
+            wait_for(lambda: _batches(url) == n_first, timeout=60)
+            before = wait_for(lambda: len(_biases(url)) == 2 and _biases(url), timeout=30)
+            # every track the killed run published has come (a late one must not count as
+            # after): its batches are released up to the radars' common clock
+            times = {
+                r: [json.loads(p)["time_s"] for k, p in first if k == f"fusion/radar/{r}/plots"]
+                for r in newest
+            }
+            common = min(max(t) for t in times.values())
+            want = {r: max(t for t in times[r] if t <= common) for r in newest}
+            wait_for(lambda: all(newest[r] >= want[r] for r in newest), timeout=30)
+            assert ids["before"]
+            proc.kill()  # SIGKILL: no final write
+            out, _ = proc.communicate(timeout=10)
+            assert proc.returncode == -signal.SIGKILL
+            assert "none yet, starting clean; track-id epoch 0" in out, out
+        # the file holds the last periodic write, less than one interval before the newest data;
+        # the batches the killed run took after it come as a gap after the restart
+        state = decode((tmp_path / "state" / "state.bin").read_bytes(), "fusion", "1/1")[1]
+        assert max(max(t) for t in times.values()) - state["data_clock_s"] < 10.0
+        kept = {s["source_id"]: s["seq"] for s in state["sources"]}
+        sent = {
+            r: max(json.loads(p)["seq"] for k, p in first if k == f"fusion/radar/{r}/plots") for r in newest
         }
-        common = min(max(t) for t in times.values())
-        want = {r: max(t for t in times[r] if t <= common) for r in newest}
-        wait_for(lambda: all(newest[r] >= want[r] for r in newest), timeout=30)
-        assert ids["before"]
-        proc.kill()  # SIGKILL: no final write
-        proc.wait(timeout=10)
-        assert proc.returncode == -signal.SIGKILL
 
         phase = "after"
-        proc = _start(args)
-        procs.append(proc)
-        _ready(proc, url)
-        # at once, before any new data: the biases of before, both radars known
-        after = _biases(url)
-        assert sorted(after) == ["A", "B"]
-        for rid, then in before.items():
-            for field in ("range_bias_m", "azimuth_bias_deg", "elevation_bias_deg"):
-                assert abs(after[rid][field] - then[field]) <= 0.1 * abs(then[field]), (rid, field)
-        assert [r["radar_id"] for r in httpx.get(url + "/radars", timeout=5).json()] == ["A", "B"]
-        # the radars' plots, without their sites sent again, are taken
-        wait_subscribed(client, "fusion/radar/A/plots")
-        for key, payload in rest:
-            put_json(client, key, payload)
-        wait_for(lambda: _batches(url) == len(rest), timeout=60)
-        status = httpx.get(url + "/status", timeout=5).json()
-        assert "unknown_radar" not in status["rejected"], status["rejected"]
-        assert all(r["rejected"] == 0 and r["lost_batches"] == 0 for r in status["radars"])
-        # the new tracks' ids are of the next epoch: none of the killed run's comes again
-        wait_for(lambda: ids["after"], timeout=30)
-        assert not ids["after"] & ids["before"]
-        assert all(int(t.rsplit("-", 1)[1]) > 10**9 for t in ids["after"])
-        proc.send_signal(signal.SIGTERM)
-        out, _ = proc.communicate(timeout=30)
-        assert proc.returncode == 0, out
-        assert "restored 2 radar sites" in out and "track-id epoch 1" in out, out
+        with process(args, settings) as proc:
+            _ready(proc, url)
+            # at once, before any new data: the biases of before, both radars known
+            after = _biases(url)
+            assert sorted(after) == ["A", "B"]
+            for rid, then in before.items():
+                for field in ("range_bias_m", "azimuth_bias_deg", "elevation_bias_deg"):
+                    assert abs(after[rid][field] - then[field]) <= 0.1 * abs(then[field]), (rid, field)
+            assert [r["radar_id"] for r in httpx.get(url + "/radars", timeout=5).json()] == ["A", "B"]
+            # the radars' plots, without their sites sent again, are taken
+            wait_subscribed(client, "fusion/radar/A/plots")
+            for key, payload in rest:
+                put_json(client, key, payload)
+            wait_for(lambda: _batches(url) == len(rest), timeout=60)
+            status = httpx.get(url + "/status", timeout=5).json()
+            assert "unknown_radar" not in status["rejected"], status["rejected"]
+            # a batch the killed run took after its last write comes as a gap after the restart
+            assert {r["radar_id"]: (r["rejected"], r["lost_batches"]) for r in status["radars"]} == {
+                rid: (0, sent[rid] - kept[rid]) for rid in newest
+            }
+            # the new tracks' ids are of the next epoch: none of the killed run's comes again
+            wait_for(lambda: ids["after"], timeout=30)
+            assert not ids["after"] & ids["before"]
+            assert all(int(t.rsplit("-", 1)[1]) > 10**9 for t in ids["after"])
+            proc.send_signal(signal.SIGTERM)
+            out, _ = proc.communicate(timeout=30)
+            assert proc.returncode == 0, out
+            assert "restored 2 radar sites" in out and "track-id epoch 1" in out, out
     finally:
         sub.undeclare()
-        for p in procs:
-            if p.poll() is None:
-                p.kill()  # only reached when a test failed before stopping it
-                p.wait(timeout=10)

@@ -305,9 +305,14 @@ class Sequencer:
         return sorted(kept, reverse=True)
 
     def restore_state(self, kept: list[tuple[float, str, int, int]]) -> None:
-        """Take the sources :meth:`read_state` read, before any batch.  Counters start at zero;
-        each source is silent since its clock, so it expires ``source_expiry_s`` after it unless
-        it reports again.  At most ``max_sources`` are held (the newest clocks)."""
+        """Take the sources :meth:`read_state` read, before any batch.  Counters start at zero.
+
+        Each source counts as expired (silent) until its next batch: its ``seq`` and clock still
+        judge its own batches (duplicates, lost batches, a publisher's restart), but its clock of
+        before the restart takes no part in the consensus or the watermark.  After a service
+        down for longer than ``max_clock_skew_s`` every kept clock is that far behind: they
+        would reject the first batch of every source as ahead of them, and none would move on.
+        At most ``max_sources`` are held (the newest clocks)."""
         for clock, sid, kind, seq in kept:
             src = self.sources.get(sid)
             if src is None:
@@ -317,9 +322,8 @@ class Sequencer:
             if src.kind != kind:
                 continue  # an id of another kind now (a site says it is a radar): not this source
             src.last_seq, src.last_time_s, src.released_time_s = seq, clock, clock
+            src.expired = True
             self.newest_s = max(self.newest_s, clock)
-            self._expiry_due[sid] = due = clock + self.params.source_expiry_s
-            heapq.heappush(self._heap, (due, EXPIRE, sid, 0))
 
     def count_rejected(self, source_id: str | None) -> None:
         src = self.sources.get(source_id) if source_id is not None else None
