@@ -141,6 +141,14 @@ class NodeCollector(Collector):
         yield CounterMetricFamily(
             "topofusion_queue_dropped", "Samples dropped on a full queue", value=q["dropped"]
         )
+        by_key = CounterMetricFamily(
+            "topofusion_queue_dropped_by_key",
+            "Samples dropped on a full queue, by key expression (at most 1024 keys, the rest summed)",
+            labels=["key"],
+        )
+        for key, n in sorted(q.get("dropped_by_key", {}).items()):
+            by_key.add_metric([key], n)
+        yield by_key
         yield GaugeMetricFamily("topofusion_uptime_seconds", "Process uptime", value=status["uptime_s"])
         yield GaugeMetricFamily(
             "topofusion_ready",
