@@ -16,8 +16,11 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import secrets
+import shutil
 import string
+import subprocess
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -128,14 +131,21 @@ def router_config(pki: Pki, port: int) -> zenoh.Config:
     return conf
 
 
-@pytest.fixture(scope="module")
-def net(pki: Pki, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Network]:
+@contextlib.contextmanager
+def secured_router(pki: Pki, configs: Path) -> Iterator[Network]:
+    """The router of router.json5 on a free loopback port, closed after."""
     port = free_port()
     router = zenoh.open(router_config(pki, port))
     try:
-        yield Network(pki, f"127.0.0.1:{port}", tmp_path_factory.mktemp("zenoh-configs"))
+        yield Network(pki, f"127.0.0.1:{port}", configs)
     finally:
         router.close()
+
+
+@pytest.fixture(scope="module")
+def net(pki: Pki, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Network]:
+    with secured_router(pki, tmp_path_factory.mktemp("zenoh-configs")) as network:
+        yield network
 
 
 @contextlib.contextmanager
@@ -385,6 +395,35 @@ def test_password_with_another_subjects_certificate_gives_nothing(net: Network) 
         put_json(radar, KEYS.plots("A"), b"control")
         heard.wait(KEYS.plots("A"), b"control")
         assert [p for _, p in heard.samples] == [b"control"]
+
+
+# --- the certificate script -------------------------------------------------------------------
+
+
+@pytest.mark.skipif(
+    shutil.which("openssl") is None or shutil.which("bash") is None, reason="make-certs.sh needs openssl"
+)
+def test_make_certs_script_makes_certificates_zenoh_accepts(tmp_path: Path) -> None:
+    """deploy/secure/make-certs.sh's files, as the README uses them: the router's certificate
+    names the host clients connect to, each client's names its subject."""
+    certs = tmp_path / "certs"
+    subprocess.run(
+        ["bash", str(SECURE / "make-certs.sh"), str(certs), "localhost", SERVICE, RADAR_A],
+        env={**os.environ, "ROUTER_SANS": "IP:127.0.0.1"},
+        check=True,
+        capture_output=True,
+    )
+    assert (certs / "ca.key").stat().st_mode & 0o077 == 0, "private keys are the owner's only"
+    passwords = {s: secrets.token_urlsafe(18) for s in (SERVICE, RADAR_A)}
+    (certs / "users.txt").write_text("".join(f"{u}:{p}\n" for u, p in passwords.items()))
+    with (
+        secured_router(Pki(certs, certs, passwords), tmp_path) as network,
+        opened(network.config(SERVICE), network.config(RADAR_A)) as (service, radar),
+    ):
+        heard = Heard(service, KEYS.plots("*"))
+        wait_matched(radar, KEYS.plots("A"))
+        put_json(radar, KEYS.plots("A"), b"plots")
+        heard.wait(KEYS.plots("A"), b"plots")
 
 
 # --- 5. the real service behind the secured router ------------------------------------------
