@@ -32,6 +32,7 @@ from tests.test_container import (
     LAB_COMMANDS,
     LAB_DOCKERFILE,
     _check_cli,
+    _compose_resolved,
     _dockerfile_instructions,
     _settings_env_names,
     _tool,
@@ -108,15 +109,7 @@ def test_compose_config_is_valid() -> None:
 @functools.cache
 def _compose_model() -> dict[str, Any]:
     """The compose file as compose resolves it: anchors merged, paths absolute, ports parsed."""
-    res = subprocess.run(
-        [_tool("docker-compose"), "-f", str(COMPOSE), "config", "--format", "json"],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        check=True,
-    )
-    model: dict[str, Any] = json.loads(res.stdout)
-    return model
+    return _compose_resolved(COMPOSE)
 
 
 def _compose_workers() -> dict[str, dict[str, Any]]:
