@@ -3,10 +3,11 @@
 Feeds the ``national`` scenario (12 radars, 1 500 aircraft; the stream is generated before any
 clock starts, ``--cache FILE`` keeps it) through an ``Engine`` with a ``StateKeeper`` in a
 temporary directory, ``maybe_save`` after every message as the service's worker calls it, and
-prints one row per periodic write: the data time, the registration rows held, the file size,
-the worker's pause (``maybe_save`` when due: taking the state, and with ``--process`` waiting
-for the correlation process to answer what was sent to it) and the writer thread's time
-(encoding, ``fsync``, rename).  Then the final write of a stop, and a start: reading the file
+prints one row per periodic write: the data time, the registration memories and rows in the
+file, its size, the worker's longest pause in ``maybe_save`` since the write before (taking
+the engine's part of the state; with ``--process`` asking the correlation process for its part
+and, messages later, taking its answer) and the writer thread's time (encoding, ``fsync``,
+rename).  Then the final write of a stop, and a start: reading the file
 and restoring a fresh engine from it.  Prints figures, never asserts.
 
 The registration memories fill for ``RegistrationParams.memory_s`` (600 s) plus
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import tempfile
 import time
 from dataclasses import replace
@@ -28,6 +30,7 @@ from pathlib import Path
 
 from service.engine import Engine, EngineConfig
 from service.state import StateKeeper
+from service.state.fileformat import decode
 from topofusion_lab.scenarios.catalog import get_scenario
 from topofusion_lab.scenarios.simulator import wire_messages
 
@@ -43,9 +46,9 @@ def make_stream(duration_s: float, seed: int, cache: Path | None) -> Stream:
     return stream
 
 
-def rows(engine: Engine) -> tuple[int, int]:
-    """Registration memories and their rows (taking the state, as a write does)."""
-    memories = engine.export_state().correlation["memories"]
+def rows(path: Path) -> tuple[int, int]:
+    """Registration memories and their rows in the file written."""
+    memories = decode(path.read_bytes(), "fusion", "1/1")[1]["correlation"]["memories"]
     return len(memories), sum(len(m["rows"]["time"]) for m in memories)
 
 
@@ -57,6 +60,7 @@ def main() -> None:
     ap.add_argument("--process", action="store_true", help="correlation in its own process")
     ap.add_argument("--cache", type=Path, help="keep the generated stream in this file")
     args = ap.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(message)s")  # the keeper's line at a start
 
     t0 = time.perf_counter()
     stream = make_stream(args.duration, args.seed, args.cache)
@@ -77,7 +81,7 @@ def main() -> None:
                 f"{'worker pause ms':>15s} {'writer ms':>9s}"
             )
             start = engine.data_clock_s
-            feed_s = stall_s = 0.0
+            feed_s = stall_s = since_s = 0.0
             for key, payload in stream:
                 t = time.perf_counter()
                 engine.ingest(key, payload)
@@ -87,16 +91,18 @@ def main() -> None:
                 t2 = time.perf_counter()
                 feed_s += t1 - t
                 stall_s = max(stall_s, t2 - t1)
+                since_s = max(since_s, t2 - t1)
                 if start == float("-inf"):
                     start = engine.data_clock_s
                 if keeper.writes != writes:
                     keeper.wait()  # for the figures of this write (the service does not wait)
-                    n_mem, n_rows = rows(engine)
+                    n_mem, n_rows = rows(keeper.path)
                     print(
                         f"{engine.data_clock_s - start:7.0f} {n_mem:8d} {n_rows:9d} "
-                        f"{keeper.last_bytes / 1e6:7.1f} {(t2 - t1) * 1e3:15.1f} "
+                        f"{keeper.last_bytes / 1e6:7.1f} {since_s * 1e3:15.1f} "
                         f"{keeper.last_write_s * 1e3:9.0f}"
                     )
+                    since_s = 0.0
             print(f"fed in {feed_s:.0f} s of engine time; longest maybe_save {stall_s * 1e3:.1f} ms")
             t = time.perf_counter()
             keeper.save(engine)

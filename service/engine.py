@@ -306,16 +306,38 @@ class Engine:
     def export_state(self) -> EngineState:
         """What a restart keeps (:class:`EngineState`), taken between two messages.  With the
         correlation in its own process this waits until it has answered everything sent to it,
-        so the state is of one moment."""
+        so the state is of one moment (:meth:`request_state` does not wait)."""
+        return EngineState(correlation=self.correlation.export_state(), **self._own_state())
+
+    def request_state(self) -> Callable[[], EngineState | None]:
+        """:meth:`export_state` without waiting for the correlation process: the engine's own
+        part is taken now, the correlation's at the same point of its input, and the returned
+        function gives the state once the process has answered (None until then; the answer is
+        taken with the next messages or :meth:`poll`; ``RuntimeError`` if the process died
+        meanwhile).  In process the state is taken at once."""
+        if not isinstance(self.correlation, RemoteCorrelation):
+            state = self.export_state()
+            return lambda: state
+        own = self._own_state()
+        correlation = self.correlation.request_state()
+
+        def ready() -> EngineState | None:
+            answered = correlation()
+            return None if answered is None else EngineState(correlation=answered, **own)
+
+        return ready
+
+    def _own_state(self) -> dict[str, Any]:
+        """The fields of :class:`EngineState` but the correlation's (new objects: later input
+        changes none of them)."""
         clock = self.data_clock_s
-        return EngineState(
-            sites=[r.site.model_dump(mode="json") for _, r in sorted(self.tracking.radars.items())],
-            sources=self.sequencer.export_state(),
-            reference_kinds=dict(sorted(self.reference_kinds.items())),
-            published_biases=self.published_biases,
-            correlation=self.correlation.export_state(),
-            data_clock_s=clock if np.isfinite(clock) else None,
-        )
+        return {
+            "sites": [r.site.model_dump(mode="json") for _, r in sorted(self.tracking.radars.items())],
+            "sources": self.sequencer.export_state(),
+            "reference_kinds": dict(sorted(self.reference_kinds.items())),
+            "published_biases": self.published_biases,
+            "data_clock_s": clock if np.isfinite(clock) else None,
+        }
 
     def restore_state(self, state: EngineState | None, epoch: int) -> None:
         """Take what :meth:`export_state` gave, before any input (``None``: nothing but the epoch).

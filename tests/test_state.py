@@ -91,6 +91,11 @@ def test_a_restart_keeps_sites_biases_seq_and_moves_the_id_epoch(
         keeper.restore(engine)
         assert keeper.epoch == 0 and "none yet" in caplog.text
         out = _feed(engine, first, keeper)
+        keeper.wait()
+        # a periodic write has come (with the correlation process: its answer with a later
+        # message), with the registration rows of the pair
+        header, tree = decode((tmp_path / STATE).read_bytes(), "fusion", "1/1")
+        assert header.data_clock_s is not None and tree["correlation"]["memories"]
         out += engine.flush()
         keeper.save(engine)
         biases = engine.snapshot().biases()

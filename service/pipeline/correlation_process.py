@@ -22,7 +22,7 @@ import multiprocessing as mp
 import queue
 import threading
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from multiprocessing.connection import Connection
 from typing import Any
@@ -119,6 +119,8 @@ class RemoteCorrelation:
         self.restarts = 0
         #: The last answer applied (:meth:`_call` reads its result).
         self._last: Answer | None = None
+        #: The latest ``export_state`` the child answered (:meth:`request_state`).
+        self._exported: dict[str, Any] | None = None
         self._start()
 
     def _start(self) -> None:
@@ -209,6 +211,8 @@ class RemoteCorrelation:
                 return
             self._pending -= 1
             self._last = answer
+            if answer.result is not None:
+                self._exported = answer.result
             if self._unanswered:
                 self._unanswered.popleft()
             for key, view in answer.updated:
@@ -313,7 +317,25 @@ class RemoteCorrelation:
         """:meth:`CorrelationStage.export_state` of the child, once it has answered everything
         sent before (the engine's state is then of the same moment)."""
         state: dict[str, Any] = self._call("export_state")
+        self._exported = None  # (the answer's copy: not held twice)
         return state
+
+    def request_state(self) -> Callable[[], dict[str, Any] | None]:
+        """:meth:`export_state` without waiting: the child answers it after what was sent
+        before, while the engine goes on.  Returns a function that gives the state once it is
+        answered (None until then; the answers are taken with the next messages or
+        :meth:`poll`), and raises ``RuntimeError`` if the child died meanwhile."""
+        restarts = self.restarts
+        self._exported = None
+        self._send("export_state")
+
+        def ready() -> dict[str, Any] | None:
+            state, self._exported = self._exported, None
+            if state is None and self.restarts != restarts:
+                raise RuntimeError("correlation process died before it answered")
+            return state
+
+        return ready
 
     def restore_state(self, state: Mapping[str, Any] | None, epoch: int, sites: Mapping[str, Site]) -> None:
         """:meth:`CorrelationStage.restore_state` in the child (its biases come back with the

@@ -8,9 +8,11 @@ at a graceful stop (contract §4.6 "State"; docs/operations/state.md for the ope
   data time past the state last written (the first clock after a write without data is the
   baseline): the same input gives the same writes at any replay speed, and a service without
   input writes nothing new.  Checking costs a comparison.
-* **How.**  The state is taken on the worker's thread, between two messages (with the
-  correlation in its own process, once that has answered what was sent to it).  Encoding and
-  the disk are a writer thread's: a temporary file in ``DIR``, flushed and ``fsync``-ed, then
+* **How.**  The engine's part of the state is taken on the worker's thread, between two
+  messages; with the correlation in its own process, that process takes its part at the same
+  point of its input and answers while the worker goes on (the write starts with the message
+  after the answer; the final write at a stop waits for the process).  Encoding and the disk are a writer
+  thread's: a temporary file in ``DIR``, flushed and ``fsync``-ed, then
   ``os.replace``-d over ``state.bin`` (atomic), and the directory ``fsync``-ed.  A crash at any
   moment leaves the previous whole file; a temporary file a crash left behind is deleted at the
   next start.  While a write is still under way a due write waits for the next message.
@@ -38,6 +40,7 @@ import os
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import fields
 from datetime import UTC, datetime
 from pathlib import Path
@@ -67,8 +70,11 @@ class StateKeeper:
         #: Data clock of the state last written (-inf: it held no data).
         self._saved_clock = -math.inf
         self._writer: threading.Thread | None = None
-        #: Seconds the last write took: taking the state (the worker's) and encoding and writing
-        #: it (the writer thread's).
+        #: A state asked of the engine and not answered yet (:meth:`Engine.request_state`).
+        self._requested: Callable[[], EngineState | None] | None = None
+        #: Seconds the last write took: asking for the state (the worker's; with the correlation
+        #: process, its part comes with a later message) and encoding and writing it (the
+        #: writer thread's).
         self.last_export_s = 0.0
         self.last_write_s = 0.0
         #: Bytes of the last file written.
@@ -128,6 +134,7 @@ class StateKeeper:
         """Rename the file aside; the epoch to start with and the line to log."""
         refused = self.path.with_name(STATE_FILE + REFUSED_SUFFIX)
         os.replace(self.path, refused)
+        why = " ".join(why.split())  # one line, whatever an exception's text holds
         return (
             0 if epoch is None else epoch + 1,
             f"state {self.path} refused ({why}): renamed to {refused.name}, starting clean",
@@ -136,7 +143,10 @@ class StateKeeper:
     # -- while running -------------------------------------------------------------------------
     def maybe_save(self, engine: Engine) -> None:
         """After every handled message: write the state when ``interval_s`` of data time has
-        passed since the last write (a comparison when not due)."""
+        passed since the last write (a comparison or two when not due)."""
+        if self._requested is not None:
+            self._collect()
+            return
         clock = engine.data_clock_s
         if self._saved_clock == -math.inf:
             self._saved_clock = clock  # the first data after a write without any: the baseline
@@ -146,21 +156,47 @@ class StateKeeper:
         if self._writer is not None and self._writer.is_alive():
             return  # the last write is still under way: the next message tries again
         self._saved_clock = clock  # a failed write too is tried again one interval later
-        state = self._take(engine)
-        if state is not None:
-            self._writer = threading.Thread(
-                target=self._write_logged, args=(state,), name="state-writer", daemon=True
-            )
-            self._writer.start()
+        t0 = time.perf_counter()
+        try:
+            self._requested = engine.request_state()
+        except Exception as exc:  # e.g. the correlation process died: the next write may work
+            log.error("state %s not written: %s: %s", self.path, type(exc).__name__, exc)
+        self.last_export_s = time.perf_counter() - t0
+        self._collect()
+
+    def _collect(self) -> None:
+        """The requested state, once the engine has it, to the writer thread."""
+        assert self._requested is not None
+        try:
+            state = self._requested()
+        except Exception as exc:
+            self._requested = None
+            log.error("state %s not written: %s: %s", self.path, type(exc).__name__, exc)
+            return
+        if state is None:
+            return  # the correlation process has not answered yet
+        self._requested = None
+        self.writes += 1
+        self._writer = threading.Thread(
+            target=self._write_logged, args=(state,), name="state-writer", daemon=True
+        )
+        self._writer.start()
 
     def save(self, engine: Engine) -> None:
-        """The final write at a graceful stop (after the worker's last message); a failure is
-        logged, not raised (the stop goes on)."""
+        """The final write at a graceful stop (after the worker's last message; it waits for
+        the correlation process); a failure is logged, not raised (the stop goes on)."""
         self.wait()
+        self._requested = None  # this state is newer
         self._saved_clock = engine.data_clock_s
-        state = self._take(engine)
-        if state is not None:
-            self._write_logged(state)
+        t0 = time.perf_counter()
+        try:
+            state = engine.export_state()
+        except Exception as exc:
+            log.error("state %s not written: %s: %s", self.path, type(exc).__name__, exc)
+            return
+        self.last_export_s = time.perf_counter() - t0
+        self.writes += 1
+        self._write_logged(state)
 
     def wait(self) -> None:
         """Until the write under way, if any, is on disk."""
@@ -168,18 +204,6 @@ class StateKeeper:
             self._writer.join()
 
     # -- the file ------------------------------------------------------------------------------
-    def _take(self, engine: Engine) -> EngineState | None:
-        """The engine's state for a write (None, logged, if it could not be taken)."""
-        t0 = time.perf_counter()
-        try:
-            state = engine.export_state()
-        except Exception as exc:  # e.g. the correlation process died: the next write may work
-            log.error("state %s not written: %s: %s", self.path, type(exc).__name__, exc)
-            return None
-        self.last_export_s = time.perf_counter() - t0
-        self.writes += 1
-        return state
-
     def _write_logged(self, state: EngineState) -> None:
         try:
             self._write(state)
