@@ -475,6 +475,8 @@ class ServiceNode:
                 out = self.engine.poll()
                 if out:
                     self._publish(out)
+                if self.state is not None:  # a write may wait for the correlation process's part
+                    self.state.maybe_save(self.engine)
                 self.snapshot = self.engine.snapshot()  # (cached by the engine when unchanged)
                 last_snapshot = time.monotonic()
             if item is _STOP or time.monotonic() >= self._stop_deadline:
