@@ -95,6 +95,10 @@ class Outgoing:
 
 
 _SITE_LIST = TypeAdapter(list[RadarSite])
+#: Partitioned: track states of radars whose site has not come yet, held until it comes (the
+#: owner can hear a radar's site before this worker does, and the workers' messages are taken
+#: ahead of inputs); at most this many in all, further ones are rejected ``unknown_radar``.
+MAX_PENDING_STATES = 256
 
 
 def load_sites(path: str | Path) -> tuple[RadarSite, ...]:
@@ -265,6 +269,7 @@ class Engine:
         self._correlated_by: dict[int, float] = {}
         self.sender = StatesSender(self.config.exchange)
         self.receiver = StatesReceiver()
+        self._pending_states: dict[str, list[Any]] = {}
         #: The joint bias estimate as the bias worker last published it (other workers).
         self.published_biases: dict[str, Any] | None = None
         self._biases_sent: object = None
@@ -457,6 +462,8 @@ class Engine:
             self.correlation.moved(self.tracking.radars[site.radar_id].geometry)
         if change is not SiteChange.SAME:
             self._snapshot = None
+        for msg in self._pending_states.pop(site.radar_id, []):
+            self._apply_states(site.radar_id, msg)
 
     def _drop(self, source_ids: Iterable[str]) -> None:
         for sid in source_ids:
@@ -754,11 +761,11 @@ class Engine:
             msg = decode_states(payload, radar_id)
             _check_body_id("radar_id", msg.radar_id, radar_id)
             if radar_id not in self.tracking.radars:
-                raise RejectionError("unknown_radar", f"no site known for radar {radar_id!r}", radar_id)
-            table = self.receiver.apply(msg)
-            if table is not None:
-                self.merger.push(RADAR, radar_id, msg.seq, msg.time_s, table, expiry=msg.expiry)
-            self._snapshot = None
+                if sum(map(len, self._pending_states.values())) >= MAX_PENDING_STATES:
+                    raise RejectionError("unknown_radar", f"no site known for radar {radar_id!r}", radar_id)
+                self._pending_states.setdefault(radar_id, []).append(msg)
+                return []
+            self._apply_states(radar_id, msg)
             return []  # released once its owner says how far it has published (worker_progress)
         if kind in ("worker_clock", "worker_progress"):
             clock: WorkerClock = _parse(WorkerClock, payload, None)
@@ -806,6 +813,12 @@ class Engine:
                 self._snapshot = None
             return []
         return []  # worker status: the transport's
+
+    def _apply_states(self, radar_id: str, msg: Any) -> None:
+        table = self.receiver.apply(msg)
+        if table is not None:
+            self.merger.push(RADAR, radar_id, msg.seq, msg.time_s, table, expiry=msg.expiry)
+        self._snapshot = None
 
     def _geometry(self, radar_id: str) -> Any:
         radar = self.tracking.radars.get(radar_id)

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from service.engine import Engine, EngineConfig, Outgoing
+from service.engine import MAX_PENDING_STATES, Engine, EngineConfig, Outgoing
 from service.pipeline.errors import RejectionError
 from service.pipeline.partition import Partition
 from service.pipeline.track_exchange import (
@@ -320,3 +320,31 @@ def test_partition_command_prints_the_assignment_the_workers_use() -> None:
         assert radars == [i for i in ids if p.owns(i)] or (radars == ["-"] and not any(map(p.owns, ids)))
         want = [f"{a}/{b}" for a, b in itertools.combinations(ids, 2) if p.owns_pair(a, b)]
         assert pairs == want or (pairs == ["-"] and not want)
+
+
+def test_track_states_before_the_radars_site_wait_for_it() -> None:
+    """A worker can hear a radar's track states from its owner before the radar's own site
+    (the workers' messages are taken ahead of inputs): they wait for the site, bounded, and
+    are not rejected as `unknown_radar`."""
+    msgs = scenario_messages("two-radar", duration_s=40.0)
+    owner_k = next(k for k in (1, 2) if Partition(k, 2).owns("A"))
+    owner = Engine(EngineConfig(partition=Partition(owner_k, 2)))
+    other = Engine(EngineConfig(partition=Partition(3 - owner_k, 2)))
+    states = [
+        o for key, payload in msgs for o in owner.ingest(key, payload) if o.key.endswith("A/track-states")
+    ]
+    assert len(states) > 5
+    errors = [o for o in states if other.ingest(o.key, o.payload)]  # before any site: no output
+    assert errors == [] and other.rejected.get("unknown_radar", 0) == 0
+    site = next(p for k, p in msgs if k == "fusion/radar/A/site")
+    assert other.ingest("fusion/radar/A/site", site) == []
+    time_s, held = other.receiver.latest("A")
+    assert time_s > 0 and sorted(held.track_id) == sorted(owner.tracking.radars["A"].table.track_id)
+    # beyond the bound, such messages are rejected (a flood must not grow without end)
+    z = next(r for r in ("Z", "Y", "X", "W") if not other.partition.owns(r))
+    flood = states[0].payload.replace(b'"A"', f'"{z}"'.encode())
+    for _ in range(MAX_PENDING_STATES):
+        other.ingest(f"fusion/radar/{z}/track-states", flood)
+    assert other.rejected.get("unknown_radar", 0) == 0
+    out = other.ingest(f"fusion/radar/{z}/track-states", flood)
+    assert other.rejected["unknown_radar"] == 1 and out[0].key == "fusion/errors"
