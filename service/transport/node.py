@@ -63,6 +63,9 @@ SNAPSHOT_MIN_S = 0.05
 IDLE_POLL_S = 0.05
 #: Puts a new publisher makes before trusting its matching status (see ``_publish``).
 UNCONDITIONAL_PUTS = 8
+#: At a stop, how long (s) past the grace the worker may take to finish the message it is on
+#: and flush the engine (the final outputs) before the stop goes on without it.
+FINISH_S = 10.0
 #: How often (s) the watcher looks at the Zenoh connection: a lost router shows within this.
 CONNECTION_POLL_S = 0.25
 #: A drop on a full queue is logged at most this often per key (s), with the count since.
@@ -306,7 +309,11 @@ class ServiceNode:
         if self._worker is not None:
             self.queue.put_anyway(_STOP)
             self._items.release()
-            self._worker.join()  # bounded: the worker gives up the queue at the deadline
+            # The worker gives up the queue at the deadline; then it flushes the engine.  One
+            # message still in the engine when the grace ends gets FINISH_S more, no longer.
+            self._worker.join(max(0.0, self._stop_deadline - time.monotonic()) + FINISH_S)
+            if self._worker.is_alive():
+                log.error("stop: the worker is still busy %.0f s after the grace; not waiting", FINISH_S)
             left = [item for item in self.queue.items() if item is not _STOP]
             plots = sum(1 for key, _, _ in left if key.endswith("/plots"))
             if left:
@@ -328,8 +335,8 @@ class ServiceNode:
                     self.processed_plots,
                 )
             self.unprocessed_at_stop = len(left)
-            if self.state is not None:
-                self.state.save(self.engine)
+            if self.state is not None and not self._worker.is_alive():
+                self.state.save(self.engine)  # (a busy worker's engine is not read under it)
         for d in self._declared:
             try:
                 d.undeclare()
