@@ -324,6 +324,10 @@ def serve(settings: Settings, demo: argparse.Namespace | None = None) -> int:
             node.stop_input()
             super().handle_exit(sig, frame)
 
+    def fatal(reason: str) -> None:
+        server.should_exit = True  # (uvicorn's main loop looks at it every 0.1 s)
+
+    node.on_fatal = fatal
     server = Server(
         uvicorn.Config(
             app,
@@ -344,6 +348,9 @@ def serve(settings: Settings, demo: argparse.Namespace | None = None) -> int:
         server.run()
     finally:
         node.stop()  # idempotent: the lifespan stopped it unless uvicorn failed before it ran
+    if node.failure:
+        print(f"topofusion: {node.failure}", file=sys.stderr)
+        return 2  # Zenoh refused the configuration once the router answered (contract §3)
     if not server.started:
         return 1  # start-up failed (e.g. port in use or Zenoh refused): uvicorn logged why
     return 0

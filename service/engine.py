@@ -18,7 +18,7 @@ What a restart keeps (contract §4.6 "State") is :meth:`Engine.export_state`, an
 from __future__ import annotations
 
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from functools import cached_property
@@ -97,8 +97,10 @@ class Outgoing:
 _SITE_LIST = TypeAdapter(list[RadarSite])
 #: Partitioned: track states of radars whose site has not come yet, held until it comes (the
 #: owner can hear a radar's site before this worker does, and the workers' messages are taken
-#: ahead of inputs); at most this many in all, further ones are rejected ``unknown_radar``.
+#: ahead of inputs); at most this many messages and payload bytes in all: beyond, the oldest
+#: held is given up, rejected ``unknown_radar``.
 MAX_PENDING_STATES = 256
+MAX_PENDING_STATES_BYTES = 64 * 1024 * 1024
 
 
 def load_sites(path: str | Path) -> tuple[RadarSite, ...]:
@@ -269,7 +271,9 @@ class Engine:
         self._correlated_by: dict[int, float] = {}
         self.sender = StatesSender(self.config.exchange)
         self.receiver = StatesReceiver()
-        self._pending_states: dict[str, list[Any]] = {}
+        #: (radar id, decoded message, payload bytes, key), oldest first.
+        self._pending_states: deque[tuple[str, Any, int, str]] = deque()
+        self._pending_bytes = 0
         #: The joint bias estimate as the bias worker last published it (other workers).
         self.published_biases: dict[str, Any] | None = None
         self._biases_sent: object = None
@@ -397,11 +401,7 @@ class Engine:
         peer = self.keys.classify_peer(key) if kind is None and not self.partition.whole else None
         try:
             if len(payload) > MAX_PAYLOAD_BYTES:
-                raise RejectionError(
-                    "too_large",
-                    f"payload of {len(payload)} bytes > {MAX_PAYLOAD_BYTES}",
-                    kind[1] if kind else None,
-                )
+                raise self._too_large(key, len(payload))
             if peer is not None:
                 return self._ingest_peer(peer[0], peer[1], payload)
             if kind is None:
@@ -424,6 +424,18 @@ class Engine:
         except Exception as exc:  # a bug must cost one message, never the service
             internal = RejectionError("internal", f"{type(exc).__name__}: {exc}", kind[1] if kind else None)
             return self._rejected(key, internal, receive_time_s, peer is not None)
+
+    def _too_large(self, key: str, size: int) -> RejectionError:
+        kind = self.keys.classify(key)
+        return RejectionError(
+            "too_large", f"payload of {size} bytes > {MAX_PAYLOAD_BYTES}", kind[1] if kind else None
+        )
+
+    def reject_too_large(self, key: str, size: int, receive_time_s: float | None = None) -> list[Outgoing]:
+        """A payload of ``size`` bytes the transport did not even copy (above
+        ``MAX_PAYLOAD_BYTES``): rejected as :meth:`ingest` rejects it."""
+        peer = not self.partition.whole and self.keys.classify_peer(key) is not None
+        return self._rejected(key, self._too_large(key, size), receive_time_s, peer)
 
     def _rejected(
         self, key: str, rej: RejectionError, receive_time_s: float | None, peer: bool
@@ -462,8 +474,15 @@ class Engine:
             self.correlation.moved(self.tracking.radars[site.radar_id].geometry)
         if change is not SiteChange.SAME:
             self._snapshot = None
-        for msg in self._pending_states.pop(site.radar_id, []):
-            self._apply_states(site.radar_id, msg)
+        if any(rid == site.radar_id for rid, _, _, _ in self._pending_states):
+            kept: deque[tuple[str, Any, int, str]] = deque()
+            for held in self._pending_states:
+                if held[0] == site.radar_id:
+                    self._pending_bytes -= held[2]
+                    self._apply_states(held[0], held[1])
+                else:
+                    kept.append(held)
+            self._pending_states = kept
 
     def _drop(self, source_ids: Iterable[str]) -> None:
         for sid in source_ids:
@@ -761,10 +780,7 @@ class Engine:
             msg = decode_states(payload, radar_id)
             _check_body_id("radar_id", msg.radar_id, radar_id)
             if radar_id not in self.tracking.radars:
-                if sum(map(len, self._pending_states.values())) >= MAX_PENDING_STATES:
-                    raise RejectionError("unknown_radar", f"no site known for radar {radar_id!r}", radar_id)
-                self._pending_states.setdefault(radar_id, []).append(msg)
-                return []
+                return self._hold_states(radar_id, msg, len(payload), self.keys.track_states(radar_id))
             self._apply_states(radar_id, msg)
             return []  # released once its owner says how far it has published (worker_progress)
         if kind in ("worker_clock", "worker_progress"):
@@ -813,6 +829,21 @@ class Engine:
                 self._snapshot = None
             return []
         return []  # worker status: the transport's
+
+    def _hold_states(self, radar_id: str, msg: Any, size: int, key: str) -> list[Outgoing]:
+        """Hold a radar's track states until its site comes; beyond the bounds the oldest held
+        messages are given up, each reported as its own rejection."""
+        self._pending_states.append((radar_id, msg, size, key))
+        self._pending_bytes += size
+        out = []
+        while (
+            len(self._pending_states) > MAX_PENDING_STATES or self._pending_bytes > MAX_PENDING_STATES_BYTES
+        ):
+            rid, _, n, k = self._pending_states.popleft()
+            self._pending_bytes -= n
+            rej = RejectionError("unknown_radar", f"no site known for radar {rid!r}", rid)
+            out.extend(self._rejected(k, rej, None, True))
+        return out
 
     def _apply_states(self, radar_id: str, msg: Any) -> None:
         table = self.receiver.apply(msg)

@@ -76,6 +76,11 @@ def test_a_killed_correlation_process_is_restarted_and_reported() -> None:
             engine.ingest(key, payload)
         remote = engine.correlation
         assert isinstance(remote, RemoteCorrelation)
+
+        def system_ids() -> set[str]:
+            return {t["system_track_id"] for t in engine.snapshot().system_tracks("all")["system_tracks"]}
+
+        before = system_ids()
         remote._process.kill()
         remote._process.join(10)
         out = []
@@ -85,6 +90,9 @@ def test_a_killed_correlation_process_is_restarted_and_reported() -> None:
         errors = [json.loads(o.payload) for o in out if o.key == "fusion/errors"]
         assert remote.restarts == 1
         assert [e["reason"] for e in errors] == ["internal"] and "died" in errors[0]["detail"]
+        # the fresh process numbers its system tracks on: no number of before comes again
+        after = system_ids()
+        assert before and after and not before & after
         assert (
             engine.snapshot().status_core()["pairs_tentative"]
             + engine.snapshot().status_core()["pairs_confirmed"]

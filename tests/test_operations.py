@@ -29,11 +29,25 @@ from tests.test_cli_process import process
 
 
 def plot_batch(n: int, radar: str = "A", t0: float = 1_000.0) -> dict[str, Any]:
+    """A valid one-plot batch (the radar's site: ``site``)."""
     return {
         "radar_id": radar,
         "seq": n,
-        "scan_time_s": t0 + 4.0 * n,
+        "time_s": t0 + 4.0 * n,
         "plots": {"time_s": [t0 + 4.0 * n], "range_m": [50_000.0], "azimuth_deg": [10.0]},
+    }
+
+
+def site(radar: str) -> dict[str, Any]:
+    return {
+        "radar_id": radar,
+        "latitude_deg": 31.0,
+        "longitude_deg": 118.0 + (radar == "B"),
+        "altitude_m": 30.0,
+        "range_sigma_m": 100.0,
+        "azimuth_sigma_deg": 0.1,
+        "elevation_sigma_deg": 0.1,
+        "scan_period_s": 4.0,
     }
 
 
@@ -95,6 +109,9 @@ def test_a_full_queue_never_blocks_zenoh_beyond_the_bound(router: str, client: z
     try:
         wait_subscribed(client, "fusion/radar/A/plots")
         sent = Counter[str]()
+        for radar in ("A", "B"):
+            put_json(client, f"fusion/radar/{radar}/site", site(radar))
+            sent[f"fusion/radar/{radar}/site"] += 1
         for n in range(1, 9):
             for radar in ("A", "B"):
                 put_json(client, f"fusion/radar/{radar}/plots", plot_batch(n, radar))
@@ -102,12 +119,14 @@ def test_a_full_queue_never_blocks_zenoh_beyond_the_bound(router: str, client: z
         wait_for(lambda: len(callback_s) == sum(sent.values()), timeout=30)
         assert max(callback_s) < bound + 0.15, max(callback_s)
         dropped = node.status()["queue"]["dropped_by_key"]
-        assert set(dropped) == set(sent) and sum(dropped.values()) > 0
+        assert set(dropped) <= set(sent) and sum(dropped.values()) > 0
+        assert {k for k in dropped if k.endswith("/plots")} == {k for k in sent if k.endswith("/plots")}
         gate.set()
         wait_for(
             lambda: node.queue.empty() and node.processed + node.queue.dropped_total == sum(sent.values())
         )
         status = node.status()
+        assert status["rejected"] == {}  # every sample that got in was processed as valid input
         assert status["queue"]["dropped"] == sum(dropped.values())
         assert status["queue"]["capacity"] == 2 and status["queue"]["dropped_by_key"] == dropped
     finally:
@@ -178,6 +197,7 @@ def test_readyz_says_a_stalled_worker_and_recovers(router: str, client: zenoh.Se
         svc.node.engine.ingest = held_ingest  # type: ignore[method-assign]
         try:
             wait_subscribed(client, "fusion/radar/A/plots")
+            put_json(client, "fusion/radar/A/site", site("A"))
             for n in range(1, 4):
                 put_json(client, "fusion/radar/A/plots", plot_batch(n))
             wait_for(lambda: svc.http.get("/readyz").status_code == 503, timeout=10)
@@ -232,8 +252,8 @@ def test_a_service_started_before_its_router_waits_for_it() -> None:
 
 
 STOP_LINE = re.compile(
-    r"stop: (?:processed all (\d+) queued samples|.* (\d+) of (\d+) queued samples left unprocessed)"
-    r".* (\d+) plot batches processed in all"
+    r"stop: (?:processed all (\d+) queued samples|.* processed (\d+), (\d+) of (\d+) queued samples left "
+    r"unprocessed).* (\d+) plot batches processed in all"
 )
 
 
@@ -291,7 +311,7 @@ def test_sigterm_under_load_drains_the_queue_and_publishes_the_final_outputs(
     assert int(line.group(1)) > 0, "nothing was queued at SIGTERM: the test did not load the service"
     # One TrackBatch per plot batch processed: the queue's outputs were all published.  (What
     # was still in flight on the network at the signal never reached the service.)
-    assert sum(received.values()) == int(line.group(4)) <= sum(sent.values())
+    assert sum(received.values()) == int(line.group(5)) <= sum(sent.values())
 
 
 def test_sigterm_with_a_short_grace_counts_exactly_what_it_leaves(
@@ -300,7 +320,55 @@ def test_sigterm_with_a_short_grace_counts_exactly_what_it_leaves(
     out, sent, received = _stop_under_load(heavy_stream, grace_s=0.5)
     line = STOP_LINE.search(out)
     assert line is not None and line.group(2) is not None, out
-    left, queued = int(line.group(2)), int(line.group(3))
-    assert 0 < left <= queued
+    processed, left, queued = int(line.group(2)), int(line.group(3)), int(line.group(4))
+    assert left > 0 and processed + left == queued  # every queued sample: processed or counted
     plots_left = int(re.search(r"\((\d+) plot batches\)", out).group(1))  # type: ignore[union-attr]
-    assert sum(received.values()) == int(line.group(4)) <= sum(sent.values()) - plots_left
+    assert sum(received.values()) == int(line.group(5)) <= sum(sent.values()) - plots_left
+
+
+def test_a_stop_while_connecting_ends_the_connector_and_leaks_no_session(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"  # nobody listens
+    node = ServiceNode(
+        EngineConfig(), ZenohOptions(mode="client", connect=(endpoint,)), correlation_process=False
+    )
+    node.start()
+    assert node.not_ready_reason == "connecting to zenoh"
+    t0 = time.monotonic()
+    with caplog.at_level("INFO"):
+        node.stop()
+    assert time.monotonic() - t0 < 5.0
+    assert node._session is None and "no zenoh session was open" in caplog.text
+    # a router that comes up now is not joined by the stopped node
+    router = open_session(ZenohOptions(mode="router", listen=(endpoint,)))
+    try:
+        time.sleep(1.0)
+        assert node._session is None
+        assert not [t for t in threading.enumerate() if t.name == "topofusion-connect"]
+    finally:
+        router.close()
+
+
+def test_a_payload_above_the_bound_is_rejected_without_being_queued(
+    router: str, client: zenoh.Session
+) -> None:
+    from service.wire.models import MAX_PAYLOAD_BYTES
+
+    node = ServiceNode(
+        EngineConfig(), ZenohOptions(mode="client", connect=(router,)), correlation_process=False
+    )
+    node.start()
+    try:
+        wait_subscribed(client, "fusion/radar/A/plots")
+        put_json(client, "fusion/radar/A/site", site("A"))
+        client.put("fusion/radar/A/plots", b" " * (MAX_PAYLOAD_BYTES + 1))
+        put_json(client, "fusion/radar/A/plots", plot_batch(1))
+        put_json(client, "fusion/radar/A/plots", plot_batch(2))
+        wait_for(lambda: node.processed == 4, timeout=30)
+    finally:
+        node.stop()  # (which flushes: the sequencer may hold the newest batch for the watermark)
+    status = node.status()
+    assert status["rejected"] == {"too_large": 1}
+    assert status["radars"][0]["batches"] == 2  # the valid batches after it, as if it were not there
+    assert node.queue.high_water_bytes < MAX_PAYLOAD_BYTES  # never held in the queue

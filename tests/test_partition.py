@@ -346,5 +346,6 @@ def test_track_states_before_the_radars_site_wait_for_it() -> None:
     for _ in range(MAX_PENDING_STATES):
         other.ingest(f"fusion/radar/{z}/track-states", flood)
     assert other.rejected.get("unknown_radar", 0) == 0
-    out = other.ingest(f"fusion/radar/{z}/track-states", flood)
-    assert other.rejected["unknown_radar"] == 1 and out[0].key == "fusion/errors"
+    out = other.ingest(f"fusion/radar/{z}/track-states", flood)  # the oldest held is given up
+    assert other.rejected["unknown_radar"] == 1 and [o.key for o in out] == ["fusion/errors"]
+    assert out[0].body()["radar_id"] == z

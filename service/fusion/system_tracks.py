@@ -221,6 +221,11 @@ class SystemTracker:
     def next_number(self) -> int:
         return self._next
 
+    def continue_from(self, number: int) -> None:
+        """Number new system tracks from ``number`` on (if above the next one): a correlation
+        process started afresh goes on from the numbers its predecessor published."""
+        self._next = max(self._next, number)
+
     def update(
         self, members: Members, link_a: IntArray, link_b: IntArray, score: FloatArray, time_s: float = 0.0
     ) -> SystemTracks:

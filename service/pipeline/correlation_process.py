@@ -36,7 +36,7 @@ from service.pipeline.correlation_stage import CadenceParams, CorrelationStage, 
 from service.pipeline.partition import Partition
 from service.pipeline.read_model import PairSetView, SystemTrackView
 from service.reference import ReferenceParams
-from service.tracking.base import TrackTable
+from service.tracking.base import TrackTable, first_number
 
 log = logging.getLogger(__name__)
 
@@ -117,6 +117,9 @@ class RemoteCorrelation:
         #: Data times of the radar messages sent and not answered yet, oldest first.
         self._unanswered: deque[float | None] = deque()
         self.restarts = 0
+        #: The start's track-id epoch (:meth:`restore_state`): a child started afresh numbers its
+        #: system tracks on from the last one published, never again from the epoch's first.
+        self._epoch = 0
         #: The last answer applied (:meth:`_call` reads its result).
         self._last: Answer | None = None
         #: The latest ``export_state`` the child answered (:meth:`request_state`).
@@ -254,6 +257,12 @@ class RemoteCorrelation:
         self._process.kill()
         self._outbox.put(None)
         self._start()
+        self._send("continue_numbers", self._next_system_number())
+
+    def _next_system_number(self) -> int:
+        view = self.system_view
+        published = int(view.number.max()) + 1 if view is not None and len(view.number) else 0
+        return max(first_number(self._epoch), published)
 
     def correlated_through(self, released_s: float) -> float:
         """Data time up to which every update has been answered, given that everything up to
@@ -340,6 +349,7 @@ class RemoteCorrelation:
     def restore_state(self, state: Mapping[str, Any] | None, epoch: int, sites: Mapping[str, Site]) -> None:
         """:meth:`CorrelationStage.restore_state` in the child (its biases come back with the
         answer).  A child started afresh later (it died) starts without it."""
+        self._epoch = epoch
         self._call("restore_state", state, epoch, dict(sites))
 
     def finish(self) -> None:

@@ -461,6 +461,11 @@ class CorrelationStage:
             "joint_time_s": self._next_bias_s,
         }
 
+    def continue_numbers(self, number: int) -> None:
+        """New system tracks numbered from ``number`` on (a correlation process started afresh:
+        :class:`~service.pipeline.correlation_process.RemoteCorrelation`)."""
+        self.system_tracker.continue_from(number)
+
     def restore_state(self, state: Mapping[str, Any] | None, epoch: int, sites: Mapping[str, Site]) -> None:
         """Take what :meth:`export_state` gave (``None``: nothing), before any input.
 

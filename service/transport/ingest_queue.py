@@ -42,6 +42,8 @@ class BoundedQueue:
         #: The most samples and bytes ever held at once.
         self.high_water = 0
         self.high_water_bytes = 0
+        #: Samples taken out so far (a consumer's progress, counted where it happens).
+        self.taken = 0
 
     def _full_for(self, size: int) -> bool:
         n = len(self._items)
@@ -83,6 +85,7 @@ class BoundedQueue:
         with self._cond:
             item, size = self._items.popleft()
             self._bytes -= size
+            self.taken += 1
             self._cond.notify_all()
             return item
 
@@ -92,16 +95,19 @@ class BoundedQueue:
             if not self._items and not self._closed:
                 self._cond.wait(timeout_s)
             items = [item for item, _ in self._items]
+            self.taken += len(items)
             self._items.clear()
             self._bytes = 0
             self._cond.notify_all()
             return items
 
-    def close(self) -> None:
-        """Take nothing more (later puts are dropped and counted); wakes every waiter."""
+    def close(self) -> tuple[int, int]:
+        """Take nothing more (later puts are dropped and counted); wakes every waiter.  Returns
+        what was queued and what had been taken at that moment, read together."""
         with self._cond:
             self._closed = True
             self._cond.notify_all()
+            return len(self._items), self.taken
 
     @property
     def closed_and_empty(self) -> bool:

@@ -37,9 +37,11 @@ dropped in the Zenoh callback, before the queue.
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import orjson
@@ -48,9 +50,10 @@ import zenoh
 from service.engine import Engine, EngineConfig, Outgoing, Snapshot
 from service.pipeline.partition import BIAS_WORKER
 from service.state import StateKeeper
-from service.transport.ingest_queue import BoundedQueue
-from service.transport.session import RETRY_FIRST_S, RETRY_MAX_S, ZenohOptions, open_session
+from service.transport.ingest_queue import MAX_DROP_KEYS, OTHER_KEYS, BoundedQueue
+from service.transport.session import OpenCancelledError, ZenohOptions, open_session, unreachable
 from service.wire.keys import PRIORITY_KINDS, Keys, parse_key
+from service.wire.models import MAX_PAYLOAD_BYTES
 from service.wire.outputs import encode
 
 log = logging.getLogger(__name__)
@@ -65,14 +68,11 @@ IDLE_POLL_S = 0.05
 UNCONDITIONAL_PUTS = 8
 #: At a stop, how long (s) past the grace the worker may take to finish the message it is on
 #: and flush the engine (the final outputs) before the stop goes on without it.
-FINISH_S = 10.0
+FINISH_S = 5.0
 #: How often (s) the watcher looks at the Zenoh connection: a lost router shows within this.
 CONNECTION_POLL_S = 0.25
 #: A drop on a full queue is logged at most this often per key (s), with the count since.
 DROP_LOG_INTERVAL_S = 10.0
-#: Zenoh's message when none of a client's connect endpoints answers: the one open failure
-#: that is retried (a router not up yet); any other is a configuration error.
-UNREACHABLE = "Unable to connect"
 
 
 class RateLimitedLog:
@@ -89,6 +89,8 @@ class RateLimitedLog:
         self._suppressed: dict[str, int] = {}
 
     def warn(self, reason: str, message: str) -> None:
+        if reason not in self._last and len(self._last) >= MAX_DROP_KEYS:
+            reason = OTHER_KEYS  # (made-up keys must not grow the table without end)
         now = time.monotonic()
         if now - self._last.get(reason, -1e9) >= self.interval_s:
             extra = self._suppressed.pop(reason, 0)
@@ -176,6 +178,13 @@ class ServiceNode:
         self._stop_began = 0.0
         self._stop_deadline = float("inf")
         self._queued_at_stop = 0
+        self._taken_at_stop = 0
+        #: Start and stop, and the connector's handing over of its session, one at a time.
+        self._life = threading.Lock()
+        #: Why the session could not be opened (a configuration Zenoh refused), or "".
+        self.failure = ""
+        #: Told of such a failure (the command ends then, with status 2).
+        self.on_fatal: Callable[[str], None] | None = None
         #: Queued samples a stop left unprocessed (None before a stop).
         self.unprocessed_at_stop: int | None = None
 
@@ -194,7 +203,7 @@ class ServiceNode:
             try:
                 self._session = open_session(self.zenoh_options)
             except RuntimeError as exc:
-                if UNREACHABLE not in str(exc):
+                if not unreachable(exc):
                     raise
                 log.warning("%s; retrying with back-off", exc)
                 return False
@@ -203,31 +212,44 @@ class ServiceNode:
     def start(self) -> None:
         """Start the worker on an open session, or, while the router cannot be reached, a
         connector that opens it with back-off and starts the worker then."""
-        if self._worker is not None or self._connecting:
-            return
-        if not self.open():
-            self._connecting = True
-            threading.Thread(target=self._connect, name="topofusion-connect", daemon=True).start()
-            return
-        self._start_on_session()
+        with self._life:
+            if self._worker is not None or self._connecting or self._stopping.is_set():
+                return
+            if not self.open():
+                self._connecting = True
+                threading.Thread(target=self._connect, name="topofusion-connect", daemon=True).start()
+                return
+            self._start_on_session()
 
     def _connect(self) -> None:
-        wait = RETRY_FIRST_S
-        while not self._stopping.wait(wait):
-            try:
-                if self.open():
-                    break
-            except RuntimeError:
-                log.exception("cannot open the Zenoh session")
+        """The connector: open the session with back-off until the router answers (or a stop),
+        then start.  A failure that is not "unreachable" ends it: ``/readyz`` says why and
+        ``on_fatal`` hears of it (the command then ends with status 2)."""
+
+        def say(reason: str, wait_s: float) -> None:
+            log.warning("zenoh router not reachable (%s); retrying in %.1f s", reason, wait_s)
+
+        try:
+            session = open_session(
+                self.zenoh_options, math.inf, on_retry=say, retry_if=unreachable, stop=self._stopping
+            )
+        except OpenCancelledError:
+            return
+        except RuntimeError as exc:
+            self.failure = str(exc)
+            log.error("%s", exc)
+            if self.on_fatal is not None:
+                self.on_fatal(self.failure)
+            return
+        finally:
+            self._connecting = False
+        with self._life:
+            if self._stopping.is_set():
+                session.close()  # a stop came while the last attempt was under way
                 return
-            wait = min(2 * wait, RETRY_MAX_S)
-        else:
-            return
-        if self._stopping.is_set():
-            return
-        log.info("zenoh router reached")
-        self._start_on_session()
-        self._connecting = False
+            self._session = session
+            log.info("zenoh router reached")
+            self._start_on_session()
 
     def _start_on_session(self) -> None:
         s = self.session
@@ -239,6 +261,8 @@ class ServiceNode:
             s.declare_subscriber(key, zenoh.handlers.Callback(self._on_sample, indirect=False))
             for key in self._input_keys()
         ]
+        if self._stopping.is_set():  # a signal while they were declared: stop_input missed them
+            self._undeclare_inputs()
         self._declared = [
             s.declare_queryable(self.keys.status, self._on_status_query),
             s.declare_queryable(self.keys.pairs_all, self._on_pairs_query),
@@ -281,61 +305,47 @@ class ServiceNode:
         return [*radar_keys, self.keys.ais_inputs, self.keys.adsb_inputs, *peer]
 
     def stop_input(self, grace_s: float | None = None) -> None:
-        """Take no more input: undeclare the input subscribers, and give the worker ``grace_s``
-        (default ``stop_grace_s``) from now to finish the queue.  The first step of a stop: the
-        HTTP server calls it as soon as the signal comes.  Idempotent."""
+        """Take no more input: undeclare the input subscribers, close the queue (a sample a
+        callback still brings is counted as dropped), and give the worker ``grace_s`` (default
+        ``stop_grace_s``) from now to finish the queue.  The first step of a stop: the HTTP
+        server calls it as soon as the signal comes.  Idempotent."""
         if self._stopping.is_set():
             return
-        self._stopping.set()
         self._stop_began = time.monotonic()
         self._stop_deadline = self._stop_began + (self.stop_grace_s if grace_s is None else grace_s)
+        self._stopping.set()
+        self._undeclare_inputs()
+        self._queued_at_stop, self._taken_at_stop = self.queue.close()
+
+    def _undeclare_inputs(self) -> None:
         inputs, self._inputs = self._inputs, []
         for d in inputs:
             try:
                 d.undeclare()
-            except Exception:  # already gone with the session
+            except Exception:  # already gone with the session, or undeclared twice
                 log.debug("undeclare failed", exc_info=True)
-        self._queued_at_stop = self.queue.qsize() + self.peer_queue.qsize()
 
     def stop(self, grace_s: float | None = None) -> None:
         """Stop taking input, let the worker finish the queue for up to ``grace_s`` (default
-        ``stop_grace_s``), publish the final outputs, close the session.  Idempotent."""
-        if self._stopped:
-            return
-        self._stopped = True
-        self.stop_input(grace_s)
-        grace = self._stop_deadline - self._stop_began
-        queued = self._queued_at_stop
-        if self._worker is not None:
+        ``stop_grace_s``), publish the final outputs, write the state, close the session.
+        Bounded: the grace plus ``FINISH_S`` for the worker, ``FINISH_S`` for the publisher.
+        Idempotent."""
+        with self._life:  # (a connector that reaches the router now closes its session)
+            if self._stopped:
+                return
+            self._stopped = True
+            self.stop_input(grace_s)
+        worker = self._worker
+        if worker is None:
+            log.info("stop: no zenoh session was open; nothing was queued")
+        else:
             self.queue.put_anyway(_STOP)
             self._items.release()
-            # The worker gives up the queue at the deadline; then it flushes the engine.  One
-            # message still in the engine when the grace ends gets FINISH_S more, no longer.
-            self._worker.join(max(0.0, self._stop_deadline - time.monotonic()) + FINISH_S)
-            if self._worker.is_alive():
-                log.error("stop: the worker is still busy %.0f s after the grace; not waiting", FINISH_S)
-            left = [item for item in self.queue.items() if item is not _STOP]
-            plots = sum(1 for key, _, _ in left if key.endswith("/plots"))
-            if left:
-                log.error(
-                    "stop: the %.1f s grace ran out: %d of %d queued samples left unprocessed "
-                    "(%d plot batches); %d plot batches processed in all",
-                    grace,
-                    len(left),
-                    queued,
-                    plots,
-                    self.processed_plots,
-                )
-            else:
-                log.info(
-                    "stop: processed all %d queued samples in %.1f s; 0 left unprocessed; "
-                    "%d plot batches processed in all",
-                    queued,
-                    time.monotonic() - self._stop_began,
-                    self.processed_plots,
-                )
-            self.unprocessed_at_stop = len(left)
-            if self.state is not None and not self._worker.is_alive():
+            # The worker gives up the queue at the deadline, then flushes the engine (the final
+            # outputs); a message it is still on gets FINISH_S more, no longer.
+            worker.join(max(0.0, self._stop_deadline - time.monotonic()) + FINISH_S)
+            self._log_stop(busy=worker.is_alive())
+            if self.state is not None and not worker.is_alive():
                 self.state.save(self.engine)  # (a busy worker's engine is not read under it)
         for d in self._declared:
             try:
@@ -345,24 +355,72 @@ class ServiceNode:
         self._declared = []
         if self._publisher is not None:
             # The final outputs: whatever the worker handed over, put before the session closes.
-            self.outbox.put(_STOP)
-            self._publisher.join()
+            try:
+                self.outbox.put(_STOP, timeout=FINISH_S)
+            except queue.Full:
+                log.error("stop: the publisher is %d outputs behind; not waiting", self.outbox.qsize())
+            self._publisher.join(FINISH_S)
         for pub, _ in self._publishers.values():
             try:
                 pub.undeclare()
             except Exception:  # already gone with the session
                 log.debug("undeclare failed", exc_info=True)
         self._publishers = {}
-        self.engine.close()
+        if worker is None or not worker.is_alive():
+            self.engine.close()  # (not under a busy worker: the correlation child is a daemon)
         if self._own_session and self._session is not None:
             self._session.close()
         self._session = None
+
+    def _log_stop(self, busy: bool) -> None:
+        """The one line a stop owes (contract §4.6): how many of the input samples queued at
+        the signal it processed, and how many it left, exactly (every sample the worker takes
+        during a stop is processed: it looks at the deadline before taking one)."""
+        queued = self.queue.items()
+        left = [item for item in queued if item is not _STOP]
+        marker_taken = len(left) == len(queued)  # (the stop marker is no sample)
+        peers = 0
+        while True:  # the other workers' messages still waiting (partitioned)
+            try:
+                self.peer_queue.get_nowait()
+                peers += 1
+            except queue.Empty:
+                break
+        self.unprocessed_at_stop = len(left)
+        done = self.queue.taken - self._taken_at_stop - marker_taken
+        plots = sum(1 for key, _, _ in left if key.endswith("/plots"))
+        also = f"; {peers} messages of other workers left" if peers else ""
+        if busy:
+            log.error("stop: the worker is still busy %.0f s after the grace; not waiting", FINISH_S)
+        if left or busy:
+            log.error(
+                "stop: the %.1f s grace ran out: processed %d, %d of %d queued samples left "
+                "unprocessed (%d plot batches); %d plot batches processed in all%s",
+                self._stop_deadline - self._stop_began,
+                done,
+                len(left),
+                self._queued_at_stop,
+                plots,
+                self.processed_plots,
+                also,
+            )
+        else:
+            log.info(
+                "stop: processed all %d queued samples in %.1f s; 0 left unprocessed; "
+                "%d plot batches processed in all%s",
+                done,
+                time.monotonic() - self._stop_began,
+                self.processed_plots,
+                also,
+            )
 
     @property
     def not_ready_reason(self) -> str:
         """Why ``/readyz`` is 503 (contract §4.6), or "" when ready."""
         if self._stopping.is_set():
             return "shutting down"
+        if self.failure:
+            return f"zenoh session failed: {self.failure}"
         if self._connecting:
             return "connecting to zenoh"
         if self._session is None or self._worker is None:
@@ -425,13 +483,15 @@ class ServiceNode:
             kind, ids = parse_key(key, self.keys.prefix)
             if kind == "plots" and not self.partition.owns(ids[0]):
                 return  # another worker's radar
-        item = (key, sample.payload.to_bytes(), time.time())
+        size = len(sample.payload)
+        # A payload above the contract's bound is rejected unread: not copied, not queued whole.
+        item = (key, sample.payload.to_bytes() if size <= MAX_PAYLOAD_BYTES else size, time.time())
         peer = self.keys.classify_peer(key) if not self.partition.whole else None
         if peer is not None and peer[0] in PRIORITY_KINDS:
             self.peer_queue.put(item)
             self._items.release()
             return
-        if self.queue.put(item, len(item[1]), key, self.queue_wait_s):
+        if self.queue.put(item, size if size <= MAX_PAYLOAD_BYTES else 0, key, self.queue_wait_s):
             self._items.release()
         elif not self._stopping.is_set():
             self._drop_log.warn(key, f"no room for {self.queue_wait_s:.2f} s")
@@ -477,6 +537,8 @@ class ServiceNode:
         while True:
             # Idle with answers of the correlation process still to come: look again soon.
             wait = IDLE_POLL_S if self.engine.answers_pending else self.status_interval_s
+            if time.monotonic() >= self._stop_deadline:
+                break  # a stop's grace ran out: what is queued stays there, counted by stop()
             item = self._next_item(wait)
             if item is None:
                 out = self.engine.poll()
@@ -486,8 +548,8 @@ class ServiceNode:
                     self.state.maybe_save(self.engine)
                 self.snapshot = self.engine.snapshot()  # (cached by the engine when unchanged)
                 last_snapshot = time.monotonic()
-            if item is _STOP or time.monotonic() >= self._stop_deadline:
-                break  # (the deadline: a stop's grace ran out; stop() counts what is left)
+            if item is _STOP:
+                break
             if not self.partition.whole:
                 self._update_waited()
             if item is not None:
@@ -532,11 +594,14 @@ class ServiceNode:
         except queue.Empty:
             return self.queue.get_nowait()
 
-    def _handle(self, key: str, payload: bytes, received: float) -> None:
+    def _handle(self, key: str, payload: bytes | int, received: float) -> None:
         self.processed += 1
         self.processed_plots += key.endswith("/plots")
         try:
-            out = self.engine.ingest(key, payload, received)
+            if isinstance(payload, int):  # the size of a payload too large to take
+                out = self.engine.reject_too_large(key, payload, received)
+            else:
+                out = self.engine.ingest(key, payload, received)
         except Exception:  # engine.ingest never raises on input; this is a last resort
             log.exception("engine failed on %s", key)
             return

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -105,16 +106,34 @@ TOOL_CONNECT_RETRY_S = 30.0
 RETRY_FIRST_S, RETRY_MAX_S = 0.2, 5.0
 
 
+#: Zenoh's message when none of a client's connect endpoints answers (a router not up yet,
+#: or one that refuses this client's credentials: Zenoh does not tell them apart).
+UNREACHABLE = "Unable to connect"
+
+
+class OpenCancelledError(Exception):
+    """The ``stop`` event of :func:`open_session` was set while it waited to try again."""
+
+
+def unreachable(exc: Exception) -> bool:
+    """Whether an open failed only because no endpoint answered (worth trying again)."""
+    return UNREACHABLE in str(exc)
+
+
 def open_session(
     options: ZenohOptions,
     retry_for_s: float = 0.0,
     on_retry: Callable[[str, float], None] | None = None,
+    retry_if: Callable[[Exception], bool] = lambda exc: True,
+    stop: threading.Event | None = None,
 ) -> zenoh.Session:
     """Open a session; raises a ``RuntimeError`` naming the endpoints when Zenoh refuses.
 
-    ``retry_for_s``: keep trying that long (a router not up yet), waiting ``RETRY_FIRST_S``
-    then twice as long each time, at most ``RETRY_MAX_S``; ``on_retry(reason, wait_s)`` hears
-    of each failed attempt.  An invalid configuration is not retried.
+    ``retry_for_s``: keep trying that long (a router not up yet; ``math.inf``: until it is
+    up), waiting ``RETRY_FIRST_S`` then twice as long each time, at most ``RETRY_MAX_S``;
+    ``on_retry(reason, wait_s)`` hears of each failed attempt.  Only failures ``retry_if``
+    accepts are tried again; an invalid configuration never is.  ``stop``: set, it ends the
+    waiting with :class:`OpenCancelledError`.
     """
     conf = zenoh_config(options)
     deadline = time.monotonic() + retry_for_s
@@ -124,7 +143,7 @@ def open_session(
             return zenoh.open(conf)
         except Exception as exc:  # zenoh raises ZError, a plain Exception subclass
             left = deadline - time.monotonic()
-            if left <= 0:
+            if left <= 0 or not retry_if(exc):
                 raise RuntimeError(
                     f"cannot open Zenoh session (mode={options.effective_mode}, "
                     f"listen={options.effective_listen()}, connect={options.effective_connect()}): {exc}"
@@ -132,7 +151,10 @@ def open_session(
             wait = min(wait, left)
             if on_retry is not None:
                 on_retry(str(exc).split("  at ")[0], wait)
-            time.sleep(wait)
+            if stop is None:
+                time.sleep(wait)
+            elif stop.wait(wait):
+                raise OpenCancelledError from exc
             conf = zenoh_config(options)  # a config is consumed by an attempt
             wait = min(2 * wait, RETRY_MAX_S)
 
