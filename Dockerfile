@@ -24,16 +24,16 @@ COPY --from=build /install /usr/local
 WORKDIR /app
 # Peer mode on the contract's port: the container runs without a router; compose and the
 # Kubernetes manifests make it a client of theirs instead.
-# TOPOFUSION_STOP_GRACE_S: Docker's default stop timeout is 10 s; on SIGTERM the HTTP server
-# first takes up to 3 s to close its connections (the picture's feed), then the worker gets
-# this grace to finish its queue, then it publishes its last outputs and writes its state.
+# TOPOFUSION_STOP_GRACE_S: Docker's default stop timeout is 10 s; from SIGTERM the worker gets
+# this grace to finish its queue, at most 5 s more for the message it is on and the final
+# flush, then it publishes its last outputs and writes its state.
 ENV PYTHONUNBUFFERED=1 \
     TOPOFUSION_HTTP_HOST=0.0.0.0 \
     TOPOFUSION_HTTP_PORT=8000 \
     TOPOFUSION_ZENOH_MODE=peer \
     TOPOFUSION_ZENOH_LISTEN=tcp/0.0.0.0:7447 \
     TOPOFUSION_STATE_DIR=/var/lib/topofusion \
-    TOPOFUSION_STOP_GRACE_S=6
+    TOPOFUSION_STOP_GRACE_S=4
 # 8000: HTTP side port; 7447: Zenoh (the peer's listen endpoint above).
 EXPOSE 8000 7447
 VOLUME ["/var/lib/topofusion"]

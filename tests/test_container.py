@@ -276,21 +276,13 @@ def _settings_of(env: dict[str, str], monkeypatch: pytest.MonkeyPatch) -> Settin
     return Settings()
 
 
-def _http_shutdown_s() -> float:
-    """How long `topofusion run`'s HTTP server may take to close its connections on SIGTERM,
-    before the worker's grace starts (uvicorn's ``timeout_graceful_shutdown`` in serve())."""
-    import inspect
-
-    from service.cli import serve
-
-    found = re.findall(r"timeout_graceful_shutdown\s*=\s*([\d.]+)", inspect.getsource(serve))
-    assert len(found) == 1, "serve() no longer sets timeout_graceful_shutdown: update this check"
-    return float(found[0])
-
-
 def _assert_stop_fits(grace_s: float, timeout_s: float, where: str) -> None:
-    """SIGTERM to SIGKILL: the HTTP server's shutdown, the worker's grace, the last writes."""
-    needed = _http_shutdown_s() + grace_s + FINAL_WRITE_S
+    """SIGTERM to SIGKILL: the worker's grace (from the signal: the HTTP server closes its
+    connections within it), at most ``FINISH_S`` more for the message it is on and the
+    engine's flush, then the last writes."""
+    from service.transport.node import FINISH_S
+
+    needed = grace_s + FINISH_S + FINAL_WRITE_S
     assert grace_s < timeout_s and needed <= timeout_s, (
         f"{where}: stop grace {grace_s} s needs {needed} s of a {timeout_s} s stop timeout"
     )
