@@ -185,8 +185,6 @@ class ServiceNode:
         self.failure = ""
         #: Told of such a failure (the command ends then, with status 2).
         self.on_fatal: Callable[[str], None] | None = None
-        #: Queued samples a stop left unprocessed (None before a stop).
-        self.unprocessed_at_stop: int | None = None
 
     # -- lifecycle -------------------------------------------------------------------------
     @property
@@ -386,7 +384,6 @@ class ServiceNode:
                 peers += 1
             except queue.Empty:
                 break
-        self.unprocessed_at_stop = len(left)
         done = self.queue.taken - self._taken_at_stop - marker_taken
         plots = sum(1 for key, _, _ in left if key.endswith("/plots"))
         also = f"; {peers} messages of other workers left" if peers else ""
