@@ -372,3 +372,37 @@ def test_a_payload_above_the_bound_is_rejected_without_being_queued(
     assert status["rejected"] == {"too_large": 1}
     assert status["radars"][0]["batches"] == 2  # the valid batches after it, as if it were not there
     assert node.queue.high_water_bytes < MAX_PAYLOAD_BYTES  # never held in the queue
+
+
+def test_the_other_workers_queue_is_bounded_too(router: str, client: zenoh.Session) -> None:
+    """Partitioned: anyone who may put on the keys workers send each other could flood the queue
+    those messages take ahead of inputs; it has the same bounds, and drops are counted by key."""
+    from service.pipeline.partition import Partition
+
+    node = ServiceNode(
+        EngineConfig(partition=Partition(1, 2)),
+        ZenohOptions(mode="client", connect=(router,)),
+        queue_size=3,
+        queue_wait_s=0.1,
+        correlation_process=False,
+    )
+    gate = threading.Event()
+    real_ingest = node.engine.ingest
+
+    def held_ingest(*args: Any, **kwargs: Any) -> Any:
+        gate.wait(timeout=30)
+        return real_ingest(*args, **kwargs)
+
+    node.engine.ingest = held_ingest  # type: ignore[method-assign]
+    node.start()
+    try:
+        key = "fusion/registration/A/B"
+        wait_subscribed(client, key)
+        for _ in range(10):
+            client.put(key, b"{}")
+        wait_for(lambda: node.peer_queue.dropped_total > 0, timeout=30)
+        assert node.peer_queue.qsize() <= 3
+        assert node.status()["queue"]["dropped_by_key"][key] > 0
+    finally:
+        gate.set()
+        node.stop()

@@ -142,8 +142,10 @@ class ServiceNode:
         self.keys = Keys(engine_config.prefix)
         self.zenoh_options = zenoh_options
         self.queue = BoundedQueue(queue_size, queue_bytes)
-        #: Partitioned: the other workers' messages, taken before inputs (see ``_next_item``).
-        self.peer_queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        #: Partitioned: the other workers' messages, taken before inputs (see ``_next_item``);
+        #: bounded like the inputs' (anyone who may put on their keys could flood it; a lost
+        #: track-states change costs that radar until its owner's next full table).
+        self.peer_queue = BoundedQueue(queue_size, queue_bytes)
         self._items = threading.Semaphore(0)  # one release per item put on either queue
         self.queue_wait_s = queue_wait_s
         self.stop_grace_s = stop_grace_s
@@ -377,13 +379,7 @@ class ServiceNode:
         queued = self.queue.items()
         left = [item for item in queued if item is not _STOP]
         marker_taken = len(left) == len(queued)  # (the stop marker is no sample)
-        peers = 0
-        while True:  # the other workers' messages still waiting (partitioned)
-            try:
-                self.peer_queue.get_nowait()
-                peers += 1
-            except queue.Empty:
-                break
+        peers = self.peer_queue.qsize()  # the other workers' messages still waiting (partitioned)
         done = self.queue.taken - self._taken_at_stop - marker_taken
         plots = sum(1 for key, _, _ in left if key.endswith("/plots"))
         also = f"; {peers} messages of other workers left" if peers else ""
@@ -484,11 +480,8 @@ class ServiceNode:
         # A payload above the contract's bound is rejected unread: not copied, not queued whole.
         item = (key, sample.payload.to_bytes() if size <= MAX_PAYLOAD_BYTES else size, time.time())
         peer = self.keys.classify_peer(key) if not self.partition.whole else None
-        if peer is not None and peer[0] in PRIORITY_KINDS:
-            self.peer_queue.put(item)
-            self._items.release()
-            return
-        if self.queue.put(item, size if size <= MAX_PAYLOAD_BYTES else 0, key, self.queue_wait_s):
+        into = self.peer_queue if peer is not None and peer[0] in PRIORITY_KINDS else self.queue
+        if into.put(item, size if size <= MAX_PAYLOAD_BYTES else 0, key, self.queue_wait_s):
             self._items.release()
         elif not self._stopping.is_set():
             self._drop_log.warn(key, f"no room for {self.queue_wait_s:.2f} s")
@@ -588,7 +581,7 @@ class ServiceNode:
             return None
         try:
             return self.peer_queue.get_nowait()
-        except queue.Empty:
+        except IndexError:  # (one release per item put: the item is on the inputs' queue)
             return self.queue.get_nowait()
 
     def _handle(self, key: str, payload: bytes | int, received: float) -> None:
@@ -674,7 +667,7 @@ class ServiceNode:
 
     def queue_status(self) -> dict[str, Any]:
         """``/status`` ``queue``: depth and bounds, and the drops by key (contract §4.6)."""
-        dropped = self.queue.dropped_counts()
+        dropped = self.queue.dropped_counts() | self.peer_queue.dropped_counts()  # (distinct keys)
         return {
             "depth": self.queue.qsize(),
             "capacity": self.queue.max_items,
