@@ -292,19 +292,25 @@ def serve(settings: Settings, demo: argparse.Namespace | None = None) -> int:
 
     # Open Zenoh before the HTTP server, so that a configuration Zenoh refuses is one clear
     # error line; a router that cannot be reached yet is waited for (the node retries).
-    node = ServiceNode(
-        config,
-        options,
-        queue_size=settings.queue_size,
-        queue_bytes=settings.queue_bytes,
-        queue_wait_s=settings.queue_wait_s,
-        radars=tuple(settings.radars),
-        correlation_process=settings.correlation_process,
-        peer_grace_s=settings.peer_grace_s,
-        stop_grace_s=settings.stop_grace_s,
-        stall_s=settings.stall_s,
-        state=_state_keeper(settings, config),
-    )
+    try:
+        node = ServiceNode(
+            config,
+            options,
+            queue_size=settings.queue_size,
+            queue_bytes=settings.queue_bytes,
+            queue_wait_s=settings.queue_wait_s,
+            radars=tuple(settings.radars),
+            correlation_process=settings.correlation_process,
+            peer_grace_s=settings.peer_grace_s,
+            stop_grace_s=settings.stop_grace_s,
+            stall_s=settings.stall_s,
+            state=_state_keeper(settings, config),
+        )
+    except OSError as exc:  # the state directory (the only file the node itself opens)
+        if settings.state_dir is None:
+            raise
+        why = exc.strerror or exc
+        raise RuntimeError(f"state directory {settings.state_dir} cannot be used: {why}") from exc
     node.open()
 
     def node_factory() -> ServiceNode:

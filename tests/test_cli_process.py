@@ -125,6 +125,14 @@ def test_bad_settings_exit_with_a_clear_error() -> None:
         timeout=30,
     )
     assert res.returncode == 2 and "sites file not found" in res.stderr
+    not_a_dir = Path(__file__)  # a file where the state directory should be
+    res = subprocess.run(
+        [TOPOFUSION, "run", "--state-dir", str(not_a_dir), "--http-port", "0", "--mode", "client"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert res.returncode == 2 and f"state directory {not_a_dir} cannot be used" in res.stderr
 
 
 def test_refused_zenoh_endpoint_is_one_clear_error() -> None:
