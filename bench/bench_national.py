@@ -1334,7 +1334,7 @@ def run_zenoh(args: argparse.Namespace) -> None:
         done_progress = [time.monotonic()]
         finished = _wait(done, 24 * 3600.0)
         wall = time.perf_counter() - t_start
-        node.stop(timeout_s=600.0)  # flushes the engine, takes the final snapshot, stops the child
+        node.stop(grace_s=600.0)  # flushes the engine, takes the final snapshot, stops the child
         cpu = cpu_s() - cpu0
         busy = machine_busy_s() - busy0
         span = time.perf_counter() - t_start  # the interval of busy and cpu (wall, then stop)
