@@ -280,6 +280,34 @@ def test_writes_are_periodic_on_data_time(stream: list[tuple[str, bytes]], tmp_p
         assert 30.0 <= b - a < 31.0
 
 
+def test_a_failed_write_is_counted_and_logged_and_the_next_one_goes_on(
+    stream: list[tuple[str, bytes]], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    engine = Engine(EngineConfig())
+    directory = tmp_path / "state"
+    keeper = StateKeeper(directory, "fusion", "1/1", interval_s=30.0)
+    keeper.restore(engine)
+    assert keeper.status()["writes"] == 1 and keeper.status()["failures"] == 0
+    first = _split(stream)[0]
+    half = len(first) // 2
+    shutil.rmtree(directory)  # the directory goes away under the service (an unmounted disk)
+    with caplog.at_level(logging.ERROR):
+        for key, payload in first[:half]:
+            engine.ingest(key, payload, receive_time_s=0.0)
+            keeper.maybe_save(engine)
+            keeper.wait()
+    assert keeper.status()["failures"] >= 1 and "not written" in caplog.text
+    directory.mkdir()
+    for key, payload in first[half:]:
+        engine.ingest(key, payload, receive_time_s=0.0)
+        keeper.maybe_save(engine)
+        keeper.wait()
+    status = keeper.status()
+    assert status["writes"] >= 2  # the next due write went on, into the directory back again
+    on_disk = decode((directory / STATE).read_bytes(), "fusion", "1/1")[0]
+    assert status["data_time_s"] == on_disk.data_clock_s is not None
+
+
 def test_a_crash_mid_write_leaves_the_previous_whole_file(written: Path, tmp_path: Path) -> None:
     """A process writing the state over and over is killed (SIGKILL) at some moment: the file
     is always a whole one, and the temporary file a cut write left is deleted at the start."""

@@ -102,6 +102,13 @@ def test_a_killed_service_comes_back_with_sites_biases_and_fresh_track_ids(
                 for field in ("range_bias_m", "azimuth_bias_deg", "elevation_bias_deg"):
                     assert abs(after[rid][field] - then[field]) <= 0.1 * abs(then[field]), (rid, field)
             assert [r["radar_id"] for r in httpx.get(url + "/radars", timeout=5).json()] == ["A", "B"]
+            # the state's health, for an operator: this start's epoch, the write made at the start
+            state = httpx.get(url + "/status", timeout=5).json()["state"]
+            assert state["epoch"] == 1 and state["writes"] >= 1 and state["failures"] == 0
+            assert state["data_time_s"] is not None and state["bytes"] > 0
+            metrics = httpx.get(url + "/metrics", timeout=5).text
+            assert f"topofusion_state_writes_total {float(state['writes'])}" in metrics
+            assert "topofusion_state_write_failures_total 0.0" in metrics
             # the radars' plots, without their sites sent again, are taken
             wait_subscribed(client, "fusion/radar/A/plots")
             for key, payload in rest:

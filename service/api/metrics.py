@@ -150,6 +150,7 @@ class NodeCollector(Collector):
             by_key.add_metric([key], n)
         yield by_key
         yield GaugeMetricFamily("topofusion_uptime_seconds", "Process uptime", value=status["uptime_s"])
+        yield from self._state(status.get("state"))
         yield GaugeMetricFamily(
             "topofusion_ready",
             "1 while GET /readyz answers 200 (it says why not)",
@@ -264,6 +265,23 @@ class NodeCollector(Collector):
                 if b.get(field) is not None:  # a sigma may be null: not known
                     gauge.add_metric([b["radar_id"]], b[field])
             yield gauge
+
+    @staticmethod
+    def _state(state: dict[str, Any] | None) -> Iterator[Metric]:
+        """``--state-dir``: the families are always there (no samples without a directory)."""
+        writes = CounterMetricFamily("topofusion_state_writes", "State files written (--state-dir)")
+        failures = CounterMetricFamily("topofusion_state_write_failures", "State writes that failed")
+        data_time = GaugeMetricFamily(
+            "topofusion_state_data_time_seconds", "Newest data clock of the state on disk (Unix s)"
+        )
+        size = GaugeMetricFamily("topofusion_state_bytes", "Size of the last state file written")
+        if state is not None:
+            writes.add_metric([], state["writes"])
+            failures.add_metric([], state["failures"])
+            if state["data_time_s"] is not None:
+                data_time.add_metric([], state["data_time_s"])
+            size.add_metric([], state["bytes"])
+        yield from (writes, failures, data_time, size)
 
 
 def registry_for(node: ServiceNode) -> CollectorRegistry:

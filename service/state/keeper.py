@@ -81,6 +81,23 @@ class StateKeeper:
         self.last_bytes = 0
         #: Writes started (at the start, periodic and final).
         self.writes = 0
+        #: Of those, the ones on disk and the ones that failed (a full disk...).
+        self.written = 0
+        self.failures = 0
+        #: Data clock of the state last on disk (None: none yet, or it held no data).
+        self.written_clock_s: float | None = None
+
+    def status(self) -> dict[str, object]:
+        """``/status`` ``state``: where, which epoch, how the writes go (contract §4.6)."""
+        return {
+            "directory": str(self.directory),
+            "epoch": self._epoch,
+            "writes": self.written,
+            "failures": self.failures,
+            "data_time_s": self.written_clock_s,
+            "bytes": self.last_bytes,
+            "write_s": round(self.last_write_s, 3),
+        }
 
     @property
     def epoch(self) -> int:
@@ -208,6 +225,7 @@ class StateKeeper:
         try:
             self._write(state)
         except Exception as exc:  # a full disk must not stop the worker; the next write may work
+            self.failures += 1
             log.error("state %s not written: %s: %s", self.path, type(exc).__name__, exc)
 
     def _write(self, state: EngineState) -> None:
@@ -234,6 +252,8 @@ class StateKeeper:
             os.close(dir_fd)
         self.last_bytes = len(data)
         self.last_write_s = time.perf_counter() - t0
+        self.written += 1
+        self.written_clock_s = state.data_clock_s
 
 
 def _state(tree: dict[str, object]) -> EngineState:

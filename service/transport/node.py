@@ -658,6 +658,8 @@ class ServiceNode:
             **snap.status_core(),
             "queue": self.queue_status(),
         }
+        if self.state is not None:
+            own["state"] = self.state.status()
         if not self.partition.whole:
             own["partition"] = self._partition_section(
                 {self.partition.index: (0.0, [r["radar_id"] for r in own["radars"]], len(snap.pair_views))}

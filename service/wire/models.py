@@ -461,6 +461,18 @@ class QueueStatus(OutModel):
     )
 
 
+class StateStatus(OutModel):
+    """``--state-dir``: where the state is kept and how its writes go (contract §4.6)."""
+
+    directory: str
+    epoch: int = Field(description="this start's track-id epoch (0: the first start with the directory)")
+    writes: int = Field(description="state files written (at the start, periodic, final)")
+    failures: int = Field(description="writes that failed (e.g. a full disk; the next is tried)")
+    data_time_s: float | None = Field(description="newest data clock of the state on disk; null: none")
+    bytes: int = Field(description="size of the last file written")
+    write_s: float = Field(description="seconds the last write took (encoding, writing, fsync)")
+
+
 class Status(OutModel):
     uptime_s: float
     method: str
@@ -472,6 +484,7 @@ class Status(OutModel):
     correlation: CorrelationTimings
     rejected: dict[str, int]
     queue: QueueStatus | None = Field(default=None, description="the ingest queue")
+    state: StateStatus | None = Field(default=None, description="with --state-dir only")
     partition: PartitionStatus | None = Field(
         default=None, description="partitioned workers only: who owns what, which partitions are missing"
     )
