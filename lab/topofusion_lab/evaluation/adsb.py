@@ -1008,28 +1008,10 @@ def run(
     if short:
         md += [
             "",
-            "Why (diagnosed on the runs that miss most; `service/correlation/cfar.py`, "
-            "`cfar_associate`): `cfar` decides every update afresh (no re-check of kept pairs).  Its "
-            "CA-CFAR detector looks for the jump from same-source to different-source distances in the "
-            "sorted distance list; the azimuth bias spreads the same-source distances (range x azimuth "
-            "bias), and a chance gap among the first few dozen of them is sometimes detected as the jump "
-            "(the true one comes after about as many distances as there are common aircraft).  The "
-            "same-source threshold is then small, few confidential pairs pass, and both gates of the "
-            "second association shrink with it: the distance gate is the different-source threshold "
-            "(`max(2 x same-source, next distance)`) and the chi-square gate uses sigmas estimated from "
-            "the residuals of those few, closest pairs.  In the worst update seen (lone radar, all 120 "
-            "aircraft equipped, seed 0, run 1 counted from 0, t = 472.5 s) the jump was found at the 6th "
-            "distance: 6 confidential pairs, a 214 m distance gate, a 12 m range sigma against the "
-            "radar's 200 m, and 6 + 8 pairs decided of 120.  The distance gate is one distance in metres "
-            "for every pair, while the radar's cross-range error grows with range (0.2 deg is 870 m at "
-            "250 km): even in updates without a short threshold (a gate of 400-600 m), the far pairs "
-            "fail it, which makes most updates of the 250-aircraft, all-equipped condition partial "
-            "(190-230 of 245 pairs decided in the run diagnosed).  A confirmed pair missed by 4 updates "
-            "in a row (`PairBookParams.drop_misses`) is dropped, and confirmed again a few updates "
-            "later; meanwhile the fresh decisions can pair a track with a neighbour's address (with "
-            "seed 0: the false pair of run 9 of the hard, all-equipped condition, two aircraft 1 km "
-            "apart whose right pairs had both been dropped in the last 20 s of the run).  The bias "
-            "estimates do not suffer: registration uses the pairs' rows over time.",
+            "Short updates leave confirmed pairs undecided for that update (`service/correlation/cfar.py`, "
+            "`cfar_associate`: per-candidate chi-square gates, ambiguous candidates left undecided, "
+            "confirmed pairs re-checked); a pair missed by `PairBookParams.drop_misses` updates in a row "
+            "is dropped.  Look at the runs with the most of them first.",
         ]
     rr = [r for res in results for r in [res] if res.radar_pairs]
     if rr:
