@@ -48,9 +48,9 @@ import orjson
 import zenoh
 
 from service.engine import Engine, EngineConfig, Outgoing, Snapshot
-from service.pipeline.partition import BIAS_WORKER
 from service.state import StateKeeper
 from service.transport.ingest_queue import MAX_DROP_KEYS, OTHER_KEYS, BoundedQueue
+from service.transport.network_status import merge_statuses, partition_section
 from service.transport.session import OpenCancelledError, ZenohOptions, open_session, unreachable
 from service.wire.keys import PRIORITY_KINDS, Keys, parse_key
 from service.wire.models import MAX_PAYLOAD_BYTES
@@ -99,10 +99,6 @@ class RateLimitedLog:
             self._last[reason] = now
         else:
             self._suppressed[reason] = self._suppressed.get(reason, 0) + 1
-
-
-def _age(worker: tuple[float | None, list[str], int] | None) -> float | None:
-    return round(worker[0], 3) if worker is not None and worker[0] is not None else None
 
 
 class ServiceNode:
@@ -661,8 +657,10 @@ class ServiceNode:
         if self.state is not None:
             own["state"] = self.state.status()
         if not self.partition.whole:
-            own["partition"] = self._partition_section(
-                {self.partition.index: (0.0, [r["radar_id"] for r in own["radars"]], len(snap.pair_views))}
+            own["partition"] = partition_section(
+                self.partition,
+                self._alive | {self.partition.index},
+                {self.partition.index: (0.0, [r["radar_id"] for r in own["radars"]], len(snap.pair_views))},
             )
             own["partition"]["progress"] = snap.progress
         return own
@@ -680,26 +678,6 @@ class ServiceNode:
             "dropped_by_key": dropped,
         }
 
-    def _partition_section(self, workers: dict[int, tuple[float | None, list[str], int]]) -> dict[str, Any]:
-        alive = self._alive | {self.partition.index}
-        n = self.partition.count
-        return {
-            "partition": str(self.partition),
-            "count": n,
-            "bias_worker": BIAS_WORKER,
-            "workers": [
-                {
-                    "partition": f"{k}/{n}",
-                    "alive": k in alive,
-                    "radars": workers[k][1] if k in workers else [],
-                    "pair_sets": workers[k][2] if k in workers else 0,
-                    "status_age_s": _age(workers.get(k)),
-                }
-                for k in range(1, n + 1)
-            ],
-            "missing": [k for k in range(1, n + 1) if k not in alive],
-        }
-
     def status(self) -> dict[str, Any]:
         """This worker's status; partitioned, the whole network's: every live worker's radars,
         pairs and rejections from its latest status, and which partitions are missing."""
@@ -714,44 +692,7 @@ class ServiceNode:
                     peers[k] = (now - seen, orjson.loads(raw))
                 except orjson.JSONDecodeError:
                     continue
-        radars = {r["radar_id"]: r for r in own["radars"]}
-        rejected = dict(own["rejected"])
-        corr = dict(own["correlation"])
-        workers: dict[int, tuple[float | None, list[str], int]] = {
-            self.partition.index: (
-                0.0,
-                sorted(radars),
-                own["partition"]["workers"][self.partition.index - 1]["pair_sets"],
-            )
-        }
-        for k, (age, st) in sorted(peers.items()):
-            try:
-                for r in st["radars"]:
-                    radars.setdefault(r["radar_id"], r)
-                own["pairs_confirmed"] += int(st["pairs_confirmed"])
-                own["pairs_tentative"] += int(st["pairs_tentative"])
-                for reason, count in st["rejected"].items():
-                    rejected[reason] = rejected.get(reason, 0) + int(count)
-                c = st["correlation"]
-                corr["updates"] += int(c["updates"])
-                corr["p50_ms"] = max(corr["p50_ms"], float(c["p50_ms"]))
-                corr["p99_ms"] = max(corr["p99_ms"], float(c["p99_ms"]))
-                theirs = c.get("duration_buckets", {})
-                corr["duration_buckets"] = {
-                    le: n + int(theirs.get(le, 0)) for le, n in corr["duration_buckets"].items()
-                }
-                corr["duration_sum_s"] += float(c.get("duration_sum_s", 0.0))
-                mine = st["partition"]["workers"][k - 1]
-                workers[k] = (age, list(mine["radars"]), int(mine["pair_sets"]))
-            except (KeyError, TypeError, ValueError, IndexError):
-                log.debug("malformed status of worker %d", k)
-        own["radars"] = [radars[k] for k in sorted(radars)]
-        own["rejected"] = dict(sorted(rejected.items()))
-        own["correlation"] = corr
-        progress = own["partition"]["progress"]
-        own["partition"] = self._partition_section(workers)
-        own["partition"]["progress"] = progress
-        return own
+        return merge_statuses(own, peers, self.partition, self._alive | {self.partition.index})
 
     def radars(self) -> list[dict[str, Any]]:
         """``GET /radars``; partitioned, every radar of the network with its owner's counters."""
