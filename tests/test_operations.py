@@ -406,3 +406,38 @@ def test_the_other_workers_queue_is_bounded_too(router: str, client: zenoh.Sessi
     finally:
         gate.set()
         node.stop()
+
+
+def test_a_router_that_refuses_the_session_is_told_from_one_that_is_down(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Zenoh says "unable to connect" both when nothing listens and when the far end refuses the
+    session (credentials it does not take, or no Zenoh router at all); the log tells them apart."""
+    import socket
+
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen()
+    endpoint = f"tcp/127.0.0.1:{listener.getsockname()[1]}"
+
+    def refuse() -> None:  # accepts every connection and hangs up at once: no Zenoh session
+        while True:
+            try:
+                conn, _ = listener.accept()
+            except OSError:
+                return
+            conn.close()
+
+    threading.Thread(target=refuse, daemon=True).start()
+    node = ServiceNode(
+        EngineConfig(), ZenohOptions(mode="client", connect=(endpoint,)), correlation_process=False
+    )
+    try:
+        with caplog.at_level("WARNING"):
+            node.start()
+            wait_for(lambda: "refused the session" in caplog.text, timeout=30)
+        assert node.not_ready_reason == "connecting to zenoh"
+        assert f"zenoh router at {endpoint} accepts connections" in caplog.text
+    finally:
+        node.stop()
+        listener.close()

@@ -51,7 +51,7 @@ from service.engine import Engine, EngineConfig, Outgoing, Snapshot
 from service.state import StateKeeper
 from service.transport.ingest_queue import MAX_DROP_KEYS, OTHER_KEYS, BoundedQueue
 from service.transport.network_status import merge_statuses, partition_section
-from service.transport.session import OpenCancelledError, ZenohOptions, open_session, unreachable
+from service.transport.session import OpenCancelledError, ZenohOptions, listening, open_session, unreachable
 from service.wire.keys import PRIORITY_KINDS, Keys, parse_key
 from service.wire.models import MAX_PAYLOAD_BYTES
 from service.wire.outputs import encode
@@ -223,7 +223,18 @@ class ServiceNode:
         ``on_fatal`` hears of it (the command then ends with status 2)."""
 
         def say(reason: str, wait_s: float) -> None:
-            log.warning("zenoh router not reachable (%s); retrying in %.1f s", reason, wait_s)
+            up = listening(self.zenoh_options.effective_connect())
+            if up:
+                log.warning(
+                    "zenoh router at %s accepts connections but refused the session (a TLS "
+                    "certificate, user or password it does not take, or not a Zenoh router): %s; "
+                    "retrying in %.1f s",
+                    ", ".join(up),
+                    reason,
+                    wait_s,
+                )
+            else:
+                log.warning("zenoh router not reachable (%s); retrying in %.1f s", reason, wait_s)
 
         try:
             session = open_session(

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import re
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -118,6 +120,28 @@ class OpenCancelledError(Exception):
 def unreachable(exc: Exception) -> bool:
     """Whether an open failed only because no endpoint answered (worth trying again)."""
     return UNREACHABLE in str(exc)
+
+
+#: ``tcp/`` and ``tls/`` endpoints (with an optional ``#...`` metadata tail): host and port.
+_STREAM_ENDPOINT = re.compile(r"^(?:tcp|tls)/\[?([^\]#]+?)\]?:(\d+)(?:#.*)?$")
+
+
+def listening(endpoints: list[str], timeout_s: float = 0.5) -> list[str]:
+    """The TCP/TLS endpoints among ``endpoints`` that accept a TCP connection.  When Zenoh
+    cannot open a session although one does, the router is up and refuses this client (its
+    TLS certificate, user or password), or it is no Zenoh router: Zenoh says "unable to
+    connect" either way, so the log says which it is."""
+    found = []
+    for endpoint in endpoints:
+        m = _STREAM_ENDPOINT.match(endpoint)
+        if m is None:
+            continue
+        try:
+            with socket.create_connection((m.group(1), int(m.group(2))), timeout=timeout_s):
+                found.append(endpoint)
+        except OSError:
+            continue
+    return found
 
 
 def open_session(
