@@ -38,6 +38,20 @@ def plot_batch(n: int, radar: str = "A", t0: float = 1_000.0) -> dict[str, Any]:
     }
 
 
+def hold_the_worker(node: ServiceNode) -> threading.Event:
+    """The worker waits before each message until the returned event is set (at most 30 s):
+    a worker slower than its input, on purpose."""
+    gate = threading.Event()
+    real_ingest = node.engine.ingest
+
+    def held_ingest(*args: Any, **kwargs: Any) -> Any:
+        gate.wait(timeout=30)
+        return real_ingest(*args, **kwargs)
+
+    node.engine.ingest = held_ingest  # type: ignore[method-assign]
+    return gate
+
+
 def site(radar: str) -> dict[str, Any]:
     return {
         "radar_id": radar,
@@ -88,14 +102,7 @@ def test_a_full_queue_never_blocks_zenoh_beyond_the_bound(router: str, client: z
         queue_wait_s=bound,
         correlation_process=False,
     )
-    gate = threading.Event()
-    real_ingest = node.engine.ingest
-
-    def held_ingest(*args: Any, **kwargs: Any) -> Any:
-        gate.wait(timeout=30)
-        return real_ingest(*args, **kwargs)
-
-    node.engine.ingest = held_ingest  # type: ignore[method-assign]
+    gate = hold_the_worker(node)
     callback_s: list[float] = []
     real_callback = node._on_sample
 
@@ -187,14 +194,7 @@ def test_readyz_follows_a_router_outage_and_counts_are_exact() -> None:
 
 def test_readyz_says_a_stalled_worker_and_recovers(router: str, client: zenoh.Session) -> None:
     with running_service(router, correlation_process=False, stall_s=0.5) as svc:
-        gate = threading.Event()
-        real_ingest = svc.node.engine.ingest
-
-        def held_ingest(*args: Any, **kwargs: Any) -> Any:
-            gate.wait(timeout=30)
-            return real_ingest(*args, **kwargs)
-
-        svc.node.engine.ingest = held_ingest  # type: ignore[method-assign]
+        gate = hold_the_worker(svc.node)
         try:
             wait_subscribed(client, "fusion/radar/A/plots")
             put_json(client, "fusion/radar/A/site", site("A"))
@@ -362,7 +362,12 @@ def test_a_payload_above_the_bound_is_rejected_without_being_queued(
     try:
         wait_subscribed(client, "fusion/radar/A/plots")
         put_json(client, "fusion/radar/A/site", site("A"))
-        client.put("fusion/radar/A/plots", b" " * (MAX_PAYLOAD_BYTES + 1))
+        # (BLOCK: a message this large is otherwise dropped when Zenoh's queues are busy)
+        client.put(
+            "fusion/radar/A/plots",
+            b" " * (MAX_PAYLOAD_BYTES + 1),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
         put_json(client, "fusion/radar/A/plots", plot_batch(1))
         put_json(client, "fusion/radar/A/plots", plot_batch(2))
         wait_for(lambda: node.processed == 4, timeout=30)
@@ -386,14 +391,7 @@ def test_the_other_workers_queue_is_bounded_too(router: str, client: zenoh.Sessi
         queue_wait_s=0.1,
         correlation_process=False,
     )
-    gate = threading.Event()
-    real_ingest = node.engine.ingest
-
-    def held_ingest(*args: Any, **kwargs: Any) -> Any:
-        gate.wait(timeout=30)
-        return real_ingest(*args, **kwargs)
-
-    node.engine.ingest = held_ingest  # type: ignore[method-assign]
+    gate = hold_the_worker(node)
     node.start()
     try:
         key = "fusion/registration/A/B"
