@@ -9,7 +9,7 @@ from contextlib import asynccontextmanager
 from typing import Annotated, Any, Literal
 from urllib.parse import parse_qsl, quote, unquote, urlencode
 
-from fastapi import Depends, FastAPI, HTTPException, Query, Request
+from fastapi import FastAPI, HTTPException, Query, Request
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
@@ -17,6 +17,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.requests import cookie_parser
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from service.api.deps import NodeDep
 from service.api.metrics import registry_for
 from service.api.picture import add_picture
 from service.transport.node import ServiceNode
@@ -24,15 +25,6 @@ from service.wire.models import BiasEstimate, PairSet, RadarInfo, Status, System
 
 StatusFilter = Literal["confirmed", "tentative", "all"]
 
-
-def get_node(request: Request) -> ServiceNode:
-    node: ServiceNode | None = getattr(request.app.state, "node", None)
-    if node is None:
-        raise HTTPException(status_code=503, detail="service starting")
-    return node
-
-
-NodeDep = Annotated[ServiceNode, Depends(get_node)]
 
 #: Where the Swagger UI and ReDoc bundles are served from (and the picture's own files).
 DOCS_ASSETS = "/static/docs"

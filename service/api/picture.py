@@ -30,10 +30,11 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import orjson
-from fastapi import Depends, FastAPI, HTTPException, Query, Request
+from fastapi import FastAPI, Query, Request
 from fastapi.responses import HTMLResponse, StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
+from service.api.deps import NodeDep
 from service.transport.node import ServiceNode
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
@@ -57,16 +58,6 @@ PICTURE_CSP = (
 )
 #: Coordinates are rounded to this many decimals of a degree (about 1 m).
 DECIMALS = 5
-
-
-def _node(request: Request) -> ServiceNode:
-    node: ServiceNode | None = getattr(request.app.state, "node", None)
-    if node is None:
-        raise HTTPException(status_code=503, detail="service starting")
-    return node
-
-
-PictureNode = Annotated[ServiceNode, Depends(_node)]
 
 
 def _east_north(lat_deg: float, lon_deg: float, v: list[float]) -> tuple[float, float]:
@@ -257,7 +248,7 @@ def add_picture(app: FastAPI) -> None:
     )
     async def picture_events(
         request: Request,
-        node: PictureNode,
+        node: NodeDep,
         status: Annotated[str, Query(pattern="^(confirmed|all)$")] = "confirmed",
         max_items: Annotated[int, Query(ge=1, le=MAX_ITEMS_LIMIT)] = DEFAULT_MAX_ITEMS,
         interval_s: Annotated[float, Query(ge=MIN_INTERVAL_S, le=MAX_INTERVAL_S)] = DEFAULT_INTERVAL_S,
