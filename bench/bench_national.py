@@ -80,6 +80,7 @@ from typing import Any
 import numpy as np
 
 from service.engine import Engine, EngineConfig, Snapshot
+from topofusion_lab.evaluation.promptness import OutputMonitor, PromptnessReport
 from topofusion_lab.scenarios.catalog import get_scenario
 from topofusion_lab.scenarios.simulator import Scenario, wire_messages
 
@@ -1057,6 +1058,8 @@ def run_inprocess(args: argparse.Namespace) -> None:
                 results.setdefault(v.key, []).append(summary)
         side_by_side(chosen, results, data_s, truth, args)
         readme_rows(results, data_s, truth, accuracy_figures, sc)
+        if not args.no_promptness:
+            promptness(sc, make_stream(sc, args.seed, cache))
 
 
 def side_by_side(
@@ -1169,6 +1172,28 @@ def readme_rows(
             f"{rms[1]:.3f}° azimuth, {rms[2]:.3f}° elevation"
         )
         print(f"| national network accuracy, same run ({cmd}) | {figures} |")
+
+
+def promptness(sc: Scenario, stream: Stream) -> PromptnessReport:
+    """Time to pair and dangling references from the outputs as published, in publish order
+    (an untimed pass: the engine in this process, every output built and read, as a subscriber
+    to every key would; the correlation in process gives the same outputs in data time as the
+    correlation process)."""
+    monitor = OutputMonitor({r.radar_id: r.scan_period_s for r in sc.radars})
+    engine = Engine(EngineConfig())
+    try:
+        for key, payload in stream:
+            for out in engine.ingest(key, payload, receive_time_s=0.0):
+                monitor.feed(out.key, out.body())
+        for out in engine.flush():
+            monitor.feed(out.key, out.body())
+    finally:
+        engine.close()
+    report = monitor.report()
+    print("[outputs as published, untimed pass in process]")
+    for line in report.lines():
+        print(f"  {line}")
+    return report
 
 
 def run_profile(args: argparse.Namespace) -> None:
@@ -1433,6 +1458,9 @@ def run_zenoh(args: argparse.Namespace) -> None:
         f"p99 {rounded(p99)} ms; {acc['correct_pct']:.1f} % of confirmed pairs correct "
         f"({acc['false']} false) |"
     )
+    if not args.no_promptness:
+        print()
+        promptness(sc, stream)
 
 
 # -- soak ----------------------------------------------------------------------------------------
@@ -1830,6 +1858,11 @@ def main() -> None:
     )
     parser.add_argument(
         "--census", action="store_true", help="soak: the registration memories' sizes every minute"
+    )
+    parser.add_argument(
+        "--no-promptness",
+        action="store_true",
+        help="skip the untimed pass that measures time to pair and dangling references",
     )
     args = parser.parse_args()
     if args.one_run:
