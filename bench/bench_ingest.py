@@ -18,8 +18,9 @@ import time
 
 import numpy as np
 
-from service.engine import EngineConfig, plot_columns
+from service.engine import EngineConfig
 from service.geo import Site
+from service.pipeline.decode import plot_columns
 from service.tracking.base import PlotColumns, Tracker, TrackTable
 from service.tracking.window import PlotWindow
 from service.transport.node import ServiceNode
@@ -124,7 +125,7 @@ def bench_node(batches: list[tuple[str, bytes]], radars: list[str], window_only:
         for key, payload in batches:
             client.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
         total = len(batches)
-        while sum(r.batches for r in node.engine.radars.values()) < total or not node.queue.empty():
+        while sum(r.batches for r in node.engine.radar_clocks.values()) < total or not node.queue.empty():
             time.sleep(0.001)
         elapsed = time.perf_counter() - t0
         assert node.queue.dropped_total == 0

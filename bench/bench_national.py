@@ -244,10 +244,9 @@ def wait_ready(engine: Engine) -> float:
 def correlation_stage(engine: Engine) -> Any:
     """The engine's correlation stage when it runs in this process (an attribute with
     ``update``, ``updates``, ``timings_ms``), else None."""
-    for name in ("correlation", "_correlation"):
-        stage = getattr(engine, name, None)
-        if all(hasattr(stage, a) for a in ("update", "updates", "timings_ms")):
-            return stage
+    stage = getattr(engine.correlation, "stage", None)
+    if all(hasattr(stage, a) for a in ("update", "updates", "timings_ms")):
+        return stage
     return None
 
 

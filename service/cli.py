@@ -215,7 +215,7 @@ def partition_main(args: argparse.Namespace) -> int:
     hashing, docs/contract.md §4.6), with each worker's share."""
     import itertools
 
-    from service.engine import load_sites
+    from service.config import load_sites
     from service.pipeline.partition import Partition
 
     if args.count < 1:

@@ -81,6 +81,18 @@ class ConfigError(ValueError):
 
 
 _ADAPTER = TypeAdapter(EngineConfig)
+_SITE_LIST = TypeAdapter(list[RadarSite])
+
+
+def load_sites(path: str | Path) -> tuple[RadarSite, ...]:
+    """Sites from a JSON file holding a list of ``RadarSite`` (setting ``TOPOFUSION_SITES``)."""
+    p = Path(path)
+    try:
+        return tuple(_SITE_LIST.validate_json(p.read_bytes()))
+    except FileNotFoundError:
+        raise ValueError(f"sites file not found: {p}") from None
+    except ValidationError as exc:
+        raise ValueError(f"sites file {p} is not a JSON list of RadarSite: {exc}") from None
 
 
 def _unknown_keys(cls: type, data: Mapping[str, Any], path: str = "") -> list[str]:

@@ -111,8 +111,7 @@ def engine_config(settings: Settings) -> EngineConfig:
 
     Raises :class:`service.config.ConfigError` naming the key of a bad value.
     """
-    from service.config import engine_config_from, from_environment, load_file, merge
-    from service.engine import load_sites
+    from service.config import engine_config_from, from_environment, load_file, load_sites, merge
 
     data: dict[str, object] = load_file(settings.config) if settings.config is not None else {}
     data = merge(data, from_environment())

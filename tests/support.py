@@ -20,9 +20,10 @@ import uvicorn
 import zenoh
 
 from service.api.app import create_app
-from service.engine import Engine, EngineConfig, Outgoing
+from service.engine import Engine, EngineConfig
 from service.transport.node import ServiceNode
 from service.transport.session import ZenohOptions
+from service.wire.outgoing import Outgoing
 
 
 def free_port() -> int:

@@ -150,7 +150,7 @@ def test_bad_adsb_batches_are_rejected_whole() -> None:
     ]:
         (o,) = engine.ingest(key, json.dumps(bad).encode(), receive_time_s=0.0)
         assert json.loads(o.payload)["reason"] == reason
-    assert engine.ais == {}
+    assert engine.reference_clocks == {}
     assert engine.ingest(key, json.dumps(good).encode()) == []
     # the same id as an AIS source: taken
     ais = {
@@ -239,7 +239,7 @@ def test_bad_identity_columns_reject_the_batch_and_change_nothing(
     bad = {"radar_id": "A", "seq": 1, "time_s": 100.0, "plots": {**plots, column: values}}
     (o,) = engine.ingest("fusion/radar/A/plots", json.dumps(bad).encode(), receive_time_s=0.0)
     assert json.loads(o.payload)["reason"] == reason
-    assert engine.radars["A"].last_seq is None
+    assert engine.radar_clocks["A"].last_seq is None
     ok = {"radar_id": "A", "seq": 1, "time_s": 100.0, "plots": {**plots, "mode_s": ["3c6444", None]}}
     keys = [x.key for x in engine.ingest("fusion/radar/A/plots", json.dumps(ok).encode())]
     assert keys[0] == "fusion/radar/A/tracks" and "fusion/errors" not in keys

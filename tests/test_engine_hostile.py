@@ -62,7 +62,7 @@ def test_batch_far_in_the_future_is_rejected_and_costs_nothing(
     (err,) = errors(out)
     assert err["reason"] == "out_of_range" and "ahead of the other sources" in err["detail"]
     assert results(engine) == results(baseline[0])
-    assert engine.radars["A"].lost_batches == 0 and engine.radars["A"].rejected == 1
+    assert engine.radar_clocks["A"].lost_batches == 0 and engine.radar_clocks["A"].rejected == 1
 
 
 def test_future_source_first_cannot_hold_or_release_the_others(
@@ -99,7 +99,7 @@ def test_absurd_seq_jump_is_rejected_and_the_radar_goes_on(
     assert [e["reason"] for e in errors(out)] == ["out_of_range", "out_of_range"]
     assert "skips" in errors(out)[1]["detail"]
     assert results(engine) == results(baseline[0])
-    assert engine.radars["B"].batches == baseline[0].radars["B"].batches
+    assert engine.radar_clocks["B"].batches == baseline[0].radar_clocks["B"].batches
 
 
 def test_long_outage_may_skip_many_seq_numbers() -> None:
@@ -117,7 +117,7 @@ def test_long_outage_may_skip_many_seq_numbers() -> None:
     assert not errors(engine.ingest("fusion/radar/A/plots", batch(1, 1000.0)))
     assert errors(engine.ingest("fusion/radar/A/plots", batch(500, 1010.0)))  # 498 in 10 s: > 5 Hz
     assert not errors(engine.ingest("fusion/radar/A/plots", batch(500, 1200.0)))  # 498 in 200 s: fine
-    assert engine.radars["A"].lost_batches == 498
+    assert engine.radar_clocks["A"].lost_batches == 498
 
 
 def test_publisher_restart_is_recognised_not_locked_out(stream: Stream) -> None:
@@ -129,8 +129,8 @@ def test_publisher_restart_is_recognised_not_locked_out(stream: Stream) -> None:
         restarted[j] = (restarted[j][0], json.dumps({**b, "seq": n + 1}).encode())
     engine, out = run_engine(restarted)
     assert errors(out) == []
-    assert engine.radars["B"].restarts == 1
-    assert engine.radars["B"].batches == len(b_batches)
+    assert engine.radar_clocks["B"].restarts == 1
+    assert engine.radar_clocks["B"].batches == len(b_batches)
     base, _ = run_engine(stream)
     assert results(engine) == results(base)
     # a true duplicate is still one: the first batch after the restart, sent again
@@ -163,12 +163,12 @@ def test_a_real_move_reregisters_only_that_radars_pairs() -> None:
     engine = Engine()
     for key, payload in stream:
         engine.ingest(key, payload)
-    before = {k: (c, c.book, c.memory) for k, c in engine.correlation.correlators.items()}
+    before = {k: (c, c.book, c.memory) for k, c in engine.correlation.stage.correlators.items()}
     assert set(before) == {("A", "B"), ("A", "C"), ("B", "C")}
     site_c = json.loads(next(p for k, p in stream if k == "fusion/radar/C/site"))
     moved = {**site_c, "latitude_deg": site_c["latitude_deg"] + 0.01}  # 1.1 km
     engine.ingest("fusion/radar/C/site", json.dumps(moved).encode())
-    after = engine.correlation.correlators
+    after = engine.correlation.stage.correlators
     assert after[("A", "B")] is before[("A", "B")][0]  # untouched
     for key in (("A", "C"), ("B", "C")):
         assert after[key].book is before[key][1]  # the pairs are kept...
@@ -203,9 +203,9 @@ def test_many_fake_radar_ids_cost_nothing(stream: Stream, baseline: tuple[Engine
     engine, out = run_engine(insert_after(stream, i, extra))
     assert errors(out) == []
     assert results(engine) == results(baseline[0])
-    assert set(engine.correlation.correlators) == {("A", "B")}
-    assert engine.correlation.updates == baseline[0].correlation.updates
-    assert engine.radars["A042"].batches == 1
+    assert set(engine.correlation.stage.correlators) == {("A", "B")}
+    assert engine.correlation.stage.updates == baseline[0].correlation.stage.updates
+    assert engine.radar_clocks["A042"].batches == 1
 
 
 def test_silent_source_expires_and_its_pairs_empty(stream: Stream) -> None:
@@ -219,8 +219,8 @@ def test_silent_source_expires_and_its_pairs_empty(stream: Stream) -> None:
             continue
         engine.ingest(key, payload)
     engine.flush()
-    b = engine.radars["B"]
-    assert b.expired and not engine.radars["A"].expired
+    b = engine.radar_clocks["B"]
+    assert b.expired and not engine.radar_clocks["A"].expired
     assert len(engine.tracking.radars["B"].table) == 0
     (ps,) = engine.snapshot().pair_sets(status="all")
     assert ps["pairs"] == []
@@ -239,4 +239,4 @@ def test_source_table_is_bounded() -> None:
         assert engine.ingest(f"fusion/radar/{rid}/site", json.dumps({**site, "radar_id": rid}).encode()) == []
     (err,) = errors(engine.ingest("fusion/radar/D/site", json.dumps({**site, "radar_id": "D"}).encode()))
     assert err["reason"] == "out_of_range" and "source table full" in err["detail"]
-    assert "D" not in engine.radars and len(engine.radars) == 3
+    assert "D" not in engine.radar_clocks and len(engine.radar_clocks) == 3

@@ -16,9 +16,10 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from service.engine import MAX_PENDING_STATES, Engine, EngineConfig, Outgoing
+from service.engine import Engine, EngineConfig
 from service.pipeline.errors import RejectionError
 from service.pipeline.partition import Partition
+from service.pipeline.peers import MAX_PENDING_STATES
 from service.pipeline.track_exchange import (
     StatesMessage,
     StatesReceiver,
@@ -29,6 +30,7 @@ from service.pipeline.track_exchange import (
 from service.tracking.base import TrackTable
 from service.wire.keys import Keys
 from service.wire.models import TrackStates
+from service.wire.outgoing import Outgoing
 from service.wire.outputs import encode
 from tests.scenario_helpers import scenario_messages
 from tests.support import one_worker_config
@@ -248,7 +250,7 @@ def test_n_engines_give_the_pair_updates_of_one(n: int, seed: int) -> None:
         assert engine.snapshot().biases() == want
     for engine in engines:
         assert engine.rejected == {}
-        assert not engine.receiver.gaps
+        assert not engine.peers.receiver.gaps
 
 
 def _states_cases() -> list[tuple[str, object]]:
@@ -338,7 +340,7 @@ def test_track_states_before_the_radars_site_wait_for_it() -> None:
     assert errors == [] and other.rejected.get("unknown_radar", 0) == 0
     site = next(p for k, p in msgs if k == "fusion/radar/A/site")
     assert other.ingest("fusion/radar/A/site", site) == []
-    time_s, held = other.receiver.latest("A")
+    time_s, held = other.peers.receiver.latest("A")
     assert time_s > 0 and sorted(held.track_id) == sorted(owner.tracking.radars["A"].table.track_id)
     # beyond the bound, such messages are rejected (a flood must not grow without end)
     z = next(r for r in ("Z", "Y", "X", "W") if not other.partition.owns(r))

@@ -18,11 +18,12 @@ from typing import Any
 
 import pytest
 
-from service.engine import Engine, EngineConfig, Outgoing
+from service.engine import Engine, EngineConfig
 from service.pipeline.partition import Partition
 from service.state import StateKeeper
 from service.state.fileformat import decode, encode
 from service.wire.keys import Keys
+from service.wire.outgoing import Outgoing
 from tests.scenario_helpers import scenario_messages
 
 STATE = "state.bin"

@@ -323,7 +323,7 @@ def asterix_main(
     args: argparse.Namespace, options: Any, prefix: str, sites_path: Path | None, stop: threading.Event
 ) -> int:
     """The command: check the inputs, open the session, run, say what happened."""
-    from service.engine import load_sites
+    from service.config import load_sites
     from service.transport.session import open_tool_session
 
     outputs = bool(args.out_udp or args.out_file)

@@ -96,6 +96,12 @@ def _joint_regret(
     return regret
 
 
+def rival_costs(keys: IntArray, cost: FloatArray) -> FloatArray:
+    """Per entry: the lowest cost among the *other* entries sharing its key (inf: none)."""
+    best, second = _second_best(keys, cost)
+    return np.where(cost <= best, second, best)
+
+
 def assign_unambiguous(
     index_a: IntArray,
     index_b: IntArray,
@@ -134,10 +140,8 @@ def assign_unambiguous(
     if unmatched_cost is not None:
         amb = assigned & (_joint_regret(ia, ib, c, assigned, unmatched_cost) < margin)
     else:
-        best_a, second_a = _second_best(ia, c)
-        best_b, second_b = _second_best(ib, c)
-        rival_a = np.where(c <= best_a, second_a, best_a)
-        rival_b = np.where(c <= best_b, second_b, best_b)
+        rival_a = rival_costs(ia, c)
+        rival_b = rival_costs(ib, c)
         amb = assigned & ((rival_a - c < margin) | (rival_b - c < margin))
     chosen[acc] = assigned & ~amb
     ambiguous[acc] = amb

@@ -68,7 +68,7 @@ from service.correlation.base import (
 from service.correlation.basic_topology import BasicTopologyCorrelator, BasicTopologyParams
 from service.correlation.cfar import CfarParams
 from service.correlation.cycles import CycleParams, Implied, contradicted
-from service.correlation.evidence import EvidenceBook, EvidenceParams, registered_residuals
+from service.correlation.evidence import EvidenceBook, EvidenceParams, posterior, registered_residuals
 from service.correlation.external import CfarCorrelator, GmmCorrelator
 from service.correlation.gmm import GmmParams
 from service.correlation.group_offset import GroupOffsetParams, group_residuals
@@ -77,6 +77,7 @@ from service.correlation.nearest import NearestCorrelator, NearestParams
 from service.correlation.pairkeys import find, pair_keys
 from service.correlation.pairs import PairBook, PairBookParams, PairState
 from service.correlation.prediction import PredictionParams, predict_snapshot
+from service.correlation.prompt import PromptParams, clear_of_rivals, isolated
 from service.correlation.registration import (
     BiasSolution,
     RadarBias,
@@ -112,6 +113,8 @@ class CorrelationParams:
     cycles: CycleParams = field(default_factory=CycleParams)
     #: The local offset of a group of tracks, the looks before registration (``svd-topology``).
     group: GroupOffsetParams = field(default_factory=GroupOffsetParams)
+    #: Clear pairs confirmed at their first update (:mod:`.prompt`; ``svd-topology``).
+    prompt: PromptParams = field(default_factory=PromptParams)
     #: Ambiguity margin of the one-to-one assignment (chi-square units; 6 ~ likelihood ratio 20).
     ambiguity_margin: float = 6.0
     #: Cost bonus for a candidate that is a currently confirmed pair (hysteresis from history).
@@ -177,6 +180,29 @@ def _lookup_pairs(
     return ia[ok], ib[ok]
 
 
+def _shifted(old: BiasSolution, new: BiasSolution | None, k_sigma: float) -> bool:
+    """Whether a bias of ``new`` lies more than ``k_sigma`` of ``old``'s own sigma from ``old``'s."""
+    if new is None:
+        return False
+    for rid in old.radar_ids:
+        b_old, p_old = old.of(rid)
+        b_new, _ = new.of(rid)
+        sigma = np.sqrt(np.maximum(np.diag(p_old), 0.0))
+        if np.any(np.abs(b_new - b_old) > k_sigma * sigma):
+            return True
+    return False
+
+
+def _within(positions: np.ndarray, anchors: np.ndarray, reach_m: float, busy: np.ndarray) -> np.ndarray:
+    """The rows of ``positions`` within ``reach_m`` of any anchor and not among ``busy``."""
+    if len(positions) == 0 or len(anchors) == 0:
+        return np.empty(0, dtype=np.intp)
+    d2 = ((positions[:, None, :] - anchors[None, :, :]) ** 2).sum(axis=2)
+    near = (d2 <= reach_m**2).any(axis=1)
+    near[busy] = False
+    return np.flatnonzero(near)
+
+
 def _other_rows(n: int, rows: np.ndarray) -> np.ndarray:
     """The rows ``0..n-1`` not in ``rows``, ascending."""
     free = np.ones(n, dtype=bool)
@@ -211,6 +237,8 @@ class PairCorrelator:
         self.last_rows: RegistrationRowsData | None = None
         self.solution: BiasSolution | None = None
         self._solved_s = float("-inf")
+        #: Confirmed pairs of the book at the last solve (``RegistrationParams.resolve_growth``).
+        self._solved_pairs = 1
         self.last_update_ms: float = 0.0
         self.last_decisions: Decisions = Decisions.empty()
         #: Confirmed pairs the last update kept by the method's re-check (no full decision).
@@ -234,22 +262,14 @@ class PairCorrelator:
         through third radars imply (:mod:`.cycles`; None: no cycle step)."""
         t0 = time.perf_counter()
         prm = self.params
-        raw_a = predict_snapshot(tracks_a, self.site_a, time_s, prm.prediction)
-        raw_b = predict_snapshot(tracks_b, self.site_b, time_s, prm.prediction)
-        a, b = raw_a, raw_b
-        ctx_kw: dict[str, object] = {}
-        registered = self.registered
-        if registered and self.solution is not None:
-            ba, pa = self.solution.of(self.site_a.site_id)
-            bb, pb = self.solution.of(self.site_b.site_id if self.site_b else None)
-            a, extra_a = compensate(raw_a, ba, pa)
-            b, extra_b = compensate(raw_b, bb, pb)
-            ctx_kw = {"registered": True, "registration_cov_a": extra_a, "registration_cov_b": extra_b}
+        raw_a, raw_b, a, b, ctx_kw = self._snapshots(tracks_a, tracks_b, time_s)
+        registered = bool(ctx_kw)
         ev = self.evidence
         if ev is not None and registered:
             # Every candidate within the gate is one look at its pair (no censoring by the
             # decisions); a known pair outside it is no hypothesis any more.
-            ia_e, ib_e, r, s_noise, s_common = registered_residuals(a, b, extra_a, extra_b, ev.params)
+            extra_a, extra_b = ctx_kw["registration_cov_a"], ctx_kw["registration_cov_b"]
+            ia_e, ib_e, r, s_noise, s_common = registered_residuals(a, b, extra_a, extra_b, ev.params)  # type: ignore[arg-type]
             ev.observe(time_s, a.track_id[ia_e], b.track_id[ib_e], r, s_noise, s_common)
             ev.prune(time_s, a.track_id, b.track_id, unobserved_present=True)
         conf = self.book.confirmed
@@ -298,7 +318,9 @@ class PairCorrelator:
                 reference_b=_other_rows(len(b), kept.index_b),
             )
         self.last_reverified = len(kept) if kept is not None else 0
-        decided = self._with_history(self.correlator.decide(a, b, ctx), a, b, time_s, registered)
+        decided = self.correlator.decide(a, b, ctx)
+        clear = self._clear(decided, a, b, tracks_a, tracks_b, time_s)
+        decided = self._with_history(decided, a, b, time_s, registered, clear)
         if prm.identity_veto:
             decided = replace(decided, accepted=decided.accepted & ~_identities_differ(a, b, decided))
         if ev is not None and not registered:
@@ -328,6 +350,7 @@ class PairCorrelator:
         # each of them as it is (no rival), so they are chosen without it.
         dec = Decisions.concat([*parts, decided])
         sel = Decisions.concat([*parts, decided.take(chosen)])
+        now = np.concatenate([np.zeros(sum(len(x) for x in parts), dtype=bool), clear[chosen]])
         self.book.update(
             time_s,
             np.asarray(tracks_a.track_id).astype(str),
@@ -339,6 +362,7 @@ class PairCorrelator:
             sel.scale,
             sel.neighbors,
             np.nan_to_num(sel.extras["basis"], nan=-1.0).astype(np.int8) if "basis" in sel.extras else None,
+            confirm_now=now,
         )
         if ev is not None:
             # A pair's probability from its accumulated evidence; a pair with none (before
@@ -358,21 +382,142 @@ class PairCorrelator:
                 time_s, raw_a, raw_b, pa_idx, pb_idx, prm.registration, max_rows=cap
             )
         if self.method == "svd-topology" and prm.use_registration and len(self.memory):
-            # Re-solve on a data-time schedule once registered (every update before that).
+            # Re-solve on a data-time schedule once registered (every update before that), and
+            # whenever the confirmed pairs have grown ``resolve_growth`` times since the last
+            # solve: a first registration rests on a few pairs of one area, and its estimate
+            # can be off by more than its sigma says until the pairs spread.
+            confirmed = int(np.count_nonzero(self.book.confirmed))
             due = (
                 not self.registered
                 or time_s >= self._solved_s + prm.registration.solve_interval_s
                 or time_s < self._solved_s
+                or confirmed >= prm.registration.resolve_growth * self._solved_pairs
             )
             if due:
                 # Warm start once registered: the rows changed little since the last solve.
-                start = self.solution if self.registered else None
-                self.solution = solve_biases([self.memory], time_s, prm.registration, initial=start)
+                was = self.solution if self.registered else None
+                self.solution = solve_biases([self.memory], time_s, prm.registration, initial=was)
                 self._solved_s = time_s
+                self._solved_pairs = max(confirmed, 1)
+                if ev is not None and was is not None and _shifted(was, self.solution, ev.params.reset_sigma):
+                    # The looks were compensated with an estimate the new one refutes: their
+                    # residuals carry its error, and would reject right pairs for minutes.
+                    ev.clear()
         self.last_decisions = dec
         self.time_s = time_s
         self.updates += 1
         self.last_update_ms = (time.perf_counter() - t0) * 1e3
+
+    def _snapshots(
+        self, tracks_a: TrackTable, tracks_b: TrackTable, time_s: float
+    ) -> tuple[TrackSnapshot, TrackSnapshot, TrackSnapshot, TrackSnapshot, dict[str, object]]:
+        """Both tables brought to ``time_s`` (raw), the same bias-compensated once registered,
+        and the decision context's registration fields (empty: not registered)."""
+        prm = self.params
+        raw_a = predict_snapshot(tracks_a, self.site_a, time_s, prm.prediction)
+        raw_b = predict_snapshot(tracks_b, self.site_b, time_s, prm.prediction)
+        if not self.registered or self.solution is None:
+            return raw_a, raw_b, raw_a, raw_b, {}
+        ba, pa = self.solution.of(self.site_a.site_id)
+        bb, pb = self.solution.of(self.site_b.site_id if self.site_b else None)
+        a, extra_a = compensate(raw_a, ba, pa)
+        b, extra_b = compensate(raw_b, bb, pb)
+        return (
+            raw_a,
+            raw_b,
+            a,
+            b,
+            {"registered": True, "registration_cov_a": extra_a, "registration_cov_b": extra_b},
+        )
+
+    def _clear(
+        self,
+        dec: Decisions,
+        a: TrackSnapshot,
+        b: TrackSnapshot,
+        tracks_a: TrackTable,
+        tracks_b: TrackTable,
+        time_s: float,
+    ) -> np.ndarray:
+        """Which of the update's candidates are clear (:mod:`.prompt`): no rival within the
+        margin, and both tracks isolated within their own radar's tables."""
+        prm = self.params.prompt
+        if not prm.enabled or self.method != "svd-topology" or len(dec) == 0:
+            return np.zeros(len(dec), dtype=bool)
+        clear = clear_of_rivals(dec.index_a, dec.index_b, dec.cost, dec.accepted, prm.clear_margin)
+        rows = np.flatnonzero(clear)
+        if rows.size:
+            ua, inv_a = np.unique(dec.index_a[rows], return_inverse=True)
+            ub, inv_b = np.unique(dec.index_b[rows], return_inverse=True)
+            iso_a = isolated(tracks_a, self.site_a, time_s, a.track_id[ua], prm.isolation_m)
+            iso_b = isolated(tracks_b, self.site_b, time_s, b.track_id[ub], prm.isolation_m)
+            clear[rows] = iso_a[inv_a] & iso_b[inv_b]
+        return clear
+
+    def decide_new(
+        self,
+        tracks_a: TrackTable,
+        tracks_b: TrackTable,
+        time_s: float,
+        fresh_a: NDArray[np.str_],
+        fresh_b: NDArray[np.str_],
+    ) -> bool:
+        """Tracks confirmed since the pair's last update (``fresh_a``, ``fresh_b``: their ids)
+        between two updates: the clear pairs among them (:mod:`.prompt`) enter the book
+        confirmed now, without waiting for the pair's next update (which scores the book).
+        Only the unpaired tracks near a fresh one are decided.  Whether the book changed."""
+        prm = self.params
+        if not (prm.prompt.enabled and self.method == "svd-topology") or self.updates == 0:
+            return False
+        _, _, a, b, ctx_kw = self._snapshots(tracks_a, tracks_b, time_s)
+        fa, fb = np.isin(a.track_id, fresh_a), np.isin(b.track_id, fresh_b)
+        if not (fa.any() or fb.any()):
+            return False
+        conf = self.book.confirmed
+        ca_idx, cb_idx = _lookup_pairs(
+            a.track_id, b.track_id, self.book.track_a[conf], self.book.track_b[conf]
+        )
+        # The candidates of a fresh track and their rivals lie within two candidate gates of it.
+        anchors = np.concatenate([a.position[fa], b.position[fb]])
+        reach = 2.0 * prm.svd.candidates.gate_m
+        ref_a = _within(a.position, anchors, reach, busy=ca_idx)
+        ref_b = _within(b.position, anchors, reach, busy=cb_idx)
+        ctx = DecisionContext(
+            time_s=time_s,
+            confirmed_a=ca_idx,
+            confirmed_b=cb_idx,
+            reference_a=ref_a,
+            reference_b=ref_b,
+            **ctx_kw,  # type: ignore[arg-type]
+        )
+        dec = self.correlator.decide(a, b, ctx)
+        clear = self._clear(dec, a, b, tracks_a, tracks_b, time_s) & (fa[dec.index_a] | fb[dec.index_b])
+        ev = self.evidence
+        if ev is not None and clear.any() and len(ev):
+            e = find(ev.keys, pair_keys(a.track_id[dec.index_a], b.track_id[dec.index_b]))
+            clear &= ~((e >= 0) & ev.rejected()[np.maximum(e, 0)])
+        if not clear.any():
+            return False
+        # (two clear candidates cannot share a track: each would cost ``clear_margin`` less)
+        probability = (
+            posterior(a.track_id[dec.index_a], b.track_id[dec.index_b], dec.cost, ev.params)[clear]
+            if ev is not None
+            else None
+        )
+        take = dec.take(clear)
+        return self.book.admit(
+            time_s,
+            np.asarray(tracks_a.track_id).astype(str),
+            np.asarray(tracks_b.track_id).astype(str),
+            a.track_id[take.index_a],
+            b.track_id[take.index_b],
+            take.statistic,
+            take.rotation_weight,
+            take.scale,
+            take.neighbors,
+            np.nan_to_num(self._basis(take), nan=-1.0).astype(np.int8),
+            probability,
+        )
 
     def _basis(self, dec: Decisions) -> np.ndarray:
         """Each decision's :class:`~.base.Basis` code (as float; NaN: none to give)."""
@@ -385,7 +530,13 @@ class PairCorrelator:
         return np.full(len(dec), np.nan)
 
     def _with_history(
-        self, dec: Decisions, a: TrackSnapshot, b: TrackSnapshot, time_s: float, registered: bool
+        self,
+        dec: Decisions,
+        a: TrackSnapshot,
+        b: TrackSnapshot,
+        time_s: float,
+        registered: bool,
+        clear: np.ndarray,
     ) -> Decisions:
         """The update's decisions with the history evidence (:mod:`.evidence`) applied.
 
@@ -397,7 +548,8 @@ class PairCorrelator:
         assignment with the accumulated statistic's excess ``q_rel - 3`` as its cost, so the
         (joint) ambiguity margin is applied to the history's log-likelihood ratio.  A candidate
         with no source of looks (outside any group before registration) is decided by its
-        update alone.
+        update alone.  A clear candidate (:mod:`.prompt`) is accepted on its update alone too,
+        unless its history rejects it.
         """
         prm = self.params
         basis = self._basis(dec)
@@ -415,7 +567,7 @@ class PairCorrelator:
         have = e >= 0
         hist = have & (ev.looks[e0] >= ev.params.min_looks) if len(ev) else have
         rej = hist & (ev.rejected()[e0] if len(ev) else False)
-        accepted = dec.accepted & ~rej & (hist | ~sourced | ev.params.accept_without_history)
+        accepted = dec.accepted & ~rej & (hist | ~sourced | clear | ev.params.accept_without_history)
         reason = np.where(dec.accepted & rej, np.int8(Reason.HISTORY), dec.reason).astype(np.int8)
         use = hist & accepted
         return replace(

@@ -97,6 +97,10 @@ class EvidenceParams:
     #: Whether a candidate with fewer looks than ``min_looks`` may be accepted on its single
     #: update's test (True) or must wait for its history (False).
     accept_without_history: bool = False
+    #: A re-solve of the pair's registration that moves a bias by more than this many of its
+    #: previous sigmas forgets every look: they were compensated with an estimate the new
+    #: one refutes (the two radars' first estimate rests on a few pairs of one area).
+    reset_sigma: float = 4.0
     #: Once registered, every pair of tracks closer than this (m, compensated ECEF) is looked
     #: at on every update (a true pair's compensated difference is a few hundred metres).
     registered_search_m: float = 5_000.0
@@ -190,6 +194,10 @@ class EvidenceBook:
 
     def __len__(self) -> int:
         return int(self.keys.shape[0])
+
+    def clear(self) -> None:
+        """Forget every entry."""
+        self._keep(np.zeros(len(self), dtype=bool))
 
     def _keep(self, keep: NDArray[np.bool_]) -> None:
         for name in self._columns:

@@ -156,8 +156,11 @@ class PairBook:
         scale: FloatArray,
         neighbors: NDArray[np.int64],
         basis: NDArray[np.int8] | None = None,
+        confirm_now: NDArray[np.bool_] | None = None,
     ) -> None:
-        """Score one update: ``chosen_*`` are this update's one-to-one single decisions.
+        """Score one update: ``chosen_*`` are this update's one-to-one single decisions;
+        ``confirm_now``: those that are clear (:mod:`.prompt`) confirm at once, without the M
+        hits (still one-to-one: never a track already in a confirmed pair).
 
         A hit pair's ``statistic``, ``rotation_weight``, ``scale`` and ``neighbors`` are those
         of the decision that scored it, the latest one: NaN where that decision computed none
@@ -184,6 +187,9 @@ class PairBook:
         self.history = (self.history << np.uint32(1)) | hit.astype(np.uint32)
         self.hits = self.hits + hit
         self.misses = np.where(hit, 0, self.misses + 1)
+        now = np.zeros(len(self), dtype=bool)
+        if confirm_now is not None and hit.any():
+            now[hit] = confirm_now[src]
         # Refresh statistics of the hit pairs.
         if hit.any():
             self.cols["statistic"][hit] = statistic[src]
@@ -216,15 +222,86 @@ class PairBook:
                 "probability": np.full(nf, np.nan),
             }
             self.cols = {k: np.concatenate([v, add[k]]) for k, v in self.cols.items()}
+            now = np.concatenate(
+                [now, confirm_now[fresh] if confirm_now is not None else np.zeros(nf, dtype=bool)]
+            )
         # Drop.
         score = self.hit_fraction
         gone = ~_isin(self.track_a, present_a) | ~_isin(self.track_b, present_b)
         stale_tent = ~self.confirmed & (score <= 0)
         stale_conf = self.confirmed & (self.misses >= prm.drop_misses)
-        self._keep(~(gone | stale_tent | stale_conf))
-        # Confirm.
+        keep = ~(gone | stale_tent | stale_conf)
+        self._keep(keep)
+        now = now[keep]
+        self._confirm(
+            np.flatnonzero(
+                ~self.confirmed & ((self.hit_fraction * prm.window >= prm.confirm_hits - 1e-9) | now)
+            )
+        )
+
+    def admit(
+        self,
+        time_s: float,
+        present_a: NDArray[np.str_],
+        present_b: NDArray[np.str_],
+        track_a: NDArray[np.str_],
+        track_b: NDArray[np.str_],
+        statistic: FloatArray,
+        rotation_weight: FloatArray,
+        scale: FloatArray,
+        neighbors: NDArray[np.int64],
+        basis: NDArray[np.int8],
+        probability: FloatArray | None = None,
+    ) -> bool:
+        """Confirm clear pairs between two updates (:mod:`.prompt`): a pair of the book is
+        confirmed, a new one enters confirmed with one hit; neither scores the other pairs (the
+        next update does), and a track already in a confirmed pair keeps it.  ``probability``:
+        their score (NaN: the hit fraction).  As at an update, pairs whose track is not among
+        ``present_a``/``present_b`` any more leave the book.  Whether the book changed."""
+        gone = ~_isin(self.track_a, present_a) | ~_isin(self.track_b, present_b)
+        if gone.any():
+            self._keep(~gone)
+        keys = _keys(track_a, track_b)
+        busy = _isin(track_a, self.track_a[self.confirmed]) | _isin(track_b, self.track_b[self.confirmed])
+        if busy.all():
+            self.version += bool(gone.any())
+            return bool(gone.any())
+        keep = ~busy
+        keys, track_a, track_b = keys[keep], track_a[keep], track_b[keep]
+        prob = np.full(len(keys), np.nan) if probability is None else np.asarray(probability)[keep]
+        pos = np.flatnonzero(_isin(self.keys, keys))
+        held = _isin(keys, self.keys)
+        fresh = np.flatnonzero(~held)
+        if fresh.size:
+            nf = fresh.size
+            self.track_a = np.concatenate([self.track_a, track_a[fresh].astype(str)])
+            self.track_b = np.concatenate([self.track_b, track_b[fresh].astype(str)])
+            self.keys = np.concatenate([self.keys, keys[fresh]])
+            self.history = np.concatenate([self.history, np.ones(nf, dtype=np.uint32)])
+            self.hits = np.concatenate([self.hits, np.ones(nf, dtype=np.int64)])
+            self.misses = np.concatenate([self.misses, np.zeros(nf, dtype=np.int64)])
+            self.confirmed = np.concatenate([self.confirmed, np.zeros(nf, dtype=bool)])
+            self.neighbors = np.concatenate([self.neighbors, neighbors[keep][fresh].astype(np.int64)])
+            self.basis = np.concatenate([self.basis, basis[keep][fresh].astype(np.int8)])
+            add = {
+                "statistic": np.clip(statistic[keep][fresh], -1e6, 1e6),
+                "rotation_weight": rotation_weight[keep][fresh],
+                "scale": scale[keep][fresh],
+                "first_time_s": np.full(nf, time_s),
+                "last_time_s": np.full(nf, time_s),
+                "probability": prob[fresh],
+            }
+            self.cols = {k: np.concatenate([v, add[k]]) for k, v in self.cols.items()}
+        rows = np.concatenate([pos, len(self) - fresh.size + np.arange(fresh.size)]).astype(np.intp)
+        before = int(np.count_nonzero(self.confirmed))
+        self._confirm(rows[~self.confirmed[rows]])
+        self.version += 1
+        return bool(gone.any()) or fresh.size > 0 or int(np.count_nonzero(self.confirmed)) != before
+
+    def _confirm(self, idx: NDArray[np.intp]) -> None:
+        """Confirm the pairs ``idx`` whose tracks are in no confirmed pair; among them, conflicts
+        are settled by a one-to-one assignment on the score."""
         score = self.hit_fraction
-        idx = np.flatnonzero(~self.confirmed & (score * prm.window >= prm.confirm_hits - 1e-9))
         if idx.size:  # (the busy test only for these: in a steady state they are few)
             busy_a = self.track_a[self.confirmed]
             busy_b = self.track_b[self.confirmed]

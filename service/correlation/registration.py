@@ -89,6 +89,9 @@ class RegistrationParams:
     #: of 66 radar pairs spends about 5 ms per data second on it (measured on the national
     #: scenario: 30 ms at 10 s).  The schedule depends on data time only (deterministic).
     solve_interval_s: float = 60.0
+    #: ... and sooner, once the pair's confirmed pairs have grown this many times since its
+    #: last solve (a first registration rests on the few pairs confirmed by then).
+    resolve_growth: float = 2.0
     #: Fewest distinct track pairs for the cluster-robust covariance; below it, ``H^-1``.
     min_clusters: int = 10
     #: Most Gauss-Newton iterations of a solve: the estimate converges on the current rows

@@ -23,40 +23,26 @@ import queue
 import threading
 from collections import deque
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from multiprocessing.connection import Connection
 from typing import Any
 
 import numpy as np
 
-from service.correlation import CorrelationParams
+from service.correlation import CorrelationParams, PairCorrelator
 from service.correlation.registration import RegistrationRowsData
 from service.geo import Site
-from service.pipeline.correlation_stage import CadenceParams, CorrelationStage, SharedRows, timings_dict
+from service.pipeline.correlation_runner import Answer, Answers, Key, answer
+from service.pipeline.correlation_stage import CadenceParams, CorrelationStage, timings_dict
 from service.pipeline.partition import Partition
-from service.pipeline.read_model import PairSetView, SystemTrackView
 from service.reference import ReferenceParams
 from service.tracking.base import TrackTable, first_number
 
 log = logging.getLogger(__name__)
 
-Key = tuple[str, str]
 #: While waiting for the child (a free slot, an answer), check this often (s) that it and the
 #: threads talking to it are still there: a dead one is restarted instead of waited for.
 LIVENESS_CHECK_S = 1.0
-
-
-@dataclass(frozen=True)
-class Answer:
-    """The child's reply to one message."""
-
-    updated: list[tuple[Key, PairSetView]]
-    biases: list[dict[str, Any]] | None  # None: unchanged
-    timings: dict[str, Any]
-    error: tuple[str, str] | None = None  # (source id, detail) when the message failed
-    rows: list[SharedRows] = field(default_factory=list)  # partitioned: rows for the bias worker
-    system: SystemTrackView | None = None  # new system tracks, if the message made them
-    result: Any = None  # what the stage's call returned (``export_state``; None for the others)
 
 
 def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
@@ -68,30 +54,14 @@ def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
         if msg is None:
             break
         op, args = msg
-        biases_before = stage.biases
-        keys: list[Key] = []
-        error = None
-        result = None
-        try:
-            if op == "radar":
-                keys = stage.radar(*args)
-            else:
-                result = getattr(stage, op)(*args)
-        except Exception as exc:  # a bug costs this message's pair updates, never the stage
-            error = (str(args[0]) if args else "", f"correlation failed: {type(exc).__name__}: {exc}")
-        biases = stage.biases if stage.biases is not biases_before else None
-        if keys or timings is None:  # timings change only with pair updates
+        got = answer(stage, op, args)
+        if got.updated or timings is None:  # timings change only with pair updates
             timings = stage.timings()
-        rows = stage.take_rows()
-        rebuilt = stage.take_system()  # at most one per message
-        system = rebuilt[-1] if rebuilt else None
-        answers.send(
-            Answer([(k, stage.views[k]) for k in keys], biases, timings, error, rows, system, result)
-        )
+        answers.send(replace(got, timings=timings))
     answers.close()
 
 
-class RemoteCorrelation:
+class RemoteCorrelation(Answers):
     """A :class:`CorrelationStage` in a child process, behind the same calls."""
 
     def __init__(
@@ -103,17 +73,11 @@ class RemoteCorrelation:
         partition: Partition | None = None,
         max_in_flight: int = 64,
     ) -> None:
+        super().__init__()
         self._args = (method, cadence, reference, correlation, partition)
         self.max_in_flight = max_in_flight
-        self.views: dict[Key, PairSetView] = {}
-        self.biases: list[dict[str, Any]] = []
-        self.system_view: SystemTrackView | None = None
-        self._system_ready: list[SystemTrackView] = []
         #: The child's latest ``timings()`` (its update time histogram with them).
         self._timings: dict[str, Any] = timings_dict()
-        self._ready: list[tuple[Key, PairSetView]] = []
-        self._errors: list[tuple[str, str]] = []
-        self._rows: list[SharedRows] = []
         #: Data times of the radar messages sent and not answered yet, oldest first.
         self._unanswered: deque[float | None] = deque()
         self.restarts = 0
@@ -201,7 +165,7 @@ class RemoteCorrelation:
         """Apply the answers received (``block``: wait until every message is answered)."""
         while self._pending:
             try:
-                answer = self._inbox.get(block=block, timeout=LIVENESS_CHECK_S if block else None)
+                got = self._inbox.get(block=block, timeout=LIVENESS_CHECK_S if block else None)
             except queue.Empty:
                 if not block:
                     return
@@ -209,27 +173,18 @@ class RemoteCorrelation:
                     self._lost("stopped answering")
                     return
                 continue
-            if answer is None:
+            if got is None:
                 self._lost("no answer")
                 return
             self._pending -= 1
-            self._last = answer
-            if answer.result is not None:
-                self._exported = answer.result
+            self._last = got
+            if got.result is not None:
+                self._exported = got.result
             if self._unanswered:
                 self._unanswered.popleft()
-            for key, view in answer.updated:
-                self.views[key] = view
-                self._ready.append((key, view))
-            if answer.biases is not None:
-                self.biases = answer.biases
-            if answer.system is not None:
-                self.system_view = answer.system
-                self._system_ready.append(answer.system)
-            self._timings = answer.timings
-            if answer.error is not None:
-                self._errors.append(answer.error)
-            self._rows.extend(answer.rows)
+            if got.timings is not None:
+                self._timings = got.timings
+            self._take_answer(got)
 
     def _call(self, op: str, *args: Any) -> Any:
         """Send one message and wait for its answer (and every earlier one's): what the stage's
@@ -238,14 +193,14 @@ class RemoteCorrelation:
         restarts = self.restarts
         self._send(op, *args)
         self._apply(block=True)
-        answer = self._last
-        if self.restarts != restarts or answer is None:
+        got = self._last
+        if self.restarts != restarts or got is None:
             raise RuntimeError(f"correlation process died during {op}")
-        if answer.error is not None:
-            if answer.error in self._errors:
-                self._errors.remove(answer.error)
-            raise RuntimeError(answer.error[1])
-        return answer.result
+        if got.error is not None:
+            if got.error in self._errors:
+                self._errors.remove(got.error)
+            raise RuntimeError(got.error[1])
+        return got.result
 
     def _lost(self, what: str) -> None:
         code = self._process.exitcode
@@ -279,33 +234,11 @@ class RemoteCorrelation:
         """Take the answers that arrived (without waiting): an idle engine hands them out."""
         self._apply(block=False)
 
-    def take_ready(self) -> list[tuple[Key, PairSetView]]:
-        """Pair updates answered since the last call, in order, each with its own view (a pair
-        updated twice comes twice, as in process)."""
-        ready, self._ready = self._ready, []
-        return ready
-
-    def take_system(self) -> list[SystemTrackView]:
-        """The system tracks rebuilt (answered) since the last call, oldest first."""
-        out, self._system_ready = self._system_ready, []
-        return out
-
-    def take_rows(self) -> list[SharedRows]:
-        """Registration rows the owned pairs added (answered since the last call)."""
-        rows, self._rows = self._rows, []
-        return rows
-
-    def take_errors(self) -> list[tuple[str, str]]:
-        """``(source id, detail)`` of the messages that failed since the last call."""
-        errors, self._errors = self._errors, []
-        return errors
-
     # -- the stage's calls ---------------------------------------------------------------------
-    def radar(self, radar_id: str, geometry: Site, table: TrackTable, time_s: float) -> list[Key]:
+    def radar(self, radar_id: str, geometry: Site, table: TrackTable, time_s: float) -> None:
         # Truth labels (evaluation only) are no input of correlation: not sent.
         unlabelled = replace(table, truth_id=np.full(len(table), None, dtype=object))
-        self._send("radar", radar_id, geometry, unlabelled, time_s)
-        return []  # the answers come later: :meth:`take_ready`
+        self._send("radar", radar_id, geometry, unlabelled, time_s)  # answered later: take_ready
 
     def reference(self, source_id: str, time_s: float, *columns: Any) -> None:
         self._send("reference", source_id, time_s, *columns)
@@ -357,11 +290,12 @@ class RemoteCorrelation:
         self._send("finish")
         self._apply(block=True)
 
-    def pair_views(self) -> list[PairSetView]:
-        return [self.views[k] for k in sorted(self.views)]
-
     def timings(self) -> dict[str, Any]:
         return dict(self._timings)
+
+    def correlators(self) -> list[PairCorrelator]:
+        """None in this process: the child holds them."""
+        return []
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Stop the child (after it answered what it holds)."""

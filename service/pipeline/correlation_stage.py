@@ -27,6 +27,7 @@ the worker that solves the joint bias estimate, which mirrors every other worker
 from __future__ import annotations
 
 import logging
+import time
 from collections import deque
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, fields
@@ -155,6 +156,9 @@ class CorrelationStage:
         self.next_due: dict[tuple[str, str], float] = {}
         self.timings_ms: deque[float] = deque(maxlen=RECENT_UPDATES)
         self.updates = 0
+        #: Decisions of fresh tracks between updates (:meth:`_prompt`), and their time (s).
+        self.prompt_updates = 0
+        self.prompt_s = 0.0
         self.last_ms = 0.0
         #: Every update's time, not only the recent ones: updates per bucket of
         #: ``DURATION_BUCKETS_S`` (the last one above them all), and their sum (s).
@@ -290,13 +294,20 @@ class CorrelationStage:
         return max(self.params.min_interval_s, self.params.cadence_scans * scan)
 
     def radar(self, radar_id: str, geometry: Site, table: TrackTable, time_s: float) -> list[tuple[str, str]]:
-        """A radar's tracks after one of its batches: correlate it with every partner due."""
+        """A radar's tracks after one of its batches: correlate it with every partner due, and
+        decide its newly confirmed tracks with every other partner at once."""
+        before = self._radars.get(radar_id)
         self._radars[radar_id] = (geometry, table)
         me = Source(radar_id, geometry, lambda t: table, int(np.count_nonzero(table.confirmed)))
-        return self.update(me, self._partners(radar_id), time_s)
+        fresh = _newly_confirmed(before[1] if before is not None else None, table)
+        return self.update(me, self._partners(radar_id), time_s, fresh)
 
-    def update(self, radar: Source, others: list[Source], time_s: float) -> list[tuple[str, str]]:
-        """Correlate ``radar`` with every partner due for an update; the keys updated."""
+    def update(
+        self, radar: Source, others: list[Source], time_s: float, fresh: np.ndarray | None = None
+    ) -> list[tuple[str, str]]:
+        """Correlate ``radar`` with every partner due for an update; a partner not due yet
+        decides the radar's tracks confirmed since its previous table (``fresh``, their ids)
+        at once (:meth:`PairCorrelator.decide_new`).  The keys updated."""
         assert radar.geometry is not None
         p = self.params
         updated = []
@@ -307,6 +318,14 @@ class CorrelationStage:
             if corr is None and not self.partition.owns_pair(*key):
                 continue
             if time_s < self.next_due.get(key, -np.inf):
+                if (
+                    corr is not None
+                    and fresh is not None
+                    and len(fresh)
+                    and self._prompt(corr, radar, other, time_s, fresh)
+                ):
+                    self.views[key] = PairSetView.of(key, corr, time_s)
+                    updated.append(key)
                 continue
             if corr is None and min(radar.confirmed, other.confirmed) < p.min_confirmed_tracks:
                 continue
@@ -347,6 +366,23 @@ class CorrelationStage:
             self._solve_due(time_s)
         self._system_due(time_s)
         return updated
+
+    def _prompt(
+        self, corr: PairCorrelator, radar: Source, other: Source, time_s: float, fresh: np.ndarray
+    ) -> bool:
+        """A partner not due: the radar's fresh tracks decided now (clear pairs confirm)."""
+        if other.geometry is None:
+            return False  # reference sources: their own method, on the cadence
+        own, theirs = radar.tracks(time_s), other.tracks(time_s)
+        empty = np.empty(0, dtype=str)
+        t0 = time.perf_counter()
+        if corr.site_a.site_id == radar.source_id:
+            changed = corr.decide_new(own, theirs, time_s, fresh, empty)
+        else:
+            changed = corr.decide_new(theirs, own, time_s, empty, fresh)
+        self.prompt_s += time.perf_counter() - t0
+        self.prompt_updates += 1
+        return changed
 
     def _system_due(self, clock_s: float) -> None:
         step = self.params.system_interval_s
@@ -508,6 +544,18 @@ class CorrelationStage:
         return timings_dict(
             self.updates, self.last_ms, self.timings_ms, self.duration_counts, self.duration_sum_s
         )
+
+
+def _newly_confirmed(before: TrackTable | None, now: TrackTable) -> np.ndarray:
+    """The ids of the tracks confirmed in ``now`` that were not confirmed in ``before``."""
+    ids = now.track_id[now.confirmed]
+    if before is None or len(ids) == 0:
+        return ids if before is not None else np.empty(0, dtype=str)
+    held = np.sort(before.track_id[before.confirmed])
+    if len(held) == 0:
+        return ids
+    pos = np.minimum(np.searchsorted(held, ids), len(held) - 1)
+    return ids[held[pos] != ids]
 
 
 def _site_state(site: Site) -> dict[str, Any]:

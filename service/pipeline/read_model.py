@@ -8,6 +8,7 @@ snapshot therefore costs in proportion to the number of radars and pairs, not tr
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -20,6 +21,14 @@ from service.wire.models import RadarSite, RadarStatus
 from service.wire.outputs import pair_rows, track_rows
 
 _NONE = np.array(None, dtype=object)
+
+
+def _among(ids: np.ndarray, held_ids: np.ndarray) -> np.ndarray:
+    """Which of ``ids`` are in ``held_ids`` (sorted)."""
+    if len(held_ids) == 0 or len(ids) == 0:
+        return np.zeros(len(ids), dtype=bool)
+    pos = np.minimum(np.searchsorted(held_ids, ids), len(held_ids) - 1)
+    return np.asarray(held_ids[pos] == ids)
 
 
 def track_batch(radar_id: str, time_s: float, tracks: TrackTable, status: str = "all") -> dict[str, Any]:
@@ -79,6 +88,25 @@ class PairSetView:
         n_conf = int(np.count_nonzero(cols["confirmed"]))
         return PairSetView(key[0], key[1], time_s, corr.method, cols, n_conf, len(order) - n_conf)
 
+    def held(self, side: int, held_ids: np.ndarray) -> PairSetView:
+        """The view without the pairs whose track of side ``side`` (0: A, 1: B) is not among
+        ``held_ids`` (sorted): the same view when none goes."""
+        ids = self.columns["track_a" if side == 0 else "track_b"]
+        keep = _among(ids, held_ids)
+        if keep.all():
+            return self
+        cols = {k: v[keep] for k, v in self.columns.items()}
+        n_conf = int(np.count_nonzero(cols["confirmed"]))
+        return PairSetView(
+            self.radar_a,
+            self.radar_b,
+            self.time_s,
+            self.method,
+            cols,
+            n_conf,
+            len(cols["confirmed"]) - n_conf,
+        )
+
     def body(self, status: str = "all") -> dict[str, Any]:
         """The contract's ``PairSet``, pairs filtered by ``status`` (built once per status)."""
         got = self._cache.get(status)
@@ -135,6 +163,33 @@ class SystemTrackView:
 
     def __len__(self) -> int:
         return int(self.number.shape[0])
+
+    def held(self, source_id: str, held_ids: np.ndarray) -> SystemTrackView:
+        """The view without the members of ``source_id`` that are not among ``held_ids``
+        (sorted), and without the system tracks left with no member: the same view when none
+        goes.  The states stay as fused (until the next rebuild)."""
+        mine = self.member_source == source_id
+        if not mine.any():
+            return self
+        keep = ~mine
+        keep[mine] = _among(self.member_track[mine], held_ids)
+        if keep.all():
+            return self
+        group = np.repeat(np.arange(len(self)), np.diff(self.bounds))
+        counts = np.bincount(group[keep], minlength=len(self))
+        alive = counts > 0
+        bounds = np.concatenate([[0], np.cumsum(counts[alive])])
+        return SystemTrackView(
+            self.time_s,
+            self.number[alive],
+            self.confirmed[alive],
+            self.position[alive],
+            self.velocity[alive],
+            self.sigma_m[alive],
+            self.member_source[keep],
+            self.member_track[keep],
+            bounds,
+        )
 
     def body(self, status: str = "confirmed") -> dict[str, Any]:
         """The contract's ``SystemTrackBatch``, tracks filtered by ``status``."""
@@ -213,6 +268,8 @@ class Snapshot:
     adsb_sources: frozenset[str] = frozenset()
     #: The latest system tracks (None before the first).
     system: SystemTrackView | None = None
+    #: The data time up to which these outputs reflect every input processed (None: none yet).
+    outputs_time_s: float | None = None
     _batches: dict[tuple[str, str], dict[str, Any]] = field(default_factory=dict, compare=False, repr=False)
 
     def track_batch(self, radar_id: str, status: str = "confirmed") -> dict[str, Any] | None:
@@ -251,6 +308,7 @@ class Snapshot:
             "pairs_confirmed": sum(v.confirmed for v in self.pair_views),
             "pairs_tentative": sum(v.tentative for v in self.pair_views),
             "correlation": self.correlation,
+            "outputs_time_s": self.outputs_time_s,
             "rejected": self.rejected,
             "identity": self.identity(),
         }
@@ -299,3 +357,64 @@ class Snapshot:
     def radars(self) -> list[dict[str, Any]]:
         keys = {"batches", "plots", "rejected", "lost_batches", "last_time_s"}
         return [{**r.site.model_dump(), **r.status.model_dump(include=keys)} for r in self.radar_rows]
+
+
+def build_snapshot(
+    *,
+    tracking: Any,
+    sources: Mapping[str, Any],
+    owned: Callable[[str], bool],
+    plots: Mapping[str, int],
+    tables: Mapping[str, tuple[float, TrackTable]],
+    pair_views: list[PairSetView],
+    system: SystemTrackView | None,
+    biases: list[dict[str, Any]],
+    correlation: dict[str, Any],
+    rejected: dict[str, int],
+    method: str,
+    prefix: str,
+    progress: dict[str, Any],
+    adsb_sources: frozenset[str],
+    outputs_time_s: float | None,
+) -> Snapshot:
+    """The engine's state as a :class:`Snapshot`: the radars this worker tracks (``tracking``,
+    a :class:`~.tracking_stage.TrackingStage`, with the sequencer's ``sources`` clocks) and
+    what is published: the tables as published (``tables``, the same moment as the pair sets
+    and system tracks), pair sets, system tracks."""
+    tracks = dict(tables)
+    rows = []
+    for rid, r in sorted(tracking.radars.items()):
+        if not owned(rid):
+            continue
+        clock = sources.get(rid)
+        confirmed = r.confirmed
+        status = RadarStatus(
+            radar_id=rid,
+            batches=clock.batches if clock else 0,
+            plots=plots.get(rid, 0),
+            rejected=clock.rejected if clock else 0,
+            lost_batches=clock.lost_batches if clock else 0,
+            window_plots=tracking.window_plots(rid),
+            tracks_confirmed=confirmed,
+            tracks_tentative=len(r.table) - confirmed,
+            last_time_s=clock.last_time_s if clock else None,
+            restarts=clock.restarts if clock else 0,
+            window_evicted=tracking.window_evicted(rid),
+            expired=clock.expired if clock else False,
+        )
+        rows.append(RadarRow(r.site, status))
+    return Snapshot(
+        tracks=tracks,
+        radar_rows=rows,
+        pair_views=pair_views,
+        biases_all=biases,
+        correlation=correlation,
+        rejected=rejected,
+        method=method,
+        prefix=prefix,
+        sites={rid: r.site for rid, r in tracking.radars.items()},
+        progress=progress,
+        adsb_sources=adsb_sources,
+        system=system,
+        outputs_time_s=outputs_time_s,
+    )

@@ -12,6 +12,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
+from typing import Any
 
 import numpy as np
 
@@ -21,6 +22,25 @@ from service.wire.models import RadarSite
 
 #: Makes a radar's tracker from its site and id (the engine's builds it from its configuration).
 TrackerFactory = Callable[[Site, str], Tracker]
+
+
+def tracker_for(config: Any, epoch: Callable[[], int] = lambda: 0) -> TrackerFactory:
+    """The tracker of each radar: the configured initiator, window and parameters, its track
+    ids numbered from the id epoch ``epoch()`` gives when the tracker is made (at the radar's
+    first batch; :meth:`Engine.restore_state`)."""
+    from service.tracking import make_tracker
+    from service.truth_labels import TruthLabelledTracker
+
+    make_tracker(Site("check", 0.0, 0.0), config.window_s, config.initiator, "check", config.tracking)
+
+    def factory(site: Site, radar_id: str) -> Tracker:
+        # TrackBatch.truth_id (evaluation only) is tallied outside the tracker
+        tracker = make_tracker(
+            site, config.window_s, config.initiator, radar_id, config.tracking, epoch=epoch()
+        )
+        return TruthLabelledTracker(tracker)
+
+    return factory
 
 
 @dataclass(frozen=True)

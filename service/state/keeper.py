@@ -45,7 +45,8 @@ from dataclasses import fields
 from datetime import UTC, datetime
 from pathlib import Path
 
-from service.engine import Engine, EngineState
+from service.engine import Engine
+from service.pipeline.restart import EngineState
 from service.state.fileformat import Header, RefusedError, decode, encode
 
 log = logging.getLogger(__name__)

@@ -49,8 +49,9 @@ def merge_statuses(
 ) -> dict[str, Any]:
     """The network's status from this worker's (``own``, changed in place and returned) and
     the live workers' latest (``peers``: worker -> (age s, status)): every radar once, pairs,
-    rejections and correlation updates summed (the update time histogram too, its quantiles
-    the worst worker's).  A malformed peer status is passed over (logged at debug level)."""
+    rejections, correlation updates and pending messages summed (the update time histogram
+    too, its quantiles the worst worker's), outputs complete through the earliest worker's
+    ``outputs_time_s``.  A malformed peer status is passed over (logged at debug level)."""
     radars = {r["radar_id"]: r for r in own["radars"]}
     rejected = dict(own["rejected"])
     corr = dict(own["correlation"])
@@ -74,6 +75,12 @@ def merge_statuses(
                 le: n + int(theirs.get(le, 0)) for le, n in corr["duration_buckets"].items()
             }
             corr["duration_sum_s"] += float(c.get("duration_sum_s", 0.0))
+            corr["pending"] = int(corr.get("pending", 0)) + int(c.get("pending", 0))
+            # complete through: the network's outputs are only as complete as its slowest worker's
+            theirs_s, mine_s = st.get("outputs_time_s"), own.get("outputs_time_s")
+            own["outputs_time_s"] = (
+                None if theirs_s is None or mine_s is None else min(mine_s, float(theirs_s))
+            )
             mine = st["partition"]["workers"][k - 1]
             workers[k] = (age, list(mine["radars"]), int(mine["pair_sets"]))
         except (KeyError, TypeError, ValueError, IndexError):

@@ -47,13 +47,14 @@ from typing import Any
 import orjson
 import zenoh
 
-from service.engine import Engine, EngineConfig, Outgoing, Snapshot
+from service.engine import Engine, EngineConfig, Snapshot
 from service.state import StateKeeper
 from service.transport.ingest_queue import MAX_DROP_KEYS, OTHER_KEYS, BoundedQueue
 from service.transport.network_status import merge_statuses, partition_section
 from service.transport.session import OpenCancelledError, ZenohOptions, listening, open_session, unreachable
 from service.wire.keys import PRIORITY_KINDS, Keys, parse_key
 from service.wire.models import MAX_PAYLOAD_BYTES
+from service.wire.outgoing import Outgoing
 from service.wire.outputs import encode
 
 log = logging.getLogger(__name__)

@@ -401,6 +401,11 @@ class CorrelationTimings(OutModel):
         "(Prometheus le; the last, +Inf, counts every update), the updates that took at most it",
     )
     duration_sum_s: float = Field(default=0.0, description="the sum of every update's time (s)")
+    pending: int = Field(
+        default=0,
+        description="radar messages the correlation stage has not answered yet (contract 5.1; "
+        "0 when it runs in the service's own process)",
+    )
 
 
 class WorkerInfo(OutModel):
@@ -482,6 +487,11 @@ class Status(OutModel):
     pairs_confirmed: int
     pairs_tentative: int
     correlation: CorrelationTimings
+    outputs_time_s: float | None = Field(
+        default=None,
+        description="contract 5.1: the data time up to which every published output (tracks, pairs, "
+        "biases, system tracks) reflects every input the service has processed; null before any",
+    )
     rejected: dict[str, int]
     queue: QueueStatus | None = Field(default=None, description="the ingest queue")
     state: StateStatus | None = Field(default=None, description="with --state-dir only")

@@ -164,7 +164,12 @@ class OutputMonitor:
         self._check([(rid, tid) for ta, tb, _ in rows for rid, tid in ((a, ta), (b, tb))])
 
     def _all_references(self) -> list[tuple[str, str]]:
-        refs = [(rid, tid) for (a, b), rows in self.pairs.items() for ta, tb, _ in rows for rid, tid in ((a, ta), (b, tb))]
+        refs = [
+            (rid, tid)
+            for (a, b), rows in self.pairs.items()
+            for ta, tb, _ in rows
+            for rid, tid in ((a, ta), (b, tb))
+        ]
         return refs + self.members
 
     def _check(self, refs: list[tuple[str, str]]) -> None:
@@ -186,7 +191,9 @@ class OutputMonitor:
         end = self.last_time_s
         for a, b in sorted(self.correlated):
             period = max(self.scan[a], self.scan[b])
-            aircraft = {x for (r, x) in self.first_held if r == a} & {x for (r, x) in self.first_held if r == b}
+            aircraft = {x for (r, x) in self.first_held if r == a} & {
+                x for (r, x) in self.first_held if r == b
+            }
             for x in sorted(aircraft):
                 start = max(self.first_held[(a, x)], self.first_held[(b, x)])
                 paired = self.first_paired.get((a, b, x))

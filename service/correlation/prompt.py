@@ -1,0 +1,92 @@
+"""Clear decisions: a pair whose evidence is unambiguous is confirmed at its first update.
+
+The pair book accumulates single decisions (M of N updates) and the evidence module
+accumulates looks (:mod:`.evidence`): both are there for the cases one snapshot cannot settle,
+two aircraft closer than the radars can tell apart.  Waiting for them costs every other pair
+three or four scans.  As in a sequential test (Wald's SPRT), a look whose likelihood ratio
+already crosses the bound ends the test at once; only the ambiguous cases take more looks.
+
+A candidate ``(i, j)`` of one update is **clear** when
+
+* its single decision accepts it (the topology match, SVD paper Sections 1.4-1.6, or once
+  registered the compensated chi-square, He et al.'s test);
+* every rival sharing one of its tracks, accepted or not, costs at least ``clear_margin``
+  more.  The costs are chi-square excesses, so between the pair and its best rival the
+  likelihood ratio is at least ``exp(clear_margin / 2)`` (12: about 400 to 1); a rival the
+  method could not decide at all (no fit, outside its gates) is none;
+* neither track has another track of its own radar, confirmed or not, within
+  ``isolation_m`` (horizontally, every track brought to the update time).  A rival on the
+  other radar may not be confirmed yet, or not seen: an aircraft with a close neighbour waits
+  for the evidence.  Dense groups and formations never pass this, so what the history
+  evidence does for them is unchanged.
+
+A clear candidate is accepted without the looks :class:`~.evidence.EvidenceBook` otherwise
+wants (but never against a history that rejects it) and, once the one-to-one assignment
+chooses it, enters the book confirmed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.correlation.assignment import rival_costs
+from service.correlation.base import BoolArray, FloatArray, IntArray
+from service.geo import Site
+from service.tracking.base import TrackTable
+
+
+@dataclass(frozen=True)
+class PromptParams:
+    """When one update's decision is clear enough to confirm a pair (module docstring)."""
+
+    #: Confirm clear pairs at their first update (False: every pair waits for the book's M of N).
+    enabled: bool = True
+    #: Least cost (chi-square excess) by which every rival must lose: likelihood ratio
+    #: ``exp(margin / 2)`` against the best rival (12: about 400 to 1; twice the assignment's
+    #: ambiguity margin).
+    clear_margin: float = 12.0
+    #: No other track of the same radar may be this close (m, horizontal), confirmed or not.
+    #: Twice the cross-range error of an en-route radar at 250 km (0.2 deg: 870 m), and within
+    #: the 5 km of the evidence's groups.
+    isolation_m: float = 2_000.0
+
+
+def clear_of_rivals(
+    index_a: IntArray, index_b: IntArray, cost: FloatArray, accepted: BoolArray, margin: float
+) -> BoolArray:
+    """Accepted candidates whose every rival (another candidate sharing a track, finite cost)
+    costs at least ``margin`` more (vectorised; :func:`tests.reference_forms` has the loop)."""
+    finite = np.isfinite(cost)
+    c = np.where(finite, cost, np.inf)
+    own = np.where(finite, cost, 0.0)  # (a non-finite cost is never clear: no inf - inf)
+    gap = np.minimum(rival_costs(index_a, c), rival_costs(index_b, c)) - own
+    return np.asarray(accepted & finite & (gap >= margin))
+
+
+def isolated(
+    table: TrackTable, site: Site | None, time_s: float, track_ids: np.ndarray, radius_m: float
+) -> BoolArray:
+    """For each of ``track_ids`` (tracks of ``table``): no other track of the table within
+    ``radius_m`` horizontally in the site's plane, every track brought to ``time_s`` at its
+    velocity (a reference source, ``site`` None: ECEF distance)."""
+    n = len(track_ids)
+    if n == 0 or len(table) < 2:
+        return np.ones(n, dtype=bool)
+    dt = (time_s - table.time_s)[:, None]
+    pos = table.position_ecef_m + table.velocity_ecef_mps * dt
+    ok = np.all(np.isfinite(pos), axis=1)
+    rows = np.flatnonzero(ok)
+    pos = pos[rows]
+    ids = table.track_id[rows]
+    order = np.argsort(ids)
+    at = order[np.minimum(np.searchsorted(ids, track_ids, sorter=order), len(ids) - 1)]
+    found = ids[at] == track_ids
+    d = pos[at][:, None, :] - pos[None, :, :]
+    if site is not None:  # horizontal: drop the local vertical
+        up = site.rotation[:, 2]
+        d = d - (d @ up)[..., None] * up
+    close = np.einsum("ijk,ijk->ij", d, d) <= radius_m**2
+    others = close.sum(axis=1) - 1  # the track itself is at distance 0
+    return np.asarray(~found | (others == 0))

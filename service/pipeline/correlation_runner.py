@@ -1,0 +1,204 @@
+"""How the engine runs its correlation stage: here, or in a child process, behind one protocol.
+
+The engine feeds the :class:`~.correlation_stage.CorrelationStage` in release order (a radar's
+tracks after each batch, reference reports, site moves, departures) and takes back what each
+call changed as an :class:`Answer`: the views of the pairs it updated, the biases when it
+re-solved them, the system tracks when it rebuilt them, a failure.  :class:`LocalCorrelation`
+answers every call at once; :class:`~.correlation_process.RemoteCorrelation` sends each to a
+child process (tracking and correlation on two cores at once) and its answers come later.
+Both keep the answers in one :class:`Answers` book, so the engine reads them alike
+(:class:`CorrelationRunner`): the results are the same bit for bit, only their time differs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from service.correlation import PairCorrelator
+from service.correlation.registration import RegistrationRowsData
+from service.geo import Site
+from service.pipeline.correlation_stage import CorrelationStage, SharedRows
+from service.pipeline.read_model import PairSetView, SystemTrackView
+from service.tracking.base import TrackTable
+
+Key = tuple[str, str]
+
+
+@dataclass(frozen=True)
+class Answer:
+    """What one call of the stage changed."""
+
+    updated: list[tuple[Key, PairSetView]]
+    biases: list[dict[str, Any]] | None  # None: unchanged
+    timings: dict[str, Any] | None  # None: unchanged (a local stage is read directly)
+    error: tuple[str, str] | None = None  # (source id, detail) when the call failed
+    rows: list[SharedRows] = field(default_factory=list)  # partitioned: rows for the bias worker
+    system: SystemTrackView | None = None  # new system tracks, if the call made them
+    result: Any = None  # what the stage's call returned (``export_state``; None for the others)
+
+
+def answer(stage: CorrelationStage, op: str, args: tuple[Any, ...]) -> Answer:
+    """Apply one call to ``stage`` and say what it changed.  A failure costs this call's pair
+    updates, never the stage (it is reported with the answer)."""
+    biases_before = stage.biases
+    keys: list[Key] = []
+    error = None
+    result = None
+    try:
+        if op == "radar":
+            keys = stage.radar(*args)
+        else:
+            result = getattr(stage, op)(*args)
+    except Exception as exc:
+        error = (str(args[0]) if args else "", f"correlation failed: {type(exc).__name__}: {exc}")
+    rebuilt = stage.take_system()  # at most one per call
+    return Answer(
+        [(k, stage.views[k]) for k in keys],
+        stage.biases if stage.biases is not biases_before else None,
+        None,
+        error,
+        stage.take_rows(),
+        rebuilt[-1] if rebuilt else None,
+        result,
+    )
+
+
+class Answers:
+    """The answers taken so far, until the engine takes them (in call order)."""
+
+    def __init__(self) -> None:
+        self.biases: list[dict[str, Any]] = []
+        self.system_view: SystemTrackView | None = None
+        self._ready: list[tuple[Key, PairSetView]] = []
+        self._system_ready: list[SystemTrackView] = []
+        self._errors: list[tuple[str, str]] = []
+        self._rows: list[SharedRows] = []
+
+    def _take_answer(self, a: Answer) -> None:
+        self._ready.extend(a.updated)
+        if a.biases is not None:
+            self.biases = a.biases
+        if a.system is not None:
+            self.system_view = a.system
+            self._system_ready.append(a.system)
+        if a.error is not None:
+            self._errors.append(a.error)
+        self._rows.extend(a.rows)
+
+    def take_ready(self) -> list[tuple[Key, PairSetView]]:
+        """Pair updates answered since the last call, in order, each with its own view (a pair
+        updated twice comes twice)."""
+        out, self._ready = self._ready, []
+        return out
+
+    def take_system(self) -> list[SystemTrackView]:
+        """The system tracks rebuilt (answered) since the last call, oldest first."""
+        out, self._system_ready = self._system_ready, []
+        return out
+
+    def take_rows(self) -> list[SharedRows]:
+        """Registration rows the owned pairs added (answered since the last call)."""
+        out, self._rows = self._rows, []
+        return out
+
+    def take_errors(self) -> list[tuple[str, str]]:
+        """``(source id, detail)`` of the calls that failed since the last call."""
+        out, self._errors = self._errors, []
+        return out
+
+
+class CorrelationRunner(Protocol):
+    """The engine's correlation stage, wherever it runs."""
+
+    biases: list[dict[str, Any]]
+    system_view: SystemTrackView | None
+
+    def radar(self, radar_id: str, geometry: Site, table: TrackTable, time_s: float) -> None: ...
+    def reference(self, source_id: str, time_s: float, *columns: Any) -> None: ...
+    def silent(self, source_id: str) -> None: ...
+    def forget(self, source_id: str) -> None: ...
+    def moved(self, site: Site) -> None: ...
+    def mirror_rows(
+        self, key: Key, site_a: Site, site_b: Site | None, rows: RegistrationRowsData
+    ) -> None: ...
+    def take_ready(self) -> list[tuple[Key, PairSetView]]: ...
+    def take_system(self) -> list[SystemTrackView]: ...
+    def take_rows(self) -> list[SharedRows]: ...
+    def take_errors(self) -> list[tuple[str, str]]: ...
+    def timings(self) -> dict[str, Any]: ...
+    @property
+    def pending(self) -> int: ...
+    def poll(self) -> None: ...
+    def finish(self) -> None: ...
+    def correlated_through(self, released_s: float) -> float: ...
+    def export_state(self) -> dict[str, Any]: ...
+    def request_state(self) -> Callable[[], dict[str, Any] | None]: ...
+    def restore_state(
+        self, state: Mapping[str, Any] | None, epoch: int, sites: Mapping[str, Site]
+    ) -> None: ...
+    def correlators(self) -> list[PairCorrelator]: ...
+    def close(self) -> None: ...
+
+
+class LocalCorrelation(Answers):
+    """The stage in this process: every call answered at once."""
+
+    def __init__(self, *stage_args: Any) -> None:
+        super().__init__()
+        self.stage = CorrelationStage(*stage_args)
+
+    def _call(self, op: str, *args: Any) -> None:
+        self._take_answer(answer(self.stage, op, args))
+
+    def radar(self, radar_id: str, geometry: Site, table: TrackTable, time_s: float) -> None:
+        self._call("radar", radar_id, geometry, table, time_s)
+
+    def reference(self, source_id: str, time_s: float, *columns: Any) -> None:
+        self._call("reference", source_id, time_s, *columns)
+
+    def silent(self, source_id: str) -> None:
+        self._call("silent", source_id)
+
+    def forget(self, source_id: str) -> None:
+        self._call("forget", source_id)
+
+    def moved(self, site: Site) -> None:
+        self._call("moved", site)
+
+    def mirror_rows(self, key: Key, site_a: Site, site_b: Site | None, rows: RegistrationRowsData) -> None:
+        self._call("mirror_rows", key, site_a, site_b, rows)
+
+    def timings(self) -> dict[str, Any]:
+        return self.stage.timings()
+
+    @property
+    def pending(self) -> int:
+        return 0
+
+    def poll(self) -> None:
+        pass
+
+    def finish(self) -> None:
+        self._call("finish")
+
+    def correlated_through(self, released_s: float) -> float:
+        return released_s
+
+    def export_state(self) -> dict[str, Any]:
+        return self.stage.export_state()
+
+    def request_state(self) -> Callable[[], dict[str, Any] | None]:
+        state = self.stage.export_state()
+        return lambda: state
+
+    def restore_state(self, state: Mapping[str, Any] | None, epoch: int, sites: Mapping[str, Site]) -> None:
+        self.stage.restore_state(state, epoch, sites)
+        self.biases = self.stage.biases
+
+    def correlators(self) -> list[PairCorrelator]:
+        return list(self.stage.correlators.values())
+
+    def close(self) -> None:
+        pass

@@ -1,0 +1,85 @@
+"""Input payloads into what the stages take: validated wire models, then numpy columns.
+
+Every check of a message's content happens here or in the models (:mod:`service.wire.models`)
+before anything changes: a message that fails is a :class:`~.errors.RejectionError` with the
+contract's reason, and no stage has seen it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from pydantic import ValidationError
+
+from service.pipeline.errors import RejectionError
+from service.tracking.base import PlotColumns
+from service.wire.models import AdsbBatch, AisBatch, AisReportsModel, PlotBatch, rejection_reason
+
+
+def parse(model: type[Any], payload: bytes, source_id: str | None) -> Any:
+    """``payload`` validated as ``model``; a failure is the rejection the contract names."""
+    try:
+        return model.model_validate_json(payload)
+    except ValidationError as exc:
+        reason, detail = rejection_reason(exc)
+        raise RejectionError(reason, detail, source_id) from None
+
+
+def check_body_id(field_name: str, body_id: str, key_id: str) -> None:
+    """The id in a payload's body must be the one in its key (``schema`` otherwise)."""
+    if body_id != key_id:
+        raise RejectionError("schema", f"{field_name} {body_id!r} in body != {key_id!r} in key", key_id)
+
+
+def plot_columns(batch: PlotBatch) -> PlotColumns:
+    """A plot batch's columns as the tracker takes them (NaN / None where a column is null)."""
+    p = batch.plots
+    n = len(p.time_s)
+    return PlotColumns(
+        time_s=np.asarray(p.time_s, dtype=float),
+        range_m=np.asarray(p.range_m, dtype=float),
+        azimuth_deg=np.asarray(p.azimuth_deg, dtype=float),
+        elevation_deg=floats(p.elevation_deg, n),
+        altitude_m=floats(p.altitude_m, n),
+        truth_id=labels(p.truth_id, n),
+        mode_3a=labels(p.mode_3a, n),
+        mode_s=labels(p.mode_s, n),
+    )
+
+
+def reference_columns(batch: AisBatch | AdsbBatch) -> tuple[np.ndarray, ...]:
+    """A reference batch's columns ``(report times, ids, latitude, longitude, altitude)`` as
+    the correlation stage takes them: one path for AIS and ADS-B, which differ only in the id
+    column and in the altitude ADS-B may give (AIS: vessels at sea level; NaN: not reported)."""
+    r = batch.reports
+    if isinstance(r, AisReportsModel):
+        ids, altitude = np.asarray(r.mmsi, dtype=str), np.zeros(len(r.time_s))
+    else:
+        ids = np.asarray(r.icao24, dtype=str)
+        altitude = floats(r.altitude_m, len(r.time_s))
+    return (
+        np.asarray(r.time_s, dtype=float),
+        ids,
+        np.asarray(r.latitude_deg, dtype=float),
+        np.asarray(r.longitude_deg, dtype=float),
+        altitude,
+    )
+
+
+def floats(column: Sequence[float | None] | None, n: int) -> np.ndarray:
+    """A wire column of numbers or nulls as floats, NaN for null (all NaN when left out)."""
+    if column is None:
+        return np.full(n, np.nan)
+    if None in column:
+        return np.array([np.nan if x is None else x for x in column], dtype=float)
+    return np.asarray(column, dtype=float)
+
+
+def labels(column: list[str | None] | None, n: int) -> np.ndarray:
+    """A wire label column as an object array (all None when left out)."""
+    out = np.full(n, None, dtype=object)
+    if column is not None:
+        out[:] = column
+    return out

@@ -1,0 +1,344 @@
+"""The other workers of a partitioned network (``--partition K/N``): what goes to them and
+what comes from them.
+
+Each worker tracks its own radars and correlates its own pairs (:mod:`.partition`).  To the
+others it sends every table its radars' batches give (a change on top of the previous one,
+:mod:`.track_exchange`), how far it has released and correlated, its radars' data clocks, and
+the registration rows its pairs add (for the worker that solves the joint biases, which sends
+back the biases).  From them it takes the same.  The tables of every worker meet in the
+engine's :class:`~.merger.TableMerger`, which puts them in the order one worker would have
+released them in.
+
+A worker alone (``1/1``) is the one-owner case: it sends nothing, takes nothing, and its
+merger releases each table as soon as it is pushed.  :class:`Peers` never calls the engine: it
+works on the stages it is given and returns what to publish.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from service.correlation.registration import RegistrationRowsData
+from service.pipeline.correlation_runner import CorrelationRunner
+from service.pipeline.correlation_stage import CadenceParams
+from service.pipeline.decode import check_body_id, parse
+from service.pipeline.errors import RejectionError
+from service.pipeline.merger import TableMerger
+from service.pipeline.partition import Partition
+from service.pipeline.sequencer import RADAR, Sequencer
+from service.pipeline.track_exchange import ExchangeParams, StatesReceiver, StatesSender, decode_states
+from service.pipeline.tracking_stage import TrackingStage
+from service.tracking.base import TrackTable
+from service.wire.keys import Keys
+from service.wire.models import BiasSet, RegistrationRows, WorkerClock
+from service.wire.outgoing import Outgoing
+
+#: Track states of radars whose site has not come yet, held until it comes (the owner can hear
+#: a radar's site before this worker does, and the workers' messages are taken ahead of
+#: inputs); at most this many messages and payload bytes in all: beyond, the oldest held is
+#: given up, rejected ``unknown_radar``.
+MAX_PENDING_STATES = 256
+MAX_PENDING_STATES_BYTES = 64 * 1024 * 1024
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+def _rows_body(source_a: str, source_b: str, reference: bool, rows: RegistrationRowsData) -> dict[str, Any]:
+    """The ``RegistrationRows`` payload of rows an owned pair added."""
+    return {
+        "source_a": source_a,
+        "source_b": source_b,
+        "reference": reference,
+        "time_s": rows.time_s,
+        "track_a": rows.track_a.tolist(),
+        "track_b": rows.track_b.tolist(),
+        "p_a": rows.p_a.tolist(),
+        "p_b": rows.p_b.tolist(),
+        "s": rows.s.reshape(len(rows), 9).tolist(),
+    }
+
+
+@dataclass(frozen=True)
+class PeerInput:
+    """What a message of another worker gave: held messages given up (each a rejection on its
+    key), and whether the watermark may have moved (release what it allows)."""
+
+    given_up: tuple[tuple[str, RejectionError], ...] = ()
+    moved: bool = False
+
+
+class Peers:
+    """This worker's exchange with the others (nothing at all when it is the only one)."""
+
+    def __init__(
+        self,
+        partition: Partition,
+        keys: Keys,
+        exchange: ExchangeParams,
+        cadence: CadenceParams,
+        sequencer: Sequencer,
+        tracking: TrackingStage,
+        merger: TableMerger,
+        correlation: CorrelationRunner,
+    ) -> None:
+        self.partition = partition
+        self.keys = keys
+        self.exchange = exchange
+        self.cadence = cadence
+        self.sequencer = sequencer
+        self.tracking = tracking
+        self.merger = merger
+        self.correlation = correlation
+        #: The workers whose liveliness token is present (the transport tells).
+        self.alive: set[int] = set(range(1, partition.count + 1))
+        self.sender = StatesSender(exchange)
+        self.receiver = StatesReceiver()
+        #: Each other worker's ``correlated_s`` (the bias worker waits for them).
+        self._correlated_by: dict[int, float] = {}
+        self._clock_sent: dict[str, Any] | None = None
+        self._progress_sent: dict[str, Any] | None = None
+        self._idle = False
+        #: (radar id, decoded message, payload bytes, key), oldest first.
+        self._pending_states: deque[tuple[str, Any, int, str]] = deque()
+        self._pending_bytes = 0
+        #: The joint bias estimate as the bias worker last published it (other workers).
+        self.published_biases: dict[str, Any] | None = None
+        self._biases_sent: object = None
+        #: A lone worker's own numbering of its tables (the merger's tie order).
+        self._table_seq: dict[str, int] = {}
+
+    @property
+    def alone(self) -> bool:
+        return self.partition.whole
+
+    # -- this worker's radars ------------------------------------------------------------------
+    def own_table(self, radar_id: str, table: TrackTable, time_s: float, expiry: bool) -> list[Outgoing]:
+        """A table of a radar this worker tracks: into the merger, and to the others as track
+        states (a change on top of the previous one, built now, encoded when sent)."""
+        if self.alone:
+            seq = self._table_seq[radar_id] = self._table_seq.get(radar_id, 0) + 1
+            self.merger.push(RADAR, radar_id, seq, time_s, table, expiry=expiry)
+            return []
+        body = self.sender.states(radar_id, table, time_s)
+        body["expiry"] = expiry
+        self.merger.push(RADAR, radar_id, body["seq"], time_s, table, expiry=expiry)
+        return [Outgoing(self.keys.track_states(radar_id), lambda: body)]
+
+    def forget(self, source_id: str) -> None:
+        self.sender.forget(source_id)
+        self.receiver.forget(source_id)
+        self._table_seq.pop(source_id, None)
+
+    def site_known(self, radar_id: str) -> None:
+        """A radar's site came: the track states held for it are applied."""
+        if not any(rid == radar_id for rid, _, _, _ in self._pending_states):
+            return
+        kept: deque[tuple[str, Any, int, str]] = deque()
+        for held in self._pending_states:
+            if held[0] == radar_id:
+                self._pending_bytes -= held[2]
+                self._apply_states(held[0], held[1])
+            else:
+                kept.append(held)
+        self._pending_states = kept
+
+    # -- the merge -----------------------------------------------------------------------------
+    def owners(self) -> set[int]:
+        """The live workers the merger waits for: those owning a known radar, and this one."""
+        owners = {self.partition.owner(rid) for rid in self.tracking.radars}
+        return (owners & self.alive) | {self.partition.index}
+
+    def cap(self) -> float:
+        """How far the merger may release.  The bias worker's correlation stays within
+        ``bias_lag_s`` of every other worker's (``correlated_s``), so that when it solves for a
+        time ``T`` it holds every row up to ``T`` (``CorrelationStage._solve_due``)."""
+        if not self.partition.solves_biases or self.alone:
+            return np.inf
+        others = self.alive - {self.partition.index}
+        cap = min((self._correlated_by.get(k, -np.inf) for k in others), default=np.inf)
+        return cap + self.cadence.bias_lag_s
+
+    def set_alive(self, workers: set[int]) -> None:
+        self.alive = set(workers) | {self.partition.index}
+
+    def progress(self) -> dict[str, Any]:
+        """How far this worker has got (``/status`` ``partition.progress``)."""
+        return {
+            "released_s": _finite(self.sequencer.last_limit),
+            "merged_s": _finite(self.merger.last_limit),
+            "held": len(self.merger),
+            "state_gaps": sum(self.receiver.gaps.values()),
+            "waiting_for": sorted(
+                k for k in self.owners() if self.merger.released.get(k, -np.inf) <= self.merger.last_limit
+            ),
+        }
+
+    @property
+    def progress_pending(self) -> bool:
+        """A progress message is held back (sent when idle)."""
+        return (
+            not self.alone
+            and self._progress_sent is not None
+            and self._progress_sent["released_s"] != _finite(self.sequencer.last_limit)
+        )
+
+    # -- what goes to the others -----------------------------------------------------------------
+    def outputs(self, idle: bool = False) -> list[Outgoing]:
+        """The registration rows the owned pairs added, the biases (bias worker) and this
+        worker's progress and clocks (``idle``: sent whatever moved)."""
+        if self.alone:
+            return []
+        out = [
+            Outgoing(
+                self.keys.registration(*r.key),
+                lambda r=r: _rows_body(r.source_a, r.source_b, r.reference, r.rows),  # type: ignore[misc]
+            )
+            for r in self.correlation.take_rows()
+        ]
+        biases = self.correlation.biases
+        if self.partition.solves_biases and biases is not self._biases_sent and biases:
+            self._biases_sent = biases
+            body = {
+                "time_s": max(b["time_s"] for b in biases),
+                "partition": str(self.partition),
+                "biases": list(biases),
+            }
+            out.append(Outgoing(self.keys.biases, lambda: body))
+        self._idle = idle
+        try:
+            out.extend(self._clock())  # after the rows: it says they are all out
+        finally:
+            self._idle = False
+        return out
+
+    def _due(self, new: dict[str, Any], sent: dict[str, Any] | None, fields: tuple[str, ...]) -> bool:
+        """A progress or clock message is sent once a value moved ``exchange.step_s`` of data
+        time (or appeared), and whenever anything moved while idle: a message per input would
+        cost the peers more than the tables they carry."""
+        if sent is None or new == sent:
+            return sent is None
+        if self._idle:
+            return True
+        old = sent.get("clocks", sent)
+        now = new.get("clocks", new)
+        step = self.exchange.step_s
+        return any(
+            (now.get(f) is not None) != (old.get(f) is not None)
+            or (now.get(f) is not None and now[f] - old[f] >= step)
+            for f in fields
+        ) or set(now) != set(old)
+
+    def _clock(self) -> list[Outgoing]:
+        """This worker's state for the others, when it changed: its progress (how far it has
+        released and correlated) and its radars' data clocks (the network watermark,
+        :meth:`Sequencer.observe`)."""
+        merged = self.merger.last_limit
+        progress = {
+            "partition": str(self.partition),
+            "released_s": _finite(self.sequencer.last_limit),
+            "correlated_s": _finite(self.correlation.correlated_through(merged)),
+        }
+        clocks = {
+            "partition": str(self.partition),
+            "clocks": {
+                rid: s.last_time_s
+                for rid, s in sorted(self.sequencer.sources.items())
+                if s.kind == RADAR and not s.foreign and s.last_time_s is not None
+            },
+        }
+        out = []
+        if self._due(progress, self._progress_sent, ("released_s", "correlated_s")):
+            self._progress_sent = progress
+            out.append(Outgoing(self.keys.worker_progress(self.partition.index), lambda: progress))
+        if self._due(clocks, self._clock_sent, tuple(clocks["clocks"])):
+            self._clock_sent = clocks
+            out.append(Outgoing(self.keys.worker_clock(self.partition.index), lambda: clocks))
+        return out
+
+    # -- what comes from the others --------------------------------------------------------------
+    def ingest(self, kind: str, ids: tuple[str, ...], payload: bytes) -> PeerInput:
+        """What another worker published for the others."""
+        if kind == "track_states":
+            radar_id = ids[0]
+            if self.partition.owns(radar_id):
+                return PeerInput()  # our own, heard back
+            msg = decode_states(payload, radar_id)
+            check_body_id("radar_id", msg.radar_id, radar_id)
+            if radar_id not in self.tracking.radars:
+                return PeerInput(self._hold_states(radar_id, msg, len(payload)))
+            self._apply_states(radar_id, msg)
+            return PeerInput()  # released once its owner says how far it has published
+        if kind in ("worker_clock", "worker_progress"):
+            clock: WorkerClock = parse(WorkerClock, payload, None)
+            worker = int(ids[0])
+            if clock.partition != f"{worker}/{self.partition.count}":
+                raise RejectionError("schema", f"worker {clock.partition} on the key of worker {worker}")
+            if worker == self.partition.index:
+                return PeerInput()
+            if kind == "worker_clock":
+                for rid, c in clock.clocks.items():
+                    if not self.partition.owns(rid):
+                        self.sequencer.observe(rid, c)
+            else:
+                self.merger.progress(worker, clock.released_s if clock.released_s is not None else -np.inf)
+                self._correlated_by[worker] = (
+                    clock.correlated_s if clock.correlated_s is not None else -np.inf
+                )
+            return PeerInput(moved=True)
+        if kind == "registration":
+            self._registration(ids, payload)
+        elif kind == "biases" and not self.partition.solves_biases:
+            self.published_biases = parse(BiasSet, payload, None).model_dump()
+        return PeerInput()  # worker status: the transport's
+
+    def _registration(self, ids: tuple[str, ...], payload: bytes) -> None:
+        if not self.partition.solves_biases:
+            return
+        rows: RegistrationRows = parse(RegistrationRows, payload, ids[0])
+        if sorted((rows.source_a, rows.source_b)) != sorted(ids):
+            raise RejectionError("schema", f"sources {rows.source_a}, {rows.source_b} != key {ids}", ids[0])
+        if self.partition.owns_pair(rows.source_a, rows.source_b):
+            return  # our own pair
+        site_a = self._geometry(rows.source_a)
+        site_b = None if rows.reference else self._geometry(rows.source_b)
+        k = len(rows.p_a)
+        data = RegistrationRowsData(
+            rows.time_s,
+            np.asarray(rows.track_a, dtype=str),
+            np.asarray(rows.track_b, dtype=str),
+            np.asarray(rows.p_a, dtype=float).reshape(k, 3),
+            np.asarray(rows.p_b, dtype=float).reshape(k, 3),
+            np.asarray(rows.s, dtype=float).reshape(k, 3, 3),
+        )
+        self.correlation.mirror_rows((ids[0], ids[1]), site_a, site_b, data)
+
+    def _hold_states(self, radar_id: str, msg: Any, size: int) -> tuple[tuple[str, RejectionError], ...]:
+        """Hold a radar's track states until its site comes; beyond the bounds the oldest held
+        messages are given up, each to be reported as its own rejection."""
+        self._pending_states.append((radar_id, msg, size, self.keys.track_states(radar_id)))
+        self._pending_bytes += size
+        out = []
+        while (
+            len(self._pending_states) > MAX_PENDING_STATES or self._pending_bytes > MAX_PENDING_STATES_BYTES
+        ):
+            rid, _, n, key = self._pending_states.popleft()
+            self._pending_bytes -= n
+            out.append((key, RejectionError("unknown_radar", f"no site known for radar {rid!r}", rid)))
+        return tuple(out)
+
+    def _apply_states(self, radar_id: str, msg: Any) -> None:
+        table = self.receiver.apply(msg)
+        if table is not None:
+            self.merger.push(RADAR, radar_id, msg.seq, msg.time_s, table, expiry=msg.expiry)
+
+    def _geometry(self, radar_id: str) -> Any:
+        radar = self.tracking.radars.get(radar_id)
+        if radar is None:
+            raise RejectionError("unknown_radar", f"no site known for radar {radar_id!r}", radar_id)
+        return radar.geometry

@@ -1,0 +1,73 @@
+"""What the engine keeps across a restart (contract §4.6 "State"), and its reading.
+
+:class:`EngineState` is what :meth:`service.engine.Engine.export_state` gives and
+:mod:`service.state` writes; :func:`read_state` checks one before the engine takes it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from pydantic import ValidationError
+
+from service.pipeline.sequencer import Sequencer
+from service.wire.models import BiasSet, RadarSite
+
+
+@dataclass(frozen=True)
+class EngineState:
+    """What the engine keeps across a restart (contract §4.6 "State"; :mod:`service.state`
+    writes and reads it), in plain values and numpy arrays.
+
+    ``sites``: every radar's ``RadarSite``; ``sources``: each source's latest ``seq`` and data
+    clock (:meth:`Sequencer.export_state`); ``reference_kinds``: each reference source's input
+    kind (``ais`` or ``adsb``); ``published_biases``: the ``BiasSet`` the bias worker last
+    published (another partitioned worker's ``GET /biases``); ``correlation``: the registration
+    memories and the joint bias solution (:meth:`CorrelationStage.export_state`);
+    ``data_clock_s``: the newest data clock when taken (None: no data yet).  Tracks and pair
+    books are not kept: the input that follows rebuilds them.
+    """
+
+    sites: list[dict[str, Any]]
+    sources: list[dict[str, Any]]
+    reference_kinds: dict[str, str]
+    published_biases: dict[str, Any] | None
+    correlation: dict[str, Any]
+    data_clock_s: float | None
+
+    def summary(self) -> str:
+        """One line of what it holds (for the log)."""
+        memories = self.correlation["memories"]
+        rows = sum(len(m["rows"]["time"]) for m in memories)
+        joint = self.correlation["joint"]
+        return (
+            f"{len(self.sites)} radar sites, {len(self.sources)} source clocks, "
+            f"{len(memories)} registration memories ({rows} rows), "
+            f"biases of {len(joint['radar_ids']) if joint else 0} radars"
+        )
+
+
+def read_state(
+    state: EngineState | None, configured: set[str]
+) -> tuple[list[RadarSite], list[tuple[float, str, int, int]], dict[str, str], dict[str, Any] | None]:
+    """A kept state's parts, checked: the sites (but those of ``configured`` radars, whose
+    configured site wins), the sources' clocks (:meth:`Sequencer.read_state`), the reference
+    kinds and the published biases.  Raises ``KeyError``, ``TypeError`` or ``ValueError`` on a
+    state that is not one."""
+    if state is None:
+        return [], [], {}, None
+    sites = [
+        site for site in (RadarSite.model_validate(s) for s in state.sites) if site.radar_id not in configured
+    ]
+    sources = Sequencer.read_state(state.sources)
+    kinds = {str(k): str(v) for k, v in state.reference_kinds.items()}
+    if not set(kinds.values()) <= {"ais", "adsb"}:
+        raise ValueError(f"reference kinds {sorted(set(kinds.values()))}")
+    published = None
+    if state.published_biases is not None:
+        try:
+            published = BiasSet.model_validate(state.published_biases).model_dump()
+        except ValidationError:  # of an older wire model: the bias worker's next one comes
+            published = None
+    return sites, sources, kinds, published
