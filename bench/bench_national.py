@@ -139,6 +139,15 @@ def make_stream(sc: Scenario, seed: int, cache: Path | None) -> Stream:
     return stream
 
 
+def settle_index(stream: Stream, start_s: float, settle_s: float) -> int:
+    """The first message at or after ``settle_s`` of data time: from it on a run is settled
+    (every aircraft of the start tracked and paired; what follows is the steady work)."""
+    for i, (_key, payload) in enumerate(stream):
+        if json.loads(payload).get("time_s", -np.inf) >= start_s + settle_s:
+            return i
+    return len(stream)
+
+
 def survey(stream: Stream) -> Truth:
     truth = Truth()
     for key, payload in stream:
@@ -456,6 +465,8 @@ class RunResult:
     corr_updates: int
     correlation: dict[str, Any]  # the final snapshot's timings
     restarts: int = 0
+    settled_wall_s: float = float("nan")  # from the settle message to the end (flush included)
+    settled_data_s: float = float("nan")
 
     def corr_p(self) -> tuple[float, float, str]:
         """Correlation per update p50, p99 and where they come from."""
@@ -494,7 +505,9 @@ def feed(
     data_s: float,
     process: bool,
     startup_s: float = 0.0,
+    settle: tuple[int, float] = (0, 0.0),
 ) -> RunResult:
+    """``settle``: the message index from which the run is settled, and its data time left."""
     probe = Probe(engine)
     waits = Backpressure(engine)
     pid = child_pid(engine)
@@ -506,7 +519,10 @@ def feed(
     ingest_s = 0.0
     last_progress = time.monotonic()
     t_start = time.perf_counter()
+    t_settled = t_start
     for i, (key, payload) in enumerate(stream):
+        if i == settle[0]:
+            t_settled = time.perf_counter()
         t0 = time.perf_counter()
         engine.ingest(key, payload, receive_time_s=0.0)
         dt = time.perf_counter() - t0
@@ -572,6 +588,8 @@ def feed(
         corr_updates=int(final.correlation.get("updates", 0)),
         correlation=dict(final.correlation),
         restarts=int(getattr(engine.correlation, "restarts", 0)),
+        settled_wall_s=time.perf_counter() - t_settled - final_snapshot_s,
+        settled_data_s=settle[1],
     )
 
 
@@ -609,6 +627,22 @@ def report_run(r: RunResult, data_s: float, truth: Truth, stream: Stream) -> Non
         f"({r.wall_s:.1f} s wall for {data_s:.0f} data s); {truth.plots / r.wall_s:,.0f} plots/s, "
         f"{messages / r.wall_s:.0f} msgs/s"
     )
+    if np.isfinite(r.settled_data_s) and r.settled_data_s > 0:
+        print(
+            f"  settled: x{r.settled_data_s / r.settled_wall_s:.2f} real time over the last "
+            f"{r.settled_data_s:.0f} data s ({r.settled_wall_s:.1f} s wall)"
+        )
+    if r.updates_ms.size and np.isfinite(r.stage_s) and r.stage_s < r.wall_s:
+        print(
+            f"  CPU of correlation and fusion over the rest (tracking, decoding): "
+            f"{r.stage_s / (r.wall_s - r.stage_s):.2f} "
+            f"(stage {r.stage_s:.1f} s, rest {r.wall_s - r.stage_s:.1f} s)"
+        )
+    elif r.process and r.cpu_s > 0:
+        print(
+            f"  CPU of the correlation process over the engine's (tracking, decoding): "
+            f"{r.child_cpu_s / r.cpu_s:.2f} ({r.child_cpu_s:.1f} s / {r.cpu_s:.1f} s)"
+        )
     print(
         f"  ingest per message: p50 {pct(r.ingest_ms, 50):.2f} ms, p99 {pct(r.ingest_ms, 99):.1f} ms, "
         f"max {r.ingest_ms.max():.1f} ms"
@@ -944,6 +978,12 @@ class Summary:
     others_cpu_s: float
     digest: str
     accuracy: dict[str, Any] = field(default_factory=dict)
+    settled_rt: float = float("nan")
+
+
+def settle_s(args: argparse.Namespace) -> float:
+    """Data time before a run counts as settled (``--settle-s``; default half the stream)."""
+    return float(args.settle_s) if args.settle_s is not None else 0.5 * float(args.duration)
 
 
 def one_run(args: argparse.Namespace) -> None:
@@ -972,6 +1012,7 @@ def one_run(args: argparse.Namespace) -> None:
             data_s,
             v.process,
             startup,
+            (settle_index(stream, sc.start_time_s, settle_s(args)), data_s - settle_s(args)),
         )
     finally:
         engine.close()
@@ -997,6 +1038,7 @@ def one_run(args: argparse.Namespace) -> None:
         others_cpu_s=r.others_cpu_s,
         digest=result_digest(r.final) if v.key != "A" else "",
         accuracy=figures,
+        settled_rt=r.settled_data_s / r.settled_wall_s if r.settled_data_s > 0 else float("nan"),
     )
     print(SUMMARY_TAG + json.dumps(summary.__dict__), flush=True)
 
@@ -1036,7 +1078,7 @@ def run_inprocess(args: argparse.Namespace) -> None:
                     str(Path(__file__).resolve()),
                     *("--one-run", v.key, "--round", str(rep + 1), "--cache", str(cache)),
                     *("--duration", str(args.duration), "--seed", str(args.seed)),
-                    *("--snapshot-every", str(args.snapshot_every)),
+                    *("--snapshot-every", str(args.snapshot_every), "--settle-s", str(settle_s(args))),
                     *(["--accuracy"] if last and v.key in (judged, "H") else []),
                     *(["--explain-false"] if last and v.key == judged and args.explain_false else []),
                 ]
@@ -1068,7 +1110,7 @@ def side_by_side(
     rounds = f"median [min-max] over {n} interleaved rounds" if n > 1 else "one round"
     print(f"\nside by side ({rounds}; {data_s:.0f} data s, {truth.plots:,} plots):")
     print(
-        f"  {'variant':<30} {'x real time':>19} {'plots/s':>23} {'time / A':>19}   "
+        f"  {'variant':<30} {'x real time':>19} {'settled':>10} {'plots/s':>23} {'time / A':>19}   "
         f"{'corr per update p50 / p99 ms':<30} peak RSS MB (stream alone)"
     )
     alone = results.get("A")
@@ -1090,7 +1132,9 @@ def side_by_side(
         if v.process:
             peak += f" + child {spread([r.child_peak_mb for r in rs], '.0f')}"
         print(
-            f"  {v.key} {v.label:<28} {spread(rt, '.2f'):>19} {spread(rate, ',.0f'):>23} {ratio:>19}   "
+            f"  {v.key} {v.label:<28} {spread(rt, '.2f'):>19} "
+            f"{spread([r.settled_rt for r in rs], '.2f'):>10} "
+            f"{spread(rate, ',.0f'):>23} {ratio:>19}   "
             f"{corr:<30} {peak}"
         )
     print("  time / A: the wall time over tracking alone's in the same round; correlation per update:")
@@ -1349,15 +1393,22 @@ def run_zenoh(args: argparse.Namespace) -> None:
                 )
         published_s = time.perf_counter() - t_start
 
+        settle_at = settle_index(stream, sc.start_time_s, settle_s(args))
+        settled_t = [t_start]
+
         def done() -> bool:
             if time.monotonic() - done_progress[0] >= PROGRESS_PERIOD_S:
                 done_progress[0] = time.monotonic()
                 print(f"# zenoh: node processed {node.processed}/{len(stream)}", file=sys.stderr, flush=True)
-            return node.processed >= len(stream) and node.queue.empty()
+            if node.processed <= settle_at:
+                settled_t[0] = time.perf_counter()
+            # ... and the outputs of the last one published: the correlation process answered
+            return node.processed >= len(stream) and node.queue.empty() and not node.engine.answers_pending
 
         done_progress = [time.monotonic()]
         finished = _wait(done, 24 * 3600.0)
         wall = time.perf_counter() - t_start
+        settled_wall = time.perf_counter() - settled_t[0]
         node.stop(grace_s=600.0)  # flushes the engine, takes the final snapshot, stops the child
         cpu = cpu_s() - cpu0
         busy = machine_busy_s() - busy0
@@ -1389,6 +1440,12 @@ def run_zenoh(args: argparse.Namespace) -> None:
         f"[zenoh, {'correlation process' if process else 'one process'}] "
         f"{'all' if finished else 'NOT all'} {len(stream)} messages processed"
     )
+    settled_data = data_s - settle_s(args)
+    print(
+        f"  settled: x{settled_data / settled_wall:.2f} real time through Zenoh over the last "
+        f"{settled_data:.0f} data s ({settled_wall:.1f} s wall, until the outputs of the last batch "
+        "were published)"
+    )
     print(
         f"  real time x{data_s / wall:.2f} through Zenoh ({wall:.1f} s wall for {data_s:.0f} data "
         "s; the publisher "
@@ -1418,6 +1475,11 @@ def run_zenoh(args: argparse.Namespace) -> None:
             f"restarts {getattr(node.engine.correlation, 'restarts', 0)}"
         )
     child_cpu = child.get("cpu", 0.0)
+    if process and cpu > 0:
+        print(
+            f"  CPU of the correlation process (correlation, fusion) over the node's (Zenoh, decoding, "
+            f"tracking): {child_cpu / cpu:.2f}"
+        )
     print(
         f"  CPU: this process (node, client, Zenoh) {cpu:.1f} s"
         + (f", correlation process {child_cpu:.1f} s" if process else "")
@@ -1857,6 +1919,12 @@ def main() -> None:
     )
     parser.add_argument(
         "--census", action="store_true", help="soak: the registration memories' sizes every minute"
+    )
+    parser.add_argument(
+        "--settle-s",
+        type=float,
+        help="data seconds before a run counts as settled (default: half the stream); the settled "
+        "real-time factor is measured over the rest",
     )
     parser.add_argument(
         "--no-promptness",

@@ -193,6 +193,24 @@ def _shifted(old: BiasSolution, new: BiasSolution | None, k_sigma: float) -> boo
     return False
 
 
+def _now(table: TrackTable, ids: NDArray[np.str_], time_s: float) -> np.ndarray:
+    """ECEF positions of the tracks ``ids`` of ``table`` at ``time_s`` (constant velocity)."""
+    if len(ids) == 0:
+        return np.empty((0, 3))
+    rows = np.flatnonzero(np.isin(table.track_id, ids))
+    return (
+        table.position_ecef_m[rows] + table.velocity_ecef_mps[rows] * (time_s - table.time_s[rows])[:, None]
+    )
+
+
+def _near(table: TrackTable, anchors: np.ndarray, reach_m: float, time_s: float) -> np.ndarray:
+    """Rows of ``table`` whose track, brought to ``time_s``, lies within ``reach_m`` of an anchor."""
+    if len(table) == 0:
+        return np.empty(0, dtype=np.intp)
+    pos = table.position_ecef_m + table.velocity_ecef_mps * (time_s - table.time_s)[:, None]
+    return _within(pos, anchors, reach_m, busy=np.empty(0, dtype=np.intp))
+
+
 def _within(positions: np.ndarray, anchors: np.ndarray, reach_m: float, busy: np.ndarray) -> np.ndarray:
     """The rows of ``positions`` within ``reach_m`` of any anchor and not among ``busy``."""
     if len(positions) == 0 or len(anchors) == 0:
@@ -465,11 +483,25 @@ class PairCorrelator:
         """Tracks confirmed since the pair's last update (``fresh_a``, ``fresh_b``: their ids)
         between two updates: the clear pairs among them (:mod:`.prompt`) enter the book
         confirmed now, without waiting for the pair's next update (which scores the book).
-        Only the unpaired tracks near a fresh one are decided.  Whether the book changed."""
+        Whether the book changed.
+
+        Only the tracks near a fresh one are brought to the update time: its candidates and
+        their rivals lie within two candidate gates of it, and before registration the
+        topology sequences of those reach at most ``topology.max_radius_m`` further; the
+        decisions on these rows are those the whole tables would give."""
         prm = self.params
         if not (prm.prompt.enabled and self.method == "svd-topology") or self.updates == 0:
             return False
-        _, _, a, b, ctx_kw = self._snapshots(tracks_a, tracks_b, time_s)
+        reach = 2.0 * prm.svd.candidates.gate_m
+        anchors = np.concatenate([_now(tracks_a, fresh_a, time_s), _now(tracks_b, fresh_b, time_s)])
+        if len(anchors) == 0 or not len(
+            _near(tracks_b if len(fresh_a) else tracks_a, anchors, reach, time_s)
+        ):
+            return False  # no partner track within reach: nothing to decide
+        extent = reach + (0.0 if self.registered else prm.svd.topology.max_radius_m)
+        sub_a = tracks_a.take(_near(tracks_a, anchors, extent, time_s))
+        sub_b = tracks_b.take(_near(tracks_b, anchors, extent, time_s))
+        _, _, a, b, ctx_kw = self._snapshots(sub_a, sub_b, time_s)
         fa, fb = np.isin(a.track_id, fresh_a), np.isin(b.track_id, fresh_b)
         if not (fa.any() or fb.any()):
             return False
@@ -477,21 +509,16 @@ class PairCorrelator:
         ca_idx, cb_idx = _lookup_pairs(
             a.track_id, b.track_id, self.book.track_a[conf], self.book.track_b[conf]
         )
-        # The candidates of a fresh track and their rivals lie within two candidate gates of it.
-        anchors = np.concatenate([a.position[fa], b.position[fb]])
-        reach = 2.0 * prm.svd.candidates.gate_m
-        ref_a = _within(a.position, anchors, reach, busy=ca_idx)
-        ref_b = _within(b.position, anchors, reach, busy=cb_idx)
         ctx = DecisionContext(
             time_s=time_s,
             confirmed_a=ca_idx,
             confirmed_b=cb_idx,
-            reference_a=ref_a,
-            reference_b=ref_b,
+            reference_a=_within(a.position, anchors, reach, busy=ca_idx),
+            reference_b=_within(b.position, anchors, reach, busy=cb_idx),
             **ctx_kw,  # type: ignore[arg-type]
         )
         dec = self.correlator.decide(a, b, ctx)
-        clear = self._clear(dec, a, b, tracks_a, tracks_b, time_s) & (fa[dec.index_a] | fb[dec.index_b])
+        clear = self._clear(dec, a, b, sub_a, sub_b, time_s) & (fa[dec.index_a] | fb[dec.index_b])
         ev = self.evidence
         if ev is not None and clear.any() and len(ev):
             e = find(ev.keys, pair_keys(a.track_id[dec.index_a], b.track_id[dec.index_b]))

@@ -87,6 +87,7 @@ from service.correlation.linalg import (
     yaw_congruence,
 )
 from service.correlation.nearest import chi2_pairs
+from service.correlation.prompt import clear_of_rivals
 from service.correlation.topology import TopologyParams, gather_points, neighbourhoods
 from service.correlation.umeyama import (
     SimilarityFit,
@@ -154,6 +155,11 @@ class SvdTopologyParams:
     #: When the radars are registered, candidates the topology cannot decide (too few
     #: neighbours) are decided by the bias-compensated chi-square test (stage 2).
     registered_fallback: bool = True
+    #: ... and so is a candidate that passes that test while every rival sharing one of its
+    #: tracks costs at least this much more (chi-square excess; :mod:`.prompt`'s clear rule):
+    #: once registered the absolute test is valid and unambiguous there, and the topology fit
+    #: is spent only where it is not (0 disables).
+    registered_clear_margin: float = 12.0
     #: ... and topology-accepted candidates must also pass it at this (loose) level.
     registered_consistency_alpha: float = 1e-4
     #: Once registered, a currently confirmed pair that passes the bias-compensated
@@ -514,6 +520,15 @@ def compensated_chi2(
     return q_pos, ok, 3
 
 
+#: The topology match of no candidate.
+_NO_MATCH = SvdMatchResult(
+    *(np.zeros(0, dtype=bool), np.zeros(0, dtype=np.int8)),
+    *(np.zeros(0) for _ in range(3)),
+    np.zeros(0, dtype=np.int64),
+    *(np.zeros(0) for _ in range(5)),
+    np.zeros(0, dtype=np.int64),
+)
+
 #: Up to this many candidates are matched in one group (see ``decide``).
 _ONE_GROUP = 64
 
@@ -591,52 +606,26 @@ class SvdTopologyCorrelator(Correlator):
         q = np.full(n, np.nan)
         ok = np.zeros(n, dtype=bool)
         run = np.ones(n, dtype=bool)
+        settled = np.zeros(n, dtype=bool)
         if context.registered:
             # Stage 2 gate first: on compensated positions (+ velocities) a candidate failing the
             # loose consistency test could not be accepted anyway, so it skips the topology fit.
             q, ok, dof = compensated_chi2(a, b, ia, ib, context, prm)
             if prm.registered_consistency_alpha > 0:
                 run = ok & (q <= chi2_upper(prm.registered_consistency_alpha, dof))
+            if prm.registered_clear_margin > 0:
+                # ... and a clear one is settled by it (stage 2, below)
+                passes = ok & (q <= chi2_upper(prm.alpha_position, dof))
+                cost2 = np.where(ok, q - dof, np.inf)
+                settled = clear_of_rivals(ia, ib, cost2, passes, prm.registered_clear_margin)
+                # a rival of a clear candidate loses to it by the margin: no fit needed either
+                settled |= np.isin(ia, ia[settled]) | np.isin(ib, ib[settled])
+                run &= ~settled
         m0 = b.site.rotation.T @ a.site.rotation  # Eq. (3)
         if prm.use_velocity and prm.velocity_prefilter_alpha > 0:
             run &= _velocity_compatible(a, b, ia, ib, m0, prm)
         sub = np.flatnonzero(run)
-        # Neighbourhoods of the candidate references only; A is turned into B's orientation
-        # (M0 of Eq. 3) once per track here rather than once per candidate element in
-        # svd_match, which is then told that no rotation is left (M0 = I).
-        ra_sub, rb_sub = ia[sub], ib[sub]
-        ua, ub = np.unique(ra_sub), np.unique(rb_sub)
-        nbr_a = neighbourhoods(a.enu, prm.topology, rows=ua)
-        nbr_b = neighbourhoods(b.enu, prm.topology, rows=ub)
-        # Covariances in B's ENU orientation, of the rows the references and their neighbours
-        # use only (a registered update has few references among many tracks).  For A that is
-        # M0 R_A^T P R_A M0^T = R_B^T P R_B (Eq. 3), as for B.
-        rot_b = b.site.rotation.T
-        enu_a = a.enu @ m0.T
-        cov_a = _turned_rows(rot_b, a.pos_cov, _used_rows(nbr_a, ua))
-        cov_b = _turned_rows(rot_b, b.pos_cov, _used_rows(nbr_b, ub))
-        # Candidates are matched in (at most two) groups by sequence length: most references
-        # have ``min_neighbours`` neighbours, a few more, and the per-candidate arrays of a
-        # group are only as wide as its longest sequence.  Per-candidate results do not depend
-        # on the grouping; a few candidates are one group (one call costs less than two).
-        width = np.maximum((nbr_a[ra_sub] >= 0).sum(axis=1), (nbr_b[rb_sub] >= 0).sum(axis=1))
-        common = int(np.bincount(width).argmax()) if len(width) else 0
-        if len(width) <= _ONE_GROUP:
-            common = int(width.max(initial=0))
-        groups = [g for g in (np.flatnonzero(width <= common), np.flatnonzero(width > common)) if g.size]
-        parts = []
-        for g in groups or [np.arange(len(sub))]:
-            ga, gb = ra_sub[g], rb_sub[g]
-            pa, ca, ma = gather_points(enu_a, cov_a, nbr_a, ga, trim=True)
-            pb, cb, mb = gather_points(b.enu, cov_b, nbr_b, gb, trim=True)
-            vel = (
-                a.enu_velocity[ga] @ m0.T,
-                congruence(rot_b, a.vel_cov[ga]),
-                b.enu_velocity[gb],
-                congruence(rot_b, b.vel_cov[gb]),
-            )
-            parts.append((g, svd_match(pa, ca, ma, pb, cb, mb, np.eye(3), prm, velocity=vel)))
-        res = _join_results(parts, len(sub))
+        res = self._topology(a, b, ia[sub], ib[sub], m0) if sub.size else _NO_MATCH
 
         def full(x: np.ndarray, fill: float) -> np.ndarray:
             out = np.full((n, *x.shape[1:]), fill, dtype=x.dtype)
@@ -649,7 +638,7 @@ class SvdTopologyCorrelator(Correlator):
         statistic = full(res.statistic, np.nan)
         stage = np.where(accepted, 1.0, 0.0)
         if context.registered and prm.registered_fallback:
-            undecided = np.isin(reason, [Reason.TOO_FEW_NEIGHBOURS, Reason.DEGENERATE_FIT])
+            undecided = np.isin(reason, [Reason.TOO_FEW_NEIGHBOURS, Reason.DEGENERATE_FIT]) | settled
             passed = undecided & ok & (q <= chi2_upper(prm.alpha_position, dof))
             accepted |= passed
             reason = np.where(
@@ -675,6 +664,54 @@ class SvdTopologyCorrelator(Correlator):
         dec.extras["stage"] = stage
         dec.extras["yaw_rad"] = full(res.yaw_rad, np.nan)
         return dec
+
+    def _topology(
+        self,
+        a: TrackSnapshot,
+        b: TrackSnapshot,
+        ra_sub: NDArray[np.intp],
+        rb_sub: NDArray[np.intp],
+        m0: FloatArray,
+    ) -> SvdMatchResult:
+        """The topology match (steps 1-6 of the module docstring) of the candidates
+        ``(ra_sub[k], rb_sub[k])``."""
+        prm = self.params
+        assert b.site is not None
+        # Neighbourhoods of the candidate references only; A is turned into B's orientation
+        # (M0 of Eq. 3) once per track here rather than once per candidate element in
+        # svd_match, which is then told that no rotation is left (M0 = I).
+        ua, ub = np.unique(ra_sub), np.unique(rb_sub)
+        nbr_a = neighbourhoods(a.enu, prm.topology, rows=ua)
+        nbr_b = neighbourhoods(b.enu, prm.topology, rows=ub)
+        # Covariances in B's ENU orientation, of the rows the references and their neighbours
+        # use only (a registered update has few references among many tracks).  For A that is
+        # M0 R_A^T P R_A M0^T = R_B^T P R_B (Eq. 3), as for B.
+        rot_b = b.site.rotation.T
+        enu_a = a.enu @ m0.T
+        cov_a = _turned_rows(rot_b, a.pos_cov, _used_rows(nbr_a, ua))
+        cov_b = _turned_rows(rot_b, b.pos_cov, _used_rows(nbr_b, ub))
+        # Candidates are matched in (at most two) groups by sequence length: most references
+        # have ``min_neighbours`` neighbours, a few more, and the per-candidate arrays of a
+        # group are only as wide as its longest sequence.  Per-candidate results do not depend
+        # on the grouping; a few candidates are one group (one call costs less than two).
+        width = np.maximum((nbr_a[ra_sub] >= 0).sum(axis=1), (nbr_b[rb_sub] >= 0).sum(axis=1))
+        common = int(np.bincount(width).argmax()) if len(width) else 0
+        if len(width) <= _ONE_GROUP:
+            common = int(width.max(initial=0))
+        groups = [g for g in (np.flatnonzero(width <= common), np.flatnonzero(width > common)) if g.size]
+        parts = []
+        for g in groups or [np.arange(len(ra_sub))]:
+            ga, gb = ra_sub[g], rb_sub[g]
+            pa, ca, ma = gather_points(enu_a, cov_a, nbr_a, ga, trim=True)
+            pb, cb, mb = gather_points(b.enu, cov_b, nbr_b, gb, trim=True)
+            vel = (
+                a.enu_velocity[ga] @ m0.T,
+                congruence(rot_b, a.vel_cov[ga]),
+                b.enu_velocity[gb],
+                congruence(rot_b, b.vel_cov[gb]),
+            )
+            parts.append((g, svd_match(pa, ca, ma, pb, cb, mb, np.eye(3), prm, velocity=vel)))
+        return _join_results(parts, len(ra_sub))
 
     def reverify(
         self,
