@@ -17,7 +17,7 @@ fails is rolled back by its stage and reported as ``internal``.  What a restart 
 from __future__ import annotations
 
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -42,6 +42,7 @@ from service.pipeline.tracking_stage import (
     to_geometry,
     tracker_for,
 )
+from service.tracking.base import TrackTable
 from service.wire.keys import Keys
 from service.wire.models import MAX_PAYLOAD_BYTES, AdsbBatch, AisBatch, PlotBatch, RadarSite
 from service.wire.outgoing import Outgoing
@@ -90,6 +91,8 @@ class Engine:
             self.correlation,
         )
         self.publication = Publication(self.keys)
+        #: Tables sent to correlation and not answered yet: (radar, data time, table, own).
+        self._unpublished: deque[tuple[str, float, TrackTable, bool]] = deque()
         self.plots: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
         #: Each reference source's input kind (``ais`` or ``adsb``): an id is one or the other.
@@ -347,8 +350,9 @@ class Engine:
                     kind = "ais" if isinstance(rel.item, AisBatch) else "adsb"
                     self.correlation.reference(rel.source_id, rel.time_s, *reference_columns(rel.item), kind)
                 elif rel.source_id in self.tracking.radars:
+                    # published with what the correlation answers for it (:meth:`_results`)
                     own = self.partition.owns(rel.source_id)
-                    out += self.publication.tracks(rel.source_id, rel.time_s, rel.item, own)
+                    self._unpublished.append((rel.source_id, rel.time_s, rel.item, own))
                     geometry = self.tracking.radars[rel.source_id].geometry
                     self.correlation.radar(rel.source_id, geometry, rel.item, rel.time_s)
             except Exception as exc:  # a bug costs this update's outputs, never the service
@@ -358,14 +362,19 @@ class Engine:
     def _results(self, idle: bool = False) -> list[Outgoing]:
         """What the correlation answered since the last call (pair sets, failures, system
         tracks), held to the tables as they are now, and what goes to the other workers."""
-        out = [self.publication.pairs(key, view) for key, view in self.correlation.take_ready()]
+        out: list[Outgoing] = []
+        for answer in self.correlation.take_answers():
+            if answer.op == "radar":  # the table it answered for, then what the table changed
+                out += self.publication.tracks(*self._unpublished.popleft())
+            out += [self.publication.pairs(key, view) for key, view in answer.updated]
+            if answer.system is not None:
+                out.append(self.publication.system_tracks(answer.system))
         for source_id, detail in self.correlation.take_errors():
             if source_id:
                 out.append(self._internal(source_id, detail))
             else:
                 out.append(self._reject(self.keys.errors, RejectionError("internal", detail, None), None))
         out += self.peers.outputs(idle)
-        out += [self.publication.system_tracks(view) for view in self.correlation.take_system()]
         if out:
             self._snapshot = None
         return out

@@ -103,7 +103,7 @@ def test_parameters_reach_the_stages() -> None:
     assert all(r["window_plots"] <= 40 and r["window_evicted"] > 0 for r in radars)
     (corr,) = tuned.correlators()
     assert corr.params.registration.min_pairs == 7
-    assert tuned.correlation.params.cadence_scans == 3.0  # type: ignore[union-attr]
+    assert tuned.correlation.stage.params.cadence_scans == 3.0  # type: ignore[attr-defined]
 
 
 def test_config_show_prints_the_effective_tree_and_refuses_bad_keys(tmp_path: Path) -> None:

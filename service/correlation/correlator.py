@@ -263,6 +263,7 @@ class PairCorrelator:
         self.last_reverified = 0
         self.time_s: float = float("nan")
         self.updates = 0
+        self.settled = False
 
     @property
     def registered(self) -> bool:
@@ -355,7 +356,7 @@ class PairCorrelator:
             nb = max(len(b), 1)
             is_implied = np.isin(decided.index_a * nb + decided.index_b, imp_a * nb + imp_b)
             cost = np.where(is_implied, cost - prm.cycles.bonus, cost)
-        chosen, _ambiguous = assign_unambiguous(
+        chosen, ambiguous = assign_unambiguous(
             decided.index_a,
             decided.index_b,
             cost,
@@ -422,6 +423,9 @@ class PairCorrelator:
                     # residuals carry its error, and would reject right pairs for minutes.
                     ev.clear()
         self.last_decisions = dec
+        #: Nothing left to settle: registered, no tentative pair, no ambiguous candidate (the
+        #: stage may then correlate the pair less often, :class:`CadenceParams`).
+        self.settled = self.registered and not (~self.book.confirmed).any() and not ambiguous.any()
         self.time_s = time_s
         self.updates += 1
         self.last_update_ms = (time.perf_counter() - t0) * 1e3
@@ -518,7 +522,11 @@ class PairCorrelator:
             **ctx_kw,  # type: ignore[arg-type]
         )
         dec = self.correlator.decide(a, b, ctx)
-        clear = self._clear(dec, a, b, sub_a, sub_b, time_s) & (fa[dec.index_a] | fb[dec.index_b])
+        fresh = fa[dec.index_a] | fb[dec.index_b]
+        clear = self._clear(dec, a, b, sub_a, sub_b, time_s) & fresh
+        # a fresh track with an accepted candidate that is not clear waits for the pair's
+        # next full update, which must then not wait long
+        self.settled &= not (dec.accepted & fresh & ~clear).any()
         ev = self.evidence
         if ev is not None and clear.any() and len(ev):
             e = find(ev.keys, pair_keys(a.track_id[dec.index_a], b.track_id[dec.index_b]))

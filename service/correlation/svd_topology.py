@@ -522,11 +522,18 @@ def compensated_chi2(
 
 #: The topology match of no candidate.
 _NO_MATCH = SvdMatchResult(
-    *(np.zeros(0, dtype=bool), np.zeros(0, dtype=np.int8)),
-    *(np.zeros(0) for _ in range(3)),
-    np.zeros(0, dtype=np.int64),
-    *(np.zeros(0) for _ in range(5)),
-    np.zeros(0, dtype=np.int64),
+    accepted=np.zeros(0, dtype=bool),
+    reason=np.zeros(0, dtype=np.int8),
+    chi2_shape=np.zeros(0),
+    dof_shape=np.zeros(0),
+    chi2_ref=np.zeros(0),
+    dof_ref=np.zeros(0, dtype=np.int64),
+    statistic=np.zeros(0),
+    cost=np.zeros(0),
+    rotation_weight=np.zeros(0),
+    scale=np.zeros(0),
+    yaw_rad=np.zeros(0),
+    matched=np.zeros(0, dtype=np.int64),
 )
 
 #: Up to this many candidates are matched in one group (see ``decide``).

@@ -208,6 +208,9 @@ class RemoteCorrelation(Answers):
         detail = f"correlation process died ({what}); its pairs and registration start afresh"
         self._errors.append(("", detail))
         self.restarts += 1
+        # the calls it did not answer are answered empty: a radar's tracks are still published
+        for t in self._unanswered:
+            self._answers.append(Answer("radar" if t is not None else "lost", [], None, None))
         self._unanswered.clear()
         self._process.kill()
         self._outbox.put(None)

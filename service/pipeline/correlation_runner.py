@@ -30,6 +30,7 @@ Key = tuple[str, str]
 class Answer:
     """What one call of the stage changed."""
 
+    op: str  # the call: "radar" (a radar's tracks), "reference", ...
     updated: list[tuple[Key, PairSetView]]
     biases: list[dict[str, Any]] | None  # None: unchanged
     timings: dict[str, Any] | None  # None: unchanged (a local stage is read directly)
@@ -55,6 +56,7 @@ def answer(stage: CorrelationStage, op: str, args: tuple[Any, ...]) -> Answer:
         error = (str(args[0]) if args else "", f"correlation failed: {type(exc).__name__}: {exc}")
     rebuilt = stage.take_system()  # at most one per call
     return Answer(
+        op,
         [(k, stage.views[k]) for k in keys],
         stage.biases if stage.biases is not biases_before else None,
         None,
@@ -71,31 +73,24 @@ class Answers:
     def __init__(self) -> None:
         self.biases: list[dict[str, Any]] = []
         self.system_view: SystemTrackView | None = None
-        self._ready: list[tuple[Key, PairSetView]] = []
-        self._system_ready: list[SystemTrackView] = []
+        self._answers: list[Answer] = []
         self._errors: list[tuple[str, str]] = []
         self._rows: list[SharedRows] = []
 
     def _take_answer(self, a: Answer) -> None:
-        self._ready.extend(a.updated)
+        self._answers.append(a)
         if a.biases is not None:
             self.biases = a.biases
         if a.system is not None:
             self.system_view = a.system
-            self._system_ready.append(a.system)
         if a.error is not None:
             self._errors.append(a.error)
         self._rows.extend(a.rows)
 
-    def take_ready(self) -> list[tuple[Key, PairSetView]]:
-        """Pair updates answered since the last call, in order, each with its own view (a pair
-        updated twice comes twice)."""
-        out, self._ready = self._ready, []
-        return out
-
-    def take_system(self) -> list[SystemTrackView]:
-        """The system tracks rebuilt (answered) since the last call, oldest first."""
-        out, self._system_ready = self._system_ready, []
+    def take_answers(self) -> list[Answer]:
+        """The answers since the last call, in call order: one per call (a pair updated twice
+        comes twice, each with its own view)."""
+        out, self._answers = self._answers, []
         return out
 
     def take_rows(self) -> list[SharedRows]:
@@ -123,8 +118,7 @@ class CorrelationRunner(Protocol):
     def mirror_rows(
         self, key: Key, site_a: Site, site_b: Site | None, rows: RegistrationRowsData
     ) -> None: ...
-    def take_ready(self) -> list[tuple[Key, PairSetView]]: ...
-    def take_system(self) -> list[SystemTrackView]: ...
+    def take_answers(self) -> list[Answer]: ...
     def take_rows(self) -> list[SharedRows]: ...
     def take_errors(self) -> list[tuple[str, str]]: ...
     def timings(self) -> dict[str, Any]: ...

@@ -73,8 +73,14 @@ log = logging.getLogger(__name__)
 class CadenceParams:
     """When pairs are correlated and biases solved (all in data time)."""
 
-    #: A pair is correlated once per this many scans of the slower of its radars.
+    #: A pair is correlated once per this many scans of the slower of its radars ...
     cadence_scans: float = 1.0
+    #: ... and once per this many when it is settled: registered, no tentative pair, no
+    #: ambiguous candidate, no fresh track left undecided.  Such an update only re-checks the
+    #: confirmed pairs (a new track is decided when it is confirmed, a track that goes leaves
+    #: its pairs at once), so a settled network costs about half; a pair with anything open
+    #: keeps ``cadence_scans``.
+    settled_cadence_scans: float = 2.0
     #: ... and at most once per this many data seconds.
     min_interval_s: float = 1.0
     #: Radars farther apart than this cannot share targets and are never correlated (m).
@@ -289,9 +295,13 @@ class CorrelationStage:
         d2 = np.einsum("ij,ij->i", *(2 * [table.position_ecef_m - radar.origin_ecef]))
         return bool(d2.min() <= p.max_reference_range_m**2)
 
-    def _interval(self, a: Site, b: Site | None) -> float:
+    def _interval(self, a: Site, b: Site | None, corr: PairCorrelator | None) -> float:
+        """Data time between two updates of a pair (``corr``: its correlator, settled or not;
+        None: as if not settled)."""
+        p = self.params
         scan = max(a.scan_period_s, b.scan_period_s if b is not None else 0.0)
-        return max(self.params.min_interval_s, self.params.cadence_scans * scan)
+        scans = p.settled_cadence_scans if corr is not None and corr.settled else p.cadence_scans
+        return max(p.min_interval_s, scans * scan)
 
     def radar(self, radar_id: str, geometry: Site, table: TrackTable, time_s: float) -> list[tuple[str, str]]:
         """A radar's tracks after one of its batches: correlate it with every partner due, and
@@ -318,14 +328,13 @@ class CorrelationStage:
             if corr is None and not self.partition.owns_pair(*key):
                 continue
             if time_s < self.next_due.get(key, -np.inf):
-                if (
-                    corr is not None
-                    and fresh is not None
-                    and len(fresh)
-                    and self._prompt(corr, radar, other, time_s, fresh)
-                ):
-                    self.views[key] = PairSetView.of(key, corr, time_s)
-                    updated.append(key)
+                if corr is not None and fresh is not None and len(fresh):
+                    if self._prompt(corr, radar, other, time_s, fresh):
+                        self.views[key] = PairSetView.of(key, corr, time_s)
+                        updated.append(key)
+                    if not corr.settled:  # a fresh track left open: the next update must not wait
+                        scan = self._interval(radar.geometry, other.geometry, None)
+                        self.next_due[key] = min(self.next_due[key], corr.time_s + scan)
                 continue
             if corr is None and min(radar.confirmed, other.confirmed) < p.min_confirmed_tracks:
                 continue
@@ -343,11 +352,11 @@ class CorrelationStage:
                     method, first.geometry, second.geometry, self.correlation_params
                 )
                 self._adopt(key, corr)
-            self.next_due[key] = time_s + self._interval(radar.geometry, other.geometry)
             own = radar.tracks(time_s) if own is None else own
             other_table = table if table is not None else other.tracks(time_s)
             ta, tb = (own, other_table) if first is radar else (other_table, own)
             corr.update(ta, tb, time_s, self._implied(key) if second.geometry is not None else None)
+            self.next_due[key] = time_s + self._interval(radar.geometry, other.geometry, corr)
             self.updates += 1
             self.last_ms = float(corr.last_update_ms)
             self.timings_ms.append(self.last_ms)
