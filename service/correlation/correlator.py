@@ -74,7 +74,7 @@ from service.correlation.gmm import GmmParams
 from service.correlation.group_offset import GroupOffsetParams, group_residuals
 from service.correlation.linalg import chi2_upper, inv3, quad3
 from service.correlation.nearest import NearestCorrelator, NearestParams
-from service.correlation.pairkeys import find, pair_keys
+from service.correlation.pairkeys import find, isin_sorted, pair_keys
 from service.correlation.pairs import PairBook, PairBookParams, PairState
 from service.correlation.prediction import PredictionParams, predict_snapshot
 from service.correlation.prompt import PromptParams, clear_of_rivals, isolated
@@ -193,32 +193,34 @@ def _shifted(old: BiasSolution, new: BiasSolution | None, k_sigma: float) -> boo
     return False
 
 
-def _now(table: TrackTable, ids: NDArray[np.str_], time_s: float) -> np.ndarray:
-    """ECEF positions of the tracks ``ids`` of ``table`` at ``time_s`` (constant velocity)."""
-    if len(ids) == 0:
-        return np.empty((0, 3))
-    rows = np.flatnonzero(np.isin(table.track_id, ids))
-    return (
-        table.position_ecef_m[rows] + table.velocity_ecef_mps[rows] * (time_s - table.time_s[rows])[:, None]
-    )
+def positions_at(table: TrackTable, time_s: float) -> np.ndarray:
+    """Every track's ECEF position brought to ``time_s`` at its velocity."""
+    return np.asarray(table.position_ecef_m + table.velocity_ecef_mps * (time_s - table.time_s)[:, None])
 
 
-def _near(table: TrackTable, anchors: np.ndarray, reach_m: float, time_s: float) -> np.ndarray:
-    """Rows of ``table`` whose track, brought to ``time_s``, lies within ``reach_m`` of an anchor."""
-    if len(table) == 0:
-        return np.empty(0, dtype=np.intp)
-    pos = table.position_ecef_m + table.velocity_ecef_mps * (time_s - table.time_s)[:, None]
-    return _within(pos, anchors, reach_m, busy=np.empty(0, dtype=np.intp))
-
-
-def _within(positions: np.ndarray, anchors: np.ndarray, reach_m: float, busy: np.ndarray) -> np.ndarray:
+def _within(
+    positions: np.ndarray, anchors: np.ndarray, reach_m: float, busy: np.ndarray | None = None
+) -> np.ndarray:
     """The rows of ``positions`` within ``reach_m`` of any anchor and not among ``busy``."""
     if len(positions) == 0 or len(anchors) == 0:
         return np.empty(0, dtype=np.intp)
-    d2 = ((positions[:, None, :] - anchors[None, :, :]) ** 2).sum(axis=2)
-    near = (d2 <= reach_m**2).any(axis=1)
-    near[busy] = False
+    near = np.zeros(len(positions), dtype=bool)
+    for anchor in anchors:  # (a handful of fresh tracks: one pass over the table each)
+        d = positions - anchor
+        near |= np.einsum("ij,ij->i", d, d) <= reach_m**2
+    if busy is not None:
+        near[busy] = False
     return np.flatnonzero(near)
+
+
+def _pairs_within(
+    pos_a: np.ndarray, pos_b: np.ndarray, rows_a: np.ndarray, rows_b: np.ndarray, gate_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs ``(i, j)`` of ``rows_a`` x ``rows_b`` closer than ``gate_m``, in (i, j) order (a
+    few rows each: one distance matrix)."""
+    d = pos_a[rows_a][:, None, :] - pos_b[rows_b][None, :, :]
+    ia, ib = np.nonzero(np.einsum("ijk,ijk->ij", d, d) <= gate_m**2)
+    return rows_a[ia].astype(np.intp), rows_b[ib].astype(np.intp)
 
 
 def _other_rows(n: int, rows: np.ndarray) -> np.ndarray:
@@ -356,7 +358,7 @@ class PairCorrelator:
             nb = max(len(b), 1)
             is_implied = np.isin(decided.index_a * nb + decided.index_b, imp_a * nb + imp_b)
             cost = np.where(is_implied, cost - prm.cycles.bonus, cost)
-        chosen, ambiguous = assign_unambiguous(
+        chosen, _ambiguous = assign_unambiguous(
             decided.index_a,
             decided.index_b,
             cost,
@@ -423,9 +425,11 @@ class PairCorrelator:
                     # residuals carry its error, and would reject right pairs for minutes.
                     ev.clear()
         self.last_decisions = dec
-        #: Nothing left to settle: registered, no tentative pair, no ambiguous candidate (the
-        #: stage may then correlate the pair less often, :class:`CadenceParams`).
-        self.settled = self.registered and not (~self.book.confirmed).any() and not ambiguous.any()
+        #: Nothing left to settle: registered, no tentative pair, no candidate accepted but not
+        #: chosen or left undecided (the stage may then correlate the pair less often,
+        #: :class:`CadenceParams`).
+        open_ = (decided.accepted & ~chosen) | np.isin(decided.reason, NO_DECISION_REASONS)
+        self.settled = self.registered and not (~self.book.confirmed).any() and not open_.any()
         self.time_s = time_s
         self.updates += 1
         self.last_update_ms = (time.perf_counter() - t0) * 1e3
@@ -483,6 +487,8 @@ class PairCorrelator:
         time_s: float,
         fresh_a: NDArray[np.str_],
         fresh_b: NDArray[np.str_],
+        now_a: np.ndarray | None = None,
+        now_b: np.ndarray | None = None,
     ) -> bool:
         """Tracks confirmed since the pair's last update (``fresh_a``, ``fresh_b``: their ids)
         between two updates: the clear pairs among them (:mod:`.prompt`) enter the book
@@ -492,19 +498,22 @@ class PairCorrelator:
         Only the tracks near a fresh one are brought to the update time: its candidates and
         their rivals lie within two candidate gates of it, and before registration the
         topology sequences of those reach at most ``topology.max_radius_m`` further; the
-        decisions on these rows are those the whole tables would give."""
+        decisions on these rows are those the whole tables would give.  ``now_a``, ``now_b``:
+        every track's position brought to ``time_s`` (:func:`positions_at`), when known."""
         prm = self.params
         if not (prm.prompt.enabled and self.method == "svd-topology") or self.updates == 0:
             return False
         reach = 2.0 * prm.svd.candidates.gate_m
-        anchors = np.concatenate([_now(tracks_a, fresh_a, time_s), _now(tracks_b, fresh_b, time_s)])
-        if len(anchors) == 0 or not len(
-            _near(tracks_b if len(fresh_a) else tracks_a, anchors, reach, time_s)
-        ):
+        now_a = positions_at(tracks_a, time_s) if now_a is None else now_a
+        now_b = positions_at(tracks_b, time_s) if now_b is None else now_b
+        fresh_rows_a = isin_sorted(tracks_a.track_id, fresh_a)
+        anchors = np.concatenate([now_a[fresh_rows_a], now_b[isin_sorted(tracks_b.track_id, fresh_b)]])
+        partner = now_b if fresh_rows_a.any() else now_a
+        if len(anchors) == 0 or not len(_within(partner, anchors, reach)):
             return False  # no partner track within reach: nothing to decide
         extent = reach + (0.0 if self.registered else prm.svd.topology.max_radius_m)
-        sub_a = tracks_a.take(_near(tracks_a, anchors, extent, time_s))
-        sub_b = tracks_b.take(_near(tracks_b, anchors, extent, time_s))
+        sub_a = tracks_a.take(_within(now_a, anchors, extent))
+        sub_b = tracks_b.take(_within(now_b, anchors, extent))
         _, _, a, b, ctx_kw = self._snapshots(sub_a, sub_b, time_s)
         fa, fb = np.isin(a.track_id, fresh_a), np.isin(b.track_id, fresh_b)
         if not (fa.any() or fb.any()):
@@ -521,12 +530,17 @@ class PairCorrelator:
             reference_b=_within(b.position, anchors, reach, busy=cb_idx),
             **ctx_kw,  # type: ignore[arg-type]
         )
-        dec = self.correlator.decide(a, b, ctx)
+        dec = None
+        if ctx.registered:  # the compensated test decides (as the method's stage 2 would)
+            ia, ib = _pairs_within(a.position, b.position, ctx.reference_a, ctx.reference_b, reach / 2.0)
+            dec = self.correlator.reverify(a, b, ia, ib, ctx)
+        if dec is None:
+            dec = self.correlator.decide(a, b, ctx)
         fresh = fa[dec.index_a] | fb[dec.index_b]
         clear = self._clear(dec, a, b, sub_a, sub_b, time_s) & fresh
         # a fresh track with an accepted candidate that is not clear waits for the pair's
         # next full update, which must then not wait long
-        self.settled &= not (dec.accepted & fresh & ~clear).any()
+        self.settled &= not ((dec.accepted | np.isin(dec.reason, NO_DECISION_REASONS)) & fresh & ~clear).any()
         ev = self.evidence
         if ev is not None and clear.any() and len(ev):
             e = find(ev.keys, pair_keys(a.track_id[dec.index_a], b.track_id[dec.index_b]))

@@ -24,12 +24,22 @@ def find(keys: NDArray[np.str_], query: NDArray[np.str_]) -> NDArray[np.intp]:
     return np.where(keys[idx] == query, idx, -1).astype(np.intp)
 
 
+def ascending(y: NDArray[np.str_]) -> NDArray[np.str_]:
+    """``y`` sorted: as it is when it already is (a track table's ids are: one comparison pass
+    instead of a sort)."""
+    y = np.asarray(y)
+    if y.shape[0] < 2 or bool(np.all(y[1:] >= y[:-1])):
+        return y
+    return np.sort(y)
+
+
 def isin_sorted(x: NDArray[np.str_], y: NDArray[np.str_]) -> NDArray[np.bool_]:
-    """``np.isin(x, y)`` for string arrays by one sort of ``y`` and a binary search (``np.isin``
-    sorts both sides and their union; this is the books' most frequent operation)."""
+    """``np.isin(x, y)`` for string arrays by one sort of ``y`` (none when it is sorted already)
+    and a binary search (``np.isin`` sorts both sides and their union; this is the books' most
+    frequent operation)."""
     x, y = np.asarray(x), np.asarray(y)
     if x.shape[0] == 0 or y.shape[0] == 0:
         return np.zeros(x.shape[0], dtype=bool)
-    ys = np.sort(y)
+    ys = ascending(y)
     pos = np.minimum(np.searchsorted(ys, x), ys.shape[0] - 1)
     return np.asarray(ys[pos] == x)

@@ -102,6 +102,7 @@ class PairBook:
         #: Counts the changes of the book (:meth:`update`, a new probability column).
         self.version = 0
         self._strong: tuple[int, float, StrongPairs] | None = None
+        self._busy_cache: tuple[tuple[int, int], NDArray[np.str_], NDArray[np.str_]] | None = None
 
     def strong_confirmed(self, min_score: float) -> StrongPairs:
         """The confirmed pairs with ``score >= min_score`` (computed once per book version)."""
@@ -133,6 +134,7 @@ class PairBook:
         return _popcount(self.history & mask) / float(self.params.window)
 
     def _keep(self, keep: NDArray[np.bool_]) -> None:
+        self.version += 1
         self.track_a = self.track_a[keep]
         self.track_b = self.track_b[keep]
         self.keys = self.keys[keep]
@@ -262,7 +264,8 @@ class PairBook:
         if gone.any():
             self._keep(~gone)
         keys = _keys(track_a, track_b)
-        busy = _isin(track_a, self.track_a[self.confirmed]) | _isin(track_b, self.track_b[self.confirmed])
+        busy_a, busy_b = self._busy()
+        busy = _isin(track_a, busy_a) | _isin(track_b, busy_b)
         if busy.all():
             self.version += bool(gone.any())
             return bool(gone.any())
@@ -298,13 +301,20 @@ class PairBook:
         self.version += 1
         return bool(gone.any()) or fresh.size > 0 or int(np.count_nonzero(self.confirmed)) != before
 
+    def _busy(self) -> tuple[NDArray[np.str_], NDArray[np.str_]]:
+        """Each side's tracks in confirmed pairs, sorted (once per book version and confirmed set)."""
+        n = int(np.count_nonzero(self.confirmed))
+        if self._busy_cache is None or self._busy_cache[0] != (self.version, n):
+            conf = self.confirmed
+            self._busy_cache = ((self.version, n), np.sort(self.track_a[conf]), np.sort(self.track_b[conf]))
+        return self._busy_cache[1], self._busy_cache[2]
+
     def _confirm(self, idx: NDArray[np.intp]) -> None:
         """Confirm the pairs ``idx`` whose tracks are in no confirmed pair; among them, conflicts
         are settled by a one-to-one assignment on the score."""
         score = self.hit_fraction
         if idx.size:  # (the busy test only for these: in a steady state they are few)
-            busy_a = self.track_a[self.confirmed]
-            busy_b = self.track_b[self.confirmed]
+            busy_a, busy_b = self._busy()
             idx = idx[~_isin(self.track_a[idx], busy_a) & ~_isin(self.track_b[idx], busy_b)]
         if idx.size:
             ua, ra = np.unique(self.track_a[idx], return_inverse=True)

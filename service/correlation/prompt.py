@@ -14,11 +14,12 @@ A candidate ``(i, j)`` of one update is **clear** when
   more.  The costs are chi-square excesses, so between the pair and its best rival the
   likelihood ratio is at least ``exp(clear_margin / 2)`` (12: about 400 to 1); a rival the
   method could not decide at all (no fit, outside its gates) is none;
-* neither track has another track of its own radar, confirmed or not, within
-  ``isolation_m`` (horizontally, every track brought to the update time).  A rival on the
-  other radar may not be confirmed yet, or not seen: an aircraft with a close neighbour waits
-  for the evidence.  Dense groups and formations never pass this, so what the history
-  evidence does for them is unchanged.
+* neither track has a *tentative* track of its own radar within ``isolation_m``
+  (horizontally, every track brought to the update time).  A confirmed neighbour is in the
+  update's snapshots, so its candidates are the rivals above; a tentative one is not, and the
+  other radar may hold the aircraft it follows confirmed: that pair waits for the evidence.
+  Dense groups and formations have rivals within the margin, so what the history evidence
+  does for them is unchanged.
 
 A clear candidate is accepted without the looks :class:`~.evidence.EvidenceBook` otherwise
 wants (but never against a history that rejects it) and, once the one-to-one assignment
@@ -47,9 +48,8 @@ class PromptParams:
     #: ``exp(margin / 2)`` against the best rival (12: about 400 to 1; twice the assignment's
     #: ambiguity margin).
     clear_margin: float = 12.0
-    #: No other track of the same radar may be this close (m, horizontal), confirmed or not.
-    #: Twice the cross-range error of an en-route radar at 250 km (0.2 deg: 870 m), and within
-    #: the 5 km of the evidence's groups.
+    #: No tentative track of the same radar may be this close (m, horizontal).  Twice the
+    #: cross-range error of an en-route radar at 250 km (0.2 deg: 870 m).
     isolation_m: float = 2_000.0
 
 
@@ -68,25 +68,22 @@ def clear_of_rivals(
 def isolated(
     table: TrackTable, site: Site | None, time_s: float, track_ids: np.ndarray, radius_m: float
 ) -> BoolArray:
-    """For each of ``track_ids`` (tracks of ``table``): no other track of the table within
+    """For each of ``track_ids`` (tracks of ``table``): no tentative track of the table within
     ``radius_m`` horizontally in the site's plane, every track brought to ``time_s`` at its
     velocity (a reference source, ``site`` None: ECEF distance)."""
     n = len(track_ids)
-    if n == 0 or len(table) < 2:
+    tentative = np.flatnonzero(~table.confirmed)
+    if n == 0 or tentative.size == 0:
         return np.ones(n, dtype=bool)
-    dt = (time_s - table.time_s)[:, None]
-    pos = table.position_ecef_m + table.velocity_ecef_mps * dt
-    ok = np.all(np.isfinite(pos), axis=1)
-    rows = np.flatnonzero(ok)
-    pos = pos[rows]
-    ids = table.track_id[rows]
+    pos = table.position_ecef_m + table.velocity_ecef_mps * (time_s - table.time_s)[:, None]
+    ids = table.track_id
     order = np.argsort(ids)
     at = order[np.minimum(np.searchsorted(ids, track_ids, sorter=order), len(ids) - 1)]
     found = ids[at] == track_ids
-    d = pos[at][:, None, :] - pos[None, :, :]
+    d = pos[at][:, None, :] - pos[tentative][None, :, :]
     if site is not None:  # horizontal: drop the local vertical
         up = site.rotation[:, 2]
         d = d - (d @ up)[..., None] * up
-    close = np.einsum("ijk,ijk->ij", d, d) <= radius_m**2
-    others = close.sum(axis=1) - 1  # the track itself is at distance 0
-    return np.asarray(~found | (others == 0))
+    close = np.einsum("ijk,ijk->ij", d, d) <= radius_m**2  # (NaN positions are never close)
+    close &= tentative[None, :] != at[:, None]  # (a tentative track is not its own neighbour)
+    return np.asarray(~found | ~close.any(axis=1))

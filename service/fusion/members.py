@@ -14,7 +14,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from service.correlation.pairkeys import SEP, find
+from service.correlation.pairkeys import find
 from service.correlation.pairs import PairBook
 from service.correlation.prediction import PredictionParams, predict_snapshot
 from service.correlation.registration import BiasSolution, compensate
@@ -62,23 +62,32 @@ def members_and_links(
             )
         )
     members = _concat(parts)
-    keys = members.keys()
-    order = np.argsort(keys)  # once: every book's tracks are looked up in it
-    sorted_keys = keys[order]
+    # Each source's members are contiguous and in track id order (its table's order): a book's
+    # tracks are looked up within their source's block alone.
+    blocks: dict[str, tuple[int, np.ndarray, np.ndarray]] = {}
+    start = 0
+    for part in parts:
+        if len(part.source):
+            ids = part.track_id
+            order = np.arange(len(ids)) if bool(np.all(ids[1:] >= ids[:-1])) else np.argsort(ids)
+            blocks[str(part.source[0])] = (start, ids[order], order)
+        start += len(part.source)
 
-    def rows(query: np.ndarray) -> np.ndarray:
-        if not sorted_keys.shape[0]:
+    def rows(source: str, query: np.ndarray) -> np.ndarray:
+        block = blocks.get(source)
+        if block is None or not len(query):
             return np.full(query.shape[0], -1, dtype=np.int64)
-        at = np.minimum(np.searchsorted(sorted_keys, query), sorted_keys.shape[0] - 1)
-        return np.where(sorted_keys[at] == query, order[at], -1)
+        offset, ids, order = block
+        at = np.minimum(np.searchsorted(ids, query), ids.shape[0] - 1)
+        return np.where(ids[at] == query, offset + order[at], -1)
 
     la, lb, sc = [], [], []
     for source_a, source_b, book in books:
         conf = book.confirmed
         if not conf.any():
             continue
-        a = rows(_keys(source_a, book.track_a[conf]))
-        b = rows(_keys(source_b, book.track_b[conf]))
+        a = rows(source_a, book.track_a[conf])
+        b = rows(source_b, book.track_b[conf])
         ok = (a >= 0) & (b >= 0)
         la.append(a[ok])
         lb.append(b[ok])
@@ -91,10 +100,6 @@ def members_and_links(
         np.concatenate(lb).astype(np.int64),
         np.concatenate(sc),
     )
-
-
-def _keys(source: str, track_ids: np.ndarray) -> np.ndarray:
-    return np.char.add(source + SEP, np.asarray(track_ids).astype(str))
 
 
 def _members(

@@ -318,8 +318,11 @@ class SystemTracker:
             old[hit] = self._numbers[at[hit]]
         g = group[member]
         had = old >= 0
-        # votes: (group, old number) -> members; each group's leading number (ties: oldest)
-        pairs, votes = np.unique(np.stack([g[had], old[had]], axis=1), axis=0, return_counts=True)
+        # votes: (group, old number) -> members; each group's leading number (ties: oldest).
+        # One int64 key per (group, number) pair: a 1-D unique (a row-wise one sorts a view).
+        span = int(old.max()) + 1 if had.any() else 1
+        codes, votes = np.unique(g[had] * span + old[had], return_counts=True)
+        pairs = np.stack([codes // span, codes % span], axis=1)
         number = np.full(n_groups, -1, dtype=np.int64)
         if pairs.shape[0]:
             order = np.lexsort((pairs[:, 1], -votes, pairs[:, 0]))

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from service.correlation import CorrelationParams, PairCorrelator, joint_solution
+from service.correlation.correlator import positions_at
 from service.correlation.cycles import Implied, implied_for
 from service.correlation.registration import (
     BiasSolution,
@@ -78,9 +79,9 @@ class CadenceParams:
     #: ... and once per this many when it is settled: registered, no tentative pair, no
     #: ambiguous candidate, no fresh track left undecided.  Such an update only re-checks the
     #: confirmed pairs (a new track is decided when it is confirmed, a track that goes leaves
-    #: its pairs at once), so a settled network costs about half; a pair with anything open
+    #: its pairs at once), so a settled network costs about a third; a pair with anything open
     #: keeps ``cadence_scans``.
-    settled_cadence_scans: float = 2.0
+    settled_cadence_scans: float = 3.0
     #: ... and at most once per this many data seconds.
     min_interval_s: float = 1.0
     #: Radars farther apart than this cannot share targets and are never correlated (m).
@@ -104,8 +105,10 @@ class CadenceParams:
     bias_lag_s: float = 10.0
     #: System tracks (contract §4.4) are rebuilt once per this many data seconds, at its
     #: multiples; 0 turns them off.  A rebuild costs in proportion to the network's tracks
-    #: and confirmed pairs (national network: see bench/bench_national.py).
-    system_interval_s: float = 1.0
+    #: and confirmed pairs (national network: about 25 ms); the radars' scans are 4-12 s, so a
+    #: rebuild every 2 s still refreshes each system track within a scan, and a track that
+    #: goes leaves its system track at once (:mod:`.publication`).
+    system_interval_s: float = 2.0
 
 
 @dataclass
@@ -165,6 +168,7 @@ class CorrelationStage:
         #: Decisions of fresh tracks between updates (:meth:`_prompt`), and their time (s).
         self.prompt_updates = 0
         self.prompt_s = 0.0
+        self._own_now: tuple[TrackTable, float, np.ndarray] | None = None
         self.last_ms = 0.0
         #: Every update's time, not only the recent ones: updates per bucket of
         #: ``DURATION_BUCKETS_S`` (the last one above them all), and their sum (s).
@@ -385,10 +389,13 @@ class CorrelationStage:
         own, theirs = radar.tracks(time_s), other.tracks(time_s)
         empty = np.empty(0, dtype=str)
         t0 = time.perf_counter()
+        if self._own_now is None or self._own_now[0] is not own or self._own_now[1] != time_s:
+            self._own_now = (own, time_s, positions_at(own, time_s))  # (once per release)
+        now = self._own_now[2]
         if corr.site_a.site_id == radar.source_id:
-            changed = corr.decide_new(own, theirs, time_s, fresh, empty)
+            changed = corr.decide_new(own, theirs, time_s, fresh, empty, now_a=now)
         else:
-            changed = corr.decide_new(theirs, own, time_s, empty, fresh)
+            changed = corr.decide_new(theirs, own, time_s, empty, fresh, now_b=now)
         self.prompt_s += time.perf_counter() - t0
         self.prompt_updates += 1
         return changed
