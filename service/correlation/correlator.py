@@ -522,17 +522,19 @@ class PairCorrelator:
         ca_idx, cb_idx = _lookup_pairs(
             a.track_id, b.track_id, self.book.track_a[conf], self.book.track_b[conf]
         )
+        ref_a = _within(a.position, anchors, reach, busy=ca_idx)
+        ref_b = _within(b.position, anchors, reach, busy=cb_idx)
         ctx = DecisionContext(
             time_s=time_s,
             confirmed_a=ca_idx,
             confirmed_b=cb_idx,
-            reference_a=_within(a.position, anchors, reach, busy=ca_idx),
-            reference_b=_within(b.position, anchors, reach, busy=cb_idx),
+            reference_a=ref_a,
+            reference_b=ref_b,
             **ctx_kw,  # type: ignore[arg-type]
         )
         dec = None
         if ctx.registered:  # the compensated test decides (as the method's stage 2 would)
-            ia, ib = _pairs_within(a.position, b.position, ctx.reference_a, ctx.reference_b, reach / 2.0)
+            ia, ib = _pairs_within(a.position, b.position, ref_a, ref_b, prm.svd.candidates.gate_m)
             dec = self.correlator.reverify(a, b, ia, ib, ctx)
         if dec is None:
             dec = self.correlator.decide(a, b, ctx)
