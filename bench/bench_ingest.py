@@ -125,7 +125,9 @@ def bench_node(batches: list[tuple[str, bytes]], radars: list[str], window_only:
         for key, payload in batches:
             client.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
         total = len(batches)
-        while sum(r.batches for r in node.engine.radar_clocks.values()) < total or not node.queue.empty():
+        while (
+            sum(r.batches for r in node.engine.sequencer.sources.values()) < total or not node.queue.empty()
+        ):
             time.sleep(0.001)
         elapsed = time.perf_counter() - t0
         assert node.queue.dropped_total == 0

@@ -3,9 +3,11 @@
 A thin coordinator of the stages in :mod:`service.pipeline`, one path for every message::
 
     decode -> sequencer (seq, data clock, release in data-time order)
-           -> tracking (a radar's batch -> its table)  -> publication (TrackBatch)
+           -> tracking (a radar's batch -> its table)
            -> merger (every radar's tables in release order; other workers' too)
-           -> correlation (here or in its own process) -> publication (PairSet, system tracks)
+           -> correlation (here or in its own process)
+           -> publication (each table with what correlation answered for it: TrackBatch,
+              then PairSet and system tracks, whole together)
 
 A worker alone is the one-owner case of a partitioned network (:mod:`.pipeline.peers`): its
 merger releases each table as soon as it is pushed.  A message is checked whole before
@@ -33,8 +35,8 @@ from service.pipeline.merger import TableMerger
 from service.pipeline.peers import Peers
 from service.pipeline.publication import Publication
 from service.pipeline.read_model import Snapshot, build_snapshot
-from service.pipeline.restart import EngineState, read_state
-from service.pipeline.sequencer import RADAR, REFERENCE, Release, Sequencer, SourceClock
+from service.pipeline.restart import EngineState, own_state, read_state, state_when_answered
+from service.pipeline.sequencer import RADAR, REFERENCE, Release, Sequencer
 from service.pipeline.tracking_stage import (
     SiteChange,
     TrackerFactory,
@@ -64,9 +66,8 @@ class Engine:
         tracker_factory: TrackerFactory | None = None,
         correlation_process: bool = False,
     ) -> None:
-        """``correlation_process``: run the correlation stage in a child process (two cores:
-        tracking and correlation at once; same results, pair sets handed out a little later,
-        and :meth:`close` stops it)."""
+        """``correlation_process``: the correlation stage in a child process (two cores; the
+        same outputs, a little later; :meth:`close` stops it)."""
         self.config = c = config or EngineConfig()
         self.keys = Keys(c.prefix)
         self.partition = c.partition
@@ -80,16 +81,7 @@ class Engine:
         )
         #: Every radar's tables and the references, in release order, into correlation.
         self.merger = TableMerger()
-        self.peers = Peers(
-            c.partition,
-            self.keys,
-            c.exchange,
-            c.cadence,
-            self.sequencer,
-            self.tracking,
-            self.merger,
-            self.correlation,
-        )
+        self.peers = Peers(c, self.keys, self.sequencer, self.tracking, self.merger, self.correlation)
         self.publication = Publication(self.keys)
         #: Tables sent to correlation and not answered yet: (radar, data time, table, own).
         self._unpublished: deque[tuple[str, float, TrackTable, bool]] = deque()
@@ -102,16 +94,6 @@ class Engine:
             self._set_site(site)
 
     # -- views of the stages' state (tests, evaluation, diagnostics) ------------------------------
-    @property
-    def radar_clocks(self) -> dict[str, SourceClock]:
-        """The sequencer's clock of every radar (its counters: batches, lost, rejected)."""
-        return {k: s for k, s in self.sequencer.sources.items() if s.kind == RADAR}
-
-    @property
-    def reference_clocks(self) -> dict[str, SourceClock]:
-        """The sequencer's clock of every reference source (AIS, ADS-B)."""
-        return {k: s for k, s in self.sequencer.sources.items() if s.kind == REFERENCE}
-
     def correlators(self) -> list[PairCorrelator]:
         """The live pair correlators (none in this process when the correlation runs in its own)."""
         return self.correlation.correlators()
@@ -132,28 +114,12 @@ class Engine:
         return EngineState(correlation=self.correlation.export_state(), **self._own_state())
 
     def request_state(self) -> Callable[[], EngineState | None]:
-        """:meth:`export_state` without waiting for the correlation process: the engine's own
-        part is taken now, the correlation's at the same point of its input; the returned
-        function gives the state once it is answered (None until then; ``RuntimeError`` if the
-        process died meanwhile)."""
-        own = self._own_state()
-        correlation = self.correlation.request_state()
-
-        def ready() -> EngineState | None:
-            answered = correlation()
-            return None if answered is None else EngineState(correlation=answered, **own)
-
-        return ready
+        """:meth:`export_state` without waiting for the correlation process: the engine's part
+        now, the correlation's at the same point of its input (:func:`state_when_answered`)."""
+        return state_when_answered(self._own_state(), self.correlation.request_state())
 
     def _own_state(self) -> dict[str, Any]:
-        """The fields of :class:`EngineState` but the correlation's (new objects)."""
-        return {
-            "sites": [r.site.model_dump(mode="json") for _, r in sorted(self.tracking.radars.items())],
-            "sources": self.sequencer.export_state(),
-            "reference_kinds": dict(sorted(self.reference_kinds.items())),
-            "published_biases": self.peers.published_biases,
-            "data_clock_s": _finite(self.data_clock_s),
-        }
+        return own_state(self.tracking, self.sequencer, self.reference_kinds, self.peers.published_biases)
 
     def restore_state(self, state: EngineState | None, epoch: int) -> None:
         """Take what :meth:`export_state` gave, before any input (``None``: nothing but the epoch).
@@ -201,11 +167,7 @@ class Engine:
                 site: RadarSite = parse(RadarSite, payload, source_id)
                 check_body_id("radar_id", site.radar_id, source_id)
                 return self._set_site(site)
-            if what == "plots":
-                self._admit_plots(source_id, payload)
-            else:
-                self._admit_reference(what, source_id, payload)
-            return self._process(self.sequencer.release())
+            return self._admit(what, source_id, payload) + self._process(self.sequencer.release())
         except RejectionError as rej:
             return self._rejected(key, rej, receive_time_s, peer is not None)
         except Exception as exc:  # a bug must cost one message, never the service
@@ -277,36 +239,40 @@ class Engine:
             out += self.publication.forget(sid)
         return out
 
-    def _admit_plots(self, radar_id: str, payload: bytes) -> None:
-        batch: PlotBatch = parse(PlotBatch, payload, radar_id)
-        check_body_id("radar_id", batch.radar_id, radar_id)
-        if radar_id not in self.tracking.radars:
-            raise RejectionError("unknown_radar", f"no site known for radar {radar_id!r}", radar_id)
-        plots = plot_columns(batch)
-        adm = self.sequencer.check(radar_id, RADAR, batch.seq, batch.time_s)
-        self._drop(self.sequencer.accept(adm, plots))  # accepted: from here on it changes state
-        self.plots[radar_id] += len(plots)
+    def _admit(self, what: str, source_id: str, payload: bytes) -> list[Outgoing]:
+        """A radar's plot batch, or an AIS or ADS-B batch (one reference path for both):
+        checked whole, then accepted by the sequencer."""
+        item: Any
+        batch: PlotBatch | AisBatch | AdsbBatch
+        if what == "plots":
+            plots: PlotBatch = parse(PlotBatch, payload, source_id)
+            check_body_id("radar_id", plots.radar_id, source_id)
+            if source_id not in self.tracking.radars:
+                raise RejectionError("unknown_radar", f"no site known for radar {source_id!r}", source_id)
+            batch, item, n, kind = plots, plot_columns(plots), len(plots.plots.time_s), RADAR
+        else:
+            reports: AisBatch | AdsbBatch = parse(
+                AisBatch if what == "ais" else AdsbBatch, payload, source_id
+            )
+            check_body_id("source_id", reports.source_id, source_id)
+            held = self.reference_kinds.get(source_id)
+            if held is not None and held != what:
+                detail = f"source id {source_id!r} is taken by an {held} source"
+                raise RejectionError("schema", detail, source_id)
+            batch, item, n, kind = reports, reports, len(reports.reports.time_s), REFERENCE
+        adm = self.sequencer.check(source_id, kind, batch.seq, batch.time_s)
+        out = self._drop(self.sequencer.accept(adm, item))  # accepted: from here on it changes state
+        if kind == REFERENCE:
+            self.reference_kinds[source_id] = what
+        self.plots[source_id] += n
         self._snapshot = None
+        return out
 
-    def _admit_reference(self, kind: str, source_id: str, payload: bytes) -> None:
-        """An AIS or ADS-B batch: one reference-source path for both."""
-        batch: AisBatch | AdsbBatch = parse(AisBatch if kind == "ais" else AdsbBatch, payload, source_id)
-        check_body_id("source_id", batch.source_id, source_id)
-        held = self.reference_kinds.get(source_id)
-        if held is not None and held != kind:
-            raise RejectionError("schema", f"source id {source_id!r} is taken by an {held} source", source_id)
-        adm = self.sequencer.check(source_id, REFERENCE, batch.seq, batch.time_s)
-        self._drop(self.sequencer.accept(adm, batch))
-        self.reference_kinds[source_id] = kind
-        self.plots[source_id] += len(batch.reports.time_s)
-        self._snapshot = None
-
-    def _input_key(self, source_id: str) -> str:
-        kind = self.reference_kinds.get(source_id)
-        return self.keys.input(kind, source_id) if kind is not None else self.keys.plots(source_id)
-
-    def _internal(self, source_id: str, detail: str) -> Outgoing:
-        return self._reject(self._input_key(source_id), RejectionError("internal", detail, source_id), None)
+    def _internal(self, source_id: str | None, detail: str) -> Outgoing:
+        """A failure processing a source's message (None: of no one message), on its input key."""
+        kind = self.reference_kinds.get(source_id or "")
+        key = self.keys.errors if not source_id else self.keys.input(kind or "plots", source_id)
+        return self._reject(key, RejectionError("internal", detail, source_id), None)
 
     # -- released batches: the one path --------------------------------------------------
     def _process(self, released: Iterable[Release]) -> list[Outgoing]:
@@ -369,11 +335,9 @@ class Engine:
             out += [self.publication.pairs(key, view) for key, view in answer.updated]
             if answer.system is not None:
                 out.append(self.publication.system_tracks(answer.system))
-        for source_id, detail in self.correlation.take_errors():
-            if source_id:
-                out.append(self._internal(source_id, detail))
-            else:
-                out.append(self._reject(self.keys.errors, RejectionError("internal", detail, None), None))
+        out += [
+            self._internal(source_id or None, detail) for source_id, detail in self.correlation.take_errors()
+        ]
         out += self.peers.outputs(idle)
         if out:
             self._snapshot = None
@@ -395,8 +359,6 @@ class Engine:
         """The workers that are up (liveliness): the merger waits for these only.  Returns
         what the merge then lets through (a worker that left no longer holds it back)."""
         self.peers.set_alive(workers)
-        if self.partition.whole:
-            return []
         self._snapshot = None
         out = self._correlate(self.merger.release(self.peers.owners(), self.peers.cap()))
         return out + self._results()
@@ -405,8 +367,9 @@ class Engine:
     def outputs_time_s(self) -> float | None:
         """The data time up to which every published output reflects every input processed
         (contract §5.1): what was released, as far as the correlation has answered it."""
-        through = self.correlation.correlated_through(min(self.sequencer.last_limit, self.merger.last_limit))
-        return _finite(through)
+        return _finite(
+            self.correlation.correlated_through(min(self.sequencer.last_limit, self.merger.last_limit))
+        )
 
     # -- read model ----------------------------------------------------------------------
     def snapshot(self) -> Snapshot:
@@ -416,8 +379,6 @@ class Engine:
         return self._snapshot
 
     def _build_snapshot(self) -> Snapshot:
-        published = self.peers.published_biases
-        own = self.partition.solves_biases or published is None
         return build_snapshot(
             tracking=self.tracking,
             sources=self.sequencer.sources,
@@ -426,12 +387,12 @@ class Engine:
             tables=self.publication.tables,
             pair_views=self.publication.pair_views(),
             system=self.publication.system,
-            biases=list(self.correlation.biases if own else published["biases"]),  # type: ignore[index]
+            biases=self.peers.biases(),
             correlation={**self.correlation.timings(), "pending": self.correlation.pending},
             rejected=dict(sorted(self.rejected.items())),
             method=self.config.method,
             prefix=self.config.prefix,
-            progress=self.peers.progress() if not self.partition.whole else {},
+            progress=self.peers.progress(),
             adsb_sources=frozenset(k for k, kind in self.reference_kinds.items() if kind == "adsb"),
             outputs_time_s=self.outputs_time_s,
         )

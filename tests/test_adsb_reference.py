@@ -13,6 +13,7 @@ import zenoh
 
 from service.correlation.correlator import CorrelationParams
 from service.engine import Engine, EngineConfig
+from service.pipeline.sequencer import REFERENCE
 from service.reference import ReferenceParams, ReferenceTracks
 from service.tracking.identity import LatestCodes
 from tests.support import put_json, run_engine, running_service, wait_for, wait_subscribed
@@ -150,7 +151,7 @@ def test_bad_adsb_batches_are_rejected_whole() -> None:
     ]:
         (o,) = engine.ingest(key, json.dumps(bad).encode(), receive_time_s=0.0)
         assert json.loads(o.payload)["reason"] == reason
-    assert engine.reference_clocks == {}
+    assert all(s.kind != REFERENCE for s in engine.sequencer.sources.values())
     assert engine.ingest(key, json.dumps(good).encode()) == []
     # the same id as an AIS source: taken
     ais = {
@@ -239,7 +240,7 @@ def test_bad_identity_columns_reject_the_batch_and_change_nothing(
     bad = {"radar_id": "A", "seq": 1, "time_s": 100.0, "plots": {**plots, column: values}}
     (o,) = engine.ingest("fusion/radar/A/plots", json.dumps(bad).encode(), receive_time_s=0.0)
     assert json.loads(o.payload)["reason"] == reason
-    assert engine.radar_clocks["A"].last_seq is None
+    assert engine.sequencer.sources["A"].last_seq is None
     ok = {"radar_id": "A", "seq": 1, "time_s": 100.0, "plots": {**plots, "mode_s": ["3c6444", None]}}
     keys = [x.key for x in engine.ingest("fusion/radar/A/plots", json.dumps(ok).encode())]
     assert keys[0] == "fusion/radar/A/tracks" and "fusion/errors" not in keys

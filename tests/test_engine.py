@@ -126,8 +126,8 @@ def test_hostile_messages_are_rejected_whole_and_change_nothing(
     }
     rejected = engine.snapshot().status_core()["rejected"]
     assert sum(rejected.values()) == len(hostile)
-    assert engine.radar_clocks["A"].batches == base_engine.radar_clocks["A"].batches
-    assert "Z" not in engine.radar_clocks and "coast-1" not in engine.reference_clocks
+    assert engine.sequencer.sources["A"].batches == base_engine.sequencer.sources["A"].batches
+    assert "Z" not in engine.sequencer.sources and "coast-1" not in engine.sequencer.sources
 
 
 def _interleave(stream: list[tuple[str, bytes]], seed: int) -> list[tuple[str, bytes]]:
@@ -161,8 +161,8 @@ def test_sequence_gaps_count_lost_batches(stream: list[tuple[str, bytes]]) -> No
     dropped = {i for i, (k, _) in enumerate(stream) if k.endswith("B/plots")}
     dropped = set(sorted(dropped)[10:13])  # three consecutive B batches never arrive
     engine, _ = run([m for i, m in enumerate(stream) if i not in dropped])
-    assert engine.radar_clocks["B"].lost_batches == 3
-    assert engine.radar_clocks["A"].lost_batches == 0
+    assert engine.sequencer.sources["B"].lost_batches == 3
+    assert engine.sequencer.sources["A"].lost_batches == 0
 
 
 def test_plots_before_site_are_unknown_radar_then_accepted(stream: list[tuple[str, bytes]]) -> None:
@@ -174,7 +174,7 @@ def test_plots_before_site_are_unknown_radar_then_accepted(stream: list[tuple[st
     for m in sites:
         engine.ingest(*m)
     engine.ingest(*plots[0])
-    assert engine.radar_clocks[plots[0][0].split("/")[2]].batches == 1
+    assert engine.sequencer.sources[plots[0][0].split("/")[2]].batches == 1
 
 
 def test_silent_radar_stops_holding_back_the_others(stream: list[tuple[str, bytes]]) -> None:
@@ -185,7 +185,7 @@ def test_silent_radar_stops_holding_back_the_others(stream: list[tuple[str, byte
         if key.endswith("B/plots") and body["time_s"] > 1_763_769_605.0:
             continue
         engine.ingest(key, payload)
-    a, b = engine.radar_clocks["A"], engine.radar_clocks["B"]
+    a, b = engine.sequencer.sources["A"], engine.sequencer.sources["B"]
     assert b.released_time_s is not None and b.released_time_s <= 1_763_769_605.0
     assert a.released_time_s is not None and a.released_time_s >= a.last_time_s - 1e-9  # nothing held
 
@@ -212,7 +212,7 @@ def test_ais_reference_registers_a_biased_radar() -> None:
     stream = scenario_messages("coastal", duration_s=400.0, seed=3)
     engine, _ = run(stream)
     snap = engine.snapshot()
-    assert engine.reference_clocks["ais-1"].batches == 40
+    assert engine.sequencer.sources["ais-1"].batches == 40
     (ps,) = snap.pair_sets(status="confirmed")
     assert (ps["radar_a"], ps["radar_b"], ps["method"]) == ("ais-1", "coast", "cfar")
     tracks = {t["track_id"]: t["truth_id"] for t in snap.track_batch("coast", "all")["tracks"]}  # type: ignore[index]
@@ -285,6 +285,6 @@ def test_mutated_plot_value_is_rejected_or_valid(field: str, value: object) -> N
     out = engine.ingest("fusion/radar/A/plots", json.dumps(body).encode())
     errors = [json.loads(o.payload) for o in out if o.key == "fusion/errors"]
     if errors:
-        assert errors[0]["reason"] in REASONS and engine.radar_clocks["A"].batches == 0
+        assert errors[0]["reason"] in REASONS and engine.sequencer.sources["A"].batches == 0
     else:
-        assert engine.radar_clocks["A"].batches == 1
+        assert engine.sequencer.sources["A"].batches == 1

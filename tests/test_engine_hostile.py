@@ -62,7 +62,7 @@ def test_batch_far_in_the_future_is_rejected_and_costs_nothing(
     (err,) = errors(out)
     assert err["reason"] == "out_of_range" and "ahead of the other sources" in err["detail"]
     assert results(engine) == results(baseline[0])
-    assert engine.radar_clocks["A"].lost_batches == 0 and engine.radar_clocks["A"].rejected == 1
+    assert engine.sequencer.sources["A"].lost_batches == 0 and engine.sequencer.sources["A"].rejected == 1
 
 
 def test_future_source_first_cannot_hold_or_release_the_others(
@@ -99,7 +99,7 @@ def test_absurd_seq_jump_is_rejected_and_the_radar_goes_on(
     assert [e["reason"] for e in errors(out)] == ["out_of_range", "out_of_range"]
     assert "skips" in errors(out)[1]["detail"]
     assert results(engine) == results(baseline[0])
-    assert engine.radar_clocks["B"].batches == baseline[0].radar_clocks["B"].batches
+    assert engine.sequencer.sources["B"].batches == baseline[0].sequencer.sources["B"].batches
 
 
 def test_long_outage_may_skip_many_seq_numbers() -> None:
@@ -117,7 +117,7 @@ def test_long_outage_may_skip_many_seq_numbers() -> None:
     assert not errors(engine.ingest("fusion/radar/A/plots", batch(1, 1000.0)))
     assert errors(engine.ingest("fusion/radar/A/plots", batch(500, 1010.0)))  # 498 in 10 s: > 5 Hz
     assert not errors(engine.ingest("fusion/radar/A/plots", batch(500, 1200.0)))  # 498 in 200 s: fine
-    assert engine.radar_clocks["A"].lost_batches == 498
+    assert engine.sequencer.sources["A"].lost_batches == 498
 
 
 def test_publisher_restart_is_recognised_not_locked_out(stream: Stream) -> None:
@@ -129,8 +129,8 @@ def test_publisher_restart_is_recognised_not_locked_out(stream: Stream) -> None:
         restarted[j] = (restarted[j][0], json.dumps({**b, "seq": n + 1}).encode())
     engine, out = run_engine(restarted)
     assert errors(out) == []
-    assert engine.radar_clocks["B"].restarts == 1
-    assert engine.radar_clocks["B"].batches == len(b_batches)
+    assert engine.sequencer.sources["B"].restarts == 1
+    assert engine.sequencer.sources["B"].batches == len(b_batches)
     base, _ = run_engine(stream)
     assert results(engine) == results(base)
     # a true duplicate is still one: the first batch after the restart, sent again
@@ -205,7 +205,7 @@ def test_many_fake_radar_ids_cost_nothing(stream: Stream, baseline: tuple[Engine
     assert results(engine) == results(baseline[0])
     assert set(engine.correlation.stage.correlators) == {("A", "B")}
     assert engine.correlation.stage.updates == baseline[0].correlation.stage.updates
-    assert engine.radar_clocks["A042"].batches == 1
+    assert engine.sequencer.sources["A042"].batches == 1
 
 
 def test_silent_source_expires_and_its_pairs_empty(stream: Stream) -> None:
@@ -219,8 +219,8 @@ def test_silent_source_expires_and_its_pairs_empty(stream: Stream) -> None:
             continue
         engine.ingest(key, payload)
     engine.flush()
-    b = engine.radar_clocks["B"]
-    assert b.expired and not engine.radar_clocks["A"].expired
+    b = engine.sequencer.sources["B"]
+    assert b.expired and not engine.sequencer.sources["A"].expired
     assert len(engine.tracking.radars["B"].table) == 0
     (ps,) = engine.snapshot().pair_sets(status="all")
     assert ps["pairs"] == []
@@ -239,4 +239,4 @@ def test_source_table_is_bounded() -> None:
         assert engine.ingest(f"fusion/radar/{rid}/site", json.dumps({**site, "radar_id": rid}).encode()) == []
     (err,) = errors(engine.ingest("fusion/radar/D/site", json.dumps({**site, "radar_id": "D"}).encode()))
     assert err["reason"] == "out_of_range" and "source table full" in err["detail"]
-    assert "D" not in engine.radar_clocks and len(engine.radar_clocks) == 3
+    assert "D" not in engine.sequencer.sources and len(engine.sequencer.sources) == 3

@@ -398,7 +398,13 @@ class PairCorrelator:
         )
         self.last_rows = None
         if len(pa_idx):
-            cap = prm.registration.registered_rows_per_update if self.registered else None
+            cap = None
+            if self.registered:
+                # the cap is per scan: an update after several scans (a settled pair) takes as
+                # many rows as one per scan would have taken, so registration learns as fast
+                scan = max(self.site_a.scan_period_s, self.site_b.scan_period_s if self.site_b else 0.0)
+                scans = (time_s - self.time_s) / scan if np.isfinite(self.time_s) and scan > 0 else 1.0
+                cap = round(prm.registration.registered_rows_per_update * max(1.0, scans))
             self.last_rows = self.memory.add(
                 time_s, raw_a, raw_b, pa_idx, pb_idx, prm.registration, max_rows=cap
             )

@@ -72,7 +72,8 @@ class RegistrationParams:
     #: At most this many confirmed pairs (evenly spread) are remembered per update: rows of
     #: one update share the biases, more add little information but cost time.
     max_rows_per_update: int = 300
-    #: ... and at most this many once the pair is registered (its solution in use).  Every
+    #: ... and at most this many per scan of the slower radar once the pair is registered (its
+    #: solution in use; a pair updated every few scans takes that many times more).  Every
     #: solve costs in proportion to the remembered rows (a re-solve of a busy pair with 300
     #: rows per update was 40-80 ms); the pick's phase advances each update, so successive
     #: updates take different track pairs, and the memory still holds every confirmed pair

@@ -18,24 +18,25 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from service.correlation.registration import RegistrationRowsData
 from service.pipeline.correlation_runner import CorrelationRunner
-from service.pipeline.correlation_stage import CadenceParams
 from service.pipeline.decode import check_body_id, parse
 from service.pipeline.errors import RejectionError
 from service.pipeline.merger import TableMerger
-from service.pipeline.partition import Partition
 from service.pipeline.sequencer import RADAR, Sequencer
-from service.pipeline.track_exchange import ExchangeParams, StatesReceiver, StatesSender, decode_states
+from service.pipeline.track_exchange import StatesReceiver, StatesSender, decode_states
 from service.pipeline.tracking_stage import TrackingStage
 from service.tracking.base import TrackTable
 from service.wire.keys import Keys
 from service.wire.models import BiasSet, RegistrationRows, WorkerClock
 from service.wire.outgoing import Outgoing
+
+if TYPE_CHECKING:  # (the configuration imports the stages: no import at run time)
+    from service.config import EngineConfig
 
 #: Track states of radars whose site has not come yet, held until it comes (the owner can hear
 #: a radar's site before this worker does, and the workers' messages are taken ahead of
@@ -78,19 +79,17 @@ class Peers:
 
     def __init__(
         self,
-        partition: Partition,
+        config: EngineConfig,
         keys: Keys,
-        exchange: ExchangeParams,
-        cadence: CadenceParams,
         sequencer: Sequencer,
         tracking: TrackingStage,
         merger: TableMerger,
         correlation: CorrelationRunner,
     ) -> None:
-        self.partition = partition
+        self.partition = partition = config.partition
         self.keys = keys
-        self.exchange = exchange
-        self.cadence = cadence
+        self.exchange = exchange = config.exchange
+        self.cadence = config.cadence
         self.sequencer = sequencer
         self.tracking = tracking
         self.merger = merger
@@ -168,7 +167,9 @@ class Peers:
         self.alive = set(workers) | {self.partition.index}
 
     def progress(self) -> dict[str, Any]:
-        """How far this worker has got (``/status`` ``partition.progress``)."""
+        """How far this worker has got (``/status`` ``partition.progress``; none alone)."""
+        if self.alone:
+            return {}
         return {
             "released_s": _finite(self.sequencer.last_limit),
             "merged_s": _finite(self.merger.last_limit),
@@ -178,6 +179,12 @@ class Peers:
                 k for k in self.owners() if self.merger.released.get(k, -np.inf) <= self.merger.last_limit
             ),
         }
+
+    def biases(self) -> list[dict[str, Any]]:
+        """The joint bias estimate this worker serves: its own (it solves them) or the one the
+        bias worker published."""
+        mine = self.partition.solves_biases or self.published_biases is None
+        return list(self.correlation.biases if mine else self.published_biases["biases"])  # type: ignore[index]
 
     @property
     def progress_pending(self) -> bool:

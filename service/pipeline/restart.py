@@ -6,9 +6,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 from pydantic import ValidationError
 
 from service.pipeline.sequencer import Sequencer
@@ -46,6 +48,38 @@ class EngineState:
             f"{len(memories)} registration memories ({rows} rows), "
             f"biases of {len(joint['radar_ids']) if joint else 0} radars"
         )
+
+
+def own_state(
+    tracking: Any,
+    sequencer: Sequencer,
+    reference_kinds: dict[str, str],
+    published_biases: dict[str, Any] | None,
+) -> dict[str, Any]:
+    """The fields of :class:`EngineState` but the correlation's, as new objects (later input
+    changes none of them): ``tracking`` is the engine's :class:`~.tracking_stage.TrackingStage`."""
+    clock = sequencer.newest_s
+    return {
+        "sites": [r.site.model_dump(mode="json") for _, r in sorted(tracking.radars.items())],
+        "sources": sequencer.export_state(),
+        "reference_kinds": dict(sorted(reference_kinds.items())),
+        "published_biases": published_biases,
+        "data_clock_s": float(clock) if np.isfinite(clock) else None,
+    }
+
+
+def state_when_answered(
+    own: dict[str, Any], correlation: Callable[[], dict[str, Any] | None]
+) -> Callable[[], EngineState | None]:
+    """The state of one moment: the engine's part taken then (``own``), the correlation's once
+    its process has answered (``correlation``: None until then).  The returned function gives
+    it (None until then; ``RuntimeError`` if the process died meanwhile)."""
+
+    def ready() -> EngineState | None:
+        answered = correlation()
+        return None if answered is None else EngineState(correlation=answered, **own)
+
+    return ready
 
 
 def read_state(
