@@ -17,7 +17,8 @@ from collections.abc import Iterator
 from dataclasses import replace
 from typing import Any
 
-from service.recording.reader import RecordingError
+from service.recording.completion import RecordingEnd, wait_complete
+from service.recording.reader import RecordedMessage, RecordingError
 from service.recording.recorder import DEFAULT_QUEUE_BYTES, DEFAULT_QUEUE_SAMPLES, record
 from service.recording.replay import ReplayOptions, replay
 from service.transport.session import ZenohOptions, open_tool_session
@@ -81,6 +82,14 @@ def add_replay_arguments(parser: argparse.ArgumentParser) -> None:
         action=argparse.BooleanOptionalAction,
         default=None,
         help="progress line on stderr (default: on long replays)",
+    )
+    parser.add_argument(
+        "--wait",
+        type=_non_negative,
+        default=120.0,
+        metavar="S",
+        help="after the last message, wait up to S seconds until the service reports its outputs "
+        "complete through the recording's end (Status.outputs_time_s); 0: do not wait (default 120)",
     )
     off = parser.add_argument_group("offline replay (no Zenoh)")
     off.add_argument("--offline", action="store_true", help="feed an in-process engine instead of publishing")
@@ -199,19 +208,73 @@ def replay_main(
 
         session = open_tool_session(zenoh_options, "replay")
         rejections = RejectionWatch(session, prefix)
+        end = RecordingEnd()
         try:
             with _stop_on_signals(stop), ZenohReplayPublisher(session) as publish:
-                report = replay(args.file, publish, prefix, options, stop=stop, progress=args.progress)
+
+                def publish_and_note(message: RecordedMessage) -> None:
+                    publish(message)
+                    end.add(message)
+
+                report = replay(
+                    args.file, publish_and_note, prefix, options, stop=stop, progress=args.progress
+                )
             rejections.settle()
+            for line in report.lines() + rejections.lines():
+                print(line, file=sys.stderr, flush=True)
+            complete = True
+            if args.wait > 0 and not stop.is_set() and not options.loop:
+                complete = _wait_for_outputs(session, prefix, end, args.wait)
         finally:
             rejections.close()
             session.close()
     except (RecordingError, FileNotFoundError, IsADirectoryError, PermissionError, ValueError) as exc:
         print(f"topofusion replay: {exc}", file=sys.stderr, flush=True)
         return 2
-    for line in report.lines() + rejections.lines():
+    return 1 if rejections.by_reason.get("duplicate_seq") or not complete else 0
+
+
+def _wait_for_outputs(session: Any, prefix: str, end: RecordingEnd, timeout_s: float) -> bool:
+    """Wait until the service's outputs are complete through the recording's end (contract
+    §5.1), saying so; False (with a line saying why) when it did not get there in time."""
+    target = end.target_s()
+    if target is None:
+        return True
+
+    def status() -> dict[str, Any] | None:
+        for reply in session.get(f"{prefix}/status", timeout=1.0):
+            if reply.ok is not None:
+                try:
+                    answer: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
+                    return answer
+                except ValueError:
+                    return None
+        return None
+
+    def say(line: str) -> None:
         print(line, file=sys.stderr, flush=True)
-    return 1 if rejections.by_reason.get("duplicate_seq") else 0
+
+    t0 = time.monotonic()
+    done, seen, answered = wait_complete(status, target, timeout_s, say)
+    if not answered:
+        say(f"no service answered {prefix}/status: not waiting for its outputs")
+        return True
+    if done:
+        say(
+            f"the service's outputs are complete through data time {seen:.3f} "
+            f"(the recording's end, {target:.3f}), {time.monotonic() - t0:.1f} s after the last message"
+        )
+        return True
+    got = (
+        "the service reports no outputs yet"
+        if seen is None
+        else f"its outputs are complete through {seen:.3f} only"
+    )
+    say(
+        f"WARNING: {got} after {timeout_s:g} s; the recording ends at data time {target:.3f} "
+        f"(a busy service may still be processing it: --wait S to wait longer, 0 not to wait)"
+    )
+    return False
 
 
 class RejectionWatch:

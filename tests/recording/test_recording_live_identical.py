@@ -19,6 +19,8 @@ from recording_helpers import PREFIX, foreign_mcap, wait_for, wait_subscribed
 
 from service.engine import Engine, EngineConfig
 from service.recording import Recorder, add_replay_arguments, replay_main, replay_offline
+from service.recording.completion import RecordingEnd
+from service.recording.reader import RecordingReader
 from service.transport.node import ServiceNode
 from service.transport.session import ZenohOptions, open_session
 from topofusion_lab.publisher import SITE_REPEAT_BATCHES, publish_scenario
@@ -115,6 +117,15 @@ def _replay_into_fresh_service(path: Path, endpoint: str, inputs: int, extra: li
         parser.add_argument("--prefix", default=PREFIX)
         add_replay_arguments(parser)
         assert replay_main(parser.parse_args([str(path), *extra]), client) == 0
+        # it returned once the service said its outputs are complete through the recording's end
+        end = RecordingEnd()
+        with RecordingReader(path, PREFIX) as reader:
+            for message in reader.messages(list(reader.survey().channels.values())):
+                end.add(message)
+        target = end.target_s()
+        status = node.status()
+        assert target is not None and status["correlation"]["pending"] == 0
+        assert status["outputs_time_s"] is not None and status["outputs_time_s"] >= target
         wait_for(lambda: node.processed >= inputs, timeout=60)
     finally:
         node.stop()

@@ -1,0 +1,91 @@
+"""When a replay into a live service is done: the service's outputs complete through its end.
+
+A replay has published its last message long before the service has processed it: the
+messages wait in the service's queue, its sequencer holds each source's batches until every
+live source has reported that far (the watermark), and the correlation may run behind in its
+own process.  The service says how far its outputs go (contract §5.1: ``Status.outputs_time_s``,
+``correlation.pending``); the replay waits until that reaches the recording's end.
+
+The end a service can reach is the watermark the recording allows: every source's last batch
+time, the lowest of them (a source that fell silent more than ``lag_s`` before the newest
+one does not hold the others back, as in the service's sequencer).  Batches above it wait
+for data that never comes (they are released at the service's stop).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import orjson
+
+from service.recording.reader import RecordedMessage
+
+#: Sources more than this far behind the newest source's last batch do not hold back the end
+#: (the service's ``sequencer.max_lag_s`` default).
+LAG_S = 30.0
+#: How often the service's status is asked (s).
+POLL_S = 0.2
+
+
+@dataclass
+class RecordingEnd:
+    """Each input source's last data time in what was replayed (fed message by message)."""
+
+    last: dict[str, float] = field(default_factory=dict)
+
+    def add(self, message: RecordedMessage) -> None:
+        if message.kind not in ("plots", "ais", "adsb"):
+            return
+        try:
+            time_s = float(orjson.loads(message.payload)["time_s"])
+        except (orjson.JSONDecodeError, KeyError, TypeError, ValueError):
+            return  # the service rejects it: it moves no clock
+        key = message.key
+        self.last[key] = max(time_s, self.last.get(key, time_s))
+
+    def target_s(self, lag_s: float = LAG_S) -> float | None:
+        """The data time through which the service can be complete (module docstring)."""
+        if not self.last:
+            return None
+        newest = max(self.last.values())
+        return min(t for t in self.last.values() if t >= newest - lag_s)
+
+
+def wait_complete(
+    status: Callable[[], dict[str, Any] | None],
+    target_s: float,
+    timeout_s: float,
+    say: Callable[[str], None],
+    clock: Callable[[], float] = time.monotonic,
+    sleep: Callable[[float], None] = time.sleep,
+    no_answer_s: float = 5.0,
+) -> tuple[bool, float | None, bool]:
+    """Ask ``status()`` until its ``outputs_time_s`` reaches ``target_s`` with nothing pending,
+    at most ``timeout_s``: ``(done, outputs_time_s last seen, answered)``.  A None status is no
+    answer; none for ``no_answer_s`` means no service listens (nothing to wait for)."""
+    start = clock()
+    deadline = start + timeout_s
+    seen: float | None = None
+    answered = False
+    said = start
+    while True:
+        st = status()
+        if st is None and not answered and clock() - start >= no_answer_s:
+            return False, None, False
+        if st is not None:
+            answered = True
+            seen = st.get("outputs_time_s")
+            pending = int((st.get("correlation") or {}).get("pending", 0))
+            if seen is not None and seen >= target_s and pending == 0:
+                return True, seen, True
+        now = clock()
+        if now >= deadline:
+            return False, seen, answered
+        if now - said >= 5.0:
+            said = now
+            behind = "no answer yet" if seen is None else f"{target_s - seen:.1f} s of data time behind"
+            say(f"waiting for the service's outputs: {behind}")
+        sleep(POLL_S)
