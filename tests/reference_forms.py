@@ -350,3 +350,38 @@ def cfar_pair_chi2_reference(
             r = np.array([dr, da])
             out[i, j] = r @ np.linalg.solve(ref_cov[i] + radar_cov[j] + extra, r)
     return out
+
+
+def clear_reference(
+    index_a: list[int], index_b: list[int], cost: list[float], accepted: list[bool], margin: float
+) -> list[bool]:
+    """:func:`service.correlation.prompt.clear_of_rivals` by a loop over candidate pairs: an
+    accepted candidate of finite cost whose every rival sharing a track (finite cost) costs at
+    least ``margin`` more."""
+    out = []
+    for k, (i, j, c, ok) in enumerate(zip(index_a, index_b, cost, accepted, strict=True)):
+        rivals = [
+            cost[m]
+            for m in range(len(cost))
+            if m != k and (index_a[m] == i or index_b[m] == j) and np.isfinite(cost[m])
+        ]
+        out.append(bool(ok and np.isfinite(c) and all(r - c >= margin for r in rivals)))
+    return out
+
+
+def isolated_reference(
+    positions: FloatArray, confirmed: list[bool], up: FloatArray, rows: list[int], radius_m: float
+) -> list[bool]:
+    """:func:`service.correlation.prompt.isolated` by a loop: no *tentative* track other than the
+    row itself within ``radius_m`` horizontally (the component along ``up`` removed)."""
+    out = []
+    for i in rows:
+        near = False
+        for j in range(len(positions)):
+            if j == i or confirmed[j]:
+                continue
+            d = positions[j] - positions[i]
+            d = d - float(d @ up) * up
+            near |= bool(np.sqrt(float(d @ d)) <= radius_m)
+        out.append(not near)
+    return out

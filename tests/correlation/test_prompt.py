@@ -1,0 +1,116 @@
+"""Clear decisions (service/correlation/prompt.py): the vectorised rules against plain loops,
+and a clear new pair confirmed at its first update while an ambiguous one waits."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from service.correlation.pairs import PairBook
+from service.correlation.prompt import clear_of_rivals, isolated
+from service.geo import Site
+from service.tracking.base import TrackTable
+from tests.reference_forms import clear_reference, isolated_reference
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(
+        st.tuples(
+            st.integers(0, 4),
+            st.integers(0, 4),
+            st.one_of(st.floats(-10, 40), st.just(float("inf"))),
+            st.booleans(),
+        ),
+        max_size=12,
+        unique_by=lambda t: (t[0], t[1]),
+    ),
+    st.sampled_from([0.0, 6.0, 12.0]),
+)
+def test_clear_of_rivals_equals_the_loop(cands: list[tuple[int, int, float, bool]], margin: float) -> None:
+    ia = np.array([c[0] for c in cands], dtype=np.intp)
+    ib = np.array([c[1] for c in cands], dtype=np.intp)
+    cost = np.array([c[2] for c in cands], dtype=float)
+    ok = np.array([c[3] for c in cands], dtype=bool)
+    got = clear_of_rivals(ia, ib, cost, ok, margin)
+    assert got.tolist() == clear_reference(ia.tolist(), ib.tolist(), cost.tolist(), ok.tolist(), margin)
+
+
+def _table(pos: np.ndarray, confirmed: np.ndarray, vel: np.ndarray | None = None) -> TrackTable:
+    n = len(pos)
+    return TrackTable(
+        np.array([f"t{i:03d}" for i in range(n)]),
+        confirmed,
+        np.zeros(n),
+        pos,
+        np.zeros((n, 3)) if vel is None else vel,
+        np.broadcast_to(np.eye(6), (n, 6, 6)).copy(),
+        np.full(n, 5, dtype=np.int64),
+        np.full(n, None, dtype=object),
+    )
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_isolated_equals_the_loop(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    site = Site("R", 46.0, 2.0)
+    enu = rng.uniform(-12_000, 12_000, (30, 3)) * [1, 1, 0.1] + [0, 80_000, 9_000]
+    pos = site.enu_to_ecef(enu)
+    confirmed = rng.random(30) < 0.6
+    table = _table(pos, confirmed)
+    rows = list(range(0, 30, 3))
+    got = isolated(table, site, 0.0, table.track_id[rows], 2_000.0)
+    want = isolated_reference(pos, confirmed.tolist(), site.rotation[:, 2], rows, 2_000.0)
+    assert got.tolist() == want
+    assert (~confirmed).any()  # (the rule is about tentative neighbours: the scene has some)
+
+
+def test_tracks_are_brought_to_the_update_time_before_the_distance() -> None:
+    site = Site("R", 46.0, 2.0)
+    east = site.rotation[:, 0]
+    pos = site.enu_to_ecef(np.array([[0.0, 80_000.0, 9_000.0], [5_000.0, 80_000.0, 9_000.0]]))
+    vel = np.array([np.zeros(3), -250.0 * east])  # the tentative one closes in at 250 m/s
+    table = _table(pos, np.array([True, False]), vel)
+    assert isolated(table, site, 0.0, table.track_id[:1], 2_000.0).tolist() == [True]
+    assert isolated(table, site, 16.0, table.track_id[:1], 2_000.0).tolist() == [False]  # 1 km apart
+
+
+def test_a_clear_pair_confirms_at_once_and_a_busy_track_keeps_its_pair() -> None:
+    book = PairBook()
+    nan = np.full(2, np.nan)
+    zeros = np.zeros(2, dtype=np.int64)
+    ids_a, ids_b = np.array(["a1", "a2"]), np.array(["b1", "b2"])
+    # one update: a1-b1 clear, a2-b2 not: only the clear one is confirmed
+    book.update(0.0, ids_a, ids_b, ids_a, ids_b, nan, nan, nan, zeros, confirm_now=np.array([True, False]))
+    assert {(p.track_a, p.status) for p in book.states()} == {("a1", "confirmed"), ("a2", "tentative")}
+    # between updates: a new clear pair of a fresh track confirms; one of a busy track does not
+    changed = book.admit(
+        1.0,
+        np.array(["a1", "a2", "a3"]),
+        np.array(["b1", "b2", "b3"]),
+        np.array(["a3", "a1"]),
+        np.array(["b3", "b2"]),
+        nan,
+        nan,
+        nan,
+        zeros,
+        np.array([1, 1], dtype=np.int8),
+    )
+    states = {(p.track_a, p.track_b): p.status for p in book.states()}
+    assert changed and states[("a3", "b3")] == "confirmed" and ("a1", "b2") not in states
+    # a track that went leaves the book at the next admission
+    book.admit(
+        2.0,
+        np.array(["a2", "a3"]),
+        np.array(["b2", "b3"]),
+        ids_a[:0],
+        ids_b[:0],
+        nan[:0],
+        nan[:0],
+        nan[:0],
+        zeros[:0],
+        np.zeros(0, dtype=np.int8),
+    )
+    assert {p.track_a for p in book.states()} == {"a2", "a3"}
