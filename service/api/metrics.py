@@ -151,6 +151,18 @@ class NodeCollector(Collector):
         yield by_key
         yield GaugeMetricFamily("topofusion_uptime_seconds", "Process uptime", value=status["uptime_s"])
         yield from self._state(status.get("state"))
+        complete = GaugeMetricFamily(
+            "topofusion_outputs_data_time_seconds",
+            "Data time up to which every published output reflects every processed input (Unix s)",
+        )
+        if status.get("outputs_time_s") is not None:
+            complete.add_metric([], status["outputs_time_s"])
+        yield complete
+        yield GaugeMetricFamily(
+            "topofusion_correlation_pending",
+            "Radar messages the correlation stage has not answered yet",
+            value=float(status["correlation"].get("pending", 0)),
+        )
         yield GaugeMetricFamily(
             "topofusion_ready",
             "1 while GET /readyz answers 200 (it says why not)",
