@@ -29,7 +29,7 @@ from service.config import EngineConfig
 from service.correlation import PairCorrelator
 from service.pipeline.correlation_process import RemoteCorrelation
 from service.pipeline.correlation_runner import CorrelationRunner, LocalCorrelation
-from service.pipeline.decode import check_body_id, parse, plot_columns, reference_columns
+from service.pipeline.decode import decode_input, plot_columns, reference_columns
 from service.pipeline.errors import RejectionError
 from service.pipeline.merger import TableMerger
 from service.pipeline.peers import Peers
@@ -163,11 +163,10 @@ class Engine:
             what, source_id = kind
             if what == "plots" and not self.partition.owns(source_id):
                 return []  # another worker's radar: not even parsed
-            if what == "site":
-                site: RadarSite = parse(RadarSite, payload, source_id)
-                check_body_id("radar_id", site.radar_id, source_id)
-                return self._set_site(site)
-            return self._admit(what, source_id, payload) + self._process(self.sequencer.release())
+            msg = decode_input(what, source_id, payload)
+            if isinstance(msg, RadarSite):
+                return self._set_site(msg)
+            return self._admit(what, source_id, msg) + self._process(self.sequencer.release())
         except RejectionError as rej:
             return self._rejected(key, rej, receive_time_s, peer is not None)
         except Exception as exc:  # a bug must cost one message, never the service
@@ -239,27 +238,20 @@ class Engine:
             out += self.publication.forget(sid)
         return out
 
-    def _admit(self, what: str, source_id: str, payload: bytes) -> list[Outgoing]:
-        """A radar's plot batch, or an AIS or ADS-B batch (one reference path for both):
-        checked whole, then accepted by the sequencer."""
+    def _admit(self, what: str, source_id: str, batch: PlotBatch | AisBatch | AdsbBatch) -> list[Outgoing]:
+        """A radar's plot batch, or an AIS or ADS-B batch (one reference path for both),
+        decoded: checked against the sources, then accepted by the sequencer."""
         item: Any
-        batch: PlotBatch | AisBatch | AdsbBatch
-        if what == "plots":
-            plots: PlotBatch = parse(PlotBatch, payload, source_id)
-            check_body_id("radar_id", plots.radar_id, source_id)
+        if isinstance(batch, PlotBatch):
             if source_id not in self.tracking.radars:
                 raise RejectionError("unknown_radar", f"no site known for radar {source_id!r}", source_id)
-            batch, item, n, kind = plots, plot_columns(plots), len(plots.plots.time_s), RADAR
+            item, n, kind = plot_columns(batch), len(batch.plots.time_s), RADAR
         else:
-            reports: AisBatch | AdsbBatch = parse(
-                AisBatch if what == "ais" else AdsbBatch, payload, source_id
-            )
-            check_body_id("source_id", reports.source_id, source_id)
             held = self.reference_kinds.get(source_id)
             if held is not None and held != what:
                 detail = f"source id {source_id!r} is taken by an {held} source"
                 raise RejectionError("schema", detail, source_id)
-            batch, item, n, kind = reports, reports, len(reports.reports.time_s), REFERENCE
+            item, n, kind = batch, len(batch.reports.time_s), REFERENCE
         adm = self.sequencer.check(source_id, kind, batch.seq, batch.time_s)
         out = self._drop(self.sequencer.accept(adm, item))  # accepted: from here on it changes state
         if kind == REFERENCE:

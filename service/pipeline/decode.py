@@ -15,7 +15,15 @@ from pydantic import ValidationError
 
 from service.pipeline.errors import RejectionError
 from service.tracking.base import PlotColumns
-from service.wire.models import AdsbBatch, AisBatch, AisReportsModel, PlotBatch, rejection_reason
+from service.wire.models import AdsbBatch, AisBatch, AisReportsModel, PlotBatch, RadarSite, rejection_reason
+
+#: The model of each input kind's payload.
+INPUT_MODELS: dict[str, type[Any]] = {
+    "site": RadarSite,
+    "plots": PlotBatch,
+    "ais": AisBatch,
+    "adsb": AdsbBatch,
+}
 
 
 def parse(model: type[Any], payload: bytes, source_id: str | None) -> Any:
@@ -25,6 +33,15 @@ def parse(model: type[Any], payload: bytes, source_id: str | None) -> Any:
     except ValidationError as exc:
         reason, detail = rejection_reason(exc)
         raise RejectionError(reason, detail, source_id) from None
+
+
+def decode_input(what: str, source_id: str, payload: bytes) -> RadarSite | PlotBatch | AisBatch | AdsbBatch:
+    """An input message of kind ``what`` (``site``, ``plots``, ``ais``, ``adsb``) for the source of
+    its key: validated, and its body's id the key's."""
+    msg = parse(INPUT_MODELS[what], payload, source_id)
+    body_id = msg.source_id if what in ("ais", "adsb") else msg.radar_id
+    check_body_id("source_id" if what in ("ais", "adsb") else "radar_id", body_id, source_id)
+    return msg
 
 
 def check_body_id(field_name: str, body_id: str, key_id: str) -> None:
