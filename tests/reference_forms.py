@@ -370,18 +370,28 @@ def clear_reference(
 
 
 def isolated_reference(
-    positions: FloatArray, confirmed: list[bool], up: FloatArray, rows: list[int], radius_m: float
+    positions: FloatArray,
+    velocities: FloatArray,
+    confirmed: list[bool],
+    up: FloatArray,
+    rows: list[int],
+    radius_m: float,
+    velocity_mps: float,
 ) -> list[bool]:
-    """:func:`service.correlation.prompt.isolated` by a loop: no *tentative* track other than the
-    row itself within ``radius_m`` horizontally (the component along ``up`` removed)."""
+    """:func:`service.correlation.prompt.isolated` by a loop: no other track within ``radius_m``
+    horizontally (the component along ``up`` removed) that is tentative, or confirmed with a
+    horizontal velocity within ``velocity_mps``."""
     out = []
     for i in rows:
         near = False
         for j in range(len(positions)):
-            if j == i or confirmed[j]:
+            if j == i:
                 continue
             d = positions[j] - positions[i]
             d = d - float(d @ up) * up
-            near |= bool(np.sqrt(float(d @ d)) <= radius_m)
+            dv = velocities[j] - velocities[i]
+            dv = dv - float(dv @ up) * up
+            with_it = bool(np.sqrt(float(dv @ dv)) < velocity_mps)
+            near |= bool(np.sqrt(float(d @ d)) <= radius_m) and (not confirmed[j] or with_it)
         out.append(not near)
     return out

@@ -481,8 +481,12 @@ class PairCorrelator:
         if rows.size:
             ua, inv_a = np.unique(dec.index_a[rows], return_inverse=True)
             ub, inv_b = np.unique(dec.index_b[rows], return_inverse=True)
-            iso_a = isolated(tracks_a, self.site_a, time_s, a.track_id[ua], prm.isolation_m)
-            iso_b = isolated(tracks_b, self.site_b, time_s, b.track_id[ub], prm.isolation_m)
+            iso_a = isolated(
+                tracks_a, self.site_a, time_s, a.track_id[ua], prm.isolation_m, prm.isolation_velocity_mps
+            )
+            iso_b = isolated(
+                tracks_b, self.site_b, time_s, b.track_id[ub], prm.isolation_m, prm.isolation_velocity_mps
+            )
             clear[rows] = iso_a[inv_a] & iso_b[inv_b]
         return clear
 

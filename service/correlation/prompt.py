@@ -14,12 +14,14 @@ A candidate ``(i, j)`` of one update is **clear** when
   more.  The costs are chi-square excesses, so between the pair and its best rival the
   likelihood ratio is at least ``exp(clear_margin / 2)`` (12: about 400 to 1); a rival the
   method could not decide at all (no fit, outside its gates) is none;
-* neither track has a *tentative* track of its own radar within ``isolation_m``
-  (horizontally, every track brought to the update time).  A confirmed neighbour is in the
-  update's snapshots, so its candidates are the rivals above; a tentative one is not, and the
-  other radar may hold the aircraft it follows confirmed: that pair waits for the evidence.
-  Dense groups and formations have rivals within the margin, so what the history evidence
-  does for them is unchanged.
+* neither track has a neighbour of its own radar within ``isolation_m`` (horizontally, every
+  track brought to the update time) that is tentative, or confirmed and flying with it
+  (velocity within ``isolation_velocity_mps``).  A confirmed neighbour is in the update's
+  snapshots, so its candidates are the rivals above; a tentative one is not, and the other
+  radar may hold the aircraft it follows confirmed.  One flying with it makes the track part
+  of a group (a formation), where one update's margin can be chance: those pairs wait for the
+  evidence, so what it does for dense groups is unchanged; an aircraft crossing another
+  (another heading or level) is not held back by it.
 
 A clear candidate is accepted without the looks :class:`~.evidence.EvidenceBook` otherwise
 wants (but never against a history that rejects it) and, once the one-to-one assignment
@@ -48,9 +50,14 @@ class PromptParams:
     #: ``exp(margin / 2)`` against the best rival (12: about 400 to 1; twice the assignment's
     #: ambiguity margin).
     clear_margin: float = 12.0
-    #: No tentative track of the same radar may be this close (m, horizontal).  Twice the
-    #: cross-range error of an en-route radar at 250 km (0.2 deg: 870 m).
+    #: No tentative track of the same radar, nor a confirmed one flying with it, may be this
+    #: close (m, horizontal).  Twice the cross-range error of an en-route radar at 250 km
+    #: (0.2 deg: 870 m).
     isolation_m: float = 2_000.0
+    #: A confirmed neighbour flies with the track when their horizontal velocities differ by
+    #: less than this (m/s): a formation's tracks share one velocity up to their errors (tens of
+    #: m/s for young tracks), two aircraft passing each other differ by far more.
+    isolation_velocity_mps: float = 40.0
 
 
 def clear_of_rivals(
@@ -65,25 +72,52 @@ def clear_of_rivals(
     return np.asarray(accepted & finite & (gap >= margin))
 
 
-def isolated(
-    table: TrackTable, site: Site | None, time_s: float, track_ids: np.ndarray, radius_m: float
+def companions(
+    position: FloatArray,
+    velocity: FloatArray,
+    up: FloatArray | None,
+    rows: IntArray,
+    radius_m: float,
+    velocity_mps: float,
+    any_velocity: BoolArray,
 ) -> BoolArray:
-    """For each of ``track_ids`` (tracks of ``table``): no tentative track of the table within
-    ``radius_m`` horizontally in the site's plane, every track brought to ``time_s`` at its
-    velocity (a reference source, ``site`` None: ECEF distance)."""
+    """For each of ``rows``: is another point within ``radius_m`` horizontally (the component
+    along ``up`` removed; None: none) that flies with it (horizontal velocity within
+    ``velocity_mps``), or is one of ``any_velocity`` whatever its velocity?"""
+    n = len(rows)
+    if n == 0 or len(position) < 2:
+        return np.zeros(n, dtype=bool)
+    d = position[rows][:, None, :] - position[None, :, :]
+    dv = velocity[rows][:, None, :] - velocity[None, :, :]
+    if up is not None:
+        d = d - (d @ up)[..., None] * up
+        dv = dv - (dv @ up)[..., None] * up
+    near = np.einsum("ijk,ijk->ij", d, d) <= radius_m**2  # (NaN positions are never near)
+    near &= any_velocity[None, :] | (np.einsum("ijk,ijk->ij", dv, dv) < velocity_mps**2)
+    near[np.arange(n), rows] = False  # (a point is not its own companion)
+    return np.asarray(near.any(axis=1))
+
+
+def isolated(
+    table: TrackTable,
+    site: Site | None,
+    time_s: float,
+    track_ids: np.ndarray,
+    radius_m: float,
+    velocity_mps: float = np.inf,
+) -> BoolArray:
+    """For each of ``track_ids`` (tracks of ``table``): no other track of the table within
+    ``radius_m`` horizontally in the site's plane (every track brought to ``time_s`` at its
+    velocity) that is tentative, or confirmed with a horizontal velocity within
+    ``velocity_mps`` of its own (a reference source, ``site`` None: in ECEF)."""
     n = len(track_ids)
-    tentative = np.flatnonzero(~table.confirmed)
-    if n == 0 or tentative.size == 0:
+    if n == 0 or len(table) < 2:
         return np.ones(n, dtype=bool)
     pos = table.position_ecef_m + table.velocity_ecef_mps * (time_s - table.time_s)[:, None]
     ids = table.track_id
     order = np.argsort(ids)
     at = order[np.minimum(np.searchsorted(ids, track_ids, sorter=order), len(ids) - 1)]
     found = ids[at] == track_ids
-    d = pos[at][:, None, :] - pos[tentative][None, :, :]
-    if site is not None:  # horizontal: drop the local vertical
-        up = site.rotation[:, 2]
-        d = d - (d @ up)[..., None] * up
-    close = np.einsum("ijk,ijk->ij", d, d) <= radius_m**2  # (NaN positions are never close)
-    close &= tentative[None, :] != at[:, None]  # (a tentative track is not its own neighbour)
-    return np.asarray(~found | ~close.any(axis=1))
+    up = site.rotation[:, 2] if site is not None else None
+    near = companions(pos, table.velocity_ecef_mps, up, at, radius_m, velocity_mps, ~table.confirmed)
+    return np.asarray(~found | ~near)

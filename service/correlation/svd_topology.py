@@ -87,7 +87,7 @@ from service.correlation.linalg import (
     yaw_congruence,
 )
 from service.correlation.nearest import chi2_pairs
-from service.correlation.prompt import clear_of_rivals
+from service.correlation.prompt import clear_of_rivals, companions
 from service.correlation.topology import TopologyParams, gather_points, neighbourhoods
 from service.correlation.umeyama import (
     SimilarityFit,
@@ -158,8 +158,13 @@ class SvdTopologyParams:
     #: ... and so is a candidate that passes that test while every rival sharing one of its
     #: tracks costs at least this much more (chi-square excess; :mod:`.prompt`'s clear rule):
     #: once registered the absolute test is valid and unambiguous there, and the topology fit
-    #: is spent only where it is not (0 disables).
+    #: is spent only where it is not (0 disables) ...
     registered_clear_margin: float = 12.0
+    #: ... and the candidate's tracks fly alone: no confirmed track of their own radar within
+    #: this distance (m, horizontal) flying with them (velocity within
+    #: ``registered_clear_velocity_mps``): a formation's tracks keep their topology fit.
+    registered_clear_isolation_m: float = 2_000.0
+    registered_clear_velocity_mps: float = 40.0
     #: ... and topology-accepted candidates must also pass it at this (loose) level.
     registered_consistency_alpha: float = 1e-4
     #: Once registered, a currently confirmed pair that passes the bias-compensated
@@ -499,6 +504,21 @@ def _join_results(parts: list[tuple[NDArray[np.intp], SvdMatchResult]], n: int) 
     return SvdMatchResult(**cols)
 
 
+def _in_group(snap: TrackSnapshot, rows: NDArray[np.intp], prm: SvdTopologyParams) -> BoolArray:
+    """Which of ``rows`` have a track of the same snapshot near them flying with them."""
+    up = snap.site.rotation[:, 2] if snap.site is not None else None
+    none = np.zeros(len(snap), dtype=bool)
+    return companions(
+        snap.position,
+        snap.velocity,
+        up,
+        rows,
+        prm.registered_clear_isolation_m,
+        prm.registered_clear_velocity_mps,
+        none,
+    )
+
+
 def compensated_chi2(
     a: TrackSnapshot,
     b: TrackSnapshot,
@@ -625,6 +645,8 @@ class SvdTopologyCorrelator(Correlator):
                 passes = ok & (q <= chi2_upper(prm.alpha_position, dof))
                 cost2 = np.where(ok, q - dof, np.inf)
                 settled = clear_of_rivals(ia, ib, cost2, passes, prm.registered_clear_margin)
+                # ... unless a track flies in a group (a formation), where the margin can be chance
+                settled[settled] &= ~_in_group(a, ia[settled], prm) & ~_in_group(b, ib[settled], prm)
                 # a rival of a clear candidate loses to it by the margin: no fit needed either
                 settled |= np.isin(ia, ia[settled]) | np.isin(ib, ib[settled])
                 run &= ~settled

@@ -58,13 +58,15 @@ def test_isolated_equals_the_loop(seed: int) -> None:
     site = Site("R", 46.0, 2.0)
     enu = rng.uniform(-12_000, 12_000, (30, 3)) * [1, 1, 0.1] + [0, 80_000, 9_000]
     pos = site.enu_to_ecef(enu)
+    heading = rng.choice([0.0, 0.1, 2.0], 30)  # most fly together, some cross
+    vel = np.stack([220 * np.sin(heading), 220 * np.cos(heading), np.zeros(30)], axis=1) @ site.rotation.T
     confirmed = rng.random(30) < 0.6
-    table = _table(pos, confirmed)
+    table = _table(pos, confirmed, vel)
     rows = list(range(0, 30, 3))
-    got = isolated(table, site, 0.0, table.track_id[rows], 2_000.0)
-    want = isolated_reference(pos, confirmed.tolist(), site.rotation[:, 2], rows, 2_000.0)
+    got = isolated(table, site, 0.0, table.track_id[rows], 2_000.0, 40.0)
+    want = isolated_reference(pos, vel, confirmed.tolist(), site.rotation[:, 2], rows, 2_000.0, 40.0)
     assert got.tolist() == want
-    assert (~confirmed).any()  # (the rule is about tentative neighbours: the scene has some)
+    assert (~confirmed).any()  # (both kinds of neighbour are in the scene)
 
 
 def test_tracks_are_brought_to_the_update_time_before_the_distance() -> None:
@@ -75,6 +77,11 @@ def test_tracks_are_brought_to_the_update_time_before_the_distance() -> None:
     table = _table(pos, np.array([True, False]), vel)
     assert isolated(table, site, 0.0, table.track_id[:1], 2_000.0).tolist() == [True]
     assert isolated(table, site, 16.0, table.track_id[:1], 2_000.0).tolist() == [False]  # 1 km apart
+    # a confirmed neighbour holds a track back only when it flies with it
+    crossing = _table(pos, np.array([True, True]), vel)
+    assert isolated(crossing, site, 16.0, crossing.track_id[:1], 2_000.0, 40.0).tolist() == [True]
+    along = _table(pos, np.array([True, True]), np.zeros((2, 3)))
+    assert isolated(along, site, 0.0, along.track_id[:1], 6_000.0, 40.0).tolist() == [False]
 
 
 def test_a_clear_pair_confirms_at_once_and_a_busy_track_keeps_its_pair() -> None:
