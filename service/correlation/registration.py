@@ -92,7 +92,7 @@ class RegistrationParams:
     solve_interval_s: float = 60.0
     #: ... and sooner, once the pair's confirmed pairs have grown this many times since its
     #: last solve (a first registration rests on the few pairs confirmed by then).
-    resolve_growth: float = 2.0
+    resolve_growth: float = 4.0
     #: Fewest distinct track pairs for the cluster-robust covariance; below it, ``H^-1``.
     min_clusters: int = 10
     #: Most Gauss-Newton iterations of a solve: the estimate converges on the current rows
