@@ -511,7 +511,9 @@ class PairCorrelator:
         decisions on these rows are those the whole tables would give.  ``now_a``, ``now_b``:
         every track's position brought to ``time_s`` (:func:`positions_at`), when known."""
         prm = self.params
-        if not (prm.prompt.enabled and self.method == "svd-topology") or self.updates == 0:
+        if not (prm.prompt.enabled and self.method == "svd-topology" and self.registered):
+            # (before registration the pair is updated every scan, and its topology decision
+            # needs the neighbourhoods of the whole tables: it decides them then)
             return False
         reach = 2.0 * prm.svd.candidates.gate_m
         now_a = positions_at(tracks_a, time_s) if now_a is None else now_a
