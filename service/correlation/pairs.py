@@ -206,24 +206,15 @@ class PairBook:
         fresh[src] = False
         nf = int(fresh.sum())
         if nf:
-            self.track_a = np.concatenate([self.track_a, chosen_a[fresh].astype(str)])
-            self.track_b = np.concatenate([self.track_b, chosen_b[fresh].astype(str)])
-            self.keys = np.concatenate([self.keys, new_keys[fresh]])
-            self.history = np.concatenate([self.history, np.ones(nf, dtype=np.uint32)])
-            self.hits = np.concatenate([self.hits, np.ones(nf, dtype=np.int64)])
-            self.misses = np.concatenate([self.misses, np.zeros(nf, dtype=np.int64)])
-            self.confirmed = np.concatenate([self.confirmed, np.zeros(nf, dtype=bool)])
-            self.neighbors = np.concatenate([self.neighbors, neighbors[fresh].astype(np.int64)])
-            self.basis = np.concatenate([self.basis, basis[fresh]])
-            add = {
-                "statistic": statistic[fresh],
-                "rotation_weight": rotation_weight[fresh],
-                "scale": scale[fresh],
-                "first_time_s": np.full(nf, time_s),
-                "last_time_s": np.full(nf, time_s),
-                "probability": np.full(nf, np.nan),
-            }
-            self.cols = {k: np.concatenate([v, add[k]]) for k, v in self.cols.items()}
+            self._append(
+                time_s,
+                chosen_a[fresh],
+                chosen_b[fresh],
+                new_keys[fresh],
+                (statistic[fresh], rotation_weight[fresh], scale[fresh], np.full(nf, np.nan)),
+                neighbors[fresh],
+                basis[fresh],
+            )
             now = np.concatenate(
                 [now, confirm_now[fresh] if confirm_now is not None else np.zeros(nf, dtype=bool)]
             )
@@ -276,30 +267,54 @@ class PairBook:
         held = _isin(keys, self.keys)
         fresh = np.flatnonzero(~held)
         if fresh.size:
-            nf = fresh.size
-            self.track_a = np.concatenate([self.track_a, track_a[fresh].astype(str)])
-            self.track_b = np.concatenate([self.track_b, track_b[fresh].astype(str)])
-            self.keys = np.concatenate([self.keys, keys[fresh]])
-            self.history = np.concatenate([self.history, np.ones(nf, dtype=np.uint32)])
-            self.hits = np.concatenate([self.hits, np.ones(nf, dtype=np.int64)])
-            self.misses = np.concatenate([self.misses, np.zeros(nf, dtype=np.int64)])
-            self.confirmed = np.concatenate([self.confirmed, np.zeros(nf, dtype=bool)])
-            self.neighbors = np.concatenate([self.neighbors, neighbors[keep][fresh].astype(np.int64)])
-            self.basis = np.concatenate([self.basis, basis[keep][fresh].astype(np.int8)])
-            add = {
-                "statistic": np.clip(statistic[keep][fresh], -1e6, 1e6),
-                "rotation_weight": rotation_weight[keep][fresh],
-                "scale": scale[keep][fresh],
-                "first_time_s": np.full(nf, time_s),
-                "last_time_s": np.full(nf, time_s),
-                "probability": prob[fresh],
-            }
-            self.cols = {k: np.concatenate([v, add[k]]) for k, v in self.cols.items()}
+            k = np.flatnonzero(keep)[fresh]
+            self._append(
+                time_s,
+                track_a[fresh],
+                track_b[fresh],
+                keys[fresh],
+                (np.clip(statistic[k], -1e6, 1e6), rotation_weight[k], scale[k], prob[fresh]),
+                neighbors[k],
+                basis[k],
+            )
         rows = np.concatenate([pos, len(self) - fresh.size + np.arange(fresh.size)]).astype(np.intp)
         before = int(np.count_nonzero(self.confirmed))
         self._confirm(rows[~self.confirmed[rows]])
         self.version += 1
         return bool(gone.any()) or fresh.size > 0 or int(np.count_nonzero(self.confirmed)) != before
+
+    def _append(
+        self,
+        time_s: float,
+        track_a: NDArray[np.str_],
+        track_b: NDArray[np.str_],
+        keys: NDArray[np.str_],
+        values: tuple[FloatArray, FloatArray, FloatArray, FloatArray],
+        neighbors: NDArray[np.int64],
+        basis: NDArray[np.int8],
+    ) -> None:
+        """New pairs, tentative with one hit at ``time_s``; ``values``: their statistic,
+        rotation weight, scale and probability."""
+        nf = len(keys)
+        self.track_a = np.concatenate([self.track_a, track_a.astype(str)])
+        self.track_b = np.concatenate([self.track_b, track_b.astype(str)])
+        self.keys = np.concatenate([self.keys, keys])
+        self.history = np.concatenate([self.history, np.ones(nf, dtype=np.uint32)])
+        self.hits = np.concatenate([self.hits, np.ones(nf, dtype=np.int64)])
+        self.misses = np.concatenate([self.misses, np.zeros(nf, dtype=np.int64)])
+        self.confirmed = np.concatenate([self.confirmed, np.zeros(nf, dtype=bool)])
+        self.neighbors = np.concatenate([self.neighbors, neighbors.astype(np.int64)])
+        self.basis = np.concatenate([self.basis, basis.astype(np.int8)])
+        statistic, rotation_weight, scale, probability = values
+        add = {
+            "statistic": statistic,
+            "rotation_weight": rotation_weight,
+            "scale": scale,
+            "first_time_s": np.full(nf, time_s),
+            "last_time_s": np.full(nf, time_s),
+            "probability": probability,
+        }
+        self.cols = {k: np.concatenate([v, add[k]]) for k, v in self.cols.items()}
 
     def _busy(self) -> tuple[NDArray[np.str_], NDArray[np.str_]]:
         """Each side's tracks in confirmed pairs, sorted (once per book version and confirmed set)."""
