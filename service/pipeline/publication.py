@@ -10,9 +10,9 @@ the latest system tracks, and
   correlation takes them, takes the tracks that went out of every pair set and system track
   that named them, publishing the changed ones *before* the table itself (a subscriber never
   holds a table and a pair set that disagree);
-* holds every pair set and system track the correlation answers to the tables as they are by
-  then: an answer computed from an older table (the correlation process runs behind) loses the
-  tracks deleted since.
+* publishes each answer of the correlation right after the table it answered for (the engine
+  keeps them in step), so an answer names only tracks of tables already published; as a guard,
+  an answer older than a table that lost tracks loses them too.
 
 A track that a pair names was confirmed before the pair was made, so it is in a table already
 published: additions need no care.  Cost: a table compares its ids with the previous table's
@@ -90,7 +90,7 @@ class Publication:
     def pairs(self, key: Key, view: PairSetView) -> Outgoing:
         """A pair set the correlation answered, held to the tables as they are now."""
         for side, source in enumerate(key):
-            if self._lost_s.get(source, -np.inf) >= view.time_s:
+            if self._lost_s.get(source, -np.inf) > view.time_s:
                 view = view.held(side, self._ids[source])
         self.views[key] = view
         return Outgoing(self.keys.pairs(*key), view.body)
@@ -98,7 +98,7 @@ class Publication:
     def system_tracks(self, view: SystemTrackView) -> Outgoing:
         """System tracks the correlation rebuilt, held to the tables as they are now."""
         for source, lost_s in self._lost_s.items():
-            if lost_s >= view.time_s:
+            if lost_s > view.time_s:
                 view = view.held(source, self._ids[source])
         self.system = view
         return self._system_out(view)
