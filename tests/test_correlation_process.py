@@ -103,3 +103,28 @@ def test_a_killed_correlation_process_is_restarted_and_reported() -> None:
         )
     finally:
         engine.close()
+
+
+def test_a_ctrl_c_to_the_process_group_leaves_the_child_to_its_parent() -> None:
+    """A terminal's Ctrl-C reaches every process of the group: the child goes on answering (it
+    stopped with exit code 1 before, and the service restarted it in the middle of its stop)."""
+    import os
+    import signal
+    import time
+
+    stream = scenario_messages("two-radar", duration_s=30.0)
+    engine = Engine(EngineConfig(), correlation_process=True)
+    try:
+        remote = engine.correlation
+        assert isinstance(remote, RemoteCorrelation)
+        for key, payload in stream[: len(stream) // 2]:
+            engine.ingest(key, payload)
+        engine.flush()  # the child has started and answered
+        os.kill(remote._process.pid, signal.SIGINT)
+        time.sleep(0.5)
+        for key, payload in stream[len(stream) // 2 :]:
+            engine.ingest(key, payload)
+        errors = [o for o in engine.flush() if o.key == "fusion/errors"]
+        assert remote._process.is_alive() and remote.restarts == 0 and errors == []
+    finally:
+        engine.close()

@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import queue
+import signal
 import threading
 from collections import deque
 from collections.abc import Callable, Mapping
@@ -46,7 +47,12 @@ LIVENESS_CHECK_S = 1.0
 
 
 def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
-    """The child: apply each message to one stage, answer each with what changed."""
+    """The child: apply each message to one stage, answer each with what changed.
+
+    It ignores SIGINT: a Ctrl-C in a terminal goes to the whole process group, and the child's
+    end is the parent's to decide (it sends ``None``, or the pipe closes when the parent dies),
+    after the last answers of a stop."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     stage = CorrelationStage(*stage_args)
     timings: dict[str, Any] | None = None
     while True:
