@@ -56,7 +56,7 @@ test: lint imports typecheck unit ## installs, lints, checks imports and types, 
 bench: install
 	for b in bench/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
 
-# Into docs/evaluation, where README.md links the report from (the command's own default,
+# Into docs/evaluation, where docs/results.md links the report from (the command's own default,
 # ./evaluation, is for ad-hoc runs and is gitignored).
 evaluate: install-demo
 	$(BIN)/topofusion evaluate --out docs/evaluation

@@ -17,7 +17,7 @@ Prints figures, never asserts.  The simulated stream is generated before any clo
   stage; C: the child's own figures in ``snapshot.correlation``, its last 2 048 updates),
   peak RSS of the run (C: parent and child), CPU time, and the cores other jobs took.  Then
   the accuracy of the last B run, whether C found the same pairs and biases, and a block of
-  rows for the README's performance table.
+  rows for the performance table of docs/results.md.
 * ``--zenoh``: a ``ServiceNode`` in router mode on a free loopback port (multicast scouting
   off), its correlation in a child process as the service runs it (``--one-process``: in the
   node's process), and a client session publishing the stream with ``CongestionControl.BLOCK``
@@ -949,7 +949,7 @@ def spread(values: list[float], fmt: str) -> str:
 
 
 def rounded(x: float, digits: int = 2) -> str:
-    """A figure for the README: ``digits`` significant digits, thousands separated by spaces."""
+    """A figure for the docs: ``digits`` significant digits, thousands separated by spaces."""
     if not np.isfinite(x):
         return "n/a"
     places = digits - 1 - int(np.floor(np.log10(abs(x)))) if x else 0
@@ -957,13 +957,13 @@ def rounded(x: float, digits: int = 2) -> str:
 
 
 def grouped(n: int) -> str:
-    """An integer with its thousands separated by spaces (as the README writes them)."""
+    """An integer with its thousands separated by spaces (as the docs write them)."""
     return f"{n:,}".replace(",", " ")
 
 
 @dataclass
 class Summary:
-    """What the side-by-side table and the README rows need of one run (sent as JSON by the
+    """What the side-by-side table and the docs rows need of one run (sent as JSON by the
     process that made the run)."""
 
     key: str
@@ -1158,7 +1158,7 @@ def readme_rows(
     acc: dict[str, Any],
     sc: Scenario,
 ) -> None:
-    """Rows for the README's performance table, each figure with the command that printed it."""
+    """Rows for the performance table of docs/results.md, each figure with the command that printed it."""
 
     def rt(key: str) -> str:
         values = [data_s / r.wall_s for r in results[key]]
@@ -1171,7 +1171,7 @@ def readme_rows(
 
     cmd = f"`{command()}`"
     rate = truth.plots / data_s
-    print(f"\nREADME rows (performance table; {os.cpu_count()} cpus, {time.strftime('%Y-%m-%d')}):")
+    print(f"\ndocs/results.md rows (performance table; {os.cpu_count()} cpus, {time.strftime('%Y-%m-%d')}):")
     title = (
         f"national network, {len(sc.radars)} radars × {grouped(sc.targets)} aircraft, "
         f"{rounded(rate, 3)} plots/s, {data_s:.0f} data s ({cmd})"
@@ -1512,7 +1512,7 @@ def run_zenoh(args: argparse.Namespace) -> None:
     if args.explain_false:
         explain_false(node.engine, final, sc)
     how = "with the correlation process" if process else "in one process"
-    print(f"\nREADME row ({os.cpu_count()} cpus, {time.strftime('%Y-%m-%d')}):")
+    print(f"\ndocs/results.md row ({os.cpu_count()} cpus, {time.strftime('%Y-%m-%d')}):")
     print(
         f"| national network through Zenoh, {how} (`{command()}`) | {rounded(data_s / wall, 3)}× real time "
         f"({rounded(truth.plots / wall, 3)} plots/s); correlation update p50 {rounded(p50)} ms, "
@@ -1866,7 +1866,7 @@ def run_soak(args: argparse.Namespace) -> None:
     if trace_dir is not None:
         trace_dir.cleanup()
     if series and np.isfinite(slope_both):
-        print(f"\nREADME row ({os.cpu_count()} cpus, {time.strftime('%Y-%m-%d')}):")
+        print(f"\ndocs/results.md row ({os.cpu_count()} cpus, {time.strftime('%Y-%m-%d')}):")
         print(
             f"| national soak, {minutes:g} min "
             + ("with the correlation process" if process else "in one process")

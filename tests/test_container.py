@@ -203,8 +203,8 @@ def test_router_config_listens_where_services_connect() -> None:
 
 
 @pytest.mark.parametrize("setting", sorted(Settings.model_fields))
-def test_every_setting_is_documented_in_readme(setting: str) -> None:
-    assert f"TOPOFUSION_{setting.upper()}" in (ROOT / "README.md").read_text()
+def test_every_setting_is_documented(setting: str) -> None:
+    assert f"TOPOFUSION_{setting.upper()}" in (ROOT / "docs" / "configuration.md").read_text()
 
 
 def test_kubernetes_manifest_names_only_what_exists() -> None:

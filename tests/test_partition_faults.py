@@ -134,7 +134,7 @@ def test_a_killed_worker_leaves_the_rest_going_and_a_restarted_one_rebuilds(
         # Worker 2 comes back: it rebuilds what it owns from the input that follows.
         with worker(2, router, p2):
             wait_for(lambda: _get(p1, "/status")["partition"]["missing"] == [], timeout=30)
-            put_all(sites)  # (a restarted worker learns sites again; see README "Scale-out")
+            put_all(sites)  # (a restarted worker learns sites again; see docs/scale-out.md)
             wait_for(lambda: len(_get(p2, "/radars") or []) == len(radars))
             put_all(thirds[2])
             n_theirs = sum(json.loads(p)["radar_id"] in theirs for _, p in thirds[2])

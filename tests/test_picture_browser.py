@@ -6,7 +6,7 @@ several times real time, so that the picture keeps changing while a headless Chr
 (tests/browser.py, Debian's package; ``.ci/run`` installs it) looks at it.  The browser tests
 are skipped, saying so, only where ``/usr/bin/chromium`` is absent.
 
-Set ``PICTURE_SCREENSHOT=docs/picture.png`` to keep the picture's screenshot (the README's).
+Set ``PICTURE_SCREENSHOT=docs/picture.png`` to keep the picture's screenshot (docs/picture.md's).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """The running service: a Zenoh session, one worker thread around the engine, queryables.
 
-Threads (README "Architecture"):
+Threads (docs/architecture.md):
 
 * Zenoh's network thread runs the subscriber callbacks (directly, so that samples keep their
   wire order across keys), which only put ``(key, bytes, time)`` on a queue bounded in
