@@ -505,15 +505,13 @@ class PairCorrelator:
         confirmed now, without waiting for the pair's next update (which scores the book).
         Whether the book changed.
 
-        Only the tracks near a fresh one are brought to the update time: its candidates and
-        their rivals lie within two candidate gates of it, and before registration the
-        topology sequences of those reach at most ``topology.max_radius_m`` further; the
-        decisions on these rows are those the whole tables would give.  ``now_a``, ``now_b``:
-        every track's position brought to ``time_s`` (:func:`positions_at`), when known."""
+        Only a registered pair (before, it is updated every scan, and the topology decision
+        needs the whole tables' neighbourhoods), by the compensated test of the method's
+        re-check, and only on the tracks near a fresh one: its candidates and their rivals lie
+        within two candidate gates of it.  ``now_a``, ``now_b``: every track's position brought
+        to ``time_s`` (:func:`positions_at`), when known."""
         prm = self.params
         if not (prm.prompt.enabled and self.method == "svd-topology" and self.registered):
-            # (before registration the pair is updated every scan, and its topology decision
-            # needs the neighbourhoods of the whole tables: it decides them then)
             return False
         reach = 2.0 * prm.svd.candidates.gate_m
         now_a = positions_at(tracks_a, time_s) if now_a is None else now_a
@@ -523,9 +521,8 @@ class PairCorrelator:
         partner = now_b if fresh_rows_a.any() else now_a
         if len(anchors) == 0 or not len(_within(partner, anchors, reach)):
             return False  # no partner track within reach: nothing to decide
-        extent = reach + (0.0 if self.registered else prm.svd.topology.max_radius_m)
-        sub_a = tracks_a.take(_within(now_a, anchors, extent))
-        sub_b = tracks_b.take(_within(now_b, anchors, extent))
+        sub_a = tracks_a.take(_within(now_a, anchors, reach))
+        sub_b = tracks_b.take(_within(now_b, anchors, reach))
         _, _, a, b, ctx_kw = self._snapshots(sub_a, sub_b, time_s)
         fa, fb = np.isin(a.track_id, fresh_a), np.isin(b.track_id, fresh_b)
         if not (fa.any() or fb.any()):
@@ -544,12 +541,10 @@ class PairCorrelator:
             reference_b=ref_b,
             **ctx_kw,  # type: ignore[arg-type]
         )
-        dec = None
-        if ctx.registered:  # the compensated test decides (as the method's stage 2 would)
-            ia, ib = _pairs_within(a.position, b.position, ref_a, ref_b, prm.svd.candidates.gate_m)
-            dec = self.correlator.reverify(a, b, ia, ib, ctx)
-        if dec is None:
-            dec = self.correlator.decide(a, b, ctx)
+        ia, ib = _pairs_within(a.position, b.position, ref_a, ref_b, prm.svd.candidates.gate_m)
+        # the compensated test decides (as the method's stage 2 would); without it, the method
+        checked = self.correlator.reverify(a, b, ia, ib, ctx)
+        dec = checked if checked is not None else self.correlator.decide(a, b, ctx)
         fresh = fa[dec.index_a] | fb[dec.index_b]
         clear = self._clear(dec, a, b, sub_a, sub_b, time_s) & fresh
         # a fresh track with an accepted candidate that is not clear waits for the pair's

@@ -258,8 +258,7 @@ class PairBook:
         busy_a, busy_b = self._busy()
         busy = _isin(track_a, busy_a) | _isin(track_b, busy_b)
         if busy.all():
-            self.version += bool(gone.any())
-            return bool(gone.any())
+            return bool(gone.any())  # (``_keep`` counted the change)
         keep = ~busy
         keys, track_a, track_b = keys[keep], track_a[keep], track_b[keep]
         prob = np.full(len(keys), np.nan) if probability is None else np.asarray(probability)[keep]

@@ -27,7 +27,6 @@ the worker that solves the joint bias estimate, which mirrors every other worker
 from __future__ import annotations
 
 import logging
-import time
 from collections import deque
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, fields
@@ -38,6 +37,7 @@ import numpy as np
 from service.correlation import CorrelationParams, PairCorrelator, joint_solution
 from service.correlation.correlator import positions_at
 from service.correlation.cycles import Implied, implied_for
+from service.correlation.pairkeys import isin_sorted
 from service.correlation.registration import (
     BiasSolution,
     RegistrationMemory,
@@ -165,10 +165,6 @@ class CorrelationStage:
         self.next_due: dict[tuple[str, str], float] = {}
         self.timings_ms: deque[float] = deque(maxlen=RECENT_UPDATES)
         self.updates = 0
-        #: Decisions of fresh tracks between updates (:meth:`_prompt`), and their time (s).
-        self.prompt_updates = 0
-        self.prompt_s = 0.0
-        self._own_now: tuple[TrackTable, float, np.ndarray] | None = None
         self.last_ms = 0.0
         #: Every update's time, not only the recent ones: updates per bucket of
         #: ``DURATION_BUCKETS_S`` (the last one above them all), and their sum (s).
@@ -326,6 +322,7 @@ class CorrelationStage:
         p = self.params
         updated = []
         own: TrackTable | None = None
+        own_now: np.ndarray | None = None
         for other in others:
             key = (min(radar.source_id, other.source_id), max(radar.source_id, other.source_id))
             corr = self.correlators.get(key)
@@ -333,7 +330,9 @@ class CorrelationStage:
                 continue
             if time_s < self.next_due.get(key, -np.inf):
                 if corr is not None and fresh is not None and len(fresh):
-                    if self._prompt(corr, radar, other, time_s, fresh):
+                    if own_now is None:  # every track of the radar at the update time, once
+                        own_now = positions_at(radar.tracks(time_s), time_s)
+                    if self._prompt(corr, radar, other, time_s, fresh, own_now):
                         self.views[key] = PairSetView.of(key, corr, time_s)
                         updated.append(key)
                     if not corr.settled:  # a fresh track left open: the next update must not wait
@@ -381,24 +380,23 @@ class CorrelationStage:
         return updated
 
     def _prompt(
-        self, corr: PairCorrelator, radar: Source, other: Source, time_s: float, fresh: np.ndarray
+        self,
+        corr: PairCorrelator,
+        radar: Source,
+        other: Source,
+        time_s: float,
+        fresh: np.ndarray,
+        own_now: np.ndarray,
     ) -> bool:
-        """A partner not due: the radar's fresh tracks decided now (clear pairs confirm)."""
+        """A partner not due: the radar's fresh tracks decided now (clear pairs confirm);
+        ``own_now``: the radar's tracks brought to ``time_s``."""
         if other.geometry is None:
             return False  # reference sources: their own method, on the cadence
         own, theirs = radar.tracks(time_s), other.tracks(time_s)
         empty = np.empty(0, dtype=str)
-        t0 = time.perf_counter()
-        if self._own_now is None or self._own_now[0] is not own or self._own_now[1] != time_s:
-            self._own_now = (own, time_s, positions_at(own, time_s))  # (once per release)
-        now = self._own_now[2]
         if corr.site_a.site_id == radar.source_id:
-            changed = corr.decide_new(own, theirs, time_s, fresh, empty, now_a=now)
-        else:
-            changed = corr.decide_new(theirs, own, time_s, empty, fresh, now_b=now)
-        self.prompt_s += time.perf_counter() - t0
-        self.prompt_updates += 1
-        return changed
+            return corr.decide_new(own, theirs, time_s, fresh, empty, now_a=own_now)
+        return corr.decide_new(theirs, own, time_s, empty, fresh, now_b=own_now)
 
     def _system_due(self, clock_s: float) -> None:
         step = self.params.system_interval_s
@@ -563,15 +561,12 @@ class CorrelationStage:
 
 
 def _newly_confirmed(before: TrackTable | None, now: TrackTable) -> np.ndarray:
-    """The ids of the tracks confirmed in ``now`` that were not confirmed in ``before``."""
+    """The ids of the tracks confirmed in ``now`` that were not confirmed in ``before`` (none
+    at a radar's first table)."""
+    if before is None:
+        return np.empty(0, dtype=str)
     ids = now.track_id[now.confirmed]
-    if before is None or len(ids) == 0:
-        return ids if before is not None else np.empty(0, dtype=str)
-    held = np.sort(before.track_id[before.confirmed])
-    if len(held) == 0:
-        return ids
-    pos = np.minimum(np.searchsorted(held, ids), len(held) - 1)
-    return ids[held[pos] != ids]
+    return ids[~isin_sorted(ids, before.track_id[before.confirmed])]
 
 
 def _site_state(site: Site) -> dict[str, Any]:

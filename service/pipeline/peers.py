@@ -102,7 +102,6 @@ class Peers:
         self._correlated_by: dict[int, float] = {}
         self._clock_sent: dict[str, Any] | None = None
         self._progress_sent: dict[str, Any] | None = None
-        self._idle = False
         #: (radar id, decoded message, payload bytes, key), oldest first.
         self._pending_states: deque[tuple[str, Any, int, str]] = deque()
         self._pending_bytes = 0
@@ -217,20 +216,17 @@ class Peers:
                 "biases": list(biases),
             }
             out.append(Outgoing(self.keys.biases, lambda: body))
-        self._idle = idle
-        try:
-            out.extend(self._clock())  # after the rows: it says they are all out
-        finally:
-            self._idle = False
-        return out
+        return out + self._clock(idle)  # after the rows: it says they are all out
 
-    def _due(self, new: dict[str, Any], sent: dict[str, Any] | None, fields: tuple[str, ...]) -> bool:
+    def _due(
+        self, new: dict[str, Any], sent: dict[str, Any] | None, fields: tuple[str, ...], idle: bool
+    ) -> bool:
         """A progress or clock message is sent once a value moved ``exchange.step_s`` of data
         time (or appeared), and whenever anything moved while idle: a message per input would
         cost the peers more than the tables they carry."""
         if sent is None or new == sent:
             return sent is None
-        if self._idle:
+        if idle:
             return True
         old = sent.get("clocks", sent)
         now = new.get("clocks", new)
@@ -241,7 +237,7 @@ class Peers:
             for f in fields
         ) or set(now) != set(old)
 
-    def _clock(self) -> list[Outgoing]:
+    def _clock(self, idle: bool) -> list[Outgoing]:
         """This worker's state for the others, when it changed: its progress (how far it has
         released and correlated) and its radars' data clocks (the network watermark,
         :meth:`Sequencer.observe`)."""
@@ -260,10 +256,10 @@ class Peers:
             },
         }
         out = []
-        if self._due(progress, self._progress_sent, ("released_s", "correlated_s")):
+        if self._due(progress, self._progress_sent, ("released_s", "correlated_s"), idle):
             self._progress_sent = progress
             out.append(Outgoing(self.keys.worker_progress(self.partition.index), lambda: progress))
-        if self._due(clocks, self._clock_sent, tuple(clocks["clocks"])):
+        if self._due(clocks, self._clock_sent, tuple(clocks["clocks"]), idle):
             self._clock_sent = clocks
             out.append(Outgoing(self.keys.worker_clock(self.partition.index), lambda: clocks))
         return out

@@ -24,22 +24,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from service.correlation.pairkeys import isin_sorted
 from service.pipeline.read_model import PairSetView, SystemTrackView, track_batch
 from service.tracking.base import TrackTable
 from service.wire.keys import Keys
 from service.wire.outgoing import Outgoing
 
 Key = tuple[str, str]
-
-
-def _gone(old: np.ndarray, new: np.ndarray) -> bool:
-    """Whether any id of ``old`` is missing from ``new`` (both sorted)."""
-    if len(old) == 0:
-        return False
-    if len(new) == 0:
-        return True
-    pos = np.minimum(np.searchsorted(new, old), len(new) - 1)
-    return bool(np.any(new[pos] != old))
 
 
 class Publication:
@@ -70,7 +61,7 @@ class Publication:
         old = self._ids.get(radar_id)
         self._ids[radar_id] = ids
         self.tables[radar_id] = (time_s, table)
-        if old is None or not _gone(old, ids):
+        if old is None or isin_sorted(old, ids).all():  # (nothing gone)
             return []
         self._lost_s[radar_id] = time_s
         out = []

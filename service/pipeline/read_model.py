@@ -14,21 +14,13 @@ from typing import Any
 
 import numpy as np
 
-from service.correlation.pairkeys import find
+from service.correlation.pairkeys import find, isin_sorted
 from service.geo import ecef_to_geodetic
 from service.tracking.base import TrackTable
 from service.wire.models import RadarSite, RadarStatus
 from service.wire.outputs import pair_rows, track_rows
 
 _NONE = np.array(None, dtype=object)
-
-
-def _among(ids: np.ndarray, held_ids: np.ndarray) -> np.ndarray:
-    """Which of ``ids`` are in ``held_ids`` (sorted)."""
-    if len(held_ids) == 0 or len(ids) == 0:
-        return np.zeros(len(ids), dtype=bool)
-    pos = np.minimum(np.searchsorted(held_ids, ids), len(held_ids) - 1)
-    return np.asarray(held_ids[pos] == ids)
 
 
 def track_batch(radar_id: str, time_s: float, tracks: TrackTable, status: str = "all") -> dict[str, Any]:
@@ -92,7 +84,7 @@ class PairSetView:
         """The view without the pairs whose track of side ``side`` (0: A, 1: B) is not among
         ``held_ids`` (sorted): the same view when none goes."""
         ids = self.columns["track_a" if side == 0 else "track_b"]
-        keep = _among(ids, held_ids)
+        keep = isin_sorted(ids, held_ids)
         if keep.all():
             return self
         cols = {k: v[keep] for k, v in self.columns.items()}
@@ -172,7 +164,7 @@ class SystemTrackView:
         if not mine.any():
             return self
         keep = ~mine
-        keep[mine] = _among(self.member_track[mine], held_ids)
+        keep[mine] = isin_sorted(self.member_track[mine], held_ids)
         if keep.all():
             return self
         group = np.repeat(np.arange(len(self)), np.diff(self.bounds))
