@@ -33,6 +33,7 @@ from pydantic import TypeAdapter, ValidationError
 
 from service.correlation import CorrelationParams
 from service.pipeline.correlation_stage import CadenceParams
+from service.pipeline.feed import FeedParams
 from service.pipeline.partition import Partition
 from service.pipeline.sequencer import SequencerParams
 from service.pipeline.track_exchange import ExchangeParams
@@ -74,6 +75,8 @@ class EngineConfig:
     partition: Partition = field(default_factory=Partition)
     #: How partitioned workers send each other track states.
     exchange: ExchangeParams = field(default_factory=ExchangeParams)
+    #: The feed on the wall clock (operations): stale outputs, sources silent in wall time.
+    feed: FeedParams = field(default_factory=FeedParams)
 
 
 class ConfigError(ValueError):

@@ -21,9 +21,8 @@ from __future__ import annotations
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterable
+from itertools import chain
 from typing import Any
-
-import numpy as np
 
 from service.config import EngineConfig
 from service.correlation import PairCorrelator
@@ -31,8 +30,9 @@ from service.pipeline.correlation_process import RemoteCorrelation
 from service.pipeline.correlation_runner import CorrelationRunner, LocalCorrelation
 from service.pipeline.decode import decode_input, plot_columns, reference_columns
 from service.pipeline.errors import RejectionError
+from service.pipeline.feed import FeedWatch
 from service.pipeline.merger import TableMerger
-from service.pipeline.peers import Peers
+from service.pipeline.peers import Peers, finite_or_none
 from service.pipeline.publication import Publication
 from service.pipeline.read_model import Snapshot, build_snapshot
 from service.pipeline.restart import EngineState, own_state, read_state, state_when_answered
@@ -51,10 +51,6 @@ from service.wire.outgoing import Outgoing
 from service.wire.outputs import rejection
 
 __all__ = ["Engine", "EngineConfig", "EngineState", "Outgoing", "RejectionError", "Snapshot"]
-
-
-def _finite(x: float) -> float | None:
-    return float(x) if np.isfinite(x) else None
 
 
 class Engine:
@@ -87,6 +83,7 @@ class Engine:
         self._unpublished: deque[tuple[str, float, TrackTable, bool]] = deque()
         self.plots: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
+        self.feed = FeedWatch(c.feed)
         #: Each reference source's input kind (``ais`` or ``adsb``): an id is one or the other.
         self.reference_kinds: dict[str, str] = {}
         self._snapshot: Snapshot | None = None
@@ -196,6 +193,7 @@ class Engine:
 
     def _reject(self, key: str, rej: RejectionError, receive_time_s: float | None) -> Outgoing:
         self.rejected[rej.reason] += 1
+        self.feed.refused(rej.source_id, rej.reason, key, rej.detail)
         self.sequencer.count_rejected(rej.source_id)
         self._snapshot = None
         when = receive_time_s if receive_time_s is not None else time.time()
@@ -210,6 +208,15 @@ class Engine:
         out += self._results()
         self._snapshot = None
         return out
+
+    def expire_silent(self, now_s: float) -> list[Outgoing]:
+        """Expire the sources silent for the feed's wall-clock limit (:mod:`.pipeline.feed`;
+        ``now_s`` on ``time.monotonic()``)."""
+        if not any([self.sequencer.expire_now(sid) for sid in self.feed.silent(now_s)]):
+            return []
+        self._snapshot = None
+        seq = self.sequencer
+        return self._process(chain(seq.release(until=seq.last_limit), seq.release()))
 
     def _set_site(self, site: RadarSite) -> list[Outgoing]:
         # Partitioned: every worker holds every site (the geometry of every pair it may
@@ -235,6 +242,7 @@ class Engine:
             self.plots.pop(sid, None)
             self.correlation.forget(sid)
             self.peers.forget(sid)
+            self.feed.forget(sid)
             out += self.publication.forget(sid)
         return out
 
@@ -254,6 +262,7 @@ class Engine:
             item, n, kind = batch, len(batch.reports.time_s), REFERENCE
         adm = self.sequencer.check(source_id, kind, batch.seq, batch.time_s)
         out = self._drop(self.sequencer.accept(adm, item))  # accepted: from here on it changes state
+        self.feed.taken(source_id, self.sequencer.newest_s)
         if kind == REFERENCE:
             self.reference_kinds[source_id] = what
         self.plots[source_id] += n
@@ -359,7 +368,7 @@ class Engine:
     def outputs_time_s(self) -> float | None:
         """The data time up to which every published output reflects every input processed
         (contract §5.1): what was released, as far as the correlation has answered it."""
-        return _finite(
+        return finite_or_none(
             self.correlation.correlated_through(min(self.sequencer.last_limit, self.merger.last_limit))
         )
 

@@ -192,6 +192,12 @@ class TruthLabelledTracker(Tracker):
             codes.add_chunks([(uid, plots.time_s, getattr(plots, name)) for uid, plots in joined])
             codes.keep(self.inner.uids)
 
+    def drop_tracks(self) -> None:
+        self.inner.drop_tracks()
+        self.tally.keep(self.inner.uids)
+        for codes in self.codes.values():
+            codes.keep(self.inner.uids)
+
     def tracks(self) -> TrackTable:
         table = self.inner.tracks()
         if not len(table):

@@ -33,6 +33,7 @@ from service.cli import build_parser
 from service.correlation import METHODS
 from service.engine import Engine, EngineConfig
 from service.pipeline.correlation_stage import CadenceParams
+from service.pipeline.feed import FeedParams
 from service.pipeline.sequencer import SequencerParams
 from service.pipeline.tracking_stage import SiteParams
 from service.reference import ReferenceParams
@@ -223,6 +224,7 @@ CODE_ROOTS: dict[str, Any] = {
     "CadenceParams": CadenceParams(),
     "SiteParams": SiteParams(),
     "ReferenceParams": ReferenceParams(),
+    "FeedParams": FeedParams(),
 }
 NUMBER = re.compile(r"-?\d+(?: \d{3})*(?:\.\d+)?")
 

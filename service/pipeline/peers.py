@@ -46,7 +46,8 @@ MAX_PENDING_STATES = 256
 MAX_PENDING_STATES_BYTES = 64 * 1024 * 1024
 
 
-def _finite(x: float) -> float | None:
+def finite_or_none(x: float) -> float | None:
+    """``x`` as a JSON number, or None for an infinite clock (none yet)."""
     return float(x) if np.isfinite(x) else None
 
 
@@ -170,8 +171,8 @@ class Peers:
         if self.alone:
             return {}
         return {
-            "released_s": _finite(self.sequencer.last_limit),
-            "merged_s": _finite(self.merger.last_limit),
+            "released_s": finite_or_none(self.sequencer.last_limit),
+            "merged_s": finite_or_none(self.merger.last_limit),
             "held": len(self.merger),
             "state_gaps": sum(self.receiver.gaps.values()),
             "waiting_for": sorted(
@@ -191,7 +192,7 @@ class Peers:
         return (
             not self.alone
             and self._progress_sent is not None
-            and self._progress_sent["released_s"] != _finite(self.sequencer.last_limit)
+            and self._progress_sent["released_s"] != finite_or_none(self.sequencer.last_limit)
         )
 
     # -- what goes to the others -----------------------------------------------------------------
@@ -244,8 +245,8 @@ class Peers:
         merged = self.merger.last_limit
         progress = {
             "partition": str(self.partition),
-            "released_s": _finite(self.sequencer.last_limit),
-            "correlated_s": _finite(self.correlation.correlated_through(merged)),
+            "released_s": finite_or_none(self.sequencer.last_limit),
+            "correlated_s": finite_or_none(self.correlation.correlated_through(merged)),
         }
         clocks = {
             "partition": str(self.partition),

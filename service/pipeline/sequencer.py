@@ -16,6 +16,14 @@ Valid but hostile input (each policy a named field of :class:`SequencerParams`)
   outvoted by the next honest one.  The watermark only listens to sources within
   ``max_clock_skew_s`` of that consensus, so a clock that got in before any other source was
   there cannot hold the others back or release them early.
+* **An outage that ended.**  When the whole feed stops and comes back (a link or a bridge down
+  for longer than ``max_clock_skew_s``), every source's first batch is that far ahead.  A jump
+  is taken as the end of an outage, not as hostile input, once at least ``outage_quorum`` of
+  the live sources (and never fewer than two) have sent batches within ``max_clock_skew_s`` of
+  it: a lone source's jump is still refused.  Each source's last refused-as-ahead time is
+  remembered for this vote (one number a source); the first batch the vote admits is logged
+  and counted (:attr:`Sequencer.outages`), and the silent sources then expire in data time as
+  usual, so the tracks of before the gap leave the picture.
 * **An absurd ``seq`` jump.**  A jump of more than ``max_seq_jump`` batches that is also more
   than ``max_batch_rate_hz`` times the data time since the source's last batch is rejected
   (``out_of_range``): a radar back after a day's outage may legitimately skip many numbers, a
@@ -38,6 +46,8 @@ come.
 from __future__ import annotations
 
 import heapq
+import logging
+import math
 from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -46,6 +56,8 @@ from typing import Any
 import numpy as np
 
 from service.pipeline.errors import RejectionError
+
+log = logging.getLogger(__name__)
 
 #: Kinds of source, in their release order at equal data time.
 REFERENCE, RADAR = 0, 1
@@ -75,6 +87,11 @@ class SequencerParams:
     #: A source with no batch for this long (s of data time) expires: its tracks coast out and
     #: it leaves correlation until it reports again.
     source_expiry_s: float = 300.0
+    #: Share of the live sources whose batches must agree on a jump of more than
+    #: ``max_clock_skew_s`` for it to be the end of a whole-feed outage (see module docstring);
+    #: at least two sources always.  A half: the network's data clock is the low median of the
+    #: sources' clocks, so this is the share that moves it.
+    outage_quorum: float = 0.5
     #: Most sources held at once (radars and references).  Every held source costs a little
     #: memory and a term of the watermark; beyond this, expired sources make room.
     max_sources: int = 1_024
@@ -99,6 +116,8 @@ class SourceClock:
     announced_s: float = -np.inf
     #: Another worker's radar (partitioned): only its clock is known here (:meth:`observe`).
     foreign: bool = False
+    #: The data time of this source's last batch refused as too far ahead (the outage vote).
+    ahead_s: float | None = None
     pending: deque[tuple[float, int, Any]] = field(default_factory=deque)
 
 
@@ -112,6 +131,8 @@ class Admission:
     time_s: float
     restart: bool
     lost: int
+    #: > 0: the batch ends a whole-feed outage this long (s of data time); see the docstring.
+    outage: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -147,6 +168,10 @@ class Sequencer:
         self.last_limit = -np.inf
         #: The newest data clock of an accepted batch (-inf: none yet); never goes back.
         self.newest_s = -np.inf
+        #: Whole-feed outages that ended (jumps a quorum of the sources agreed on).
+        self.outages = 0
+        #: The data-time length of the last such outage (s).
+        self.last_outage_s = 0.0
 
     # -- sources ---------------------------------------------------------------------------
     def announce(self, source_id: str, kind: int) -> list[str]:
@@ -192,6 +217,18 @@ class Sequencer:
         if src.foreign:
             src.last_time_s = max(clock_s, src.last_time_s if src.last_time_s is not None else -np.inf)
 
+    def expire_now(self, source_id: str) -> bool:
+        """Expire a source that is silent on the wall clock while the data clock stands still
+        (:mod:`.feed`): its expiry is released at the data time released so far, in order with
+        everything else.  False if it holds pending batches or is not a live source here."""
+        src = self.sources.get(source_id)
+        if src is None or src.expired or src.pending or src.foreign or src.last_time_s is None:
+            return False
+        due = max(self.last_limit, src.last_time_s)
+        self._expiry_due[source_id] = due
+        heapq.heappush(self._heap, (due, EXPIRE, source_id, 0))
+        return True
+
     def forget(self, source_id: str) -> None:
         """Drop a source that holds no pending batch (its state left the engine)."""
         src = self.sources.get(source_id)
@@ -232,18 +269,37 @@ class Sequencer:
             for sid, s in self.sources.items()
             if sid != source_id and s.last_time_s is not None and not s.expired
         ]
+        outage = 0.0
         if others:
             reference = _low_median([*others, time_s])
             if time_s > reference + p.max_clock_skew_s:
-                raise RejectionError(
-                    "out_of_range",
-                    f"time_s {time_s:.3f} is {time_s - reference:.1f} s ahead of the other sources' "
-                    f"data clock {reference:.3f} (max_clock_skew_s {p.max_clock_skew_s:g})",
-                    source_id,
-                )
+                if not self._outage_vote(source_id, time_s):
+                    if src is not None and not src.expired:
+                        src.ahead_s = time_s  # the vote's memory; no state of the stream changes
+                    raise RejectionError(
+                        "out_of_range",
+                        f"time_s {time_s:.3f} is {time_s - reference:.1f} s ahead of the other sources' "
+                        f"data clock {reference:.3f} (max_clock_skew_s {p.max_clock_skew_s:g})",
+                        source_id,
+                    )
+                outage = time_s - reference
         if src is None and len(self.sources) >= p.max_sources:
             self._make_room_check(source_id)
-        return Admission(source_id, kind, seq, time_s, restart, lost)
+        return Admission(source_id, kind, seq, time_s, restart, lost, outage)
+
+    def _outage_vote(self, source_id: str, time_s: float) -> bool:
+        """Whether a quorum of the live sources has moved to (or tried to move to) within
+        ``max_clock_skew_s`` of ``time_s``: the whole feed came back from an outage."""
+        p = self.params
+        live = agree = 0
+        for sid, s in self.sources.items():
+            if s.expired or s.last_time_s is None or sid == source_id:
+                continue
+            live += 1
+            near = [t for t in (s.last_time_s, s.ahead_s) if t is not None]
+            agree += any(abs(t - time_s) <= p.max_clock_skew_s for t in near)
+        # the candidate is live and agrees with itself
+        return agree + 1 >= max(2, math.ceil(p.outage_quorum * (live + 1)))
 
     def _make_room_check(self, source_id: str) -> None:
         """Raise as :meth:`_make_room` would, without evicting anything."""
@@ -267,6 +323,17 @@ class Sequencer:
         if src is None:
             evicted = self._make_room(adm.source_id)
             src = self.sources[adm.source_id] = SourceClock(adm.kind, announced_s=self.consensus())
+        if adm.outage > 0:
+            self.outages += 1
+            self.last_outage_s = adm.outage
+            log.warning(
+                "whole-feed outage of %.0f s of data time ended: %s is back at %.3f with a quorum "
+                "of the sources; the silent ones expire in data time",
+                adm.outage,
+                adm.source_id,
+                adm.time_s,
+            )
+        src.ahead_s = None
         src.last_seq = adm.seq
         src.batches += 1
         src.lost_batches += adm.lost

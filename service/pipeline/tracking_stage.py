@@ -133,7 +133,9 @@ class TrackingStage:
         return radar.table
 
     def expire(self, radar_id: str, time_s: float) -> bool:
-        """A silent radar: data time moves on without plots, so its tracks coast out.
+        """A silent radar (expired in data time, or on the wall clock while the data clock
+        stood still): data time moves on without plots (its window empties by time) and its
+        tracks are gone, so no output holds them any longer.
 
         False if the radar has no tracker (it never reported): nothing to do.
         """
@@ -141,6 +143,8 @@ class TrackingStage:
         if radar is None or radar.tracker is None:
             return False
         self.update(radar_id, PlotColumns.empty(), time_s)
+        radar.tracker.drop_tracks()
+        radar.table = radar.tracker.tracks()
         return True
 
     def drop(self, radar_id: str) -> None:

@@ -198,6 +198,11 @@ class Tracker(ABC):
     def tracks(self) -> TrackTable:
         """All live tracks (tentative and confirmed) as of the last update."""
 
+    @abstractmethod
+    def drop_tracks(self) -> None:
+        """Forget every track (the radar expired: silent in data or wall time); the ids of new
+        tracks go on from where they were, so none repeats."""
+
     @property
     @abstractmethod
     def window_plots(self) -> int:

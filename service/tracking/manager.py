@@ -256,6 +256,10 @@ class TrackManager(Tracker):
         self.joined: Joined = []
 
     # -- contract ---------------------------------------------------------------------
+    def drop_tracks(self) -> None:
+        self._tracks = _Tracks.empty()
+        self.joined = []
+
     @property
     def window_plots(self) -> int:
         return len(self._window)

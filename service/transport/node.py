@@ -72,6 +72,8 @@ UNCONDITIONAL_PUTS = 8
 FINISH_S = 5.0
 #: How often (s) the watcher looks at the Zenoh connection: a lost router shows within this.
 CONNECTION_POLL_S = 0.25
+#: How often (s) the worker looks for sources silent on the wall clock (``pipeline.feed``).
+EXPIRY_POLL_S = 1.0
 #: A drop on a full queue is logged at most this often per key (s), with the count since.
 DROP_LOG_INTERVAL_S = 10.0
 
@@ -170,7 +172,6 @@ class ServiceNode:
         self._declared: list[Any] = []
         self._publishers: dict[str, list[Any]] = {}  # key -> [publisher, unconditional puts left]
         self._worker: threading.Thread | None = None
-        self._rejections = RateLimitedLog()
         #: Set when the stop begins (input taken no more); ``_stopped``: :meth:`stop` ran.
         self._stopping = threading.Event()
         self._stopped = False
@@ -432,7 +433,7 @@ class ServiceNode:
             return "no zenoh connection"
         if self.stalled:
             return "worker stalled"
-        return ""
+        return self.engine.feed.stale_reason(time.monotonic())
 
     @property
     def ready(self) -> bool:
@@ -530,7 +531,7 @@ class ServiceNode:
 
     # -- worker ------------------------------------------------------------------------------
     def _run(self) -> None:
-        next_status = 0.0
+        next_status = next_expiry = 0.0
         last_snapshot = 0.0
         while True:
             # Idle with answers of the correlation process still to come: look again soon.
@@ -538,6 +539,9 @@ class ServiceNode:
             if time.monotonic() >= self._stop_deadline:
                 break  # a stop's grace ran out: what is queued stays there, counted by stop()
             item = self._next_item(wait)
+            if time.monotonic() >= next_expiry:  # sources silent on the wall clock (pipeline.feed)
+                next_expiry = time.monotonic() + EXPIRY_POLL_S
+                self._publish(self.engine.expire_silent(time.monotonic()))
             if item is None:
                 out = self.engine.poll()
                 if out:
@@ -628,10 +632,7 @@ class ServiceNode:
         if session is None:
             return
         for msg in out:
-            errors = msg.key == self.keys.errors
-            if errors:
-                body = msg.body()
-                self._rejections.warn(body["reason"], f"{body['key']}: {body['detail']}")
+            errors = msg.key == self.keys.errors  # (logged by the engine, each source and reason)
             try:
                 entry = self._publishers.get(msg.key)
                 if entry is None:
@@ -665,6 +666,7 @@ class ServiceNode:
             },
             **snap.status_core(),
             "queue": self.queue_status(),
+            "feed": self.engine.feed.status(time.monotonic(), self.engine.sequencer),
         }
         if self.state is not None:
             own["state"] = self.state.status()

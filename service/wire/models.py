@@ -478,6 +478,20 @@ class StateStatus(OutModel):
     write_s: float = Field(description="seconds the last write took (encoding, writing, fsync)")
 
 
+class FeedStatus(OutModel):
+    """The feed on the wall clock (``service.pipeline.feed``): are the outputs still live."""
+
+    stale: bool = Field(description="the data clock has not moved for TOPOFUSION_ENGINE__FEED__STALE_S")
+    reason: str = Field(description="why the outputs are stale; empty when they are not")
+    idle_s: float | None = Field(description="wall s since the data clock last moved; null: no data yet")
+    refused_since_taken: int = Field(description="inputs refused since the last one taken")
+    outages: int = Field(description="whole-feed outages that ended (the data clock jumped with a quorum)")
+    last_outage_s: float = Field(description="data-time length of the last such outage (s)")
+    expired_by_wall_clock: int = Field(
+        description="sources expired for silence on the wall clock while the data clock stood still"
+    )
+
+
 class Status(OutModel):
     uptime_s: float
     method: str
@@ -494,6 +508,7 @@ class Status(OutModel):
     )
     rejected: dict[str, int]
     queue: QueueStatus | None = Field(default=None, description="the ingest queue")
+    feed: FeedStatus | None = Field(default=None, description="whether the outputs are still live")
     state: StateStatus | None = Field(default=None, description="with --state-dir only")
     partition: PartitionStatus | None = Field(
         default=None, description="partitioned workers only: who owns what, which partitions are missing"

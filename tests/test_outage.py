@@ -1,0 +1,160 @@
+"""A whole-feed outage that ended, and its lone-source look-alike (service/pipeline/sequencer.py).
+
+The stream of three radars is cut after 60 s of data and comes back ``GAP_S`` later, every radar
+at once, as after a link or bridge outage longer than ``max_clock_skew_s``.  The service must
+take the data after the gap (the quorum vote), let the tracks of before the gap expire, and pair
+again; a single radar's jump of the same size is still refused.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from typing import Any
+
+import pytest
+import zenoh
+
+from service.engine import EngineConfig
+from service.pipeline.feed import FeedParams
+from service.pipeline.sequencer import SequencerParams
+from tests.scenario_helpers import scenario_messages
+from tests.support import put_json, run_engine, running_service, wait_for, wait_subscribed
+
+Stream = list[tuple[str, bytes]]
+
+GAP_S = 900.0
+CUT_S = 60.0
+
+
+def shifted(payload: bytes, by: float) -> bytes:
+    body = json.loads(payload)
+    body["time_s"] += by
+    body["plots"]["time_s"] = [t + by for t in body["plots"]["time_s"]]
+    return json.dumps(body).encode()
+
+
+def with_gap(stream: Stream, radars: set[str] | None = None) -> tuple[Stream, int]:
+    """The stream with ``GAP_S`` of silence after ``CUT_S`` (for ``radars``, default all);
+    and how many batches come after the gap."""
+    t0 = min(json.loads(p)["time_s"] for k, p in stream if k.endswith("/plots"))
+    out, later = [], 0
+    for key, payload in stream:
+        late = key.endswith("/plots") and json.loads(payload)["time_s"] > t0 + CUT_S
+        if late and (radars is None or key.split("/")[2] in radars):
+            payload = shifted(payload, GAP_S)
+            later += 1
+        out.append((key, payload))
+    if radars is not None:  # one radar jumps: the stream stays in arrival (data-time) order
+        out.sort(key=lambda m: json.loads(m[1]).get("time_s", -1e18))
+    return out, later
+
+
+def errors(out: list[Any]) -> list[dict[str, Any]]:
+    return [json.loads(o.payload) for o in out if o.key == "fusion/errors"]
+
+
+@pytest.fixture(scope="module")
+def stream() -> Stream:
+    return scenario_messages("three-radar", duration_s=200.0)
+
+
+def confirmed_pairs(engine: Any) -> set[tuple[str, str, Any, Any]]:
+    """Confirmed pairs as (radar, radar, truth, truth): the simulator's labels, for scoring only."""
+    snap = engine.snapshot()
+    truth = {
+        (b["radar_id"], t["track_id"]): t["truth_id"] for b in snap.track_batches("all") for t in b["tracks"]
+    }
+    return {
+        (ps["radar_a"], ps["radar_b"], truth[ps["radar_a"], p["track_a"]], truth[ps["radar_b"], p["track_b"]])
+        for ps in snap.pair_sets(status="confirmed")
+        for p in ps["pairs"]
+    }
+
+
+def test_whole_feed_outage_is_taken_counted_and_the_picture_renews(stream: Stream) -> None:
+    gapped, later = with_gap(stream)
+    engine, out = run_engine(gapped)
+    rejected = [e for e in errors(out) if e["reason"] == "out_of_range"]
+    # at most the first batch of the radars that came back before the quorum did
+    assert len(rejected) <= 2 and len(rejected) <= 0.05 * later
+    assert engine.sequencer.outages == 1
+    assert abs(engine.sequencer.last_outage_s - GAP_S) < 30.0
+    status = engine.snapshot().status_core()
+    assert all(not r["expired"] for r in status["radars"])
+    # the tracks of before the gap expired: every track now held was updated after it
+    t_back = min(json.loads(p)["time_s"] for k, p in gapped if k.endswith("/plots")) + CUT_S + GAP_S
+    for batch in engine.snapshot().track_batches("all"):
+        assert all(t["time_s"] > t_back for t in batch["tracks"])
+    # and the picture after the gap is the one a service that never refused it would hold
+    lenient = EngineConfig(sequencer=SequencerParams(max_clock_skew_s=1e6))
+    clean, _ = run_engine(gapped, lenient)
+    pairs, clean_pairs = confirmed_pairs(engine), confirmed_pairs(clean)
+    assert len(clean_pairs) > 10
+    assert len(pairs & clean_pairs) >= 0.9 * len(clean_pairs)
+    assert all(a == b for _, _, a, b in pairs)  # and none is false
+
+
+def test_one_radar_jumping_alone_is_still_refused(stream: Stream) -> None:
+    gapped, _ = with_gap(stream, radars={"A"})
+    engine, out = run_engine(gapped)
+    refused = [e for e in errors(out) if e["radar_id"] == "A"]
+    # every batch of A after its jump is refused until the others catch up with it in data time
+    assert refused and all(e["reason"] == "out_of_range" for e in refused)
+    assert engine.sequencer.outages == 0
+    assert not [e for e in errors(out) if e["radar_id"] != "A"]
+
+
+def test_over_zenoh_the_outage_is_taken_and_a_silent_feed_is_reported_stale(
+    router: str, client: zenoh.Session, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Through the public interface: the whole feed comes back 900 s later (taken, counted in
+    ``/status`` ``feed``), then falls silent: ``/readyz`` turns 503 with the reason once the data
+    clock has stood still for ``stale_s``, and the radars expire on the wall clock; a new batch
+    makes the service ready again.  A lone refused input is logged with its source and reason."""
+    stream = scenario_messages("three-radar", duration_s=90.0)
+    gapped, later = with_gap(stream)
+    assert later > 40
+    feed = FeedParams(stale_s=1.5, source_expiry_wall_s=2.5)
+    caplog.set_level(logging.WARNING)
+    with running_service(router, EngineConfig(feed=feed)) as svc:
+        wait_subscribed(client, "fusion/radar/A/plots")
+        for key, payload in gapped:
+            put_json(client, key, payload)
+        n = sum(k.endswith("/plots") for k, _ in gapped)
+
+        def taken() -> int:
+            st = svc.http.get("/status").json()
+            return sum(r["batches"] + r["rejected"] for r in st["radars"]) == n and st
+
+        status = wait_for(taken, timeout=60)
+        assert sum(r["batches"] for r in status["radars"]) >= n - 2  # ≥ 95 % of `later`, and more
+        assert status["feed"]["outages"] == 1 and status["feed"]["stale"] is False
+        assert svc.http.get("/readyz").status_code == 200
+        # silence: stale, then every radar expires on the wall clock
+        ready = wait_for(lambda: (r := svc.http.get("/readyz")).status_code == 503 and r.json(), timeout=10)
+        assert "outputs stale" in ready["reason"] and "data clock has not moved" in ready["reason"]
+        assert svc.http.get("/status").json()["feed"]["stale"] is True
+
+        def all_expired() -> Any:
+            st = svc.http.get("/status").json()
+            return all(r["expired"] for r in st["radars"]) and st
+
+        status = wait_for(all_expired, timeout=10)
+        assert status["feed"]["expired_by_wall_clock"] == 3
+        # and their tracks left the picture (published once the correlation has answered)
+        wait_for(
+            lambda: all(svc.http.get(f"/radars/{r}/tracks?status=all").json()["tracks"] == [] for r in "ABC")
+        )
+        assert svc.http.get("/pairs").json()[0]["pairs"] == []
+        # a batch of the next scan: live again
+        last = json.loads(next(p for k, p in reversed(gapped) if k == "fusion/radar/A/plots"))
+        put_json(
+            client,
+            "fusion/radar/A/plots",
+            shifted(json.dumps({**last, "seq": last["seq"] + 1}).encode(), 5.0),
+        )
+        wait_for(lambda: svc.http.get("/readyz").status_code == 200, timeout=10)
+    lines = [r.getMessage() for r in caplog.records]
+    assert any("outage" in m and "900 s" in m for m in lines)
+    assert any(m.startswith("rejected out_of_range from A") and "ahead" in m for m in lines)
