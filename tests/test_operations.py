@@ -91,6 +91,30 @@ def test_bounded_queue_bounds_count_and_bytes_and_counts_drops_by_key() -> None:
     assert flood.dropped_total == MAX_DROP_KEYS + 50
 
 
+def test_fair_queue_takes_sources_in_turn_and_drops_a_flooders_excess_at_once() -> None:
+    """A flooding source holds at most its share of the queue and its excess is dropped at once,
+    counted under its key, while the others get in; the worker takes samples in arrival order,
+    but never two of the flooder's while another source's sample waits.  When others press too
+    (a replay as fast as it goes) a sample waits for room instead (push-back)."""
+    q = BoundedQueue(max_items=128, max_bytes=10**6, fair_by=lambda key: key.split("/")[1])
+    assert q.put("a0", 1, "fusion/A/plots") and q.put("b0", 1, "fusion/B/plots")  # A and B seen
+    flood = [q.put(f"f{i}", 1, "fusion/F/plots", timeout_s=5.0) for i in range(500)]
+    share = 128 // 2  # F alone holds more than a few samples; and room for one more
+    assert sum(flood) == share and q.dropped == {"fusion/F/plots": 500 - share}
+    assert all(flood[:share]) and not any(flood[share:])  # the excess dropped, each at once
+    assert q.put("a1", 1, "fusion/A/plots") and q.put("b1", 1, "fusion/B/plots")  # others lose nothing
+    taken = [q.get_nowait() for _ in range(7)]
+    # in arrival order, but after one of the flooder's the oldest of another source comes next
+    assert taken == ["a0", "b0", "f0", "a1", "f1", "b1", "f2"]
+    assert q.items() == [f"f{i}" for i in range(3, share)]
+    # busy with everyone: a sample over its share waits for room (here: until one is taken)
+    busy = BoundedQueue(max_items=64, max_bytes=10**6, fair_by=lambda key: key)
+    for i in range(64):
+        assert busy.put(i, 1, "ab"[i % 2])
+    threading.Timer(0.1, busy.get_nowait).start()
+    assert busy.put("late", 1, "a", timeout_s=5.0)
+
+
 def test_a_full_queue_never_blocks_zenoh_beyond_the_bound(router: str, client: zenoh.Session) -> None:
     """The worker is held on purpose; Zenoh's callback waits at most `queue_wait_s` per sample,
     the drops are counted by key, and every sample is either processed or counted dropped."""

@@ -9,7 +9,9 @@ Threads (docs/architecture.md):
   publishers using ``CongestionControl.BLOCK``; in router mode the same thread carries
   everybody's traffic, so the wait is short, and only after it is a sample dropped: every
   drop is counted by key (``/status`` ``queue.dropped`` and ``queue.dropped_by_key``) and
-  logged.
+  logged.  The queue is fair by source: a source holds at most its share of it (a flooding
+  source's excess is dropped at once, without stalling the network thread), and the worker
+  takes the sources in turn (``ingest_queue``, "Fair intake").
 * A watcher thread follows the Zenoh connection (``/readyz`` says ``no zenoh connection``
   while a client or a peer with connect endpoints has lost them all; both changes are
   logged).  A client whose router is not up yet keeps trying with back-off on a connector
@@ -17,9 +19,9 @@ Threads (docs/architecture.md):
 * A stop (SIGTERM/SIGINT) undeclares the input subscribers first, gives the worker
   ``stop_grace_s`` to finish the queue, publishes the final outputs, and logs how many
   queued samples were processed and how many, if any, were left (contract §4.6).
-* One worker thread takes samples in arrival order, calls ``engine.ingest``, hands what it
-  returns to the publisher thread, then swaps in a new immutable
-  :class:`~service.engine.Snapshot`.
+* One worker thread takes samples (each source's in arrival order, the sources in turn),
+  calls ``engine.ingest``, hands what it returns to the publisher thread, then swaps in a new
+  immutable :class:`~service.engine.Snapshot`.
 * One publisher thread puts the outputs.  The worker never waits on the network: partitioned
   workers publish to each other, and a worker blocked on a put to a peer whose queue is full
   while that peer is blocked on a put to it would stall both (the outbox is bounded by count,
@@ -140,7 +142,8 @@ class ServiceNode:
         self._publisher: threading.Thread | None = None
         self.keys = Keys(engine_config.prefix)
         self.zenoh_options = zenoh_options
-        self.queue = BoundedQueue(queue_size, queue_bytes)
+        #: Fair by source (``ingest_queue``): a flooding source drops its own excess, not others'.
+        self.queue = BoundedQueue(queue_size, queue_bytes, fair_by=self._source_of)
         #: Partitioned: the other workers' messages, taken before inputs (see ``_next_item``);
         #: bounded like the inputs' (anyone who may put on their keys could flood it; a lost
         #: track-states change costs that radar until its owner's next full table).
@@ -494,6 +497,11 @@ class ServiceNode:
             self._items.release()
         elif not self._stopping.is_set():
             self._drop_log.warn(key, f"no room for {self.queue_wait_s:.2f} s")
+
+    def _source_of(self, key: str) -> str:
+        """The ingest queue's class of a key: its source (a radar's site and plots together)."""
+        kind = self.keys.classify(key)
+        return kind[1] if kind is not None else key
 
     def _on_worker_status(self, sample: zenoh.Sample) -> None:
         kind, ids = parse_key(str(sample.key_expr), self.keys.prefix)

@@ -157,7 +157,8 @@ def test_a_truncated_recording_replays_what_it_holds_and_says_where(tmp_path: Pa
     assert got == [k for k, _, _ in inputs[: len(got)]]  # a prefix of the recording, in order
     assert report.damage is not None
     assert (
-        f"of {summary_start // 2 + 7}" in report.damage and "truncated record starting at byte" in report.damage
+        f"of {summary_start // 2 + 7}" in report.damage
+        and "truncated record starting at byte" in report.damage
     )
     assert any("WARNING" in line and "replayed what it holds" in line for line in report.lines())
 
