@@ -305,6 +305,7 @@ def test_a_failed_write_is_counted_and_logged_and_the_next_one_goes_on(
         keeper.wait()
     status = keeper.status()
     assert status["writes"] >= 2  # the next due write went on, into the directory back again
+    assert f"state {directory / STATE} written again after {status['failures']} failed writes" in caplog.text
     on_disk = decode((directory / STATE).read_bytes(), "fusion", "1/1")[0]
     assert status["data_time_s"] == on_disk.data_clock_s is not None
 
