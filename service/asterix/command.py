@@ -5,6 +5,17 @@ by ``--speed``; then the UDP endpoints (``--udp``, unicast or multicast) are rea
 bridge is stopped (SIGINT, SIGTERM) or ``--duration`` has passed.  Each datagram is decoded
 (:mod:`.decode`), turned into payloads (:mod:`.bridge`) and published over Zenoh.  What is
 still held at the end is sent, and a summary says what was read, sent and left out.
+
+The bridge's clock (:mod:`.bridge`, "The bridge's own clock"): a file's capture time stamps;
+for UDP the wall clock when the datagram was read; with ``--date`` the data's own clock.
+
+UDP: the sockets are read into a :class:`~.udp.FairQueue` (per sender, bounded) and decoded
+from it in turn, looking at the sockets again after at most :data:`DECODE_SLICE_S` of decoding,
+so that a flood of large datagrams from one sender neither starves the others nor keeps the
+kernel's buffers full; what the kernel and the queue drop is counted, and charged to the
+sources that socket or sender fed (their next batch skips a ``seq`` number, so the service
+counts it in ``lost_batches``).  While it runs the bridge prints its counters every
+``--report-every`` seconds when they changed; on a stop it ends within :data:`STOP_GRACE_S`.
 """
 
 from __future__ import annotations
@@ -27,12 +38,39 @@ from service.asterix.bridge import DAY_S, AsterixBridge, BridgeParams, DayClock,
 from service.asterix.capture import CaptureError, Datagram, read_datagrams
 from service.asterix.cat062 import Cat062Track, encode_cat062_blocks
 from service.asterix.decode import Decoded, decode_datagram
-from service.asterix.udp import UdpEndpoint, UdpReceiver, parse_endpoint
+from service.asterix.udp import FairQueue, UdpEndpoint, UdpReceiver, parse_endpoint
 from service.wire.keys import Keys
 from service.wire.models import RadarSite
 
-#: Progress is printed at most this often (wall seconds) on long runs.
-PROGRESS_EVERY_S = 10.0
+#: The counters line is printed at most this often (wall s) while the bridge runs, and only when
+#: something changed (``--report-every``): often enough to watch a feed, rare enough for a log.
+REPORT_EVERY_S = 10.0
+#: The kernel's UDP drop counts are read this often (wall s): a loss is charged to the batch
+#: interval it happened in (a radar sends a batch per sector, a few per second, so a second
+#: charges it to the next batch or two), for one small file read a second.
+KERNEL_DROPS_EVERY_S = 1.0
+#: The bridge decodes queued datagrams for at most about this long (s) before it reads the
+#: sockets again: 8 MiB of receive buffer fill in a few ms under a flood of 64 KiB datagrams on
+#: a fast link, and every datagram the kernel drops while the bridge decodes may be a good one.
+DECODE_SLICE_S = 0.002
+#: Records decoded from one live UDP datagram, at most (more: the rest of it is dropped, counted
+#: ``blocks_too_many_records``).  A datagram holds at most 65 507 octets and a real target report
+#: takes 16 and more (time, position, a code), so no real datagram holds more; 64 KiB of the
+#: smallest records (3 octets) would be 21 800 and cost about 50 ms, 4096 about 10 ms.
+MAX_UDP_RECORDS = 4096
+#: With nothing queued, a wait on the sockets lasts at most this long (s): a stop is seen within it.
+POLL_S = 0.2
+#: After SIGINT/SIGTERM the bridge ends within this long (s): half of Docker's default stop
+#: timeout (10 s) before it sends SIGKILL.  The loops look at the stop between datagrams (a
+#: live one costs at most about 10 ms, ``MAX_UDP_RECORDS``), ...
+STOP_GRACE_S = 5.0
+#: ... what is still held is sent for at most this long (s; held data is bounded,
+#: ``BridgeParams.max_held_records``, and normally takes well under a second) and the rest is
+#: counted as unsent, which leaves room for closing the Zenoh session.
+STOP_FLUSH_S = 3.0
+#: Senders and sockets whose sources the bridge remembers, to charge a loss to: at most this many
+#: (the oldest is forgotten first).
+MAX_ORIGINS = 4096
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -74,6 +112,29 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--max-batch", type=float, default=2.0, metavar="S", help="batch length of a radar without CAT034"
     )
     p.add_argument(
+        "--max-time-ahead",
+        type=float,
+        default=BridgeParams.max_time_ahead_s,
+        metavar="S",
+        help="drop a record stamped more than S ahead of the bridge's clock (capture stamps, else the "
+        f"wall clock; with --date the data's own; default {BridgeParams.max_time_ahead_s:g})",
+    )
+    p.add_argument(
+        "--max-time-behind",
+        type=float,
+        default=BridgeParams.max_time_behind_s,
+        metavar="S",
+        help=f"drop a record stamped more than S behind it (default {BridgeParams.max_time_behind_s:g})",
+    )
+    p.add_argument(
+        "--report-every",
+        type=float,
+        default=REPORT_EVERY_S,
+        metavar="S",
+        help=f"print the counters every S wall seconds when they changed (0: only at the end; "
+        f"default {REPORT_EVERY_S:g})",
+    )
+    p.add_argument(
         "--out-udp",
         action="append",
         type=_endpoint,
@@ -105,18 +166,37 @@ def _endpoint(text: str) -> UdpEndpoint:
 
 
 class Publisher:
-    """Puts the bridge's messages on their keys (JSON, blocking under congestion)."""
+    """Puts the bridge's messages on their keys (JSON, blocking under congestion).
+
+    A put that fails is counted (:attr:`failed`) and its batch is gone; its ``seq`` number stays
+    unused, so the service counts it as lost.  Past :attr:`deadline` (the stop's) the rest is
+    counted as :attr:`unsent`.
+    """
 
     def __init__(self, put: Callable[[str, bytes], None], prefix: str) -> None:
         self.put = put
         self.keys = Keys(prefix)
         self.sent: Counter[str] = Counter()
+        self.failed: Counter[str] = Counter()
+        self.unsent: Counter[str] = Counter()
+        self.last_error = ""
         self.plots = 0
+        #: Monotonic time after which nothing more is put (None: no limit).
+        self.deadline: float | None = None
 
     def publish(self, messages: Iterable[Message]) -> None:
+        deadline = self.deadline
         for m in messages:
+            if deadline is not None and time.monotonic() > deadline:
+                self.unsent[m.kind] += 1
+                continue
             key = self.keys.plots(m.source_id) if m.kind == "plots" else self.keys.adsb(m.source_id)
-            self.put(key, orjson.dumps(m.body))
+            try:
+                self.put(key, orjson.dumps(m.body))
+            except Exception as exc:  # Zenoh's own errors: one batch is lost, not the run
+                self.failed[m.kind] += 1
+                self.last_error = str(exc)
+                continue
             self.sent[m.kind] += 1
             if m.kind == "plots":
                 self.plots += len(m.body["plots"]["time_s"])
@@ -242,6 +322,7 @@ class Run:
         speed: float = 1.0,
         fixed_date: bool = False,
         progress: Callable[[str], None] | None = None,
+        report_every_s: float = REPORT_EVERY_S,
     ) -> None:
         self.bridge = bridge
         self.publisher = publisher
@@ -249,20 +330,66 @@ class Run:
         self.speed = speed
         self.fixed_date = fixed_date
         self.progress = progress
+        self.report_every_s = report_every_s
         self.capture: Counter[str] = Counter()
         self.datagrams = 0
         self.decoded = Counter[str]()
-        self._next_progress = time.monotonic() + PROGRESS_EVERY_S
+        #: UDP datagrams lost before decoding: by the kernel (full socket buffer), by the queue.
+        self.lost: Counter[str] = Counter()
+        #: The sources each sender ("from ip:port") and socket ("to ip:port") fed lately.
+        self._sources_of: dict[str, set[str]] = {}
+        self._kernel_drops: dict[str, int] = {}
+        self._rx: UdpReceiver | None = None
+        self._udp = False  # UDP was read: its losses are reported
+        now = time.monotonic()
+        self._next_report = now + report_every_s
+        self._next_drops = now + KERNEL_DROPS_EVERY_S
+        self._reported = ""
 
-    def datagram(self, d: Datagram, reference_s: float | None) -> None:
+    def datagram(self, d: Datagram, reference_s: float | None, max_records: int | None = None) -> None:
         out = Decoded()
-        decode_datagram(d.payload, out)
+        decode_datagram(d.payload, out, max_records)
         self.datagrams += 1
         self.decoded.update(cat048=len(out.cat048), cat034=len(out.cat034), cat021=len(out.cat021))
         self.publisher.publish(self.bridge.feed(out, None if self.fixed_date else reference_s))
-        if self.progress is not None and time.monotonic() >= self._next_progress:
-            self._next_progress = time.monotonic() + PROGRESS_EVERY_S
-            self.progress(self.line())
+        fed = self.bridge.fed
+        if fed:
+            self._remember(f"from {d.source}", fed)
+            self._remember(f"to {d.destination}", fed)
+        self.tick()
+
+    def _remember(self, origin: str, fed: set[str]) -> None:
+        known = self._sources_of.get(origin)
+        if known is None:
+            if len(self._sources_of) >= MAX_ORIGINS:
+                del self._sources_of[next(iter(self._sources_of))]
+            self._sources_of[origin] = set(fed)
+        elif not fed <= known:
+            known |= fed
+
+    def tick(self) -> None:
+        """Read the kernel's drop counts and print the counters when their times have come."""
+        now = time.monotonic()
+        if self._rx is not None and now >= self._next_drops:
+            self._next_drops = now + KERNEL_DROPS_EVERY_S
+            self.read_kernel_drops()
+        if self.progress is not None and self.report_every_s > 0 and now >= self._next_report:
+            self._next_report = now + self.report_every_s
+            line = self.report()
+            if line != self._reported:
+                self._reported = line
+                self.progress(line)
+
+    def read_kernel_drops(self) -> None:
+        """New kernel drops on each socket are counted and charged to the sources it fed."""
+        if self._rx is None:
+            return
+        for destination, n in self._rx.kernel_drops().items():
+            new = n - self._kernel_drops.get(destination, n)  # the first reading is the baseline
+            self._kernel_drops[destination] = n
+            if new > 0:
+                self.lost["kernel"] += new
+                self.bridge.mark_lost(self._sources_of.get(f"to {destination}", set()))
 
     def files(self, paths: list[Path]) -> None:
         for path in paths:
@@ -287,15 +414,38 @@ class Run:
 
     def udp(self, endpoints: list[UdpEndpoint], duration_s: float | None) -> None:
         end = None if duration_s is None else time.monotonic() + duration_s
+        queue = FairQueue()
         with UdpReceiver(endpoints) as rx:
+            self._rx, self._udp = rx, True
+            self.read_kernel_drops()  # the baseline: what happened before the bridge is not its loss
             if self.progress is not None:
                 bound = ", ".join(f"{h}:{p}" for h, p in rx.addresses)
                 self.progress(f"asterix: listening on {bound}")
-            while not self.stop.is_set() and (end is None or time.monotonic() < end):
-                for d in rx.receive(0.2):
-                    self.datagram(d, time.time())  # live: the clock's date
+            try:
+                while not self.stop.is_set() and (end is None or time.monotonic() < end):
+                    received_s = time.time()  # live: the wall clock is the bridge's clock
+                    for d in rx.receive(0.0 if queue else POLL_S):
+                        for gone in queue.put(d, received_s):
+                            self.lost["queue"] += 1
+                            self.bridge.mark_lost(self._sources_of.get(f"from {gone.source}", set()))
+                    slice_end = time.monotonic() + DECODE_SLICE_S
+                    while not self.stop.is_set():
+                        item = queue.get()
+                        if item is None:
+                            break
+                        self.datagram(item[1], item[0], MAX_UDP_RECORDS)
+                        if time.monotonic() >= slice_end:
+                            break
+                    self.tick()
+            finally:
+                self.read_kernel_drops()
+                self._rx = None
+                if len(queue):  # read and never decoded: stopped first
+                    self.lost["unread_at_stop"] += len(queue)
 
-    def finish(self) -> None:
+    def finish(self, deadline: float | None = None) -> None:
+        """Send what is still held (until ``deadline``, monotonic s, if given)."""
+        self.publisher.deadline = deadline
         self.publisher.publish(self.bridge.flush())
 
     def line(self) -> str:
@@ -305,14 +455,42 @@ class Run:
             f"used; sent {sent['plots']} plot batches, {sent['adsb']} ADS-B batches"
         )
 
+    def report(self) -> str:
+        """The counters on one line (the periodic report)."""
+        left = _counts(self.bridge.unusable) if self.bridge.unusable else "nothing"
+        udp = f"; UDP datagrams lost: {_lost(self.lost)}" if self._udp else ""
+        return f"{self.line()}; held {self.bridge.held} records; left out: {left}{udp}"
+
     def summary(self) -> str:
         lines = [self.line()]
         lines.append(f"asterix: records decoded: {_counts(self.decoded)}")
         left = self.bridge.unusable
         lines.append(f"asterix: left out: {_counts(left) if left else 'nothing'}")
+        if self.bridge.rebased:
+            lines.append(f"asterix: the data's clock moved to a jump in time {self.bridge.rebased} times")
+        if self._udp:
+            lines.append(f"asterix: UDP datagrams lost: {_lost(self.lost)}")
         if self.capture:
             lines.append(f"asterix: capture frames skipped: {_counts(self.capture)}")
+        pub = self.publisher
+        if pub.failed:
+            lines.append(f"asterix: batches lost to failed puts: {_counts(pub.failed)} ({pub.last_error})")
+        if pub.unsent:
+            lines.append(f"asterix: batches not sent within the stop's grace: {_counts(pub.unsent)}")
+        off = sum(n for k, n in left.items() if k.endswith(("_time_ahead", "_time_behind")))
+        if off and not (self.bridge.used["cat048"] or self.bridge.used["cat021"]):
+            lines.append(
+                "asterix: every timed record was far from the bridge's clock (the capture's stamps, else "
+                "the wall clock): is that clock right, or is this a recording? --date replays by the "
+                "data's own time"
+            )
         return "\n".join(lines)
+
+
+def _lost(c: Counter[str]) -> str:
+    return f"{c['kernel']} by the kernel, {c['queue']} by the bridge's queue" + (
+        f", {c['unread_at_stop']} unread at stop" if c["unread_at_stop"] else ""
+    )
 
 
 def _counts(c: Counter[str]) -> str:
@@ -356,11 +534,17 @@ def asterix_main(
     clock = DayClock(start if start is not None else today_midnight_s())
     if args.adsb_batch <= 0 or args.max_batch <= 0:
         raise ValueError("asterix: --adsb-batch and --max-batch must be > 0")
+    if not (args.max_time_ahead > 0 and args.max_time_behind > 0):
+        raise ValueError("asterix: --max-time-ahead and --max-time-behind must be > 0")
+    if not args.report_every >= 0:
+        raise ValueError("asterix: --report-every must be >= 0")
     params = BridgeParams(
         adsb_source_id=args.adsb_id,
         adsb_batch_s=args.adsb_batch,
         max_batch_s=args.max_batch,
         altitude_from_fl=not args.no_fl_altitude,
+        max_time_ahead_s=args.max_time_ahead,
+        max_time_behind_s=args.max_time_behind,
     )
     bridge = AsterixBridge(list(sites), params, clock)
     session = open_tool_session(options, "asterix")
@@ -384,7 +568,13 @@ def asterix_main(
         # which otherwise slow the decoder by up to 40 % (bench/bench_asterix_decode.py).
         gc.freeze()
         run = Run(
-            bridge, publisher, stop, args.speed, args.date is not None, lambda m: print(m, file=sys.stderr)
+            bridge,
+            publisher,
+            stop,
+            args.speed,
+            args.date is not None,
+            lambda m: print(m, file=sys.stderr),
+            args.report_every,
         )
         try:
             run.files(args.file)
@@ -394,7 +584,8 @@ def asterix_main(
                 print("asterix: writing system tracks as CAT062 until stopped", file=sys.stderr)
                 stop.wait(args.duration)
         finally:
-            run.finish()
+            # stopped: what is held goes out within the stop's grace; at the input's end all of it
+            run.finish(time.monotonic() + STOP_FLUSH_S if stop.is_set() else None)
             print(run.summary(), file=sys.stderr)
             if writer is not None:
                 out_sub.undeclare()

@@ -30,6 +30,13 @@ after it can be trusted to start a block); another category is skipped whole by 
 counted as ``"unsupported_category"``.  Every block is decoded from its own slice of the input,
 so a record overrunning its block raises IndexError (caught) instead of reading the next block.
 No input raises and every loop advances by at least one octet: the cost is linear in the input.
+
+**Cost per datagram.**  ``decode_datagram(..., max_records=N)`` stops at N records: the block
+that would go past them is dropped whole (atomic, as above), and the blocks after it are not
+looked at; ``errors["too_many_records"]`` counts it.  The smallest record (FSPEC and SAC/SIC)
+is 3 octets, so 64 KiB of them are 21 800 records and about 50 ms of work; the bridge caps a
+live UDP datagram (``service.asterix.command.MAX_UDP_RECORDS``) so that a flood of such
+datagrams costs each at most a few ms.
 """
 
 from __future__ import annotations
@@ -94,6 +101,10 @@ class Decoded:
     cat021: list[Cat021Report] = field(default_factory=list)
     errors: collections.Counter[str] = field(default_factory=collections.Counter)  # cause -> blocks
     blocks: int = 0  # data blocks seen (including dropped and unsupported ones)
+
+
+class _TooManyRecordsError(Exception):
+    """A block holds more records than the datagram's budget has left."""
 
 
 # A record decoder: (block, offset of its first item, append) -> offset after the record.
@@ -359,14 +370,19 @@ class _Category:
         src += [f"    append(_new(_R, {self.result_expr}))", "    return p"]
         return self._compile(src, ns, "_generic", f"<CAT{self.cat:03d} generic>")
 
-    def decode_block(self, b: bytes, out: list[Any]) -> None:
-        """Append the records of the data block ``b`` (its header included) to ``out``, all or none."""
+    def decode_block(self, b: bytes, out: list[Any], limit: int | None = None) -> None:
+        """Append the records of the data block ``b`` (its header included) to ``out``, all or
+        none; more than ``limit`` records raise _TooManyRecordsError."""
         cache = self.cache
         p = 3
         end = len(b)
         records: list[Any] = []
         append = records.append
+        # a record is at least 3 octets: a block cannot hold ``end`` of them
+        budget = end if limit is None else limit
         while p < end:
+            if len(records) >= budget:
+                raise _TooManyRecordsError
             q = p
             while b[q] & 1:
                 q += 1
@@ -417,14 +433,16 @@ _CAT021 = _Category(
 _CATEGORIES = {48: _CAT048, 34: _CAT034, 21: _CAT021}
 
 
-def decode_datagram(data: bytes, out: Decoded) -> None:
+def decode_datagram(data: bytes, out: Decoded, max_records: int | None = None) -> None:
     """Decode every data block of ``data`` (CAT, LEN, records; LEN counts the 3-octet header)
-    into ``out``.  Never raises on any bytes (module docstring)."""
+    into ``out``, at most ``max_records`` records (module docstring, "Cost per datagram").
+    Never raises on any bytes (module docstring)."""
     if type(data) is not bytes:
         data = bytes(data)
     n = len(data)
     pos = 0
     errors = out.errors
+    left = max_records
     while pos < n:
         out.blocks += 1
         if n - pos < 3:
@@ -439,10 +457,17 @@ def decode_datagram(data: bytes, out: Decoded) -> None:
             errors["unsupported_category"] += 1
         else:
             b = data if length == n else data[pos : pos + length]
+            records = getattr(out, cat.attr)
+            before = len(records)
             try:
-                cat.decode_block(b, getattr(out, cat.attr))
+                cat.decode_block(b, records, left)
             except (FramingError, IndexError, struct.error):
                 errors["undecodable"] += 1
+            except _TooManyRecordsError:
+                errors["too_many_records"] += 1
+                return
+            if left is not None:
+                left -= len(records) - before
         pos += length
 
 

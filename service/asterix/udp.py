@@ -15,17 +15,29 @@ neither, so that a second listener on a unicast port fails loudly instead of sil
 share of the datagrams.  Every socket asks for an 8 MiB receive buffer and accepts what the
 system grants (:attr:`UdpReceiver.receive_buffers` tells); radar feeds arrive in bursts at the end
 of each sector.
+
+What the kernel dropped because a socket's buffer was full is read from ``/proc/net/udp`` and
+``/proc/net/udp6`` (Linux: the ``drops`` column of the line whose inode is the socket's;
+:meth:`UdpReceiver.kernel_drops`).  That costs one small file read when asked, nothing per
+datagram, and keeps the plain ``recvfrom_into`` loop; ``SO_RXQ_OVFL`` would carry the same count
+as ancillary data of every datagram, which needs ``recvmsg`` and its per-datagram cost.
+
+:class:`FairQueue` holds what was read until it is decoded: per sender, served in turn, bounded in
+datagrams and bytes, so that one sender flooding a port costs the others one turn each, not the
+time it takes to decode its backlog.
 """
 
 from __future__ import annotations
 
 import contextlib
 import ipaddress
+import os
 import re
 import selectors
 import socket
 import struct
 import sys
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import TracebackType
@@ -38,6 +50,17 @@ RECEIVE_BUFFER_BYTES = 8 * 1024 * 1024
 MAX_DATAGRAM_BYTES = 65535
 #: Datagrams read from one socket per :meth:`UdpReceiver.receive` call (the rest wait for the next).
 MAX_BATCH_PER_SOCKET = 4096
+#: ... and bytes: a flood of 64 KiB datagrams must not make one call read hundreds of megabytes
+#: (4096 of them) before anything is decoded.  1 MiB is an eighth of the socket's buffer, so a
+#: few calls drain a full one.
+MAX_BYTES_PER_SOCKET = 1024 * 1024
+#: Datagrams waiting to be decoded (:class:`FairQueue`), at most: as many bytes as one socket's
+#: receive buffer, about 2-3 s of decoding at full speed (docs/asterix.md, "Speed") ...
+QUEUE_BYTES = RECEIVE_BUFFER_BYTES
+#: ... and datagrams (small ones: a count bound as well, each costs its own object).
+QUEUE_DATAGRAMS = 16_384
+#: The kernel's count tables, IPv4 and IPv6 (Linux).
+PROC_NET_UDP = ("/proc/net/udp", "/proc/net/udp6")
 
 _HOSTNAME = re.compile(r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)(\.(?!-)[A-Za-z0-9-]{1,63}(?<!-))*\.?")
 _INTERFACE_NAME = re.compile(r"[A-Za-z0-9_.:-]{1,64}")
@@ -220,8 +243,9 @@ class UdpReceiver:
     def receive(self, timeout_s: float) -> list[Datagram]:
         """Every datagram ready within ``timeout_s`` (waiting at most that long for the first).
 
-        At most :data:`MAX_BATCH_PER_SOCKET` per socket per call; the source is the sender's
-        "ip:port", the destination the group or bound address and port it came in on.
+        At most :data:`MAX_BATCH_PER_SOCKET` datagrams and about :data:`MAX_BYTES_PER_SOCKET`
+        bytes per socket per call; the source is the sender's "ip:port", the destination the
+        group or bound address and port it came in on.
         """
         if self._closed:
             raise ValueError("UdpReceiver is closed")
@@ -230,6 +254,7 @@ class UdpReceiver:
         for key, _ in self._selector.select(max(0.0, timeout_s)):
             sock = key.fileobj
             assert isinstance(sock, socket.socket)
+            budget = MAX_BYTES_PER_SOCKET
             for _ in range(MAX_BATCH_PER_SOCKET):
                 try:
                     size, sender = sock.recvfrom_into(buffer)
@@ -238,7 +263,36 @@ class UdpReceiver:
                 except ConnectionError:
                     continue  # Windows reports an earlier ICMP port unreachable here
                 received.append(Datagram(bytes(buffer[:size]), None, _format_address(sender), key.data))
+                budget -= size
+                if budget <= 0:
+                    break
         return received
+
+    def kernel_drops(self) -> dict[str, int]:
+        """Datagrams the kernel dropped on each socket so far (a full receive buffer), by the
+        destination the socket stands for; empty where the system does not tell (not Linux)."""
+        if self._closed:
+            return {}
+        inodes: dict[int, str] = {}
+        for sock in self._sockets:
+            with contextlib.suppress(KeyError, ValueError, OSError):
+                inodes[os.fstat(sock.fileno()).st_ino] = self._selector.get_key(sock).data
+        drops: dict[str, int] = {}
+        for path in PROC_NET_UDP:
+            try:
+                with open(path, encoding="ascii", errors="replace") as table:
+                    lines = table.read().splitlines()[1:]
+            except OSError:
+                continue
+            for line in lines:
+                # sl local rem st tx:rx tr:when retrnsmt uid timeout inode ref pointer drops
+                fields = line.split()
+                if len(fields) < 13 or not fields[9].isdigit() or not fields[-1].isdigit():
+                    continue
+                destination = inodes.get(int(fields[9]))
+                if destination is not None:
+                    drops[destination] = drops.get(destination, 0) + int(fields[-1])
+        return drops
 
     def close(self) -> None:
         """Closes every socket (leaving the groups); idempotent."""
@@ -262,3 +316,65 @@ class UdpReceiver:
         traceback: TracebackType | None,
     ) -> None:
         self.close()
+
+
+class FairQueue:
+    """Datagrams read and not yet decoded, per sender ("ip:port"), served in turn.
+
+    :meth:`get` gives the oldest datagram of the sender whose turn it is (round robin over the
+    senders with datagrams waiting), so a sender that floods the port waits for its own backlog
+    while the others are served at once.  Past :data:`QUEUE_BYTES` or :data:`QUEUE_DATAGRAMS` the
+    sender with the most bytes waiting loses its oldest datagram (:meth:`put` returns what was
+    dropped, for the caller to count).  Each datagram waits with the time it was received.
+    """
+
+    def __init__(self, max_bytes: int = QUEUE_BYTES, max_datagrams: int = QUEUE_DATAGRAMS) -> None:
+        self.max_bytes = max_bytes
+        self.max_datagrams = max_datagrams
+        #: Per sender, in turn order (a dict keeps insertion order; a served sender goes last).
+        self._queues: dict[str, deque[tuple[float, Datagram]]] = {}
+        self._bytes: dict[str, int] = {}
+        self.bytes = 0
+        self.count = 0
+
+    def __len__(self) -> int:
+        return self.count
+
+    def put(self, datagram: Datagram, received_s: float) -> list[Datagram]:
+        """Queue ``datagram``; the datagrams dropped to stay within the bounds (oldest first)."""
+        sender = datagram.source
+        queue = self._queues.get(sender)
+        if queue is None:
+            queue = self._queues[sender] = deque()
+            self._bytes[sender] = 0
+        queue.append((received_s, datagram))
+        size = len(datagram.payload)
+        self._bytes[sender] += size
+        self.bytes += size
+        self.count += 1
+        dropped: list[Datagram] = []
+        while self.bytes > self.max_bytes or self.count > self.max_datagrams:
+            longest = max(self._bytes, key=self._bytes.__getitem__)
+            dropped.append(self._pop(longest)[1])
+        return dropped
+
+    def get(self) -> tuple[float, Datagram] | None:
+        """The next datagram (round robin over the senders) and when it was received, or None."""
+        sender = next(iter(self._queues), None)
+        if sender is None:
+            return None
+        item = self._pop(sender)
+        if sender in self._queues:  # more of it waits: its next turn comes after the others'
+            self._queues[sender] = self._queues.pop(sender)
+        return item
+
+    def _pop(self, sender: str) -> tuple[float, Datagram]:
+        queue = self._queues[sender]
+        item = queue.popleft()
+        size = len(item[1].payload)
+        self._bytes[sender] -= size
+        self.bytes -= size
+        self.count -= 1
+        if not queue:
+            del self._queues[sender], self._bytes[sender]
+        return item

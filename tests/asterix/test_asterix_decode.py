@@ -549,3 +549,30 @@ def test_hostile_input_costs_linear_time(monkeypatch: pytest.MonkeyPatch) -> Non
     assert len(cat.cache) < 50
     assert all(len(k) <= 4 for k in cat.seen)  # no FSPEC longer than the UAP's is remembered
     assert time.perf_counter() - t0 < 2.0
+
+
+def test_a_datagram_is_decoded_up_to_max_records() -> None:
+    """Past ``max_records`` the block that goes over is dropped whole and the walk ends; the
+    blocks before it stay.  A datagram of the smallest records costs only up to the cap."""
+    small = bytes((0x80, 25, 11))  # FSPEC and I048/010 only: the smallest CAT048 record
+    first, over, after = _blk(48, small * 5), _blk(48, small * 10), _blk(48, small * 2)
+    d = Decoded()
+    decode_datagram(first + over + after, d, max_records=12)
+    assert (len(d.cat048), dict(d.errors)) == (5, {"too_many_records": 1})
+    d = Decoded()
+    decode_datagram(first + over + after, d, max_records=17)  # exactly enough
+    assert (len(d.cat048), dict(d.errors)) == (17, {})
+    d = Decoded()
+    decode_datagram(first + over + after, d)  # no cap
+    assert len(d.cat048) == 17
+    full = _blk(48, small * ((65_507 - 3) // 3))  # 21 834 records in one datagram
+    t0 = time.perf_counter()
+    for _ in range(10):
+        d = Decoded()
+        decode_datagram(full, d, max_records=1000)
+        assert d.errors == {"too_many_records": 1} and not d.cat048
+    capped = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for _ in range(10):
+        decode_datagram(full, Decoded())
+    assert capped < (time.perf_counter() - t0) / 5  # the cost follows the cap, not the size

@@ -16,7 +16,13 @@ from collections.abc import Iterator
 import pytest
 
 from service.asterix.capture import Datagram
-from service.asterix.udp import UdpEndpoint, UdpReceiver, parse_endpoint
+from service.asterix.udp import (
+    MAX_BYTES_PER_SOCKET,
+    FairQueue,
+    UdpEndpoint,
+    UdpReceiver,
+    parse_endpoint,
+)
 
 GROUP = "239.255.73.41"  # administratively scoped (RFC 2365)
 GROUP6 = "ff01::7341"  # interface-local scope
@@ -176,6 +182,69 @@ def test_unresolvable_host_names_the_endpoint(monkeypatch: pytest.MonkeyPatch) -
     monkeypatch.setattr(socket, "getaddrinfo", no_resolver)  # no DNS query leaves the host
     with pytest.raises(OSError, match=re.escape("UDP endpoint radar.example:0: cannot resolve")):
         UdpReceiver([parse_endpoint("radar.example:0")])
+
+
+def test_one_receive_reads_about_a_byte_budget_per_socket() -> None:
+    with UdpReceiver([parse_endpoint("127.0.0.1:0")]) as receiver, sender() as sock:
+        port = receiver.addresses[0][1]
+        big = bytes(60_000)
+        n = MAX_BYTES_PER_SOCKET // len(big) + 5
+        for _ in range(n):
+            sock.sendto(big, ("127.0.0.1", port))
+        time.sleep(0.05)
+        first = receiver.receive(1.0)
+        assert len(first) == MAX_BYTES_PER_SOCKET // len(big) + 1  # the one that crossed the budget
+        assert len(first) + len(receive_until(receiver, n - len(first))) == n  # the rest waited
+
+
+def test_kernel_drops_are_read_per_socket() -> None:
+    """Datagrams the kernel dropped on a full receive buffer, by the socket's destination."""
+    with UdpReceiver([parse_endpoint("127.0.0.1:0"), parse_endpoint("127.0.0.1:0")]) as receiver:
+        (_, port), (_, other) = receiver.addresses
+        before = receiver.kernel_drops()
+        if not before:
+            pytest.skip("the system does not tell UDP drops (/proc/net/udp)")
+        assert before == {f"127.0.0.1:{port}": 0, f"127.0.0.1:{other}": 0}
+        with sender() as sock:
+            sent = 2 * max(receiver.receive_buffers) // 60_000 + 10  # twice what the buffer holds
+            for _ in range(sent):
+                sock.sendto(bytes(60_000), ("127.0.0.1", port))
+        drops = receiver.kernel_drops()
+        got = len(receive_until(receiver, sent, timeout_s=1.0))
+        assert drops[f"127.0.0.1:{other}"] == 0
+        assert drops[f"127.0.0.1:{port}"] > 0 and got + drops[f"127.0.0.1:{port}"] == sent
+    assert receiver.kernel_drops() == {}  # closed
+
+
+def test_fair_queue_serves_senders_in_turn_and_drops_the_longest_oldest() -> None:
+    def d(sender: str, size: int, tag: int) -> Datagram:
+        return Datagram(bytes([tag]) * size, None, sender, "127.0.0.1:1")
+
+    queue = FairQueue(max_bytes=1000, max_datagrams=8)
+    assert queue.get() is None
+    for i in range(4):
+        assert queue.put(d("flood:1", 200, i), float(i)) == []
+    assert queue.put(d("radar:2", 10, 100), 4.0) == []
+    gone = queue.put(d("flood:1", 200, 4), 5.0)  # 1010 bytes: the flood's oldest goes
+    assert [g.payload[0] for g in gone] == [0]
+    assert (len(queue), queue.bytes) == (5, 810)
+    assert queue.put(d("radar:2", 10, 101), 6.0) == []
+    order = []
+    while (item := queue.get()) is not None:
+        order.append((item[1].source, item[1].payload[0], item[0]))
+    # in turn: flood, radar, flood, radar, flood, ...; each sender's own in order
+    assert order == [
+        ("flood:1", 1, 1.0),
+        ("radar:2", 100, 4.0),
+        ("flood:1", 2, 2.0),
+        ("radar:2", 101, 6.0),
+        ("flood:1", 3, 3.0),
+        ("flood:1", 4, 5.0),
+    ]
+    assert (len(queue), queue.bytes) == (0, 0)
+    small = FairQueue(max_bytes=10**6, max_datagrams=3)  # empty datagrams: the count bounds them
+    gone = [g for i in range(5) for g in small.put(d("x:1", 0, 0), float(i))]
+    assert len(gone) == 2 and len(small) == 3
 
 
 # ---------------------------------------------------------------------------------------------
