@@ -182,14 +182,11 @@ class Engine:
         peer = not self.partition.whole and self.keys.classify_peer(key) is not None
         return self._rejected(key, self._too_large(key, size), receive_time_s, peer)
 
-    def _rejected(
-        self, key: str, rej: RejectionError, receive_time_s: float | None, peer: bool
-    ) -> list[Outgoing]:
+    def _rejected(self, key: str, rej: RejectionError, received: float | None, peer: bool) -> list[Outgoing]:
         """A rejected message: counted and reported, by the worker that owns its source (every
         worker sees every input; one reports it, as one worker alone would)."""
-        if not peer and not self.partition.owns(rej.source_id or key):
-            return []
-        return [self._reject(key, rej, receive_time_s)]
+        owner = peer or self.partition.owns(rej.source_id or key)
+        return [self._reject(key, rej, received)] if owner else []
 
     def _reject(self, key: str, rej: RejectionError, receive_time_s: float | None) -> Outgoing:
         self.rejected[rej.reason] += 1
@@ -221,11 +218,8 @@ class Engine:
     def _set_site(self, site: RadarSite) -> list[Outgoing]:
         # Partitioned: every worker holds every site (the geometry of every pair it may
         # correlate); only the owner's sequencer waits for the radar's batches.
-        out = (
-            self._drop(self.sequencer.announce(site.radar_id, RADAR))
-            if self.partition.owns(site.radar_id)
-            else []
-        )
+        owns = self.partition.owns(site.radar_id)
+        out = self._drop(self.sequencer.announce(site.radar_id, RADAR)) if owns else []
         change = self.tracking.set_site(site)
         if change is SiteChange.MOVED:
             self.correlation.moved(self.tracking.radars[site.radar_id].geometry)
@@ -234,12 +228,14 @@ class Engine:
         self.peers.site_known(site.radar_id)
         return out
 
-    def _drop(self, source_ids: Iterable[str]) -> list[Outgoing]:
+    def _drop(self, source_ids: Iterable[str], keep_site: bool = False) -> list[Outgoing]:
+        """Sources evicted, or forgotten (``keep_site``: site, counters and id numbering stay)."""
         out = []
         for sid in source_ids:
             self.reference_kinds.pop(sid, None)
-            self.tracking.drop(sid)
-            self.plots.pop(sid, None)
+            self.tracking.clear(sid) if keep_site else self.tracking.drop(sid)
+            if not keep_site:
+                self.plots.pop(sid, None)
             self.correlation.forget(sid)
             self.peers.forget(sid)
             self.feed.forget(sid)
@@ -283,7 +279,9 @@ class Engine:
         for rel in released:
             self._snapshot = None
             try:
-                if rel.kind == REFERENCE:
+                if rel.forget:
+                    out += self._drop([rel.source_id], keep_site=True)
+                elif rel.kind == REFERENCE:
                     seq = 0 if rel.expiry else rel.item.seq
                     self.merger.push(REFERENCE, rel.source_id, seq, rel.time_s, rel.item, expiry=rel.expiry)
                 else:

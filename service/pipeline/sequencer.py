@@ -34,6 +34,10 @@ Valid but hostile input (each policy a named field of :class:`SequencerParams`)
 * **Sources that go silent** expire ``source_expiry_s`` of data time after their last batch
   (an event in the same data-time order as the batches, so replays expire them identically);
   the engine then drops what they cost (their tracks coast out, they leave correlation).
+  A source still silent ``forget_after_s`` after its expiry is **forgotten** (another such
+  event): its pair books, registration rows and tables go, in both processes, so memory stays
+  flat while radar ids come and go; its site, ``seq`` and clock stay (a few numbers, bounded by
+  ``max_sources``), and its track ids go on where they were when it comes back.
 * **Too many ids.**  At most ``max_sources`` sources are held.  When full, an expired source
   (or one that announced itself and never reported) makes room; otherwise the newcomer is
   rejected (``out_of_range``).
@@ -63,6 +67,8 @@ log = logging.getLogger(__name__)
 REFERENCE, RADAR = 0, 1
 #: Heap entries of this kind are expiry events, after every batch of the same data time.
 EXPIRE = 2
+#: Heap entries of this kind are forget events (``forget_after_s`` after an expiry).
+FORGET = 3
 
 
 @dataclass(frozen=True)
@@ -87,6 +93,10 @@ class SequencerParams:
     #: A source with no batch for this long (s of data time) expires: its tracks coast out and
     #: it leaves correlation until it reports again.
     source_expiry_s: float = 300.0
+    #: A source still silent this long (s of data time) after its expiry is forgotten: its
+    #: pair books, registration rows and tables go (module docstring).  Ten minutes: a radar
+    #: back within a quarter of an hour keeps what its pairs learnt.
+    forget_after_s: float = 600.0
     #: Share of the live sources whose batches must agree on a jump of more than
     #: ``max_clock_skew_s`` for it to be the end of a whole-feed outage (see module docstring);
     #: at least two sources always.  A half: the network's data clock is the low median of the
@@ -143,6 +153,8 @@ class Release:
     source_id: str
     time_s: float
     item: Any
+    #: An expired source that stayed silent ``forget_after_s``: what it costs goes.
+    forget: bool = False
 
     @property
     def expiry(self) -> bool:
@@ -163,6 +175,7 @@ class Sequencer:
         # heads of the sources' pending queues and expiry events: (clock, kind, id, seq)
         self._heap: list[tuple[float, int, str, int]] = []
         self._expiry_due: dict[str, float] = {}
+        self._forget_due: dict[str, float] = {}
         self._first_clock = np.inf
         #: The data time up to which the last :meth:`release` released.
         self.last_limit = -np.inf
@@ -202,6 +215,7 @@ class Sequencer:
         _, victim = min(idle)
         del self.sources[victim]
         self._expiry_due.pop(victim, None)
+        self._forget_due.pop(victim, None)
         return [victim]
 
     def observe(self, source_id: str, clock_s: float) -> None:
@@ -235,6 +249,7 @@ class Sequencer:
         if src is not None and not src.pending:
             del self.sources[source_id]
             self._expiry_due.pop(source_id, None)
+            self._forget_due.pop(source_id, None)
 
     # -- admission -------------------------------------------------------------------------
     def check(self, source_id: str, kind: int, seq: int, time_s: float) -> Admission:
@@ -343,6 +358,7 @@ class Sequencer:
         self.newest_s = max(self.newest_s, clock)
         src.expired = False
         self._expiry_due.pop(adm.source_id, None)
+        self._forget_due.pop(adm.source_id, None)
         if not src.pending:
             heapq.heappush(self._heap, (clock, adm.kind, adm.source_id, adm.seq))
         src.pending.append((clock, adm.seq, item))
@@ -429,7 +445,14 @@ class Sequencer:
                 if src is not None and not src.pending and self._expiry_due.get(source_id) == clock:
                     del self._expiry_due[source_id]
                     src.expired = True
+                    self._forget_due[source_id] = due = clock + self.params.forget_after_s
+                    heapq.heappush(self._heap, (due, FORGET, source_id, 0))
                     yield Release(src.kind, source_id, clock, None)
+                continue
+            if kind == FORGET:
+                if src is not None and src.expired and self._forget_due.get(source_id) == clock:
+                    del self._forget_due[source_id]
+                    yield Release(src.kind, source_id, clock, None, forget=True)
                 continue
             if src is None:  # evicted with nothing pending: cannot happen, kept for safety
                 continue

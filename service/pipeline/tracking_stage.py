@@ -147,6 +147,14 @@ class TrackingStage:
         radar.table = radar.tracker.tracks()
         return True
 
+    def clear(self, radar_id: str) -> None:
+        """A radar forgotten after a long silence: its tracks and window go; its site and its
+        tracker's id numbering stay (its track ids go on where they were when it comes back)."""
+        radar = self.radars.get(radar_id)
+        if radar is not None and radar.tracker is not None:
+            radar.tracker.drop_tracks()
+            radar.table = radar.tracker.tracks()
+
     def drop(self, radar_id: str) -> None:
         self.radars.pop(radar_id, None)
 

@@ -200,8 +200,8 @@ class Tracker(ABC):
 
     @abstractmethod
     def drop_tracks(self) -> None:
-        """Forget every track (the radar expired: silent in data or wall time); the ids of new
-        tracks go on from where they were, so none repeats."""
+        """Forget every track and every plot of the window (the radar expired: silent in data
+        or wall time); the ids of new tracks go on from where they were, so none repeats."""
 
     @property
     @abstractmethod

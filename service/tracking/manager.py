@@ -258,6 +258,7 @@ class TrackManager(Tracker):
     # -- contract ---------------------------------------------------------------------
     def drop_tracks(self) -> None:
         self._tracks = _Tracks.empty()
+        self._window.clear()
         self.joined = []
 
     @property

@@ -47,6 +47,12 @@ class PlotWindow:
     def __len__(self) -> int:
         return self._count
 
+    def clear(self) -> None:
+        """Every plot goes (the radar expired); the data clock and the counters stay."""
+        self._chunks = deque()
+        self._count = 0
+        self._joined = (PlotColumns.empty(), None)
+
     def copy(self) -> PlotWindow:
         """An independent window with the same plots and counters (chunks shared, O(chunks))."""
         out = PlotWindow.__new__(PlotWindow)
