@@ -10,8 +10,8 @@ Threads (docs/architecture.md):
   everybody's traffic, so the wait is short, and only after it is a sample dropped: every
   drop is counted by key (``/status`` ``queue.dropped`` and ``queue.dropped_by_key``) and
   logged.  The queue is fair by source: a source holds at most its share of it (a flooding
-  source's excess is dropped at once, without stalling the network thread), and the worker
-  takes the sources in turn (``ingest_queue``, "Fair intake").
+  source's excess is dropped at once, without stalling the network thread), and after a
+  flooding source's sample the worker takes another's (``ingest_queue``, "Fair intake").
 * A watcher thread follows the Zenoh connection (``/readyz`` says ``no zenoh connection``
   while a client or a peer with connect endpoints has lost them all; both changes are
   logged).  A client whose router is not up yet keeps trying with back-off on a connector
@@ -19,9 +19,9 @@ Threads (docs/architecture.md):
 * A stop (SIGTERM/SIGINT) undeclares the input subscribers first, gives the worker
   ``stop_grace_s`` to finish the queue, publishes the final outputs, and logs how many
   queued samples were processed and how many, if any, were left (contract §4.6).
-* One worker thread takes samples (each source's in arrival order, the sources in turn),
-  calls ``engine.ingest``, hands what it returns to the publisher thread, then swaps in a new
-  immutable :class:`~service.engine.Snapshot`.
+* One worker thread takes samples in arrival order (but never two of a flooding source's
+  while another source's waits), calls ``engine.ingest``, hands what it returns to the
+  publisher thread, then swaps in a new immutable :class:`~service.engine.Snapshot`.
 * One publisher thread puts the outputs.  The worker never waits on the network: partitioned
   workers publish to each other, and a worker blocked on a put to a peer whose queue is full
   while that peer is blocked on a put to it would stall both (the outbox is bounded by count,
