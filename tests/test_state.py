@@ -146,6 +146,21 @@ def test_a_restart_keeps_sites_biases_seq_and_moves_the_id_epoch(
         engine.close()
 
 
+def test_a_publisher_restarted_behind_the_restored_clock_is_told_why(
+    written: Path, stream: list[tuple[str, bytes]], tmp_path: Path
+) -> None:
+    """A simulator run again from its start after a restart: its batches are behind the kept
+    clock, and the rejection says by how much and what to do."""
+    shutil.copy(written, tmp_path / STATE)
+    engine = Engine(EngineConfig())
+    StateKeeper(tmp_path, "fusion", "1/1").restore(engine)
+    first_a = next(p for k, p in stream if k == "fusion/radar/A/plots")
+    (err,) = _errors(engine.ingest("fusion/radar/A/plots", first_a))
+    assert err["reason"] == "duplicate_seq"
+    assert "behind this source's data clock (restored from the state file" in err["detail"]
+    assert "--start-time resume" in err["detail"]
+
+
 def _later(payload: bytes, shift_s: float) -> bytes:
     """A plot batch as it would come ``shift_s`` later (batch and plot times)."""
     body = json.loads(payload)

@@ -128,6 +128,8 @@ class SourceClock:
     foreign: bool = False
     #: The data time of this source's last batch refused as too far ahead (the outage vote).
     ahead_s: float | None = None
+    #: The clock came from the state file (a restart), not from a batch of this run.
+    restored: bool = False
     pending: deque[tuple[float, int, Any]] = field(default_factory=deque)
 
 
@@ -264,9 +266,7 @@ class Sequencer:
             last_time = src.last_time_s if src.last_time_s is not None else -np.inf
             if seq <= src.last_seq:
                 if not (seq <= p.restart_max_seq and time_s > last_time):
-                    raise RejectionError(
-                        "duplicate_seq", f"seq {seq} <= last accepted {src.last_seq}", source_id
-                    )
+                    raise RejectionError("duplicate_seq", self._duplicate(src, seq, time_s), source_id)
                 restart = True
             else:
                 lost = seq - src.last_seq - 1
@@ -301,6 +301,20 @@ class Sequencer:
         if src is None and len(self.sources) >= p.max_sources:
             self._make_room_check(source_id)
         return Admission(source_id, kind, seq, time_s, restart, lost, outage)
+
+    @staticmethod
+    def _duplicate(src: SourceClock, seq: int, time_s: float) -> str:
+        """A duplicate's detail; a restarted publisher behind the source's clock is told why."""
+        detail = f"seq {seq} <= last accepted {src.last_seq}"
+        behind = (src.last_time_s if src.last_time_s is not None else -np.inf) - time_s
+        if behind <= 0:
+            return detail
+        held = "restored from the state file, " if src.restored else ""
+        return (
+            f"{detail}, and time_s {time_s:.3f} is {behind:.1f} s behind this source's data clock "
+            f"({held}{src.last_time_s:.3f}): a publisher that restarted its seq must go on after "
+            "that clock (e.g. topofusion simulate --start-time resume)"
+        )
 
     def _outage_vote(self, source_id: str, time_s: float) -> bool:
         """Whether a quorum of the live sources has moved to (or tried to move to) within
@@ -349,6 +363,7 @@ class Sequencer:
                 adm.time_s,
             )
         src.ahead_s = None
+        src.restored = False
         src.last_seq = adm.seq
         src.batches += 1
         src.lost_batches += adm.lost
@@ -405,7 +420,7 @@ class Sequencer:
             if src.kind != kind:
                 continue  # an id of another kind now (a site says it is a radar): not this source
             src.last_seq, src.last_time_s, src.released_time_s = seq, clock, clock
-            src.expired = True
+            src.expired = src.restored = True
             self.newest_s = max(self.newest_s, clock)
 
     def count_rejected(self, source_id: str | None) -> None:
