@@ -87,11 +87,11 @@ def companions(
     n = len(rows)
     if n == 0 or len(position) < 2:
         return np.zeros(n, dtype=bool)
+    if up is not None:  # (projected once per point, not once per pair: the same differences)
+        position = position - (position @ up)[:, None] * up
+        velocity = velocity - (velocity @ up)[:, None] * up
     d = position[rows][:, None, :] - position[None, :, :]
     dv = velocity[rows][:, None, :] - velocity[None, :, :]
-    if up is not None:
-        d = d - (d @ up)[..., None] * up
-        dv = dv - (dv @ up)[..., None] * up
     near = np.einsum("ijk,ijk->ij", d, d) <= radius_m**2  # (NaN positions are never near)
     near &= any_velocity[None, :] | (np.einsum("ijk,ijk->ij", dv, dv) < velocity_mps**2)
     near[np.arange(n), rows] = False  # (a point is not its own companion)
