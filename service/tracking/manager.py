@@ -246,6 +246,8 @@ class TrackManager(Tracker):
         self._window = PlotWindow(window_s, self.params.bounds.max_window_plots)
         self._next_uid = 1
         self.last_time_s = -np.inf
+        #: Data time of the last search of the window by the initiators (``update``).
+        self._initiated_s = -np.inf
         self._tracks = _Tracks.empty()
         #: The site rotation that ``_tracks.cov_ecef`` was made with, and the site that the
         #: window's measurements were made with (a site can be replaced, see ``update``).
@@ -327,7 +329,11 @@ class TrackManager(Tracker):
                     joined.append((tracks.uid[r], plots.take(c)))
             tracks = self._life_cycle(tracks, hit, plots.azimuth_deg, float(time_s))
             window.extend(plots.take(~used), float(time_s), meas.take(~used))
-            tracks, next_uid = self._initiate_from_window(tracks, window, joined, big)
+            initiated_s = self._initiated_s
+            next_uid = self._next_uid
+            if time_s - initiated_s >= self.params.manager.initiation_interval_scans * site.scan_period_s:
+                tracks, next_uid = self._initiate_from_window(tracks, window, joined, big)
+                initiated_s = float(time_s)
         except BaseException:
             if saved is not None:  # back into the very arrays written
                 written, rs, x0, p0, t0, n0, c0 = saved
@@ -336,6 +342,7 @@ class TrackManager(Tracker):
             raise
         # Commit: plain assignments only, after every step that can fail.
         self._tracks, self._window, self.joined, self._next_uid = tracks, window, joined, next_uid
+        self._initiated_s = initiated_s
         self._ecef_rotation, self._window_site = rotation, site
         self.last_time_s = max(self.last_time_s, float(time_s))
 

@@ -63,6 +63,13 @@ class ManagerParams:
     """Prior velocity sigma when a track is born from an initiator's plots (weak prior: the
     velocity then comes from the plots)."""
 
+    initiation_interval_scans: float = 0.05
+    """The initiators search the window at most once per this many scan periods of the radar's
+    data time (a batch closer to the last search only adds its plots to the window, searched
+    at the next one).  The search covers the whole window, so without this a radar sending
+    hundreds of one-plot batches a second would pay a whole-window search for each; a radar's
+    sector batches (8 to 32 a scan) are further apart than this and unaffected."""
+
     birth_max_mean_nis: float = 12.0
     """A candidate from any initiator is born only if the mean normalised innovation squared
     of its plots after the second one stays below this (a consistency check of the CV fit)."""
