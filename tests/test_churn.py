@@ -7,9 +7,14 @@ import json
 from dataclasses import replace
 from typing import Any
 
+import pytest
+import zenoh
+
 from service.engine import Engine, EngineConfig
 from service.pipeline.sequencer import SequencerParams
+from service.transport import node as node_module
 from tests.scenario_helpers import scenario_messages
+from tests.support import put_json, running_service, wait_for, wait_subscribed
 
 Stream = list[tuple[str, bytes]]
 
@@ -100,3 +105,25 @@ def test_radar_ids_that_come_and_go_do_not_grow_what_the_engine_holds() -> None:
     assert len(retired) >= 6
     # a new id lives 40 s, expires 20 s after, is forgotten 30 s later: at most three B ids held
     assert most <= 4
+
+
+def test_the_output_publishers_are_bounded(
+    router: str, client: zenoh.Session, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Output keys come and go with radar ids: the node holds at most MAX_PUBLISHERS publishers
+    (the least recently used goes), and every output still reaches a subscriber."""
+    monkeypatch.setattr(node_module, "MAX_PUBLISHERS", 3)
+    stream = scenario_messages("three-radar", duration_s=40.0)
+    got: list[str] = []
+    sub = client.declare_subscriber("fusion/radar/*/tracks", lambda s: got.append(str(s.key_expr)))
+    try:
+        with running_service(router) as svc:
+            wait_subscribed(client, "fusion/radar/A/plots")
+            for key, payload in stream:
+                put_json(client, key, payload)
+            n = sum(k.endswith("/plots") for k, _ in stream)
+            wait_for(lambda: sum(r["batches"] for r in svc.http.get("/status").json()["radars"]) == n)
+            wait_for(lambda: {k.split("/")[2] for k in got} == {"A", "B", "C"})
+            assert len(svc.node._publishers) <= 3
+    finally:
+        sub.undeclare()

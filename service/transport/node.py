@@ -69,6 +69,9 @@ SNAPSHOT_MIN_S = 0.05
 IDLE_POLL_S = 0.05
 #: Puts a new publisher makes before trusting its matching status (see ``_publish``).
 UNCONDITIONAL_PUTS = 8
+#: Most output publishers held; the least recently used beyond goes (``_bound_publishers``).
+#: A national network's worker puts on about a hundred keys (tracks, pairs, system tracks).
+MAX_PUBLISHERS = 1_024
 #: At a stop, how long (s) past the grace the worker may take to finish the message it is on
 #: and flush the engine (the final outputs) before the stop goes on without it.
 FINISH_S = 5.0
@@ -642,8 +645,9 @@ class ServiceNode:
         for msg in out:
             errors = msg.key == self.keys.errors  # (logged by the engine, each source and reason)
             try:
-                entry = self._publishers.get(msg.key)
+                entry = self._publishers.pop(msg.key, None)  # (re-inserted: newest last)
                 if entry is None:
+                    self._bound_publishers()
                     # What partitioned workers send each other must not be dropped under load
                     # (a lost track-states message costs that radar until its next full table).
                     peer = self.keys.classify_peer(msg.key) is not None
@@ -654,13 +658,24 @@ class ServiceNode:
                         if peer
                         else zenoh.CongestionControl.DROP,
                     )
-                    entry = self._publishers[msg.key] = [pub, UNCONDITIONAL_PUTS]
+                    entry = [pub, UNCONDITIONAL_PUTS]
+                self._publishers[msg.key] = entry
                 pub, fresh = entry
                 if errors or fresh > 0 or pub.matching_status.matching:
                     entry[1] = fresh - 1
                     pub.put(msg.payload)
             except Exception:
                 log.exception("publish failed on %s", msg.key)
+
+    def _bound_publishers(self) -> None:
+        """Room for one more publisher: output keys come and go with radar ids (a retired
+        radar's tracks and pairs), so the least recently used beyond ``MAX_PUBLISHERS`` goes."""
+        while len(self._publishers) >= MAX_PUBLISHERS:
+            oldest = next(iter(self._publishers))
+            try:
+                self._publishers.pop(oldest)[0].undeclare()
+            except Exception:  # (a session closing under it: nothing left to free)
+                log.debug("undeclaring the publisher of %s failed", oldest, exc_info=True)
 
     # -- views ---------------------------------------------------------------------------------
     def _own_status(self) -> dict[str, Any]:
