@@ -168,6 +168,7 @@ class NodeCollector(Collector):
             "1 while GET /readyz answers 200 (it says why not)",
             value=float(self.node.ready),
         )
+        yield from self._feed(status.get("feed"))
         info = GaugeMetricFamily(
             "topofusion_build_info",
             "Always 1: the service's version and those of Python and Zenoh",
@@ -277,6 +278,27 @@ class NodeCollector(Collector):
                 if b.get(field) is not None:  # a sigma may be null: not known
                     gauge.add_metric([b["radar_id"]], b[field])
             yield gauge
+
+    @staticmethod
+    def _feed(feed: dict[str, Any] | None) -> Iterator[Metric]:
+        """``/status`` ``feed``: whether the outputs are still live (``pipeline.feed``)."""
+        if feed is None:
+            return
+        yield GaugeMetricFamily(
+            "topofusion_outputs_stale",
+            "1 while the data clock has not moved for the feed's stale_s (GET /readyz says so)",
+            value=float(feed["stale"]),
+        )
+        yield CounterMetricFamily(
+            "topofusion_feed_outages",
+            "Whole-feed outages that ended (the data clock jumped with a quorum of the sources)",
+            value=feed["outages"],
+        )
+        yield CounterMetricFamily(
+            "topofusion_sources_expired_by_wall_clock",
+            "Sources expired for silence on the wall clock while the data clock stood still",
+            value=feed["expired_by_wall_clock"],
+        )
 
     @staticmethod
     def _state(state: dict[str, Any] | None) -> Iterator[Metric]:
