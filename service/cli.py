@@ -17,7 +17,7 @@ from typing import Any, NoReturn
 
 from pydantic import ValidationError
 
-from service.settings import Settings, engine_config
+from service.settings import Settings, engine_config, http_limits
 from service.transport.session import MODES, ZenohOptions
 from service.wire.vocabulary import METHODS
 
@@ -75,6 +75,31 @@ class _ListScenarios(argparse.Action):
             until = " (runs until stopped)" if scenario.duration_s is None else ""
             print(f"{scenario.name:<12} {scenario.description}{until}")
         parser.exit(0)
+
+
+#: ``simulate --site-every`` default (wall s; ``demo``'s simulator too); the lab's
+#: ``SITE_EVERY_S``, kept here so that the parser (and ``--help``) does not import the lab.
+SIMULATE_SITE_EVERY_S = 5.0
+
+
+def _start_time(text: str) -> float | str:
+    if text == "resume":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: a data time (s since the Unix epoch) or 'resume'"
+        ) from None
+
+
+def _udp_endpoint(text: str) -> Any:
+    from service.asterix.udp import parse_endpoint
+
+    try:
+        return parse_endpoint(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _zenoh_flags(p: argparse.ArgumentParser, default_mode: str) -> None:
@@ -138,7 +163,64 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--speed", type=float, default=1.0, help="x real time; 0 = as fast as possible")
     sim.add_argument("--seed", type=int, default=0)
     sim.add_argument("--duration", type=float, help="data seconds to simulate (default: the scenario's)")
-    sim.add_argument("--start-time", type=float, help="data time of the first scan (default: now)")
+    sim.add_argument(
+        "--start-time",
+        type=_start_time,
+        metavar="S|resume",
+        help="data time of the first scan (default: now); resume: just after the data clock the service "
+        "reports (get {prefix}/status)",
+    )
+    sim.add_argument(
+        "--loop", action="store_true", help="repeat the scenario without end, data time and seq running on"
+    )
+    sim.add_argument(
+        "--site-every",
+        type=float,
+        default=SIMULATE_SITE_EVERY_S,
+        metavar="S",
+        help=f"put the sites again every S wall seconds, for late joiners (0: only at the start; "
+        f"default {SIMULATE_SITE_EVERY_S:g})",
+    )
+    sim.add_argument(
+        "--wait-service",
+        type=float,
+        metavar="S",
+        help="before publishing, wait up to S s for a service to answer {prefix}/status (default 0; "
+        "30 with --start-time resume)",
+    )
+    sim.add_argument(
+        "--wait",
+        type=float,
+        default=120.0,
+        metavar="S",
+        help="after the last message, wait up to S s until the service reports its outputs complete "
+        "through the run's end (as replay does; no service answering: no wait); 0: do not wait "
+        "(default 120)",
+    )
+    sim.add_argument(
+        "--adsb-every", type=int, metavar="N", help="every N-th aircraft reports ADS-B (source id adsb)"
+    )
+    sim.add_argument(
+        "--asterix-file",
+        type=Path,
+        metavar="PATH",
+        help="write the scenario as ASTERIX CAT048/034/021 instead of publishing it (.pcap: a pcap "
+        "capture; else raw data blocks)",
+    )
+    sim.add_argument(
+        "--asterix-udp",
+        action="append",
+        type=_udp_endpoint,
+        default=[],
+        metavar="HOST:PORT",
+        help="send the scenario as ASTERIX datagrams to HOST:PORT instead of publishing it (repeatable)",
+    )
+    sim.add_argument(
+        "--write-sites",
+        type=Path,
+        metavar="FILE",
+        help="write the scenario's sites (with the SAC/SIC of the ASTERIX output) as a sites file",
+    )
 
     from service import recording
 
@@ -284,9 +366,12 @@ def serve(settings: Settings, demo: argparse.Namespace | None = None) -> int:
     import uvicorn
 
     from service.api.app import create_app
+    from service.api.server import fit_file_limit, server_config
     from service.transport.node import ServiceNode
 
     config = engine_config(settings)
+    # before Zenoh and the worker open theirs: the limits must fit the open-file limit
+    limits = fit_file_limit(http_limits(settings))
     options = zenoh_options(settings)
     extras = _DemoExtras(demo, settings.prefix) if demo is not None else None
 
@@ -321,6 +406,7 @@ def serve(settings: Settings, demo: argparse.Namespace | None = None) -> int:
         on_started=extras.start if extras else None,
         on_stopping=extras.stop if extras else None,
         api_token=settings.api_token.get_secret_value() if settings.api_token else None,
+        limits=limits,
     )
 
     class Server(uvicorn.Server):
@@ -335,8 +421,10 @@ def serve(settings: Settings, demo: argparse.Namespace | None = None) -> int:
 
     node.on_fatal = fatal
     server = Server(
-        uvicorn.Config(
+        # the request-head timeout, the connection cap, keep-alive and backlog (server.py)
+        server_config(
             app,
+            limits,
             host=settings.http_host,
             port=settings.http_port,
             log_level=settings.log_level.lower(),
@@ -394,7 +482,13 @@ class _DemoExtras:
         def simulate() -> None:
             try:
                 publish_scenario(
-                    node.session, self.scenario, self.prefix, self.speed, self.seed, self.stop_event
+                    node.session,
+                    self.scenario,
+                    self.prefix,
+                    self.speed,
+                    self.seed,
+                    self.stop_event,
+                    site_every_s=SIMULATE_SITE_EVERY_S,  # a recorder joining later learns them too
                 )
             except Exception:
                 if not self.stop_event.is_set():
@@ -478,22 +572,24 @@ def scenario_for(args: argparse.Namespace, command: str) -> Any:
 
 
 def simulate_main(args: argparse.Namespace) -> int:
+    """``topofusion simulate`` (topofusion_lab.simulate): the arguments are judged before any
+    Zenoh connection, so that a mistake ends the command at once."""
     from service.transport.session import open_tool_session
 
     with lab_imports("simulate"):
-        from topofusion_lab.publisher import publish_scenario
-    scenario = scenario_for(args, "simulate")
+        from topofusion_lab.simulate import check_arguments, run_simulation
+    # a resumed run's start comes from the service; until then the scenario starts now
+    resume = args.start_time == "resume"
+    scenario = scenario_for(
+        argparse.Namespace(**{**vars(args), "start_time": None if resume else args.start_time}), "simulate"
+    )
     settings = settings_from(args)
+    check_arguments(args)
+    options = zenoh_options(settings, default_mode="client")
     stop = _stop_on_signals()
-    session = open_tool_session(zenoh_options(settings, default_mode="client"), "simulate")
-    try:
-        t0 = time.monotonic()
-        batches, plots = publish_scenario(session, scenario, settings.prefix, args.speed, args.seed, stop)
-        dt = time.monotonic() - t0
-        print(f"simulate: published {batches} batches, {plots} plots in {dt:.1f} s", file=sys.stderr)
-    finally:
-        session.close()
-    return 0
+    return run_simulation(
+        args, scenario, settings.prefix, lambda: open_tool_session(options, "simulate"), stop
+    )
 
 
 def _stop_on_signals() -> threading.Event:

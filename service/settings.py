@@ -5,12 +5,13 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from service.wire.vocabulary import Method, is_source_id
 
 if TYPE_CHECKING:
+    from service.api.limits import HttpLimits
     from service.engine import EngineConfig
 
 
@@ -78,6 +79,30 @@ class Settings(BaseSettings):
     #: (s, wall clock) before the others correlate without its radars: a session that loses
     #: its router for a moment (a lease missed under load) must not reorder anything.
     peer_grace_s: float = Field(default=15.0, ge=0)
+    # The HTTP side port's limits (service/api/limits.py, docs/operations/http.md).
+    #: A connection must deliver a whole request head within this many seconds of opening,
+    #: and of its previous response ending; else it is closed (uvicorn has no such timeout).
+    http_header_timeout_s: float = Field(default=10.0, gt=0)
+    #: A kept-alive connection with nothing arriving for this many seconds is closed.
+    http_keep_alive_s: float = Field(default=5.0, gt=0)
+    #: Open HTTP connections at most: at the cap a new connection closes the one that has
+    #: waited longest for a request head, or is refused (503) when none is waiting.  At least
+    #: ``http_max_requests + http_picture_max_clients + 16`` (so that probes always get in).
+    http_max_connections: int = Field(default=512, ge=1)
+    #: HTTP requests in progress at most, the probes and the picture's feed aside; beyond: 503.
+    http_max_requests: int = Field(default=64, ge=1)
+    #: The listening socket's backlog (connections the kernel holds before they are accepted).
+    http_backlog: int = Field(default=128, ge=1)
+    #: Viewers of ``/picture/events`` at most; beyond: 503.
+    http_picture_max_clients: int = Field(default=256, ge=1)
+    #: A picture viewer that has not taken an event within this many of its intervals is dropped.
+    http_picture_backlog: int = Field(default=3, ge=1)
+    #: The kernel send buffer of a picture viewer's connection (bytes): with one event in the
+    #: server, all that a viewer that does not read holds until it is dropped.
+    http_picture_send_buffer: int = Field(default=256 * 1024, ge=4096)
+    #: Bytes per second the picture's viewers get together at most; beyond, every viewer's
+    #: interval is stretched by the same power of two (up to 16), so that ingest goes first.
+    http_picture_max_bytes_s: int = Field(default=16 * 1024 * 1024, ge=1)
 
     _split_listen = field_validator("zenoh_listen", "zenoh_connect", "radars", mode="before")(_split)
 
@@ -102,6 +127,36 @@ class Settings(BaseSettings):
         if bad:
             raise ValueError(f"radar ids must match [A-Za-z0-9_-]{{1,64}}: {bad}")
         return value
+
+    @model_validator(mode="after")
+    def _http_connections_leave_room_for_probes(self) -> Settings:
+        from service.api.limits import PROBE_ROOM
+
+        least = self.http_max_requests + self.http_picture_max_clients + PROBE_ROOM
+        if self.http_max_connections < least:
+            raise ValueError(
+                f"TOPOFUSION_HTTP_MAX_CONNECTIONS ({self.http_max_connections}) must be at least "
+                f"TOPOFUSION_HTTP_MAX_REQUESTS + TOPOFUSION_HTTP_PICTURE_MAX_CLIENTS + {PROBE_ROOM} "
+                f"({least}), so that some connections are always free for the probes"
+            )
+        return self
+
+
+def http_limits(settings: Settings) -> HttpLimits:
+    """The HTTP side port's limits of the settings."""
+    from service.api.limits import HttpLimits
+
+    return HttpLimits(
+        header_timeout_s=settings.http_header_timeout_s,
+        keep_alive_s=settings.http_keep_alive_s,
+        max_connections=settings.http_max_connections,
+        max_requests=settings.http_max_requests,
+        backlog=settings.http_backlog,
+        picture_max_clients=settings.http_picture_max_clients,
+        picture_backlog=settings.http_picture_backlog,
+        picture_max_bytes_s=settings.http_picture_max_bytes_s,
+        picture_send_buffer=settings.http_picture_send_buffer,
+    )
 
 
 def engine_config(settings: Settings) -> EngineConfig:

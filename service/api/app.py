@@ -18,6 +18,7 @@ from starlette.requests import cookie_parser
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from service.api.deps import NodeDep
+from service.api.limits import HttpLimits
 from service.api.metrics import registry_for
 from service.api.picture import add_picture
 from service.transport.node import ServiceNode
@@ -101,6 +102,8 @@ OPEN_PATHS = frozenset({"/healthz", "/readyz"})
 #: trades the token for a cookie that the page's own requests (its script, styles and feed)
 #: then carry, and sends the browser on to the address without it.
 PICTURE_PATH = "/picture"
+#: The picture's feed: a long response, bounded by its own cap (``picture_max_clients``).
+PICTURE_EVENTS_PATH = "/picture/events"
 TOKEN_QUERY = "token"
 TOKEN_COOKIE = "topofusion_token"
 
@@ -204,6 +207,43 @@ class BearerTokenMiddleware:
         await response(scope, receive, send)
 
 
+class RequestLimitMiddleware:
+    """At most ``max_requests`` requests in progress at once; beyond, 503 with ``Retry-After``
+    at once (``TOPOFUSION_HTTP_MAX_REQUESTS``).
+
+    The probes (:data:`OPEN_PATHS`) are never counted nor refused: they answer from the event
+    loop without work, and they must answer whatever else is asked.  The picture's feed has
+    its own cap (a stream lasts minutes and holds no thread).  The synchronous endpoints run
+    on a pool of threads; without this bound a burst of slow requests would queue there
+    without end, and every later request behind them.
+    """
+
+    def __init__(self, app: ASGIApp, max_requests: int) -> None:
+        self.app = app
+        self.max_requests = max_requests
+        self.active = 0
+        self.refused = 0
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or _route_path(scope) in OPEN_PATHS | {PICTURE_EVENTS_PATH}:
+            await self.app(scope, receive, send)
+            return
+        if self.active >= self.max_requests:
+            self.refused += 1
+            busy = JSONResponse(
+                {"detail": "too many requests in progress; try again"},
+                status_code=503,
+                headers={"Retry-After": "1", "Cache-Control": "no-store"},
+            )
+            await busy(scope, receive, send)
+            return
+        self.active += 1
+        try:
+            await self.app(scope, receive, send)
+        finally:
+            self.active -= 1
+
+
 def _document_bearer(app: FastAPI) -> None:
     """The OpenAPI document says which operations need the token (Swagger UI's "Authorize")."""
     plain = app.openapi
@@ -231,6 +271,7 @@ def create_app(
     on_stopping: Callable[[ServiceNode], None] | None = None,
     *,
     api_token: str | None = None,
+    limits: HttpLimits | None = None,
 ) -> FastAPI:
     """An app whose lifespan starts ``node_factory()`` and stops it on shutdown.
 
@@ -238,8 +279,11 @@ def create_app(
     stops (the demo starts and stops its simulator there).  ``api_token``
     (``TOPOFUSION_API_TOKEN``): every endpoint but ``/healthz`` and ``/readyz`` needs it
     (:class:`BearerTokenMiddleware`); ``None`` or empty (an unset variable that compose passes
-    through as ``""``): none does.
+    through as ``""``): none does.  ``limits`` (``TOPOFUSION_HTTP_*``; default: the settings'
+    defaults): the requests in progress and the picture's viewers; the server applies the
+    rest (service/api/server.py).
     """
+    limits = limits or HttpLimits()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -252,6 +296,7 @@ def create_app(
         try:
             yield
         finally:
+            feed.close()
             if on_stopping is not None:
                 on_stopping(node)
             node.stop()
@@ -267,12 +312,14 @@ def create_app(
     )
     add_offline_docs(app)
 
+    # The probes are coroutines: they answer from the event loop, never waiting for one of
+    # the threads the other endpoints run on (all of which a burst may hold).
     @app.get("/healthz")
-    def healthz() -> dict[str, str]:
+    async def healthz() -> dict[str, str]:
         return {"status": "ok"}
 
     @app.get("/readyz", responses={503: {"description": "not ready"}})
-    def readyz(request: Request) -> JSONResponse:
+    async def readyz(request: Request) -> JSONResponse:
         node: ServiceNode | None = getattr(request.app.state, "node", None)
         if node is None or not node.ready:
             reason = "starting" if node is None else (node.not_ready_reason or "worker not running")
@@ -320,10 +367,12 @@ def create_app(
         return Response(generate_latest(request.app.state.registry), media_type=CONTENT_TYPE_LATEST)
 
     # The operator picture (contract §4.5): its page, its live feed, its script and styles.
-    add_picture(app)
+    feed = add_picture(app, limits)
     app.mount(PICTURE_ASSETS, StaticFiles(packages=[("service.api", "static")]), name="static")
     if api_token:
         # around the router: every request meets it before any route, mount or exception handler
         app.add_middleware(BearerTokenMiddleware, token=api_token)
         _document_bearer(app)
+    # outermost: a request beyond the bound costs nothing more than its 503
+    app.add_middleware(RequestLimitMiddleware, max_requests=limits.max_requests)
     return app

@@ -11,9 +11,27 @@ second of wall time (``interval_s``), built from the node's latest read-model sn
 state ``/status``, ``/radars``, ``/radars/{id}/tracks``, ``/pairs``, ``/system-tracks`` and
 ``/biases`` answer).  It is bounded: confirmed tracks only unless ``status=all``, and at most
 ``max_items`` system tracks, ``max_items`` radar tracks over all radars and ``max_items``
-links (the counts left out are in ``truncated``).  Snapshots are built at most once per
-``CACHE_S`` for any number of viewers, on a worker thread (a partitioned worker's ``/pairs``
-asks the other workers over Zenoh).
+links (the counts left out are in ``truncated``).
+
+Any number of viewers costs the service a bounded amount of work (docs/picture.md):
+
+* a viewer's ``max_items`` is rounded down to one of ``MAX_ITEMS_STEPS`` and its
+  ``interval_s`` up to one of ``INTERVAL_STEPS``, so there are at most 2 x 14 shapes of
+  snapshot (``status`` x ``max_items``);
+* snapshots are built on a shared clock of ``TICK_S``: each shape at most once per tick, by
+  one builder thread of the feed's own (never a thread the request handlers need), encoded and
+  framed as an event once, and the same bytes go to every viewer of that shape; the state
+  common to the shapes of a status is read from the node once per tick, and only when the
+  node's snapshot changed is it converted again;
+* viewers of one interval wake together on that clock, so they share the builds;
+* a viewer that does not take its events is dropped (its connection reset) once
+  ``picture_backlog`` of its intervals pass with an event still not handed over; what it holds
+  meanwhile is its connection's kernel send buffer (``picture_send_buffer``) and at most one
+  event in the server;
+* at most ``picture_max_clients`` viewers at once (503 beyond).
+
+The builder reads only the node's immutable snapshot and its status (no lock the worker
+takes); what it costs the worker is Python time, bounded by the above.
 
 The maths here is only presentation (east/north components of a velocity at a track's
 latitude and longitude): the numerics stay in the engine (the import rules of pyproject.toml).
@@ -22,34 +40,59 @@ latitude and longitude): the numerics stay in the engine (the import rules of py
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
-import threading
 import time
-from collections.abc import AsyncIterator
+from collections import Counter
+from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
 import orjson
-from fastapi import FastAPI, Query, Request
-from fastapi.responses import HTMLResponse, StreamingResponse
-from starlette.concurrency import run_in_threadpool
+from fastapi import FastAPI, Query
+from fastapi.responses import HTMLResponse, JSONResponse, Response, StreamingResponse
+from starlette.types import Receive, Scope, Send
 
 from service.api.deps import NodeDep
+from service.api.limits import HttpLimits
+from service.api.server import CONNECTION_EXTENSION
 from service.transport.node import ServiceNode
+
+log = logging.getLogger("topofusion.picture")
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 #: Default and largest ``max_items`` of ``/picture/events``.
 DEFAULT_MAX_ITEMS = 2000
 MAX_ITEMS_LIMIT = 20000
-#: Default wall seconds between two events, and the bounds of ``interval_s``.
+#: ``max_items`` is rounded down to 1, 2 or 5 times a power of ten (1, 2, 5, 10, ..., 20 000).
+MAX_ITEMS_STEPS = tuple(m * 10**k for k in range(5) for m in (1, 2, 5) if m * 10**k <= MAX_ITEMS_LIMIT)
+#: Default wall seconds between two events, and the bounds of ``interval_s`` (422 outside).
 DEFAULT_INTERVAL_S = 1.0
 MIN_INTERVAL_S, MAX_INTERVAL_S = 0.2, 10.0
+#: ``interval_s`` is rounded up to one of these (s).
+INTERVAL_STEPS = (0.5, 1.0, 2.0, 5.0, 10.0)
+#: The clock snapshots are built on (s): a shape's snapshot is built at most once per tick.
+TICK_S = INTERVAL_STEPS[0]
+#: How long one snapshot serves every viewer of its shape (s).
+CACHE_S = TICK_S
 #: A stream ends after this many wall seconds; the browser's EventSource reconnects by itself
 #: (``retry``), so that no connection outlives a shutdown or a proxy's idle limit for long.
 MAX_STREAM_S = 300.0
 RETRY_MS = 2000
-#: A snapshot is reused by every viewer for this long (wall seconds).
-CACHE_S = 0.5
+#: A viewer refused for the client cap is told to come back after this many seconds.
+REFUSED_RETRY_S = 5
+#: The share of one core (of the interpreter's lock, which the worker needs too) that
+#: converting the node's state for the picture may take: after a conversion that took c
+#: seconds the next waits at least c / BUILD_SHARE, and snapshots meanwhile carry the state of
+#: the last (with fresh health figures).
+BUILD_SHARE = 0.1
+#: Under a load of viewers beyond ``picture_max_bytes_s``, every viewer's interval is stretched
+#: by the same power of two, up to this factor.
+MAX_STRIDE = 16
+#: Seconds between two log lines about dropped viewers.
+LOG_EVERY_S = 10.0
 #: The page loads its own script and styles and its feed, nothing else (inline styles: the
 #: colour swatches of the health panel).
 PICTURE_CSP = (
@@ -58,6 +101,20 @@ PICTURE_CSP = (
 )
 #: Coordinates are rounded to this many decimals of a degree (about 1 m).
 DECIMALS = 5
+EVENT_HEAD = b"event: snapshot\ndata: "
+
+#: ``(status, max_items)`` after rounding.
+Shape = tuple[str, int]
+
+
+def quantised_max_items(max_items: int) -> int:
+    """The step of ``MAX_ITEMS_STEPS`` a requested ``max_items`` is served with."""
+    return max((s for s in MAX_ITEMS_STEPS if s <= max_items), default=MAX_ITEMS_STEPS[0])
+
+
+def quantised_interval_s(interval_s: float) -> float:
+    """The step of ``INTERVAL_STEPS`` a requested ``interval_s`` is served with."""
+    return next((s for s in INTERVAL_STEPS if s >= interval_s - 1e-9), INTERVAL_STEPS[-1])
 
 
 def _east_north(lat_deg: float, lon_deg: float, v: list[float]) -> tuple[float, float]:
@@ -73,50 +130,35 @@ def _r(x: float | None, digits: int = DECIMALS) -> float | None:
     return None if x is None or not math.isfinite(x) else round(x, digits)
 
 
-def build_snapshot(
-    node: ServiceNode, status: str = "confirmed", max_items: int = DEFAULT_MAX_ITEMS
-) -> dict[str, Any]:
-    """The picture's JSON snapshot (what each event of ``/picture/events`` carries)."""
+def picture_data(node: ServiceNode) -> dict[str, Any]:
+    """What every snapshot of one moment shares, from the node's read-model snapshot: every
+    site, radar track, link and system track (confirmed or not, each row ending with its
+    status), and the bias estimates.  :func:`for_status` takes a status's rows from it."""
     snap = node.snapshot
-    st = node.status()
     sites = node.radars()
-    truncated = {"system_tracks": 0, "tracks": 0, "links": 0}
 
-    # radar tracks: max_items over all radars, shared out evenly
-    radar_ids = sorted(snap.tracks)
-    per_radar = max(1, max_items // max(1, len(radar_ids)))
     tracks: dict[str, list[list[Any]]] = {}
-    where: dict[str, dict[str, tuple[float, float]]] = {}
-    for rid in radar_ids:
+    where: dict[str, dict[str, tuple[float | None, float | None]]] = {}
+    for rid in sorted(snap.tracks):
         every = snap.track_batch(rid, "all") or {"tracks": []}
-        where[rid] = {t["track_id"]: (t["latitude_deg"], t["longitude_deg"]) for t in every["tracks"]}
-        rows = (
-            every["tracks"] if status == "all" else [t for t in every["tracks"] if t["status"] == "confirmed"]
-        )
-        truncated["tracks"] += max(0, len(rows) - per_radar)
-        tracks[rid] = [
-            [t["track_id"], _r(t["latitude_deg"]), _r(t["longitude_deg"]), int(t["status"] == "confirmed")]
-            for t in rows[:per_radar]
-        ]
+        rows, at = [], {}
+        for t in every["tracks"]:
+            lat, lon = _r(t["latitude_deg"]), _r(t["longitude_deg"])
+            at[t["track_id"]] = (lat, lon)  # rounded once, for the track and all its links
+            rows.append([t["track_id"], lat, lon, int(t["status"] == "confirmed")])
+        tracks[rid], where[rid] = rows, at
 
     # correlation links: between the two radar tracks of each pair whose positions are known
     links: list[list[Any]] = []
-    for ps in node.pair_sets(None, None, "all" if status == "all" else "confirmed"):
-        at_a, at_b = where.get(ps["radar_a"], {}), where.get(ps["radar_b"], {})
+    for ps in node.pair_sets(None, None, "all"):
+        ra, rb = ps["radar_a"], ps["radar_b"]
+        at_a, at_b = where.get(ra, {}), where.get(rb, {})
         for p in ps["pairs"]:
             pa, pb = at_a.get(p["track_a"]), at_b.get(p["track_b"])
-            if pa is None or pb is None:
-                continue
-            if len(links) >= max_items:
-                truncated["links"] += 1
-                continue
-            links.append(
-                [ps["radar_a"], ps["radar_b"], _r(pa[0]), _r(pa[1]), _r(pb[0]), _r(pb[1]), p["status"][0]]
-            )
+            if pa is not None and pb is not None:
+                links.append([ra, rb, pa[0], pa[1], pb[0], pb[1], p["status"][0]])
 
-    system = snap.system_tracks(status)
-    rows = system["system_tracks"]
-    truncated["system_tracks"] = max(0, len(rows) - max_items)
+    system = snap.system_tracks("all")
     system_tracks = [
         [
             t["system_track_id"],
@@ -127,7 +169,7 @@ def build_snapshot(
             len(t["members"]),
             int(t["status"] == "confirmed"),
         ]
-        for t in rows[:max_items]
+        for t in system["system_tracks"]
     ]
 
     by_site = {s["radar_id"]: s for s in sites}
@@ -155,8 +197,49 @@ def build_snapshot(
                 "time_s": b["time_s"],
             }
         )
+    return {
+        "time_s": system["time_s"],
+        "sites": [
+            {
+                "radar_id": s["radar_id"],
+                "latitude_deg": _r(s["latitude_deg"]),
+                "longitude_deg": _r(s["longitude_deg"]),
+            }
+            for s in sites
+        ],
+        "tracks": tracks,
+        "links": links,
+        "system_tracks": system_tracks,
+        "biases": biases,
+    }
 
-    health = [
+
+def for_status(data: Mapping[str, Any], status: str) -> dict[str, Any]:
+    """``data``'s rows of ``status`` (``all``, or ``confirmed``: rows whose last cell is 1 or
+    ``c``), at most ``MAX_ITEMS_LIMIT`` of each kind, with the counts before that bound."""
+    if status == "all":
+        tracks, links, system = data["tracks"], data["links"], data["system_tracks"]
+    else:
+        tracks = {rid: [t for t in rows if t[-1]] for rid, rows in data["tracks"].items()}
+        links = [link for link in data["links"] if link[-1] == "c"]
+        system = [t for t in data["system_tracks"] if t[-1]]
+    return {
+        "time_s": data["time_s"],
+        "sites": data["sites"],
+        "tracks": {rid: rows[:MAX_ITEMS_LIMIT] for rid, rows in tracks.items()},
+        "track_totals": {rid: len(rows) for rid, rows in tracks.items()},
+        "links": links[:MAX_ITEMS_LIMIT],
+        "links_total": len(links),
+        "system_tracks": system[:MAX_ITEMS_LIMIT],
+        "system_total": len(system),
+        "biases": data["biases"],
+    }
+
+
+def picture_health(node: ServiceNode) -> dict[str, Any]:
+    """The health panel's part of a snapshot (from ``node.status()``)."""
+    st = node.status()
+    radars = [
         {
             "radar_id": r["radar_id"],
             "batches": r["batches"],
@@ -171,65 +254,311 @@ def build_snapshot(
         }
         for r in st["radars"]
     ]
-    missing = (st.get("partition") or {}).get("missing", [])
     return {
-        "wall_s": round(time.time(), 3),
-        "time_s": system["time_s"],
-        "status": status,
-        "max_items": max_items,
-        "sites": [
-            {
-                "radar_id": s["radar_id"],
-                "latitude_deg": _r(s["latitude_deg"]),
-                "longitude_deg": _r(s["longitude_deg"]),
-            }
-            for s in sites
-        ],
-        "tracks": tracks,
-        "links": links,
-        "system_tracks": system_tracks,
-        "biases": biases,
-        "health": {
-            "radars": health,
-            "correlation": st["correlation"],
-            "pairs_confirmed": st["pairs_confirmed"],
-            "pairs_tentative": st["pairs_tentative"],
-            "rejected": st["rejected"],
-            "queue": st.get("queue", {}),
-            "missing_partitions": missing,
-            "method": st["method"],
-        },
-        "truncated": truncated,
+        "radars": radars,
+        "correlation": st["correlation"],
+        "pairs_confirmed": st["pairs_confirmed"],
+        "pairs_tentative": st["pairs_tentative"],
+        "rejected": st["rejected"],
+        "queue": st.get("queue", {}),
+        "missing_partitions": (st.get("partition") or {}).get("missing", []),
+        "method": st["method"],
     }
 
 
-class SnapshotCache:
-    """One encoded snapshot per ``(status, max_items)`` for every viewer, at most ``CACHE_S`` old."""
+def shaped(
+    data: Mapping[str, Any], health: dict[str, Any], wall_s: float, status: str, max_items: int
+) -> dict[str, Any]:
+    """The snapshot of one shape: ``data`` (:func:`for_status`'s) cut to ``max_items`` of each
+    kind (radar tracks shared out evenly over the radars), with what was cut in ``truncated``."""
+    # max_items over the radars: an equal share each, the first ones one more for the rest
+    share, rest = divmod(max_items, max(1, len(data["tracks"])))
+    room = {rid: share + (k < rest) for k, rid in enumerate(data["tracks"])}
+    return {
+        "wall_s": wall_s,
+        "time_s": data["time_s"],
+        "status": status,
+        "max_items": max_items,
+        "sites": data["sites"],
+        "tracks": {rid: rows[: room[rid]] for rid, rows in data["tracks"].items()},
+        "links": data["links"][:max_items],
+        "system_tracks": data["system_tracks"][:max_items],
+        "biases": data["biases"],
+        "health": health,
+        "truncated": {
+            "system_tracks": max(0, data["system_total"] - max_items),
+            "tracks": sum(max(0, n - room[rid]) for rid, n in data["track_totals"].items()),
+            "links": max(0, data["links_total"] - max_items),
+        },
+    }
 
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._held: dict[tuple[str, int], tuple[float, bytes]] = {}
 
-    def get(self, node: ServiceNode, status: str, max_items: int) -> bytes:
-        key = (status, max_items)
-        with self._lock:
-            held = self._held.get(key)
-            if held is not None and time.monotonic() - held[0] < CACHE_S:
-                return held[1]
-            body = orjson.dumps(build_snapshot(node, status, max_items))
-            self._held = {k: v for k, v in self._held.items() if time.monotonic() - v[0] < CACHE_S}
-            self._held[key] = (time.monotonic(), body)
-            return body
+def build_snapshot(
+    node: ServiceNode, status: str = "confirmed", max_items: int = DEFAULT_MAX_ITEMS
+) -> dict[str, Any]:
+    """The picture's JSON snapshot (what each event of ``/picture/events`` carries)."""
+    data = for_status(picture_data(node), status)
+    return shaped(data, picture_health(node), round(time.time(), 3), status, max_items)
+
+
+@dataclass
+class _Moment:
+    """What every shape shares at one tick (the builder thread's alone)."""
+
+    tick: int
+    health: dict[str, Any]
+    wall_s: float
+
+
+class PictureFeed:
+    """The snapshots every viewer shares, and the viewers (one feed per app).
+
+    Event-loop side: :meth:`event` (a shape's event at a tick: built once, awaited by all),
+    the viewer count.  Builder side (its one thread): the per-status common part and the
+    encoding of each shape.
+    """
+
+    def __init__(self, limits: HttpLimits) -> None:
+        self.limits = limits
+        self.clients = 0
+        #: Viewers dropped for their backlog, and refused for the cap (since the start).
+        self.dropped = 0
+        self.refused = 0
+        #: Events built so far (one per shape and tick at most).
+        self.builds = 0
+        self._builds: dict[Shape, tuple[int, asyncio.Future[bytes]]] = {}
+        self._pool: ThreadPoolExecutor | None = None
+        #: Viewers by shape and interval (in ticks), the latest event's size of each shape,
+        #: and the stride all intervals are stretched by (worked out once per tick).
+        self._viewers: Counter[tuple[Shape, int]] = Counter()
+        self._sizes: dict[Shape, int] = {}
+        self._stride = (-1, 1)
+        # the builder thread's alone:
+        self._moment: _Moment | None = None
+        self._data: dict[str, Any] | None = None
+        self._data_of: object = None  # the node's read-model snapshot ``_data`` was made from
+        self._data_due = 0.0  # no new conversion before (monotonic s)
+        self._views: dict[str, dict[str, Any]] = {}  # ``_data`` by status
+        #: Conversions of the node's state so far (``picture_data``).
+        self.conversions = 0
+        self._logged_at = -LOG_EVERY_S
+
+    @staticmethod
+    def tick_now() -> int:
+        return int(time.monotonic() // TICK_S)
+
+    def join(self, shape: Shape, every: int) -> None:
+        self.clients += 1
+        self._viewers[(shape, every)] += 1
+
+    def leave(self, shape: Shape, every: int) -> None:
+        self.clients -= 1
+        self._viewers[(shape, every)] -= 1
+        if self._viewers[(shape, every)] <= 0:
+            del self._viewers[(shape, every)]
+
+    def demand(self) -> float:
+        """Bytes per second the viewers ask for, at their own intervals."""
+        return sum(
+            n * self._sizes.get(shape, 0) / (every * TICK_S) for (shape, every), n in self._viewers.items()
+        )
+
+    def stride(self) -> int:
+        """The power of two (up to ``MAX_STRIDE``) every interval is stretched by, so that the
+        viewers together get at most ``picture_max_bytes_s`` (as long as that is enough)."""
+        tick, stride = self._stride
+        now = self.tick_now()
+        if tick != now:
+            demand, budget = self.demand(), self.limits.picture_max_bytes_s
+            stride = 1
+            while stride < MAX_STRIDE and demand / stride > budget:
+                stride *= 2
+            self._stride = (now, stride)
+        return stride
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
+
+    async def event(self, node: ServiceNode, shape: Shape, tick: int) -> bytes:
+        """The event of ``shape`` at ``tick`` (or a later one already built), framed."""
+        held = self._builds.get(shape)
+        if held is None or held[0] < tick:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="picture")
+            future = asyncio.get_running_loop().run_in_executor(self._pool, self._build, node, shape, tick)
+            future.add_done_callback(_consume)
+            held = self._builds[shape] = (tick, future)
+        # shielded: a viewer that leaves must not cancel the build the others wait for
+        event = await asyncio.shield(held[1])
+        self._sizes[shape] = len(event)
+        return event
+
+    def _build(self, node: ServiceNode, shape: Shape, tick: int) -> bytes:
+        status, max_items = shape
+        moment = self._moment
+        if moment is None or moment.tick < tick:  # (a viewer late for its tick gets the newer)
+            self._refresh(node)
+            moment = self._moment = _Moment(tick, picture_health(node), round(time.time(), 3))
+        assert self._data is not None
+        view = self._views.get(status)
+        if view is None:
+            view = self._views[status] = for_status(self._data, status)
+        self.builds += 1
+        body = orjson.dumps(shaped(view, moment.health, moment.wall_s, status, max_items))
+        return EVENT_HEAD + body + b"\n\n"
+
+    def _refresh(self, node: ServiceNode) -> None:
+        """Convert the node's state again if it changed (a partitioned worker's links come
+        from the others as well: always), and if the last conversion has been rested for."""
+        now = time.monotonic()
+        snap = node.snapshot
+        changed = snap is not self._data_of or not node.partition.whole
+        if self._data is not None and not (changed and now >= self._data_due):
+            return
+        began = time.perf_counter()
+        self._data = picture_data(node)
+        self._data_of, self._views = snap, {}
+        self._data_due = now + (time.perf_counter() - began) / BUILD_SHARE
+        self.conversions += 1
+
+    def note_dropped(self, scope: Scope, waited_s: float) -> None:
+        self.dropped += 1
+        now = time.monotonic()
+        if now - self._logged_at >= LOG_EVERY_S:
+            client = scope.get("client") or ("?", 0)
+            log.warning(
+                "picture viewer %s:%s dropped: an event waited %.1f s to be taken "
+                "(TOPOFUSION_HTTP_PICTURE_BACKLOG); %d dropped since the start",
+                client[0],
+                client[1],
+                waited_s,
+                self.dropped,
+            )
+            self._logged_at = now
+
+
+def _consume(future: asyncio.Future[bytes]) -> None:
+    """A build that failed is logged here once, whoever (if anyone) was waiting for it."""
+    if not future.cancelled() and (exc := future.exception()) is not None:
+        log.error("picture snapshot not built", exc_info=exc)
+
+
+class PictureStream(Response):
+    """One viewer's ``text/event-stream``: an event of its shape on each of its ticks."""
+
+    media_type = "text/event-stream"
+
+    def __init__(self, feed: PictureFeed, node: ServiceNode, shape: Shape, interval_s: float) -> None:
+        self.feed = feed
+        self.node = node
+        self.shape = shape
+        self.every = max(1, round(interval_s / TICK_S))  # ticks between two events
+        self.status_code = 200
+        self.background = None
+        self.init_headers({"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        feed = self.feed
+        if feed.clients >= feed.limits.picture_max_clients:
+            feed.refused += 1
+            refused = JSONResponse(
+                {"detail": "too many picture viewers; try again later"},
+                status_code=503,
+                headers={"Retry-After": str(REFUSED_RETRY_S)},
+            )
+            await refused(scope, receive, send)
+            return
+        feed.join(self.shape, self.every)
+        gone = asyncio.Event()
+
+        async def watch() -> None:
+            while (await receive())["type"] != "http.disconnect":
+                pass
+            gone.set()
+
+        watcher = asyncio.create_task(watch())
+        bound = scope.get("extensions", {}).get(CONNECTION_EXTENSION, {}).get("bound_output")
+        if bound is not None:
+            bound(feed.limits.picture_send_buffer)
+        try:
+            await send({"type": "http.response.start", "status": 200, "headers": self.raw_headers})
+            retry = f"retry: {RETRY_MS}\n\n".encode()
+            await send({"type": "http.response.body", "body": retry, "more_body": True})
+            await self._stream(scope, send, gone)
+        finally:
+            feed.leave(self.shape, self.every)
+            watcher.cancel()
+
+    async def _stream(self, scope: Scope, send: Send, gone: asyncio.Event) -> None:
+        feed = self.feed
+        # how long an event may wait to be taken: the viewer's backlog of intervals
+        patience_s = feed.limits.picture_backlog * self.every * TICK_S
+        closing = scope.get("extensions", {}).get(CONNECTION_EXTENSION, {}).get("closing")
+        stops = [gone] if closing is None else [gone, closing]
+        end = time.monotonic() + MAX_STREAM_S
+        tick = feed.tick_now()
+        going = True
+        if feed.stride() > 1:
+            # under load the first event waits for the next shared tick as well: viewers that
+            # come and go (dropped ones reconnect) must not get past the bytes budget
+            period = self.every * feed.stride()
+            tick = (tick // period + 1) * period
+            going = await _sleep_until(tick * TICK_S, stops)
+        while going:
+            try:
+                event = await feed.event(self.node, self.shape, tick)
+            except Exception:  # logged once by the feed; the stream ends (the browser returns)
+                break
+            if not await self._hand_over(scope, send, event, patience_s):
+                return
+            # the next tick of this interval (stretched under load): shared by its viewers
+            period = self.every * feed.stride()
+            tick = (feed.tick_now() // period + 1) * period
+            at = tick * TICK_S
+            going = at < end and await _sleep_until(at, stops)
+        if not gone.is_set():
+            await self._hand_over(scope, send, b"", patience_s, more=False)
+
+    async def _hand_over(
+        self, scope: Scope, send: Send, body: bytes, patience_s: float, more: bool = True
+    ) -> bool:
+        """Give ``body`` to the server; False (and the connection closed) when the viewer
+        has not taken enough of what came before for it to go within ``patience_s``."""
+        try:
+            await asyncio.wait_for(
+                send({"type": "http.response.body", "body": body, "more_body": more}), timeout=patience_s
+            )
+            return True
+        except TimeoutError:
+            self.feed.note_dropped(scope, patience_s)
+            abort = scope.get("extensions", {}).get(CONNECTION_EXTENSION, {}).get("abort")
+            if abort is not None:
+                abort()  # the server's own: closes without logging an unfinished response
+            # (under another server the unfinished response makes it close the connection)
+            return False
+
+
+async def _sleep_until(at: float, stops: list[asyncio.Event]) -> bool:
+    """Wait until ``at`` (monotonic); False as soon as one of ``stops`` is set."""
+    if any(e.is_set() for e in stops):
+        return False
+    waits = [asyncio.ensure_future(e.wait()) for e in stops]
+    done, pending = await asyncio.wait(waits, timeout=max(0.0, at - time.monotonic()))
+    for w in pending:
+        w.cancel()
+    return not done
 
 
 def page_html() -> str:
     return (STATIC_DIR / "picture.html").read_text(encoding="utf-8")
 
 
-def add_picture(app: FastAPI) -> None:
+def add_picture(app: FastAPI, limits: HttpLimits) -> PictureFeed:
     """``/picture`` and ``/picture/events`` on ``app`` (as its own routes: FastAPI lists an
-    included router as one entry of ``app.routes``, without its paths)."""
-    cache = SnapshotCache()
+    included router as one entry of ``app.routes``, without its paths); the feed they share."""
+    feed = PictureFeed(limits)
 
     @app.get("/picture", response_class=HTMLResponse, summary="The live operator picture (HTML)")
     def picture() -> HTMLResponse:
@@ -243,26 +572,16 @@ def add_picture(app: FastAPI) -> None:
         summary="The operator picture's live feed (server-sent events)",
         responses={
             200: {"content": {"text/event-stream": {}}, "description": "`snapshot` events"},
-            503: {"description": "service starting"},
+            503: {"description": "service starting, or too many viewers"},
         },
     )
     async def picture_events(
-        request: Request,
         node: NodeDep,
         status: Annotated[str, Query(pattern="^(confirmed|all)$")] = "confirmed",
         max_items: Annotated[int, Query(ge=1, le=MAX_ITEMS_LIMIT)] = DEFAULT_MAX_ITEMS,
         interval_s: Annotated[float, Query(ge=MIN_INTERVAL_S, le=MAX_INTERVAL_S)] = DEFAULT_INTERVAL_S,
-    ) -> StreamingResponse:
-        async def events() -> AsyncIterator[bytes]:
-            yield f"retry: {RETRY_MS}\n\n".encode()
-            end = time.monotonic() + MAX_STREAM_S
-            while time.monotonic() < end and not await request.is_disconnected():
-                body = await run_in_threadpool(cache.get, node, status, max_items)
-                yield b"event: snapshot\ndata: " + body + b"\n\n"
-                await asyncio.sleep(interval_s)
+    ) -> Response:
+        shape = (status, quantised_max_items(max_items))
+        return PictureStream(feed, node, shape, quantised_interval_s(interval_s))
 
-        return StreamingResponse(
-            events(),
-            media_type="text/event-stream",
-            headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
-        )
+    return feed
