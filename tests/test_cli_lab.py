@@ -172,3 +172,20 @@ def test_readme_names_every_scenario() -> None:
     row = next(ln for ln in readme.splitlines() if ln.startswith("| `topofusion simulate"))
     for name in [DEMO.name, *SCENARIOS]:
         assert f"`{name}`" in row, name
+
+
+def test_simulate_s_site_period_is_the_lab_s_and_the_bridge_s() -> None:
+    """The parser keeps its own copy of the default (it must not import the lab)."""
+    from service.asterix.command import SITE_EVERY_S as BRIDGE_SITE_EVERY_S
+    from service.cli import SIMULATE_SITE_EVERY_S
+    from topofusion_lab.publisher import SITE_EVERY_S
+
+    assert SIMULATE_SITE_EVERY_S == SITE_EVERY_S == BRIDGE_SITE_EVERY_S
+    sim = build_parser().parse_args(["simulate", "--scenario", "demo"])
+    assert sim.site_every == SITE_EVERY_S and sim.start_time is None and not sim.loop
+    assert (
+        build_parser().parse_args(["simulate", "--scenario", "demo", "--start-time", "resume"]).start_time
+        == "resume"
+    )
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["simulate", "--scenario", "demo", "--start-time", "yesterday"])

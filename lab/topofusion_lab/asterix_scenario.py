@@ -51,18 +51,28 @@ def asterix_datagrams(
 ) -> Iterator[bytes]:
     """The datagrams of ``messages`` (sites are skipped: the bridge has its sites file)."""
     for m in messages:
-        if m.kind == "plots":
-            yield from _radar(m.body, *sac_sic[m.radar_id], max_bytes)
-        elif m.kind == "adsb":
-            r = m.body["reports"]
-            alt = r.get("altitude_m") or [None] * len(r["time_s"])
-            reports = [
-                Cat021Report(*ADSB_SAC_SIC, _tod(t), icao, la, lo, h, None)
-                for t, icao, la, lo, h in zip(
-                    r["time_s"], r["icao24"], r["latitude_deg"], r["longitude_deg"], alt, strict=True
-                )
-            ]
-            yield from encode_cat021_blocks(reports, max_bytes)
+        yield from message_datagrams(m, sac_sic, max_bytes)
+
+
+def message_datagrams(
+    m: SimMessage, sac_sic: dict[str, tuple[int, int]], max_bytes: int = 1400
+) -> list[bytes]:
+    """The datagrams of one message: a radar's plot batch as CAT048 then one CAT034 sector
+    crossing at the batch's time, an ADS-B batch as CAT021; none for a site or an AIS batch
+    (AIS is not ASTERIX)."""
+    if m.kind == "plots":
+        return list(_radar(m.body, *sac_sic[m.radar_id], max_bytes))
+    if m.kind == "adsb":
+        r = m.body["reports"]
+        alt = r.get("altitude_m") or [None] * len(r["time_s"])
+        reports = [
+            Cat021Report(*ADSB_SAC_SIC, _tod(t), icao, la, lo, h, None)
+            for t, icao, la, lo, h in zip(
+                r["time_s"], r["icao24"], r["latitude_deg"], r["longitude_deg"], alt, strict=True
+            )
+        ]
+        return encode_cat021_blocks(reports, max_bytes)
+    return []
 
 
 def _radar(body: dict[str, Any], sac: int, sic: int, max_bytes: int) -> Iterator[bytes]:

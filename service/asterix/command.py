@@ -24,6 +24,7 @@ import argparse
 import datetime as dt
 import gc
 import math
+import os
 import sys
 import threading
 import time
@@ -71,6 +72,11 @@ STOP_FLUSH_S = 3.0
 #: Senders and sockets whose sources the bridge remembers, to charge a loss to: at most this many
 #: (the oldest is forgotten first).
 MAX_ORIGINS = 4096
+#: The sites are put again every this many wall seconds (``--site-every``), so that a service,
+#: worker or recorder that starts after the bridge learns them within this long (and rejects a
+#: radar's plots as ``unknown_radar`` only until then); a site equal to the one a service holds
+#: changes nothing there.  A site is a few hundred bytes: a dozen radars cost under 1 kB/s.
+SITE_EVERY_S = 5.0
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -152,6 +158,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--system-sic", type=int, default=1, metavar="N", help="SIC of the CAT062 output (default 1)"
     )
     p.add_argument(
+        "--site-every",
+        type=float,
+        default=SITE_EVERY_S,
+        metavar="S",
+        help=f"put the sites again every S wall seconds, for late joiners (0: only at the start; "
+        f"default {SITE_EVERY_S:g})",
+    )
+    p.add_argument(
+        "--wait-service",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="before the first message, wait up to S s for a service to answer {prefix}/status (default 0)",
+    )
+    p.add_argument(
         "--no-fl-altitude",
         action="store_true",
         help="leave altitude_m out where only a flight level is known (default: FL x 30.48 m)",
@@ -204,6 +225,44 @@ class Publisher:
     def sites(self, sites: Iterable[RadarSite]) -> None:
         for s in sites:
             self.put(self.keys.site(s.radar_id), s.model_dump_json(exclude_none=True).encode())
+
+
+class SiteRepeater:
+    """Puts the mapped sites again every ``every_s`` wall seconds (``--site-every``; 0: never)."""
+
+    def __init__(
+        self,
+        publisher: Publisher,
+        sites: list[RadarSite],
+        every_s: float,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.publisher = publisher
+        self.sites = sites
+        self.every_s = every_s if every_s > 0 and sites else None
+        self.clock = clock
+        self._next = clock() + every_s if self.every_s is not None else math.inf
+
+    def start(self) -> None:
+        """The first put of the sites (and the clock of the next)."""
+        self.publisher.sites(self.sites)
+        if self.every_s is not None:
+            self._next = self.clock() + self.every_s
+
+    def tick(self) -> None:
+        if self.every_s is None:
+            return
+        now = self.clock()
+        if now >= self._next:
+            self._next = now + self.every_s
+            try:
+                self.publisher.sites(self.sites)
+            except Exception as exc:  # Zenoh's own errors: the next period tries again
+                self.publisher.last_error = str(exc)
+
+    def left_s(self) -> float:
+        """Wall seconds until the next put (inf: none)."""
+        return max(self._next - self.clock(), 0.0)
 
 
 class Cat062Writer:
@@ -323,10 +382,12 @@ class Run:
         fixed_date: bool = False,
         progress: Callable[[str], None] | None = None,
         report_every_s: float = REPORT_EVERY_S,
+        sites: SiteRepeater | None = None,
     ) -> None:
         self.bridge = bridge
         self.publisher = publisher
         self.stop = stop
+        self.sites = sites
         self.speed = speed
         self.fixed_date = fixed_date
         self.progress = progress
@@ -368,7 +429,10 @@ class Run:
             known |= fed
 
     def tick(self) -> None:
-        """Read the kernel's drop counts and print the counters when their times have come."""
+        """Read the kernel's drop counts, print the counters and put the sites again when their
+        times have come."""
+        if self.sites is not None:
+            self.sites.tick()
         now = time.monotonic()
         if self._rx is not None and now >= self._next_drops:
             self._next_drops = now + KERNEL_DROPS_EVERY_S
@@ -408,9 +472,22 @@ class Run:
                 if wall0 is None or data0 is None:
                     wall0, data0 = time.monotonic(), t
                 delay = wall0 + (t - data0) / self.speed - time.monotonic()
-                if delay > 0 and self.stop.wait(delay):
+                if delay > 0 and self.idle(delay):
                     return
             self.datagram(d, d.time_s)
+
+    def idle(self, duration_s: float | None) -> bool:
+        """Wait ``duration_s`` (None: until stopped), keeping the periodic chores (sites,
+        counters) going; True when stopped meanwhile."""
+        end = None if duration_s is None else time.monotonic() + duration_s
+        while True:
+            left = math.inf if end is None else end - time.monotonic()
+            if left <= 0:
+                return self.stop.is_set()
+            chore = self.sites.left_s() if self.sites is not None else math.inf
+            if self.stop.wait(min(left, chore, self.report_every_s or math.inf, POLL_S * 5)):
+                return True
+            self.tick()
 
     def udp(self, endpoints: list[UdpEndpoint], duration_s: float | None) -> None:
         end = None if duration_s is None else time.monotonic() + duration_s
@@ -487,6 +564,18 @@ class Run:
         return "\n".join(lines)
 
 
+def _check_writable(path: Path) -> None:
+    """A file the bridge will write: refused now, before any connection, if it cannot be."""
+    if path.is_dir():
+        raise ValueError(f"asterix: --out-file {path}: is a directory")
+    if path.exists() and not os.access(path, os.W_OK):
+        raise ValueError(f"asterix: --out-file {path}: not writable")
+    if not path.parent.is_dir():
+        raise ValueError(f"asterix: --out-file {path}: the directory {path.parent} does not exist")
+    if not path.exists() and not os.access(path.parent, os.W_OK | os.X_OK):
+        raise ValueError(f"asterix: --out-file {path}: the directory {path.parent} is not writable")
+
+
 def _lost(c: Counter[str]) -> str:
     return f"{c['kernel']} by the kernel, {c['queue']} by the bridge's queue" + (
         f", {c['unread_at_stop']} unread at stop" if c["unread_at_stop"] else ""
@@ -528,6 +617,10 @@ def asterix_main(
             read_datagrams(path, Counter())  # header check now: a clear error before any publishing
         except CaptureError as exc:
             raise ValueError(f"asterix: {exc}") from None
+    if args.out_file is not None:
+        _check_writable(args.out_file)
+    if not (args.site_every >= 0 and args.wait_service >= 0):
+        raise ValueError("asterix: --site-every and --wait-service must be >= 0")
     start = (
         dt.datetime.combine(args.date, dt.time(), tzinfo=dt.timezone.utc).timestamp() if args.date else None
     )
@@ -556,8 +649,23 @@ def asterix_main(
         def put(key: str, payload: bytes) -> None:
             session.put(key, payload, encoding=enc, congestion_control=block)
 
+        if args.wait_service > 0:
+            from service.recording.completion import service_statuses
+
+            print(
+                f"asterix: asking the service for {prefix}/status (up to {args.wait_service:g} s)",
+                file=sys.stderr,
+            )
+            answered = service_statuses(session, prefix, args.wait_service, stop)
+            print(
+                "asterix: the service answers"
+                if answered
+                else f"asterix: no service answered {prefix}/status within {args.wait_service:g} s: going on",
+                file=sys.stderr,
+            )
         publisher = Publisher(put, prefix)
-        publisher.sites(mapped)
+        sites_out = SiteRepeater(publisher, mapped, args.site_every)
+        sites_out.start()
         writer = None
         if outputs:
             writer = Cat062Writer(args.system_sac, args.system_sic, sites, args.out_udp, args.out_file)
@@ -575,6 +683,7 @@ def asterix_main(
             args.date is not None,
             lambda m: print(m, file=sys.stderr),
             args.report_every,
+            sites_out,
         )
         try:
             run.files(args.file)
@@ -582,7 +691,7 @@ def asterix_main(
                 run.udp(args.udp, args.duration)
             elif not args.file and not args.udp:  # CAT062 output only: until stopped
                 print("asterix: writing system tracks as CAT062 until stopped", file=sys.stderr)
-                stop.wait(args.duration)
+                run.idle(args.duration)
         finally:
             # stopped: what is held goes out within the stop's grace; at the input's end all of it
             run.finish(time.monotonic() + STOP_FLUSH_S if stop.is_set() else None)

@@ -8,19 +8,22 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import json
+import os
 import signal
 import sys
 import threading
 import time
 from collections.abc import Iterator
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
-from service.recording.completion import RecordingEnd, wait_complete
+from service.recording.completion import RecordingEnd, service_statuses, wait_complete
 from service.recording.reader import RecordedMessage, RecordingError
 from service.recording.recorder import DEFAULT_QUEUE_BYTES, DEFAULT_QUEUE_SAMPLES, record
-from service.recording.replay import ReplayOptions, replay
+from service.recording.replay import ReplayOptions, preflight, replay
 from service.transport.session import ZenohOptions, open_tool_session
 from service.wire.vocabulary import METHODS
 
@@ -84,6 +87,13 @@ def add_replay_arguments(parser: argparse.ArgumentParser) -> None:
         help="progress line on stderr (default: on long replays)",
     )
     parser.add_argument(
+        "--wait-service",
+        type=_non_negative,
+        default=0.0,
+        metavar="S",
+        help="before the first message, wait up to S s for a service to answer {prefix}/status (default 0)",
+    )
+    parser.add_argument(
         "--wait",
         type=_non_negative,
         default=120.0,
@@ -140,6 +150,7 @@ def record_main(
     prefix = _prefix(args)
     key_expr = args.key or f"{prefix}/**"
     stop = stop or threading.Event()
+    _check_output(Path(args.out))  # before connecting: a typo in --out must not cost a run
     session = open_tool_session(zenoh_options, "record")
     try:
         print(f"recording {key_expr} to {args.out} (Ctrl-C to stop)", file=sys.stderr, flush=True)
@@ -159,6 +170,18 @@ def record_main(
     for line in report.lines():
         print(line, file=sys.stderr if line.startswith(("WARNING", "ERROR")) else sys.stdout, flush=True)
     return 1 if report.dropped or report.error else 0
+
+
+def _check_output(path: Path) -> None:
+    """Raise ValueError (the command's exit status 2) unless ``path`` can be written."""
+    if path.is_dir():
+        raise ValueError(f"record: --out {path} is a directory; give a file name, e.g. {path / 'run.mcap'}")
+    if not path.parent.is_dir():
+        raise ValueError(f"record: --out {path}: the directory {path.parent} does not exist")
+    if path.exists() and not os.access(path, os.W_OK):
+        raise ValueError(f"record: --out {path}: the file exists and is not writable")
+    if not path.exists() and not os.access(path.parent, os.W_OK | os.X_OK):
+        raise ValueError(f"record: --out {path}: the directory {path.parent} is not writable")
 
 
 def _replay_options(args: argparse.Namespace) -> ReplayOptions:
@@ -198,6 +221,8 @@ def replay_main(
     stop = stop or threading.Event()
     try:
         options = _replay_options(args)
+        if args.wait_service < 0:
+            raise ValueError("--wait-service must be >= 0")
         if args.offline:
             if args.loop or args.all_keys:
                 raise ValueError("--offline feeds the inputs once: --loop and --all-keys do not apply")
@@ -206,10 +231,13 @@ def replay_main(
             raise ValueError("--out is for --offline (the result file); a Zenoh replay publishes instead")
         from service.recording.publisher import ZenohReplayPublisher
 
+        preflight(args.file, prefix, options)  # a file that cannot be replayed is refused before connecting
         session = open_tool_session(zenoh_options, "replay")
         rejections = RejectionWatch(session, prefix)
         end = RecordingEnd()
         try:
+            if args.wait_service > 0:
+                _wait_for_service(session, prefix, args.wait_service, stop)
             with _stop_on_signals(stop), ZenohReplayPublisher(session) as publish:
 
                 def publish_and_note(message: RecordedMessage) -> None:
@@ -224,7 +252,7 @@ def replay_main(
                 print(line, file=sys.stderr, flush=True)
             complete = True
             if args.wait > 0 and not stop.is_set() and not options.loop:
-                complete = _wait_for_outputs(session, prefix, end, args.wait)
+                complete = wait_for_outputs(session, prefix, end, args.wait)
         finally:
             rejections.close()
             session.close()
@@ -234,9 +262,22 @@ def replay_main(
     return 1 if rejections.by_reason.get("duplicate_seq") or not complete else 0
 
 
-def _wait_for_outputs(session: Any, prefix: str, end: RecordingEnd, timeout_s: float) -> bool:
-    """Wait until the service's outputs are complete through the recording's end (contract
-    §5.1), saying so; False (with a line saying why) when it did not get there in time."""
+def _wait_for_service(session: Any, prefix: str, wait_s: float, stop: threading.Event) -> None:
+    """``--wait-service``: before the first message, until a service answers (saying so)."""
+    say = functools.partial(print, file=sys.stderr, flush=True)
+    say(f"replay: asking the service for {prefix}/status (up to {wait_s:g} s)")
+    if service_statuses(session, prefix, wait_s, stop):
+        say("replay: the service answers: replaying")
+    else:
+        say(f"replay: no service answered {prefix}/status within {wait_s:g} s: replaying anyway")
+
+
+def wait_for_outputs(
+    session: Any, prefix: str, end: RecordingEnd, timeout_s: float, what: str = "the recording"
+) -> bool:
+    """Wait until the service's outputs are complete through the end of ``what`` was sent
+    (contract §5.1), saying so; False (with a line saying why) when it did not get there in
+    time.  ``replay`` and ``simulate`` (``what``: "the run") end so."""
     target = end.target_s()
     if target is None:
         return True
@@ -262,7 +303,7 @@ def _wait_for_outputs(session: Any, prefix: str, end: RecordingEnd, timeout_s: f
     if done:
         say(
             f"the service's outputs are complete through data time {seen:.3f} "
-            f"(the recording's end, {target:.3f}), {time.monotonic() - t0:.1f} s after the last message"
+            f"({what}'s end, {target:.3f}), {time.monotonic() - t0:.1f} s after the last message"
         )
         return True
     got = (
@@ -271,23 +312,33 @@ def _wait_for_outputs(session: Any, prefix: str, end: RecordingEnd, timeout_s: f
         else f"its outputs are complete through {seen:.3f} only"
     )
     say(
-        f"WARNING: {got} after {timeout_s:g} s; the recording ends at data time {target:.3f} "
+        f"WARNING: {got} after {timeout_s:g} s; {what} ends at data time {target:.3f} "
         f"(a busy service may still be processing it: --wait S to wait longer, 0 not to wait)"
     )
     return False
 
 
 class RejectionWatch:
-    """The service's rejections (``{prefix}/errors``) of the keys this replay sends.
+    """The service's rejections (``{prefix}/errors``) while a replay (or a simulation) sends.
 
     A service that already took a recording rejects every batch of a second replay as a
-    duplicate ``seq``: the replay then says so and exits 1 rather than reporting success.
+    duplicate ``seq``: the replay then says so and exits 1 rather than reporting success
+    (``simulate`` likewise, when restarted behind the service's data clock).
     """
 
     #: After the last message, wait until no rejection came for this long (s), at most ``SETTLE_MAX_S``.
     SETTLE_QUIET_S, SETTLE_MAX_S = 0.5, 5.0
 
-    def __init__(self, session: Any, prefix: str) -> None:
+    #: What a replay's duplicates mean, and what to do about them.
+    REPLAY_DUPLICATES = (
+        "the service already took this recording; restart it (or replay into a fresh one) to process it again"
+    )
+
+    def __init__(
+        self, session: Any, prefix: str, what: str = "this replay", duplicates: str = REPLAY_DUPLICATES
+    ) -> None:
+        self.what = what
+        self.duplicates = duplicates
         self.by_reason: dict[str, int] = {}
         self._last = time.monotonic()
         self._lock = threading.Lock()
@@ -318,12 +369,9 @@ class RejectionWatch:
         if not self.by_reason:
             return []
         counts = ", ".join(f"{n} {r}" for r, n in sorted(self.by_reason.items()))
-        out = [f"the service rejected messages of this replay: {counts}"]
+        out = [f"the service rejected messages of {self.what}: {counts}"]
         if self.by_reason.get("duplicate_seq"):
-            out.append(
-                "WARNING: duplicate seq numbers: the service already took this recording; "
-                "restart it (or replay into a fresh one) to process it again"
-            )
+            out.append(f"WARNING: duplicate seq numbers: {self.duplicates}")
         return out
 
 

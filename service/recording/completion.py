@@ -14,6 +14,7 @@ for data that never comes (they are released at the service's stop).
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -28,6 +29,45 @@ from service.recording.reader import RecordedMessage
 LAG_S = 30.0
 #: How often the service's status is asked (s).
 POLL_S = 0.2
+#: ``service_statuses``: each ``get {prefix}/status`` waits this long for its replies (s) ...
+STATUS_QUERY_S = 1.0
+#: ... and, when nobody answered, the next is made after this pause (s).
+STATUS_RETRY_S = 0.5
+
+
+def service_statuses(
+    session: Any, prefix: str, wait_s: float, stop: threading.Event | None = None
+) -> list[dict[str, Any]]:
+    """The services' answers to ``get {prefix}/status`` (one per partitioned worker), asking
+    again until one answers, ``wait_s`` has passed or ``stop`` is set; [] when none answered.
+
+    A tool that sends a service its inputs (``simulate``, ``replay``, ``asterix`` with
+    ``--wait-service``) waits so before its first message: the service declares its input
+    subscribers before its status queryable, so once it answers, nothing sent is lost on it.
+    """
+    deadline = time.monotonic() + wait_s
+    while True:
+        answers = []
+        for reply in session.get(f"{prefix}/status", timeout=STATUS_QUERY_S):
+            if reply.ok is None:
+                continue
+            try:
+                body = orjson.loads(reply.ok.payload.to_bytes())
+            except orjson.JSONDecodeError:
+                continue
+            if isinstance(body, dict):
+                answers.append(body)
+        if answers:
+            return answers
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return []
+        pause = min(STATUS_RETRY_S, left)
+        if stop is not None:
+            if stop.wait(pause):
+                return []
+        else:
+            time.sleep(pause)
 
 
 @dataclass

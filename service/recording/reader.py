@@ -118,6 +118,73 @@ def _channel_info(channel: Channel, schemas: dict[int, Schema], prefix: str) -> 
     )
 
 
+#: Formats a file given to ``replay`` by mistake is often in, by its first bytes: named in the
+#: refusal, so that the operator sees at once what they gave.
+_KNOWN_HEADS: tuple[tuple[bytes, str], ...] = (
+    (b"\xd4\xc3\xb2\xa1", "a pcap capture (topofusion asterix --file reads those)"),
+    (b"\xa1\xb2\xc3\xd4", "a pcap capture (topofusion asterix --file reads those)"),
+    (b"\x4d\x3c\xb2\xa1", "a pcap capture (topofusion asterix --file reads those)"),
+    (b"\xa1\xb2\x3c\x4d", "a pcap capture (topofusion asterix --file reads those)"),
+    (b"\x0a\x0d\x0d\x0a", "a pcapng capture (topofusion asterix --file reads those)"),
+    (b"\x1f\x8b", "a gzip file (decompress it first)"),
+    (b"\x28\xb5\x2f\xfd", "a zstd file (decompress it first)"),
+    (b"PK\x03\x04", "a zip archive"),
+    (b"SQLite format 3", "an SQLite database (a ROS 2 bag? convert it to MCAP first)"),
+)
+
+
+#: First octets (the CAT of a data block) of a raw ASTERIX recording of the categories the
+#: bridge reads and writes (and their usual companions).
+_ASTERIX_CATEGORIES = frozenset({1, 2, 21, 34, 48, 62, 63, 65})
+
+
+def not_mcap(path: str, head: bytes) -> str:
+    """Why ``path``, which starts with ``head``, is refused: what it starts with, and what it
+    looks like when that is recognisable."""
+    if not head:
+        return f"{path} is not an MCAP file (it is empty)"
+    known = next((what for magic, what in _KNOWN_HEADS if head.startswith(magic)), None)
+    if known is None and head[:1] in (b"{", b"["):
+        known = "JSON text"
+    if (
+        known is None
+        and len(head) >= 3
+        and head[0] in _ASTERIX_CATEGORIES
+        and int.from_bytes(head[1:3], "big") >= 3
+    ):
+        known = "raw ASTERIX data blocks (topofusion asterix --file reads those)"
+    shown = head[:MAGIC_SIZE]
+    return (
+        f"{path} is not an MCAP file (it starts with {shown!r}, not the MCAP magic {MCAP_MAGIC!r}"
+        + (f"; it looks like {known}" if known else "")
+        + ")"
+    )
+
+
+def open_recording(path: str | Path) -> BinaryIO:
+    """``path`` opened for reading, or :class:`RecordingError` saying in plain words why not."""
+    where = Path(path)
+    if where.is_dir():
+        raise NotMcapError(f"{path} is a directory, not an MCAP file")
+    try:
+        return open(where, "rb")
+    except FileNotFoundError:
+        raise RecordingError(f"{path}: no such file") from None
+    except PermissionError:
+        raise RecordingError(f"{path}: not readable (permission denied)") from None
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+
+
+def check_recording(path: str | Path) -> None:
+    """Raise :class:`RecordingError` (saying why) unless ``path`` is a readable file that starts
+    like an MCAP file: the quick check a command makes before it connects to anything."""
+    with open_recording(path) as f:
+        head = f.read(MAGIC_SIZE)
+    if head != MCAP_MAGIC:
+        raise NotMcapError(not_mcap(str(path), head))
+
+
 class RecordingReader:
     """Reads one recording file; use as a context manager."""
 
@@ -125,23 +192,23 @@ class RecordingReader:
         self.path = str(path)
         self.prefix = prefix
         self.damage: Damage | None = None
-        if Path(self.path).is_dir():
-            raise NotMcapError(f"{self.path} is a directory, not an MCAP file")
-        self._file: BinaryIO = open(self.path, "rb")  # noqa: SIM115 - closed in close()
+        self._file: BinaryIO = open_recording(self.path)
         try:
             self.file_bytes = os.fstat(self._file.fileno()).st_size
             head = self._file.read(MAGIC_SIZE)
             if head != MCAP_MAGIC:
-                raise NotMcapError(
-                    f"{self.path} is not an MCAP file (it does not begin with the MCAP magic bytes"
-                    f"{'; it is empty' if not head else ''})"
-                )
+                raise NotMcapError(not_mcap(self.path, head))
             self._summary = self._read_summary()
             self._linear: tuple[dict[int, ChannelInfo], list[RecordedMessage]] | None = None
             self._survey: Survey | None = None
         except BaseException:
             self._file.close()
             raise
+
+    @property
+    def indexed(self) -> bool:
+        """The file is complete and indexed: its survey reads the summary only."""
+        return self._summary is not None
 
     # -- lifecycle ------------------------------------------------------------------------
 

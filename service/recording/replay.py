@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from service.recording.keys import KeyFilter
-from service.recording.reader import RecordedMessage, RecordingReader, select_channels
+from service.recording.reader import RecordedMessage, RecordingReader, check_recording, select_channels
 
 #: Progress is shown on replays expected to take longer than this (seconds of wall time) or
 #: holding more messages than ``PROGRESS_MIN_MESSAGES``.
@@ -150,6 +150,17 @@ def plan_replay(reader: RecordingReader, prefix: str, options: ReplayOptions) ->
     last = end_ns if end_ns is not None else (survey.end_ns or origin)
     span_s = max(0.0, (min(last, survey.end_ns or last) - first) / 1e9)
     return ReplayPlan(reader, channels, start_ns, end_ns, origin, total, span_s)
+
+
+def preflight(path: str | Path, prefix: str, options: ReplayOptions) -> None:
+    """What can be known of ``path`` before anything is connected: it is a readable MCAP file
+    and, when it is indexed (its survey is cheap), it holds something to replay; raises
+    :class:`~service.recording.reader.RecordingError` saying why not.  An unindexed file
+    (an unfinished recording) is scanned once, by the replay itself."""
+    check_recording(path)
+    with RecordingReader(path, prefix) as reader:
+        if reader.indexed:
+            plan_replay(reader, prefix, options)
 
 
 def iter_replay(plan: ReplayPlan) -> Iterator[RecordedMessage]:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -311,6 +311,37 @@ def generate(sc: Scenario, seed: int = 0) -> Iterator[SimMessage]:
                 yield SimMessage(body["time_s"], "adsb", b.source_id, body)
         targets.advance(t_next - t)
         t = t_next
+
+
+def generate_looped(sc: Scenario, seed: int = 0) -> Iterator[SimMessage]:
+    """The scenario again and again, without end (``topofusion simulate --loop``).
+
+    Each pass is :func:`generate` of the same scenario and seed (the same traffic), started
+    ``duration_s`` of data time after the one before, so data time runs on; every source's
+    ``seq`` goes on from the last pass's, so a service takes the passes as one stream (a ``seq``
+    back at 1 would be a publisher's restart, and a repeated data time a duplicate).  The sites
+    come once, at the start: they do not change from pass to pass.  A scenario without a
+    duration runs for ever already (and one of no duration has nothing to repeat): it is
+    :func:`generate` itself.
+    """
+    if sc.duration_s is None or sc.duration_s <= 0:
+        yield from generate(sc, seed)
+        return
+    offset: dict[str, int] = {}
+    k = 0
+    while True:
+        last: dict[str, int] = {}
+        shifted = replace(sc, start_time_s=sc.start_time_s + k * sc.duration_s)
+        for m in generate(shifted, seed):
+            if m.kind == "site":
+                if k == 0:
+                    yield m
+                continue
+            seq = int(m.body["seq"]) + offset.get(m.radar_id, 0)
+            last[m.radar_id] = seq
+            yield SimMessage(m.time_s, m.kind, m.radar_id, {**m.body, "seq": seq})
+        offset.update(last)
+        k += 1
 
 
 def wire_messages(sc: Scenario, seed: int, prefix: str = "fusion") -> Iterator[tuple[str, bytes]]:

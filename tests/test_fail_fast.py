@@ -1,0 +1,116 @@
+"""Commands refuse bad input at once, before any Zenoh connection is tried, naming what is wrong.
+
+Every command here is given a router endpoint nobody listens on: a tool that got as far as
+connecting would wait for it (``TOOL_CONNECT_RETRY_S``, 30 s), saying "waiting for the Zenoh
+router".  They are started together and must all end with status 2 well before that.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from contextlib import ExitStack
+from pathlib import Path
+
+import pytest
+
+from tests.doc_commands import TOPOFUSION, started
+from tests.support import free_port
+
+#: Each refusal comes within this long (s): the interpreter's start and the imports, no
+#: connection attempt (which would take the tools' 30 s wait for their router).
+FAIL_FAST_S = 15.0
+
+
+def _bad_inputs(tmp_path: Path) -> dict[str, tuple[list[str], list[str]]]:
+    """name -> (arguments, what the message must say)."""
+    capture = tmp_path / "capture.pcap"
+    capture.write_bytes(bytes.fromhex("d4c3b2a1020004000000000000000000ffff000001000000"))
+    (tmp_path / "notes.json").write_text('{"not": "a recording"}\n')
+    (tmp_path / "empty.mcap").write_bytes(b"")
+    (tmp_path / "sites.json").write_text(
+        '[{"radar_id": "A", "latitude_deg": 1, "longitude_deg": 2, "sac": 0, "sic": 1}]'
+    )
+    missing = tmp_path / "no-such-dir"
+    return {
+        "replay a pcap": (
+            ["replay", str(capture)],
+            [f"{capture} is not an MCAP file", "it starts with b'\\xd4\\xc3\\xb2\\xa1", "pcap capture"],
+        ),
+        "replay JSON": (["replay", str(tmp_path / "notes.json")], ["is not an MCAP file", "JSON text"]),
+        "replay an empty file": (
+            ["replay", str(tmp_path / "empty.mcap")],
+            ["empty.mcap is not an MCAP file (it is empty)"],
+        ),
+        "replay a missing file": (
+            ["replay", str(tmp_path / "gone.mcap")],
+            [f"{tmp_path / 'gone.mcap'}: no such file"],
+        ),
+        "replay a directory": (["replay", str(tmp_path)], ["is a directory"]),
+        "record into a missing directory": (
+            ["record", "--out", str(missing / "run.mcap")],
+            [f"the directory {missing} does not exist"],
+        ),
+        "record into a directory": (["record", "--out", str(tmp_path)], [f"--out {tmp_path} is a directory"]),
+        "asterix --file missing": (
+            ["asterix", "--sites", str(tmp_path / "sites.json"), "--file", str(tmp_path / "gone.pcap")],
+            ["gone.pcap: cannot read the file: No such file or directory"],
+        ),
+        "asterix --out-file in a missing directory": (
+            ["asterix", "--out-file", str(missing / "tracks.ast")],
+            [f"--out-file {missing / 'tracks.ast'}: the directory {missing} does not exist"],
+        ),
+        "simulate --asterix-file in a missing directory": (
+            ["simulate", "--scenario", "two-radar", "--asterix-file", str(missing / "feed.pcap")],
+            [f"the directory {missing} does not exist"],
+        ),
+        "simulate --write-sites in a missing directory": (
+            ["simulate", "--scenario", "two-radar", "--write-sites", str(missing / "sites.json")],
+            [f"the directory {missing} does not exist"],
+        ),
+    }
+
+
+def test_bad_input_is_refused_before_connecting(tmp_path: Path) -> None:
+    nobody = f"tcp/127.0.0.1:{free_port()}"
+    cases = _bad_inputs(tmp_path)
+    t0 = time.monotonic()
+    with ExitStack() as stack:
+        procs = {
+            name: stack.enter_context(started([TOPOFUSION, *argv, "--connect", nobody], tmp_path))
+            for name, (argv, _) in cases.items()
+        }
+        for name, proc in procs.items():
+            left = FAIL_FAST_S - (time.monotonic() - t0)
+            code = proc.popen.wait(timeout=max(left, 0.1))
+            out = proc.output()
+            assert code == 2, f"{name}: exit {code}\n{out}"
+            assert "waiting for the Zenoh router" not in out, f"{name} tried to connect:\n{out}"
+            assert "Traceback" not in out, f"{name}:\n{out}"
+            for needle in cases[name][1]:
+                assert needle in out, f"{name}: {needle!r} not in\n{out}"
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root reads files whatever their permissions")
+def test_an_unreadable_file_is_refused_before_connecting(tmp_path: Path) -> None:
+    secret = tmp_path / "secret.mcap"
+    secret.write_bytes(b"\x89MCAP0\r\n")
+    secret.chmod(0)
+    capture = tmp_path / "secret.pcap"
+    capture.write_bytes(b"")
+    capture.chmod(0)
+    (tmp_path / "sites.json").write_text(
+        '[{"radar_id": "A", "latitude_deg": 1, "longitude_deg": 2, "sac": 0, "sic": 1}]'
+    )
+    nobody = f"tcp/127.0.0.1:{free_port()}"
+    argvs = {
+        "replay": (["replay", str(secret)], "not readable (permission denied)"),
+        "asterix": (
+            ["asterix", "--sites", str(tmp_path / "sites.json"), "--file", str(capture)],
+            "Permission denied",
+        ),
+    }
+    for name, (argv, needle) in argvs.items():
+        with started([TOPOFUSION, *argv, "--connect", nobody], tmp_path) as proc:
+            assert proc.popen.wait(timeout=FAIL_FAST_S) == 2, name
+            assert needle in proc.output(), proc.output()
