@@ -65,6 +65,49 @@ def put_json(session: zenoh.Session, key: str, body: Any) -> None:
     )
 
 
+def _time_s(payload: bytes) -> float | None:
+    try:
+        value = json.loads(payload).get("time_s")
+    except (ValueError, AttributeError):
+        return None
+    return float(value) if isinstance(value, (int, float)) else None
+
+
+@contextlib.contextmanager
+def paced_stream(
+    client: zenoh.Session, stream: list[tuple[str, bytes]], opening_s: float, speed: float
+) -> Iterator[threading.Event]:
+    """Publish ``stream`` on a thread of its own: its first ``opening_s`` data seconds at once,
+    the rest at ``speed`` times real time.  Yields an event set once the whole stream is out;
+    the thread is stopped at the exit."""
+    published, stop = threading.Event(), threading.Event()
+
+    def publish() -> None:
+        start = next(t for k, p in stream if k.endswith("/plots") and (t := _time_s(p)))
+        wall = time.monotonic()
+        for key, payload in stream:
+            if stop.is_set():
+                return
+            t = _time_s(payload) if key.endswith("/plots") else None
+            if t is not None and t - start > opening_s:
+                ahead = (t - start - opening_s) / speed - (time.monotonic() - wall)
+                if ahead > 0 and stop.wait(ahead):
+                    return
+            elif t is not None:
+                wall = time.monotonic()
+            put_json(client, key, payload)
+        published.set()
+
+    thread = threading.Thread(target=publish, name="stream", daemon=True)
+    thread.start()
+    try:
+        yield published
+    finally:
+        stop.set()
+        thread.join(timeout=30)
+        assert not thread.is_alive(), "publisher did not stop"
+
+
 @dataclass
 class RunningService:
     node: ServiceNode

@@ -32,7 +32,7 @@ from service.api.picture import DEFAULT_MAX_ITEMS, STATIC_DIR
 from service.transport.session import ZenohOptions, open_session
 from tests import browser
 from tests.scenario_helpers import scenario_messages
-from tests.support import RunningService, free_port, put_json, running_service, wait_for, wait_subscribed
+from tests.support import RunningService, free_port, paced_stream, running_service, wait_for, wait_subscribed
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -58,15 +58,6 @@ needs_chromium = pytest.mark.skipif(
 class Live:
     service: RunningService
     published: threading.Event  # set once the whole stream is out
-    stop: threading.Event
-
-
-def _time_s(payload: bytes) -> float | None:
-    try:
-        value = json.loads(payload).get("time_s")
-    except (ValueError, AttributeError):
-        return None
-    return float(value) if isinstance(value, (int, float)) else None
 
 
 @pytest.fixture(scope="module")
@@ -81,32 +72,8 @@ def live() -> Iterator[Live]:
             with running_service(endpoint) as svc:
                 wait_subscribed(client, "fusion/radar/A/plots")
                 wait_subscribed(client, "fusion/radar/A/site")
-                published, stop = threading.Event(), threading.Event()
-
-                def publish() -> None:
-                    start = next(t for k, p in stream if k.endswith("/plots") and (t := _time_s(p)))
-                    wall = time.monotonic()
-                    for key, payload in stream:
-                        if stop.is_set():
-                            return
-                        t = _time_s(payload) if key.endswith("/plots") else None
-                        if t is not None and t - start > OPENING_S:
-                            ahead = (t - start - OPENING_S) / SPEED - (time.monotonic() - wall)
-                            if ahead > 0 and stop.wait(ahead):
-                                return
-                        elif t is not None:
-                            wall = time.monotonic()
-                        put_json(client, key, payload)
-                    published.set()
-
-                thread = threading.Thread(target=publish, name="stream", daemon=True)
-                thread.start()
-                try:
-                    yield Live(svc, published, stop)
-                finally:
-                    stop.set()
-                    thread.join(timeout=30)
-                    assert not thread.is_alive(), "publisher did not stop"
+                with paced_stream(client, stream, OPENING_S, SPEED) as published:
+                    yield Live(svc, published)
         finally:
             client.close()
     finally:

@@ -40,7 +40,7 @@ from service.api.picture import (
 from service.transport.session import ZenohOptions, open_session
 from tests.http_service import Served, reset_by_peer, served
 from tests.scenario_helpers import scenario_messages
-from tests.support import free_port, put_json, wait_for, wait_subscribed
+from tests.support import free_port, paced_stream, wait_for, wait_subscribed
 
 #: Viewers at once, and the service's cap on them (the same: one more is refused).
 VIEWERS = 60
@@ -70,14 +70,6 @@ class Live:
     batches: Any  # () -> batches processed so far
 
 
-def _time_s(payload: bytes) -> float | None:
-    try:
-        value = json.loads(payload).get("time_s")
-    except (ValueError, AttributeError):
-        return None
-    return float(value) if isinstance(value, (int, float)) else None
-
-
 @pytest.fixture(scope="module")
 def live() -> Iterator[Live]:
     stream = scenario_messages("three-radar", duration_s=DURATION_S)
@@ -89,38 +81,15 @@ def live() -> Iterator[Live]:
             with served(endpoint, SETTINGS) as svc:
                 wait_subscribed(client, "fusion/radar/A/plots")
                 wait_subscribed(client, "fusion/radar/A/site")
-                stop = threading.Event()
-
-                def publish() -> None:
-                    start = next(t for k, p in stream if k.endswith("/plots") and (t := _time_s(p)))
-                    wall = time.monotonic()
-                    for key, payload in stream:
-                        if stop.is_set():
-                            return
-                        t = _time_s(payload) if key.endswith("/plots") else None
-                        if t is not None and t - start > OPENING_S:
-                            ahead = (t - start - OPENING_S) / SPEED - (time.monotonic() - wall)
-                            if ahead > 0 and stop.wait(ahead):
-                                return
-                        elif t is not None:
-                            wall = time.monotonic()
-                        put_json(client, key, payload)
-
-                thread = threading.Thread(target=publish, name="stream", daemon=True)
-                thread.start()
 
                 def batches() -> int:
                     st = httpx.get(svc.base_url + "/status", timeout=10).json()
                     return sum(r["batches"] for r in st["radars"])
 
-                try:
+                with paced_stream(client, stream, OPENING_S, SPEED):
                     # something to show: the opening minute in, tracks confirmed
                     wait_for(lambda: batches() > 100, timeout=60)
                     yield Live(svc, batches)
-                finally:
-                    stop.set()
-                    thread.join(timeout=30)
-                    assert not thread.is_alive(), "publisher did not stop"
         finally:
             client.close()
     finally:
