@@ -15,7 +15,7 @@ run's RSS is its own):
   under a new id (``A`` -> ``A-1`` -> ``A-2``...): a site message with the new id and the same
   position first, then its batches (``seq`` from 1); the old id falls silent (its publishers
   are undeclared), expires ``source_expiry_s`` (300 s) of data time later and is forgotten
-  ``forget_after_s`` (600 s) after that (service/pipeline/sequencer.py).  Three radars over
+  ``forget_after_s`` (300 s) after that (service/pipeline/sequencer.py).  Three radars over
   1 800 data s: 51 ids.
 * ``plain``: the same stream without churn.
 

@@ -94,9 +94,12 @@ class SequencerParams:
     #: it leaves correlation until it reports again.
     source_expiry_s: float = 300.0
     #: A source still silent this long (s of data time) after its expiry is forgotten: its
-    #: pair books, registration rows and tables go (module docstring).  Ten minutes: a radar
-    #: back within a quarter of an hour keeps what its pairs learnt.
-    forget_after_s: float = 600.0
+    #: pair books, registration rows and tables go (module docstring).  Five minutes: ten of
+    #: silence in all, so a radar back from a short maintenance keeps what its pairs learnt,
+    #: while under id churn the ids held (and their pairs, which grow with the square of them)
+    #: stay few: the churn soak's correlation process grows 2.4 MB/min with five minutes, 4.4
+    #: with ten (bench/bench_churn_soak.py).
+    forget_after_s: float = 300.0
     #: Share of the live sources whose batches must agree on a jump of more than
     #: ``max_clock_skew_s`` for it to be the end of a whole-feed outage (see module docstring);
     #: at least two sources always.  A half: the network's data clock is the low median of the
