@@ -21,6 +21,7 @@ from service.api.deps import NodeDep
 from service.api.limits import HttpLimits
 from service.api.metrics import registry_for
 from service.api.picture import add_picture
+from service.schema_files import EXAMPLES
 from service.transport.node import ServiceNode
 from service.wire.models import BiasEstimate, PairSet, RadarInfo, Status, SystemTrackBatch, TrackBatch
 
@@ -265,6 +266,14 @@ def _document_bearer(app: FastAPI) -> None:
     app.openapi = openapi  # type: ignore[method-assign]
 
 
+def _example(example: Any, **errors: str) -> dict[int | str, dict[str, Any]]:
+    """``responses=`` of a route: its 200 answer's example (the contract's own, as in
+    ``schemas/examples``) and its documented errors (``e404="unknown radar"``)."""
+    out: dict[int | str, dict[str, Any]] = {200: {"content": {"application/json": {"example": example}}}}
+    out.update({int(code[1:]): {"description": text} for code, text in errors.items()})
+    return out
+
+
 def create_app(
     node_factory: Callable[[], ServiceNode],
     on_started: Callable[[ServiceNode], None] | None = None,
@@ -314,11 +323,33 @@ def create_app(
 
     # The probes are coroutines: they answer from the event loop, never waiting for one of
     # the threads the other endpoints run on (all of which a burst may hold).
-    @app.get("/healthz")
+    @app.get(
+        "/healthz",
+        summary="Liveness: the process answers",
+        description="200 while the process runs; needs no token and answers under connection floods "
+        "(the probes run on the event loop). Use it for a liveness probe.",
+        responses=_example({"status": "ok"}),
+    )
     async def healthz() -> dict[str, str]:
         return {"status": "ok"}
 
-    @app.get("/readyz", responses={503: {"description": "not ready"}})
+    @app.get(
+        "/readyz",
+        summary="Readiness: Zenoh connected, worker running, outputs live",
+        description="200 once the Zenoh session is open and the worker runs; 503 with a `reason`: "
+        "`starting`, `connecting to zenoh`, `no zenoh connection`, `worker stalled`, `worker not "
+        "running`, `shutting down`, or `outputs stale: the data clock has not moved for N s` (the "
+        "feed stopped or every input is refused; /status `feed` says more). Needs no token.",
+        responses={
+            **_example({"status": "ready"}),
+            503: {
+                "description": "not ready, and why",
+                "content": {
+                    "application/json": {"example": {"status": "not ready", "reason": "no zenoh connection"}}
+                },
+            },
+        },
+    )
     async def readyz(request: Request) -> JSONResponse:
         node: ServiceNode | None = getattr(request.app.state, "node", None)
         if node is None or not node.ready:
@@ -326,18 +357,39 @@ def create_app(
             return JSONResponse({"status": "not ready", "reason": reason}, status_code=503)
         return JSONResponse({"status": "ready"})
 
-    @app.get("/status", response_model=Status)
+    @app.get(
+        "/status",
+        response_model=Status,
+        summary="The service's status: radars, pairs, correlation timings, queue, feed",
+        description="Per radar its counters and data clock; pairs confirmed and tentative; the "
+        "correlation's update times and `pending`; `outputs_time_s`, the data time through which "
+        "every output is complete; the ingest queue and its drops by key; the feed (stale outputs, "
+        "outages); with --state-dir the state writes; partitioned, the whole network's. The same "
+        "JSON as `get {prefix}/status` over Zenoh.",
+        responses=_example(EXAMPLES["Status"]),
+    )
     def status(node: NodeDep) -> dict[str, Any]:
         return node.status()
 
-    @app.get("/radars", response_model=list[RadarInfo])
+    @app.get(
+        "/radars",
+        response_model=list[RadarInfo],
+        summary="Every radar whose site is known, with its counters",
+        description="The `RadarSite` fields plus batches, plots, rejected, lost batches (from `seq` "
+        "gaps) and the radar's data clock `last_time_s`.",
+        responses=_example([EXAMPLES["RadarInfo"]]),
+    )
     def radars(node: NodeDep) -> list[dict[str, Any]]:
         return node.radars()
 
     @app.get(
         "/radars/{radar_id}/tracks",
         response_model=TrackBatch,
-        responses={404: {"description": "unknown radar"}},
+        summary="A radar's tracks (confirmed by default)",
+        description="The radar's latest `TrackBatch`, as published on `{prefix}/radar/{id}/tracks`: "
+        "every track's position and velocity in ECEF and geodetic, its status, Mode S and Mode 3/A "
+        "when known. `status`: `confirmed` (default), `tentative` or `all`.",
+        responses=_example(EXAMPLES["TrackBatch"], e404="unknown radar"),
     )
     def tracks(node: NodeDep, radar_id: str, status: StatusFilter = "confirmed") -> dict[str, Any]:
         batch = node.snapshot.track_batch(radar_id, status)
@@ -345,7 +397,16 @@ def create_app(
             raise HTTPException(status_code=404, detail=f"unknown radar {radar_id!r}")
         return batch
 
-    @app.get("/pairs", response_model=list[PairSet])
+    @app.get(
+        "/pairs",
+        response_model=list[PairSet],
+        summary="Correlated track pairs, per radar pair",
+        description="Every pair set (two radars, or a radar and a reference source) with its pairs, "
+        "their scores and status. `radar_a` / `radar_b` (either order; one of them: every pair set "
+        "of that radar) and `status` (`confirmed` default, `tentative`, `all`) filter. Every pair "
+        "names tracks the same snapshot holds.",
+        responses=_example([EXAMPLES["PairSet"]]),
+    )
     def pairs(
         node: NodeDep,
         radar_a: Annotated[str | None, Query()] = None,
@@ -354,15 +415,38 @@ def create_app(
     ) -> list[dict[str, Any]]:
         return node.pair_sets(radar_a, radar_b, status)
 
-    @app.get("/system-tracks", response_model=SystemTrackBatch)
+    @app.get(
+        "/system-tracks",
+        response_model=SystemTrackBatch,
+        summary="The fused picture: one system track per aircraft",
+        description="Radar tracks that correlate (directly or through other radars) form one system "
+        "track, bias-compensated and fused from its members; its id stays with the aircraft while "
+        "any member lives. `status`: `confirmed` (default), `tentative`, `all`.",
+        responses=_example(EXAMPLES["SystemTrackBatch"]),
+    )
     def system_tracks(node: NodeDep, status: StatusFilter = "confirmed") -> dict[str, Any]:
         return node.snapshot.system_tracks(status)
 
-    @app.get("/biases", response_model=list[BiasEstimate])
+    @app.get(
+        "/biases",
+        response_model=list[BiasEstimate],
+        summary="Each radar's estimated systematic errors",
+        description="Range, azimuth and elevation biases from the joint solve over every pair "
+        "(absolute against a reference source, else relative between the radars), with the pairs "
+        "used and the data time of the solve.",
+        responses=_example([EXAMPLES["BiasEstimate"]]),
+    )
     def biases(node: NodeDep) -> list[dict[str, Any]]:
         return node.snapshot.biases()
 
-    @app.get("/metrics", response_class=Response)
+    @app.get(
+        "/metrics",
+        response_class=Response,
+        summary="Prometheus metrics (text exposition)",
+        description="Counters and gauges computed at scrape time from the same state as /status "
+        "(docs/operations/metrics.md lists them).",
+        responses={200: {"content": {CONTENT_TYPE_LATEST: {"example": "topofusion_ready 1.0\n"}}}},
+    )
     def metrics(request: Request, node: NodeDep) -> Response:
         return Response(generate_latest(request.app.state.registry), media_type=CONTENT_TYPE_LATEST)
 
