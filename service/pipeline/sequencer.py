@@ -219,8 +219,7 @@ class Sequencer:
             )
         _, victim = min(idle)
         del self.sources[victim]
-        self._expiry_due.pop(victim, None)
-        self._forget_due.pop(victim, None)
+        self._cancel_events(victim)
         return [victim]
 
     def observe(self, source_id: str, clock_s: float) -> None:
@@ -235,6 +234,12 @@ class Sequencer:
             src = self.sources[source_id] = SourceClock(RADAR, announced_s=self.consensus(), foreign=True)
         if src.foreign:
             src.last_time_s = max(clock_s, src.last_time_s if src.last_time_s is not None else -np.inf)
+
+    def _cancel_events(self, source_id: str) -> None:
+        """The source's pending expiry and forget events no longer apply (their heap entries
+        are skipped when popped)."""
+        self._expiry_due.pop(source_id, None)
+        self._forget_due.pop(source_id, None)
 
     def expire_now(self, source_id: str) -> bool:
         """Expire a source that is silent on the wall clock while the data clock stands still
@@ -253,8 +258,7 @@ class Sequencer:
         src = self.sources.get(source_id)
         if src is not None and not src.pending:
             del self.sources[source_id]
-            self._expiry_due.pop(source_id, None)
-            self._forget_due.pop(source_id, None)
+            self._cancel_events(source_id)
 
     # -- admission -------------------------------------------------------------------------
     def check(self, source_id: str, kind: int, seq: int, time_s: float) -> Admission:
@@ -375,8 +379,7 @@ class Sequencer:
         src.last_time_s = clock
         self.newest_s = max(self.newest_s, clock)
         src.expired = False
-        self._expiry_due.pop(adm.source_id, None)
-        self._forget_due.pop(adm.source_id, None)
+        self._cancel_events(adm.source_id)
         if not src.pending:
             heapq.heappush(self._heap, (clock, adm.kind, adm.source_id, adm.seq))
         src.pending.append((clock, adm.seq, item))

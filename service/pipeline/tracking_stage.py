@@ -143,8 +143,7 @@ class TrackingStage:
         if radar is None or radar.tracker is None:
             return False
         self.update(radar_id, PlotColumns.empty(), time_s)
-        radar.tracker.drop_tracks()
-        radar.table = radar.tracker.tracks()
+        self.clear(radar_id)
         return True
 
     def clear(self, radar_id: str) -> None:
