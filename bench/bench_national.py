@@ -1257,6 +1257,9 @@ def run_profile(args: argparse.Namespace) -> None:
     r = feed(engine, stream, args.snapshot_every, "profile", data_s, False)
     profiler.disable()
     report_run(r, data_s, truth, stream)
+    if args.profile_out:
+        profiler.dump_stats(args.profile_out)
+        print(f"profile written to {args.profile_out} (python -m pstats {args.profile_out})")
     for order in ("cumulative", "tottime"):
         print(f"--- top {args.top} by {order} ---")
         pstats.Stats(profiler, stream=sys.stdout).strip_dirs().sort_stats(order).print_stats(args.top)
@@ -1913,6 +1916,7 @@ def main() -> None:
     parser.add_argument("--round", type=int, default=1, help=argparse.SUPPRESS)
     parser.add_argument("--accuracy", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--top", type=int, default=25, help="functions listed per profile order")
+    parser.add_argument("--profile-out", type=Path, help="with --profile: also write the raw profile here")
     parser.add_argument("--chunk", type=int, default=512, help="messages generated at a time in the soak")
     parser.add_argument(
         "--trace-memory", action="store_true", help="soak: where the Python heap grows over the second half"

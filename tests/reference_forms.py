@@ -395,3 +395,18 @@ def isolated_reference(
             near |= bool(np.sqrt(float(d @ d)) <= radius_m) and (not confirmed[j] or with_it)
         out.append(not near)
     return out
+
+
+def within_reference(
+    positions: FloatArray, anchors: FloatArray, reach_m: float, busy: list[int]
+) -> list[int]:
+    """``service.correlation.correlator._within`` by a loop: the rows within ``reach_m`` of
+    any (finite) anchor, not among ``busy``, ascending."""
+    out = []
+    for i, p in enumerate(positions):
+        near = any(
+            bool(np.all(np.isfinite(q))) and float(np.sqrt(np.sum((p - q) ** 2))) <= reach_m for q in anchors
+        )
+        if near and i not in busy:
+            out.append(i)
+    return out

@@ -198,16 +198,25 @@ def positions_at(table: TrackTable, time_s: float) -> np.ndarray:
     return np.asarray(table.position_ecef_m + table.velocity_ecef_mps * (time_s - table.time_s)[:, None])
 
 
+def _near(positions: np.ndarray, anchors: np.ndarray, reach_m: float) -> np.ndarray:
+    """``(rows, anchors)``: whether each row of ``positions`` lies within ``reach_m`` of each
+    anchor (NaN rows and anchors are never near)."""
+    finite = np.flatnonzero(np.isfinite(anchors).all(axis=1))
+    if len(positions) == 0 or len(finite) == 0:
+        return np.zeros((len(positions), len(anchors)), dtype=bool)
+    # |p - q|^2 = |p|^2 + |q|^2 - 2 p.q for every row and anchor in one product, about a
+    # finite anchor (ECEF magnitudes squared, 4e13 m^2, would leave centimetres of rounding;
+    # near it the reach, kilometres, is what counts).
+    p, q = positions - anchors[finite[0]], anchors - anchors[finite[0]]
+    d2 = np.einsum("ij,ij->i", p, p)[:, None] + np.einsum("ij,ij->i", q, q)[None, :] - 2.0 * (p @ q.T)
+    return np.asarray(d2 <= reach_m**2)
+
+
 def _within(
     positions: np.ndarray, anchors: np.ndarray, reach_m: float, busy: np.ndarray | None = None
 ) -> np.ndarray:
     """The rows of ``positions`` within ``reach_m`` of any anchor and not among ``busy``."""
-    if len(positions) == 0 or len(anchors) == 0:
-        return np.empty(0, dtype=np.intp)
-    near = np.zeros(len(positions), dtype=bool)
-    for anchor in anchors:  # (a handful of fresh tracks: one pass over the table each)
-        d = positions - anchor
-        near |= np.einsum("ij,ij->i", d, d) <= reach_m**2
+    near = np.asarray(_near(positions, anchors, reach_m).any(axis=1))
     if busy is not None:
         near[busy] = False
     return np.flatnonzero(near)
@@ -246,6 +255,9 @@ class PairCorrelator:
         self.site_a = site_a
         self.site_b = site_b
         self.book = PairBook(self.params.book)
+        #: The track ids of each side the book's pairs were last checked against (the tables'
+        #: own arrays: a radar's next table is a new object).
+        self._checked: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
         #: Evidence over the candidate pairs' history (None: the method gives no residuals).
         self.evidence = (
             EvidenceBook(self.params.evidence)
@@ -372,6 +384,7 @@ class PairCorrelator:
         dec = Decisions.concat([*parts, decided])
         sel = Decisions.concat([*parts, decided.take(chosen)])
         now = np.concatenate([np.zeros(sum(len(x) for x in parts), dtype=bool), clear[chosen]])
+        self._checked = (tracks_a.track_id, tracks_b.track_id)
         self.book.update(
             time_s,
             np.asarray(tracks_a.track_id).astype(str),
@@ -516,13 +529,14 @@ class PairCorrelator:
         reach = 2.0 * prm.svd.candidates.gate_m
         now_a = positions_at(tracks_a, time_s) if now_a is None else now_a
         now_b = positions_at(tracks_b, time_s) if now_b is None else now_b
-        fresh_rows_a = isin_sorted(tracks_a.track_id, fresh_a)
-        anchors = np.concatenate([now_a[fresh_rows_a], now_b[isin_sorted(tracks_b.track_id, fresh_b)]])
-        partner = now_b if fresh_rows_a.any() else now_a
-        if len(anchors) == 0 or not len(_within(partner, anchors, reach)):
-            return False  # no partner track within reach: nothing to decide
-        sub_a = tracks_a.take(_within(now_a, anchors, reach))
-        sub_b = tracks_b.take(_within(now_b, anchors, reach))
+        anchors_a = now_a[isin_sorted(tracks_a.track_id, fresh_a)]
+        anchors = np.concatenate([anchors_a, now_b[isin_sorted(tracks_b.track_id, fresh_b)]])
+        near_a, near_b = _near(now_a, anchors, reach), _near(now_b, anchors, reach)
+        k = len(anchors_a)
+        if not (near_b[:, :k].any() or near_a[:, k:].any()):
+            return False  # no partner track within reach of a fresh one: nothing to decide
+        sub_a = tracks_a.take(np.flatnonzero(near_a.any(axis=1)))
+        sub_b = tracks_b.take(np.flatnonzero(near_b.any(axis=1)))
         _, _, a, b, ctx_kw = self._snapshots(sub_a, sub_b, time_s)
         fa, fb = np.isin(a.track_id, fresh_a), np.isin(b.track_id, fresh_b)
         if not (fa.any() or fb.any()):
@@ -563,10 +577,13 @@ class PairCorrelator:
             else None
         )
         take = dec.take(clear)
+        # A side whose table is the one the book was last checked against lost no track since.
+        seen_a, seen_b = self._checked
+        self._checked = (tracks_a.track_id, tracks_b.track_id)
         return self.book.admit(
             time_s,
-            np.asarray(tracks_a.track_id).astype(str),
-            np.asarray(tracks_b.track_id).astype(str),
+            None if seen_a is tracks_a.track_id else tracks_a.track_id,
+            None if seen_b is tracks_b.track_id else tracks_b.track_id,
             a.track_id[take.index_a],
             b.track_id[take.index_b],
             take.statistic,

@@ -235,8 +235,8 @@ class PairBook:
     def admit(
         self,
         time_s: float,
-        present_a: NDArray[np.str_],
-        present_b: NDArray[np.str_],
+        present_a: NDArray[np.str_] | None,
+        present_b: NDArray[np.str_] | None,
         track_a: NDArray[np.str_],
         track_b: NDArray[np.str_],
         statistic: FloatArray,
@@ -250,8 +250,12 @@ class PairBook:
         confirmed, a new one enters confirmed with one hit; neither scores the other pairs (the
         next update does), and a track already in a confirmed pair keeps it.  ``probability``:
         their score (NaN: the hit fraction).  As at an update, pairs whose track is not among
-        ``present_a``/``present_b`` any more leave the book.  Whether the book changed."""
-        gone = ~_isin(self.track_a, present_a) | ~_isin(self.track_b, present_b)
+        ``present_a``/``present_b`` any more leave the book (None: that side's tracks are
+        those the book was last checked against, none gone).  Whether the book changed."""
+        gone = np.zeros(len(self), dtype=bool)
+        for present, tracks in ((present_a, self.track_a), (present_b, self.track_b)):
+            if present is not None:
+                gone |= ~_isin(tracks, present)
         if gone.any():
             self._keep(~gone)
         keys = _keys(track_a, track_b)

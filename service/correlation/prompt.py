@@ -33,11 +33,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from service.correlation.assignment import rival_costs
 from service.correlation.base import BoolArray, FloatArray, IntArray
 from service.geo import Site
 from service.tracking.base import TrackTable
+
+#: Above this many row-point pairs :func:`companions` finds neighbours by a k-d tree (a few
+#: per track) instead of every row against every point: below it the tree's set-up costs more.
+DENSE_PAIRS = 20_000
 
 
 @dataclass(frozen=True)
@@ -90,12 +95,36 @@ def companions(
     if up is not None:  # (projected once per point, not once per pair: the same differences)
         position = position - (position @ up)[:, None] * up
         velocity = velocity - (velocity @ up)[:, None] * up
+    if n * len(position) > DENSE_PAIRS:
+        return _companions_sparse(position, velocity, rows, radius_m, velocity_mps, any_velocity)
     d = position[rows][:, None, :] - position[None, :, :]
     dv = velocity[rows][:, None, :] - velocity[None, :, :]
     near = np.einsum("ijk,ijk->ij", d, d) <= radius_m**2  # (NaN positions are never near)
     near &= any_velocity[None, :] | (np.einsum("ijk,ijk->ij", dv, dv) < velocity_mps**2)
     near[np.arange(n), rows] = False  # (a point is not its own companion)
     return np.asarray(near.any(axis=1))
+
+
+def _companions_sparse(
+    position: FloatArray,
+    velocity: FloatArray,
+    rows: IntArray,
+    radius_m: float,
+    velocity_mps: float,
+    any_velocity: BoolArray,
+) -> BoolArray:
+    """:func:`companions` (positions already projected) by the pairs within ``radius_m`` a
+    k-d tree finds: a few per track in traffic, where the dense form builds every row against
+    every point (a radar's whole table at its update)."""
+    finite = np.flatnonzero(np.isfinite(position).all(axis=1))  # (NaN positions are never near)
+    tree = cKDTree(position[finite])
+    sdm = tree.sparse_distance_matrix(cKDTree(position[finite]), radius_m, output_type="ndarray")
+    i, j = finite[sdm["i"]], finite[sdm["j"]]
+    dv = velocity[i] - velocity[j]
+    hit = (i != j) & (any_velocity[j] | (np.einsum("ij,ij->i", dv, dv) < velocity_mps**2))
+    near = np.zeros(len(position), dtype=bool)
+    near[i[hit]] = True
+    return near[rows]
 
 
 def isolated(

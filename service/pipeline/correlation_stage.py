@@ -84,6 +84,17 @@ class CadenceParams:
     settled_cadence_scans: float = 3.0
     #: ... and at most once per this many data seconds.
     min_interval_s: float = 1.0
+    #: Between a pair's updates, the tracks confirmed since are decided at once
+    #: (:meth:`~service.correlation.PairCorrelator.decide_new`), but at most once per this many
+    #: scans of the slower radar: tracks confirmed sooner after a decision wait for the next
+    #: one, together.  A decision's cost is mostly its fixed part (bringing the tables near the
+    #: new tracks to the update time, compensating them, the rival and isolation tests), and a
+    #: busy radar confirms a few tracks in every sector batch.  National network (120 s):
+    #: 0 took 10 017 decisions, 0.25 scans 4 441 and 0.5 about 2 500, the correlation stage's
+    #: CPU 28 / 15 / 14 s; the median time to pair 0.00 / 0.12 / 0.31 scans, p95 1.75 in all
+    #: three (the ambiguous pairs, which wait for updates anyway).  A track confirmed while
+    #: the pair was quiet is still decided in the same release.  0: every batch's at once.
+    prompt_interval_scans: float = 0.5
     #: Radars farther apart than this cannot share targets and are never correlated (m).
     max_site_distance_m: float = 800_000.0
     #: A reference source is correlated with a radar only if one of its tracks lies within
@@ -163,6 +174,10 @@ class CorrelationStage:
         self.correlators: dict[tuple[str, str], PairCorrelator] = {}
         self.views: dict[tuple[str, str], PairSetView] = {}
         self.next_due: dict[tuple[str, str], float] = {}
+        #: Per pair not due: the ids of each side's tracks confirmed since its last update or
+        #: decision, still to be decided, and the data time its next decision may run.
+        self._undecided: dict[tuple[str, str], dict[str, list[np.ndarray]]] = {}
+        self._next_decision: dict[tuple[str, str], float] = {}
         self.timings_ms: deque[float] = deque(maxlen=RECENT_UPDATES)
         self.updates = 0
         self.last_ms = 0.0
@@ -220,6 +235,8 @@ class CorrelationStage:
             del self.correlators[key]
             self.views.pop(key, None)
             self.next_due.pop(key, None)
+            self._undecided.pop(key, None)
+            self._next_decision.pop(key, None)
         for key in [k for k in self.mirrors if source_id in k]:
             del self.mirrors[key]
 
@@ -295,11 +312,16 @@ class CorrelationStage:
         d2 = np.einsum("ij,ij->i", *(2 * [table.position_ecef_m - radar.origin_ecef]))
         return bool(d2.min() <= p.max_reference_range_m**2)
 
+    @staticmethod
+    def _scan(a: Site, b: Site | None) -> float:
+        """The scan period of the slower radar of a pair (s)."""
+        return max(a.scan_period_s, b.scan_period_s if b is not None else 0.0)
+
     def _interval(self, a: Site, b: Site | None, corr: PairCorrelator | None) -> float:
         """Data time between two updates of a pair (``corr``: its correlator, settled or not;
         None: as if not settled)."""
         p = self.params
-        scan = max(a.scan_period_s, b.scan_period_s if b is not None else 0.0)
+        scan = self._scan(a, b)
         scans = p.settled_cadence_scans if corr is not None and corr.settled else p.cadence_scans
         return max(p.min_interval_s, scans * scan)
 
@@ -330,14 +352,20 @@ class CorrelationStage:
                 continue
             if time_s < self.next_due.get(key, -np.inf):
                 if corr is not None and fresh is not None and len(fresh):
-                    if own_now is None:  # every track of the radar at the update time, once
-                        own_now = positions_at(radar.tracks(time_s), time_s)
-                    if self._prompt(corr, radar, other, time_s, fresh, own_now):
-                        self.views[key] = PairSetView.of(key, corr, time_s)
-                        updated.append(key)
-                    if not corr.settled:  # a fresh track left open: the next update must not wait
-                        scan = self._interval(radar.geometry, other.geometry, None)
-                        self.next_due[key] = min(self.next_due[key], corr.time_s + scan)
+                    self._undecided.setdefault(key, {}).setdefault(radar.source_id, []).append(fresh)
+                waiting = time_s < self._next_decision.get(key, -np.inf)
+                if corr is None or key not in self._undecided or waiting:
+                    continue
+                if own_now is None:  # every track of the radar at the update time, once
+                    own_now = positions_at(radar.tracks(time_s), time_s)
+                if self._prompt(corr, radar, other, time_s, self._undecided.pop(key), own_now):
+                    self.views[key] = PairSetView.of(key, corr, time_s)
+                    updated.append(key)
+                scans = self.params.prompt_interval_scans
+                self._next_decision[key] = time_s + scans * self._scan(radar.geometry, other.geometry)
+                if not corr.settled:  # a fresh track left open: the next update must not wait
+                    scan = self._interval(radar.geometry, other.geometry, None)
+                    self.next_due[key] = min(self.next_due[key], corr.time_s + scan)
                 continue
             if corr is None and min(radar.confirmed, other.confirmed) < p.min_confirmed_tracks:
                 continue
@@ -359,6 +387,7 @@ class CorrelationStage:
             other_table = table if table is not None else other.tracks(time_s)
             ta, tb = (own, other_table) if first is radar else (other_table, own)
             corr.update(ta, tb, time_s, self._implied(key) if second.geometry is not None else None)
+            self._undecided.pop(key, None)  # (the update decided them)
             self.next_due[key] = time_s + self._interval(radar.geometry, other.geometry, corr)
             self.updates += 1
             self.last_ms = float(corr.last_update_ms)
@@ -385,18 +414,19 @@ class CorrelationStage:
         radar: Source,
         other: Source,
         time_s: float,
-        fresh: np.ndarray,
+        undecided: dict[str, list[np.ndarray]],
         own_now: np.ndarray,
     ) -> bool:
-        """A partner not due: the radar's fresh tracks decided now (clear pairs confirm);
+        """A partner not due: the tracks of either radar confirmed since the pair's last
+        update or decision (``undecided``, ids by radar) decided now (clear pairs confirm);
         ``own_now``: the radar's tracks brought to ``time_s``."""
         if other.geometry is None:
             return False  # reference sources: their own method, on the cadence
         own, theirs = radar.tracks(time_s), other.tracks(time_s)
-        empty = np.empty(0, dtype=str)
+        mine, others = (_ids(undecided.get(s.source_id)) for s in (radar, other))
         if corr.site_a.site_id == radar.source_id:
-            return corr.decide_new(own, theirs, time_s, fresh, empty, now_a=own_now)
-        return corr.decide_new(theirs, own, time_s, empty, fresh, now_b=own_now)
+            return corr.decide_new(own, theirs, time_s, mine, others, now_a=own_now)
+        return corr.decide_new(theirs, own, time_s, others, mine, now_b=own_now)
 
     def _system_due(self, clock_s: float) -> None:
         step = self.params.system_interval_s
@@ -558,6 +588,11 @@ class CorrelationStage:
         return timings_dict(
             self.updates, self.last_ms, self.timings_ms, self.duration_counts, self.duration_sum_s
         )
+
+
+def _ids(parts: list[np.ndarray] | None) -> np.ndarray:
+    """The ids of ``parts`` together, sorted, each once (none: an empty array)."""
+    return np.unique(np.concatenate(parts)) if parts else np.empty(0, dtype=str)
 
 
 def _newly_confirmed(before: TrackTable | None, now: TrackTable) -> np.ndarray:

@@ -8,11 +8,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from service.correlation.correlator import _within
 from service.correlation.pairs import PairBook
-from service.correlation.prompt import clear_of_rivals, isolated
+from service.correlation.prompt import DENSE_PAIRS, clear_of_rivals, isolated
 from service.geo import Site
 from service.tracking.base import TrackTable
-from tests.reference_forms import clear_reference, isolated_reference
+from tests.reference_forms import clear_reference, isolated_reference, within_reference
 
 
 @settings(max_examples=200, deadline=None)
@@ -69,6 +70,28 @@ def test_isolated_equals_the_loop(seed: int) -> None:
     assert (~confirmed).any()  # (both kinds of neighbour are in the scene)
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_isolated_of_a_whole_table_equals_the_loop(seed: int) -> None:
+    """A radar's whole table at its update (the k-d tree form, above ``DENSE_PAIRS``),
+    with a track of unknown position among them."""
+    rng = np.random.default_rng(seed)
+    site = Site("R", 46.0, 2.0)
+    n = 220
+    enu = rng.uniform(-40_000, 40_000, (n, 3)) * [1, 1, 0.05] + [0, 120_000, 9_000]
+    pos = site.enu_to_ecef(enu)
+    pos[7] = np.nan
+    heading = rng.choice([0.0, 0.1, 2.0], n)
+    vel = np.stack([220 * np.sin(heading), 220 * np.cos(heading), np.zeros(n)], axis=1) @ site.rotation.T
+    confirmed = rng.random(n) < 0.7
+    table = _table(pos, confirmed, vel)
+    rows = list(range(n))
+    assert n * n > DENSE_PAIRS
+    got = isolated(table, site, 0.0, table.track_id[rows], 2_000.0, 40.0)
+    want = isolated_reference(pos, vel, confirmed.tolist(), site.rotation[:, 2], rows, 2_000.0, 40.0)
+    assert got.tolist() == want
+    assert 0 < sum(want) < n  # (isolated tracks and grouped ones both in the scene)
+
+
 def test_tracks_are_brought_to_the_update_time_before_the_distance() -> None:
     site = Site("R", 46.0, 2.0)
     east = site.rotation[:, 0]
@@ -121,3 +144,26 @@ def test_a_clear_pair_confirms_at_once_and_a_busy_track_keeps_its_pair() -> None
         np.zeros(0, dtype=np.int8),
     )
     assert {p.track_a for p in book.states()} == {"a2", "a3"}
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    st.integers(0, 30),
+    st.integers(0, 6),
+    st.integers(0, 2**31 - 1),
+    st.sampled_from([500.0, 20_000.0, 60_000.0]),
+)
+def test_rows_near_fresh_tracks_equal_the_loop(n: int, k: int, seed: int, reach_m: float) -> None:
+    """The rows near a pair's fresh tracks (one product for every row and anchor) are those a
+    loop finds, at ECEF magnitudes, with NaN rows and anchors never near."""
+    rng = np.random.default_rng(seed)
+    centre = np.array([4.0e6, 3.0e5, 4.9e6])
+    pos = centre + rng.normal(0.0, 30_000.0, (n, 3))
+    anchors = centre + rng.normal(0.0, 30_000.0, (k, 3))
+    if n:
+        pos[rng.integers(0, n)] = np.nan
+    if k > 1:
+        anchors[0] = np.nan
+    busy = sorted(set(rng.integers(0, max(n, 1), 3).tolist())) if n else []
+    got = _within(pos, anchors, reach_m, np.array(busy, dtype=np.intp) if busy else None)
+    assert got.tolist() == within_reference(pos, anchors, reach_m, busy)
