@@ -91,10 +91,12 @@ class CadenceParams:
     #: new tracks to the update time, compensating them, the rival and isolation tests), and a
     #: busy radar confirms a few tracks in every sector batch.  National network (120 s):
     #: 0 took 10 017 decisions, 0.25 scans 4 441 and 0.5 about 2 500, the correlation stage's
-    #: CPU 28 / 15 / 14 s; the median time to pair 0.00 / 0.12 / 0.31 scans, p95 1.75 in all
-    #: three (the ambiguous pairs, which wait for updates anyway).  A track confirmed while
-    #: the pair was quiet is still decided in the same release.  0: every batch's at once.
-    prompt_interval_scans: float = 0.5
+    #: CPU 28 / 15 / 14 s; the median time to pair 0.00 / 0.12 / 0.31 scans (three-radar
+    #: scenario: 0.00 / 0.20 / 0.38), p95 1.75 in all three (the ambiguous pairs, which wait
+    #: for updates anyway): a quarter scan keeps most of the saving at a fifth of a scan's
+    #: wait.  A track confirmed while the pair was quiet is still decided in the same
+    #: release.  0: every batch's at once.
+    prompt_interval_scans: float = 0.25
     #: Radars farther apart than this cannot share targets and are never correlated (m).
     max_site_distance_m: float = 800_000.0
     #: A reference source is correlated with a radar only if one of its tracks lies within
