@@ -23,12 +23,14 @@ import contextlib
 import json
 import os
 import queue
+import re
 import shutil
 import subprocess
 import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -106,6 +108,9 @@ class Browser:
             os.close(from_child)
         self._next_id = 0
         self._lock = threading.Lock()
+        # one message at a time on the pipe: a message over the pipe's atomic size (a routed
+        # answer's body) written by two threads at once would interleave
+        self._write_lock = threading.Lock()
         self._replies: dict[int, queue.SimpleQueue[dict[str, Any]]] = {}
         self.events: list[dict[str, Any]] = []
         self._reader = threading.Thread(target=self._read, name="chromium-devtools", daemon=True)
@@ -147,7 +152,10 @@ class Browser:
         if session is not None:
             message["sessionId"] = session
         try:
-            os.write(self._to_browser, json.dumps(message).encode() + b"\0")
+            data = json.dumps(message).encode() + b"\0"
+            with self._write_lock:
+                while data:
+                    data = data[os.write(self._to_browser, data) :]
             answer = reply.get(timeout=self.timeout_s)
         except (OSError, queue.Empty) as exc:
             raise BrowserError(f"{method}: no answer from chromium ({exc!r}); {self.log_tail()}") from exc
@@ -201,6 +209,8 @@ class Page:
 
     def __init__(self, browser: Browser, target: str, session: str) -> None:
         self.browser, self.target, self.session = browser, target, session
+        self._routes: list[threading.Thread] = []
+        self._closing = threading.Event()
         self.send("Network.enable")
         self.send("Page.enable")
         self.send("Runtime.enable")
@@ -214,7 +224,41 @@ class Page:
         return self.browser.send(method, params, self.session)
 
     def close(self) -> None:
+        self._closing.set()
+        for thread in self._routes:
+            thread.join(timeout=5)
         self.browser.send("Target.closeTarget", {"targetId": self.target})
+
+    def route(
+        self, pattern: str, answer: Callable[[str], tuple[int, bytes]], content_type: str = "application/json"
+    ) -> None:
+        """Answer the page's requests whose URL matches ``pattern`` (DevTools' wildcards ``*``
+        and ``?``) with ``answer(url)``: a status and a body of ``content_type``, in place of
+        the server's (a route the service does not have yet, or an answer a test wants drawn).
+        A thread of its own answers them: the reader thread must not wait for a reply."""
+        self.send("Fetch.enable", {"patterns": [{"urlPattern": pattern, "requestStage": "Request"}]})
+
+        def serve() -> None:
+            done = 0
+            while not self._closing.wait(0.02):
+                paused = self._events("Fetch.requestPaused")
+                for event in paused[done:]:
+                    status, body = answer(event["request"]["url"])
+                    with contextlib.suppress(BrowserError):
+                        self.send(
+                            "Fetch.fulfillRequest",
+                            {
+                                "requestId": event["requestId"],
+                                "responseCode": status,
+                                "responseHeaders": [{"name": "Content-Type", "value": content_type}],
+                                "body": base64.b64encode(body).decode(),
+                            },
+                        )
+                done = len(paused)
+
+        thread = threading.Thread(target=serve, name="chromium-route", daemon=True)
+        thread.start()
+        self._routes.append(thread)
 
     def _events(self, method: str) -> list[dict[str, Any]]:
         return [
@@ -270,7 +314,9 @@ class Page:
         """The URLs of the requests the browser let out."""
         return [url for url, blocked in self.requests() if blocked is None]
 
-    def console_errors(self) -> list[str]:
+    def console_errors(self, but_urls: str | None = None) -> list[str]:
+        """The page's uncaught exceptions and the console's errors, but those about a URL
+        matching the regular expression ``but_urls`` (e.g. a 404 the page expects)."""
         errors = [
             str(e["exceptionDetails"].get("exception", {}).get("description") or e["exceptionDetails"])
             for e in self._events("Runtime.exceptionThrown")
@@ -279,5 +325,6 @@ class Page:
             str(e["entry"].get("text"))
             for e in self._events("Log.entryAdded")
             if e.get("entry", {}).get("level") == "error"
+            and not (but_urls and re.search(but_urls, e["entry"].get("url") or ""))
         ]
         return errors

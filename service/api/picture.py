@@ -2,16 +2,24 @@
 
 ``GET /picture`` is a page of plain HTML, CSS and JavaScript (``service/api/static/``: no
 library, no font, no tile, nothing from another host) that draws, on a lat/lon graticule with
-pan and zoom: the radar sites with their coverage rings, the radars' tracks (faint), the system
-tracks (bold, with their ids and velocity leaders), the correlation links between paired radar
-tracks, each radar's bias estimate as an arrow with an uncertainty ellipse, and a health panel.
+pan and zoom over the coastlines and borders of ``static/basemap.json`` (Natural Earth, made
+by the lab's basemap script, docs/picture.md): the radar sites with their coverage rings, the
+radars' tracks (faint), the system tracks (bold, with their ids, flight levels, velocity
+leaders and trails), the correlation links between paired radar tracks, each radar's bias
+estimate as an arrow with an uncertainty ellipse, a selected track's members and pairs,
+filters kept in the address, and a health panel (with each radar's
+``/radars/{id}/performance`` where there is one).
 
 ``GET /picture/events`` feeds it: server-sent events, one compact JSON snapshot about every
 second of wall time (``interval_s``), built from the node's latest read-model snapshot (the
 state ``/status``, ``/radars``, ``/radars/{id}/tracks``, ``/pairs``, ``/system-tracks`` and
 ``/biases`` answer).  It is bounded: confirmed tracks only unless ``status=all``, and at most
 ``max_items`` system tracks, ``max_items`` radar tracks over all radars and ``max_items``
-links (the counts left out are in ``truncated``).
+links (the counts left out are in ``truncated``).  Each row is a list whose cells ``COLUMNS``
+names (the snapshot carries them as ``columns``): what the page's filters, labels and selection
+panel need (flight level, Mode S, Mode 3/A, speed, age, a system track's members, a pair's
+score and basis).  The health part gives each source's lag and rates in data time
+(:func:`picture_health`, :class:`DataRates`), and whether the data is a replay.
 
 Any number of viewers costs the service a bounded amount of work (docs/picture.md):
 
@@ -43,7 +51,7 @@ import asyncio
 import logging
 import math
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -102,6 +110,16 @@ PICTURE_CSP = (
 #: Coordinates are rounded to this many decimals of a degree (about 1 m).
 DECIMALS = 5
 EVENT_HEAD = b"event: snapshot\ndata: "
+#: The health panel's rates are over this many seconds of data time (at least
+#: ``RATE_MIN_SPAN_S``), from at most ``RATE_SAMPLES`` samples of the counters.
+RATE_WINDOW_S = 10.0
+RATE_MIN_SPAN_S = 1.0
+RATE_SAMPLES = 256
+#: The data is a replay when its clock is this far (s) from the wall clock, or runs at a speed
+#: (data s per wall s) outside this band: a live feed's data time follows the wall clock
+#: within its latency, and at its pace.
+REPLAY_OFFSET_S = 120.0
+REPLAY_SPEED = (0.8, 1.25)
 
 #: ``(status, max_items)`` after rounding.
 Shape = tuple[str, int]
@@ -130,22 +148,89 @@ def _r(x: float | None, digits: int = DECIMALS) -> float | None:
     return None if x is None or not math.isfinite(x) else round(x, digits)
 
 
+#: The cells of each row of a snapshot's ``tracks``, ``system_tracks`` and ``links`` (the
+#: snapshot carries them as ``columns``; the status cell is last, 1/0 or ``c``/``t``).  ``fl``:
+#: flight level (hundreds of feet of the track's altitude), ``ve``/``vn``: east/north speed
+#: (m/s), ``age_s``: data seconds since the track's last update, ``members``: ``[source,
+#: track id]`` of each, ``score``/``basis``: the pair's (``PairSet``).
+COLUMNS = {
+    "tracks": ("id", "lat", "lon", "ve", "vn", "fl", "mode_s", "mode_3a", "age_s", "confirmed"),
+    "system_tracks": (
+        "id",
+        "lat",
+        "lon",
+        "ve",
+        "vn",
+        "sigma_m",
+        "fl",
+        "mode_s",
+        "mode_3a",
+        "age_s",
+        "members",
+        "confirmed",
+    ),
+    "links": (
+        "radar_a",
+        "radar_b",
+        "lat_a",
+        "lon_a",
+        "lat_b",
+        "lon_b",
+        "track_a",
+        "track_b",
+        "score",
+        "basis",
+        "status",
+    ),
+}
+#: The international foot (m): a flight level is the altitude in hundreds of them.
+FEET = 0.3048
+
+
+def _fl(altitude_m: float | None) -> int | None:
+    """Flight level: the altitude in hundreds of feet (the picture's filters and labels)."""
+    return None if altitude_m is None or not math.isfinite(altitude_m) else round(altitude_m / FEET / 100)
+
+
+def _age(now_s: float | None, time_s: float | None) -> float | None:
+    return None if now_s is None or time_s is None else round(max(0.0, now_s - time_s), 1)
+
+
 def picture_data(node: ServiceNode) -> dict[str, Any]:
     """What every snapshot of one moment shares, from the node's read-model snapshot: every
     site, radar track, link and system track (confirmed or not, each row ending with its
-    status), and the bias estimates.  :func:`for_status` takes a status's rows from it."""
+    status; the cells are ``COLUMNS``'), and the bias estimates.  :func:`for_status` takes a
+    status's rows from it."""
     snap = node.snapshot
     sites = node.radars()
+    system = snap.system_tracks("all")
+    times = [t for t, _ in snap.tracks.values()]
+    now_s = system["time_s"] if system["time_s"] is not None else max(times, default=None)
 
     tracks: dict[str, list[list[Any]]] = {}
     where: dict[str, dict[str, tuple[float | None, float | None]]] = {}
+    #: (source, track id) -> Mode S, Mode 3/A and time of each track (for its system track)
+    ident: dict[tuple[str, str], tuple[Any, Any, float]] = {}
     for rid in sorted(snap.tracks):
         every = snap.track_batch(rid, "all") or {"tracks": []}
         rows, at = [], {}
         for t in every["tracks"]:
             lat, lon = _r(t["latitude_deg"]), _r(t["longitude_deg"])
             at[t["track_id"]] = (lat, lon)  # rounded once, for the track and all its links
-            rows.append([t["track_id"], lat, lon, int(t["status"] == "confirmed")])
+            ident[(rid, t["track_id"])] = (t["mode_s"], t["mode_3a"], t["time_s"])
+            rows.append(
+                [
+                    t["track_id"],
+                    lat,
+                    lon,
+                    *_east_north(t["latitude_deg"], t["longitude_deg"], t["velocity_ecef_mps"]),
+                    _fl(t["altitude_m"]),
+                    t["mode_s"],
+                    t["mode_3a"],
+                    _age(now_s, t["time_s"]),
+                    int(t["status"] == "confirmed"),
+                ]
+            )
         tracks[rid], where[rid] = rows, at
 
     # correlation links: between the two radar tracks of each pair whose positions are known
@@ -156,21 +241,44 @@ def picture_data(node: ServiceNode) -> dict[str, Any]:
         for p in ps["pairs"]:
             pa, pb = at_a.get(p["track_a"]), at_b.get(p["track_b"])
             if pa is not None and pb is not None:
-                links.append([ra, rb, pa[0], pa[1], pb[0], pb[1], p["status"][0]])
+                links.append(
+                    [
+                        ra,
+                        rb,
+                        pa[0],
+                        pa[1],
+                        pb[0],
+                        pb[1],
+                        p["track_a"],
+                        p["track_b"],
+                        _r(p["score"], 3),
+                        p["basis"],
+                        p["status"][0],
+                    ]
+                )
 
-    system = snap.system_tracks("all")
-    system_tracks = [
-        [
-            t["system_track_id"],
-            _r(t["latitude_deg"]),
-            _r(t["longitude_deg"]),
-            *_east_north(t["latitude_deg"], t["longitude_deg"], t["velocity_ecef_mps"]),
-            _r(t["position_sigma_m"], 1),
-            len(t["members"]),
-            int(t["status"] == "confirmed"),
-        ]
-        for t in system["system_tracks"]
-    ]
+    system_tracks = []
+    for t in system["system_tracks"]:
+        members = [[m["radar_id"], m["track_id"]] for m in t["members"]]
+        known = [ident[k] for m in members if (k := (m[0], m[1])) in ident]
+        # a system track's identity: the first of its members' that has one
+        mode_s = next((i[0] for i in known if i[0] is not None), None)
+        mode_3a = next((i[1] for i in known if i[1] is not None), None)
+        system_tracks.append(
+            [
+                t["system_track_id"],
+                _r(t["latitude_deg"]),
+                _r(t["longitude_deg"]),
+                *_east_north(t["latitude_deg"], t["longitude_deg"], t["velocity_ecef_mps"]),
+                _r(t["position_sigma_m"], 1),
+                _fl(t["altitude_m"]),
+                mode_s,
+                mode_3a,
+                _age(now_s, max((i[2] for i in known), default=None)),
+                members,
+                int(t["status"] == "confirmed"),
+            ]
+        )
 
     by_site = {s["radar_id"]: s for s in sites}
     biases = []
@@ -236,26 +344,89 @@ def for_status(data: Mapping[str, Any], status: str) -> dict[str, Any]:
     }
 
 
-def picture_health(node: ServiceNode) -> dict[str, Any]:
-    """The health panel's part of a snapshot (from ``node.status()``)."""
+class DataRates:
+    """Each source's plots and batches per second of data time, and how fast the data clock
+    runs against the wall clock, from the counters of successive health reads.
+
+    Over data time rather than wall time: a recording replayed at five times real time still
+    shows a radar's own rate.  The window is on the network's data clock (the newest data time
+    of any source), so a source that falls silent drops to 0 plots/s while the others go on.
+    Samples are taken only when that clock moves (at most ``RATE_SAMPLES`` held)."""
+
+    def __init__(self) -> None:
+        #: (network data time, wall time, {source: (plots, batches)})
+        self._samples: deque[tuple[float, float, dict[str, tuple[int, int]]]] = deque(maxlen=RATE_SAMPLES)
+
+    def update(
+        self, data_s: float | None, wall_s: float, counters: dict[str, tuple[int, int]]
+    ) -> tuple[dict[str, tuple[float, float]], float | None]:
+        """The rates per source (plots/s, batches/s; absent until the window spans
+        ``RATE_MIN_SPAN_S``), and data seconds per wall second (None until known)."""
+        held = self._samples
+        if data_s is None:
+            return {}, None
+        if held and data_s < held[-1][0]:
+            held.clear()  # the data clock went back: another recording
+        if not held or data_s > held[-1][0]:
+            held.append((data_s, wall_s, counters))
+        # keep one sample at least a window old (the window's start)
+        while len(held) > 2 and data_s - held[1][0] >= RATE_WINDOW_S:
+            held.popleft()
+        (t0, w0, first), (t1, w1, last) = held[0], held[-1]
+        span = t1 - t0
+        rates = {}
+        if span >= RATE_MIN_SPAN_S:
+            for rid, (plots, batches) in last.items():
+                if rid in first:
+                    rates[rid] = (
+                        round((plots - first[rid][0]) / span, 1),
+                        round((batches - first[rid][1]) / span, 2),
+                    )
+        speed = round(span / (w1 - w0), 2) if w1 - w0 >= RATE_MIN_SPAN_S else None
+        return rates, speed
+
+
+def picture_health(node: ServiceNode, rates: DataRates | None = None, wall_s: float = 0.0) -> dict[str, Any]:
+    """The health panel's part of a snapshot (from ``node.status()``).
+
+    A source's ``lag_s`` is how far its data clock is behind the newest of any source (data
+    time, not the wall clock: a fast run or a replay of an old recording would be minutes
+    ahead or years behind the wall clock, which says nothing of a source's lateness).
+    ``replay``: the data clock is more than ``REPLAY_OFFSET_S`` from the wall clock, or runs
+    at a speed other than real time (``data_speed``, data seconds per wall second).  Rates
+    (``plots_s``, ``batches_s``) come from ``rates``, None without it."""
     st = node.status()
+    times = [r["last_time_s"] for r in st["radars"] if r["last_time_s"] is not None]
+    newest = max(times, default=None)
+    counters = {r["radar_id"]: (int(r["plots"]), int(r["batches"])) for r in st["radars"]}
+    per_source, speed = rates.update(newest, wall_s, counters) if rates is not None else ({}, None)
     radars = [
         {
             "radar_id": r["radar_id"],
             "batches": r["batches"],
             "plots": r["plots"],
+            "plots_s": per_source[r["radar_id"]][0] if r["radar_id"] in per_source else None,
+            "batches_s": per_source[r["radar_id"]][1] if r["radar_id"] in per_source else None,
             "rejected": r["rejected"],
             "lost_batches": r["lost_batches"],
             "window_plots": r["window_plots"],
             "tracks_confirmed": r["tracks_confirmed"],
             "tracks_tentative": r["tracks_tentative"],
             "last_time_s": r["last_time_s"],
+            "lag_s": None
+            if newest is None or r["last_time_s"] is None
+            else round(newest - r["last_time_s"], 3),
             "expired": bool(r.get("expired", False)),
         }
         for r in st["radars"]
     ]
+    off_clock = newest is not None and abs(wall_s - newest) > REPLAY_OFFSET_S
+    off_speed = speed is not None and not REPLAY_SPEED[0] <= speed <= REPLAY_SPEED[1]
     return {
         "radars": radars,
+        "data_time_s": newest,
+        "data_speed": speed,
+        "replay": bool(off_clock or off_speed),
         "correlation": st["correlation"],
         "pairs_confirmed": st["pairs_confirmed"],
         "pairs_tentative": st["pairs_tentative"],
@@ -280,6 +451,7 @@ def shaped(
         "status": status,
         "max_items": max_items,
         "sites": data["sites"],
+        "columns": COLUMNS,
         "tracks": {rid: rows[: room[rid]] for rid, rows in data["tracks"].items()},
         "links": data["links"][:max_items],
         "system_tracks": data["system_tracks"][:max_items],
@@ -298,7 +470,8 @@ def build_snapshot(
 ) -> dict[str, Any]:
     """The picture's JSON snapshot (what each event of ``/picture/events`` carries)."""
     data = for_status(picture_data(node), status)
-    return shaped(data, picture_health(node), round(time.time(), 3), status, max_items)
+    wall_s = round(time.time(), 3)
+    return shaped(data, picture_health(node, None, wall_s), wall_s, status, max_items)
 
 
 @dataclass
@@ -339,6 +512,7 @@ class PictureFeed:
         self._data_of: object = None  # the node's read-model snapshot ``_data`` was made from
         self._data_due = 0.0  # no new conversion before (monotonic s)
         self._views: dict[str, dict[str, Any]] = {}  # ``_data`` by status
+        self._rates = DataRates()
         #: Conversions of the node's state so far (``picture_data``).
         self.conversions = 0
         self._logged_at = -LOG_EVERY_S
@@ -400,7 +574,8 @@ class PictureFeed:
         moment = self._moment
         if moment is None or moment.tick < tick:  # (a viewer late for its tick gets the newer)
             self._refresh(node)
-            moment = self._moment = _Moment(tick, picture_health(node), round(time.time(), 3))
+            wall_s = round(time.time(), 3)
+            moment = self._moment = _Moment(tick, picture_health(node, self._rates, wall_s), wall_s)
         assert self._data is not None
         view = self._views.get(status)
         if view is None:
