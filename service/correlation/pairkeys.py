@@ -43,3 +43,13 @@ def isin_sorted(x: NDArray[np.str_], y: NDArray[np.str_]) -> NDArray[np.bool_]:
     ys = ascending(y)
     pos = np.minimum(np.searchsorted(ys, x), ys.shape[0] - 1)
     return np.asarray(ys[pos] == x)
+
+
+def isin_few(x: NDArray[np.str_], y: NDArray[np.str_]) -> NDArray[np.bool_]:
+    """``np.isin(x, y)`` for a few ``x`` among many ``y`` (a book's new pairs against the whole
+    book): the few are sorted and every ``y`` searched among them, then each ``x`` among the
+    ``y`` found, so the many are never sorted (:func:`isin_sorted` sorts ``y`` unless it is)."""
+    x, y = np.asarray(x), np.asarray(y)
+    if x.shape[0] == 0 or y.shape[0] == 0:
+        return np.zeros(x.shape[0], dtype=bool)
+    return isin_sorted(x, y[isin_sorted(y, x)])

@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
 from service.correlation.base import BASIS_NAMES, FloatArray
+from service.correlation.pairkeys import isin_few
 from service.correlation.pairkeys import isin_sorted as _isin
 from service.correlation.pairkeys import pair_keys as _keys
 
@@ -259,15 +260,16 @@ class PairBook:
         if gone.any():
             self._keep(~gone)
         keys = _keys(track_a, track_b)
-        busy_a, busy_b = self._busy()
-        busy = _isin(track_a, busy_a) | _isin(track_b, busy_b)
+        # (a few pairs against the whole book: searched among the few, the book never sorted)
+        conf = self.confirmed
+        busy = isin_few(track_a, self.track_a[conf]) | isin_few(track_b, self.track_b[conf])
         if busy.all():
             return bool(gone.any())  # (``_keep`` counted the change)
         keep = ~busy
         keys, track_a, track_b = keys[keep], track_a[keep], track_b[keep]
         prob = np.full(len(keys), np.nan) if probability is None else np.asarray(probability)[keep]
         pos = np.flatnonzero(_isin(self.keys, keys))
-        held = _isin(keys, self.keys)
+        held = _isin(keys, self.keys[pos])
         fresh = np.flatnonzero(~held)
         if fresh.size:
             k = np.flatnonzero(keep)[fresh]

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from service.correlation.pairkeys import isin_few, isin_sorted
 from service.correlation.pairs import PairBook, PairBookParams
 
 
@@ -68,3 +71,18 @@ def test_tentative_dropped_when_window_empty() -> None:
     assert _status(book) == {("a1", "b1"): "tentative"}
     _upd(book, 2.0, [])
     assert _status(book) == {}
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.sampled_from(["A-1", "A-2", "A-10", "B-3", "B-30", "C-7", ""]), max_size=12),
+    st.lists(st.sampled_from(["A-1", "A-2", "A-10", "B-3", "B-30", "C-7", "D-9", ""]), max_size=40),
+)
+def test_set_membership_forms_equal_numpy(x: list[str], y: list[str]) -> None:
+    """The books' two membership tests (few among many, and many against a sorted or unsorted
+    set) answer what ``np.isin`` answers."""
+    xs, ys = np.array(x, dtype=str), np.array(y, dtype=str)
+    want = np.isin(xs, ys)
+    assert isin_few(xs, ys).tolist() == want.tolist()
+    assert isin_sorted(xs, ys).tolist() == want.tolist()
+    assert isin_sorted(ys, xs).tolist() == np.isin(ys, xs).tolist()
