@@ -230,6 +230,11 @@ def build_parser() -> argparse.ArgumentParser:
     rep = sub.add_parser("replay", help="republish an MCAP recording")
     _zenoh_flags(rep, default_mode="client")
     recording.add_replay_arguments(rep)
+    from service.recording.assess import add_assess_arguments
+
+    add_assess_arguments(
+        sub.add_parser("assess", help="radar performance against ADS-B / AIS over a recording")
+    )
 
     from service.asterix import command as asterix
 
@@ -669,6 +674,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.prefix = settings.prefix
             fn = recording.record_main if args.command == "record" else recording.replay_main
             return int(fn(args, zenoh_options(settings, default_mode="client")))
+        if args.command == "assess":
+            from service.recording.assess import assess_main
+
+            return assess_main(args)
         if args.command == "asterix":
             from service.asterix.command import asterix_main
 

@@ -31,6 +31,7 @@ from typing import Any
 
 from pydantic import TypeAdapter, ValidationError
 
+from service.assessment import AssessmentParams
 from service.correlation import CorrelationParams
 from service.pipeline.correlation_stage import CadenceParams
 from service.pipeline.feed import FeedParams
@@ -77,6 +78,8 @@ class EngineConfig:
     exchange: ExchangeParams = field(default_factory=ExchangeParams)
     #: The feed on the wall clock (operations): stale outputs, sources silent in wall time.
     feed: FeedParams = field(default_factory=FeedParams)
+    #: Each radar's live performance against the references (settings ``TOPOFUSION_PERFORMANCE_*``).
+    assessment: AssessmentParams = field(default_factory=AssessmentParams)
 
 
 class ConfigError(ValueError):

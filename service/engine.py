@@ -26,6 +26,7 @@ from typing import Any
 
 from service.config import EngineConfig
 from service.correlation import PairCorrelator
+from service.pipeline.assessment_feed import AssessmentFeed
 from service.pipeline.correlation_process import RemoteCorrelation
 from service.pipeline.correlation_runner import CorrelationRunner, LocalCorrelation
 from service.pipeline.decode import decode_input, plot_columns, reference_columns
@@ -87,6 +88,7 @@ class Engine:
         #: Each reference source's input kind (``ais`` or ``adsb``): an id is one or the other.
         self.reference_kinds: dict[str, str] = {}
         self._snapshot: Snapshot | None = None
+        self.assessment = AssessmentFeed(c.assessment)  # each radar against the references (§5.3)
         for site in c.sites:
             self._set_site(site)
 
@@ -171,14 +173,11 @@ class Engine:
             return self._rejected(key, internal, receive_time_s, peer is not None)
 
     def _too_large(self, key: str, size: int) -> RejectionError:
-        kind = self.keys.classify(key)
-        return RejectionError(
-            "too_large", f"payload of {size} bytes > {MAX_PAYLOAD_BYTES}", kind[1] if kind else None
-        )
+        source = kind[1] if (kind := self.keys.classify(key)) else None
+        return RejectionError("too_large", f"payload of {size} bytes > {MAX_PAYLOAD_BYTES}", source)
 
     def reject_too_large(self, key: str, size: int, receive_time_s: float | None = None) -> list[Outgoing]:
-        """A payload of ``size`` bytes the transport did not even copy (above
-        ``MAX_PAYLOAD_BYTES``): rejected as :meth:`ingest` rejects it."""
+        """A payload the transport did not copy (over ``MAX_PAYLOAD_BYTES``): as :meth:`ingest` would."""
         peer = not self.partition.whole and self.keys.classify_peer(key) is not None
         return self._rejected(key, self._too_large(key, size), receive_time_s, peer)
 
@@ -203,6 +202,7 @@ class Engine:
         out += self._correlate(self.merger.flush())
         self.correlation.finish()
         out += self._results()
+        self.assessment.finish()
         self._snapshot = None
         return out
 
@@ -239,6 +239,7 @@ class Engine:
             self.correlation.forget(sid)
             self.peers.forget(sid)
             self.feed.forget(sid)
+            self.assessment.forget(sid)
             out += self.publication.forget(sid)
         return out
 
@@ -300,6 +301,7 @@ class Engine:
             table = self.tracking.radars[radar_id].table
         else:
             table = self.tracking.update(radar_id, plots, clock)
+            self.assessment.plots(radar_id, self.tracking.radars[radar_id].geometry, plots, clock)
         return self.peers.own_table(radar_id, table.by_id(), clock, plots is None)
 
     def _correlate(self, released: Iterable[Release]) -> list[Outgoing]:
@@ -313,6 +315,7 @@ class Engine:
                     self.correlation.silent(rel.source_id)
                 elif rel.kind == REFERENCE:
                     kind = "ais" if isinstance(rel.item, AisBatch) else "adsb"
+                    self.assessment.reference(rel.source_id, rel.item, rel.time_s)
                     self.correlation.reference(rel.source_id, rel.time_s, *reference_columns(rel.item), kind)
                 elif rel.source_id in self.tracking.radars:
                     # published with what the correlation answers for it (:meth:`_results`)
@@ -332,13 +335,13 @@ class Engine:
             if answer.op == "radar":  # the table it answered for, then what the table changed
                 out += self.publication.tracks(*self._unpublished.popleft())
             out += [self.publication.pairs(key, view) for key, view in answer.updated]
+            self.assessment.pairs(answer.updated, self.reference_kinds)
             if answer.system is not None:
                 out.append(self.publication.system_tracks(answer.system))
-        out += [
-            self._internal(source_id or None, detail) for source_id, detail in self.correlation.take_errors()
-        ]
+        errors = self.correlation.take_errors()
+        out += [self._internal(source_id or None, detail) for source_id, detail in errors]
         out += self.peers.outputs(idle)
-        if out:
+        if self.assessment.advance(self.outputs_time_s) or out:
             self._snapshot = None
         return out
 
@@ -366,9 +369,8 @@ class Engine:
     def outputs_time_s(self) -> float | None:
         """The data time up to which every published output reflects every input processed
         (contract §5.1): what was released, as far as the correlation has answered it."""
-        return finite_or_none(
-            self.correlation.correlated_through(min(self.sequencer.last_limit, self.merger.last_limit))
-        )
+        released = min(self.sequencer.last_limit, self.merger.last_limit)
+        return finite_or_none(self.correlation.correlated_through(released))
 
     # -- read model ----------------------------------------------------------------------
     def snapshot(self) -> Snapshot:
@@ -394,4 +396,5 @@ class Engine:
             progress=self.peers.progress(),
             adsb_sources=frozenset(k for k, kind in self.reference_kinds.items() if kind == "adsb"),
             outputs_time_s=self.outputs_time_s,
+            performance=self.assessment.view,
         )

@@ -103,6 +103,16 @@ class Settings(BaseSettings):
     #: Bytes per second the picture's viewers get together at most; beyond, every viewer's
     #: interval is stretched by the same power of two (up to 16), so that ingest goes first.
     http_picture_max_bytes_s: int = Field(default=16 * 1024 * 1024, ge=1)
+    # Each radar's live performance against ADS-B / AIS (contract §5.3, docs/assessment.md);
+    # ``None``: the engine configuration's ``assessment`` section (defaults as below).
+    #: The sliding window of data time the figures cover (s; default 600).
+    performance_window_s: float | None = Field(default=None, gt=0)
+    #: Detection probability a radar must reach (default 0.97).
+    performance_pd_min: float | None = Field(default=None, ge=0, le=1)
+    #: Share of correct Mode 3/A codes a radar must reach (default 0.98).
+    performance_mode_3a_min: float | None = Field(default=None, ge=0, le=1)
+    #: Share of correct Mode C (within 200 ft of the reference) a radar must reach (default 0.96).
+    performance_mode_c_min: float | None = Field(default=None, ge=0, le=1)
 
     _split_listen = field_validator("zenoh_listen", "zenoh_connect", "radars", mode="before")(_split)
 
@@ -186,4 +196,17 @@ def engine_config(settings: Settings) -> EngineConfig:
         data["partition"] = {"index": p.index, "count": p.count}
     if settings.sites is not None:
         data["sites"] = load_sites(settings.sites)
+    data = merge(data, performance_config(settings))
     return engine_config_from(data)
+
+
+def performance_config(settings: Settings) -> dict[str, object]:
+    """The ``assessment`` section the ``TOPOFUSION_PERFORMANCE_*`` settings give (only those set)."""
+    section: dict[str, object] = {}
+    if settings.performance_window_s is not None:
+        section["window_s"] = settings.performance_window_s
+    names = ("pd_min", "mode_3a_min", "mode_c_min")
+    req = {n: v for n in names if (v := getattr(settings, f"performance_{n}")) is not None}
+    if req:
+        section["requirements"] = req
+    return {"assessment": section} if section else {}

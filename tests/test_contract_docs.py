@@ -364,6 +364,7 @@ def built_keys(keys: Keys) -> set[str]:
         keys.status,
         keys.pairs_all,
         keys.system_tracks,
+        keys.performance(s["radar_id"]),
     }
 
 
@@ -419,7 +420,8 @@ def operation_problems(doc: dict[str, Any]) -> list[str]:
     if subscribed != set(node._input_keys()):
         problems.append(f"receive operations {sorted(subscribed)} != subscriptions {node._input_keys()}")
     answered = {render(a) for a in operation_channels(doc, "receive", reply=True)}
-    if answered != {keys.status, keys.pairs_all, keys.system_tracks}:
+    performance = keys.performance(SAMPLE_IDS["radar_id"])  # (declared on every radar's key)
+    if answered != {keys.status, keys.pairs_all, keys.system_tracks, performance}:
         problems.append(f"request/reply operations {sorted(answered)} != queryables")
     for op in doc["operations"].values():
         if "reply" in op:
@@ -428,6 +430,7 @@ def operation_problems(doc: dict[str, Any]) -> list[str]:
                 keys.status,
                 keys.system_tracks,
                 keys.pairs(SAMPLE_IDS["radar_a"], SAMPLE_IDS["radar_b"]),
+                keys.performance(SAMPLE_IDS["radar_id"]),
             )
             if reply_key not in replies:
                 problems.append(f"reply channel {reply_key} is not a key the queryables reply on")

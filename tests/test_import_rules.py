@@ -44,6 +44,8 @@ def test_the_rules_hold(tree: Path) -> None:
     [
         ("tracking/base.py", "import service.wire.models", "numerics never import"),
         ("correlation/gls.py", "import zenoh", "numerics never import"),
+        ("assessment/radar.py", "import fastapi", "numerics never import"),
+        ("api/metrics.py", "import service.assessment.radar", "transport and HTTP leave the numerics"),
         ("api/metrics.py", "import service.correlation.umeyama", "transport and HTTP leave the numerics"),
         ("wire/keys.py", "import service.geo", "the wire imports no numerics"),
         ("engine.py", "import matplotlib", "nothing in the runtime imports the lab"),

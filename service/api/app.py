@@ -23,7 +23,15 @@ from service.api.metrics import registry_for
 from service.api.picture import add_picture
 from service.schema_files import EXAMPLES
 from service.transport.node import ServiceNode
-from service.wire.models import BiasEstimate, PairSet, RadarInfo, Status, SystemTrackBatch, TrackBatch
+from service.wire.models import (
+    BiasEstimate,
+    PairSet,
+    RadarInfo,
+    RadarPerformance,
+    Status,
+    SystemTrackBatch,
+    TrackBatch,
+)
 
 StatusFilter = Literal["confirmed", "tentative", "all"]
 
@@ -396,6 +404,24 @@ def create_app(
         if batch is None:
             raise HTTPException(status_code=404, detail=f"unknown radar {radar_id!r}")
         return batch
+
+    @app.get(
+        "/radars/{radar_id}/performance",
+        response_model=RadarPerformance,
+        summary="A radar's live performance against the ADS-B / AIS references",
+        description="Over a sliding window of data time (`TOPOFUSION_PERFORMANCE_WINDOW_S`, default "
+        "600 s), measured against the reference aircraft paired with the radar's tracks: detection "
+        "probability (with its binomial 1-sigma, scans expected in the learnt coverage and detected), "
+        "horizontal position error (RMS and median after compensating the biases the window estimates, "
+        "RMS before; range and azimuth RMS), Mode 3/A and Mode C correctness, the requirements and the "
+        "verdict. Any figure without data is null; docs/assessment.md says how each is measured.",
+        responses=_example(EXAMPLES["RadarPerformance"], e404="unknown radar"),
+    )
+    def performance(node: NodeDep, radar_id: str) -> dict[str, Any]:
+        figures = node.snapshot.radar_performance(radar_id)
+        if figures is None:
+            raise HTTPException(status_code=404, detail=f"unknown radar {radar_id!r}")
+        return figures
 
     @app.get(
         "/pairs",

@@ -55,6 +55,26 @@ BIAS_GAUGES = (
     ),
     ("topofusion_bias_pairs_used", "pairs_used", "Confirmed pairs of the latest update in the bias solve"),
 )
+#: Performance families (contract §5.3): (metric name, ``RadarPerformance`` section, field, help).
+PERFORMANCE_GAUGES = (
+    ("topofusion_performance_pd", "detection", "pd", "Detection probability against the references"),
+    ("topofusion_performance_pd_sigma", "detection", "pd_sigma", "1-sigma of the detection probability"),
+    (
+        "topofusion_performance_position_rms_m",
+        "position",
+        "rms_m",
+        "Horizontal error RMS, biases compensated (m)",
+    ),
+    (
+        "topofusion_performance_position_rms_uncorrected_m",
+        "position",
+        "rms_uncorrected_m",
+        "Horizontal error RMS before bias compensation (m)",
+    ),
+    ("topofusion_performance_mode_3a_rate", "mode_3a", "rate", "Share of correct Mode 3/A codes"),
+    ("topofusion_performance_mode_c_rate", "mode_c", "rate", "Share of correct Mode C (within 200 ft)"),
+    ("topofusion_performance_aircraft", None, "aircraft", "Reference aircraft behind the figures"),
+)
 
 
 def _distribution_version(name: str) -> str:
@@ -125,6 +145,7 @@ class NodeCollector(Collector):
         yield from self._identity(status)
         yield from self._correlation(status["correlation"])
         yield from self._biases()
+        yield from self._performance()
         q = status["queue"]
         yield GaugeMetricFamily("topofusion_queue_depth", "Samples waiting for the worker", value=q["depth"])
         yield GaugeMetricFamily(
@@ -268,6 +289,19 @@ class NodeCollector(Collector):
             buckets=list(corr["duration_buckets"].items()),
             sum_value=corr["duration_sum_s"],
         )
+
+    def _performance(self) -> Iterator[Metric]:
+        """Each radar's ``GET /radars/{id}/performance`` figures (a figure without data: none)."""
+        snap = self.node.snapshot
+        view = snap.performance
+        figures = [] if view is None else [view.of(rid) for rid in sorted(view.figures)]
+        for name, section, field, text in PERFORMANCE_GAUGES:
+            gauge = GaugeMetricFamily(name, text, labels=["radar"])
+            for f in figures:
+                value = f[field] if section is None else f[section][field]
+                if value is not None:
+                    gauge.add_metric([f["radar_id"]], value)
+            yield gauge
 
     def _biases(self) -> Iterator[Metric]:
         """The joint bias estimate, as ``GET /biases`` answers it (a radar without one: none)."""

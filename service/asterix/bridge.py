@@ -18,8 +18,10 @@ publish:
   real pressure altitudes differ from geometric heights by up to a few hundred metres, which
   moves a plot's ground position by only the height error times the elevation angle's sine.
   The flight level itself always goes into the ``flight_level`` column.  An ADS-B report's
-  geometric height (I021/140, above the ellipsoid) is its ``altitude_m``; its barometric
-  level is not used (the service carries an aircraft's last height forward).
+  geometric height (I021/140, above the ellipsoid) is its ``altitude_m``; its Mode 3/A code
+  (I021/070) and barometric flight level (I021/145) go into the ``mode_3a`` and
+  ``flight_level`` columns, which the performance assessment checks the radars' codes against
+  (the service carries an aircraft's last height forward).
 * **Time**: ASTERIX stamps time of day; :class:`DayClock` puts it on the day nearest to a
   reference time (the capture's time stamp, else the latest time it made, else the start
   date), so a stream crosses midnight without a jump.
@@ -146,7 +148,9 @@ class BridgeParams:
 
 _PLOT_COLUMNS = ("time_s", "range_m", "azimuth_deg", "altitude_m", "mode_3a", "mode_s", "flight_level")
 _REQUIRED = frozenset({"time_s", "range_m", "azimuth_deg"})
-_ADSB_COLUMNS = ("time_s", "icao24", "latitude_deg", "longitude_deg", "altitude_m")
+_ADSB_COLUMNS = ("time_s", "icao24", "latitude_deg", "longitude_deg", "altitude_m", "mode_3a", "flight_level")
+#: Optional ADS-B columns, sent only when some report of the batch carries one.
+_ADSB_OPTIONAL = ("altitude_m", "mode_3a", "flight_level")
 _TIME_AHEAD = {c: f"{c}_time_ahead" for c in ("cat048", "cat034", "cat021")}
 _TIME_BEHIND = {c: f"{c}_time_behind" for c in ("cat048", "cat034", "cat021")}
 
@@ -411,6 +415,11 @@ class AsterixBridge:
         cols["latitude_deg"].append(r.latitude_deg)
         cols["longitude_deg"].append(r.longitude_deg)
         cols["altitude_m"].append(r.geometric_height_m)
+        fl = r.flight_level
+        if fl is not None and not (MIN_FLIGHT_LEVEL <= fl <= MAX_FLIGHT_LEVEL):
+            fl = None  # outside what I021/145 may validly hold: a garbled level
+        cols["mode_3a"].append(r.mode_3a)
+        cols["flight_level"].append(fl)
         self.held += 1
         self.used["cat021"] += 1
         self.fed.add(self.params.adsb_source_id)
@@ -487,7 +496,7 @@ class AsterixBridge:
         self.held -= len(cols["time_s"])
         self._adsb_seq += 2 if self._adsb_lost else 1
         self._adsb_lost = False
-        reports = {n: c for n, c in cols.items() if n != "altitude_m" or any(x is not None for x in c)}
+        reports = {n: c for n, c in cols.items() if n not in _ADSB_OPTIONAL or any(x is not None for x in c)}
         body = {
             "source_id": self.params.adsb_source_id,
             "seq": self._adsb_seq,

@@ -90,6 +90,7 @@ class Cat021Report(NamedTuple):
     longitude_deg: float | None
     geometric_height_m: float | None  # I021/140 (6.25 ft) in m
     flight_level: float | None  # I021/145 (1/4 FL)
+    mode_3a: str | None = None  # I021/070, 4 octal digits
 
 
 @dataclass
@@ -207,11 +208,12 @@ _S021 = {
     11: _Snippet(3, ("icao",), ("icao = icao_.hex()",), "3s", ("icao_",)),
     12: _tod("t073"),
     16: _Snippet(2, ("gh",), (f"gh = gh_ * {6.25 * FT_M!r}",), "h", ("gh_",)),
+    19: _S048[5],  # I021/070 Mode 3/A: the same 12 bits as I048/070
     21: _Snippet(2, ("fl",), ("fl = fl_ * 0.25",), "h", ("fl_",)),
     28: _tod("t077"),
 }
 _L021 = dict.fromkeys(("sac", "sic", "t071", "t073", "t077", "icao", "la0", "lo0", "la1", "lo1"), "None")
-_L021 |= dict.fromkeys(("gh", "fl"), "None")
+_L021 |= dict.fromkeys(("gh", "fl", "m3a"), "None")
 
 # Bit k of an FSPEC octet (0 = most significant) -> its offset in the octet's 7 FRNs.
 _BITS = tuple(tuple(k for k in range(7) if o & (0x80 >> k)) for o in range(256))
@@ -427,7 +429,7 @@ _CAT021 = _Category(
     _S021,
     _L021,
     "(sac, sic, t073 if t073 is not None else t071 if t071 is not None else t077, icao,"
-    " la1 if la1 is not None else la0, lo1 if lo1 is not None else lo0, gh, fl)",
+    " la1 if la1 is not None else la0, lo1 if lo1 is not None else lo0, gh, fl, m3a)",
     (1,),
 )
 _CATEGORIES = {48: _CAT048, 34: _CAT034, 21: _CAT021}

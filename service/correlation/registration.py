@@ -1,20 +1,59 @@
-"""Sensor registration: per-radar range, azimuth and elevation bias by least squares.
+"""Sensor registration: per-radar range offset and gain, azimuth and elevation offsets and
+time-stamp bias, by least squares.
 
-Model (SVD paper Eq. 2, and the AIS/CFAR paper's registration step): radar ``s`` measures
-polar ``(r, theta, phi) + b_s + noise`` with the systematic error ``b_s = (dr, dtheta,
-dphi)``; to first order its reported ECEF position is ``y_s = x + G_s b_s`` with
-``G_s = R_s J_s`` (``J_s`` the polar Jacobian of Eq. 2 at the measured polar coordinates,
-``R_s`` the ENU-to-ECEF rotation of Eq. 1).  A confirmed pair of tracks of radars ``a`` and
-``b`` gives ``d = y_a - y_b = G_a b_a - G_b b_b + n``, ``Cov(n) = P_a + P_b``.  All pairs of
-all radar pairs are stacked into one weighted least-squares problem in the biases of every
-radar (a bias-free reference source such as AIS has ``b = 0``), with a weak Gaussian prior
-``b ~ N(0, diag(prior^2))`` (Tikhonov): where the geometry determines a bias component the
-data dominate, where it does not (e.g. elevation biases, seen only through nearly equal
-vertical offsets ``r_a dphi_a - r_b dphi_b``; or anything when all pairs lie along one line)
-the estimate shrinks towards zero -- the minimum-norm answer -- rather than blowing up.  The
-posterior covariance ``H^-1`` says which is which (:func:`solve_biases`).  The solve iterates
-(Gauss-Newton on the exact model, :func:`remove_bias`), dropping pairs whose residual
-chi-square exceeds ``outlier_chi2``.
+Model (SVD paper Eq. 2, and the AIS/CFAR paper's registration step), per radar ``s`` five terms
+``b_s = (dr, dtheta, dphi, g, tau)``: the radar reports a target at true polar position
+``(r, theta, phi)`` at true time ``T`` as
+
+    r_m = r (1 + g 1e-6) + dr,   theta_m = theta + dtheta,   phi_m = phi + dphi,   t_m = T + tau
+
+(range offset ``dr`` in m, range gain ``g`` in ppm, angle offsets in rad, time-stamp bias ``tau``
+in s: the radar's clock is ``tau`` ahead of true time).  A track built from such plots, read at
+*reported* time ``t``, shows the target where it truly was at ``t - tau``: with ``x(t)`` the
+true ECEF position and ``v`` its velocity, ``x(t - tau) = x(t) - tau v`` to first order (exact
+for straight flight, which a track's constant-velocity state assumes anyway).  Its reported
+ECEF position is therefore, to first order in the biases,
+
+    y_s(t) = x(t) + G_s b_s,      G_s = [ R_s J_s | 1e-6 (y_s - L_s) | -v ]          (*)
+
+with ``J_s`` the polar Jacobian of Eq. 2 at the measured polar coordinates and ``R_s`` the
+ENU-to-ECEF rotation of Eq. 1 (columns ``dr, dtheta, dphi``); the gain column is the line of
+sight scaled by the range, ``dr/dg = r 1e-6`` along ``u = (y - L) / r`` (Eq. 1's ``L`` the
+site); the time column is ``-v`` (the report lags the target by ``tau``).  A confirmed pair of
+tracks of radars ``a`` and ``b`` at one common (reported) time gives
+
+    d = y_a - y_b = G_a b_a - G_b b_b + n,      Cov(n) = P_a + P_b,
+
+and every row's ``v`` is the mean of its two tracks' velocities (the same aircraft), so a time
+bias *common* to ``a`` and ``b`` cancels exactly: ``-v tau_a + v tau_b``.  All pairs of all
+radar pairs are stacked into one weighted least-squares problem in the terms of every radar
+(a bias-free reference source such as ADS-B or AIS has ``b = 0``: its rows fix the terms of
+its radar absolutely), with a weak Gaussian prior ``b ~ N(0, diag(prior^2))`` (Tikhonov;
+:class:`RegistrationParams` ``prior_*``): where the geometry determines a term the data
+dominate, where it does not the estimate shrinks towards zero -- the minimum-norm answer --
+rather than blowing up.  The posterior covariance ``H^-1`` says which is which
+(:func:`solve_biases`).  The solve iterates (Gauss-Newton on the exact model,
+:func:`remove_bias`), dropping pairs whose residual chi-square exceeds ``outlier_chi2``.
+
+Observability (what the rows can tell):
+
+* range offset vs gain: a pair at range ``r`` sees ``dr + g r 1e-6`` along the line of sight;
+  rows spread in range separate the two (a gain of 1 000 ppm is 100 m at 100 km, 300 m at
+  300 km);
+* time bias vs angles: ``-v tau`` lies along each aircraft's track, an azimuth offset across
+  the line of sight; aircraft on crossing headings and at different speeds separate them.
+  Only *differences* ``tau_a - tau_b`` are seen between radars: a time bias common to every
+  radar of a network without a reference moves every track alike and is not observable at
+  all -- its estimate stays at the prior's zero and its sigma at the prior's.  Compensation
+  therefore uses the covariance *conditioned on that common mode* (each radar's time bias
+  relative to the network's mean clock, :attr:`BiasSolution.relative_covariance`), while
+  ``/biases`` reports the honest marginal sigma.  A reference (ADS-B) fixes it absolutely.
+* a lone radar with no reference and no partner sees nothing (it has no rows); with a
+  reference it determines all five terms where the reference's aircraft span ranges,
+  bearings and headings;
+* a gain that the data do not show (within ``gain_significance_sigma`` of zero) is held at
+  zero rather than left to trade against the range offset (a model-selection test):
+  ``/biases`` then reports it as 0 with the sigma it was estimated with.
 
 Uncertainty: the rows of one track pair at successive updates share most of their track errors
 (a filtered track is an average over its recent plots), so the textbook covariance ``H^-1``,
@@ -28,6 +67,10 @@ the model covariance ``H^-1`` is used.
 With two radars the *differential* effect ``G_a b_a - G_b b_b`` is always well determined
 (it is what the data measure), so bias-compensating both radars with the estimate removes
 the relative bias even where the split between the radars is prior-driven.
+
+Compensation (:func:`compensate`) inverts (*) exactly for the polar terms (:func:`remove_bias`:
+``r = (r_m - dr) / (1 + g 1e-6)``, angles less their offsets) and then moves the position to
+reported time by ``+tau v``; velocities turn back by ``-dtheta`` and shrink by ``1 + g 1e-6``.
 """
 
 from __future__ import annotations
@@ -40,7 +83,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.correlation.base import FloatArray, TrackSnapshot
-from service.correlation.linalg import congruence, inv3, matvec3, quad3
+from service.correlation.linalg import congruence, inv3, quad3
 from service.geo import Site
 
 
@@ -54,6 +97,24 @@ class RegistrationParams:
     prior_azimuth_deg: float = 3.0
     #: Prior 1-sigma of an elevation bias (deg).
     prior_elevation_deg: float = 3.0
+    #: Prior 1-sigma of a range gain (ppm).  Weak: a gain of 2 000 ppm is 600 m at 300 km, far
+    #: beyond what a maintained radar shows (a few hundred ppm), so where rows spread in range
+    #: the data decide and only a gain the geometry cannot see shrinks to zero.
+    prior_range_gain_ppm: float = 2_000.0
+    #: Prior 1-sigma of a time-stamp bias (s).  Weak: 3 s is most of a scan; a time bias the
+    #: geometry cannot see (one common to every radar of a network without a reference)
+    #: stays at zero with this sigma.
+    prior_time_bias_s: float = 3.0
+    #: Estimate each radar's range gain (False: fixed at zero, the three-term model of old).
+    estimate_range_gain: bool = True
+    #: A radar's range gain within this many of its sigma of zero is held at zero (not
+    #: significant: the data do not show it; :func:`solve_biases`).  Two radars without a
+    #: reference separate gain and range offset only weakly (a gain sigma of some 100 ppm after
+    #: 10 min), and a gain estimated there anyway costs the range offsets a factor 3-4 of
+    #: precision; a real gain of a few hundred ppm is several sigma and stays.  0: never held.
+    gain_significance_sigma: float = 3.0
+    #: Estimate each radar's time-stamp bias (False: fixed at zero).
+    estimate_time_bias: bool = True
     #: Pairs whose residual chi-square (3 dof) exceeds this are dropped as outliers (99.9 %).
     outlier_chi2: float = 16.3
     #: Data time (s) confirmed pairs are remembered for.  Radar biases drift over hours; the
@@ -78,8 +139,9 @@ class RegistrationParams:
     #: rows per update was 40-80 ms); the pick's phase advances each update, so successive
     #: updates take different track pairs, and the memory still holds every confirmed pair
     #: several times over (1 000 pairs, 4 s updates, 600 s: each about 4 times at 30 rows).
-    #: A row costs about 700 bytes (its cached normal-equation pieces): a national network of
-    #: 66 radar pairs holds some 250 MB of rows at 30 per update, 800 MB at 100.
+    #: A row costs about 1 100 bytes (its cached normal-equation pieces of the five-term
+    #: model; 740 with three terms): a national network of 66 radar pairs holds some 370 MB
+    #: of rows at 30 per update, 1.2 GB at 100.
     registered_rows_per_update: int = 30
     #: Minimum confirmed pairs before a correlator uses its registration.
     min_pairs: int = 6
@@ -106,14 +168,24 @@ class RegistrationParams:
     converged_sigma: float = 0.01
 
 
+#: The terms of every radar's registration, in the order of a bias vector (module docstring):
+#: range offset (m), azimuth offset (rad), elevation offset (rad), range gain (ppm), time bias (s).
+TERMS = ("range_m", "azimuth_rad", "elevation_rad", "range_gain_ppm", "time_bias_s")
+N_TERMS = len(TERMS)
+RANGE, AZIMUTH, ELEVATION, GAIN, TIME = range(N_TERMS)
+#: One part per million (the unit of the range gain).
+PPM = 1e-6
+
+
 @dataclass(frozen=True)
 class RadarBias:
     """One radar's estimated systematic errors (``GET /biases``).
 
     ``pairs_used``: confirmed pairs (over all radar pairs involving this radar) of the latest
     update that entered the least squares; earlier remembered updates are used as well.  The
-    ``*_sigma_*`` are the 1-sigma of each bias (:meth:`BiasSolution.std`, cluster-robust once
-    enough track pairs entered).
+    ``*_sigma_*`` are the 1-sigma of each bias (:meth:`BiasSolution.term_std`, cluster-robust
+    once enough track pairs entered).  ``range_gain_*`` and ``time_bias_*`` are None where the
+    term was not estimated (switched off, or a solution kept from before these terms existed).
     """
 
     radar_id: str
@@ -125,14 +197,36 @@ class RadarBias:
     range_bias_sigma_m: float
     azimuth_bias_sigma_deg: float
     elevation_bias_sigma_deg: float
+    range_gain_ppm: float | None = None
+    range_gain_sigma_ppm: float | None = None
+    time_bias_s: float | None = None
+    time_bias_sigma_s: float | None = None
+
+
+def _term_index(n: int, terms: Sequence[int]) -> NDArray[np.intp]:
+    """Indices of ``terms`` of every one of ``n`` radars in a stacked ``N_TERMS n`` vector."""
+    return (N_TERMS * np.arange(n)[:, None] + np.asarray(terms)[None, :]).ravel().astype(np.intp)
+
+
+_POLAR = (RANGE, AZIMUTH, ELEVATION)
 
 
 @dataclass(frozen=True)
 class BiasSolution:
-    """Joint solution: biases ``(n_radars, 3)`` in (m, rad, rad), their covariance, rows used.
+    """Joint solution of every radar's registration terms.
 
-    ``covariance``: cluster-robust when at least ``min_clusters`` track pairs entered (else the
-    model covariance); ``model_covariance``: ``H^-1`` (rows treated as independent).
+    ``terms (n_radars, 5)``: ``(dr, dtheta, dphi, g, tau)`` in (m, rad, rad, ppm, s) per radar
+    (:data:`TERMS`), ``terms_covariance (5 n, 5 n)`` their covariance (cluster-robust when at
+    least ``min_clusters`` track pairs entered, else the model covariance), stacked per radar.
+    ``relative_covariance``: the same, conditioned on the time bias common to the radars of each
+    network part without a reference (not observable, module docstring): what compensation uses;
+    None: ``terms_covariance``.
+
+    ``bias (n, 3)``, ``covariance (3 n, 3 n)`` and ``model_covariance``: the three polar
+    offsets alone (``terms[:, :3]`` and their blocks; ``model_covariance`` is ``H^-1``, rows
+    treated as independent), as a solution of the three-term model had them.  A solution made
+    with ``terms`` None (e.g. kept by an older version) is that three-term model: gain and time
+    bias zero with zero variance (not estimated).
     """
 
     radar_ids: tuple[str, ...]
@@ -141,16 +235,72 @@ class BiasSolution:
     pairs_used: dict[str, int]
     model_covariance: FloatArray | None = None
     clusters: int = 0
+    terms: FloatArray | None = None  # (n, 5); None: bias with zero gain and time bias
+    terms_covariance: FloatArray | None = None  # (5 n, 5 n)
+    relative_covariance: FloatArray | None = None  # (5 n, 5 n)
+
+    def __post_init__(self) -> None:
+        n = len(self.radar_ids)
+        if self.terms is None:
+            terms = np.zeros((n, N_TERMS))
+            terms[:, :3] = np.asarray(self.bias, dtype=float).reshape(n, 3)
+            object.__setattr__(self, "terms", terms)
+        if self.terms_covariance is None:
+            cov = np.zeros((N_TERMS * n, N_TERMS * n))
+            idx = _term_index(n, _POLAR)
+            cov[np.ix_(idx, idx)] = np.asarray(self.covariance, dtype=float).reshape(3 * n, 3 * n)
+            object.__setattr__(self, "terms_covariance", cov)
+
+    @classmethod
+    def of_terms(
+        cls,
+        radar_ids: tuple[str, ...],
+        terms: FloatArray,
+        covariance: FloatArray,
+        pairs_used: dict[str, int],
+        model_covariance: FloatArray | None = None,
+        clusters: int = 0,
+        relative_covariance: FloatArray | None = None,
+    ) -> BiasSolution:
+        """A solution from the whole model; the three-term fields are its polar part."""
+        idx = np.ix_(*(2 * (_term_index(len(radar_ids), _POLAR),)))
+        return cls(
+            radar_ids,
+            terms[:, :3].copy(),
+            covariance[idx],
+            pairs_used,
+            None if model_covariance is None else model_covariance[idx],
+            clusters,
+            terms,
+            covariance,
+            relative_covariance,
+        )
+
+    @property
+    def full(self) -> tuple[FloatArray, FloatArray]:
+        """``terms`` and ``terms_covariance`` (never None after construction)."""
+        assert self.terms is not None and self.terms_covariance is not None
+        return self.terms, self.terms_covariance
 
     def std(self) -> FloatArray:
+        """1-sigma of the three polar offsets ``(n, 3)``."""
         return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None)).reshape(-1, 3)
 
+    def term_std(self) -> FloatArray:
+        """1-sigma of every term ``(n, 5)`` (zero: not estimated)."""
+        return np.sqrt(np.clip(np.diag(self.full[1]), 0.0, None)).reshape(-1, N_TERMS)
+
     def of(self, radar_id: str | None) -> tuple[FloatArray, FloatArray]:
-        """Bias vector and its 3x3 covariance for one radar (zeros for unknown / reference)."""
+        """One radar's terms ``(5,)`` and the ``5x5`` covariance compensation uses (the relative
+        one where a common time bias is unobservable); zeros for unknown / reference sources."""
         if radar_id is None or radar_id not in self.radar_ids:
-            return np.zeros(3), np.zeros((3, 3))
+            return np.zeros(N_TERMS), np.zeros((N_TERMS, N_TERMS))
         k = self.radar_ids.index(radar_id)
-        return self.bias[k], self.covariance[3 * k : 3 * k + 3, 3 * k : 3 * k + 3]
+        terms, cov = self.full
+        if self.relative_covariance is not None:
+            cov = self.relative_covariance
+        s = slice(N_TERMS * k, N_TERMS * k + N_TERMS)
+        return terms[k], cov[s, s]
 
 
 def bias_jacobian(site: Site, position: FloatArray) -> FloatArray:
@@ -186,21 +336,44 @@ def polar_jacobian_enu(enu: FloatArray) -> FloatArray:
     return jac
 
 
+def model_jacobian(site: Site, position: FloatArray, velocity: FloatArray) -> FloatArray:
+    """``G`` of the whole model (module docstring, (*)) at ECEF positions and velocities
+    ``(n, 3)``: ``(n, 3, 5)``, columns ``R J`` (:func:`bias_jacobian`), ``1e-6 (y - L)`` (range
+    gain, per ppm) and ``-v`` (time bias, per s)."""
+    g = np.empty((position.shape[0], 3, N_TERMS))
+    g[:, :, :3] = bias_jacobian(site, position)
+    g[:, :, GAIN] = (position - site.origin_ecef) * PPM
+    g[:, :, TIME] = -velocity
+    return g
+
+
+def _full_terms(bias: FloatArray, bias_cov: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """A bias vector and covariance of the three polar terms, or of all five, as all five
+    (gain and time bias zero, with zero variance, when not given)."""
+    bias = np.asarray(bias, dtype=float)
+    if bias.shape[-1] == N_TERMS:
+        return bias, np.asarray(bias_cov, dtype=float)
+    full = np.zeros(N_TERMS)
+    full[:3] = bias
+    cov = np.zeros((N_TERMS, N_TERMS))
+    cov[:3, :3] = bias_cov
+    return full, cov
+
+
 _SHAPES: dict[str, tuple[int, ...]] = {
     "time": (),
     "pair": (),
     "p_a": (3,),
     "p_b": (3,),
-    "g_a": (3, 3),
-    "g_b": (3, 3),
+    "v": (3,),
     "s": (3, 3),
     "w": (3, 3),
     "w_ok": (),
-    "gaw": (3, 3),
-    "gbw": (3, 3),
-    "haa": (3, 3),
-    "hab": (3, 3),
-    "hbb": (3, 3),
+    "gaw": (N_TERMS, 3),
+    "gbw": (N_TERMS, 3),
+    "haa": (N_TERMS, N_TERMS),
+    "hab": (N_TERMS, N_TERMS),
+    "hbb": (N_TERMS, N_TERMS),
 }
 
 
@@ -217,6 +390,9 @@ class RegistrationRowsData:
     p_a: np.ndarray  # (k, 3) raw ECEF of the A side
     p_b: np.ndarray  # (k, 3)
     s: np.ndarray  # (k, 3, 3) sum of the two position covariances
+    #: (k, 3) the pair's ECEF velocity (mean of its two tracks'; the time-bias column); None:
+    #: not known (rows from a peer that does not send it), zero: its time bias not observed.
+    v: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.p_a.shape[0])
@@ -232,9 +408,11 @@ class RegistrationMemory:
     its normal-equation pieces, computed once when it is added: the weight ``W = S^-1`` and
     its rank flag ``w_ok``, ``gaw = G_a^T W``, ``gbw = G_b^T W`` (a row's score is ``gaw r``,
     ``-gbw r``), ``haa = G_a^T W G_a``, ``hab = G_a^T W G_b``, ``hbb = G_b^T W G_b``; a solve
-    sums the pieces of the rows it keeps.  The columns
-    (``time``, ``p_a``, ``p_b`` the raw ECEF positions, ``g_a``, ``g_b``, ``s``, ``w``, ...) read as
-    concatenated arrays; ``d = p_a - p_b``.
+    sums the pieces of the rows it keeps (``G`` of the whole model, :func:`model_jacobian`:
+    the pieces are ``5x3`` and ``5x5``, some 1 100 bytes a row).  The columns (``time``,
+    ``p_a``, ``p_b`` the raw ECEF positions, ``v`` the pair's velocity, ``s``, ``w``, ...) read
+    as concatenated arrays; ``d = p_a - p_b``; ``g_a``, ``g_b`` (the polar columns of ``G``, not
+    kept) are made again when read.
     """
 
     def __init__(self, site_a: Site, site_b: Site | None) -> None:
@@ -282,8 +460,7 @@ class RegistrationMemory:
     pair = property(lambda self: self._column("pair"))
     p_a = property(lambda self: self._column("p_a"))
     p_b = property(lambda self: self._column("p_b"))
-    g_a = property(lambda self: self._column("g_a"))
-    g_b = property(lambda self: self._column("g_b"))
+    v = property(lambda self: self._column("v"))
     d = property(lambda self: self.p_a - self.p_b)
     s = property(lambda self: self._column("s"))
     w = property(lambda self: self._column("w"))
@@ -293,6 +470,19 @@ class RegistrationMemory:
     haa = property(lambda self: self._column("haa"))
     hab = property(lambda self: self._column("hab"))
     hbb = property(lambda self: self._column("hbb"))
+
+    @property
+    def g_a(self) -> FloatArray:
+        """The polar columns ``R_a J_a`` of every row's ``G_a`` ``(n, 3, 3)`` (not kept: made
+        again when read; the whole ``G`` is :func:`model_jacobian` of ``p_a`` and ``v``)."""
+        return bias_jacobian(self.site_a, self.p_a)
+
+    @property
+    def g_b(self) -> FloatArray:
+        """The same of ``G_b`` (zeros for a reference source)."""
+        if self.site_b is None:
+            return np.zeros((len(self), 3, 3))
+        return bias_jacobian(self.site_b, self.p_b)
 
     def add(
         self,
@@ -318,8 +508,11 @@ class RegistrationMemory:
             ia, ib = ia[pick], ib[pick]
         self._adds += 1
         id_a, id_b = np.asarray(a.track_id[ia], dtype=str), np.asarray(b.track_id[ib], dtype=str)
+        # Both tracks follow the same aircraft: their mean velocity is the time column of both
+        # sides, so that a time bias common to the two radars cancels exactly (docstring).
+        v = 0.5 * (a.velocity[ia] + b.velocity[ib])
         return self.add_rows(
-            time_s, id_a, id_b, a.position[ia], b.position[ib], a.pos_cov[ia] + b.pos_cov[ib], params
+            time_s, id_a, id_b, a.position[ia], b.position[ib], a.pos_cov[ia] + b.pos_cov[ib], params, v=v
         )
 
     def add_rows(
@@ -332,24 +525,30 @@ class RegistrationMemory:
         s: np.ndarray,
         params: RegistrationParams,
         prune: bool = True,
+        v: np.ndarray | None = None,
     ) -> RegistrationRowsData:
         """Remember the rows of one update given by what defines them (the pairs' track ids,
-        raw ECEF positions and the sum ``s`` of their position covariances); every other
-        column is derived here.  Returns those defining columns: another process that adds
-        the same rows in the same order holds the same memory (partitioned workers)."""
+        raw ECEF positions, the sum ``s`` of their position covariances and the pairs' velocity
+        ``v``, None: zero, its time biases then not observed); every other column is derived
+        here.  Returns those defining columns: another process that adds the same rows in the
+        same order holds the same memory (partitioned workers)."""
         pair = np.char.add(np.char.add(track_a, "\x1f"), track_b)
-        self._append({"time": np.full(len(p_a), float(time_s)), **self._rows_of(pair, p_a, p_b, s)})
+        vel = np.zeros((len(p_a), 3)) if v is None else np.asarray(v, dtype=float)
+        self._append({"time": np.full(len(p_a), float(time_s)), **self._rows_of(pair, p_a, p_b, s, vel)})
         self._updates.append((float(time_s), len(p_a)))
         if prune:
             self.prune(time_s, params)
-        return RegistrationRowsData(float(time_s), track_a, track_b, p_a, p_b, s)
+        return RegistrationRowsData(float(time_s), track_a, track_b, p_a, p_b, s, vel)
 
     def _rows_of(
-        self, pair: np.ndarray, p_a: np.ndarray, p_b: np.ndarray, s: np.ndarray
+        self, pair: np.ndarray, p_a: np.ndarray, p_b: np.ndarray, s: np.ndarray, v: np.ndarray
     ) -> dict[str, np.ndarray]:
         """Every column of rows but ``time``: the defining ones and the pieces derived here."""
-        ga = bias_jacobian(self.site_a, p_a)
-        gb = bias_jacobian(self.site_b, p_b) if self.site_b is not None else np.zeros((len(p_b), 3, 3))
+        ga = model_jacobian(self.site_a, p_a, v)
+        if self.site_b is not None:
+            gb = model_jacobian(self.site_b, p_b, v)
+        else:
+            gb = np.zeros((len(p_b), 3, N_TERMS))
         w, w_ok = inv3(s)
         gat_w = np.swapaxes(ga, 1, 2) @ w
         gbt_w = np.swapaxes(gb, 1, 2) @ w
@@ -357,8 +556,7 @@ class RegistrationMemory:
             "pair": pair,
             "p_a": p_a,
             "p_b": p_b,
-            "g_a": ga,
-            "g_b": gb,
+            "v": v,
             "s": s,
             "w": w,
             "w_ok": w_ok,
@@ -372,7 +570,7 @@ class RegistrationMemory:
     # -- kept across a restart (service.state) ------------------------------------------------
     def export(self) -> dict[str, Any]:
         """What defines the memory (the other columns are derived again by :meth:`restored`):
-        the live rows' ``time``, ``pair``, ``p_a``, ``p_b`` and ``s``, each remembered update's
+        the live rows' ``time``, ``pair``, ``p_a``, ``p_b``, ``s`` and ``v``, each remembered update's
         time and row count, and the updates taken (the phase of the rows' pick).
 
         Bounded as the memory is: at most ``max_rows`` rows plus one update's (``max_rows`` +
@@ -386,6 +584,7 @@ class RegistrationMemory:
             "p_a": self.p_a,
             "p_b": self.p_b,
             "s": self.s,
+            "v": self.v,
             "update_time": np.array([t for t, _ in self._updates], dtype=float),
             "update_rows": np.array([k for _, k in self._updates], dtype=np.int64),
             "adds": self._adds,
@@ -394,7 +593,9 @@ class RegistrationMemory:
     @classmethod
     def restored(cls, site_a: Site, site_b: Site | None, state: Mapping[str, Any]) -> RegistrationMemory:
         """The memory :meth:`export` gave, its derived columns made again from ``site_a`` and
-        ``site_b`` (the sites it was measured from).  ``ValueError`` if the columns disagree."""
+        ``site_b`` (the sites it was measured from).  ``ValueError`` if the columns disagree.
+        A memory kept before the time bias was modelled has no ``v``: its rows take velocity
+        zero (they say nothing of time biases; newer rows do)."""
         time = np.asarray(state["time"], dtype=float)
         n = time.shape[0]
         cols = {
@@ -402,6 +603,7 @@ class RegistrationMemory:
             "p_a": np.asarray(state["p_a"], dtype=float),
             "p_b": np.asarray(state["p_b"], dtype=float),
             "s": np.asarray(state["s"], dtype=float),
+            "v": np.asarray(state["v"], dtype=float) if "v" in state else np.zeros((n, 3)),
         }
         update_time = np.asarray(state["update_time"], dtype=float)
         update_rows = np.asarray(state["update_rows"], dtype=np.int64)
@@ -413,7 +615,10 @@ class RegistrationMemory:
         memory = cls(site_a, site_b)
         if n:
             memory._append(
-                {"time": time, **memory._rows_of(cols["pair"], cols["p_a"], cols["p_b"], cols["s"])}
+                {
+                    "time": time,
+                    **memory._rows_of(cols["pair"], cols["p_a"], cols["p_b"], cols["s"], cols["v"]),
+                }
             )
         memory._updates = list(zip(update_time.tolist(), update_rows.tolist(), strict=True))
         memory._adds = int(state["adds"])
@@ -448,11 +653,14 @@ def solve_biases(
 ) -> BiasSolution | None:
     """Joint robust weighted least squares over all memories; None when there are no rows.
 
-    ``initial``: a previous solution to start from (a warm start; radars it lacks start at
-    zero).  Its rows are then first selected by the outlier test at that estimate, so a solve
-    whose rows changed little since converges in one or two Gauss-Newton steps instead of
-    first converging on every row, outliers included, from zero (5-8 steps).  The fixed point
-    is the same: the estimate is converged on a row set the outlier test leaves unchanged.
+    Every radar's five terms (module docstring, (*)); terms switched off in ``params`` stay
+    zero with zero variance, and a range gain within ``gain_significance_sigma`` of zero is
+    held at zero with the sigma the whole model gives it.  ``initial``: a previous solution to
+    start from (a warm start; radars it lacks start at zero; the gains it held start held).
+    Its rows are then first selected by the outlier test at that estimate, so a solve whose
+    rows changed little since converges in one or two Gauss-Newton steps instead of first
+    converging on every row, outliers included, from zero (5-8 steps).  The fixed point is the
+    same: the estimate is converged on a row set the outlier test leaves unchanged.
     """
     prm = params or RegistrationParams()
     # Only memories with rows in the window take part: the radars solved for are those the
@@ -463,15 +671,20 @@ def solve_biases(
         return None
     ids = sorted({m.site_a.site_id for m, _ in rows} | {m.site_b.site_id for m, _ in rows if m.site_b})
     col = {rid: k for k, rid in enumerate(ids)}
-    n = 3 * len(ids)
+    nt = N_TERMS
+    n = nt * len(ids)
     prior = np.tile(
         [
             1.0 / prm.prior_range_m**2,
             1.0 / np.radians(prm.prior_azimuth_deg) ** 2,
             1.0 / np.radians(prm.prior_elevation_deg) ** 2,
+            1.0 / prm.prior_range_gain_ppm**2,
+            1.0 / prm.prior_time_bias_s**2,
         ],
         len(ids),
     )
+    # The terms solved for; the others stay zero with zero variance.
+    active = np.tile([True, True, True, prm.estimate_range_gain, prm.estimate_time_bias], len(ids))
     # Each memory's rows in force, read once.  Gauss-Newton on the exact model: the residual
     # of a row at the current estimate is the difference of the two positions with their biases
     # removed exactly (:func:`remove_bias`); the normal matrix is the cached one at the
@@ -484,16 +697,22 @@ def solve_biases(
             r,
             {
                 c: _rows(getattr(m, c), r)
-                for c in ("pair", "p_a", "p_b", "w", "w_ok", "gaw", "gbw", "haa", "hab", "hbb")
+                for c in ("pair", "p_a", "p_b", "v", "w", "w_ok", "gaw", "gbw", "haa", "hab", "hbb")
             },
         )
         for m, r in rows
     ]
+    for _, _, cols in data:
+        # each row's track pair as a small integer (the clusters of the robust covariance),
+        # found once per solve: sorting the pair ids is the dearest step of a covariance
+        cols["cluster"] = np.unique(cols["pair"], return_inverse=True)[1].ravel().astype(np.intp)
     bias = np.zeros(n)
     if initial is not None:
+        start, _ = initial.full
         for rid, k in col.items():
             if rid in initial.radar_ids:
-                bias[3 * k : 3 * k + 3] = initial.bias[initial.radar_ids.index(rid)]
+                bias[nt * k : nt * k + nt] = start[initial.radar_ids.index(rid)]
+        bias[~active] = 0.0
     if initial is not None and np.any(bias != 0.0):
         residuals = [_residual(m, cols, bias, col) for m, _, cols in data]
         keep = [
@@ -503,26 +722,82 @@ def solve_biases(
     else:
         residuals = [cols["p_a"] - cols["p_b"] for _, _, cols in data]
         keep = [cols["w_ok"].copy() for _, _, cols in data]
+    # A range gain the data do not show (within ``gain_significance_sigma`` of zero) is held at
+    # zero: estimating it costs the range offsets most of their precision where the geometry
+    # hardly separates the two (two radars, no reference: 4-6 m become 16-18 m), for nothing
+    # when there is no gain.  Its sigma is the whole model's: the gain is held, not known.  The
+    # gains the previous solution held start held (a warm solve then converges once), and the
+    # held set is tested after each solve; at most one change of it per solve.
+    gains = N_TERMS * np.arange(len(ids)) + GAIN
+    held = np.zeros(n, dtype=bool)
+    if initial is not None and prm.estimate_range_gain:
+        start, start_cov = initial.full
+        for rid, k in col.items():
+            if rid in initial.radar_ids:
+                j = N_TERMS * initial.radar_ids.index(rid) + GAIN
+                held[nt * k + GAIN] = start[j // N_TERMS, GAIN] == 0.0 and start_cov[j, j] > 0.0
+    for attempt in range(2):
+        if held.any():
+            bias[held] = 0.0
+            residuals = [_residual(m, cols, bias, col) for m, _, cols in data]
+        bias, cov, keep, fit_keep, residuals = _gauss_newton(
+            data, col, prior, active & ~held, bias, keep, residuals, prm
+        )
+        robust, clusters = _robust_covariance(data, fit_keep, residuals, col, cov, prior, prm.min_clusters)
+        gain, sigma = bias[gains], np.sqrt(np.clip(np.diag(robust)[gains], 0.0, None))
+        if held.any():  # the held gains as the whole model would estimate them from here
+            whole, whole_cov = _one_step(data, fit_keep, residuals, col, prior, active, bias, prm)
+            gain = np.where(held[gains], whole[gains], gain)
+            sigma = np.where(held[gains], np.sqrt(np.clip(np.diag(whole_cov)[gains], 0.0, None)), sigma)
+        weak = np.zeros(n, dtype=bool)
+        weak[gains] = active[gains] & (np.abs(gain) < prm.gain_significance_sigma * sigma)
+        if attempt == 1 or np.array_equal(weak, held):
+            break
+        held = weak
+    robust[held, held] = sigma[held[gains]] ** 2
+    relative = _relative_covariance(robust, [m for m, _, _ in data], col) if prm.estimate_time_bias else None
+    # pairs_used: confirmed pairs of the latest remembered update that survived the outlier
+    # test (the LS itself uses every remembered update's rows).
+    used: dict[str, int] = dict.fromkeys(ids, 0)
+    for (m, r, _), kp in zip(data, keep, strict=True):
+        t = m.time[r]
+        n_latest = int((kp & (t == t.max())).sum()) if t.size else 0
+        used[m.site_a.site_id] += n_latest
+        if m.site_b is not None:
+            used[m.site_b.site_id] += n_latest
+    return BiasSolution.of_terms(tuple(ids), bias.reshape(-1, nt), robust, used, cov, clusters, relative)
+
+
+def _gauss_newton(
+    data: list[tuple[RegistrationMemory, np.ndarray, dict[str, np.ndarray]]],
+    col: dict[str, int],
+    prior: FloatArray,
+    active: NDArray[np.bool_],
+    bias: FloatArray,
+    keep: list[np.ndarray],
+    residuals: list[FloatArray],
+    prm: RegistrationParams,
+) -> tuple[FloatArray, FloatArray, list[np.ndarray], list[np.ndarray], list[FloatArray]]:
+    """Gauss-Newton on the exact model from ``bias`` over the rows ``keep`` (their residuals at
+    ``bias``), re-selecting the rows by the outlier test once converged (:func:`solve_biases`).
+    Returns the estimate, its model covariance ``H^-1`` (zero outside ``active``), the last row
+    selection, the one the estimate was fitted to, and every row's residual at the estimate."""
+    n = prior.shape[0]
+    act = np.ix_(active, active)
     fit_keep = keep
-    cov = np.diag(1.0 / prior)
+    cov = np.diag(np.where(active, 1.0 / prior, 0.0))
     rounds = 0
+    normal_of: list[np.ndarray] | None = None  # the row set ``cov`` (H^-1) was made for
     for _ in range(prm.max_iterations):
         fit_keep = keep
-        h = np.diag(prior)
+        if normal_of is not keep:
+            # The normal matrix depends on the rows kept only: made again when they change.
+            cov = np.zeros((n, n))
+            cov[act] = np.linalg.inv(_normal_matrix(data, keep, col, prior)[act])
+            normal_of = keep
         g = -prior * bias
         for (m, _, cols), kp, res in zip(data, keep, residuals, strict=True):
-            kf = kp.astype(float)
-            nr = kf.shape[0]
-            ka = 3 * col[m.site_a.site_id]
-            h[ka : ka + 3, ka : ka + 3] += (kf @ cols["haa"].reshape(nr, 9)).reshape(3, 3)
-            if m.site_b is not None:
-                kb = 3 * col[m.site_b.site_id]
-                cross = (kf @ cols["hab"].reshape(nr, 9)).reshape(3, 3)
-                h[ka : ka + 3, kb : kb + 3] -= cross
-                h[kb : kb + 3, ka : ka + 3] -= cross.T
-                h[kb : kb + 3, kb : kb + 3] += (kf @ cols["hbb"].reshape(nr, 9)).reshape(3, 3)
-            np.add.at(g, _columns(m, col), kf @ _scores(m, cols, res))
-        cov = np.linalg.inv(h)
+            np.add.at(g, _columns(m, col), kp.astype(float) @ _scores(m, cols, res))
         step = cov @ g
         bias = bias + step
         residuals = [_residual(m, cols, bias, col) for m, _, cols in data]
@@ -538,35 +813,126 @@ def solve_biases(
         if all(np.array_equal(a, b) for a, b in zip(new_keep, keep, strict=True)):
             break
         keep = new_keep
-    robust, clusters = _robust_covariance(data, fit_keep, residuals, col, cov, prior, prm.min_clusters)
-    # pairs_used: confirmed pairs of the latest remembered update that survived the outlier
-    # test (the LS itself uses every remembered update's rows).
-    used: dict[str, int] = dict.fromkeys(ids, 0)
-    for (m, r, _), kp in zip(data, keep, strict=True):
-        t = m.time[r]
-        n_latest = int((kp & (t == t.max())).sum()) if t.size else 0
-        used[m.site_a.site_id] += n_latest
+    return bias, cov, keep, fit_keep, residuals
+
+
+def _one_step(
+    data: list[tuple[RegistrationMemory, np.ndarray, dict[str, np.ndarray]]],
+    keep: list[np.ndarray],
+    residuals: list[FloatArray],
+    col: dict[str, int],
+    prior: FloatArray,
+    active: NDArray[np.bool_],
+    bias: FloatArray,
+    prm: RegistrationParams,
+) -> tuple[FloatArray, FloatArray]:
+    """One Gauss-Newton step of every ``active`` term from ``bias`` (a solution with some terms
+    held), and the cluster-robust covariance of the result: what the whole model would estimate
+    for the held terms, without solving it (``held`` gains, :func:`solve_biases`)."""
+    n = prior.shape[0]
+    act = np.ix_(active, active)
+    cov = np.zeros((n, n))
+    cov[act] = np.linalg.inv(_normal_matrix(data, keep, col, prior)[act])
+    g = -prior * bias
+    for (m, _, cols), kp, res in zip(data, keep, residuals, strict=True):
+        np.add.at(g, _columns(m, col), kp.astype(float) @ _scores(m, cols, res))
+    robust, _ = _robust_covariance(data, keep, residuals, col, cov, prior, prm.min_clusters)
+    return bias + cov @ g, robust
+
+
+def _normal_matrix(
+    data: list[tuple[RegistrationMemory, np.ndarray, dict[str, np.ndarray]]],
+    keep: list[np.ndarray],
+    col: dict[str, int],
+    prior: FloatArray,
+) -> FloatArray:
+    """``H = diag(prior) + sum G^T W G`` over the kept rows, from each row's cached pieces."""
+    nt = N_TERMS
+    h = np.diag(prior)
+    for (m, _, cols), kp in zip(data, keep, strict=True):
+        kf = kp.astype(float)
+        nr = kf.shape[0]
+        ka = nt * col[m.site_a.site_id]
+        h[ka : ka + nt, ka : ka + nt] += (kf @ cols["haa"].reshape(nr, nt * nt)).reshape(nt, nt)
         if m.site_b is not None:
-            used[m.site_b.site_id] += n_latest
-    return BiasSolution(tuple(ids), bias.reshape(-1, 3), robust, used, cov, clusters)
+            kb = nt * col[m.site_b.site_id]
+            cross = (kf @ cols["hab"].reshape(nr, nt * nt)).reshape(nt, nt)
+            h[ka : ka + nt, kb : kb + nt] -= cross
+            h[kb : kb + nt, ka : ka + nt] -= cross.T
+            h[kb : kb + nt, kb : kb + nt] += (kf @ cols["hbb"].reshape(nr, nt * nt)).reshape(nt, nt)
+    return h
 
 
-def remove_bias(site: Site, position: FloatArray, bias: FloatArray) -> FloatArray:
-    """The exact inverse of the bias model (Eq. 2): the ECEF positions ``(n, 3)`` the radar at
-    ``site`` would report without its bias ``(dr, dtheta, dphi)`` in (m, rad, rad).
+def _relative_covariance(
+    cov: FloatArray, memories: Sequence[RegistrationMemory], col: dict[str, int]
+) -> FloatArray | None:
+    """``cov`` conditioned on the time bias common to the radars of each part of the network
+    (radars linked by rows) that no reference reaches: ``C - C e (e^T C e)^-1 e^T C`` with ``e``
+    the sum of those radars' time-bias directions, one part after the other (module docstring).
+    That common mode is not observable (every row cancels it), its estimate is the prior's zero
+    and its variance the prior's; left in, it would enter every compensated position of the
+    part alike yet count as independent on each side of a pair test.  None: no such part."""
+    parent = list(range(len(col)))
 
-    Equal to ``polar_to_ecef(r - dr, theta - dtheta, phi - dphi)`` of the position's polar
-    coordinates, computed without per-point trigonometry: in the site's ENU frame the
-    horizontal part turns by ``dtheta`` about the vertical (azimuth clockwise from north), the
-    point turns by ``-dphi`` in its vertical plane, and the range scales by ``(r - dr) / r``.
+    def root(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    referenced: set[int] = set()
+    for m in memories:
+        ka = col[m.site_a.site_id]
+        if m.site_b is None:
+            referenced.add(ka)
+        else:
+            parent[root(ka)] = root(col[m.site_b.site_id])
+    parts: dict[int, list[int]] = {}
+    for k in range(len(col)):
+        parts.setdefault(root(k), []).append(k)
+    out = None
+    for members in parts.values():
+        if len(members) < 2 or referenced.intersection(members):
+            continue
+        e = np.zeros(cov.shape[0])
+        e[N_TERMS * np.asarray(members) + TIME] = 1.0
+        out = cov.copy() if out is None else out
+        ce = out @ e
+        var = float(e @ ce)
+        if var > 0.0:
+            out -= np.outer(ce, ce) / var
+    return out
+
+
+def remove_bias(
+    site: Site, position: FloatArray, bias: FloatArray, velocity: FloatArray | None = None
+) -> FloatArray:
+    """The exact inverse of the model (module docstring, (*)): the ECEF positions ``(n, 3)``
+    the radar at ``site`` would report without its terms ``bias``, the three polar offsets
+    ``(dr, dtheta, dphi)`` in (m, rad, rad) or all five (with ``g`` ppm and ``tau`` s).
+
+    The polar part equals ``polar_to_ecef((r - dr) / (1 + g 1e-6), theta - dtheta, phi -
+    dphi)`` of the position's polar coordinates, computed without per-point trigonometry: in
+    the site's ENU frame the horizontal part turns by ``dtheta`` about the vertical (azimuth
+    clockwise from north), the point turns by ``-dphi`` in its vertical plane, and the range
+    scales.  A time bias then moves each position by ``+tau v`` (``velocity`` ECEF ``(n, 3)``,
+    required when ``tau`` is not zero): from where the target was at ``t - tau`` to ``t``.
     """
-    return site.enu_to_ecef(_remove_bias_enu(site.ecef_to_enu(position), bias))
+    b = np.asarray(bias, dtype=float)
+    out = site.enu_to_ecef(_remove_bias_enu(site.ecef_to_enu(position), b))
+    if b.shape[0] == N_TERMS and b[TIME] != 0.0:
+        if velocity is None:
+            raise ValueError("a time bias needs the velocities")
+        out = out + b[TIME] * velocity
+    return out
 
 
 def _remove_bias_enu(enu: FloatArray, bias: FloatArray) -> FloatArray:
-    """:func:`remove_bias` in the site's ENU frame (points in, points out)."""
-    ct, st = np.cos(bias[1]), np.sin(bias[1])
-    cp, sp = np.cos(bias[2]), np.sin(bias[2])
+    """The polar part of :func:`remove_bias` in the site's ENU frame (points in, points out):
+    offsets and, when ``bias`` has five terms, the range gain."""
+    ct, st = np.cos(bias[AZIMUTH]), np.sin(bias[AZIMUTH])
+    cp, sp = np.cos(bias[ELEVATION]), np.sin(bias[ELEVATION])
+    gain = 1.0 + bias[GAIN] * PPM if bias.shape[0] == N_TERMS else 1.0
     e = enu[:, 0] * ct - enu[:, 1] * st
     n = enu[:, 1] * ct + enu[:, 0] * st
     u = enu[:, 2]
@@ -574,7 +940,7 @@ def _remove_bias_enu(enu: FloatArray, bias: FloatArray) -> FloatArray:
     r = np.hypot(h, u)
     h1 = h * cp + u * sp
     u1 = u * cp - h * sp
-    scale = (r - bias[0]) / np.where(r > 0, r, 1.0)
+    scale = (r - bias[RANGE]) / (gain * np.where(r > 0, r, 1.0))
     ratio = np.divide(h1, h, out=np.ones_like(h), where=h > 0) * scale
     return np.stack([e * ratio, n * ratio, u1 * scale], axis=1)
 
@@ -582,32 +948,51 @@ def _remove_bias_enu(enu: FloatArray, bias: FloatArray) -> FloatArray:
 def _residual(
     m: RegistrationMemory, cols: dict[str, np.ndarray], bias: FloatArray, col: dict[str, int]
 ) -> FloatArray:
-    """Each row's exact residual: A's position minus B's, both with the estimated bias removed."""
-    ka = 3 * col[m.site_a.site_id]
-    pa = remove_bias(m.site_a, cols["p_a"], bias[ka : ka + 3])
+    """Each row's exact residual: A's position minus B's, both with the estimated terms removed
+    (the time terms with the row's velocity, ``(tau_a - tau_b) v``)."""
+    nt = N_TERMS
+    ka = nt * col[m.site_a.site_id]
+    ba = bias[ka : ka + nt]
+    pa = m.site_a.enu_to_ecef(_remove_bias_enu(m.site_a.ecef_to_enu(cols["p_a"]), ba))
+    tau = ba[TIME]
     if m.site_b is None:
-        return pa - cols["p_b"]
-    kb = 3 * col[m.site_b.site_id]
-    return pa - remove_bias(m.site_b, cols["p_b"], bias[kb : kb + 3])
+        res = pa - cols["p_b"]
+    else:
+        kb = nt * col[m.site_b.site_id]
+        bb = bias[kb : kb + nt]
+        res = pa - m.site_b.enu_to_ecef(_remove_bias_enu(m.site_b.ecef_to_enu(cols["p_b"]), bb))
+        tau = tau - bb[TIME]
+    if tau != 0.0:
+        res += tau * cols["v"]
+    return res
 
 
 def _scores(m: RegistrationMemory, cols: dict[str, np.ndarray], res: FloatArray) -> FloatArray:
-    """Each row's score in its own two radars' columns ``(rows, 6)``: ``G_a^T W r`` for A and
-    ``-G_b^T W r`` for B (the negative half-gradient of the row's ``r^T W r`` in the biases;
+    """Each row's score in its own two radars' columns ``(rows, 10)``: ``G_a^T W r`` for A and
+    ``-G_b^T W r`` for B (the negative half-gradient of the row's ``r^T W r`` in the terms;
     B's half is zero for a reference source)."""
-    sc = np.zeros((res.shape[0], 6))
-    sc[:, :3] = matvec3(cols["gaw"], res)
+    nt = N_TERMS
+    sc = np.zeros((res.shape[0], 2 * nt))
+    _matvec53(cols["gaw"], res, sc[:, :nt])
     if m.site_b is not None:
-        sc[:, 3:] = -matvec3(cols["gbw"], res)
+        _matvec53(cols["gbw"], res, sc[:, nt:])
+        sc[:, nt:] *= -1.0
     return sc
 
 
+def _matvec53(m: FloatArray, v: FloatArray, out: FloatArray) -> None:
+    """``out = M v`` for stacks ``M (n, 5, 3)``, ``v (n, 3)`` (one ``einsum``: a batched ``@`` on
+    such small matrices pays a per-matrix overhead; measured 0.9 against 1.1 ms at 39 000)."""
+    np.einsum("nij,nj->ni", m, v, out=out)
+
+
 def _columns(m: RegistrationMemory, col: dict[str, int]) -> NDArray[np.intp]:
-    """The six columns of the joint problem a memory's row scores fall in (B's: A's again for
+    """The ten columns of the joint problem a memory's row scores fall in (B's: A's again for
     a reference source, whose half of the score is zero)."""
-    ka = 3 * col[m.site_a.site_id]
-    kb = 3 * col[m.site_b.site_id] if m.site_b is not None else ka
-    return np.r_[ka : ka + 3, kb : kb + 3].astype(np.intp)
+    nt = N_TERMS
+    ka = nt * col[m.site_a.site_id]
+    kb = nt * col[m.site_b.site_id] if m.site_b is not None else ka
+    return np.r_[ka : ka + nt, kb : kb + nt].astype(np.intp)
 
 
 def _robust_covariance(
@@ -619,7 +1004,7 @@ def _robust_covariance(
     prior: FloatArray,
     min_clusters: int,
 ) -> tuple[FloatArray, int]:
-    """Cluster-robust covariance of the biases (module docstring), and the number of clusters.
+    """Cluster-robust covariance of the terms (module docstring), and the number of clusters.
 
     ``residuals``: every row's exact residual at the solution (:func:`_residual`), ``keep``: the
     rows that solution was fitted to.  The prior is one more independent term, so components the
@@ -627,8 +1012,8 @@ def _robust_covariance(
     """
     if len(residuals) != len(data):
         return cov, 0
-    # Clusters (track pairs) never span two memories, so the meat is a sum of one 6x6 block per
-    # memory: the outer products of its clusters' summed scores, in its two radars' columns.
+    # Clusters (track pairs) never span two memories, so the meat is a sum of one 10x10 block
+    # per memory: the outer products of its clusters' summed scores, in its two radars' columns.
     meat = np.diag(prior)
     c = 0
     blocks = []
@@ -637,11 +1022,13 @@ def _robust_covariance(
         if idx.size == 0:
             continue
         sc = _scores(m, cols, res)[idx]
-        _, inv = np.unique(cols["pair"][idx], return_inverse=True)  # track pairs of this memory
-        k = int(inv.max()) + 1
-        summed = np.stack([np.bincount(inv.ravel(), weights=sc[:, j], minlength=k) for j in range(6)], axis=1)
+        label = cols["cluster"][idx]  # the track pair of each kept row
+        k = int(label.max()) + 1
+        summed = np.stack(
+            [np.bincount(label, weights=sc[:, j], minlength=k) for j in range(sc.shape[1])], axis=1
+        )
         blocks.append((_columns(m, col), summed.T @ summed))
-        c += k
+        c += int(np.count_nonzero(np.bincount(label, minlength=k)))
     if c < max(min_clusters, 2):
         return cov, c
     for where, block in blocks:
@@ -652,25 +1039,37 @@ def _robust_covariance(
 def compensate(
     snapshot: TrackSnapshot, bias: FloatArray, bias_cov: FloatArray
 ) -> tuple[TrackSnapshot, FloatArray]:
-    """Remove an estimated bias from a radar snapshot; also the per-track covariance it adds.
+    """Remove an estimated registration from a radar snapshot; also the per-track covariance
+    it adds, ``G C G^T`` (module docstring, (*)).
 
-    Positions: the bias removed exactly (:func:`remove_bias`; to first order ``y - G b``).
-    Velocities: an azimuth bias rotates the radar's whole picture,
-    so ENU velocities are rotated back by ``-dtheta`` (clockwise azimuth convention).
+    ``bias``, ``bias_cov``: the five terms and their covariance (:meth:`BiasSolution.of`), or
+    the three polar offsets alone.  Positions: the polar terms removed exactly
+    (:func:`remove_bias`; to first order ``y - G b``), then moved by ``+tau v`` to the reported
+    time.  Velocities: an azimuth offset rotates the radar's whole picture and a range gain
+    scales it about the site, so ENU velocities are rotated back by ``-dtheta`` (clockwise
+    azimuth convention) and divided by ``1 + g 1e-6``; a time bias leaves them as they are.
     """
+    bias, bias_cov = _full_terms(bias, bias_cov)
     if snapshot.site is None or len(snapshot) == 0:
         return snapshot, np.zeros((len(snapshot), 3, 3))
     site = snapshot.site
-    # The snapshot's own ENU states (those of its positions) give the Jacobian and the removal.
-    j = polar_jacobian_enu(snapshot.enu)
+    # The snapshot's own ENU states (those of its positions) give the Jacobian and the removal:
+    # G in ENU is [J | 1e-6 enu | -v_enu] (the site's rotation applied once, below).
+    n = len(snapshot)
+    g = np.empty((n, 3, N_TERMS))
+    g[:, :, :3] = polar_jacobian_enu(snapshot.enu)
+    g[:, :, GAIN] = snapshot.enu * PPM
+    g[:, :, TIME] = -snapshot.enu_velocity
     enu = _remove_bias_enu(snapshot.enu, bias)
-    dth = -bias[1]
+    dth = -bias[AZIMUTH]
     c, s = np.cos(dth), np.sin(dth)
-    ev = snapshot.enu_velocity
+    ev = snapshot.enu_velocity / (1.0 + bias[GAIN] * PPM)
     enu_v = np.stack([ev[:, 0] * c + ev[:, 1] * s, -ev[:, 0] * s + ev[:, 1] * c, ev[:, 2]], axis=1)
-    # G C G^T = R (J C J^T) R^T: J C as one 2-D product, R (.) R^T as a congruence.
-    jc = (j.reshape(-1, 3) @ bias_cov).reshape(j.shape)
-    extra = congruence(site.rotation, jc @ np.swapaxes(j, 1, 2))
+    if bias[TIME] != 0.0:
+        enu = enu + bias[TIME] * enu_v
+    # G C G^T = R (G_enu C G_enu^T) R^T: G C as one 2-D product, R (.) R^T as a congruence.
+    gc = (g.reshape(-1, N_TERMS) @ bias_cov).reshape(g.shape)
+    extra = congruence(site.rotation, gc @ np.swapaxes(g, 1, 2))
     out = TrackSnapshot(
         track_id=snapshot.track_id,
         position=site.enu_to_ecef(enu),
@@ -691,47 +1090,73 @@ def solution_state(solution: BiasSolution) -> dict[str, Any]:
     return {f.name: getattr(solution, f.name) for f in fields(BiasSolution)}
 
 
+def _array_or_none(value: Any) -> FloatArray | None:
+    return None if value is None else np.asarray(value, dtype=float)
+
+
 def solution_from_state(state: Mapping[str, Any]) -> BiasSolution:
-    """The solution :func:`solution_state` gave; ``ValueError`` if its arrays disagree."""
+    """The solution :func:`solution_state` gave; ``ValueError`` if its arrays disagree.
+
+    A state kept by a version of the three-term model (no ``terms``) loads as that model:
+    gain and time bias zero with zero variance (not estimated), until the next solve."""
+    known = {f.name for f in fields(BiasSolution)}
     sol = BiasSolution(
         **{
-            **state,
+            **{k: v for k, v in state.items() if k in known},
             "radar_ids": tuple(str(r) for r in state["radar_ids"]),
             "bias": np.asarray(state["bias"], dtype=float),
             "covariance": np.asarray(state["covariance"], dtype=float),
             "pairs_used": {str(k): int(v) for k, v in state["pairs_used"].items()},
-            "model_covariance": (
-                None
-                if state.get("model_covariance") is None
-                else np.asarray(state["model_covariance"], float)
-            ),
+            "model_covariance": _array_or_none(state.get("model_covariance")),
+            "terms": _array_or_none(state.get("terms")),
+            "terms_covariance": _array_or_none(state.get("terms_covariance")),
+            "relative_covariance": _array_or_none(state.get("relative_covariance")),
         }
     )
     n = len(sol.radar_ids)
+    terms, cov = sol.full
     if (
         sol.bias.shape != (n, 3)
         or sol.covariance.shape != (3 * n, 3 * n)
+        or terms.shape != (n, N_TERMS)
+        or cov.shape != (N_TERMS * n, N_TERMS * n)
+        or (sol.relative_covariance is not None and sol.relative_covariance.shape != cov.shape)
+        or not np.array_equal(terms[:, :3], sol.bias)
         or set(sol.pairs_used) != set(sol.radar_ids)
     ):
         raise ValueError(f"bias solution of {n} radars with biases of shape {sol.bias.shape}")
     return sol
 
 
+def _estimated(value: float, sigma: float) -> tuple[float | None, float | None]:
+    """A term and its 1-sigma, both None when it was not estimated (zero variance)."""
+    return (float(value), float(sigma)) if sigma > 0.0 else (None, None)
+
+
 def to_estimates(solution: BiasSolution | None, time_s: float) -> list[RadarBias]:
     if solution is None:
         return []
-    std = solution.std()
-    return [
-        RadarBias(
-            radar_id=rid,
-            range_bias_m=float(solution.bias[k, 0]),
-            azimuth_bias_deg=float(np.degrees(solution.bias[k, 1])),
-            elevation_bias_deg=float(np.degrees(solution.bias[k, 2])),
-            pairs_used=int(solution.pairs_used[rid]),
-            time_s=float(time_s),
-            range_bias_sigma_m=float(std[k, 0]),
-            azimuth_bias_sigma_deg=float(np.degrees(std[k, 1])),
-            elevation_bias_sigma_deg=float(np.degrees(std[k, 2])),
+    terms, _ = solution.full
+    std = solution.term_std()
+    out = []
+    for k, rid in enumerate(solution.radar_ids):
+        gain, gain_sigma = _estimated(terms[k, GAIN], std[k, GAIN])
+        tau, tau_sigma = _estimated(terms[k, TIME], std[k, TIME])
+        out.append(
+            RadarBias(
+                radar_id=rid,
+                range_bias_m=float(terms[k, RANGE]),
+                azimuth_bias_deg=float(np.degrees(terms[k, AZIMUTH])),
+                elevation_bias_deg=float(np.degrees(terms[k, ELEVATION])),
+                pairs_used=int(solution.pairs_used[rid]),
+                time_s=float(time_s),
+                range_bias_sigma_m=float(std[k, RANGE]),
+                azimuth_bias_sigma_deg=float(np.degrees(std[k, AZIMUTH])),
+                elevation_bias_sigma_deg=float(np.degrees(std[k, ELEVATION])),
+                range_gain_ppm=gain,
+                range_gain_sigma_ppm=gain_sigma,
+                time_bias_s=tau,
+                time_bias_sigma_s=tau_sigma,
+            )
         )
-        for k, rid in enumerate(solution.radar_ids)
-    ]
+    return out

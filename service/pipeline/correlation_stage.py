@@ -286,6 +286,7 @@ class CorrelationStage:
             rows.s,
             self.correlation_params.registration,
             prune=False,  # pruned for the times it is solved at (its rows may be far ahead)
+            v=rows.v,
         )
         # ... but never beyond the row cap, whatever a peer sends between two solves
         mirror.memory.prune(-np.inf, self.correlation_params.registration)

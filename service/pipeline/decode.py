@@ -8,6 +8,7 @@ contract's reason, and no stage has seen it.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -50,11 +51,24 @@ def check_body_id(field_name: str, body_id: str, key_id: str) -> None:
         raise RejectionError("schema", f"{field_name} {body_id!r} in body != {key_id!r} in key", key_id)
 
 
-def plot_columns(batch: PlotBatch) -> PlotColumns:
+@dataclass(frozen=True)
+class ReleasedPlots(PlotColumns):
+    """A batch's plots as released: the tracker's columns, and the barometric flight level
+    (NaN: none) that the performance assessment checks Mode C with (trackers ignore it)."""
+
+    flight_level: np.ndarray = None  # type: ignore[assignment]  # filled by __post_init__
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.flight_level is None:
+            object.__setattr__(self, "flight_level", np.full(len(self), np.nan))
+
+
+def plot_columns(batch: PlotBatch) -> ReleasedPlots:
     """A plot batch's columns as the tracker takes them (NaN / None where a column is null)."""
     p = batch.plots
     n = len(p.time_s)
-    return PlotColumns(
+    return ReleasedPlots(
         time_s=np.asarray(p.time_s, dtype=float),
         range_m=np.asarray(p.range_m, dtype=float),
         azimuth_deg=np.asarray(p.azimuth_deg, dtype=float),
@@ -63,6 +77,7 @@ def plot_columns(batch: PlotBatch) -> PlotColumns:
         truth_id=labels(p.truth_id, n),
         mode_3a=labels(p.mode_3a, n),
         mode_s=labels(p.mode_s, n),
+        flight_level=floats(p.flight_level, n),
     )
 
 
@@ -83,6 +98,16 @@ def reference_columns(batch: AisBatch | AdsbBatch) -> tuple[np.ndarray, ...]:
         np.asarray(r.longitude_deg, dtype=float),
         altitude,
     )
+
+
+def reference_identity(batch: AisBatch | AdsbBatch) -> tuple[np.ndarray, np.ndarray]:
+    """A reference batch's Mode 3/A codes (None: none) and barometric flight levels (NaN:
+    none): ADS-B's optional columns, AIS has neither."""
+    r = batch.reports
+    n = len(r.time_s)
+    if isinstance(r, AisReportsModel):
+        return np.full(n, None, dtype=object), np.full(n, np.nan)
+    return labels(r.mode_3a, n), floats(r.flight_level, n)
 
 
 def floats(column: Sequence[float | None] | None, n: int) -> np.ndarray:

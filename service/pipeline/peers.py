@@ -63,6 +63,7 @@ def _rows_body(source_a: str, source_b: str, reference: bool, rows: Registration
         "p_a": rows.p_a.tolist(),
         "p_b": rows.p_b.tolist(),
         "s": rows.s.reshape(len(rows), 9).tolist(),
+        **({} if rows.v is None else {"v": rows.v.tolist()}),
     }
 
 
@@ -319,6 +320,7 @@ class Peers:
             np.asarray(rows.p_a, dtype=float).reshape(k, 3),
             np.asarray(rows.p_b, dtype=float).reshape(k, 3),
             np.asarray(rows.s, dtype=float).reshape(k, 3, 3),
+            None if rows.v is None else np.asarray(rows.v, dtype=float).reshape(k, 3),
         )
         self.correlation.mirror_rows((ids[0], ids[1]), site_a, site_b, data)
 

@@ -262,6 +262,8 @@ class Snapshot:
     system: SystemTrackView | None = None
     #: The data time up to which these outputs reflect every input processed (None: none yet).
     outputs_time_s: float | None = None
+    #: Each radar's performance against the references (a ``PerformanceView``; None: none).
+    performance: Any = None
     _batches: dict[tuple[str, str], dict[str, Any]] = field(default_factory=dict, compare=False, repr=False)
 
     def track_batch(self, radar_id: str, status: str = "confirmed") -> dict[str, Any] | None:
@@ -275,6 +277,15 @@ class Snapshot:
 
     def track_batches(self, status: str = "all") -> list[dict[str, Any]]:
         return [b for rid in self.tracks if (b := self.track_batch(rid, status)) is not None]
+
+    def radar_performance(self, radar_id: str) -> dict[str, Any] | None:
+        """The radar's ``RadarPerformance`` (contract §5.3); None: no such radar."""
+        if radar_id not in self.sites and radar_id not in self.tracks:
+            return None
+        if self.performance is None:
+            return None
+        got: dict[str, Any] = self.performance.of(radar_id)
+        return got
 
     def pair_sets(
         self, radar_a: str | None = None, radar_b: str | None = None, status: str = "confirmed"
@@ -368,6 +379,7 @@ def build_snapshot(
     progress: dict[str, Any],
     adsb_sources: frozenset[str],
     outputs_time_s: float | None,
+    performance: Any = None,
 ) -> Snapshot:
     """The engine's state as a :class:`Snapshot`: the radars this worker tracks (``tracking``,
     a :class:`~.tracking_stage.TrackingStage`, with the sequencer's ``sources`` clocks) and
@@ -409,4 +421,5 @@ def build_snapshot(
         adsb_sources=adsb_sources,
         system=system,
         outputs_time_s=outputs_time_s,
+        performance=performance,
     )

@@ -282,6 +282,7 @@ class ServiceNode:
             s.declare_queryable(self.keys.status, self._on_status_query),
             s.declare_queryable(self.keys.pairs_all, self._on_pairs_query),
             s.declare_queryable(self.keys.system_tracks, self._on_system_query),
+            s.declare_queryable(self.keys.performance_all, self._on_performance_query),
         ]
         if not self.partition.whole:
             # A worker not seen yet is waited for as one that just left: for peer_grace_s.
@@ -532,6 +533,17 @@ class ServiceNode:
     def _on_system_query(self, query: zenoh.Query) -> None:
         body = encode(self.snapshot.system_tracks("confirmed"))
         query.reply(self.keys.system_tracks, body, encoding=zenoh.Encoding.APPLICATION_JSON)
+
+    def _on_performance_query(self, query: zenoh.Query) -> None:
+        """Each radar whose ``RadarPerformance`` key the query's selector names."""
+        wanted = query.key_expr
+        snap = self.snapshot
+        for radar_id in sorted(snap.sites):
+            key = self.keys.performance(radar_id)
+            if wanted.intersects(zenoh.KeyExpr(key)):
+                body = snap.radar_performance(radar_id)
+                if body is not None:
+                    query.reply(key, encode(body), encoding=zenoh.Encoding.APPLICATION_JSON)
 
     def _on_pairs_query(self, query: zenoh.Query) -> None:
         wanted = query.key_expr

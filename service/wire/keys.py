@@ -19,6 +19,7 @@ from service.wire.models import (
     BiasSet,
     PairSet,
     PlotBatch,
+    RadarPerformance,
     RadarSite,
     RegistrationRows,
     Rejection,
@@ -46,6 +47,7 @@ KeyKind = Literal[
     "worker_status",
     "worker_clock",
     "worker_progress",
+    "performance",
     "other",
 ]
 
@@ -80,6 +82,7 @@ MODEL_BY_KIND: dict[KeyKind, type[BaseModel]] = {
     "worker_status": Status,
     "worker_clock": WorkerClock,
     "worker_progress": WorkerClock,
+    "performance": RadarPerformance,
 }
 
 #: Each kind's key after ``{prefix}/``, its ids captured.
@@ -87,6 +90,7 @@ _SHAPES: tuple[tuple[KeyKind, str], ...] = (
     ("site", rf"radar/({ID_REGEX})/site"),
     ("plots", rf"radar/({ID_REGEX})/plots"),
     ("tracks", rf"radar/({ID_REGEX})/tracks"),
+    ("performance", rf"radar/({ID_REGEX})/performance"),
     ("ais", rf"ais/({ID_REGEX})/reports"),
     ("adsb", rf"adsb/({ID_REGEX})/reports"),
     ("pairs", rf"pairs/({ID_REGEX})/({ID_REGEX})"),
@@ -186,6 +190,15 @@ class Keys:
     @property
     def pairs_all(self) -> str:
         return f"{self.prefix}/pairs/**"
+
+    def performance(self, radar_id: str) -> str:
+        """A radar's ``RadarPerformance`` (contract §5.3; queryable only)."""
+        return f"{self.prefix}/radar/{radar_id}/performance"
+
+    @property
+    def performance_all(self) -> str:
+        """Every radar's performance key: what the queryable is declared on."""
+        return f"{self.prefix}/radar/*/performance"
 
     @property
     def biases(self) -> str:

@@ -168,6 +168,13 @@ class AdsbReportsModel(ColumnsModel):
     altitude_m: Annotated[list[Altitude | None], Field(max_length=MAX_BATCH_ITEMS)] | None = Field(
         default=None, description="geometric height above the WGS-84 ellipsoid (null: not reported)"
     )
+    mode_3a: Annotated[list[Mode3A | None], Field(max_length=MAX_BATCH_ITEMS)] | None = Field(
+        default=None, description="Mode 3/A code per report, 4 octal digits (null: none; CAT021 I021/070)"
+    )
+    flight_level: Annotated[list[FlightLevel | None], Field(max_length=MAX_BATCH_ITEMS)] | None = Field(
+        default=None,
+        description="barometric flight level per report (FL = 100 ft; null: none; CAT021 I021/145)",
+    )
 
 
 class AdsbBatch(WireModel):
@@ -361,10 +368,15 @@ class RegistrationRows(WireModel):
     p_a: Annotated[list[Vec3], Field(max_length=MAX_TRACKS)]
     p_b: Annotated[list[Vec3], Field(max_length=MAX_TRACKS)]
     s: Annotated[list[Covariance3], Field(max_length=MAX_TRACKS)]
+    v: Annotated[list[Vec3], Field(max_length=MAX_TRACKS)] | None = Field(
+        default=None,
+        description="each pair's ECEF velocity (m/s, the mean of its two tracks'), which the "
+        "time-bias term needs; absent: the rows say nothing of time biases",
+    )
 
     @model_validator(mode="after")
     def _check_lengths(self) -> RegistrationRows:
-        return _equal_lengths(self, ("track_a", "track_b", "p_a", "p_b", "s"))
+        return _equal_lengths(self, ("track_a", "track_b", "p_a", "p_b", "s", "v"))
 
 
 class ZenohInfo(OutModel):
@@ -546,6 +558,23 @@ class BiasEstimate(OutModel):
     elevation_bias_sigma_deg: float | None = Field(
         default=None, description="1-sigma of elevation_bias_deg (cluster-robust); null: not known"
     )
+    range_gain_ppm: float | None = Field(
+        default=None,
+        description="range gain (ppm): reported range = true range x (1 + gain 1e-6) + range_bias_m; "
+        "null: not estimated",
+    )
+    range_gain_sigma_ppm: float | None = Field(
+        default=None, description="1-sigma of range_gain_ppm (cluster-robust); null: not estimated"
+    )
+    time_bias_s: float | None = Field(
+        default=None,
+        description="time-stamp bias (s): reported time = true time + time_bias_s; relative to the "
+        "network's mean clock unless a bias-free reference (ADS-B, AIS) reaches the radar; "
+        "null: not estimated",
+    )
+    time_bias_sigma_s: float | None = Field(
+        default=None, description="1-sigma of time_bias_s (cluster-robust); null: not estimated"
+    )
 
 
 class BiasSet(OutModel):
@@ -554,6 +583,56 @@ class BiasSet(OutModel):
     time_s: float | None = Field(description="data time of the solve; null before the first")
     partition: str = Field(description="the worker that solved it, K/N")
     biases: list[BiasEstimate]
+
+
+class PerformanceDetection(OutModel):
+    pd: float | None = Field(description="detected / expected scans of the reference aircraft in coverage")
+    pd_sigma: float | None = Field(description="1-sigma of pd (binomial)")
+    expected: int = Field(description="scans in which a reference aircraft was inside the coverage")
+    detected: int = Field(description="of those, scans with a plot of the aircraft")
+
+
+class PerformancePosition(OutModel):
+    rms_m: float | None = Field(description="horizontal error RMS after compensating the estimated biases")
+    median_m: float | None = Field(description="median horizontal error after compensating the biases")
+    rms_uncorrected_m: float | None = Field(description="horizontal error RMS before compensating")
+    range_rms_m: float | None = Field(description="RMS of the range error about its mean (random part)")
+    azimuth_rms_deg: float | None = Field(description="RMS of the azimuth error about its mean")
+    plots: int = Field(description="plots behind these figures")
+
+
+class PerformanceCode(OutModel):
+    checked: int = Field(description="plots where both the plot and the reference carry the code")
+    correct: int
+    rate: float | None = Field(description="correct / checked")
+
+
+class PerformanceRequirements(OutModel):
+    pd_min: float
+    mode_3a_min: float
+    mode_c_min: float
+
+
+class PerformanceVerdict(OutModel):
+    pd: bool | None
+    mode_3a: bool | None
+    mode_c: bool | None
+
+
+class RadarPerformance(OutModel):
+    """A radar's performance against the paired bias-free references (contract §5.3)."""
+
+    radar_id: str
+    time_s: float | None = Field(description="data time the figures reach; null before any")
+    window_s: float = Field(description="the sliding window of data time behind the figures")
+    references: list[str] = Field(description="kinds of the references used: ads-b, ais")
+    aircraft: int = Field(description="reference aircraft detected in the window")
+    detection: PerformanceDetection
+    position: PerformancePosition
+    mode_3a: PerformanceCode
+    mode_c: PerformanceCode = Field(description="flight level within 200 ft of the reference's")
+    requirements: PerformanceRequirements
+    verdict: PerformanceVerdict
 
 
 # -- rejection reasons ---------------------------------------------------------------------
@@ -608,4 +687,5 @@ WIRE_MODELS: dict[str, type[BaseModel]] = {
     "RegistrationRows": RegistrationRows,
     "BiasSet": BiasSet,
     "WorkerClock": WorkerClock,
+    "RadarPerformance": RadarPerformance,
 }

@@ -74,6 +74,10 @@ def track_rows(c: dict[str, np.ndarray]) -> list[dict[str, Any]]:
     ]
 
 
+def _finite_or_none(v: float | None) -> float | None:
+    return float(v) if v is not None and np.isfinite(v) else None
+
+
 def bias_dict(b: Any) -> dict[str, Any] | None:
     """``BiasEstimate`` of a radar's bias (``RadarBias``); None without a finite estimate."""
     values = (b.range_bias_m, b.azimuth_bias_deg, b.elevation_bias_deg)
@@ -82,6 +86,9 @@ def bias_dict(b: Any) -> dict[str, Any] | None:
     # a 1-sigma that is not finite is null ("not known"), the estimate still stands
     sigma_names = ("range_bias_sigma_m", "azimuth_bias_sigma_deg", "elevation_bias_sigma_deg")
     sigmas = {k: float(v) if np.isfinite(v := getattr(b, k)) else None for k in sigma_names}
+    # range gain and time bias: null where not estimated (None) or not finite
+    model_names = ("range_gain_ppm", "range_gain_sigma_ppm", "time_bias_s", "time_bias_sigma_s")
+    model = {k: _finite_or_none(getattr(b, k, None)) for k in model_names}
     return {
         "radar_id": b.radar_id,
         "range_bias_m": float(b.range_bias_m),
@@ -90,6 +97,7 @@ def bias_dict(b: Any) -> dict[str, Any] | None:
         "pairs_used": int(b.pairs_used),
         "time_s": float(b.time_s),
         **sigmas,
+        **model,
     }
 
 

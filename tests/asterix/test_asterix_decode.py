@@ -218,6 +218,7 @@ def _expected(rec: Any, cat: int) -> tuple[Any, ...]:
         _q(rec, pos[0], "LON", "°"),
         _q(rec, "140", None, "ft", 0.3048),
         _q(rec, "145", None, "FL"),
+        None if (m3a21 := _sub(rec, "070", "MODE3A")) is None else m3a21.content.as_string(),
     )
 
 

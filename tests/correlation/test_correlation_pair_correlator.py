@@ -71,6 +71,10 @@ def test_api_contract() -> None:
         "range_bias_sigma_m",
         "azimuth_bias_sigma_deg",
         "elevation_bias_sigma_deg",
+        "range_gain_ppm",
+        "range_gain_sigma_ppm",
+        "time_bias_s",
+        "time_bias_sigma_s",
     ]
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
-from topofusion_lab.scenarios.simulator import AisSpec, FormationSpec, RadarSpec, Scenario
+from topofusion_lab.scenarios.simulator import AdsbSpec, AisSpec, FormationSpec, RadarSpec, Scenario
 
 # Two radars ~200 km apart (SVD paper, Section 3: random errors 200 m / 0.2 deg, systematic
 # errors 100 m / 0.1 deg); targets over the common area between them.
@@ -156,6 +156,33 @@ SCENARIOS: dict[str, Scenario] = {
         half_width_m=140_000.0,
         targets=80,
         duration_s=600.0,
+    ),
+    "assessment": Scenario(
+        name="assessment",
+        description=(
+            "3 radars with range gains and time-stamp biases, 60 % of 80 aircraft on ADS-B: "
+            "registration and the radar performance assessment"
+        ),
+        radars=(
+            replace(_A, range_bias_m=120.0, range_gain_ppm=800.0, time_bias_s=0.6, pd=0.90, identity=True),
+            replace(
+                _B,
+                range_bias_m=-180.0,
+                range_gain_ppm=-600.0,
+                time_bias_s=-0.4,
+                pd=0.97,
+                identity=True,
+                mode_3a_error=0.03,
+                mode_c_error=0.05,
+            ),
+            replace(_C, range_bias_m=250.0, range_gain_ppm=400.0, time_bias_s=1.0, pd=0.99, identity=True),
+        ),
+        adsb=(AdsbSpec("ads-b", identity=True, equipped_share=0.6),),
+        center_lat_deg=31.9,
+        center_lon_deg=119.55,
+        half_width_m=140_000.0,
+        targets=80,
+        duration_s=900.0,
     ),
     "large-bias": Scenario(
         name="large-bias",

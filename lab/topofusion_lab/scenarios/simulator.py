@@ -5,7 +5,9 @@ scenario centre; a target leaving the area is replaced by a new one entering it 
 ``truth_id``; ``Scenario.respawn`` says where), so a scenario can run for ever.  Each radar's
 antenna turns clockwise from north once per ``scan_period_s``; a target at azimuth ``az`` is
 seen at ``scan_start + az / 360 * period`` with probability ``pd``.  Its plot is the true polar
-position plus the radar's systematic bias plus Gaussian noise (the sigmas of its site).
+position plus the radar's systematic bias (range offset and gain, azimuth and elevation
+offsets) plus Gaussian noise (the sigmas of its site), stamped by the radar's clock (true time
+plus its ``time_bias_s``).
 Uniform clutter is added per sector.  The scan is reported in ``sectors`` batches.
 
 A scenario with a ``formation`` (:class:`FormationSpec`) starts its targets together instead:
@@ -41,6 +43,12 @@ class RadarSpec:
     range_bias_m: float = 0.0
     azimuth_bias_deg: float = 0.0
     elevation_bias_deg: float = 0.0
+    #: Range gain (ppm): the reported range is the true range x (1 + range_gain_ppm 1e-6), plus
+    #: ``range_bias_m`` and noise.
+    range_gain_ppm: float = 0.0
+    #: Time-stamp bias (s): the radar's clock runs this far ahead of true time, so a plot seen
+    #: at true time ``T`` is stamped ``T + time_bias_s`` (and so is each batch's ``time_s``).
+    time_bias_s: float = 0.0
     pd: float = 0.95
     clutter_per_scan: float = 0.0
     max_range_m: float = 350_000.0
@@ -52,6 +60,10 @@ class RadarSpec:
     #: A secondary (Mode S) radar: each target's plots carry its Mode 3/A code, Mode S address
     #: and flight level (:func:`identity_of`); clutter carries none.
     identity: bool = False
+    #: Identity errors of a secondary radar (performance assessment): the share of plots whose
+    #: Mode 3/A code is another one, and whose flight level is off by 3 to 20 FL.
+    mode_3a_error: float = 0.0
+    mode_c_error: float = 0.0
 
     def wire_site(self) -> RadarSite:
         """The radar's ``RadarSite`` (the fields of the same names; biases stay unknown)."""
@@ -89,6 +101,19 @@ class AdsbSpec:
     position_sigma_m: float = 10.0
     height_sigma_m: float = 15.0
     no_height: float = 0.0
+    #: Of the targets ``stride`` picks, this share is equipped (chosen by the aircraft's name,
+    #: :func:`equipped`, as equipage belongs to the aircraft); 1: all of them.
+    equipped_share: float = 1.0
+    #: Reports also carry the target's Mode 3/A code and barometric flight level
+    #: (``mode_3a``, ``flight_level``: the true height as a flight level, 1/4 FL steps).
+    identity: bool = False
+
+
+def equipped(name: str, share: float) -> bool:
+    """Whether the aircraft ``name`` carries ADS-B when a ``share`` of all do: its number times
+    the golden ratio, modulo 1, below ``share`` (evenly spread over the numbers, fixed per
+    aircraft)."""
+    return share >= 1.0 or (int(name[1:]) * 0.6180339887498949) % 1.0 < share
 
 
 def identity_of(name: str) -> tuple[str, str]:
@@ -382,10 +407,10 @@ def _sector_batch(
     seen = in_sector & visible & (rng.random(len(az_true)) < r.pd)
     idx = np.flatnonzero(seen)
     n = len(idx)
-    rr = rng_true[idx] + r.range_bias_m + rng.normal(0, r.range_sigma_m, n)
+    rr = rng_true[idx] * (1.0 + r.range_gain_ppm * 1e-6) + r.range_bias_m + rng.normal(0, r.range_sigma_m, n)
     aa = az_true[idx] + r.azimuth_bias_deg + rng.normal(0, r.azimuth_sigma_deg, n)
     ee = el_true[idx] + r.elevation_bias_deg + rng.normal(0, r.elevation_sigma_deg, n)
-    tt = scan_start + az_true[idx] / 360.0 * period
+    tt = scan_start + az_true[idx] / 360.0 * period + r.time_bias_s  # the radar's clock
     truth: list[str | None] = [str(x) for x in targets.ids[idx]]
     alt = ecef_to_geodetic(ecef[idx])[2]
     nc = rng.poisson(r.clutter_per_scan / sectors) if r.clutter_per_scan > 0 else 0
@@ -394,7 +419,7 @@ def _sector_batch(
         rr = np.concatenate([rr, rng.uniform(5_000.0, r.max_range_m, nc)])
         aa = np.concatenate([aa, ca])
         ee = np.concatenate([ee, rng.uniform(0.2, 6.0, nc)])
-        tt = np.concatenate([tt, scan_start + ca / 360.0 * period])
+        tt = np.concatenate([tt, scan_start + ca / 360.0 * period + r.time_bias_s])
         alt = np.concatenate([alt, rng.uniform(0.0, 12_000.0, nc)])
         truth += [None] * nc
     order = rng.permutation(len(rr))  # plots inside a batch need not be sorted
@@ -411,13 +436,22 @@ def _sector_batch(
     if r.identity:
         codes = [identity_of(x) if x is not None else (None, None) for x in truth]
         fl = np.round(np.r_[alt[: len(idx)] / 30.48, np.full(nc, np.nan)] * 4.0) / 4.0  # ISA: FL = ft / 100
+        if r.mode_3a_error > 0:
+            wrong = rng.random(len(codes)) < r.mode_3a_error
+            codes = [
+                (f"{(int(c[0], 8) + 1 + int(rng.integers(4095))) % 4096:04o}", c[1]) if w and c[0] else c
+                for c, w in zip(codes, wrong, strict=True)
+            ]
         plots["mode_3a"] = [codes[i][0] for i in order]
         plots["mode_s"] = [codes[i][1] for i in order]
+        if r.mode_c_error > 0:
+            off = (rng.random(fl.size) < r.mode_c_error) * rng.choice([-1.0, 1.0], fl.size)
+            fl = fl + off * rng.uniform(3.0, 20.0, fl.size)
         plots["flight_level"] = [None if np.isnan(fl[i]) else float(fl[i]) for i in order]
     return {
         "radar_id": r.radar_id,
         "seq": 0,
-        "time_s": round(t0 + (k + 1) * period / sectors, 6),
+        "time_s": round(t0 + (k + 1) * period / sectors + r.time_bias_s, 6),
         "plots": plots,
     }
 
@@ -434,14 +468,22 @@ def _adsb_batch(
 ) -> dict[str, Any]:
     """Reports of every ``stride``-th target at each report time in the batch period."""
     idx = np.arange(0, len(targets.ids), b.stride)
+    if b.equipped_share < 1.0:
+        idx = idx[np.array([equipped(str(targets.ids[i]), b.equipped_share) for i in idx], dtype=bool)]
     times = np.arange(t_end - b.batch_period_s + b.report_period_s, t_end + 1e-9, b.report_period_s)
     rows_t: list[float] = []
     rows_id: list[str] = []
     rows_lat: list[float] = []
     rows_lon: list[float] = []
     rows_alt: list[float | None] = []
+    rows_m3a: list[str] = []
+    rows_fl: list[float] = []
     for tr in times:
         enu = targets.pos[idx] + targets.vel[idx] * (tr - t_now)
+        if b.identity:
+            true_alt = np.atleast_1d(ecef_to_geodetic(enu @ rot.T + center)[2])
+            rows_fl += [round(float(a) / 30.48 * 4.0) / 4.0 for a in true_alt]
+            rows_m3a += [identity_of(str(targets.ids[i]))[0] for i in idx]
         enu = enu + rng.normal(0.0, 1.0, enu.shape) * [
             b.position_sigma_m,
             b.position_sigma_m,
@@ -456,18 +498,16 @@ def _adsb_batch(
         rows_alt += [
             None if d else round(float(a), 1) for a, d in zip(np.atleast_1d(alt), dropped, strict=True)
         ]
-    return {
-        "source_id": b.source_id,
-        "seq": 0,
-        "time_s": round(t0 + t_end, 6),
-        "reports": {
-            "time_s": rows_t,
-            "icao24": rows_id,
-            "latitude_deg": rows_lat,
-            "longitude_deg": rows_lon,
-            "altitude_m": rows_alt,
-        },
+    reports: dict[str, Any] = {
+        "time_s": rows_t,
+        "icao24": rows_id,
+        "latitude_deg": rows_lat,
+        "longitude_deg": rows_lon,
+        "altitude_m": rows_alt,
     }
+    if b.identity:
+        reports["mode_3a"], reports["flight_level"] = rows_m3a, rows_fl
+    return {"source_id": b.source_id, "seq": 0, "time_s": round(t0 + t_end, 6), "reports": reports}
 
 
 def _ais_batch(
