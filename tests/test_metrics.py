@@ -47,6 +47,10 @@ BIAS_METRICS = {
     "azimuth_bias_sigma_deg": "topofusion_bias_azimuth_sigma_deg",
     "elevation_bias_sigma_deg": "topofusion_bias_elevation_sigma_deg",
     "pairs_used": "topofusion_bias_pairs_used",
+    "range_gain_ppm": "topofusion_bias_range_gain_ppm",
+    "range_gain_sigma_ppm": "topofusion_bias_range_gain_sigma_ppm",
+    "time_bias_s": "topofusion_bias_time_s",
+    "time_bias_sigma_s": "topofusion_bias_time_sigma_s",
 }
 
 

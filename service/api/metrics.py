@@ -54,6 +54,10 @@ BIAS_GAUGES = (
         "1-sigma of the elevation bias (deg)",
     ),
     ("topofusion_bias_pairs_used", "pairs_used", "Confirmed pairs of the latest update in the bias solve"),
+    ("topofusion_bias_range_gain_ppm", "range_gain_ppm", "Estimated range gain (ppm; 0: held at zero)"),
+    ("topofusion_bias_range_gain_sigma_ppm", "range_gain_sigma_ppm", "1-sigma of the range gain (ppm)"),
+    ("topofusion_bias_time_s", "time_bias_s", "Estimated time-stamp bias (s)"),
+    ("topofusion_bias_time_sigma_s", "time_bias_sigma_s", "1-sigma of the time-stamp bias (s)"),
 )
 #: Performance families (contract §5.3): (metric name, ``RadarPerformance`` section, field, help).
 PERFORMANCE_GAUGES = (
