@@ -70,6 +70,11 @@ def test_the_json_holds_each_radar_s_performance_and_its_charts(report_dir: Path
     assert sum(dr["expected"]) == perf.detection.expected and sum(dr["detected"]) == perf.detection.detected
     assert sum(a["range_error_m"]["counts"]) <= perf.position.plots
     assert a["bias_series"] and {"range_bias_m", "range_bias_sigma_m"} <= set(a["bias_series"][-1])
+    # the registration model's terms over the recording (a joint solve every 30 s of data time)
+    times = [h["time_s"] for h in a["registration"]]
+    assert len(times) >= 2 and times == sorted(times)
+    assert {"range_gain_ppm", "time_bias_s", "time_bias_sigma_s"} <= set(a["registration"][-1])
+    assert "Registration: time-stamp bias" in (report_dir / "report.html").read_text()
 
 
 def test_the_page_is_self_contained(report_dir: Path) -> None:

@@ -66,6 +66,8 @@ DURATION_BUCKETS_S = np.array([0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.2
 DURATION_LABELS = (*(repr(float(b)) for b in DURATION_BUCKETS_S), "+Inf")
 #: Pair update times kept for the quantiles (``p50_ms``, ``p99_ms``).
 RECENT_UPDATES = 2048
+#: Joint bias solutions kept with their data time (:attr:`CorrelationStage.bias_history`).
+BIAS_HISTORY = 2880
 
 log = logging.getLogger(__name__)
 
@@ -188,6 +190,9 @@ class CorrelationStage:
         self.duration_counts = np.zeros(len(DURATION_LABELS), dtype=np.int64)
         self.duration_sum_s = 0.0
         self.biases: list[dict[str, Any]] = []
+        #: Every solve's ``biases`` with its data time, the newest ``BIAS_HISTORY`` (at one
+        #: solve per ``bias_interval_s``, 30 s: a day); ``topofusion assess`` charts them.
+        self.bias_history: deque[tuple[float, list[dict[str, Any]]]] = deque(maxlen=BIAS_HISTORY)
         self._next_bias_s = -np.inf
         self._joint: BiasSolution | None = None
         self._radars: dict[str, tuple[Site, TrackTable]] = {}
@@ -503,6 +508,7 @@ class CorrelationStage:
         self._next_bias_s = time_s
         self._joint = joint
         self.biases = [b for b in map(bias_dict, to_estimates(joint, time_s)) if b is not None]
+        self.bias_history.append((time_s, self.biases))
 
     def _solve_due(self, clock_s: float) -> None:
         """Solve for the latest grid time ``T`` (a multiple of ``bias_interval_s``) with

@@ -57,7 +57,7 @@ def assess_main(args: argparse.Namespace) -> int:
         return 2
     finally:
         engine.close()
-    report = build_report(engine.assessment.assessment, str(args.file))
+    report = build_report(engine.assessment.assessment, str(args.file), _registration(engine))
     report["replay"] = {"messages": result.messages, "plots": result.plots, "rejected": result.rejected}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -90,8 +90,31 @@ def _fmt(x: float | None, spec: str) -> str:
 
 
 # -- the report's data ----------------------------------------------------------------------
-def build_report(assessment: Any, recording: str) -> dict[str, Any]:
-    """The report of an :class:`~service.assessment.Assessment` that has seen a whole recording."""
+#: The registration model's terms charted per radar: (``BiasEstimate`` field, its sigma, title, unit).
+REGISTRATION_TERMS = (
+    ("range_bias_m", "range_bias_sigma_m", "Registration: range offset", "m"),
+    ("range_gain_ppm", "range_gain_sigma_ppm", "Registration: range gain", "ppm"),
+    ("azimuth_bias_deg", "azimuth_bias_sigma_deg", "Registration: azimuth offset", "deg"),
+    ("time_bias_s", "time_bias_sigma_s", "Registration: time-stamp bias", "s"),
+)
+
+
+def _registration(engine: Any) -> dict[str, list[dict[str, Any]]]:
+    """Each radar's joint bias estimates (contract §5.2) over the recording, oldest first: the
+    correlation stage's history of solves (this process runs it in process)."""
+    stage = getattr(engine.correlation, "stage", None)
+    out: dict[str, list[dict[str, Any]]] = {}
+    for time_s, biases in getattr(stage, "bias_history", ()):
+        for b in biases:
+            out.setdefault(b["radar_id"], []).append({**b, "time_s": time_s})
+    return out
+
+
+def build_report(
+    assessment: Any, recording: str, registration: dict[str, list[dict[str, Any]]] | None = None
+) -> dict[str, Any]:
+    """The report of an :class:`~service.assessment.Assessment` that has seen a whole recording
+    (``registration``: each radar's joint bias estimates over it, :func:`_registration`)."""
     from service.assessment import radar as numerics
 
     p = assessment.params
@@ -140,6 +163,7 @@ def build_report(assessment: Any, recording: str) -> dict[str, Any]:
                     for t, br, sr, ba, sa in series
                 ],
                 "mode_3a_codes": [{"code": c, "checked": n, "correct": k} for c, (n, k) in codes[:50]],
+                "registration": (registration or {}).get(radar_id, []),
             }
         )
     req = p.requirements
@@ -390,7 +414,7 @@ def _radar_section(r: dict[str, Any]) -> str:
     times = [s["time_s"] for s in series]
     charts.append(
         _series(
-            "Range bias (band: 1 sigma)",
+            "Range bias against the references, window fit (band: 1 sigma)",
             times,
             [s["range_bias_m"] for s in series],
             [s["range_bias_sigma_m"] for s in series],
@@ -399,13 +423,25 @@ def _radar_section(r: dict[str, Any]) -> str:
     )
     charts.append(
         _series(
-            "Azimuth bias (band: 1 sigma)",
+            "Azimuth bias against the references, window fit (band: 1 sigma)",
             times,
             [s["azimuth_bias_deg"] for s in series],
             [s["azimuth_bias_sigma_deg"] for s in series],
             "deg",
         )
     )
+    history = r.get("registration", [])
+    for field, sigma, title, unit in REGISTRATION_TERMS:
+        solved = [h for h in history if h.get(field) is not None]
+        charts.append(
+            _series(
+                f"{title} (band: 1 sigma)",
+                [h["time_s"] for h in solved],
+                [h[field] for h in solved],
+                [h.get(sigma) or 0.0 for h in solved],
+                unit,
+            )
+        )
     out.append(f'<div class="grid">{"".join(charts)}</div>')
     codes = r["mode_3a_codes"]
     if codes:
