@@ -4,8 +4,8 @@ A :class:`TrackSnapshot` is one radar's tracks brought to the common data time o
 (:func:`service.correlation.prediction.predict_snapshot`).  A :class:`Correlator` turns two
 snapshots into *single decisions* over candidate pairs (:class:`Decisions`): one row per
 candidate, with an accept flag, a cost for the one-to-one assignment and the method's
-statistics.  Everything over time (M-of-N book, registration) lives in
-:mod:`service.correlation.engine`, shared by all methods.
+statistics.  Everything over time (the M-of-N book, the evidence, registration) lives in
+:class:`service.correlation.correlator.PairCorrelator`, shared by all methods.
 
 Expected non-results are values: a candidate that cannot be decided (too few neighbours,
 degenerate fit, ...) carries a :class:`Reason` instead of raising.
@@ -95,12 +95,6 @@ class TrackSnapshot:
             return self.pos_cov
         r = self.site.rotation
         return r.T @ self.pos_cov @ r
-
-    def enu_vel_cov(self) -> FloatArray:
-        if self.site is None:
-            return self.vel_cov
-        r = self.site.rotation
-        return r.T @ self.vel_cov @ r
 
 
 @dataclass(frozen=True)
