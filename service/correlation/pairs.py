@@ -103,7 +103,6 @@ class PairBook:
         #: Counts the changes of the book (:meth:`update`, a new probability column).
         self.version = 0
         self._strong: tuple[int, float, StrongPairs] | None = None
-        self._busy_cache: tuple[tuple[int, int], NDArray[np.str_], NDArray[np.str_]] | None = None
 
     def strong_confirmed(self, min_score: float) -> StrongPairs:
         """The confirmed pairs with ``score >= min_score`` (computed once per book version)."""
@@ -321,21 +320,16 @@ class PairBook:
         }
         self.cols = {k: np.concatenate([v, add[k]]) for k, v in self.cols.items()}
 
-    def _busy(self) -> tuple[NDArray[np.str_], NDArray[np.str_]]:
-        """Each side's tracks in confirmed pairs, sorted (once per book version and confirmed set)."""
-        n = int(np.count_nonzero(self.confirmed))
-        if self._busy_cache is None or self._busy_cache[0] != (self.version, n):
-            conf = self.confirmed
-            self._busy_cache = ((self.version, n), np.sort(self.track_a[conf]), np.sort(self.track_b[conf]))
-        return self._busy_cache[1], self._busy_cache[2]
-
     def _confirm(self, idx: NDArray[np.intp]) -> None:
         """Confirm the pairs ``idx`` whose tracks are in no confirmed pair; among them, conflicts
         are settled by a one-to-one assignment on the score."""
         score = self.hit_fraction
         if idx.size:  # (the busy test only for these: in a steady state they are few)
-            busy_a, busy_b = self._busy()
-            idx = idx[~_isin(self.track_a[idx], busy_a) & ~_isin(self.track_b[idx], busy_b)]
+            conf = self.confirmed
+            idx = idx[
+                ~isin_few(self.track_a[idx], self.track_a[conf])
+                & ~isin_few(self.track_b[idx], self.track_b[conf])
+            ]
         if idx.size:
             ua, ra = np.unique(self.track_a[idx], return_inverse=True)
             ub, rb = np.unique(self.track_b[idx], return_inverse=True)
