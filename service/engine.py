@@ -30,7 +30,7 @@ from service.pipeline.assessment_feed import AssessmentFeed
 from service.pipeline.correlation_process import RemoteCorrelation
 from service.pipeline.correlation_runner import CorrelationRunner, LocalCorrelation
 from service.pipeline.decode import decode_input, plot_columns, reference_columns
-from service.pipeline.errors import RejectionError
+from service.pipeline.errors import RejectionError, unknown_radar
 from service.pipeline.feed import FeedWatch
 from service.pipeline.merger import TableMerger
 from service.pipeline.peers import Peers, finite_or_none
@@ -249,7 +249,7 @@ class Engine:
         item: Any
         if isinstance(batch, PlotBatch):
             if source_id not in self.tracking.radars:
-                raise RejectionError("unknown_radar", f"no site known for radar {source_id!r}", source_id)
+                raise unknown_radar(source_id)
             item, n, kind = plot_columns(batch), len(batch.plots.time_s), RADAR
         else:
             held = self.reference_kinds.get(source_id)

@@ -13,3 +13,8 @@ class RejectionError(Exception):
         self.reason: RejectionReason = reason
         self.detail = detail
         self.source_id = source_id
+
+
+def unknown_radar(radar_id: str) -> RejectionError:
+    """A radar's message before its site (contract: ``unknown_radar``)."""
+    return RejectionError("unknown_radar", f"no site known for radar {radar_id!r}", radar_id)

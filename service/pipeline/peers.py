@@ -25,7 +25,7 @@ import numpy as np
 from service.correlation.registration import RegistrationRowsData
 from service.pipeline.correlation_runner import CorrelationRunner
 from service.pipeline.decode import check_body_id, parse
-from service.pipeline.errors import RejectionError
+from service.pipeline.errors import RejectionError, unknown_radar
 from service.pipeline.merger import TableMerger
 from service.pipeline.sequencer import RADAR, Sequencer
 from service.pipeline.track_exchange import StatesReceiver, StatesSender, decode_states
@@ -335,7 +335,7 @@ class Peers:
         ):
             rid, _, n, key = self._pending_states.popleft()
             self._pending_bytes -= n
-            out.append((key, RejectionError("unknown_radar", f"no site known for radar {rid!r}", rid)))
+            out.append((key, unknown_radar(rid)))
         return tuple(out)
 
     def _apply_states(self, radar_id: str, msg: Any) -> None:
@@ -346,5 +346,5 @@ class Peers:
     def _geometry(self, radar_id: str) -> Any:
         radar = self.tracking.radars.get(radar_id)
         if radar is None:
-            raise RejectionError("unknown_radar", f"no site known for radar {radar_id!r}", radar_id)
+            raise unknown_radar(radar_id)
         return radar.geometry
