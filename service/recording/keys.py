@@ -55,3 +55,12 @@ class KeyFilter:
         if self._key_expr is None:
             return True
         return bool(self._key_expr.intersects(zenoh.KeyExpr(key)))
+
+
+def key_lines(messages_by_key: dict[str, int], bytes_by_key: dict[str, int]) -> list[str]:
+    """A report's per-key lines (recorder and replay alike): messages and bytes, keys aligned."""
+    width = max((len(k) for k in messages_by_key), default=0)
+    return [
+        f"  {key:<{width}}  {messages_by_key[key]:>9} msgs  {bytes_by_key[key]:>12} bytes"
+        for key in sorted(messages_by_key)
+    ]

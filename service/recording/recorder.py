@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from service.recording.keys import key_lines
 from service.recording.writer import RecordingWriter
 from service.transport.ingest_queue import BoundedQueue
 
@@ -68,11 +69,7 @@ class RecordReport:
             f"{len(self.messages_by_key)} keys in {self.duration_s:.1f} s to {self.path} "
             f"({self.file_bytes} bytes on disk), subscribed to {self.key_expr}"
         ]
-        width = max((len(k) for k in self.messages_by_key), default=0)
-        for key in sorted(self.messages_by_key):
-            out.append(
-                f"  {key:<{width}}  {self.messages_by_key[key]:>9} msgs  {self.bytes_by_key[key]:>12} bytes"
-            )
+        out += key_lines(self.messages_by_key, self.bytes_by_key)
         if self.dropped:
             out.append(
                 f"WARNING: {self.dropped} samples DROPPED (queue full; the recording is incomplete): "

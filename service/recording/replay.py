@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
-from service.recording.keys import KeyFilter
+from service.recording.keys import KeyFilter, key_lines
 from service.recording.reader import RecordedMessage, RecordingReader, check_recording, select_channels
 
 #: Progress is shown on replays expected to take longer than this (seconds of wall time) or
@@ -71,11 +71,7 @@ class ReplayReport:
             f"({self.span_s:.1f} s of recording in {self.wall_s:.1f} s, {rate:.0f} msg/s"
             f"{f', {self.passes} passes' if self.passes > 1 else ''})"
         ]
-        width = max((len(k) for k in self.messages_by_key), default=0)
-        for key in sorted(self.messages_by_key):
-            out.append(
-                f"  {key:<{width}}  {self.messages_by_key[key]:>9} msgs  {self.bytes_by_key[key]:>12} bytes"
-            )
+        out += key_lines(self.messages_by_key, self.bytes_by_key)
         if self.interrupted:
             out.append("interrupted before the end of the recording")
         if self.damage:
