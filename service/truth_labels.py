@@ -186,7 +186,8 @@ class TruthLabelledTracker(Tracker):
     def update(self, plots: PlotColumns, time_s: float) -> None:
         self.inner.update(plots, time_s)
         joined = self.inner.joined
-        self.tally.add_chunks([(uid, plots.truth_id) for uid, plots in joined])
+        if np.not_equal(plots.truth_id, _NONE, dtype=bool).any():  # (real radar data: never)
+            self.tally.add_chunks([(uid, p.truth_id) for uid, p in joined])
         self.tally.keep(self.inner.uids)
         for name, codes in self.codes.items():
             codes.add_chunks([(uid, plots.time_s, getattr(plots, name)) for uid, plots in joined])
