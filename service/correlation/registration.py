@@ -25,7 +25,16 @@ tracks of radars ``a`` and ``b`` at one common (reported) time gives
     d = y_a - y_b = G_a b_a - G_b b_b + n,      Cov(n) = P_a + P_b,
 
 and every row's ``v`` is the mean of its two tracks' velocities (the same aircraft), so a time
-bias *common* to ``a`` and ``b`` cancels exactly: ``-v tau_a + v tau_b``.  All pairs of all
+bias *common* to ``a`` and ``b`` cancels exactly: ``-v tau_a + v tau_b``.  A row of a radar with
+a reference takes the *reference's* velocity: a radar track's velocity error is correlated with
+its own position error (the filter pulls both towards each plot, and the prediction to the
+row's time adds ``dt`` times it), so a column made of it correlates with the row's noise,
+``E[v^T W d] = -tau v^T W v + tr(W Cov(e_a, dv_a)) / 2``, and biases the time bias by about
+``-tr(W Cov(e, dv)) / (2 v^T W v)``: -0.04 s for every radar of the three-radar study
+(docs/registration.md), 4-6 sigma.  The reference's velocity (GNSS positions over a baseline)
+is independent of the radar's errors.  Between two radars that term enters only as the
+difference of the two radars' (each radar's own against the other's), and cancels for radars
+of alike track quality.  All pairs of all
 radar pairs are stacked into one weighted least-squares problem in the terms of every radar
 (a bias-free reference source such as ADS-B or AIS has ``b = 0``: its rows fix the terms of
 its radar absolutely), with a weak Gaussian prior ``b ~ N(0, diag(prior^2))`` (Tikhonov;
@@ -390,8 +399,9 @@ class RegistrationRowsData:
     p_a: np.ndarray  # (k, 3) raw ECEF of the A side
     p_b: np.ndarray  # (k, 3)
     s: np.ndarray  # (k, 3, 3) sum of the two position covariances
-    #: (k, 3) the pair's ECEF velocity (mean of its two tracks'; the time-bias column); None:
-    #: not known (rows from a peer that does not send it), zero: its time bias not observed.
+    #: (k, 3) the pair's ECEF velocity (the time-bias column: mean of its two tracks', the
+    #: reference's alone in a row with a reference); None: not known (rows from a peer that
+    #: does not send it), zero: its time bias not observed.
     v: np.ndarray | None = None
 
     def __len__(self) -> int:
@@ -508,9 +518,22 @@ class RegistrationMemory:
             ia, ib = ia[pick], ib[pick]
         self._adds += 1
         id_a, id_b = np.asarray(a.track_id[ia], dtype=str), np.asarray(b.track_id[ib], dtype=str)
-        # Both tracks follow the same aircraft: their mean velocity is the time column of both
-        # sides, so that a time bias common to the two radars cancels exactly (docstring).
-        v = 0.5 * (a.velocity[ia] + b.velocity[ib])
+        if self.site_b is None:
+            # A reference row: its time column is the reference's velocity alone.  A radar
+            # track's velocity error is correlated with its own position error (the filter
+            # pulls both towards each plot; the prediction to the row's time adds dt times
+            # it), so a column made of it correlates with the row's noise and biases the time
+            # bias: E[v^T W d] picks up half of tr(W Cov(e_a, dv_a)), about -0.04 s of every
+            # radar's time bias in the three-radar study (docs/registration.md).  The
+            # reference's velocity (GNSS positions over a baseline) is independent of the
+            # radar's errors.
+            v = np.array(b.velocity[ib], dtype=float)
+        else:
+            # Both tracks follow the same aircraft: their mean velocity is the time column of
+            # both sides, so that a time bias common to the two radars cancels exactly
+            # (docstring); its correlation with the tracks' errors enters only as the
+            # difference of the two radars' (module docstring).
+            v = 0.5 * (a.velocity[ia] + b.velocity[ib])
         return self.add_rows(
             time_s, id_a, id_b, a.position[ia], b.position[ib], a.pos_cov[ia] + b.pos_cov[ib], params, v=v
         )
