@@ -365,9 +365,8 @@ def child_pid(node: Any) -> int | None:
 
 
 def run_variant(args: argparse.Namespace, variant: str) -> dict[str, Any]:
-    import zenoh
-
     from service.pipeline import correlation_process
+    from service.recording.publisher import ZenohReplayPublisher
     from service.transport.node import ServiceNode
     from service.transport.session import ZenohOptions, open_session
 
@@ -400,18 +399,7 @@ def run_variant(args: argparse.Namespace, variant: str) -> dict[str, Any]:
     child = ChildCensus(Path(trace_dir.name))
     node.start()
     client = open_session(ZenohOptions(mode="client", connect=(endpoint,)))
-    publishers: dict[str, Any] = {}
-
-    def publisher(key: str) -> Any:
-        pub = publishers.get(key)
-        if pub is None:
-            pub = publishers[key] = client.declare_publisher(
-                key,
-                encoding=zenoh.Encoding.APPLICATION_JSON,
-                congestion_control=zenoh.CongestionControl.BLOCK,
-                reliability=zenoh.Reliability.RELIABLE,
-            )
-        return pub
+    publishers = ZenohReplayPublisher(client)
 
     samples: list[Sample] = []
     censuses: dict[str, Any] = {}
@@ -460,7 +448,7 @@ def run_variant(args: argparse.Namespace, variant: str) -> dict[str, Any]:
 
     try:
         first = stream.messages[0][1]
-        if not wait_for(lambda: bool(publisher(first).matching_status.matching), 15.0):
+        if not wait_for(lambda: bool(publishers.publisher(first).matching_status.matching), 15.0):
             raise SystemExit("the node's subscriber never matched")
         start = time.monotonic()
         next_sample = 0.0
@@ -481,9 +469,8 @@ def run_variant(args: argparse.Namespace, variant: str) -> dict[str, Any]:
             if kind == "site" and rid in stream.replaces:  # the old id's publishers go
                 old = key[: -len(f"{rid}/site")] + stream.replaces[rid]
                 for gone in (f"{old}/site", f"{old}/plots"):
-                    with contextlib.suppress(Exception):
-                        publishers.pop(gone).undeclare()
-            publisher(key).put(payload)
+                    publishers.forget(gone)
+            publishers.publisher(key).put(payload)
             published += 1
             published_s = time_s - stream.start_s
         publish_end = time.monotonic() - start
@@ -500,9 +487,7 @@ def run_variant(args: argparse.Namespace, variant: str) -> dict[str, Any]:
         dropped = node.queue_status()["dropped"]
         ids_held = len(node.engine.sequencer.sources)
     finally:
-        for pub in publishers.values():
-            with contextlib.suppress(Exception):
-                pub.undeclare()
+        publishers.close()
         client.close()
         node.stop(grace_s=60.0)
     if args.trace_memory:

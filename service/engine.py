@@ -29,7 +29,7 @@ from service.correlation import PairCorrelator
 from service.pipeline.assessment_feed import AssessmentFeed
 from service.pipeline.correlation_process import RemoteCorrelation
 from service.pipeline.correlation_runner import CorrelationRunner, LocalCorrelation
-from service.pipeline.decode import decode_input, plot_columns, reference_columns
+from service.pipeline.decode import decode_input, plot_columns, reference_columns, reference_kind
 from service.pipeline.errors import RejectionError, unknown_radar
 from service.pipeline.feed import FeedWatch
 from service.pipeline.merger import TableMerger
@@ -314,9 +314,9 @@ class Engine:
                 if rel.kind == REFERENCE and rel.expiry:
                     self.correlation.silent(rel.source_id)
                 elif rel.kind == REFERENCE:
-                    kind = "ais" if isinstance(rel.item, AisBatch) else "adsb"
-                    self.assessment.reference(rel.source_id, rel.item, rel.time_s)
-                    self.correlation.reference(rel.source_id, rel.time_s, *reference_columns(rel.item), kind)
+                    kind, cols = reference_kind(rel.item), reference_columns(rel.item)
+                    self.assessment.reference(rel.source_id, kind, cols, rel.item, rel.time_s)
+                    self.correlation.reference(rel.source_id, rel.time_s, *cols, kind)
                 elif rel.source_id in self.tracking.radars:
                     # published with what the correlation answers for it (:meth:`_results`)
                     own = self.partition.owns(rel.source_id)

@@ -13,18 +13,14 @@ import pytest
 import zenoh
 
 from service.transport.session import ZenohOptions, open_session
-from tests.support import free_port
+from tests.support import zenoh_router
 
 
 @pytest.fixture
 def router() -> Iterator[str]:
     """A router-mode Zenoh session on a free loopback port; yields its endpoint."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    session = open_session(ZenohOptions(mode="router", listen=(endpoint,)))
-    try:
+    with zenoh_router() as endpoint:
         yield endpoint
-    finally:
-        session.close()
 
 
 @pytest.fixture

@@ -22,7 +22,7 @@ import zenoh
 from service.api.app import create_app
 from service.engine import Engine, EngineConfig
 from service.transport.node import ServiceNode
-from service.transport.session import ZenohOptions
+from service.transport.session import ZenohOptions, open_session
 from service.wire.outgoing import Outgoing
 
 
@@ -30,6 +30,18 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+@contextlib.contextmanager
+def zenoh_router() -> Iterator[str]:
+    """A router-mode Zenoh session on a free loopback port (multicast scouting off, as every
+    session opened through ``open_session``); yields its endpoint, closes it after."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    session = open_session(ZenohOptions(mode="router", listen=(endpoint,)))
+    try:
+        yield endpoint
+    finally:
+        session.close()
 
 
 def wait_for(predicate: Callable[[], Any], timeout: float = 10.0, interval: float = 0.05) -> Any:

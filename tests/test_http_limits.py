@@ -29,9 +29,8 @@ import pytest
 
 from service.api.limits import PROBE_ROOM, HttpLimits
 from service.settings import Settings, http_limits
-from service.transport.session import ZenohOptions, open_session
 from tests.http_service import Served, closed_by_peer, ensure_open_files, open_idle, served
-from tests.support import free_port, wait_for
+from tests.support import free_port, wait_for, zenoh_router
 
 #: The limits the service runs with here (settings), small enough to be reached quickly.
 CAP = 100
@@ -64,12 +63,9 @@ BIG_FLOOD_S = 4.0
 
 @pytest.fixture(scope="module")
 def router() -> Iterator[str]:
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    session = open_session(ZenohOptions(mode="router", listen=(endpoint,)))
-    try:
+    """One router for the module (tests/conftest.py's is per test)."""
+    with zenoh_router() as endpoint:
         yield endpoint
-    finally:
-        session.close()
 
 
 @pytest.fixture(scope="module")

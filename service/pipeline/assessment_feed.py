@@ -19,7 +19,7 @@ import numpy as np
 
 from service.assessment import Assessment, AssessmentParams, PerformanceView
 from service.geo import Site
-from service.pipeline.decode import reference_columns, reference_identity
+from service.pipeline.decode import reference_identity
 from service.wire.models import AdsbBatch, AisBatch
 
 log = logging.getLogger(__name__)
@@ -60,10 +60,18 @@ class AssessmentFeed:
         except Exception as exc:  # the assessment must never cost the engine a batch
             self._failed(exc)
 
-    def reference(self, source_id: str, batch: AisBatch | AdsbBatch, clock_s: float) -> None:
+    def reference(
+        self,
+        source_id: str,
+        kind: str,
+        columns: tuple[np.ndarray, ...],
+        batch: AisBatch | AdsbBatch,
+        clock_s: float,
+    ) -> None:
+        """A reference batch: its ``kind`` (``ais``, ``adsb``) and ``columns`` as the engine
+        decoded them for the correlation (``decode.reference_columns``), and its identity."""
         try:
-            kind = "ais" if isinstance(batch, AisBatch) else "adsb"
-            t, ids, lat, lon, alt = reference_columns(batch)
+            t, ids, lat, lon, alt = columns
             m3a, fl = reference_identity(batch)
             self.assessment.reference(source_id, kind, t, ids, lat, lon, alt, m3a, fl, clock_s)
         except Exception as exc:

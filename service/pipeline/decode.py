@@ -81,6 +81,11 @@ def plot_columns(batch: PlotBatch) -> ReleasedPlots:
     )
 
 
+def reference_kind(batch: AisBatch | AdsbBatch) -> str:
+    """``ais`` or ``adsb``: the input kind of a reference batch."""
+    return "ais" if isinstance(batch, AisBatch) else "adsb"
+
+
 def reference_columns(batch: AisBatch | AdsbBatch) -> tuple[np.ndarray, ...]:
     """A reference batch's columns ``(report times, ids, latitude, longitude, altitude)`` as
     the correlation stage takes them: one path for AIS and ADS-B, which differ only in the id

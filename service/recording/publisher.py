@@ -22,22 +22,31 @@ class ZenohReplayPublisher:
         self._publishers: dict[str, Any] = {}
 
     def __call__(self, message: RecordedMessage) -> None:
-        publisher = self._publishers.get(message.key)
+        self.publisher(message.key).put(message.payload)
+
+    def publisher(self, key: str) -> Any:
+        """The key's publisher, declared at its first use."""
+        publisher = self._publishers.get(key)
         if publisher is None:
             publisher = self._session.declare_publisher(
-                message.key,
+                key,
                 encoding=zenoh.Encoding.APPLICATION_JSON,
                 congestion_control=zenoh.CongestionControl.BLOCK,
                 reliability=zenoh.Reliability.RELIABLE,
             )
-            self._publishers[message.key] = publisher
-        publisher.put(message.payload)
+            self._publishers[key] = publisher
+        return publisher
 
-    def close(self) -> None:
-        for publisher in self._publishers.values():
+    def forget(self, key: str) -> None:
+        """Undeclare the key's publisher, if any (a source that goes away for good)."""
+        publisher = self._publishers.pop(key, None)
+        if publisher is not None:
             with contextlib.suppress(Exception):  # session already closed: nothing to undeclare
                 publisher.undeclare()
-        self._publishers.clear()
+
+    def close(self) -> None:
+        for key in list(self._publishers):
+            self.forget(key)
 
     def __enter__(self) -> ZenohReplayPublisher:
         return self
