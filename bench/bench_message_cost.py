@@ -381,7 +381,11 @@ GROUPS: list[GroupSpec] = [
             ("      time_gated_pairs", [("service/tracking/pairs.py", "time_gated_pairs")]),
             ("    fit_groups (births)", [("service/tracking/groups.py", "fit_groups")]),
             ("TrackManager.tracks (table)", [("service/tracking/manager.py", "tracks")]),
-            ("truth labels (wrapper, less that)", [("service/truth_labels.py", "update")], MANAGER_UPDATE),
+            (
+                "truth labels (wrapper, less that)",
+                [("service/evaluation/truth.py", "update")],
+                MANAGER_UPDATE,
+            ),
         ],
     ),
     (

@@ -373,12 +373,12 @@ class Backpressure:
 def record_truth_history() -> bool:
     """Record, per tracker and track uid, the runs of plots of one aircraft that joined it.
 
-    Wraps the tally of ``truth_id`` labels (service/truth_labels.py: outside the tracker, which
+    Wraps the tally of ``truth_id`` labels (service/evaluation/truth.py: outside the tracker, which
     never reads them): after each update, each track's joined plots extend its runs
     ``[truth_id, first time, last time, plots]``, kept on the tracker object.
     """
     try:
-        from service.truth_labels import TruthLabelledTracker
+        from service.evaluation.truth import TruthLabelledTracker
     except ImportError:
         return False
     original = TruthLabelledTracker.update

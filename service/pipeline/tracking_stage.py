@@ -28,8 +28,8 @@ def tracker_for(config: Any, epoch: Callable[[], int] = lambda: 0) -> TrackerFac
     """The tracker of each radar: the configured initiator, window and parameters, its track
     ids numbered from the id epoch ``epoch()`` gives when the tracker is made (at the radar's
     first batch; :meth:`Engine.restore_state`)."""
+    from service.evaluation.truth import TruthLabelledTracker
     from service.tracking import make_tracker
-    from service.truth_labels import TruthLabelledTracker
 
     make_tracker(Site("check", 0.0, 0.0), config.window_s, config.initiator, "check", config.tracking)
 

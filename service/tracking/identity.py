@@ -5,14 +5,16 @@ A radar with secondary surveillance reports a Mode 3/A code and, for Mode S, the
 the code of its most recent plot that had one (``TrackBatch`` ``mode_3a`` / ``mode_s``): codes
 change (a squawk is reset, a plot is garbled), and the latest is the one an operator expects.
 The tracker does not read them: it reports which plots joined which track, and
-:class:`LatestCodes` keeps the record here, as :mod:`service.truth_labels` does for the
-simulator's labels.
+:class:`TrackCodes` keeps the record here for the track manager
+(:class:`~service.tracking.manager.TrackManager`), which fills the columns of its tables.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
+
+from service.tracking.base import PlotColumns
 
 _NONE = np.array(None, dtype=object)
 
@@ -85,3 +87,28 @@ class LatestCodes:
         ok = self._uid[at] == uids
         out[ok] = self._code[at[ok]]
         return out
+
+
+class TrackCodes:
+    """The identity codes of a tracker's tracks: Mode 3/A and Mode S, each the latest seen
+    (:class:`LatestCodes`), taken from the plots that joined each track (the tracker's
+    ``joined`` chunks) after every update."""
+
+    NAMES = ("mode_3a", "mode_s")
+
+    def __init__(self) -> None:
+        self._codes = {name: LatestCodes() for name in self.NAMES}
+
+    def add(self, joined: list[tuple[NDArray[np.int64], PlotColumns]]) -> None:
+        """Take the codes of the plots that joined tracks (``(track uids, plots)`` chunks)."""
+        for name, codes in self._codes.items():
+            codes.add_chunks([(uid, plots.time_s, getattr(plots, name)) for uid, plots in joined])
+
+    def keep(self, live: NDArray[np.int64]) -> None:
+        """Forget the tracks not in ``live`` (in bulk, :meth:`LatestCodes.keep`)."""
+        for codes in self._codes.values():
+            codes.keep(live)
+
+    def of(self, uids: NDArray[np.int64]) -> dict[str, NDArray[np.object_]]:
+        """Each code of each track in ``uids`` (None: none seen), by column name."""
+        return {name: codes.of(uids) for name, codes in self._codes.items()}

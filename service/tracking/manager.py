@@ -26,8 +26,9 @@ so a batch that fails part-way leaves the tracker exactly as it was.
 Track ids ``{prefix}-{n}`` count from ``first_number`` (1 unless a restart's epoch says
 otherwise, :func:`~service.tracking.base.first_number`) and are never reused.  Every update
 records which plots joined which track (:attr:`TrackManager.joined`, plots with all their
-columns); the manager itself only carries them.  Per-track labels from the plots (the
-simulator's truth, for evaluation) are kept outside the tracker, by :mod:`service.truth_labels`.
+columns); from them it keeps each track's latest identity codes (Mode 3/A, Mode S:
+:mod:`.identity`), which association never reads.  The simulator's ``truth_id`` labels are
+tallied outside the tracker, by evaluation code (:mod:`service.evaluation.truth`).
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ from service.tracking import kalman
 from service.tracking.assignment import assign
 from service.tracking.base import PlotColumns, Tracker, TrackTable
 from service.tracking.groups import fit_groups
+from service.tracking.identity import TrackCodes
 from service.tracking.initiators import get_initiator
 from service.tracking.measurement import Measurements, plots_to_measurements
 from service.tracking.pairs import cell_counts
@@ -256,12 +258,15 @@ class TrackManager(Tracker):
         #: The plots that joined tracks in the last update, as ``(track uids, plots)`` chunks:
         #: assigned to existing tracks, and the members of newly initiated ones.
         self.joined: Joined = []
+        #: Each track's latest Mode 3/A and Mode S codes (the columns of :meth:`tracks`).
+        self.identity = TrackCodes()
 
     # -- contract ---------------------------------------------------------------------
     def drop_tracks(self) -> None:
         self._tracks = _Tracks.empty()
         self._window.clear()
         self.joined = []
+        self.identity.keep(self._tracks.uid)
 
     @property
     def window_plots(self) -> int:
@@ -345,6 +350,8 @@ class TrackManager(Tracker):
         self._initiated_s = initiated_s
         self._ecef_rotation, self._window_site = rotation, site
         self.last_time_s = max(self.last_time_s, float(time_s))
+        self.identity.add(joined)
+        self.identity.keep(tracks.uid)
 
     def tracks(self) -> TrackTable:
         """The live tracks in ECEF.  Covariances and ids come from the per-track caches (made
@@ -372,7 +379,8 @@ class TrackManager(Tracker):
             vel,
             cov,
             tr.nplots.copy(),
-            np.full(n, None, dtype=object),  # plot labels per track: service.truth_labels
+            np.full(n, None, dtype=object),  # plot labels per track: service.evaluation.truth
+            **self.identity.of(tr.uid),
         )
 
     # -- association ------------------------------------------------------------------

@@ -13,6 +13,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 import service.tracking.manager as manager_module
+from service.evaluation.truth import TruthLabelledTracker
 from service.tracking import make_tracker
 from service.tracking.base import PlotColumns
 from service.tracking.initiators import local_clusters
@@ -21,7 +22,6 @@ from service.tracking.measurement import Measurements, plots_to_measurements
 from service.tracking.pairs import time_gated_pairs
 from service.tracking.params import BoundParams, LogicParams, TrackerParams
 from service.tracking.window import PlotWindow
-from service.truth_labels import TruthLabelledTracker
 from topofusion_lab.evaluation.initiation_monostatic import SITE, MonostaticScenario, simulate
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from service.evaluation.truth import TruthLabelledTracker
 from service.tracking import DEFAULT_WINDOW_S, INITIATORS, make_tracker
-from service.truth_labels import TruthLabelledTracker
 from topofusion_lab.evaluation.initiation_monostatic import SITE, MonostaticScenario, run_monostatic, simulate
 
 

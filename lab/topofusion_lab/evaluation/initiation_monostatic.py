@@ -11,11 +11,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.evaluation.truth import TruthLabelledTracker
 from service.geo import FloatArray, Site, enu_to_polar
 from service.tracking import make_tracker
 from service.tracking.base import PlotColumns, TrackTable
 from service.tracking.params import TrackerParams
-from service.truth_labels import TruthLabelledTracker
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,8 @@ The contract's ``TrackBatch.truth_id`` is the most common ``truth_id`` among a t
 when the plots carry one.  No algorithm may read it, so the tracker never does: it reports
 which plots joined which track (:attr:`service.tracking.manager.TrackManager.joined`), and
 :class:`TruthLabelledTracker` keeps the tally here and writes the label column of the
-tracker's :class:`~service.tracking.base.TrackTable`.
+tracker's :class:`~service.tracking.base.TrackTable`.  Input without ``truth_id`` (real radar
+data) costs one test of each batch's column: the tally stays empty and is never consulted.
 """
 
 from __future__ import annotations
@@ -17,7 +18,6 @@ from numpy.typing import NDArray
 
 from service.geo import Site
 from service.tracking.base import PlotColumns, Tracker, TrackTable
-from service.tracking.identity import LatestCodes
 from service.tracking.manager import TrackManager
 
 _NONE = np.array(None, dtype=object)
@@ -56,6 +56,10 @@ class TruthTally:
         self._lead_uid = np.empty(0, dtype=np.int64)
         self._lead_code = np.empty(0, dtype=np.int64)
         self._lead_count = np.empty(0, dtype=np.int64)
+
+    def __len__(self) -> int:
+        """Tracks with a truth (0: no plot carried one yet)."""
+        return int(self._lead_uid.shape[0])
 
     def _encode(self, truth: NDArray[np.object_], chunk: NDArray[np.int64]) -> NDArray[np.int64]:
         """Integer code per plot, -1 where the plot has no truth; ``chunk``: each plot's chunk
@@ -165,15 +169,13 @@ class TruthTally:
 
 
 class TruthLabelledTracker(Tracker):
-    """A :class:`TrackManager` whose tracks carry the truth of their plots (``truth_id``) and
-    their latest identity codes (``mode_3a``, ``mode_s``: :mod:`service.tracking.identity`),
-    all from the plots that joined each track."""
+    """A :class:`TrackManager` whose tracks carry the truth of their plots (``truth_id``), from
+    the plots that joined each track."""
 
     def __init__(self, inner: TrackManager) -> None:
         self.inner = inner
         super().__init__(inner.site, inner.window_s)
         self.tally = TruthTally()
-        self.codes = {"mode_3a": LatestCodes(), "mode_s": LatestCodes()}
 
     @property
     def site(self) -> Site:
@@ -188,24 +190,20 @@ class TruthLabelledTracker(Tracker):
         joined = self.inner.joined
         if np.not_equal(plots.truth_id, _NONE, dtype=bool).any():  # (real radar data: never)
             self.tally.add_chunks([(uid, p.truth_id) for uid, p in joined])
-        self.tally.keep(self.inner.uids)
-        for name, codes in self.codes.items():
-            codes.add_chunks([(uid, plots.time_s, getattr(plots, name)) for uid, plots in joined])
-            codes.keep(self.inner.uids)
+        if self.tally:
+            self.tally.keep(self.inner.uids)
 
     def drop_tracks(self) -> None:
         self.inner.drop_tracks()
         self.tally.keep(self.inner.uids)
-        for codes in self.codes.values():
-            codes.keep(self.inner.uids)
 
     def tracks(self) -> TrackTable:
         table = self.inner.tracks()
         if not len(table):
             return table
-        uids = self.inner.uids
-        m3a, ms = (codes.of(uids) for codes in self.codes.values())
-        return replace(table, truth_id=self.tally.of(uids), mode_3a=m3a, mode_s=ms)
+        if not self.tally:
+            return table  # (no plot carried a truth_id: the column stays None)
+        return replace(table, truth_id=self.tally.of(self.inner.uids))
 
     @property
     def window_plots(self) -> int:
