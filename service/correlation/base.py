@@ -20,6 +20,7 @@ from enum import IntEnum
 import numpy as np
 from numpy.typing import NDArray
 
+from service.columns import concat_rows, take_rows
 from service.geo import Site
 
 FloatArray = NDArray[np.float64]
@@ -156,25 +157,12 @@ class Decisions:
             return Decisions.empty()
         if len(parts) == 1:
             return parts[0]
-        names = [f for f in Decisions.__dataclass_fields__ if f != "extras"]
-        cols = {f: np.concatenate([getattr(p, f) for p in parts]) for f in names}
         keys = sorted({k for p in parts for k in p.extras})
         extras = {k: np.concatenate([p.extras.get(k, np.full(len(p), np.nan)) for p in parts]) for k in keys}
-        return Decisions(**cols, extras=extras)
+        return concat_rows(Decisions, parts, extras=extras)
 
     def take(self, index: IntArray | BoolArray) -> Decisions:
-        return Decisions(
-            self.index_a[index],
-            self.index_b[index],
-            self.accepted[index],
-            self.reason[index],
-            self.cost[index],
-            self.statistic[index],
-            self.rotation_weight[index],
-            self.scale[index],
-            self.neighbors[index],
-            {k: v[index] for k, v in self.extras.items()},
-        )
+        return take_rows(self, index, extras={k: v[index] for k, v in self.extras.items()})
 
 
 @dataclass(frozen=True)

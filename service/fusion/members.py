@@ -14,6 +14,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from service.columns import concat_rows
 from service.correlation.pairkeys import find
 from service.correlation.pairs import PairBook
 from service.correlation.prediction import PredictionParams, predict_snapshot
@@ -139,4 +140,4 @@ def _concat(parts: list[Members]) -> Members:
             np.empty((0, 3, 3)),
             np.empty((0, 3, 3)),
         )
-    return Members(*(np.concatenate([getattr(p, f) for p in parts]) for f in Members.__dataclass_fields__))
+    return concat_rows(Members, parts)

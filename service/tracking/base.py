@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from service.columns import concat_rows, take_rows
 from service.geo import Site
 
 FloatArray = NDArray[np.float64]
@@ -69,31 +70,11 @@ class PlotColumns:
         return PlotColumns(f, f, f, f, f, np.empty(0, dtype=object))
 
     def take(self, index: NDArray[np.intp] | NDArray[np.bool_]) -> PlotColumns:
-        return PlotColumns(
-            self.time_s[index],
-            self.range_m[index],
-            self.azimuth_deg[index],
-            self.elevation_deg[index],
-            self.altitude_m[index],
-            self.truth_id[index],
-            self.mode_3a[index],
-            self.mode_s[index],
-        )
+        return take_rows(self, index)
 
     @staticmethod
     def concat(parts: list[PlotColumns]) -> PlotColumns:
-        if not parts:
-            return PlotColumns.empty()
-        return PlotColumns(
-            np.concatenate([p.time_s for p in parts]),
-            np.concatenate([p.range_m for p in parts]),
-            np.concatenate([p.azimuth_deg for p in parts]),
-            np.concatenate([p.elevation_deg for p in parts]),
-            np.concatenate([p.altitude_m for p in parts]),
-            np.concatenate([p.truth_id for p in parts]),
-            np.concatenate([p.mode_3a for p in parts]),
-            np.concatenate([p.mode_s for p in parts]),
-        )
+        return concat_rows(PlotColumns, parts) if parts else PlotColumns.empty()
 
 
 @dataclass(frozen=True)
@@ -136,18 +117,7 @@ class TrackTable:
         )
 
     def take(self, index: NDArray[np.intp] | NDArray[np.bool_]) -> TrackTable:
-        return TrackTable(
-            self.track_id[index],
-            self.confirmed[index],
-            self.time_s[index],
-            self.position_ecef_m[index],
-            self.velocity_ecef_mps[index],
-            self.covariance[index],
-            self.plots[index],
-            self.truth_id[index],
-            self.mode_3a[index],
-            self.mode_s[index],
-        )
+        return take_rows(self, index)
 
     def by_id(self) -> TrackTable:
         """The same tracks with rows in ``track_id`` order: the canonical order in which
@@ -162,20 +132,7 @@ class TrackTable:
 
     @staticmethod
     def concat(parts: list[TrackTable]) -> TrackTable:
-        if not parts:
-            return TrackTable.empty()
-        return TrackTable(
-            np.concatenate([p.track_id for p in parts]),
-            np.concatenate([p.confirmed for p in parts]),
-            np.concatenate([p.time_s for p in parts]),
-            np.concatenate([p.position_ecef_m for p in parts]),
-            np.concatenate([p.velocity_ecef_mps for p in parts]),
-            np.concatenate([p.covariance for p in parts]),
-            np.concatenate([p.plots for p in parts]),
-            np.concatenate([p.truth_id for p in parts]),
-            np.concatenate([p.mode_3a for p in parts]),
-            np.concatenate([p.mode_s for p in parts]),
-        )
+        return concat_rows(TrackTable, parts) if parts else TrackTable.empty()
 
 
 class Tracker(ABC):

@@ -1,0 +1,39 @@
+"""Row operations of the columnar tables: dataclasses whose fields are arrays of one length.
+
+One implementation of taking rows and joining tables for every such table (plots, tracks,
+decisions, members), so that a field added to a table is taken and joined without more code.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import fields
+from functools import cache
+from typing import Any, TypeVar
+
+import numpy as np
+
+T = TypeVar("T")
+
+
+@cache
+def column_names(cls: type) -> tuple[str, ...]:
+    """The fields of the table class ``cls``, in order (once per class: :func:`fields` costs
+    more than taking a small table's rows)."""
+    return tuple(f.name for f in fields(cls))
+
+
+def take_rows(table: T, index: Any, **given: Any) -> T:
+    """The rows ``index`` (indices or a mask) of every column of ``table``; a field named in
+    ``given`` takes that value instead (a column that is not an array)."""
+    cls: Any = type(table)
+    cols = (getattr(table, n)[index] for n in column_names(cls) if n not in given)
+    return cls(*cols, **given)
+
+
+def concat_rows(cls: type[T], parts: Sequence[T], **given: Any) -> T:
+    """The rows of ``parts`` (at least one) one after the other, column by column; a field
+    named in ``given`` takes that value instead."""
+    names = column_names(cls)  # type: ignore[arg-type]  # (a class is hashable)
+    cols = (np.concatenate([getattr(p, n) for p in parts]) for n in names if n not in given)
+    return cls(*cols, **given)
