@@ -27,8 +27,8 @@ from typing import Any
 from service.config import EngineConfig
 from service.correlation import PairCorrelator
 from service.pipeline.assessment_feed import AssessmentFeed
-from service.pipeline.correlation_process import RemoteCorrelation
-from service.pipeline.correlation_runner import CorrelationRunner, LocalCorrelation
+from service.pipeline.correlation_process import ChildProcessRunner
+from service.pipeline.correlation_runner import CorrelationRunner, InProcessRunner
 from service.pipeline.decode import decode_input, plot_columns, reference_columns, reference_kind
 from service.pipeline.errors import RejectionError, unknown_radar
 from service.pipeline.feed import FeedWatch
@@ -72,7 +72,7 @@ class Engine:
         #: The track-id epoch (:meth:`restore_state`): 0 unless a state directory says otherwise.
         self.epoch = 0
         self.tracking = TrackingStage(tracker_factory or tracker_for(c, lambda: self.epoch), c.site)
-        runner = RemoteCorrelation if correlation_process else LocalCorrelation
+        runner = ChildProcessRunner if correlation_process else InProcessRunner
         self.correlation: CorrelationRunner = runner(
             c.method, c.cadence, c.reference, c.correlation, c.partition
         )
@@ -93,9 +93,9 @@ class Engine:
             self._set_site(site)
 
     # -- views of the stages' state (tests, evaluation, diagnostics) ------------------------------
-    def correlators(self) -> list[PairCorrelator]:
+    def pair_correlators(self) -> list[PairCorrelator]:
         """The live pair correlators (none in this process when the correlation runs in its own)."""
-        return self.correlation.correlators()
+        return self.correlation.pair_correlators()
 
     def close(self) -> None:
         """Stop the correlation process, if any (the engine's only resource)."""

@@ -26,7 +26,7 @@ def held_for(engine: Engine, source_id: str) -> dict[str, Any]:
     stage = engine.correlation.stage  # type: ignore[attr-defined]  (in-process correlation)
     radar = engine.tracking.radars.get(source_id)
     return {
-        "correlators": sorted(k for k in stage.correlators if source_id in k),
+        "correlators": sorted(k for k in stage.pair_correlators if source_id in k),
         "views": sorted(k for k in engine.publication.views if source_id in k),
         "table": source_id in engine.publication.tables and len(engine.publication.tables[source_id][1]) > 0,
         "tracks": 0 if radar is None else len(radar.table),
@@ -64,7 +64,7 @@ def test_a_radar_silent_past_its_forget_time_leaves_nothing_and_comes_back_clean
     # back: tracked and paired again, with track ids never given before
     after = {tr["track_id"] for tr in _tracks(engine, "C")}
     assert after and not after & ids_before
-    assert {k for k in engine.correlation.stage.correlators if "C" in k} == {("A", "C"), ("B", "C")}  # type: ignore[attr-defined]
+    assert {k for k in engine.correlation.stage.pair_correlators if "C" in k} == {("A", "C"), ("B", "C")}  # type: ignore[attr-defined]
     c_pairs = [
         ps for ps in engine.snapshot().pair_sets(status="confirmed") if "C" in (ps["radar_a"], ps["radar_b"])
     ]
@@ -98,7 +98,7 @@ def test_radar_ids_that_come_and_go_do_not_grow_what_the_engine_holds() -> None:
         engine.ingest(key, payload)
         stage = engine.correlation.stage  # type: ignore[attr-defined]
         most = max(
-            most, len(stage.correlators), len(engine.publication.views), len(engine.publication.tables)
+            most, len(stage.pair_correlators), len(engine.publication.views), len(engine.publication.tables)
         )
     engine.flush()
     retired = {sid for sid, s in engine.sequencer.sources.items() if s.expired}

@@ -101,7 +101,7 @@ def test_parameters_reach_the_stages() -> None:
         tuned.ingest(key, payload)
     radars = capped.snapshot().status_core()["radars"]
     assert all(r["window_plots"] <= 40 and r["window_evicted"] > 0 for r in radars)
-    (corr,) = tuned.correlators()
+    (corr,) = tuned.pair_correlators()
     assert corr.params.registration.min_pairs == 7
     assert tuned.correlation.stage.params.cadence_scans == 3.0  # type: ignore[attr-defined]
 

@@ -6,7 +6,7 @@ import json
 from typing import Any
 
 from service.engine import Engine, EngineConfig
-from service.pipeline.correlation_process import RemoteCorrelation
+from service.pipeline.correlation_process import ChildProcessRunner
 from tests.scenario_helpers import scenario_messages
 from topofusion_lab.evaluation.promptness import OutputMonitor
 
@@ -78,7 +78,7 @@ def test_a_killed_correlation_process_is_restarted_and_reported() -> None:
         for key, payload in stream[:third]:
             engine.ingest(key, payload)
         remote = engine.correlation
-        assert isinstance(remote, RemoteCorrelation)
+        assert isinstance(remote, ChildProcessRunner)
 
         def system_ids() -> set[str]:
             return {t["system_track_id"] for t in engine.snapshot().system_tracks("all")["system_tracks"]}
@@ -116,7 +116,7 @@ def test_a_ctrl_c_to_the_process_group_leaves_the_child_to_its_parent() -> None:
     engine = Engine(EngineConfig(), correlation_process=True)
     try:
         remote = engine.correlation
-        assert isinstance(remote, RemoteCorrelation)
+        assert isinstance(remote, ChildProcessRunner)
         for key, payload in stream[: len(stream) // 2]:
             engine.ingest(key, payload)
         engine.flush()  # the child has started and answered

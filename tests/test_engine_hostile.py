@@ -163,12 +163,12 @@ def test_a_real_move_reregisters_only_that_radars_pairs() -> None:
     engine = Engine()
     for key, payload in stream:
         engine.ingest(key, payload)
-    before = {k: (c, c.book, c.memory) for k, c in engine.correlation.stage.correlators.items()}
+    before = {k: (c, c.book, c.memory) for k, c in engine.correlation.stage.pair_correlators.items()}
     assert set(before) == {("A", "B"), ("A", "C"), ("B", "C")}
     site_c = json.loads(next(p for k, p in stream if k == "fusion/radar/C/site"))
     moved = {**site_c, "latitude_deg": site_c["latitude_deg"] + 0.01}  # 1.1 km
     engine.ingest("fusion/radar/C/site", json.dumps(moved).encode())
-    after = engine.correlation.stage.correlators
+    after = engine.correlation.stage.pair_correlators
     assert after[("A", "B")] is before[("A", "B")][0]  # untouched
     for key in (("A", "C"), ("B", "C")):
         assert after[key].book is before[key][1]  # the pairs are kept...
@@ -203,7 +203,7 @@ def test_many_fake_radar_ids_cost_nothing(stream: Stream, baseline: tuple[Engine
     engine, out = run_engine(insert_after(stream, i, extra))
     assert errors(out) == []
     assert results(engine) == results(baseline[0])
-    assert set(engine.correlation.stage.correlators) == {("A", "B")}
+    assert set(engine.correlation.stage.pair_correlators) == {("A", "B")}
     assert engine.correlation.stage.updates == baseline[0].correlation.stage.updates
     assert engine.sequencer.sources["A042"].batches == 1
 

@@ -6,7 +6,7 @@ Methods (``METHODS``): ``svd-topology`` (default; Wu, Jiang, Ren 2011), ``basic-
 :meth:`PairCorrelator.update`; :func:`estimate_biases` registers all radars jointly.
 """
 
-from service.correlation.base import Correlator, DecisionContext, Decisions, Reason, TrackSnapshot
+from service.correlation.base import CorrelationMethod, DecisionContext, Decisions, Reason, TrackSnapshot
 from service.correlation.correlator import (
     METHODS,
     CorrelationParams,
@@ -19,8 +19,8 @@ from service.correlation.registration import RadarBias, RegistrationParams
 
 __all__ = [
     "METHODS",
+    "CorrelationMethod",
     "CorrelationParams",
-    "Correlator",
     "DecisionContext",
     "Decisions",
     "PairBookParams",

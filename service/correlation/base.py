@@ -1,7 +1,7 @@
 """The small contract every correlation method implements (pure numpy).
 
 A :class:`TrackSnapshot` is one radar's tracks brought to the common data time of an update
-(:func:`service.correlation.prediction.predict_snapshot`).  A :class:`Correlator` turns two
+(:func:`service.correlation.prediction.predict_snapshot`).  A :class:`CorrelationMethod` turns two
 snapshots into *single decisions* over candidate pairs (:class:`Decisions`): one row per
 candidate, with an accept flag, a cost for the one-to-one assignment and the method's
 statistics.  Everything over time (the M-of-N book, the evidence, registration) lives in
@@ -176,7 +176,7 @@ class DecisionContext:
     currently confirmed pairs (for priors).  ``reference_a``/``reference_b``: the rows of A and
     of B that may form candidate pairs (None: every row); the other rows still count as
     neighbours of a reference.  A caller restricts them only for a method that re-verified
-    the rest (:meth:`Correlator.reverify`); a method without a ``reverify`` may ignore them.
+    the rest (:meth:`CorrelationMethod.reverify`); a method without a ``reverify`` may ignore them.
     """
 
     time_s: float
@@ -189,7 +189,7 @@ class DecisionContext:
     reference_b: IntArray | None = None
 
 
-class Correlator(ABC):
+class CorrelationMethod(ABC):
     """One correlation method: two snapshots in, single decisions over candidates out.
 
     Implementations are deterministic functions of their inputs and parameters; state over

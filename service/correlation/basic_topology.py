@@ -33,7 +33,7 @@ from scipy.stats import chi2
 
 from service.correlation.base import (
     BoolArray,
-    Correlator,
+    CorrelationMethod,
     DecisionContext,
     Decisions,
     FloatArray,
@@ -214,7 +214,7 @@ def basic_match(
     )
 
 
-class BasicTopologyCorrelator(Correlator):
+class BasicTopologyCorrelator(CorrelationMethod):
     """Method ``basic-topology``: the paper's stepwise-rotation baseline."""
 
     name = "basic-topology"

@@ -8,10 +8,10 @@ Per :meth:`PairCorrelator.update` (all in data time, deterministic):
    snapshots are bias-compensated with the current estimate before any test; the topology
    match then sees almost no residual rotation, and absolute chi-square tests become valid.
    (Only for ``svd-topology``; ``basic-topology`` and ``nearest`` run as published.)
-3. The method's single decisions (:class:`~.base.Correlator`); candidates that are
+3. The method's single decisions (:class:`~.base.CorrelationMethod`); candidates that are
    currently confirmed pairs get a cost bonus ``confirmed_bonus`` (history as a prior).
    Once registered, the confirmed pairs whose two tracks are present are first re-checked by
-   the method's cheap test (:meth:`~.base.Correlator.reverify`; ``svd-topology``: the
+   the method's cheap test (:meth:`~.base.CorrelationMethod.reverify`; ``svd-topology``: the
    bias-compensated chi-square of position and velocity, stage 3).  The pairs that pass are
    kept as single decisions of their own, and the method's full decision runs only for the
    other tracks (``DecisionContext.reference_a``/``reference_b``; every track stays a
@@ -59,7 +59,7 @@ from service.correlation.assignment import assign_unambiguous
 from service.correlation.base import (
     NO_DECISION_REASONS,
     Basis,
-    Correlator,
+    CorrelationMethod,
     DecisionContext,
     Decisions,
     Reason,
@@ -130,7 +130,7 @@ class CorrelationParams:
 
 #: Each method's correlator, built from its section of :class:`CorrelationParams`.  The names
 #: are the contract's method names (the wire vocabulary; a test holds the two equal).
-CORRELATORS: dict[str, Callable[[CorrelationParams], Correlator]] = {
+CORRELATORS: dict[str, Callable[[CorrelationParams], CorrelationMethod]] = {
     "svd-topology": lambda p: SvdTopologyCorrelator(p.svd),
     "basic-topology": lambda p: BasicTopologyCorrelator(p.basic),
     "nearest": lambda p: NearestCorrelator(p.nearest),
@@ -140,7 +140,7 @@ CORRELATORS: dict[str, Callable[[CorrelationParams], Correlator]] = {
 METHODS: tuple[str, ...] = tuple(CORRELATORS)
 
 
-def make_correlator(method: str, params: CorrelationParams) -> Correlator:
+def make_correlator(method: str, params: CorrelationParams) -> CorrelationMethod:
     try:
         return CORRELATORS[method](params)
     except KeyError:

@@ -1,4 +1,4 @@
-"""Adapters putting the whole-picture methods ``gmm`` and ``cfar`` behind :class:`~.base.Correlator`.
+"""Adapters putting the whole-picture methods ``gmm`` and ``cfar`` behind :class:`~.base.CorrelationMethod`.
 
 Both are pure functions written elsewhere (:mod:`service.correlation.gmm`,
 :mod:`service.correlation.cfar`) that take positions in one plane and return one-to-one
@@ -21,7 +21,14 @@ from numpy.typing import ArrayLike
 from scipy.stats import chi2
 
 from service.correlation import cfar, gmm
-from service.correlation.base import Correlator, DecisionContext, Decisions, IntArray, Reason, TrackSnapshot
+from service.correlation.base import (
+    CorrelationMethod,
+    DecisionContext,
+    Decisions,
+    IntArray,
+    Reason,
+    TrackSnapshot,
+)
 from service.geo import Site, enu_to_polar
 
 
@@ -41,7 +48,7 @@ def _all_accepted(index_a: ArrayLike, index_b: ArrayLike, cost: ArrayLike, stati
     )
 
 
-class GmmCorrelator(Correlator):
+class GmmCorrelator(CorrelationMethod):
     """Method ``gmm`` (Li, Dong, Ding, Guan): GMM / Coherent-Point-Drift anti-bias association.
 
     Both track sets in radar A's ENU plane, with their position covariances (they bound the
@@ -103,7 +110,7 @@ class GmmCorrelator(Correlator):
         )
 
 
-class CfarCorrelator(Correlator):
+class CfarCorrelator(CorrelationMethod):
     """Method ``cfar`` (Qi, Cui, Xiong, Wang): CA-CFAR confidential pairs, LS bias, 2nd association.
 
     Both sets as ``[range, azimuth]`` in radar A's polar frame with their covariances there

@@ -17,7 +17,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from service.correlation.base import (
-    Correlator,
+    CorrelationMethod,
     DecisionContext,
     Decisions,
     FloatArray,
@@ -88,7 +88,7 @@ def nearest_decide(
     )
 
 
-class NearestCorrelator(Correlator):
+class NearestCorrelator(CorrelationMethod):
     """Method ``nearest``: candidates by the ECEF gate, then the chi-square test above."""
 
     name = "nearest"

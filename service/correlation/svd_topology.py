@@ -68,7 +68,7 @@ from numpy.typing import NDArray
 
 from service.correlation.base import (
     BoolArray,
-    Correlator,
+    CorrelationMethod,
     DecisionContext,
     Decisions,
     FloatArray,
@@ -610,7 +610,7 @@ def _velocity_compatible(
     return ~ok | (q <= chi2_upper(prm.velocity_prefilter_alpha, 2))
 
 
-class SvdTopologyCorrelator(Correlator):
+class SvdTopologyCorrelator(CorrelationMethod):
     """Method ``svd-topology``: the topology match above, plus, once registered, stage 2."""
 
     name = "svd-topology"

@@ -1,13 +1,13 @@
 """The correlation stage in a child process: tracking and correlation on two cores at once.
 
 The engine feeds its correlation stage in release order (a radar's tracks after each batch,
-reference reports, site moves, departures).  :class:`RemoteCorrelation` takes the same calls
+reference reports, site moves, departures).  :class:`ChildProcessRunner` takes the same calls
 and sends each as a message down a pipe to a child process that owns a
 :class:`~service.pipeline.correlation_stage.CorrelationStage`; the child answers every message
 with what it changed (the views of the pairs it updated, the biases when it re-solved them, its
 timings).  The child sees the same inputs in the same order as an in-process stage, so the pairs
 and biases are the same, bit for bit; they only arrive later: the pair sets a batch updates are
-handed out by a later call, and :meth:`RemoteCorrelation.finish` waits for all of them.
+handed out by a later call, and :meth:`ChildProcessRunner.finish` waits for all of them.
 
 At most ``max_in_flight`` messages are sent and not yet answered: when correlation falls
 behind, tracking waits for it (memory stays bounded, nothing is dropped).  If the child dies, it is started
@@ -67,7 +67,7 @@ def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
     answers.close()
 
 
-class RemoteCorrelation(Answers):
+class ChildProcessRunner(Answers):
     """A :class:`CorrelationStage` in a child process, behind the same calls."""
 
     def __init__(
@@ -302,7 +302,7 @@ class RemoteCorrelation(Answers):
     def timings(self) -> dict[str, Any]:
         return dict(self._timings)
 
-    def correlators(self) -> list[PairCorrelator]:
+    def pair_correlators(self) -> list[PairCorrelator]:
         """None in this process: the child holds them."""
         return []
 

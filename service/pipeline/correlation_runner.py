@@ -3,8 +3,8 @@
 The engine feeds the :class:`~.correlation_stage.CorrelationStage` in release order (a radar's
 tracks after each batch, reference reports, site moves, departures) and takes back what each
 call changed as an :class:`Answer`: the views of the pairs it updated, the biases when it
-re-solved them, the system tracks when it rebuilt them, a failure.  :class:`LocalCorrelation`
-answers every call at once; :class:`~.correlation_process.RemoteCorrelation` sends each to a
+re-solved them, the system tracks when it rebuilt them, a failure.  :class:`InProcessRunner`
+answers every call at once; :class:`~.correlation_process.ChildProcessRunner` sends each to a
 child process (tracking and correlation on two cores at once) and its answers come later.
 Both keep the answers in one :class:`Answers` book, so the engine reads them alike
 (:class:`CorrelationRunner`): the results are the same bit for bit, only their time differs.
@@ -132,11 +132,11 @@ class CorrelationRunner(Protocol):
     def restore_state(
         self, state: Mapping[str, Any] | None, epoch: int, sites: Mapping[str, Site]
     ) -> None: ...
-    def correlators(self) -> list[PairCorrelator]: ...
+    def pair_correlators(self) -> list[PairCorrelator]: ...
     def close(self) -> None: ...
 
 
-class LocalCorrelation(Answers):
+class InProcessRunner(Answers):
     """The stage in this process: every call answered at once."""
 
     def __init__(self, *stage_args: Any) -> None:
@@ -191,8 +191,8 @@ class LocalCorrelation(Answers):
         self.stage.restore_state(state, epoch, sites)
         self.biases = self.stage.biases
 
-    def correlators(self) -> list[PairCorrelator]:
-        return list(self.stage.correlators.values())
+    def pair_correlators(self) -> list[PairCorrelator]:
+        return list(self.stage.pair_correlators.values())
 
     def close(self) -> None:
         pass

@@ -175,7 +175,7 @@ class CorrelationStage:
         self.params = params or CadenceParams()
         self.reference_params = reference or ReferenceParams()
         self.correlation_params = correlation or CorrelationParams()
-        self.correlators: dict[tuple[str, str], PairCorrelator] = {}
+        self.pair_correlators: dict[tuple[str, str], PairCorrelator] = {}
         self.views: dict[tuple[str, str], PairSetView] = {}
         self.next_due: dict[tuple[str, str], float] = {}
         #: Per pair not due: the ids of each side's tracks confirmed since its last update or
@@ -238,8 +238,8 @@ class CorrelationStage:
         self._radars.pop(source_id, None)
         self._references.pop(source_id, None)
         self._silent.discard(source_id)
-        for key in [k for k in self.correlators if source_id in k]:
-            del self.correlators[key]
+        for key in [k for k in self.pair_correlators if source_id in k]:
+            del self.pair_correlators[key]
             self.views.pop(key, None)
             self.next_due.pop(key, None)
             self._undecided.pop(key, None)
@@ -255,14 +255,14 @@ class CorrelationStage:
         """
         if site.site_id in self._radars:
             self._radars[site.site_id] = (site, self._radars[site.site_id][1])
-        for key, old in list(self.correlators.items()):
+        for key, old in list(self.pair_correlators.items()):
             if site.site_id not in key:
                 continue
             a = site if old.site_a.site_id == site.site_id else old.site_a
             b = site if old.site_b is not None and old.site_b.site_id == site.site_id else old.site_b
             new = PairCorrelator(old.method, a, b, old.params)  # same parameters, new geometry
             new.book = old.book
-            self.correlators[key] = new
+            self.pair_correlators[key] = new
         for key in [k for k in self.mirrors if site.site_id in k]:
             del self.mirrors[key]  # its owner re-registers it from scratch too
 
@@ -277,7 +277,7 @@ class CorrelationStage:
         self, key: tuple[str, str], site_a: Site, site_b: Site | None, rows: RegistrationRowsData
     ) -> None:
         """Rows another worker's pair ``key`` added (``site_b`` None: a reference source)."""
-        if not self._solves or key in self.correlators:
+        if not self._solves or key in self.pair_correlators:
             return
         mirror = self.mirrors.get(key)
         if mirror is None:
@@ -355,7 +355,7 @@ class CorrelationStage:
         own_now: np.ndarray | None = None
         for other in others:
             key = (min(radar.source_id, other.source_id), max(radar.source_id, other.source_id))
-            corr = self.correlators.get(key)
+            corr = self.pair_correlators.get(key)
             if corr is None and not self.partition.owns_pair(*key):
                 continue
             if time_s < self.next_due.get(key, -np.inf):
@@ -387,7 +387,7 @@ class CorrelationStage:
             if corr is None:
                 method = self.method if second.geometry is not None else REFERENCE_METHOD
                 assert first.geometry is not None
-                corr = self.correlators[key] = PairCorrelator(
+                corr = self.pair_correlators[key] = PairCorrelator(
                     method, first.geometry, second.geometry, self.correlation_params
                 )
                 self._adopt(key, corr)
@@ -451,7 +451,7 @@ class CorrelationStage:
     def _system(self, time_s: float) -> None:
         """Rebuild the system tracks at ``time_s`` (:mod:`service.fusion`)."""
         books = []
-        for (s1, s2), corr in sorted(self.correlators.items()):
+        for (s1, s2), corr in sorted(self.pair_correlators.items()):
             first = corr.site_a.site_id
             books.append((first, s2 if s1 == first else s1, corr.book))
         references = {
@@ -476,11 +476,11 @@ class CorrelationStage:
         prm = self.correlation_params.cycles
         if not (prm.enabled and self.partition.whole):
             return None
-        return implied_for(key, self.correlators, prm.min_strength)
+        return implied_for(key, self.pair_correlators, prm.min_strength)
 
     def finish(self) -> None:
         """End of the input: the joint bias estimate at the last update's data time."""
-        times = [c.time_s for c in self.correlators.values() if np.isfinite(c.time_s)]
+        times = [c.time_s for c in self.pair_correlators.values() if np.isfinite(c.time_s)]
         times += [float(m.memory.time[-1]) for m in self.mirrors.values() if len(m.memory)]
         if times and self._solves:
             self._solve_biases(max(times))
@@ -495,7 +495,7 @@ class CorrelationStage:
         # In key order: one worker and the bias worker of N sum the same rows in the same order.
         everything: dict[tuple[str, str], PairCorrelator | MirroredPair] = {
             **self.mirrors,
-            **self.correlators,
+            **self.pair_correlators,
         }
         pairs = [everything[k] for k in sorted(everything)]
         joint = joint_solution(pairs, time_s, self.correlation_params.registration, self._joint)
@@ -534,7 +534,7 @@ class CorrelationStage:
         tracks and the sources' tables are not kept: the input that follows rebuilds them.
         Plain values and numpy arrays; the arrays are views that later input leaves as they are."""
         memories = {k: p.memory for k, p in self.mirrors.items()}
-        memories.update({k: c.memory for k, c in self.correlators.items()})
+        memories.update({k: c.memory for k, c in self.pair_correlators.items()})
         return {
             "memories": [
                 {
@@ -552,7 +552,7 @@ class CorrelationStage:
 
     def continue_numbers(self, number: int) -> None:
         """New system tracks numbered from ``number`` on (a correlation process started afresh:
-        :class:`~service.pipeline.correlation_process.RemoteCorrelation`)."""
+        :class:`~service.pipeline.correlation_process.ChildProcessRunner`)."""
         self.system_tracker.continue_from(number)
 
     def restore_state(self, state: Mapping[str, Any] | None, epoch: int, sites: Mapping[str, Site]) -> None:

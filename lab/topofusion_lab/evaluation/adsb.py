@@ -40,7 +40,7 @@ Scoring (evaluation only: by the simulator's truth), per radar, on the final sna
 Through each run the same scoring at every :data:`CHECK_S` of data time gives completeness and
 false rate pooled over the run, and against age (time since both the radar track was confirmed
 and the address heard) for the figure; every ``cfar`` update of a radar with the ADS-B source
-is watched (``Engine.correlators``): how many pairs it decided against the confirmed pairs.
+is watched (``Engine.pair_correlators``): how many pairs it decided against the confirmed pairs.
 """
 
 from __future__ import annotations
@@ -428,7 +428,7 @@ def run_one(job: Job) -> RunResult:
 
     def watch_updates() -> None:
         """Each radar-ADS-B correlator's updates: decided pairs and the confirmed pairs before."""
-        for c in engine.correlators():
+        for c in engine.pair_correlators():
             if c.site_b is not None:
                 continue
             rid = c.site_a.site_id

@@ -46,7 +46,7 @@ def run_registration(seed: int, duration_s: float = 600.0, scenario: str = "two-
     for key, payload in wire_messages(sc, seed):
         engine.ingest(key, payload, receive_time_s=0.0)
     engine.flush()
-    memories = [c.memory for c in engine.correlators() if len(c.memory)]
+    memories = [c.memory for c in engine.pair_correlators() if len(c.memory)]
     truth = {
         r.radar_id: np.array([r.range_bias_m, r.azimuth_bias_deg, r.elevation_bias_deg]) for r in sc.radars
     }
