@@ -472,7 +472,3 @@ def decode_datagram(data: bytes, out: Decoded, max_records: int | None = None) -
                 left -= len(records) - before
         pos += length
 
-
-def decode_stream(data: bytes, out: Decoded) -> None:
-    """Decode raw concatenated data blocks (e.g. a recorded file): the same walk as a datagram."""
-    decode_datagram(data, out)

@@ -143,17 +143,6 @@ def sort_by_azimuth(z: FloatArray, mask: NDArray[np.bool_]) -> NDArray[np.intp]:
     return np.argsort(np.where(mask, az, np.inf), axis=-1, kind="stable")
 
 
-def topology_sequences(
-    enu: FloatArray, params: TopologyParams | None = None
-) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """Every track's topology sequence ``z_i = x_i - x_0`` sorted by azimuth: ``(n, K, 3)`` and mask."""
-    nb = neighbourhoods(enu, params)
-    mask = nb >= 0
-    z = np.where(mask[..., None], enu[np.maximum(nb, 0)] - enu[:, None, :], 0.0)
-    order = sort_by_azimuth(z, mask)
-    return np.take_along_axis(z, order[..., None], axis=1), np.take_along_axis(mask, order, axis=1)
-
-
 def gather_points(
     enu: FloatArray, cov: FloatArray, nbr: NDArray[np.intp], ref: NDArray[np.intp], trim: bool = False
 ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:

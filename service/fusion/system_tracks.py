@@ -217,10 +217,6 @@ class SystemTracker:
         self._since = np.empty(0)  # when each joined the picture (data s)
         self._next = first_number(epoch)
 
-    @property
-    def next_number(self) -> int:
-        return self._next
-
     def continue_from(self, number: int) -> None:
         """Number new system tracks from ``number`` on (if above the next one): a correlation
         process started afresh goes on from the numbers its predecessor published."""

@@ -6,7 +6,7 @@ import numpy as np
 
 from service.correlation.candidates import candidate_pairs
 from service.correlation.prediction import predict_states
-from service.correlation.topology import TopologyParams, neighbourhoods, topology_sequences
+from service.correlation.topology import TopologyParams, neighbourhoods, sort_by_azimuth
 from tests.reference_forms import brute_force_neighbours
 
 
@@ -23,7 +23,13 @@ def test_neighbourhoods_match_brute_force() -> None:
 def test_sequences_sorted_by_azimuth() -> None:
     rng = np.random.default_rng(1)
     pts = rng.uniform(0, 20_000, (30, 3))
-    z, mask = topology_sequences(pts, TopologyParams(max_neighbours=8))
+    nb = neighbourhoods(pts, TopologyParams(max_neighbours=8))
+    mask = nb >= 0
+    # each track's topology sequence z_i = x_i - x_0 (the basic method's, basic_topology.py)
+    z = np.where(mask[..., None], pts[np.maximum(nb, 0)] - pts[:, None, :], 0.0)
+    order = sort_by_azimuth(z, mask)
+    z, mask = np.take_along_axis(z, order[..., None], axis=1), np.take_along_axis(mask, order, axis=1)
+    assert mask.sum() > len(pts)  # (neighbours to sort)
     az = np.mod(np.arctan2(z[..., 0], z[..., 1]), 2 * np.pi)
     for i in range(len(pts)):
         a = az[i][mask[i]]

@@ -109,7 +109,9 @@ def test_numbers_follow_the_aircraft_and_are_never_reused() -> None:
     m3 = members(["A", "B"], ["2", "9"])
     s3 = tracker.update(m3, np.array([], dtype=np.int64), np.array([], dtype=np.int64), np.array([]))
     assert s3.number.tolist() == [1, 3]  # A2 keeps 1; B9 is new: 3, not 2
-    assert tracker.next_number == 4
+    m4 = members(["A", "B", "C"], ["2", "9", "4"])
+    s4 = tracker.update(m4, np.array([], dtype=np.int64), np.array([], dtype=np.int64), np.array([]))
+    assert s4.number.tolist() == [1, 3, 4]  # C4 is new: the next number, 4
 
 
 def test_a_split_keeps_the_number_with_the_larger_part() -> None:
