@@ -233,7 +233,7 @@ class Run:
 
 def f_state(engine: Engine) -> tuple[int, int, int]:
     """F's window plots, tracks and confirmed tracks (0 before F's first batch)."""
-    radar = engine.tracking.radars.get(FLOODER)
+    radar = engine.tracking.tracked.get(FLOODER)
     if radar is None or radar.tracker is None:
         return 0, 0, 0
     return radar.tracker.window_plots, len(radar.table), int(np.count_nonzero(radar.table.confirmed))
@@ -277,7 +277,7 @@ def run(
                 f_s += b - a
                 f_outputs += len(out)
                 if trace and key == F_PLOTS_KEY:
-                    tracker = engine.tracking.radars[FLOODER].tracker
+                    tracker = engine.tracking.tracked[FLOODER].tracker
                     traced.append(((b - a) * 1e3, tracker.window_plots if tracker is not None else 0))
             else:
                 a = clock()

@@ -839,7 +839,7 @@ def explain_false(engine: Engine, snap: Snapshot, sc: Scenario) -> None:
     periods = {r.radar_id: r.scan_period_s for r in sc.radars}
     end = max((t for t, _ in snap.tracks.values()), default=0.0)
     tracks: dict[tuple[str, str], tuple[list[list[Any]], np.ndarray, float]] = {}
-    for rid, radar in engine.tracking.radars.items():
+    for rid, radar in engine.tracking.tracked.items():
         tracker: Any = radar.tracker
         runs = getattr(tracker, "__dict__", {}).get("bench_truth_runs") if tracker is not None else None
         if runs is None:

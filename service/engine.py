@@ -129,7 +129,7 @@ class Engine:
         is not one raises (``KeyError``, ``TypeError``, ``ValueError``) and changes nothing.
         """
         sites, sources, kinds, published = read_state(state, {site.radar_id for site in self.config.sites})
-        geometries = {rid: r.geometry for rid, r in self.tracking.radars.items()}
+        geometries = {rid: r.geometry for rid, r in self.tracking.tracked.items()}
         geometries.update({site.radar_id: to_geometry(site) for site in sites})
         self.correlation.restore_state(None if state is None else state.correlation, epoch, geometries)
         # from here on nothing raises
@@ -222,7 +222,7 @@ class Engine:
         out = self._drop(self.sequencer.announce(site.radar_id, RADAR)) if owns else []
         change = self.tracking.set_site(site)
         if change is SiteChange.MOVED:
-            self.correlation.moved(self.tracking.radars[site.radar_id].geometry)
+            self.correlation.moved(self.tracking.tracked[site.radar_id].geometry)
         if change is not SiteChange.SAME:
             self._snapshot = None
         self.peers.site_known(site.radar_id)
@@ -248,7 +248,7 @@ class Engine:
         decoded: checked against the sources, then accepted by the sequencer."""
         item: Any
         if isinstance(batch, PlotBatch):
-            if source_id not in self.tracking.radars:
+            if source_id not in self.tracking.tracked:
                 raise unknown_radar(source_id)
             item, n, kind = plot_columns(batch), len(batch.plots.time_s), RADAR
         else:
@@ -298,10 +298,10 @@ class Engine:
         if plots is None:
             if not self.tracking.expire(radar_id, clock):
                 return []
-            table = self.tracking.radars[radar_id].table
+            table = self.tracking.tracked[radar_id].table
         else:
             table = self.tracking.update(radar_id, plots, clock)
-            self.assessment.plots(radar_id, self.tracking.radars[radar_id].geometry, plots, clock)
+            self.assessment.plots(radar_id, self.tracking.tracked[radar_id].geometry, plots, clock)
         return self.peers.own_table(radar_id, table.by_id(), clock, plots is None)
 
     def _correlate(self, released: Iterable[Release]) -> list[Outgoing]:
@@ -317,11 +317,11 @@ class Engine:
                     kind, cols = reference_kind(rel.item), reference_columns(rel.item)
                     self.assessment.reference(rel.source_id, kind, cols, rel.item, rel.time_s)
                     self.correlation.reference(rel.source_id, rel.time_s, *cols, kind)
-                elif rel.source_id in self.tracking.radars:
+                elif rel.source_id in self.tracking.tracked:
                     # published with what the correlation answers for it (:meth:`_results`)
                     own = self.partition.owns(rel.source_id)
                     self._unpublished.append((rel.source_id, rel.time_s, rel.item, own))
-                    geometry = self.tracking.radars[rel.source_id].geometry
+                    geometry = self.tracking.tracked[rel.source_id].geometry
                     self.correlation.radar(rel.source_id, geometry, rel.item, rel.time_s)
             except Exception as exc:  # a bug costs this update's outputs, never the service
                 out.append(self._internal(rel.source_id, f"processing failed: {type(exc).__name__}: {exc}"))

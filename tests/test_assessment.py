@@ -180,7 +180,7 @@ def covered_assessment(params: AssessmentParams) -> Assessment:
     """An assessment whose radar ``R`` knows its whole coverage from the start (so that the
     plain form, which has no coverage, counts the same scans)."""
     assessment = Assessment(params)
-    radar = assessment.radars["R"] = RadarAssessment("R", params)
+    radar = assessment.assessments["R"] = RadarAssessment("R", params)
     radar.coverage[:] = True
     assessment.sites["R"] = SITE
     return assessment
@@ -269,7 +269,7 @@ def test_nothing_is_held_without_a_reference_and_unknown_radars_have_empty_figur
     assessment.plots(
         "R", SITE, np.array([T0]), np.array([1e5]), np.array([10.0]), np.array([None]), np.array([1.0]), T0
     )
-    assert not assessment.radars and not assessment.advance(None)
+    assert not assessment.assessments and not assessment.advance(None)
     empty = assessment.view.of("R")
     assert empty["detection"]["pd"] is None and empty["position"]["rms_m"] is None
     assert empty["verdict"] == {"pd": None, "mode_3a": None, "mode_c": None}
@@ -345,7 +345,7 @@ def test_no_reference_source_costs_nothing_and_answers_nulls() -> None:
     for key, payload in msgs:
         engine.ingest(key, payload)
     engine.flush()
-    assert not engine.assessment.assessment.radars
+    assert not engine.assessment.assessment.assessments
     snap = engine.snapshot()
     assert snap.radar_performance("A")["detection"]["pd"] is None  # type: ignore[index]
     assert snap.radar_performance("nope") is None

@@ -24,7 +24,7 @@ PARAMS = SequencerParams(source_expiry_s=20.0, forget_after_s=30.0, max_lag_s=10
 def held_for(engine: Engine, source_id: str) -> dict[str, Any]:
     """What the engine still holds of a source, stage by stage."""
     stage = engine.correlation.stage  # type: ignore[attr-defined]  (in-process correlation)
-    radar = engine.tracking.radars.get(source_id)
+    radar = engine.tracking.tracked.get(source_id)
     return {
         "correlators": sorted(k for k in stage.pair_correlators if source_id in k),
         "views": sorted(k for k in engine.publication.views if source_id in k),
@@ -54,7 +54,7 @@ def test_a_radar_silent_past_its_forget_time_leaves_nothing_and_comes_back_clean
                 "tracks": 0,
                 "window": 0,
             }
-            assert "C" in engine.tracking.radars  # its site stays: it may come back without one
+            assert "C" in engine.tracking.tracked  # its site stays: it may come back without one
             assert held_for(engine, "A")["correlators"] == [("A", "B")]
         engine.ingest(key, payload)
         if key == "fusion/radar/C/plots" and t <= t0 + 60:

@@ -221,7 +221,7 @@ def test_silent_source_expires_and_its_pairs_empty(stream: Stream) -> None:
     engine.flush()
     b = engine.sequencer.sources["B"]
     assert b.expired and not engine.sequencer.sources["A"].expired
-    assert len(engine.tracking.radars["B"].table) == 0
+    assert len(engine.tracking.tracked["B"].table) == 0
     (ps,) = engine.snapshot().pair_sets(status="all")
     assert ps["pairs"] == []
     status = {r["radar_id"]: r for r in engine.snapshot().status_core()["radars"]}

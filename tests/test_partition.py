@@ -341,7 +341,7 @@ def test_track_states_before_the_radars_site_wait_for_it() -> None:
     site = next(p for k, p in msgs if k == "fusion/radar/A/site")
     assert other.ingest("fusion/radar/A/site", site) == []
     time_s, held = other.peers.receiver.latest("A")
-    assert time_s > 0 and sorted(held.track_id) == sorted(owner.tracking.radars["A"].table.track_id)
+    assert time_s > 0 and sorted(held.track_id) == sorted(owner.tracking.tracked["A"].table.track_id)
     # beyond the bound, such messages are rejected (a flood must not grow without end)
     z = next(r for r in ("Z", "Y", "X", "W") if not other.partition.owns(r))
     flood = states[0].payload.replace(b'"A"', f'"{z}"'.encode())

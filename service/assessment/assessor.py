@@ -55,7 +55,7 @@ class Assessment:
         self.params = p = params or AssessmentParams()
         self.references = ReferenceHistory(p.history_s, p.max_report_gap_s)
         self.kinds: dict[str, str] = {}  # reference source -> kind
-        self.radars: dict[str, RadarAssessment] = {}
+        self.assessments: dict[str, RadarAssessment] = {}
         self.sites: dict[str, Site] = {}
         #: radar -> reference id -> (data time it was first and last paired, reference kind)
         self.paired: dict[str, dict[str, tuple[float, float, str]]] = {}
@@ -85,9 +85,9 @@ class Assessment:
         if not self.active:
             return
         self.sites[radar_id] = site
-        radar = self.radars.get(radar_id)
+        radar = self.assessments.get(radar_id)
         if radar is None:
-            radar = self.radars[radar_id] = RadarAssessment(radar_id, self.params)
+            radar = self.assessments[radar_id] = RadarAssessment(radar_id, self.params)
         good = np.isfinite(time_s) & np.isfinite(range_m) & np.isfinite(azimuth_deg)
         radar.add_plots((time_s[good], range_m[good], azimuth_deg[good], mode_3a[good], flight_level[good]))
 
@@ -123,7 +123,7 @@ class Assessment:
             book[rid] = (time_s if held is None else min(held[0], time_s), time_s, kind)
 
     def forget(self, source_id: str) -> None:
-        self.radars.pop(source_id, None)
+        self.assessments.pop(source_id, None)
         self.sites.pop(source_id, None)
         self.paired.pop(source_id, None)
         self.kinds.pop(source_id, None)
@@ -172,7 +172,7 @@ class Assessment:
         p = self.params
         cutoff = step * p.step_s - p.lag_s
         self.references.index(step * p.step_s)
-        for radar_id, radar in self.radars.items():
+        for radar_id, radar in self.assessments.items():
             book = self.paired.get(radar_id, {})
             stale = [a for a, (_, last, _) in book.items() if last < cutoff - p.window_s]
             for a in stale:
@@ -186,7 +186,7 @@ class Assessment:
         p = self.params
         cutoff = step * p.step_s - p.lag_s
         figures = {}
-        for radar_id, radar in sorted(self.radars.items()):
+        for radar_id, radar in sorted(self.assessments.items()):
             sums = radar.window_sums(step)
             kinds = sorted({REFERENCE_NAMES.get(k, k) for _, _, k in self.paired.get(radar_id, {}).values()})
             aircraft = sum(1 for t in radar.last_seen.values() if t >= cutoff - p.window_s)
@@ -199,7 +199,7 @@ class Assessment:
         the whole run's histogram of compensated errors."""
         from service.assessment.radar import HORIZONTAL_ERROR_EDGES
 
-        radar = self.radars[radar_id]
+        radar = self.assessments[radar_id]
         hist = radar.hist_horizontal
         n = int(hist.sum()) + radar.hist_horizontal_over
         median = None

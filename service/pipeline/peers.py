@@ -151,7 +151,7 @@ class Peers:
     # -- the merge -----------------------------------------------------------------------------
     def owners(self) -> set[int]:
         """The live workers the merger waits for: those owning a known radar, and this one."""
-        owners = {self.partition.owner(rid) for rid in self.tracking.radars}
+        owners = {self.partition.owner(rid) for rid in self.tracking.tracked}
         return (owners & self.alive) | {self.partition.index}
 
     def cap(self) -> float:
@@ -275,7 +275,7 @@ class Peers:
                 return PeerInput()  # our own, heard back
             msg = decode_states(payload, radar_id)
             check_body_id("radar_id", msg.radar_id, radar_id)
-            if radar_id not in self.tracking.radars:
+            if radar_id not in self.tracking.tracked:
                 return PeerInput(self._hold_states(radar_id, msg, len(payload)))
             self._apply_states(radar_id, msg)
             return PeerInput()  # released once its owner says how far it has published
@@ -344,7 +344,7 @@ class Peers:
             self.merger.push(RADAR, radar_id, msg.seq, msg.time_s, table, expiry=msg.expiry)
 
     def _geometry(self, radar_id: str) -> Any:
-        radar = self.tracking.radars.get(radar_id)
+        radar = self.tracking.tracked.get(radar_id)
         if radar is None:
             raise unknown_radar(radar_id)
         return radar.geometry

@@ -387,7 +387,7 @@ def build_snapshot(
     and system tracks), pair sets, system tracks."""
     tracks = dict(tables)
     rows = []
-    for rid, r in sorted(tracking.radars.items()):
+    for rid, r in sorted(tracking.tracked.items()):
         if not owned(rid):
             continue
         clock = sources.get(rid)
@@ -416,7 +416,7 @@ def build_snapshot(
         rejected=rejected,
         method=method,
         prefix=prefix,
-        sites={rid: r.site for rid, r in tracking.radars.items()},
+        sites={rid: r.site for rid, r in tracking.tracked.items()},
         progress=progress,
         adsb_sources=adsb_sources,
         system=system,

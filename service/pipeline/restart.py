@@ -60,7 +60,7 @@ def own_state(
     changes none of them): ``tracking`` is the engine's :class:`~.tracking_stage.TrackingStage`."""
     clock = sequencer.newest_s
     return {
-        "sites": [r.site.model_dump(mode="json") for _, r in sorted(tracking.radars.items())],
+        "sites": [r.site.model_dump(mode="json") for _, r in sorted(tracking.tracked.items())],
         "sources": sequencer.export_state(),
         "reference_kinds": dict(sorted(reference_kinds.items())),
         "published_biases": published_biases,

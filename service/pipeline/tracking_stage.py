@@ -74,7 +74,7 @@ def to_geometry(site: RadarSite) -> Site:
 
 
 @dataclass
-class RadarTrack:
+class TrackedRadar:
     """One radar: its site, its tracker (made at its first batch) and its latest tracks."""
 
     site: RadarSite
@@ -92,13 +92,13 @@ class TrackingStage:
     def __init__(self, tracker_factory: TrackerFactory, params: SiteParams | None = None) -> None:
         self.params = params or SiteParams()
         self.factory = tracker_factory
-        self.radars: dict[str, RadarTrack] = {}
+        self.tracked: dict[str, TrackedRadar] = {}
 
     def set_site(self, site: RadarSite) -> SiteChange:
         """Take a site message (see module docstring for what counts as a move)."""
-        held = self.radars.get(site.radar_id)
+        held = self.tracked.get(site.radar_id)
         if held is None:
-            self.radars[site.radar_id] = RadarTrack(site, to_geometry(site))
+            self.tracked[site.radar_id] = TrackedRadar(site, to_geometry(site))
             return SiteChange.NEW
         if held.site == site:
             return SiteChange.SAME
@@ -124,7 +124,7 @@ class TrackingStage:
 
     def update(self, radar_id: str, plots: PlotColumns, time_s: float) -> TrackTable:
         """One batch of a radar, applied whole (the tracker's update is all or nothing)."""
-        radar = self.radars[radar_id]
+        radar = self.tracked[radar_id]
         if radar.tracker is None:
             radar.tracker = self.factory(radar.geometry, radar_id)
         radar.tracker.update(plots, time_s)
@@ -139,7 +139,7 @@ class TrackingStage:
 
         False if the radar has no tracker (it never reported): nothing to do.
         """
-        radar = self.radars.get(radar_id)
+        radar = self.tracked.get(radar_id)
         if radar is None or radar.tracker is None:
             return False
         self.update(radar_id, PlotColumns.empty(), time_s)
@@ -149,18 +149,18 @@ class TrackingStage:
     def clear(self, radar_id: str) -> None:
         """A radar forgotten after a long silence: its tracks and window go; its site and its
         tracker's id numbering stay (its track ids go on where they were when it comes back)."""
-        radar = self.radars.get(radar_id)
+        radar = self.tracked.get(radar_id)
         if radar is not None and radar.tracker is not None:
             radar.tracker.drop_tracks()
             radar.table = radar.tracker.tracks()
 
     def drop(self, radar_id: str) -> None:
-        self.radars.pop(radar_id, None)
+        self.tracked.pop(radar_id, None)
 
     def window_plots(self, radar_id: str) -> int:
-        tracker = self.radars[radar_id].tracker
+        tracker = self.tracked[radar_id].tracker
         return tracker.window_plots if tracker is not None else 0
 
     def window_evicted(self, radar_id: str) -> int:
-        tracker = self.radars[radar_id].tracker
+        tracker = self.tracked[radar_id].tracker
         return int(getattr(tracker, "window_evicted", 0)) if tracker is not None else 0

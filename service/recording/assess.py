@@ -119,7 +119,7 @@ def build_report(
 
     p = assessment.params
     radars = []
-    for radar_id, radar in sorted(assessment.radars.items()):
+    for radar_id, radar in sorted(assessment.assessments.items()):
         series = list(radar.bias_series)
         start = series[0][0] if series else None
         end = assessment.view.figures.get(radar_id, {}).get("time_s")

@@ -125,7 +125,7 @@ def run_one(sc: Scenario, seed: int) -> list[Row]:
     view = engine.assessment.view
     rows = []
     for r in sc.radars:
-        radar = engine.assessment.assessment.radars.get(r.radar_id)
+        radar = engine.assessment.assessment.assessments.get(r.radar_id)
         sigma = None
         if radar is not None:
             w = radar.window_sums(engine.assessment.assessment.next_step - 1)  # type: ignore[operator]
