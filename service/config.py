@@ -1,29 +1,28 @@
-"""One configuration root: every parameter of the engine, validated at start.
+"""The engine's parameters: every parameter of the engine, validated at start.
 
 :class:`EngineConfig` is a tree of frozen dataclasses, one section per stage and method, each
 field documented where it is defined (``service/pipeline/``, ``service/tracking/params.py``,
-``service/correlation/``).  Its values come from, later winning:
+``service/correlation/``).  It is the engine's part of the one settings root,
+:class:`service.settings.Settings` (``Settings.engine``), whose module says where its values
+come from, later winning:
 
 1. the defaults in the code;
-2. a config file (``--config FILE`` or ``TOPOFUSION_CONFIG``; TOML or YAML by its suffix,
+2. the config file (``--config FILE`` or ``TOPOFUSION_CONFIG``; TOML or YAML by its suffix,
    ``.json`` too), whose keys are the field names of the tree, e.g.
    ``[correlation.svd] alpha_position = 0.01`` or ``cadence: {cadence_scans: 2}``;
 3. the environment: ``TOPOFUSION_ENGINE__<SECTION>__<FIELD>=<value>`` (``__`` between levels,
    any case; the value is read as JSON when it parses, else as a string), e.g.
    ``TOPOFUSION_ENGINE__SEQUENCER__MAX_CLOCK_SKEW_S=120``;
-4. the command-line flags and settings of the contract (``--method``, ``--window``,
-   ``--initiator``, ``--sites``, ``--prefix``, ``--partition``).
+4. the settings that are engine parameters too (``--method``, ``--window``, ``--initiator``,
+   ``--sites``, ``--prefix``, ``--partition``, ``TOPOFUSION_PERFORMANCE_*``), where given.
 
 An unknown key or a bad value stops the start with a message naming the key
 (``correlation.svd.alpha_postion: unknown key``).  ``topofusion config --show`` prints the
-effective tree with every default.
+effective settings and tree with every default.
 """
 
 from __future__ import annotations
 
-import json
-import os
-import sys
 from collections.abc import Mapping
 from dataclasses import MISSING, dataclass, field, fields, is_dataclass
 from pathlib import Path
@@ -40,11 +39,21 @@ from service.pipeline.sequencer import SequencerParams
 from service.pipeline.track_exchange import ExchangeParams
 from service.pipeline.tracking_stage import SiteParams
 from service.reference import ReferenceParams
+from service.settings import ENV_PREFIX, ConfigError, from_environment, load_file, merge
 from service.tracking.params import TrackerParams
 from service.wire.models import RadarSite
 
-#: Environment variables of single parameters start with this (then ``SECTION__FIELD``).
-ENV_PREFIX = "TOPOFUSION_ENGINE__"
+__all__ = [
+    "ENV_PREFIX",
+    "ConfigError",
+    "EngineConfig",
+    "as_dict",
+    "engine_config_from",
+    "from_environment",
+    "load_file",
+    "load_sites",
+    "merge",
+]
 
 
 @dataclass(frozen=True)
@@ -80,10 +89,6 @@ class EngineConfig:
     feed: FeedParams = field(default_factory=FeedParams)
     #: Each radar's live performance against the references (settings ``TOPOFUSION_PERFORMANCE_*``).
     assessment: AssessmentParams = field(default_factory=AssessmentParams)
-
-
-class ConfigError(ValueError):
-    """A configuration that cannot be used; the message names the key."""
 
 
 _ADAPTER = TypeAdapter(EngineConfig)
@@ -128,72 +133,6 @@ def engine_config_from(data: Mapping[str, Any]) -> EngineConfig:
             f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors(include_url=False)
         ]
         raise ConfigError("; ".join(problems)) from None
-
-
-def load_file(path: str | Path) -> dict[str, Any]:
-    """A config file's content (TOML, YAML or JSON by suffix)."""
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"config file not found: {p}") from None
-    try:
-        if p.suffix.lower() == ".toml":
-            if sys.version_info >= (3, 11):
-                import tomllib
-            else:  # the same parser, before it joined the standard library
-                import tomli as tomllib
-
-            data: Any = tomllib.loads(text)
-        elif p.suffix.lower() in (".yaml", ".yml"):
-            import yaml
-
-            data = yaml.safe_load(text) or {}
-        elif p.suffix.lower() == ".json":
-            data = json.loads(text)
-        else:
-            raise ConfigError(f"config file {p}: use a .toml, .yaml, .yml or .json file")
-    except ConfigError:
-        raise
-    except Exception as exc:  # the parsers' own errors say where
-        raise ConfigError(f"config file {p} cannot be read: {exc}") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"config file {p}: the top level must be a table of sections")
-    return data
-
-
-def from_environment(environ: Mapping[str, str] | None = None) -> dict[str, Any]:
-    """``TOPOFUSION_ENGINE__A__B=value`` variables as a nested mapping ``{"a": {"b": value}}``."""
-    env = os.environ if environ is None else environ
-    out: dict[str, Any] = {}
-    for name, raw in sorted(env.items()):
-        if not name.upper().startswith(ENV_PREFIX):
-            continue
-        path = [part.lower() for part in name[len(ENV_PREFIX) :].split("__")]
-        if not all(path):
-            raise ConfigError(f"{name}: empty key in the variable's name")
-        try:
-            value: Any = json.loads(raw)
-        except json.JSONDecodeError:
-            value = raw
-        node = out
-        for part in path[:-1]:
-            node = node.setdefault(part, {})
-            if not isinstance(node, dict):
-                raise ConfigError(f"{name}: {part} is a value, not a section")
-        node[path[-1]] = value
-    return out
-
-
-def merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
-    """``over`` on top of ``base``, section by section."""
-    out = dict(base)
-    for key, value in over.items():
-        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
-            out[key] = merge(out[key], value)
-        else:
-            out[key] = value
-    return out
 
 
 def as_dict(config: EngineConfig) -> dict[str, Any]:

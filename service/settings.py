@@ -1,18 +1,196 @@
-"""One settings object (pydantic-settings); command-line flags override it (docs/contract.md §3)."""
+"""The one settings root (pydantic-settings): every ``TOPOFUSION_*`` setting, and the engine's
+parameters derived from it (docs/contract.md §3, docs/configuration.md).
+
+Where a value comes from, each source over the ones before it:
+
+1. the defaults in the code (here, and in the engine's tree, ``service.config``);
+2. the config file (``--config FILE`` or ``TOPOFUSION_CONFIG``; TOML, YAML or JSON by its
+   suffix): any setting by its field name (``http_port = 8080``) and any engine parameter by
+   its place in the engine's tree (``[correlation.svd] alpha_position = 0.01``);
+3. the ``TOPOFUSION_ENGINE__<SECTION>__<FIELD>`` variables (engine parameters one by one);
+4. the ``TOPOFUSION_<SETTING>`` variables;
+5. the command's flags (:meth:`Settings.load` ``overrides``).
+
+A setting that is also an engine parameter (``prefix``, ``method``, ``window_s``,
+``initiator``, ``partition``, ``sites``, the ``performance_*`` ones) is marked so where it is
+declared (:class:`EngineKey`): it is read from every source above under either name, and the
+engine's tree takes the setting's value (:attr:`Settings.engine`).  An unknown key or a bad
+value stops the start with a message naming it.  :meth:`Settings.effective` is the whole
+effective configuration (``topofusion config --show``; secrets redacted), itself a valid
+config file.
+"""
 
 from __future__ import annotations
 
+import json
+import os
+import sys
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal, get_args
 
-from pydantic import Field, SecretStr, field_validator, model_validator
-from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+from pydantic import Field, PrivateAttr, SecretStr, field_validator, model_validator
+from pydantic_settings import (
+    BaseSettings,
+    NoDecode,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+)
 
 from service.wire.vocabulary import Method, is_source_id
 
 if TYPE_CHECKING:
+    import argparse
+
+    from pydantic.fields import FieldInfo
+
     from service.api.limits import HttpLimits
     from service.engine import EngineConfig
+
+#: Environment variables of single engine parameters start with this (then ``SECTION__FIELD``).
+ENV_PREFIX = "TOPOFUSION_ENGINE__"
+#: How :meth:`Settings.effective` shows a secret (in a config file: not given).
+REDACTED = "**********"
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot be used; the message names the key."""
+
+
+# -- reading a config file and the engine's variables ---------------------------------------------
+
+
+def load_file(path: str | Path) -> dict[str, Any]:
+    """A config file's content (TOML, YAML or JSON by suffix)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"config file not found: {p}") from None
+    try:
+        if p.suffix.lower() == ".toml":
+            if sys.version_info >= (3, 11):
+                import tomllib
+            else:  # the same parser, before it joined the standard library
+                import tomli as tomllib
+
+            data: Any = tomllib.loads(text)
+        elif p.suffix.lower() in (".yaml", ".yml"):
+            import yaml
+
+            data = yaml.safe_load(text) or {}
+        elif p.suffix.lower() == ".json":
+            data = json.loads(text)
+        else:
+            raise ConfigError(f"config file {p}: use a .toml, .yaml, .yml or .json file")
+    except ConfigError:
+        raise
+    except Exception as exc:  # the parsers' own errors say where
+        raise ConfigError(f"config file {p} cannot be read: {exc}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file {p}: the top level must be a table of sections")
+    return data
+
+
+def from_environment(environ: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """``TOPOFUSION_ENGINE__A__B=value`` variables as a nested mapping ``{"a": {"b": value}}``
+    (a value is read as JSON when it parses, else as a string)."""
+    env = os.environ if environ is None else environ
+    out: dict[str, Any] = {}
+    for name, raw in sorted(env.items()):
+        if not name.upper().startswith(ENV_PREFIX):
+            continue
+        path = [part.lower() for part in name[len(ENV_PREFIX) :].split("__")]
+        if not all(path):
+            raise ConfigError(f"{name}: empty key in the variable's name")
+        try:
+            value: Any = json.loads(raw)
+        except json.JSONDecodeError:
+            value = raw
+        node = out
+        for part in path[:-1]:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"{name}: {part} is a value, not a section")
+        node[path[-1]] = value
+    return out
+
+
+def merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """``over`` on top of ``base``, section by section."""
+    out = dict(base)
+    for key, value in over.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+            out[key] = merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+# -- settings that are engine parameters too -----------------------------------------------------
+
+
+def _same(value: Any) -> Any:
+    return value
+
+
+def _partition_to_engine(value: str) -> dict[str, int]:
+    from service.pipeline.partition import Partition
+
+    p = Partition.parse(value)
+    return {"index": p.index, "count": p.count}
+
+
+def _partition_from_engine(value: Any) -> Any:
+    """The engine's form (``{index, count}``) as the setting's ``K/N``; a ``K/N`` as it is."""
+    if isinstance(value, Mapping) and set(value) == {"index", "count"}:
+        return f"{value['index']}/{value['count']}"
+    return value
+
+
+def _sites_to_engine(value: Path) -> list[Any]:
+    from service.config import load_sites
+
+    return list(load_sites(value))
+
+
+def _sites_from_engine(value: Any) -> Any:
+    """A sites file's path is the setting; a list of sites stays the engine's own."""
+    return value if isinstance(value, str) else None
+
+
+@dataclass(frozen=True)
+class EngineKey:
+    """Marks a setting that is also the engine parameter at ``path`` (dotted) of its tree:
+    ``to_engine`` makes the parameter of the setting's value, ``from_engine`` the setting of a
+    parameter's (a config file's or a ``TOPOFUSION_ENGINE__*`` variable's; None: none)."""
+
+    path: str
+    to_engine: Callable[[Any], Any] = _same
+    from_engine: Callable[[Any], Any] = _same
+
+
+def _engine_key(info: FieldInfo) -> EngineKey | None:
+    return next((m for m in info.metadata if isinstance(m, EngineKey)), None)
+
+
+def _at(tree: Mapping[str, Any], path: str) -> Any:
+    """The value at a dotted ``path`` of a nested mapping, or None."""
+    node: Any = tree
+    for part in path.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def _put(tree: dict[str, Any], path: str, value: Any) -> None:
+    *parents, last = path.split(".")
+    for part in parents:
+        tree = tree.setdefault(part, {})
+    tree[last] = value
 
 
 def _split(value: object) -> object:
@@ -21,8 +199,15 @@ def _split(value: object) -> object:
     return value
 
 
+# -- the settings --------------------------------------------------------------------------------
+
+
 class Settings(BaseSettings):
-    """Every ``TOPOFUSION_*`` setting; errors name the offending variable."""
+    """Every ``TOPOFUSION_*`` setting; errors name the offending variable or key.
+
+    Build it with :meth:`load` (a config file and the flags over the environment); ``Settings()``
+    reads the environment (and ``TOPOFUSION_CONFIG``'s file) alone.
+    """
 
     model_config = SettingsConfigDict(env_prefix="TOPOFUSION_", extra="ignore")
 
@@ -34,18 +219,23 @@ class Settings(BaseSettings):
     zenoh_config: Path | None = None
     http_host: str = "127.0.0.1"
     http_port: int = Field(default=8000, ge=0, le=65535)
-    prefix: str = Field(default="fusion", pattern=r"^[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*$")
-    sites: Path | None = None
-    method: Method = "svd-topology"
-    window_s: float | None = Field(default=None, gt=0)
-    initiator: str = "logic"
+    prefix: Annotated[str, EngineKey("prefix")] = Field(
+        default="fusion", pattern=r"^[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*$"
+    )
+    #: A JSON file holding a list of ``RadarSite`` (the engine's ``sites``: known at start-up).
+    sites: Annotated[Path | None, EngineKey("sites", _sites_to_engine, _sites_from_engine)] = None
+    method: Annotated[Method, EngineKey("method")] = "svd-topology"
+    window_s: Annotated[float | None, EngineKey("window_s")] = Field(default=None, gt=0)
+    initiator: Annotated[str, EngineKey("initiator")] = "logic"
     #: Radars this worker owns (comma separated ids); empty: every radar under the prefix.
     #: Partitioning several workers by radar is configuration: each subscribes to its own
     #: radars, and ``get {prefix}/pairs/**`` gathers every worker's pairs.
     radars: Annotated[list[str], NoDecode] = Field(default_factory=list)
     #: ``K/N``: worker K of N on one prefix; together the N workers give the results of one
     #: (``service.pipeline.partition``: which worker owns which radar and radar pair).
-    partition: str = Field(default="1/1", pattern=r"^\s*\d+\s*/\s*\d+\s*$")
+    partition: Annotated[str, EngineKey("partition", _partition_to_engine, _partition_from_engine)] = Field(
+        default="1/1", pattern=r"^\s*\d+\s*/\s*\d+\s*$"
+    )
     #: Capacity of the queue between Zenoh callbacks and the worker (samples).
     queue_size: int = Field(default=4096, ge=1)
     #: The same queue's capacity in payload bytes: one message of the largest size a payload
@@ -70,7 +260,7 @@ class Settings(BaseSettings):
     #: ``Authorization: Bearer <token>``.
     api_token: SecretStr | None = None
     log_level: str = "INFO"
-    #: Engine parameter file (TOML, YAML or JSON; ``service.config``); ``None``: defaults.
+    #: The config file (TOML, YAML or JSON): settings and engine parameters; ``None``: none.
     config: Path | None = None
     #: Run the correlation stage in its own process, so that tracking and correlation use two
     #: cores (same results; ``false``: one process, e.g. where processes cannot be started).
@@ -103,19 +293,71 @@ class Settings(BaseSettings):
     #: Bytes per second the picture's viewers get together at most; beyond, every viewer's
     #: interval is stretched by the same power of two (up to 16), so that ingest goes first.
     http_picture_max_bytes_s: int = Field(default=16 * 1024 * 1024, ge=1)
-    # Each radar's live performance against ADS-B / AIS (contract §5.3, docs/assessment.md);
-    # ``None``: the engine configuration's ``assessment`` section (defaults as below).
+    # Each radar's live performance against ADS-B / AIS (contract §5.3, docs/assessment.md):
+    # the engine's ``assessment`` section; ``None``: its value there (defaults as below).
     #: The sliding window of data time the figures cover (s; default 600).
-    performance_window_s: float | None = Field(default=None, gt=0)
+    performance_window_s: Annotated[float | None, EngineKey("assessment.window_s")] = Field(
+        default=None, gt=0
+    )
     #: Detection probability a radar must reach (default 0.97).
-    performance_pd_min: float | None = Field(default=None, ge=0, le=1)
+    performance_pd_min: Annotated[float | None, EngineKey("assessment.requirements.pd_min")] = Field(
+        default=None, ge=0, le=1
+    )
     #: Share of correct Mode 3/A codes a radar must reach (default 0.98).
-    performance_mode_3a_min: float | None = Field(default=None, ge=0, le=1)
+    performance_mode_3a_min: Annotated[float | None, EngineKey("assessment.requirements.mode_3a_min")] = (
+        Field(default=None, ge=0, le=1)
+    )
     #: Share of correct Mode C (within 200 ft of the reference) a radar must reach (default 0.96).
-    performance_mode_c_min: float | None = Field(default=None, ge=0, le=1)
+    performance_mode_c_min: Annotated[float | None, EngineKey("assessment.requirements.mode_c_min")] = Field(
+        default=None, ge=0, le=1
+    )
+
+    #: The engine parameters of the config file and the ``TOPOFUSION_ENGINE__*`` variables
+    #: (read once, when the settings are made); :attr:`engine` puts the settings over them.
+    _engine_tree: dict[str, Any] = PrivateAttr(default_factory=dict)
 
     _split_listen = field_validator("zenoh_listen", "zenoh_connect", "radars", mode="before")(_split)
 
+    # -- building -------------------------------------------------------------------------------
+    @classmethod
+    def load(
+        cls, config_file: str | Path | None = None, overrides: Mapping[str, Any] | None = None
+    ) -> Settings:
+        """The settings of a start: defaults < the config file (``config_file``, else
+        ``overrides["config"]``, else ``TOPOFUSION_CONFIG``) < ``TOPOFUSION_ENGINE__*`` <
+        ``TOPOFUSION_*`` < ``overrides`` (the flags, by field name; None: not given; see
+        :func:`flag_overrides`).  Raises ``pydantic.ValidationError`` naming a bad setting and
+        :class:`ConfigError` naming a bad or unknown key of the file."""
+        given = {k: v for k, v in (overrides or {}).items() if v is not None}
+        if config_file is not None:
+            given["config"] = config_file
+        return cls(**given)
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        return (
+            init_settings,
+            env_settings,
+            dotenv_settings,
+            _EngineVariables(settings_cls),
+            _ConfigFile(settings_cls, init_settings),
+            file_secret_settings,
+        )
+
+    def model_post_init(self, context: Any, /) -> None:
+        tree: dict[str, Any] = {}
+        if self.config is not None:
+            tree = {k: v for k, v in load_file(self.config).items() if k not in _SETTINGS_ONLY}
+        self._engine_tree = merge(tree, from_environment())
+
+    # -- validation -----------------------------------------------------------------------------
     @field_validator("zenoh_config", "sites", "config", "state_dir", "api_token", mode="before")
     @classmethod
     def _empty_is_none(cls, value: object) -> object:
@@ -151,6 +393,154 @@ class Settings(BaseSettings):
             )
         return self
 
+    # -- what is derived ------------------------------------------------------------------------
+    @cached_property
+    def engine(self) -> EngineConfig:
+        """The engine's configuration: its defaults < the config file's and the
+        ``TOPOFUSION_ENGINE__*`` parameters < every setting marked :class:`EngineKey` (where
+        it has a value).  Raises :class:`ConfigError` naming the key of a bad value."""
+        from service.config import engine_config_from
+
+        given: dict[str, Any] = {}
+        for name, info in type(self).model_fields.items():
+            key = _engine_key(info)
+            value = getattr(self, name)
+            if key is not None and value is not None:
+                _put(given, key.path, key.to_engine(value))
+        data = merge(self._engine_tree, given)
+        return engine_config_from(data)
+
+    def effective(self) -> dict[str, Any]:
+        """The whole effective configuration as plain data (``topofusion config --show``):
+        every setting but ``config``, then the engine's tree; a setting that is an engine
+        parameter shows the engine's value, in the engine's form.  Secrets show as
+        ``REDACTED``.  It is a valid config file itself."""
+        from service.config import as_dict
+
+        engine = as_dict(self.engine)
+        out: dict[str, Any] = {}
+        for name, value in self.model_dump(mode="json", exclude={"config"}).items():
+            key = _engine_key(type(self).model_fields[name])
+            out[name] = _at(engine, key.path) if key is not None else value
+        out.update((k, v) for k, v in engine.items() if k not in out)
+        return out
+
+    def render(self, fmt: Literal["yaml", "json"] = "yaml") -> str:
+        """:meth:`effective` as YAML or JSON text (ends with a newline)."""
+        data = self.effective()
+        if fmt == "json":
+            return json.dumps(data, indent=2) + "\n"
+        import yaml
+
+        return str(yaml.safe_dump(data, sort_keys=False))
+
+
+#: Settings that are engine parameters of the same name (a config file's key is both).
+_SHARED = frozenset(
+    name for name, info in Settings.model_fields.items() if (key := _engine_key(info)) and key.path == name
+)
+#: Settings that are no top-level engine parameter: a config file's keys of them are settings only.
+_SETTINGS_ONLY = frozenset(Settings.model_fields) - _SHARED
+_SECRETS = frozenset(
+    name
+    for name, info in Settings.model_fields.items()
+    if info.annotation is SecretStr or SecretStr in get_args(info.annotation)
+)
+
+
+def _settings_of_tree(tree: Mapping[str, Any]) -> dict[str, Any]:
+    """The settings an engine tree gives (a config file's, the ``TOPOFUSION_ENGINE__*``
+    variables'): each setting marked :class:`EngineKey` whose parameter it holds."""
+    out: dict[str, Any] = {}
+    for name, info in Settings.model_fields.items():
+        key = _engine_key(info)
+        if key is not None and (value := _at(tree, key.path)) is not None:
+            setting = key.from_engine(value)
+            if setting is not None:
+                out[name] = setting
+    return out
+
+
+class _EngineVariables(PydanticBaseSettingsSource):
+    """The ``TOPOFUSION_ENGINE__*`` variables of parameters that are settings too (the old
+    names of ``TOPOFUSION_METHOD`` and the like): under the ``TOPOFUSION_*`` variables."""
+
+    def get_field_value(self, field: FieldInfo, field_name: str) -> tuple[Any, str, bool]:
+        return None, field_name, False  # (all is done in __call__)
+
+    def __call__(self) -> dict[str, Any]:
+        return _settings_of_tree(from_environment())
+
+
+class _ConfigFile(PydanticBaseSettingsSource):
+    """The config file's settings (``--config FILE``, else ``TOPOFUSION_CONFIG``), under every
+    variable: its keys are settings and the engine tree's sections; any other is refused."""
+
+    def __init__(self, settings_cls: type[BaseSettings], init_settings: PydanticBaseSettingsSource) -> None:
+        super().__init__(settings_cls)
+        self._init = init_settings
+
+    def get_field_value(self, field: FieldInfo, field_name: str) -> tuple[Any, str, bool]:
+        return None, field_name, False  # (all is done in __call__)
+
+    def _path(self) -> str | Path | None:
+        given = getattr(self._init, "init_kwargs", {}).get("config")
+        if given is None:
+            name = "TOPOFUSION_CONFIG"
+            given = next((v for k, v in os.environ.items() if k.upper() == name), None)
+        return None if given is None or not str(given).strip() else given
+
+    def __call__(self) -> dict[str, Any]:
+        path = self._path()
+        if path is None:
+            return {}
+        data = load_file(path)
+        from service.config import EngineConfig
+
+        engine_keys = set(EngineConfig.__dataclass_fields__)
+        settings = set(Settings.model_fields) - {"config"}
+        bad = sorted(k for k in data if k not in settings and k not in engine_keys)
+        if "config" in data:
+            bad.insert(0, "config")
+        if bad:
+            raise ConfigError(
+                f"config file {path}: {', '.join(bad)}: unknown key (expected a setting or a section "
+                "of the engine's tree, as `topofusion config --show` prints them)"
+            )
+        # A secret as `config --show` prints it is no value: the secret comes from elsewhere
+        # (the environment), never the redaction itself.
+        data = {k: v for k, v in data.items() if not (k in _SECRETS and v == REDACTED)}
+        direct = {k: v for k, v in data.items() if k in _SETTINGS_ONLY}
+        return {**_settings_of_tree(data), **direct}
+
+
+#: The command line's flags that are settings: the flag's name (argparse's ``dest``) -> the field.
+FLAGS: dict[str, str] = {
+    "mode": "zenoh_mode",
+    "listen": "zenoh_listen",
+    "connect": "zenoh_connect",
+    "zenoh_config": "zenoh_config",
+    "http_host": "http_host",
+    "http_port": "http_port",
+    "prefix": "prefix",
+    "sites": "sites",
+    "method": "method",
+    "window": "window_s",
+    "initiator": "initiator",
+    "radars": "radars",
+    "partition": "partition",
+    "log_level": "log_level",
+    "config": "config",
+    "state_dir": "state_dir",
+}
+
+
+def flag_overrides(flags: Mapping[str, Any] | argparse.Namespace) -> dict[str, Any]:
+    """The settings the command line's flags give (``args`` or ``vars(args)``: only the flags
+    of :data:`FLAGS`, only those given), for :meth:`Settings.load`."""
+    given = flags if isinstance(flags, Mapping) else vars(flags)
+    return {field: given[flag] for flag, field in FLAGS.items() if given.get(flag) is not None}
+
 
 def http_limits(settings: Settings) -> HttpLimits:
     """The HTTP side port's limits of the settings."""
@@ -170,43 +560,5 @@ def http_limits(settings: Settings) -> HttpLimits:
 
 
 def engine_config(settings: Settings) -> EngineConfig:
-    """The engine's configuration: defaults < config file < ``TOPOFUSION_ENGINE__*`` < the
-    contract's flags and settings (method, window, initiator, sites, prefix, partition) where
-    given.
-
-    Raises :class:`service.config.ConfigError` naming the key of a bad value.
-    """
-    from service.config import engine_config_from, from_environment, load_file, load_sites, merge
-
-    data: dict[str, object] = load_file(settings.config) if settings.config is not None else {}
-    data = merge(data, from_environment())
-    given = settings.model_fields_set
-    for name, key in (
-        ("prefix", "prefix"),
-        ("method", "method"),
-        ("window_s", "window_s"),
-        ("initiator", "initiator"),
-    ):
-        if name in given or key not in data:
-            data[key] = getattr(settings, name)
-    if "partition" in given or "partition" not in data:
-        from service.pipeline.partition import Partition
-
-        p = Partition.parse(settings.partition)
-        data["partition"] = {"index": p.index, "count": p.count}
-    if settings.sites is not None:
-        data["sites"] = load_sites(settings.sites)
-    data = merge(data, performance_config(settings))
-    return engine_config_from(data)
-
-
-def performance_config(settings: Settings) -> dict[str, object]:
-    """The ``assessment`` section the ``TOPOFUSION_PERFORMANCE_*`` settings give (only those set)."""
-    section: dict[str, object] = {}
-    if settings.performance_window_s is not None:
-        section["window_s"] = settings.performance_window_s
-    names = ("pd_min", "mode_3a_min", "mode_c_min")
-    req = {n: v for n in names if (v := getattr(settings, f"performance_{n}")) is not None}
-    if req:
-        section["requirements"] = req
-    return {"assessment": section} if section else {}
+    """The engine's configuration of the settings (:attr:`Settings.engine`)."""
+    return settings.engine

@@ -21,6 +21,7 @@ import zenoh
 
 from service.api.app import create_app
 from service.engine import Engine, EngineConfig
+from service.settings import Settings
 from service.transport.node import ServiceNode
 from service.transport.session import ZenohOptions, open_session
 from service.wire.outgoing import Outgoing
@@ -134,13 +135,18 @@ def running_service(
     radars: tuple[str, ...] = (),
     correlation_process: bool = True,
     wait_ready: bool = True,
+    settings: Settings | None = None,
     **node_kw: Any,
 ) -> Iterator[RunningService]:
     """The real service in-process: a client session to ``router``, the worker, uvicorn on a free
-    port (``node_kw``: more of :class:`ServiceNode`'s parameters)."""
+    port (``node_kw``: more of :class:`ServiceNode`'s options).  ``settings``: the node is the
+    command's, built from them (``ServiceNode.from_settings``; their Zenoh settings are its)."""
     holder: dict[str, ServiceNode] = {}
 
     def factory() -> ServiceNode:
+        if settings is not None:
+            holder["node"] = ServiceNode.from_settings(settings)
+            return holder["node"]
         options = ZenohOptions(mode="client", connect=(router,))
         holder["node"] = ServiceNode(
             config or EngineConfig(),

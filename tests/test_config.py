@@ -1,4 +1,5 @@
-"""One configuration root (service/config.py): file, environment and flags, validated at start."""
+"""One settings root (service/settings.py, the engine's part service/config.py): file,
+environment and flags, validated at start."""
 
 from __future__ import annotations
 
@@ -8,10 +9,14 @@ import sys
 from pathlib import Path
 
 import pytest
+from pydantic import ValidationError
 
 from service.config import ConfigError, EngineConfig, as_dict, engine_config_from, from_environment, load_file
 from service.engine import Engine
-from service.settings import Settings, engine_config
+from service.pipeline.partition import Partition
+from service.settings import REDACTED, Settings, engine_config, flag_overrides
+from service.startup import start_engine
+from service.transport.options import NodeOptions
 from tests.scenario_helpers import scenario_messages
 
 
@@ -109,8 +114,130 @@ def test_parameters_reach_the_stages() -> None:
 def test_config_show_prints_the_effective_tree_and_refuses_bad_keys(tmp_path: Path) -> None:
     cli = [sys.executable, "-m", "service", "config"]
     shown = subprocess.run([*cli, "--show", "--format", "json"], capture_output=True, text=True, check=True)
-    assert json.loads(shown.stdout) == as_dict(EngineConfig())
+    engine = as_dict(EngineConfig())
+    assert {k: v for k, v in json.loads(shown.stdout).items() if k in engine} == engine
     bad = tmp_path / "engine.yaml"
     bad.write_text("tracking: {filter: {process_noise_psd: -x}}\n")
     run = subprocess.run([*cli, "--config", str(bad)], capture_output=True, text=True, check=False)
     assert run.returncode == 2 and "tracking.filter.process_noise_psd" in run.stderr
+
+
+# -- the settings root: one precedence for settings and engine parameters ----------------------
+
+
+@pytest.fixture
+def clean_env(monkeypatch: pytest.MonkeyPatch) -> pytest.MonkeyPatch:
+    """No TOPOFUSION_* variable of the machine running the tests."""
+    import os
+
+    for name in list(os.environ):
+        if name.upper().startswith("TOPOFUSION_"):
+            monkeypatch.delenv(name)
+    return monkeypatch
+
+
+def test_one_precedence_file_engine_variables_settings_flags(
+    tmp_path: Path, clean_env: pytest.MonkeyPatch
+) -> None:
+    """defaults < file < TOPOFUSION_ENGINE__* < TOPOFUSION_* < flags, for a setting that is an
+    engine parameter too, read under either name; the engine takes the setting's value."""
+    path = tmp_path / "topofusion.toml"
+    path.write_text('method = "nearest"\nqueue_size = 7\n[sequencer]\nmax_lag_s = 5.0\n')
+    assert Settings.load(path).method == "nearest"  # the file over the default
+    clean_env.setenv("TOPOFUSION_ENGINE__METHOD", "gmm")
+    assert Settings.load(path).method == "gmm"  # the engine's variable (the old name) over the file
+    clean_env.setenv("TOPOFUSION_METHOD", "cfar")
+    settings = Settings.load(path)
+    assert settings.method == "cfar" and settings.engine.method == "cfar"  # the setting over both
+    flags = Settings.load(path, {"method": "basic-topology", "prefix": None})
+    assert flags.method == flags.engine.method == "basic-topology" and flags.prefix == "fusion"
+    assert flags.queue_size == 7 and flags.engine.sequencer.max_lag_s == 5.0  # the rest of the file
+
+
+def test_the_engine_form_of_a_shared_setting_is_taken_everywhere(
+    tmp_path: Path, clean_env: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "topofusion.yaml"
+    path.write_text(
+        "partition: {index: 2, count: 3}\nassessment: {window_s: 300, requirements: {pd_min: 0.9}}\n"
+    )
+    settings = Settings.load(path)
+    assert settings.partition == "2/3" and settings.engine.partition == Partition(2, 3)
+    assert settings.performance_window_s == 300 and settings.engine.assessment.window_s == 300
+    assert settings.performance_pd_min == 0.9
+    clean_env.setenv("TOPOFUSION_ENGINE__PARTITION__INDEX", "3")
+    clean_env.setenv("TOPOFUSION_ENGINE__PARTITION__COUNT", "3")
+    assert Settings.load(path).engine.partition == Partition(3, 3)
+    clean_env.setenv("TOPOFUSION_PERFORMANCE_WINDOW_S", "120")
+    assert Settings.load(path).engine.assessment.window_s == 120
+
+
+def test_a_file_key_neither_setting_nor_engine_section_is_refused(
+    tmp_path: Path, clean_env: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "topofusion.yaml"
+    path.write_text("http_prot: 8080\n")
+    with pytest.raises(ConfigError, match="http_prot: unknown key"):
+        Settings.load(path)
+    path.write_text("http_port: 99999\n")
+    with pytest.raises(ValidationError, match="http_port"):
+        Settings.load(path)
+    clean_env.setenv("TOPOFUSION_CONFIG", str(tmp_path / "missing.toml"))
+    with pytest.raises(ConfigError, match="not found"):
+        Settings()
+
+
+def test_the_effective_settings_are_a_config_file_with_secrets_redacted(
+    tmp_path: Path, clean_env: pytest.MonkeyPatch
+) -> None:
+    clean_env.setenv("TOPOFUSION_API_TOKEN", "s3cret")
+    clean_env.setenv("TOPOFUSION_ENGINE__CADENCE__CADENCE_SCANS", "2")
+    settings = Settings.load(overrides={"http_port": 9000, "partition": "1/2"})
+    shown = settings.effective()
+    assert shown["api_token"] == REDACTED and "s3cret" not in settings.render() + settings.render("json")
+    assert shown["http_port"] == 9000 and shown["cadence"]["cadence_scans"] == 2
+    assert shown["partition"] == {"index": 1, "count": 2}  # shared keys in the engine's form
+    assert {k: shown[k] for k in as_dict(settings.engine)} == as_dict(settings.engine)
+    for fmt in ("yaml", "json"):
+        path = tmp_path / f"shown.{fmt}"
+        path.write_text(settings.render(fmt))  # type: ignore[arg-type]
+        again = Settings.load(path)
+        assert again.effective() == shown and again.engine == settings.engine
+        clean_env.delenv("TOPOFUSION_API_TOKEN")
+        assert Settings.load(path).api_token is None  # the redaction is never taken for the token
+        clean_env.setenv("TOPOFUSION_API_TOKEN", "s3cret")
+
+
+def test_flags_are_overrides_by_their_settings_names() -> None:
+    import argparse
+
+    flags = {
+        "mode": "client",
+        "connect": ["tcp/127.0.0.1:7447"],
+        "window": 30.0,
+        "queue_bytes": 1,
+        "prefix": None,
+    }
+    assert flag_overrides(flags) == {
+        "zenoh_mode": "client",
+        "zenoh_connect": ["tcp/127.0.0.1:7447"],
+        "window_s": 30.0,
+    }  # (record's own --queue-bytes is no setting's flag)
+    assert flag_overrides(argparse.Namespace(**flags)) == flag_overrides(flags)
+
+
+def test_the_node_options_are_the_settings_of_their_names(clean_env: pytest.MonkeyPatch) -> None:
+    assert NodeOptions() == NodeOptions.from_settings(Settings())  # one set of defaults
+    clean_env.setenv("TOPOFUSION_QUEUE_WAIT_S", "0.25")
+    options = NodeOptions.from_settings(Settings.load(overrides={"radars": ["A", "B"], "stall_s": 5}))
+    assert (options.radars, options.queue_wait_s, options.stall_s) == (("A", "B"), 0.25, 5)
+
+
+def test_a_state_directory_that_cannot_be_used_is_named(
+    tmp_path: Path, clean_env: pytest.MonkeyPatch
+) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    settings = Settings.load(overrides={"state_dir": blocker / "state", "correlation_process": False})
+    with pytest.raises(RuntimeError, match=f"state directory {blocker / 'state'} cannot be used"):
+        start_engine(settings)

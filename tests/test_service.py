@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import Any
 
+import pytest
 import zenoh
 
-from service.engine import EngineConfig
+from service.engine import Engine, EngineConfig
+from service.settings import Settings
 from tests.scenario_helpers import scenario_messages
 from tests.support import put_json, running_service, wait_for, wait_subscribed
 
@@ -91,6 +94,37 @@ def test_lifespan_opens_and_closes_the_node(router: str) -> None:
         assert node.ready
         assert svc.http.get("/status").json()["prefix"] == "other"
     assert not node.ready  # session closed and worker joined by the lifespan's shutdown
+
+
+def test_the_node_of_the_settings_runs_as_they_say(
+    router: str, client: zenoh.Session, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``ServiceNode.from_settings``, as the command builds it: a config file (an engine
+    parameter and node settings), an engine variable and the flags.  ``/status`` says what is
+    in force, and the outputs are those of an engine of the same configuration."""
+    config = tmp_path / "topofusion.yaml"
+    config.write_text("method: nearest\nqueue_size: 300\ncorrelation_process: false\n")
+    monkeypatch.setenv("TOPOFUSION_ENGINE__CADENCE__CADENCE_SCANS", "2")
+    settings = Settings.load(config, {"zenoh_mode": "client", "zenoh_connect": [router], "prefix": None})
+    assert settings.engine.method == "nearest" and settings.engine.cadence.cadence_scans == 2
+    stream = scenario_messages("two-radar", duration_s=40.0)
+    n_batches = sum(k.endswith("/plots") for k, _ in stream)
+    with running_service(router, settings=settings) as svc:
+        wait_subscribed(client, "fusion/radar/A/plots")
+        for key, payload in stream:
+            put_json(client, key, payload)
+        wait_for(lambda: sum(r["batches"] for r in svc.http.get("/status").json()["radars"]) == n_batches)
+        status = svc.http.get("/status").json()
+        assert status["method"] == "nearest" and status["queue"]["capacity"] == 300
+        assert status["zenoh"] == {"mode": "client", "listen": [], "connect": [router]}
+        node = svc.node
+    reference = Engine(settings.engine)
+    for key, payload in stream:
+        reference.ingest(key, payload)
+    reference.flush()
+    snap, ref = node.engine.snapshot(), reference.snapshot()
+    assert snap.track_batches("all") == ref.track_batches("all")
+    assert snap.pair_sets(status="all") == ref.pair_sets(status="all")
 
 
 def test_workers_partitioned_by_radar_answer_together(router: str, client: zenoh.Session) -> None:

@@ -1,16 +1,24 @@
-"""Partitioned workers' ``/status``: one worker's own status and the others' latest, merged
-into the whole network's (contract §4.6: every worker's HTTP port answers for the network).
+"""Partitioned workers: who is alive, and the whole network's ``/status``, ``/radars`` and
+``/pairs`` from one worker's own and the others' (contract §4.6: every worker's HTTP port
+answers for the network).
 
-Pure functions of the statuses: the node gathers them (its own, and each live worker's latest
-``{prefix}/workers/{k}/status``) and says which workers are alive.
+:class:`PeerWorkers` follows the other workers (their liveliness tokens ``{prefix}/workers/{k}``
+and latest statuses ``{prefix}/workers/{k}/status``, Zenoh callbacks); the merging itself is
+pure functions of the statuses.
 """
 
 from __future__ import annotations
 
 import logging
+import time
 from typing import Any
 
+import orjson
+import zenoh
+
+from service.engine import Snapshot
 from service.pipeline.partition import BIAS_WORKER, Partition
+from service.wire.keys import Keys, parse_key
 
 log = logging.getLogger(__name__)
 
@@ -92,3 +100,137 @@ def merge_statuses(
     own["partition"] = partition_section(partition, alive, workers)
     own["partition"]["progress"] = progress
     return own
+
+
+class PeerWorkers:
+    """The other workers of a partitioned network, as this worker hears of them (wall clock:
+    this is operations, not data)."""
+
+    def __init__(self, keys: Keys, partition: Partition, grace_s: float) -> None:
+        self.keys = keys
+        self.partition = partition
+        #: A worker whose token left is still waited for this long (s; ``peer_grace_s``).
+        self.grace_s = grace_s
+        #: The other workers' latest statuses (when heard, raw), by K, and who is alive.
+        self.statuses: dict[int, tuple[float, bytes]] = {}
+        self.alive: set[int] = set()
+        #: Workers whose token left, and when (monotonic): waited for until ``grace_s``.
+        self.gone_at: dict[int, float] = {}
+        self._waited: set[int] | None = None
+
+    def declare(self, session: zenoh.Session) -> list[Any]:
+        """At the session's start: follow the others' statuses and tokens, declare this
+        worker's token; a worker not seen yet is waited for as one that just left."""
+        now = time.monotonic()
+        self.gone_at = {k: now for k in range(1, self.partition.count + 1) if k != self.partition.index}
+        return [
+            session.declare_subscriber(
+                self.keys.worker_statuses, zenoh.handlers.Callback(self.on_status, indirect=False)
+            ),
+            session.liveliness().declare_subscriber(self.keys.workers, self.on_token, history=True),
+            session.liveliness().declare_token(self.keys.worker(self.partition.index)),
+        ]
+
+    def on_status(self, sample: zenoh.Sample) -> None:
+        kind, ids = parse_key(str(sample.key_expr), self.keys.prefix)
+        if kind == "worker_status" and int(ids[0]) != self.partition.index:
+            self.statuses[int(ids[0])] = (time.monotonic(), sample.payload.to_bytes())
+
+    def on_token(self, sample: zenoh.Sample) -> None:
+        index = str(sample.key_expr).rsplit("/", 1)[-1]
+        if not index.isdigit():
+            return
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.alive.add(int(index))
+            self.gone_at.pop(int(index), None)
+        else:
+            self.alive.discard(int(index))
+            self.gone_at[int(index)] = time.monotonic()
+            if int(index) != self.partition.index:
+                log.warning(
+                    "worker %s/%d left (its radars and pairs are missing)", index, self.partition.count
+                )
+
+    def waited_changed(self) -> set[int] | None:
+        """The workers the merger waits for, when they changed (else None): those alive, and
+        those whose token left less than ``grace_s`` ago.  A token that leaves and comes back
+        (a session that lost its router for a moment under load) must not make the others stop
+        waiting: they would correlate without its tables and take them late, out of order."""
+        now = time.monotonic()
+        waited = set(self.alive) | {k for k, t in self.gone_at.items() if now - t < self.grace_s}
+        if waited == self._waited:
+            return None
+        self._waited = waited
+        return waited
+
+    def own_section(self, radars: list[str], pair_sets: int, progress: Any) -> dict[str, Any]:
+        """This worker's ``partition`` section of its own status."""
+        section = partition_section(
+            self.partition,
+            self.alive | {self.partition.index},
+            {self.partition.index: (0.0, radars, pair_sets)},
+        )
+        section["progress"] = progress
+        return section
+
+    def network_status(self, own: dict[str, Any]) -> dict[str, Any]:
+        """The network's status from this worker's (changed in place) and every live worker's
+        latest."""
+        now = time.monotonic()
+        peers: dict[int, tuple[float, dict[str, Any]]] = {}
+        for k, (seen, raw) in list(self.statuses.items()):
+            if k in self.alive:
+                try:
+                    peers[k] = (now - seen, orjson.loads(raw))
+                except orjson.JSONDecodeError:
+                    continue
+        return merge_statuses(own, peers, self.partition, self.alive | {self.partition.index})
+
+
+def network_radars(
+    own: list[dict[str, Any]], sites: dict[str, Any], counters: dict[str, dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """``GET /radars`` of a partitioned worker: its own radars (``own``), and every other radar
+    it knows the site of with its owner's counters (from the network's status)."""
+    seen = {r["radar_id"] for r in own}
+    keys = ("batches", "plots", "rejected", "lost_batches", "last_time_s")
+    others = []
+    for rid, site in sorted(sites.items()):
+        if rid not in seen:
+            c = counters.get(rid, {})
+            others.append(
+                {**site.model_dump(), **{k: c.get(k, 0 if k != "last_time_s" else None) for k in keys}}
+            )
+    return sorted(own + others, key=lambda r: str(r["radar_id"]))
+
+
+def network_pair_sets(
+    session: zenoh.Session,
+    keys: Keys,
+    snapshot: Snapshot,
+    own: list[dict[str, Any]],
+    radars: tuple[str | None, str | None],
+    status: str,
+    timeout_s: float,
+) -> list[dict[str, Any]]:
+    """``GET /pairs`` of a partitioned worker: its own pair sets (``own``, of ``snapshot``),
+    and the other workers' (a Zenoh ``get``) between radars including those of ``radars``."""
+    have = {(p["radar_a"], p["radar_b"]) for p in snapshot.pair_sets(radars[0], radars[1], "all")}
+    wanted = {x for x in radars if x is not None}
+    out = list(own)
+    replies = session.get(keys.pairs_all, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s)
+    for reply in replies:
+        if reply.ok is None:
+            continue
+        try:
+            body = orjson.loads(reply.ok.payload.to_bytes())
+            key = (body["radar_a"], body["radar_b"])
+        except (orjson.JSONDecodeError, KeyError, TypeError):
+            continue
+        if key in have or not wanted <= set(key):
+            continue
+        have.add(key)
+        if status != "all":
+            body = {**body, "pairs": [p for p in body.get("pairs", []) if p.get("status") == status]}
+        out.append(body)
+    return sorted(out, key=lambda p: (p["radar_a"], p["radar_b"]))

@@ -1,8 +1,11 @@
-"""Building a Zenoh session configuration from the contract's flags."""
+"""The Zenoh session: its configuration from the contract's flags and settings, opening it
+(with back-off while a router cannot be reached), and the service's :class:`Connection`."""
 
 from __future__ import annotations
 
 import json
+import logging
+import math
 import re
 import socket
 import threading
@@ -11,8 +14,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import zenoh
+
+if TYPE_CHECKING:
+    from service.settings import Settings
+
+log = logging.getLogger(__name__)
 
 #: The contract's default listen endpoint for `peer` and `router` modes.
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
@@ -44,6 +53,18 @@ class ZenohOptions:
     connect: tuple[str, ...] = ()
     config_file: Path | None = None
     default_mode: str = "peer"
+
+    @classmethod
+    def from_settings(cls, settings: Settings, default_mode: str = "peer") -> ZenohOptions:
+        """The Zenoh options of the settings; ``default_mode`` where neither a flag, a setting
+        nor the config file gives one (peer for the service, client for the tools)."""
+        return cls(
+            mode=settings.zenoh_mode,
+            listen=tuple(settings.zenoh_listen) if settings.zenoh_listen is not None else None,
+            connect=tuple(settings.zenoh_connect),
+            config_file=settings.zenoh_config,
+            default_mode=default_mode,
+        )
 
     def _file_config(self) -> zenoh.Config | None:
         if self.config_file is None:
@@ -193,3 +214,146 @@ def open_tool_session(options: ZenohOptions, name: str) -> zenoh.Session:
 
     retry = TOOL_CONNECT_RETRY_S if options.effective_mode == "client" else 0.0
     return open_session(options, retry_for_s=retry, on_retry=say)
+
+
+#: How often (s) the watcher looks at the Zenoh connection: a lost router shows within this.
+CONNECTION_POLL_S = 0.25
+
+
+class Connection:
+    """The service's session: given, opened at once, or, while the router cannot be reached, by
+    a connector thread with back-off (``connecting``); then watched (``linked``: ``/readyz``
+    says ``no zenoh connection`` while a client or a peer with connect endpoints has lost them
+    all; both changes are logged).
+
+    ``stopping`` is the node's stop (it ends the connector and the watcher); ``life`` its lock
+    of start and stop, under which the connector hands its session over (``on_open``).
+    ``on_failure(reason)`` hears of a failure that is not "unreachable" (a configuration Zenoh
+    refused once the router answered): ``failure`` says why.
+    """
+
+    def __init__(
+        self,
+        options: ZenohOptions,
+        session: zenoh.Session | None,
+        stopping: threading.Event,
+        life: threading.Lock,
+        on_failure: Callable[[str], None],
+    ) -> None:
+        self.options = options
+        self.session = session
+        self._own = session is None
+        self._stopping = stopping
+        self._life = life
+        self._on_failure = on_failure
+        #: Why the session could not be opened (a configuration Zenoh refused), or "".
+        self.failure = ""
+        self.connecting = False
+        #: Whether the session reaches what it must (:meth:`linked_now`): the watcher's view.
+        self.linked = True
+
+    def open(self) -> bool:
+        """Open the session (if not given one): True when open, False when the router cannot
+        be reached yet; raises ``RuntimeError`` saying why for any other failure."""
+        if self.session is None:
+            try:
+                self.session = open_session(self.options)
+            except RuntimeError as exc:
+                if not unreachable(exc):
+                    raise
+                log.warning("%s; retrying with back-off", exc)
+                return False
+        return True
+
+    def connect_later(self, on_open: Callable[[], None]) -> None:
+        """Start the connector: it opens the session with back-off until the router answers
+        (or a stop), then calls ``on_open`` under ``life``."""
+        self.connecting = True
+        threading.Thread(
+            target=self._connect, args=(on_open,), name="topofusion-connect", daemon=True
+        ).start()
+
+    def _connect(self, on_open: Callable[[], None]) -> None:
+        def say(reason: str, wait_s: float) -> None:
+            up = listening(self.options.effective_connect())
+            if up:
+                log.warning(
+                    "zenoh router at %s accepts connections but refused the session (a TLS "
+                    "certificate, user or password it does not take, or not a Zenoh router): %s; "
+                    "retrying in %.1f s",
+                    ", ".join(up),
+                    reason,
+                    wait_s,
+                )
+            else:
+                log.warning("zenoh router not reachable (%s); retrying in %.1f s", reason, wait_s)
+
+        try:
+            session = open_session(
+                self.options, math.inf, on_retry=say, retry_if=unreachable, stop=self._stopping
+            )
+        except OpenCancelledError:
+            return
+        except RuntimeError as exc:
+            self.failure = str(exc)
+            log.error("%s", exc)
+            self._on_failure(self.failure)
+            return
+        finally:
+            self.connecting = False
+        with self._life:
+            if self._stopping.is_set():
+                session.close()  # a stop came while the last attempt was under way
+                return
+            self.session = session
+            log.info("zenoh router reached")
+            on_open()
+
+    def describe(self) -> str:
+        """``mode=..., listen=[...], connect=[...]`` (the log's)."""
+        o = self.options
+        return f"mode={o.effective_mode}, listen={o.effective_listen()}, connect={o.effective_connect()}"
+
+    def linked_now(self) -> bool:
+        """Whether the session reaches a router or peer, where it must: a client always, a
+        peer or router only when told to connect somewhere (one with no connect endpoint
+        stands alone, and its publishers connect to it)."""
+        session = self.session
+        if session is None:
+            return False
+        if self.options.effective_mode != "client" and not self.options.effective_connect():
+            return True
+        try:
+            info = session.info
+            return bool(info.routers_zid()) or bool(info.peers_zid())
+        except Exception:  # the session is closing
+            return False
+
+    def watch(self) -> None:
+        """Start the watcher (until the stop)."""
+        self.linked = self.linked_now()
+        threading.Thread(target=self._watch, name="topofusion-watch", daemon=True).start()
+
+    def _watch(self) -> None:
+        """Follow the connection (wall clock, operations); say when it is lost and back."""
+        lost_at = 0.0
+        while not self._stopping.wait(CONNECTION_POLL_S):
+            linked = self.linked_now()
+            if linked == self.linked:
+                continue
+            self.linked = linked
+            if not linked:
+                lost_at = time.monotonic()
+                log.error(
+                    "zenoh connection lost: no router or peer of %s reachable; /readyz is 503 "
+                    "until it is back (inputs published meanwhile do not arrive: seq gaps count them)",
+                    self.options.effective_connect() or "the session",
+                )
+            else:
+                log.warning("zenoh connection back after %.1f s", time.monotonic() - lost_at)
+
+    def close(self) -> None:
+        """Close the session if this opened it; none is held after."""
+        if self._own and self.session is not None:
+            self.session.close()
+        self.session = None

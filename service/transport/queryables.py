@@ -1,0 +1,59 @@
+"""The service's queryables (contract §1): ``get {prefix}/status``, ``{prefix}/pairs/**``,
+``{prefix}/system_tracks`` and ``{prefix}/radar/*/performance``, answered from the latest
+snapshot without locks (Zenoh's threads run them)."""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+import zenoh
+
+from service.engine import Snapshot
+from service.wire.keys import Keys
+from service.wire.outputs import encode
+
+_JSON = zenoh.Encoding.APPLICATION_JSON
+
+
+class Views(Protocol):
+    """What the queryables read: the node's status and latest snapshot."""
+
+    @property
+    def snapshot(self) -> Snapshot: ...
+
+    def status(self) -> dict[str, Any]: ...
+
+
+def declare_queryables(session: zenoh.Session, keys: Keys, views: Views) -> list[Any]:
+    """Declare the queryables on ``session``; returns them (to undeclare at the stop)."""
+
+    def on_status(query: zenoh.Query) -> None:
+        query.reply(keys.status, encode(views.status()), encoding=_JSON)
+
+    def on_system(query: zenoh.Query) -> None:
+        query.reply(keys.system_tracks, encode(views.snapshot.system_tracks("confirmed")), encoding=_JSON)
+
+    def on_performance(query: zenoh.Query) -> None:
+        """Each radar whose ``RadarPerformance`` key the query's selector names."""
+        wanted = query.key_expr
+        snap = views.snapshot
+        for radar_id in sorted(snap.sites):
+            key = keys.performance(radar_id)
+            if wanted.intersects(zenoh.KeyExpr(key)):
+                body = snap.radar_performance(radar_id)
+                if body is not None:
+                    query.reply(key, encode(body), encoding=_JSON)
+
+    def on_pairs(query: zenoh.Query) -> None:
+        wanted = query.key_expr
+        for view in views.snapshot.pair_views:
+            key = keys.pairs(view.radar_a, view.radar_b)
+            if wanted.intersects(zenoh.KeyExpr(key)):
+                query.reply(key, encode(view.body("all")), encoding=_JSON)
+
+    return [
+        session.declare_queryable(keys.status, on_status),
+        session.declare_queryable(keys.pairs_all, on_pairs),
+        session.declare_queryable(keys.system_tracks, on_system),
+        session.declare_queryable(keys.performance_all, on_performance),
+    ]
