@@ -410,3 +410,22 @@ def within_reference(
         if near and i not in busy:
             out.append(i)
     return out
+
+
+def robust_covariance_reference(
+    scores: FloatArray, clusters: list[tuple[str, ...]], cov: FloatArray, prior: FloatArray
+) -> FloatArray:
+    """``service.correlation.registration._robust_covariance`` by a double loop over rows: the
+    meat ``diag(prior) + G/(G-1) sum_i sum_j s_i s_j^T`` over the rows ``i``, ``j`` whose
+    cluster keys share one (``clusters[i]``: a row's radar or reference tracks), ``G`` the fewer
+    of the distinct keys and the distinct key tuples, then ``cov meat cov``.  ``scores (rows,
+    n)``: each row's score ``G^T W r`` in every column.  A row's only key its track pair gives
+    the sandwich over track pairs."""
+    n_rows = scores.shape[0]
+    meat = np.zeros((scores.shape[1], scores.shape[1]))
+    for i in range(n_rows):
+        for j in range(n_rows):
+            if set(clusters[i]) & set(clusters[j]):
+                meat += np.outer(scores[i], scores[j])
+    g = min(len({k for c in clusters for k in c}), len(set(clusters)))
+    return np.asarray(cov @ (np.diag(prior) + meat * (g / (g - 1))) @ cov)

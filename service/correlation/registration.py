@@ -67,11 +67,24 @@ Observability (what the rows can tell):
 Uncertainty: the rows of one track pair at successive updates share most of their track errors
 (a filtered track is an average over its recent plots), so the textbook covariance ``H^-1``,
 which treats every row as independent, is optimistic by about the square root of the updates
-per track-error correlation time.  The reported covariance is therefore the cluster-robust
-(sandwich) one, ``H^-1 (sum_c s_c s_c^T) H^-1 C/(C-1)``, with ``s_c`` the summed score
-``G^T W r`` of all rows of track pair ``c`` (Liang & Zeger 1986; any correlation within a
-track pair is allowed, pairs are independent).  With fewer than ``min_clusters`` track pairs
-the model covariance ``H^-1`` is used.
+per track-error correlation time.  And one radar track enters several track pairs -- with the
+track of every other radar that sees its aircraft, and with the aircraft's reference track --
+with the same errors.  The reported covariance is therefore the cluster-robust (sandwich) one
+with rows correlated whenever they share a track, ``H^-1 M H^-1``,
+
+    M = diag(prior) + G/(G-1) (sum_t S_t S_t^T - sum_p S_p S_p^T),
+
+``S_t`` the summed score ``G^T W r`` of all rows of track ``t`` (a radar's track, or a
+reference's: one ADS-B track is paired with every radar that hears it), ``S_p`` of all rows of
+track pair ``p``: the double sum ``sum_i sum_j s_i s_j^T`` over the rows ``i``, ``j`` that share
+a track, by inclusion and exclusion (the rows of one track pair share both its tracks, and only
+they).  ``G`` is the fewer of the tracks and the track pairs; where no track is in two pairs
+(two radars, no reference) ``M`` is the sandwich over track pairs alone.  Such a meat need not
+be positive semi-definite (few tracks for many terms): a negative part of the covariance, on
+its correlation scale, is set to zero.  Any correlation among the rows of one track is allowed,
+tracks of different aircraft are independent.  With fewer than ``min_clusters`` track pairs the
+model covariance ``H^-1`` is used.  Measured calibration (error against sigma over the lab
+study's runs): docs/registration.md, *Sigma*.
 
 With two radars the *differential* effect ``G_a b_a - G_b b_b`` is always well determined
 (it is what the data measure), so bias-compensating both radars with the estimate removes
@@ -164,7 +177,8 @@ class RegistrationParams:
     #: ... and sooner, once the pair's confirmed pairs have grown this many times since its
     #: last solve (a first registration rests on the few pairs confirmed by then).
     resolve_growth: float = 4.0
-    #: Fewest distinct track pairs for the cluster-robust covariance; below it, ``H^-1``.
+    #: Fewest distinct track pairs for the cluster-robust covariance (clustered by shared
+    #: track, module docstring); below it, ``H^-1``.
     min_clusters: int = 10
     #: Most Gauss-Newton iterations of a solve: the estimate converges on the current rows
     #: (2-3 steps), then the outlier test re-selects the rows, and again until nothing changes
@@ -725,10 +739,7 @@ def solve_biases(
         )
         for m, r in rows
     ]
-    for _, _, cols in data:
-        # each row's track pair as a small integer (the clusters of the robust covariance),
-        # found once per solve: sorting the pair ids is the dearest step of a covariance
-        cols["cluster"] = np.unique(cols["pair"], return_inverse=True)[1].ravel().astype(np.intp)
+    _cluster_labels(data)
     bias = np.zeros(n)
     if initial is not None:
         start, _ = initial.full
@@ -1018,6 +1029,32 @@ def _columns(m: RegistrationMemory, col: dict[str, int]) -> NDArray[np.intp]:
     return np.r_[ka : ka + nt, kb : kb + nt].astype(np.intp)
 
 
+def _cluster_labels(data: list[tuple[RegistrationMemory, np.ndarray, dict[str, np.ndarray]]]) -> None:
+    """The clusters of the robust covariance, found once per solve (sorting the ids is the
+    dearest step of a covariance): ``cols["cluster"]`` each row's track pair as a small integer
+    of its memory, ``cols["tracks"] (pairs, 2)`` the two tracks of each of those track pairs as
+    integers common to every memory.  A track is its source's: the radar's site id and the
+    track id (a reference's with an empty site id: one reference track of an aircraft is paired
+    with every radar that sees it, with the same errors)."""
+    keys = []
+    for m, _, cols in data:
+        pairs, label = np.unique(cols["pair"], return_inverse=True)
+        cols["cluster"] = label.ravel().astype(np.intp)
+        # only the distinct pairs are split into their two track ids
+        parts = np.char.partition(pairs.astype(str), "\x1f")
+        site_b = "" if m.site_b is None else m.site_b.site_id
+        keys.append(np.char.add(m.site_a.site_id + "\x1f", parts[:, 0]))
+        keys.append(np.char.add(site_b + "\x1f", parts[:, 2]))
+    if not keys:
+        return
+    track = np.unique(np.concatenate(keys), return_inverse=True)[1].ravel().astype(np.intp)
+    start = 0
+    for _, _, cols in data:
+        k = int(cols["cluster"].max()) + 1 if cols["cluster"].size else 0
+        cols["tracks"] = np.stack([track[start : start + k], track[start + k : start + 2 * k]], axis=1)
+        start += 2 * k
+
+
 def _robust_covariance(
     data: list[tuple[RegistrationMemory, np.ndarray, dict[str, np.ndarray]]],
     keep: list[np.ndarray],
@@ -1027,36 +1064,67 @@ def _robust_covariance(
     prior: FloatArray,
     min_clusters: int,
 ) -> tuple[FloatArray, int]:
-    """Cluster-robust covariance of the terms (module docstring), and the number of clusters.
+    """Cluster-robust covariance of the terms (module docstring), and the number of track pairs
+    that entered it.
 
     ``residuals``: every row's exact residual at the solution (:func:`_residual`), ``keep``: the
-    rows that solution was fitted to.  The prior is one more independent term, so components the
-    data do not determine keep their prior variance.
+    rows that solution was fitted to.  Two rows are taken as correlated when they share a radar
+    (or reference) track, in one track pair or in two: the meat is
+    ``sum_i sum_j s_i s_j^T [i, j share a track]`` (``s_i`` a row's score ``G^T W r`` in every
+    column), by inclusion and exclusion ``sum_t S_t S_t^T - sum_p S_p S_p^T`` with ``S_t`` the
+    summed score of the rows of track ``t`` and ``S_p`` of track pair ``p`` (the rows of one
+    track pair share both its tracks, and only they), times ``G/(G-1)`` with ``G`` the fewer of
+    the tracks and track pairs.  The prior is one more independent term, so components the data
+    do not determine keep their prior variance.  Where no track is in two track pairs this is
+    the sandwich over track pairs alone.
     """
     if len(residuals) != len(data):
         return cov, 0
-    # Clusters (track pairs) never span two memories, so the meat is a sum of one 10x10 block
-    # per memory: the outer products of its clusters' summed scores, in its two radars' columns.
-    meat = np.diag(prior)
-    c = 0
-    blocks = []
+    n = prior.shape[0]
+    n_tracks = max((int(cols["tracks"].max()) + 1 for _, _, cols in data if cols["tracks"].size), default=0)
+    by_track = np.zeros((n_tracks, n))
+    by_pair = np.zeros((n, n))
+    used = np.zeros(n_tracks, dtype=bool)
+    pairs = 0
     for (m, _, cols), kp, res in zip(data, keep, residuals, strict=True):
         idx = np.flatnonzero(kp)
         if idx.size == 0:
             continue
         sc = _scores(m, cols, res)[idx]
         label = cols["cluster"][idx]  # the track pair of each kept row
-        k = int(label.max()) + 1
+        k = cols["tracks"].shape[0]
         summed = np.stack(
             [np.bincount(label, weights=sc[:, j], minlength=k) for j in range(sc.shape[1])], axis=1
         )
-        blocks.append((_columns(m, col), summed.T @ summed))
-        c += int(np.count_nonzero(np.bincount(label, minlength=k)))
-    if c < max(min_clusters, 2):
-        return cov, c
-    for where, block in blocks:
-        np.add.at(meat, np.ix_(where, where), block * (c / (c - 1)))
-    return cov @ meat @ cov, c
+        where = _columns(m, col)  # a reference's half of a score is zero (its columns A's again)
+        # Track pairs never span two memories: their part is one 10x10 block per memory.
+        np.add.at(by_pair, np.ix_(where, where), summed.T @ summed)
+        tracks = cols["tracks"]
+        np.add.at(by_track, (tracks[:, :1], where[None, :]), summed)
+        np.add.at(by_track, (tracks[:, 1:], where[None, :]), summed)
+        entered = np.bincount(label, minlength=k) > 0
+        used[tracks[entered].ravel()] = True
+        pairs += int(np.count_nonzero(entered))
+    g = min(pairs, int(np.count_nonzero(used)))
+    if pairs < max(min_clusters, 2) or g < 2:
+        return cov, pairs
+    meat = np.diag(prior) + (by_track.T @ by_track - by_pair) * (g / (g - 1))
+    return _nonnegative(cov @ meat @ cov), pairs
+
+
+def _nonnegative(v: FloatArray) -> FloatArray:
+    """``v`` with negative eigenvalues set to zero (the inclusion and exclusion of
+    :func:`_robust_covariance` need not give a positive semi-definite meat), on the correlation
+    scale: the terms' units differ by many orders of magnitude.  ``v`` itself when it has none."""
+    d = np.sqrt(np.clip(np.diag(v), 0.0, None))
+    on = np.flatnonzero(d > 0)  # terms not estimated keep their zero rows exactly
+    scale = np.outer(d[on], d[on])
+    w, u = np.linalg.eigh(0.5 * (v[np.ix_(on, on)] + v[np.ix_(on, on)].T) / scale)
+    if on.size == 0 or w.min() >= 0.0:
+        return v
+    out = np.zeros_like(v)
+    out[np.ix_(on, on)] = (u * np.clip(w, 0.0, None)) @ u.T * scale
+    return out
 
 
 def compensate(

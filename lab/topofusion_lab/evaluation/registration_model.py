@@ -20,7 +20,9 @@ then come out consistent with zero).  ``three-term`` rows run the same stream wi
 time terms switched off (``RegistrationParams.estimate_range_gain`` / ``estimate_time_bias``),
 the model before this study: pair accuracy with and without the new terms.
 
-Scoring per radar: each term's error against the truth and against its reported 1-sigma.
+Scoring per radar: each term's error against the truth and against its reported 1-sigma, and
+per condition and term kind the distribution of error / sigma over radars and runs (RMS, share
+within 2 sigma: an honest sigma has about 1 and 95 %).
 Without ADS-B a time bias common to the three radars is not observable (module docstring of
 the registration), so the time biases are then compared *relative to their mean* (estimate
 minus the estimates' mean against truth minus the truths' mean).  Radar-radar pairs on the
@@ -258,9 +260,58 @@ def _fmt(fmt: str, x: float | None) -> str:
     return "-" if x is None or not math.isfinite(x) else fmt.format(x)
 
 
+def z_scores(c: Condition, runs: Sequence[RunResult], name: str, truth_name: str) -> tuple[list[float], int]:
+    """Every radar's and run's error / reported 1-sigma of one term (:func:`_error`), and how
+    many gains were held at zero (estimate exactly 0: reported with the whole model's sigma,
+    their error then says nothing of it).  Left out: terms without an estimate or a sigma, and
+    time biases without ADS-B (their error is relative to the radars' mean, their sigma the
+    marginal one, which holds the unobservable common mode)."""
+    zs: list[float] = []
+    held = 0
+    if name == "time_bias_s" and c.adsb_share is None:
+        return zs, held
+    for run in runs:
+        for r in run.radars:
+            est, sig = r.estimate[name], r.sigma[name]
+            if est is None or not sig:
+                continue
+            if name == "range_gain_ppm" and est == 0.0:
+                held += 1
+                continue
+            err = _error(c, r, run.radars, name, truth_name)
+            if math.isfinite(err):
+                zs.append(err / sig)
+    return zs, held
+
+
+def z_table(conditions: dict[int, Condition], by_index: dict[int, list[RunResult]]) -> list[str]:
+    """Per condition and term kind the distribution of error / sigma over radars and runs."""
+    out = [
+        "| condition | term | n | held | mean z | RMS z | abs(z) <= 2 | max abs(z) |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for index in sorted(by_index):
+        c = conditions[index]
+        for label, name, _, truth_name, _ in TERM_FIELDS:
+            if not c.full_model and name in ("range_gain_ppm", "time_bias_s"):
+                continue
+            zs, held = z_scores(c, by_index[index], name, truth_name)
+            z = np.asarray(zs)
+            if z.size == 0:
+                out.append(f"| {c.label} | {label} | 0 | {held} | - | - | - | - |")
+                continue
+            out.append(
+                f"| {c.label} | {label} | {z.size} | {held} | {z.mean():+.2f} | "
+                f"{math.sqrt(float(np.mean(z**2))):.2f} | {np.mean(np.abs(z) <= GOAL_ZERO_SIGMA):.0%} | "
+                f"{np.abs(z).max():.1f} |"
+            )
+    return out
+
+
 def markdown(jobs: Sequence[Job], results: Sequence[RunResult], duration_s: float) -> list[str]:
-    """A summary per condition (largest errors, goals, radar-radar pairs), then per condition,
-    radar and term the truth, estimate, error, sigma and goal."""
+    """A summary per condition (largest errors, goals, radar-radar pairs), the distribution of
+    error / sigma per condition and term kind (:func:`z_table`), then per condition, radar and
+    term the truth, estimate, error, sigma and goal."""
     by_index: dict[int, list[RunResult]] = {}
     for res in results:
         by_index.setdefault(res.index, []).append(res)
@@ -329,6 +380,12 @@ def markdown(jobs: Sequence[Job], results: Sequence[RunResult], duration_s: floa
         "at the end, *complete* = aircraft tracked by both radars with a correct pair.",
         "",
         *summary,
+        "",
+        "Error / reported 1-sigma (*z*) over every radar and run, per term: an honest sigma has "
+        "RMS z near 1 and abs(z) <= 2 in about 95 % (*held*: gains held at zero, left out; time "
+        "biases without ADS-B left out, their sigma holds the unobservable common mode):",
+        "",
+        *z_table(conditions, by_index),
         "",
         "Per radar and term (several runs: the run of the largest error; *z* = error / reported 1-sigma):",
         "",
