@@ -150,3 +150,20 @@ def test_refused_zenoh_endpoint_is_one_clear_error() -> None:
         )
     assert res.returncode == 2
     assert "cannot open Zenoh session" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_python_m_service_is_the_console_script() -> None:
+    """`python -m service` equals `topofusion` (contract §3), the lab's commands included."""
+    for args in (["--help"], ["demo", "--help"], ["nosuch"]):
+        script = subprocess.run([TOPOFUSION, *args], capture_output=True, text=True, timeout=60)
+        module = subprocess.run(
+            [sys.executable, "-m", "service", *args], capture_output=True, text=True, timeout=60
+        )
+        assert (module.returncode, module.stdout, module.stderr) == (
+            script.returncode,
+            script.stdout,
+            script.stderr,
+        ), args
+        assert script.returncode == (2 if args == ["nosuch"] else 0), script.stderr
+        if args == ["--help"]:
+            assert "demo, simulate, evaluate: from topofusion-lab" in " ".join(script.stdout.split())

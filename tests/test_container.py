@@ -44,7 +44,7 @@ def _tool(name: str) -> str:
     return found
 
 
-#: Commands that need the lab (service/cli.py imports it for these only).
+#: Commands that need the lab (its command group, registered through the topofusion.commands entry point).
 LAB_COMMANDS = ("demo", "simulate", "evaluate")
 LAB_DOCKERFILE = "lab/Dockerfile"
 

@@ -1,7 +1,8 @@
 """``topofusion simulate``: a scenario over Zenoh or as ASTERIX, once, looped, or resumed.
 
-The command line (service/cli.py) parses the flags and calls :func:`check_arguments` (all that
-can be judged without Zenoh, so a mistake ends the command at once with status 2) and then
+The command line (the lab's command group, ``topofusion_lab/commands/simulate.py``) parses the
+flags and calls :func:`check_arguments` (all that can be judged without Zenoh, so a mistake ends
+the command at once with status 2) and then
 :func:`run_simulation`.
 
 **Resuming** (``--start-time resume``): the simulator asks the service for its data clock with

@@ -471,4 +471,3 @@ def decode_datagram(data: bytes, out: Decoded, max_records: int | None = None) -
             if left is not None:
                 left -= len(records) - before
         pos += length
-

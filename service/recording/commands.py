@@ -1,7 +1,7 @@
 """``topofusion record`` and ``topofusion replay``: argument parsing edges and entry points.
 
-The lead's ``service/cli.py`` adds the common Zenoh flags (``--mode`` defaulting to client,
-``--listen``, ``--connect``, ``--zenoh-config``, ``--prefix``) and calls these functions.
+The command line (``service/cli/tools.py``) adds the common Zenoh flags (``--mode`` defaulting to
+client, ``--listen``, ``--connect``, ``--zenoh-config``, ``--prefix``) and calls these functions.
 """
 
 from __future__ import annotations

@@ -1,0 +1,98 @@
+"""The operator's helpers: ``config`` (the effective engine configuration), ``partition`` (who
+owns what among N workers), ``schemas`` (the payloads' JSON Schemas) and ``healthcheck``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from service.cli.common import Commands, add_command, settings_from
+from service.settings import Settings
+
+
+def register(commands: Commands) -> None:
+    add_command(
+        commands,
+        "healthcheck",
+        healthcheck_main,
+        help="exit 0 if the local service answers GET /healthz (container HEALTHCHECK)",
+    )
+    cfg = add_command(
+        commands, "config", config_main, help="the engine's effective configuration, every parameter"
+    )
+    cfg.add_argument("--show", action="store_true", help="print it (YAML) with its defaults")
+    cfg.add_argument("--config", metavar="FILE", help="a config file to apply (TOML/YAML/JSON)")
+    cfg.add_argument("--format", choices=("yaml", "json"), default="yaml")
+    part = add_command(
+        commands, "partition", partition_main, help="which worker of N owns which radar and radar pair"
+    )
+    part.add_argument("--count", type=int, required=True, metavar="N", help="number of workers")
+    part.add_argument("--sites", metavar="FILE", help="the radars of a sites file (a JSON list of RadarSite)")
+    part.add_argument("ids", nargs="*", metavar="ID", help="radar or reference source ids")
+    sch = add_command(
+        commands, "schemas", schemas_main, help="write JSON Schemas of every payload into schemas/"
+    )
+    sch.add_argument("--out", default="schemas", help="output folder (default ./schemas)")
+
+
+def partition_main(args: argparse.Namespace) -> int:
+    """``topofusion partition --count N``: each worker's radars and radar pairs (rendezvous
+    hashing, contract §4.6), with each worker's share."""
+    import itertools
+
+    from service.config import load_sites
+    from service.pipeline.partition import Partition
+
+    if args.count < 1:
+        print("--count must be at least 1", file=sys.stderr)
+        return 2
+    ids = list(args.ids)
+    if args.sites:
+        ids += [s.radar_id for s in load_sites(args.sites)]
+    ids = sorted(set(ids))
+    if not ids:
+        print("give radar ids or --sites FILE", file=sys.stderr)
+        return 2
+    pairs = list(itertools.combinations(ids, 2))
+    for k in range(1, args.count + 1):
+        p = Partition(k, args.count)
+        radars = [i for i in ids if p.owns(i)]
+        owned = [f"{a}/{b}" for a, b in pairs if p.owns_pair(a, b)]
+        print(f"worker {k}/{args.count}: {len(radars)} radars, {len(owned)} of {len(pairs)} pairs")
+        print(f"  radars: {' '.join(radars) or '-'}")
+        print(f"  pairs:  {' '.join(owned) or '-'}")
+    return 0
+
+
+def config_main(args: argparse.Namespace) -> int:
+    """``topofusion config --show``: the effective settings and engine configuration (file,
+    environment, flags and defaults; secrets redacted), validated; exit 2 with the key named
+    when it is not valid."""
+    text = settings_from(args).render(args.format)
+    if not args.show:
+        print("configuration is valid (use --show to print it)", file=sys.stderr)
+        return 0
+    print(text, end="")
+    return 0
+
+
+def schemas_main(args: argparse.Namespace) -> int:
+    from service.schema_files import write_schemas
+
+    written = write_schemas(Path(args.out))
+    print(f"schemas: wrote {len(written)} files into {args.out}", file=sys.stderr)
+    return 0
+
+
+def healthcheck_main(args: argparse.Namespace) -> int:
+    import urllib.request
+
+    settings = Settings()
+    host = "127.0.0.1" if settings.http_host in ("0.0.0.0", "::", "") else settings.http_host
+    try:
+        with urllib.request.urlopen(f"http://{host}:{settings.http_port}/healthz", timeout=2) as resp:
+            return 0 if resp.status == 200 else 1
+    except OSError as exc:
+        print(f"healthcheck: {exc}", file=sys.stderr)
+        return 1
