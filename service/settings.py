@@ -46,8 +46,14 @@ if TYPE_CHECKING:
 
     from pydantic.fields import FieldInfo
 
-    from service.api.limits import HttpLimits
     from service.engine import EngineConfig
+
+#: Connections the HTTP side port's cap always leaves beyond every request that may be in
+#: progress (at most ``max_requests`` ordinary ones and ``picture_max_clients`` streams): those
+#: are idle or still sending their request head, and such a connection gives way to a new one
+#: when the cap is reached, so that a probe always finds room (docs/operations/http.md;
+#: service/api/limits.py checks the limits against it).
+PROBE_ROOM = 16
 
 #: Environment variables of single engine parameters start with this (then ``SECTION__FIELD``).
 ENV_PREFIX = "TOPOFUSION_ENGINE__"
@@ -382,8 +388,6 @@ class Settings(BaseSettings):
 
     @model_validator(mode="after")
     def _http_connections_leave_room_for_probes(self) -> Settings:
-        from service.api.limits import PROBE_ROOM
-
         least = self.http_max_requests + self.http_picture_max_clients + PROBE_ROOM
         if self.http_max_connections < least:
             raise ValueError(
@@ -540,23 +544,6 @@ def flag_overrides(flags: Mapping[str, Any] | argparse.Namespace) -> dict[str, A
     of :data:`FLAGS`, only those given), for :meth:`Settings.load`."""
     given = flags if isinstance(flags, Mapping) else vars(flags)
     return {field: given[flag] for flag, field in FLAGS.items() if given.get(flag) is not None}
-
-
-def http_limits(settings: Settings) -> HttpLimits:
-    """The HTTP side port's limits of the settings."""
-    from service.api.limits import HttpLimits
-
-    return HttpLimits(
-        header_timeout_s=settings.http_header_timeout_s,
-        keep_alive_s=settings.http_keep_alive_s,
-        max_connections=settings.http_max_connections,
-        max_requests=settings.http_max_requests,
-        backlog=settings.http_backlog,
-        picture_max_clients=settings.http_picture_max_clients,
-        picture_backlog=settings.http_picture_backlog,
-        picture_max_bytes_s=settings.http_picture_max_bytes_s,
-        picture_send_buffer=settings.http_picture_send_buffer,
-    )
 
 
 def engine_config(settings: Settings) -> EngineConfig:

@@ -27,8 +27,8 @@ from collections.abc import Iterator
 import httpx
 import pytest
 
-from service.api.limits import PROBE_ROOM, HttpLimits
-from service.settings import Settings, http_limits
+from service.api.limits import PROBE_ROOM, HttpLimits, http_limits
+from service.settings import Settings
 from tests.http_service import Served, closed_by_peer, ensure_open_files, open_idle, served
 from tests.support import free_port, wait_for, zenoh_router
 

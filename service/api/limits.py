@@ -8,12 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-#: Connections the cap always leaves beyond every request that may be in progress (at most
-#: ``max_requests`` ordinary ones and ``picture_max_clients`` streams): those are idle or still
-#: sending their request head, and such a connection gives way to a new one when the cap is
-#: reached, so that a probe always finds room (docs/operations/http.md).
-PROBE_ROOM = 16
-
+from service.settings import PROBE_ROOM, Settings
 
 #: The limits that must be above zero.
 POSITIVE = (
@@ -70,3 +65,18 @@ class HttpLimits:
     def busy_at_most(self) -> int:
         """Connections that may be in the middle of a request at once (probes aside)."""
         return self.max_requests + self.picture_max_clients
+
+
+def http_limits(settings: Settings) -> HttpLimits:
+    """The HTTP side port's limits of the settings."""
+    return HttpLimits(
+        header_timeout_s=settings.http_header_timeout_s,
+        keep_alive_s=settings.http_keep_alive_s,
+        max_connections=settings.http_max_connections,
+        max_requests=settings.http_max_requests,
+        backlog=settings.http_backlog,
+        picture_max_clients=settings.http_picture_max_clients,
+        picture_backlog=settings.http_picture_backlog,
+        picture_max_bytes_s=settings.http_picture_max_bytes_s,
+        picture_send_buffer=settings.http_picture_send_buffer,
+    )

@@ -11,7 +11,7 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from service.cli.common import Commands, add_command, settings_from, setup_logging, zenoh_flags
-from service.settings import Settings, http_limits
+from service.settings import Settings
 from service.wire.vocabulary import METHODS
 
 log = logging.getLogger("topofusion")
@@ -68,6 +68,7 @@ def serve(settings: Settings, hooks: Callable[[str], ServeHooks] | None = None) 
     import uvicorn
 
     from service.api.app import create_app
+    from service.api.limits import http_limits
     from service.api.server import fit_file_limit, server_config
     from service.transport.node import ServiceNode
 
