@@ -357,10 +357,10 @@ class Engine:
         self.correlation.poll()
         return self._results(idle=True)
 
-    def set_alive(self, workers: set[int]) -> list[Outgoing]:
-        """The workers that are up (liveliness): the merger waits for these only.  Returns
+    def wait_for(self, workers: set[int]) -> list[Outgoing]:
+        """The workers the merger waits for (up, or gone for less than the grace): these only.  Returns
         what the merge then lets through (a worker that left no longer holds it back)."""
-        self.peers.set_alive(workers)
+        self.peers.wait_for(workers)
         self._snapshot = None
         out = self._correlate(self.merger.release(self.peers.owners(), self.peers.cap()))
         return out + self._results()

@@ -96,8 +96,9 @@ class Peers:
         self.tracking = tracking
         self.merger = merger
         self.correlation = correlation
-        #: The workers whose liveliness token is present (the transport tells).
-        self.alive: set[int] = set(range(1, partition.count + 1))
+        #: The workers the merge waits for: those whose liveliness token is present, and those gone
+        #: for less than the grace (the transport tells: ``PeerWorkers.waited_changed``).
+        self.waited: set[int] = set(range(1, partition.count + 1))
         self.sender = StatesSender(exchange)
         self.receiver = StatesReceiver()
         #: Each other worker's ``correlated_s`` (the bias worker waits for them).
@@ -152,7 +153,7 @@ class Peers:
     def owners(self) -> set[int]:
         """The live workers the merger waits for: those owning a known radar, and this one."""
         owners = {self.partition.owner(rid) for rid in self.tracking.tracked}
-        return (owners & self.alive) | {self.partition.index}
+        return (owners & self.waited) | {self.partition.index}
 
     def cap(self) -> float:
         """How far the merger may release.  The bias worker's correlation stays within
@@ -160,12 +161,12 @@ class Peers:
         time ``T`` it holds every row up to ``T`` (``CorrelationStage._solve_due``)."""
         if not self.partition.solves_biases or self.alone:
             return np.inf
-        others = self.alive - {self.partition.index}
+        others = self.waited - {self.partition.index}
         cap = min((self._correlated_by.get(k, -np.inf) for k in others), default=np.inf)
         return cap + self.cadence.bias_lag_s
 
-    def set_alive(self, workers: set[int]) -> None:
-        self.alive = set(workers) | {self.partition.index}
+    def wait_for(self, workers: set[int]) -> None:
+        self.waited = set(workers) | {self.partition.index}
 
     def progress(self) -> dict[str, Any]:
         """How far this worker has got (``/status`` ``partition.progress``; none alone)."""

@@ -104,7 +104,7 @@ class Worker:
             if self.peers is not None:
                 waited = self.peers.waited_changed()
                 if waited is not None:
-                    self._publish(engine.set_alive(waited))
+                    self._publish(engine.wait_for(waited))
             if item is not None:
                 self._handle(*item)
                 if self.state is not None:
