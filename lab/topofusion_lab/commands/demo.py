@@ -30,9 +30,20 @@ def register(commands: Commands) -> None:
     demo.add_argument("--speed", type=float, default=1.0, help="simulation speed (x real time)")
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("--start-time", type=float, help="data time of the first scan (default: now)")
+    demo.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        metavar="N",
+        help="a Zenoh router and N partitioned `run` workers on this machine (default 1: one process)",
+    )
 
 
 def demo_main(args: argparse.Namespace) -> int:
+    if args.workers != 1:
+        from topofusion_lab.demo_workers import run_workers_demo
+
+        return run_workers_demo(args)
     settings = settings_from(args)
     setup_logging(settings.log_level)
     return serve(settings, hooks=lambda prefix: DemoSimulator(args, prefix))
