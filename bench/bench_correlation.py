@@ -92,7 +92,7 @@ def bench_full_update(n: int = 1000, updates: int = 8) -> None:
 
 
 def bench_registration(rows_per_update: int = 40, updates: int = 100) -> None:
-    from service.correlation.base import TrackSnapshot
+    from service.correlation.base import PredictedTracks
     from service.correlation.registration import RegistrationMemory, RegistrationParams, solve_biases
     from service.geo import Site
 
@@ -103,7 +103,7 @@ def bench_registration(rows_per_update: int = 40, updates: int = 100) -> None:
         n = len(pos)
         cov = np.broadcast_to(np.eye(3) * noise**2, (n, 3, 3)).copy()
         ids = np.array([f"{site.site_id}{i}" for i in range(n)])
-        return TrackSnapshot(
+        return PredictedTracks(
             ids, pos, np.zeros((n, 3)), cov, cov.copy(), site, site.ecef_to_enu(pos), np.zeros((n, 3))
         )
 

@@ -42,7 +42,7 @@ from service.correlation.base import DecisionContext
 from service.correlation.evidence import EvidenceBook
 from service.correlation.external import GmmCorrelator
 from service.correlation.gmm import GmmParams, gmm_associate
-from service.correlation.prediction import predict_snapshot
+from service.correlation.prediction import predict_tracks
 from service.geo import Site
 from service.tracking.base import TrackTable
 from topofusion_lab.evaluation.correlation_scenario import make_sites
@@ -305,7 +305,7 @@ def diagnose(seed: int, scene: DenseScene) -> np.ndarray:
     paper = replace(em_b2, report_rivals=False)
     rows = []
     for ta, tb, t in tables[-max(1, scene.scans // 2) :]:
-        sa, sb = predict_snapshot(ta, a, t), predict_snapshot(tb, b, t)
+        sa, sb = predict_tracks(ta, a, t), predict_tracks(tb, b, t)
         truth_a = dict(zip(ta.track_id, ta.truth_id, strict=True))
         truth_b = dict(zip(tb.track_id, tb.truth_id, strict=True))
         ida = np.array([truth_a[i] for i in sa.track_id])

@@ -6,7 +6,7 @@ Methods (``METHODS``): ``svd-topology`` (default; Wu, Jiang, Ren 2011), ``basic-
 :meth:`PairCorrelator.update`; :func:`estimate_biases` registers all radars jointly.
 """
 
-from service.correlation.base import CorrelationMethod, DecisionContext, Decisions, Reason, TrackSnapshot
+from service.correlation.base import CorrelationMethod, DecisionContext, Decisions, PredictedTracks, Reason
 from service.correlation.correlator import (
     METHODS,
     CorrelationParams,
@@ -26,10 +26,10 @@ __all__ = [
     "PairBookParams",
     "PairCorrelator",
     "PairState",
+    "PredictedTracks",
     "RadarBias",
     "Reason",
     "RegistrationParams",
-    "TrackSnapshot",
     "estimate_biases",
     "joint_solution",
 ]

@@ -1,7 +1,7 @@
 """The small contract every correlation method implements (pure numpy).
 
-A :class:`TrackSnapshot` is one radar's tracks brought to the common data time of an update
-(:func:`service.correlation.prediction.predict_snapshot`).  A :class:`CorrelationMethod` turns two
+A :class:`PredictedTracks` is one radar's tracks brought to the common data time of an update
+(:func:`service.correlation.prediction.predict_tracks`).  A :class:`CorrelationMethod` turns two
 snapshots into *single decisions* over candidate pairs (:class:`Decisions`): one row per
 candidate, with an accept flag, a cost for the one-to-one assignment and the method's
 statistics.  Everything over time (the M-of-N book, the evidence, registration) lives in
@@ -65,7 +65,7 @@ NO_DECISION_REASONS = np.array(
 
 
 @dataclass(frozen=True)
-class TrackSnapshot:
+class PredictedTracks:
     """One source's tracks at the common data time of an update (row ``i`` = one track).
 
     ``position``/``velocity`` are ECEF as the source reports them (biases not removed
@@ -201,12 +201,12 @@ class CorrelationMethod(ABC):
     requires_sites: bool = True
 
     @abstractmethod
-    def decide(self, a: TrackSnapshot, b: TrackSnapshot, context: DecisionContext) -> Decisions:
+    def decide(self, a: PredictedTracks, b: PredictedTracks, context: DecisionContext) -> Decisions:
         """Single decisions for every candidate pair of this update (of the reference rows of
         ``context`` when it names them and the method re-verifies)."""
 
     def reverify(
-        self, a: TrackSnapshot, b: TrackSnapshot, ia: IntArray, ib: IntArray, context: DecisionContext
+        self, a: PredictedTracks, b: PredictedTracks, ia: IntArray, ib: IntArray, context: DecisionContext
     ) -> Decisions | None:
         """A cheap re-check of the currently confirmed pairs ``(ia[k], ib[k])``, or None when the
         method has none for this context (the default: every pair goes to :meth:`decide`).

@@ -37,8 +37,8 @@ from service.correlation.base import (
     DecisionContext,
     Decisions,
     FloatArray,
+    PredictedTracks,
     Reason,
-    TrackSnapshot,
 )
 from service.correlation.candidates import CandidateParams, candidate_pairs
 from service.correlation.linalg import inv3, quad3
@@ -223,7 +223,7 @@ class BasicTopologyCorrelator(CorrelationMethod):
     def __init__(self, params: BasicTopologyParams | None = None) -> None:
         self.params = params or BasicTopologyParams()
 
-    def decide(self, a: TrackSnapshot, b: TrackSnapshot, context: DecisionContext) -> Decisions:
+    def decide(self, a: PredictedTracks, b: PredictedTracks, context: DecisionContext) -> Decisions:
         prm = self.params
         if a.site is None or b.site is None:
             raise ValueError("basic-topology needs two radar sites")

@@ -62,8 +62,8 @@ from service.correlation.base import (
     CorrelationMethod,
     DecisionContext,
     Decisions,
+    PredictedTracks,
     Reason,
-    TrackSnapshot,
 )
 from service.correlation.basic_topology import BasicTopologyCorrelator, BasicTopologyParams
 from service.correlation.cfar import CfarParams
@@ -76,7 +76,7 @@ from service.correlation.linalg import chi2_upper, inv3, quad3
 from service.correlation.nearest import NearestCorrelator, NearestParams
 from service.correlation.pairkeys import find, isin_sorted, pair_keys
 from service.correlation.pairs import PairBook, PairBookParams, PairState
-from service.correlation.prediction import PredictionParams, predict_snapshot
+from service.correlation.prediction import PredictionParams, predict_tracks
 from service.correlation.prompt import PromptParams, clear_of_rivals, isolated
 from service.correlation.registration import (
     BiasSolution,
@@ -295,7 +295,7 @@ class PairCorrelator:
         through third radars imply (:mod:`.cycles`; None: no cycle step)."""
         t0 = time.perf_counter()
         prm = self.params
-        raw_a, raw_b, a, b, ctx_kw = self._snapshots(tracks_a, tracks_b, time_s)
+        raw_a, raw_b, a, b, ctx_kw = self._predicted(tracks_a, tracks_b, time_s)
         registered = bool(ctx_kw)
         ev = self.evidence
         if ev is not None and registered:
@@ -453,14 +453,14 @@ class PairCorrelator:
         self.updates += 1
         self.last_update_ms = (time.perf_counter() - t0) * 1e3
 
-    def _snapshots(
+    def _predicted(
         self, tracks_a: TrackTable, tracks_b: TrackTable, time_s: float
-    ) -> tuple[TrackSnapshot, TrackSnapshot, TrackSnapshot, TrackSnapshot, dict[str, object]]:
+    ) -> tuple[PredictedTracks, PredictedTracks, PredictedTracks, PredictedTracks, dict[str, object]]:
         """Both tables brought to ``time_s`` (raw), the same bias-compensated once registered,
         and the decision context's registration fields (empty: not registered)."""
         prm = self.params
-        raw_a = predict_snapshot(tracks_a, self.site_a, time_s, prm.prediction)
-        raw_b = predict_snapshot(tracks_b, self.site_b, time_s, prm.prediction)
+        raw_a = predict_tracks(tracks_a, self.site_a, time_s, prm.prediction)
+        raw_b = predict_tracks(tracks_b, self.site_b, time_s, prm.prediction)
         if not self.registered or self.solution is None:
             return raw_a, raw_b, raw_a, raw_b, {}
         ba, pa = self.solution.of(self.site_a.site_id)
@@ -478,8 +478,8 @@ class PairCorrelator:
     def _clear(
         self,
         dec: Decisions,
-        a: TrackSnapshot,
-        b: TrackSnapshot,
+        a: PredictedTracks,
+        b: PredictedTracks,
         tracks_a: TrackTable,
         tracks_b: TrackTable,
         time_s: float,
@@ -537,7 +537,7 @@ class PairCorrelator:
             return False  # no partner track within reach of a fresh one: nothing to decide
         sub_a = tracks_a.take(np.flatnonzero(near_a.any(axis=1)))
         sub_b = tracks_b.take(np.flatnonzero(near_b.any(axis=1)))
-        _, _, a, b, ctx_kw = self._snapshots(sub_a, sub_b, time_s)
+        _, _, a, b, ctx_kw = self._predicted(sub_a, sub_b, time_s)
         fa, fb = np.isin(a.track_id, fresh_a), np.isin(b.track_id, fresh_b)
         if not (fa.any() or fb.any()):
             return False
@@ -607,8 +607,8 @@ class PairCorrelator:
     def _with_history(
         self,
         dec: Decisions,
-        a: TrackSnapshot,
-        b: TrackSnapshot,
+        a: PredictedTracks,
+        b: PredictedTracks,
         time_s: float,
         registered: bool,
         clear: np.ndarray,
@@ -654,7 +654,7 @@ class PairCorrelator:
         )
 
     def _group_stage(
-        self, dec: Decisions, a: TrackSnapshot, b: TrackSnapshot, time_s: float
+        self, dec: Decisions, a: PredictedTracks, b: PredictedTracks, time_s: float
     ) -> tuple[Decisions, np.ndarray]:
         """Candidates inside a group, against the group's local offset (before registration):
         a look for the residual evidence, and the decision of those the topology could not
@@ -722,7 +722,7 @@ def estimate_biases(
     return to_estimates(joint_solution(correlators, time_s, params), time_s)
 
 
-def _identities_differ(a: TrackSnapshot, b: TrackSnapshot, d: Decisions) -> NDArray[np.bool_]:
+def _identities_differ(a: PredictedTracks, b: PredictedTracks, d: Decisions) -> NDArray[np.bool_]:
     """Candidates whose two tracks both carry a Mode S address, and different ones."""
     if a.mode_s is None or b.mode_s is None or not len(d):
         return np.zeros(len(d), dtype=bool)

@@ -63,7 +63,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from service.correlation.base import FloatArray, IntArray, TrackSnapshot
+from service.correlation.base import FloatArray, IntArray, PredictedTracks
 from service.correlation.candidates import candidate_pairs
 from service.correlation.linalg import chi2_upper, congruence, inv3, quad3
 from service.correlation.pairkeys import find, isin_sorted, pair_keys
@@ -122,7 +122,7 @@ class EvidenceParams:
 
 
 def registered_residuals(
-    a: TrackSnapshot, b: TrackSnapshot, extra_a: FloatArray, extra_b: FloatArray, params: EvidenceParams
+    a: PredictedTracks, b: PredictedTracks, extra_a: FloatArray, extra_b: FloatArray, params: EvidenceParams
 ) -> tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray]:
     """The looks of one registered update: rows ``(ia, ib)`` of the bias-compensated snapshots
     within the search distance and the gate, their residual ``x_A - x_B`` and its random and

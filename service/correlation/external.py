@@ -26,8 +26,8 @@ from service.correlation.base import (
     DecisionContext,
     Decisions,
     IntArray,
+    PredictedTracks,
     Reason,
-    TrackSnapshot,
 )
 from service.geo import Site, enu_to_polar
 
@@ -74,7 +74,7 @@ class GmmCorrelator(CorrelationMethod):
         """``-2 ln P``: a posterior as a cost in chi-square units (a ratio of 20 is 6 apart)."""
         return np.asarray(-2.0 * np.log(np.clip(post, np.finfo(float).tiny, 1.0)))
 
-    def decide(self, a: TrackSnapshot, b: TrackSnapshot, context: DecisionContext) -> Decisions:
+    def decide(self, a: PredictedTracks, b: PredictedTracks, context: DecisionContext) -> Decisions:
         if a.site is None:
             raise ValueError("gmm needs radar A's site")
         p = self.params or gmm.GmmParams()
@@ -129,7 +129,9 @@ class CfarCorrelator(CorrelationMethod):
         self.params = params
 
     @staticmethod
-    def _polar(s: TrackSnapshot, site: Site, rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def _polar(
+        s: PredictedTracks, site: Site, rows: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """``[range_m, azimuth_deg]`` of ``s``'s tracks (``rows``; None: all) in ``site``'s polar
         frame, and their ``(n, 2, 2)`` covariances."""
         pos = s.position if rows is None else s.position[rows]
@@ -139,7 +141,7 @@ class CfarCorrelator(CorrelationMethod):
         rot = site.rotation
         return np.column_stack([r, az]), cfar.polar_covariance(enu, rot.T @ cov @ rot)
 
-    def decide(self, a: TrackSnapshot, b: TrackSnapshot, context: DecisionContext) -> Decisions:
+    def decide(self, a: PredictedTracks, b: PredictedTracks, context: DecisionContext) -> Decisions:
         if a.site is None:
             raise ValueError("cfar needs radar A's site (source B is the reference)")
         rad, crad = self._polar(a, a.site)
@@ -169,7 +171,7 @@ class CfarCorrelator(CorrelationMethod):
         return _all_accepted(res.index_radar[ok], res.index_ref[ok], np.where(conf, -1.0, 0.0), conf)
 
     def reverify(
-        self, a: TrackSnapshot, b: TrackSnapshot, ia: IntArray, ib: IntArray, context: DecisionContext
+        self, a: PredictedTracks, b: PredictedTracks, ia: IntArray, ib: IntArray, context: DecisionContext
     ) -> Decisions | None:
         """Re-check the confirmed pairs ``(ia[k], ib[k])``: each pair's ``[range, azimuth]``
         residual against the bias of the other confirmed pairs (Eqs. (17)-(18) of the paper,

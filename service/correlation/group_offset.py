@@ -40,7 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from service.correlation.base import FloatArray, IntArray, TrackSnapshot
+from service.correlation.base import FloatArray, IntArray, PredictedTracks
 from service.correlation.linalg import congruence
 
 
@@ -74,8 +74,8 @@ class GroupOffsetParams:
 
 
 def group_residuals(
-    a: TrackSnapshot,
-    b: TrackSnapshot,
+    a: PredictedTracks,
+    b: PredictedTracks,
     ia: IntArray,
     ib: IntArray,
     params: GroupOffsetParams,
@@ -193,7 +193,7 @@ def group_residuals(
 
 
 def _support(
-    a: TrackSnapshot,
+    a: PredictedTracks,
     ia: IntArray,
     d: FloatArray,
     counts: NDArray[np.intp],

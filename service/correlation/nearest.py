@@ -22,8 +22,8 @@ from service.correlation.base import (
     Decisions,
     FloatArray,
     IntArray,
+    PredictedTracks,
     Reason,
-    TrackSnapshot,
 )
 from service.correlation.candidates import CandidateParams, candidate_pairs
 from service.correlation.linalg import inv3, quad3
@@ -41,8 +41,8 @@ class NearestParams:
 
 
 def chi2_pairs(
-    a: TrackSnapshot,
-    b: TrackSnapshot,
+    a: PredictedTracks,
+    b: PredictedTracks,
     ia: IntArray,
     ib: IntArray,
     extra_cov_a: FloatArray | None = None,
@@ -62,8 +62,8 @@ def chi2_pairs(
 
 
 def nearest_decide(
-    a: TrackSnapshot,
-    b: TrackSnapshot,
+    a: PredictedTracks,
+    b: PredictedTracks,
     ia: IntArray,
     ib: IntArray,
     params: NearestParams,
@@ -97,6 +97,6 @@ class NearestCorrelator(CorrelationMethod):
     def __init__(self, params: NearestParams | None = None) -> None:
         self.params = params or NearestParams()
 
-    def decide(self, a: TrackSnapshot, b: TrackSnapshot, context: DecisionContext) -> Decisions:
+    def decide(self, a: PredictedTracks, b: PredictedTracks, context: DecisionContext) -> Decisions:
         ia, ib, _ = candidate_pairs(a.position, b.position, self.params.candidates.gate_m)
         return nearest_decide(a, b, ia, ib, self.params)

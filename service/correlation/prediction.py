@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.correlation.base import FloatArray, TrackSnapshot
+from service.correlation.base import FloatArray, PredictedTracks
 from service.geo import Site
 from service.tracking.base import TrackTable
 
@@ -74,9 +74,9 @@ def predict_blocks(
     return pos, velocity.copy(), pos_cov, vel_cov
 
 
-def predict_snapshot(
+def predict_tracks(
     table: TrackTable, site: Site | None, time_s: float, params: PredictionParams | None = None
-) -> TrackSnapshot:
+) -> PredictedTracks:
     """Select usable rows of ``table`` and extrapolate them to ``time_s``.
 
     ``site`` None marks a bias-free reference source (AIS); its ``enu`` is then the ECEF
@@ -105,7 +105,7 @@ def predict_snapshot(
     else:
         enu = site.ecef_to_enu(pos)
         enu_v = vel @ site.rotation
-    return TrackSnapshot(
+    return PredictedTracks(
         track_id=track_id.astype(str),
         position=pos,
         velocity=vel,

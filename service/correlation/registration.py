@@ -104,7 +104,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from service.correlation.base import FloatArray, TrackSnapshot
+from service.correlation.base import FloatArray, PredictedTracks
 from service.correlation.linalg import congruence, inv3, quad3
 from service.geo import Site
 
@@ -511,8 +511,8 @@ class RegistrationMemory:
     def add(
         self,
         time_s: float,
-        a: TrackSnapshot,
-        b: TrackSnapshot,
+        a: PredictedTracks,
+        b: PredictedTracks,
         ia: np.ndarray,
         ib: np.ndarray,
         params: RegistrationParams,
@@ -1128,8 +1128,8 @@ def _nonnegative(v: FloatArray) -> FloatArray:
 
 
 def compensate(
-    snapshot: TrackSnapshot, bias: FloatArray, bias_cov: FloatArray
-) -> tuple[TrackSnapshot, FloatArray]:
+    snapshot: PredictedTracks, bias: FloatArray, bias_cov: FloatArray
+) -> tuple[PredictedTracks, FloatArray]:
     """Remove an estimated registration from a radar snapshot; also the per-track covariance
     it adds, ``G C G^T`` (module docstring, (*)).
 
@@ -1161,7 +1161,7 @@ def compensate(
     # G C G^T = R (G_enu C G_enu^T) R^T: G C as one 2-D product, R (.) R^T as a congruence.
     gc = (g.reshape(-1, N_TERMS) @ bias_cov).reshape(g.shape)
     extra = congruence(site.rotation, gc @ np.swapaxes(g, 1, 2))
-    out = TrackSnapshot(
+    out = PredictedTracks(
         track_id=snapshot.track_id,
         position=site.enu_to_ecef(enu),
         velocity=enu_v @ site.rotation.T,

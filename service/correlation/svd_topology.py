@@ -72,8 +72,8 @@ from service.correlation.base import (
     DecisionContext,
     Decisions,
     FloatArray,
+    PredictedTracks,
     Reason,
-    TrackSnapshot,
 )
 from service.correlation.candidates import CandidateParams, candidate_pairs
 from service.correlation.gls import similarity_gls_batch
@@ -504,7 +504,7 @@ def _join_results(parts: list[tuple[NDArray[np.intp], SvdMatchResult]], n: int) 
     return SvdMatchResult(**cols)
 
 
-def _in_group(snap: TrackSnapshot, rows: NDArray[np.intp], prm: SvdTopologyParams) -> BoolArray:
+def _in_group(snap: PredictedTracks, rows: NDArray[np.intp], prm: SvdTopologyParams) -> BoolArray:
     """Which of ``rows`` have a track of the same snapshot near them flying with them."""
     up = snap.site.rotation[:, 2] if snap.site is not None else None
     none = np.zeros(len(snap), dtype=bool)
@@ -520,8 +520,8 @@ def _in_group(snap: TrackSnapshot, rows: NDArray[np.intp], prm: SvdTopologyParam
 
 
 def compensated_chi2(
-    a: TrackSnapshot,
-    b: TrackSnapshot,
+    a: PredictedTracks,
+    b: PredictedTracks,
     ia: NDArray[np.intp],
     ib: NDArray[np.intp],
     context: DecisionContext,
@@ -576,7 +576,7 @@ def _turned_rows(rot: FloatArray, cov: FloatArray, rows: NDArray[np.intp]) -> Fl
 
 
 def _reference_candidates(
-    a: TrackSnapshot, b: TrackSnapshot, context: DecisionContext, gate_m: float
+    a: PredictedTracks, b: PredictedTracks, context: DecisionContext, gate_m: float
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """Candidate pairs among the context's reference rows (all rows when it names none), (i, j) order."""
     if context.reference_a is None and context.reference_b is None:
@@ -589,7 +589,12 @@ def _reference_candidates(
 
 
 def _velocity_compatible(
-    a: TrackSnapshot, b: TrackSnapshot, ia: np.ndarray, ib: np.ndarray, m0: FloatArray, prm: SvdTopologyParams
+    a: PredictedTracks,
+    b: PredictedTracks,
+    ia: np.ndarray,
+    ib: np.ndarray,
+    m0: FloatArray,
+    prm: SvdTopologyParams,
 ) -> BoolArray:
     """Rotation-tolerant velocity gate of candidates (see ``velocity_prefilter_alpha``)."""
     va = a.enu_velocity[ia] @ m0.T
@@ -619,7 +624,7 @@ class SvdTopologyCorrelator(CorrelationMethod):
     def __init__(self, params: SvdTopologyParams | None = None) -> None:
         self.params = params or SvdTopologyParams()
 
-    def decide(self, a: TrackSnapshot, b: TrackSnapshot, context: DecisionContext) -> Decisions:
+    def decide(self, a: PredictedTracks, b: PredictedTracks, context: DecisionContext) -> Decisions:
         prm = self.params
         if a.site is None or b.site is None:
             raise ValueError("svd-topology needs two radar sites")
@@ -696,8 +701,8 @@ class SvdTopologyCorrelator(CorrelationMethod):
 
     def _topology(
         self,
-        a: TrackSnapshot,
-        b: TrackSnapshot,
+        a: PredictedTracks,
+        b: PredictedTracks,
         ra_sub: NDArray[np.intp],
         rb_sub: NDArray[np.intp],
         m0: FloatArray,
@@ -744,8 +749,8 @@ class SvdTopologyCorrelator(CorrelationMethod):
 
     def reverify(
         self,
-        a: TrackSnapshot,
-        b: TrackSnapshot,
+        a: PredictedTracks,
+        b: PredictedTracks,
         ia: NDArray[np.intp],
         ib: NDArray[np.intp],
         context: DecisionContext,

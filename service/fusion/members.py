@@ -17,7 +17,7 @@ import numpy as np
 from service.columns import concat_rows
 from service.correlation.pairkeys import find
 from service.correlation.pairs import PairBook
-from service.correlation.prediction import PredictionParams, predict_snapshot
+from service.correlation.prediction import PredictionParams, predict_tracks
 from service.correlation.registration import BiasSolution, compensate
 from service.fusion.system_tracks import FloatArray, IntArray, Members
 from service.geo import Site
@@ -38,7 +38,7 @@ def members_and_links(
     parts: list[Members] = []
     for rid in sorted(radars):
         site, table = radars[rid]
-        snap = predict_snapshot(table, site, time_s, every)
+        snap = predict_tracks(table, site, time_s, every)
         extra = np.zeros((len(snap), 3, 3))
         if solution is not None and len(snap):
             snap, extra = compensate(snap, *solution.of(rid))
@@ -56,7 +56,7 @@ def members_and_links(
         )
     for sid in sorted(references):
         table = references[sid]
-        snap = predict_snapshot(table, None, time_s, every)
+        snap = predict_tracks(table, None, time_s, every)
         parts.append(
             _members(
                 sid, True, table, snap.track_id, snap.position, snap.velocity, snap.pos_cov, snap.vel_cov

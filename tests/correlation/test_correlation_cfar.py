@@ -10,7 +10,7 @@ import pytest
 from scipy.stats import chi2
 
 from service.correlation import cfar as cfar_module
-from service.correlation.base import DecisionContext, TrackSnapshot
+from service.correlation.base import DecisionContext, PredictedTracks
 from service.correlation.cfar import (
     CfarParams,
     bias_least_squares,
@@ -415,11 +415,11 @@ def test_known_pairs_carry_the_bias_and_keep_their_tracks() -> None:
 # -- the correlator: re-check of confirmed pairs, reference rows --------------------------------
 
 
-def _reference_snapshot(truth: np.ndarray, sigma: float, rng: np.random.Generator) -> TrackSnapshot:
+def _reference_snapshot(truth: np.ndarray, sigma: float, rng: np.random.Generator) -> PredictedTracks:
     n = len(truth)
     pos = truth + rng.normal(0.0, sigma, truth.shape)
     cov = np.broadcast_to(np.eye(3) * sigma**2, (n, 3, 3)).copy()
-    return TrackSnapshot(
+    return PredictedTracks(
         np.array([f"r{i}" for i in range(n)]),
         pos,
         np.zeros((n, 3)),
@@ -431,7 +431,7 @@ def _reference_snapshot(truth: np.ndarray, sigma: float, rng: np.random.Generato
     )
 
 
-def _radar_and_reference(seed: int, n: int = 40) -> tuple[TrackSnapshot, TrackSnapshot]:
+def _radar_and_reference(seed: int, n: int = 40) -> tuple[PredictedTracks, PredictedTracks]:
     rng = np.random.default_rng(seed)
     site, _ = make_sites()
     enu = np.column_stack(

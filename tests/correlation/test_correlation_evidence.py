@@ -10,7 +10,7 @@ import pytest
 
 from service.correlation import CorrelationParams, PairCorrelator
 from service.correlation.assignment import _joint_regret, assign_unambiguous
-from service.correlation.base import TrackSnapshot
+from service.correlation.base import PredictedTracks
 from service.correlation.evidence import EvidenceBook, EvidenceParams
 from service.correlation.group_offset import GroupOffsetParams, group_residuals
 from service.geo import Site
@@ -92,11 +92,11 @@ def test_joint_rule_resolves_two_close_targets_the_single_pair_rule_cannot() -> 
     assert joint.tolist() == [True, False, False, True]
 
 
-def _snapshot(site: Site, enu: np.ndarray, sigma: float) -> TrackSnapshot:
+def _snapshot(site: Site, enu: np.ndarray, sigma: float) -> PredictedTracks:
     n = len(enu)
     cov = np.broadcast_to(np.eye(3) * sigma**2, (n, 3, 3)).copy()
     ecef = site.enu_to_ecef(enu)
-    return TrackSnapshot(
+    return PredictedTracks(
         track_id=np.array([f"{site.site_id}-{k}" for k in range(n)]),
         position=ecef,
         velocity=np.zeros((n, 3)),

@@ -210,7 +210,7 @@ def test_polar_jacobian_from_enu_matches_the_trigonometric_one() -> None:
 def test_compensation_covariance_matches_per_track_product() -> None:
     """``G C G^T`` of :func:`compensate` against the per-track product, and the compensated
     positions against :func:`remove_bias`."""
-    from service.correlation.base import TrackSnapshot
+    from service.correlation.base import PredictedTracks
     from service.correlation.registration import bias_jacobian, compensate, remove_bias
 
     rng = np.random.default_rng(23)
@@ -220,7 +220,7 @@ def test_compensation_covariance_matches_per_track_product() -> None:
     pos = site.enu_to_ecef(enu)
     vel = rng.normal(size=(n, 3)) * 200
     cov = np.broadcast_to(np.eye(3) * 1e4, (n, 3, 3)).copy()
-    snap = TrackSnapshot(
+    snap = PredictedTracks(
         np.array([f"t{k}" for k in range(n)]), pos, vel, cov, cov.copy(), site, enu, vel @ site.rotation
     )
     bias = np.array([400.0, np.radians(0.3), np.radians(0.1)])

@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from service.correlation.base import TrackSnapshot
+from service.correlation.base import PredictedTracks
 from service.correlation.registration import (
     RegistrationMemory,
     RegistrationParams,
@@ -56,7 +56,7 @@ def test_reference_source_fixed_at_zero() -> None:
     truth = sample_references(rng, a, b, 100)
     sa = snapshot_of(a, truth, np.array([500.0, np.radians(0.6), 0.0]), rng, 10.0)
     ref = snapshot_of(b, truth, np.zeros(3), rng, 10.0)
-    ref = TrackSnapshot(
+    ref = PredictedTracks(
         ref.track_id, ref.position, ref.velocity, ref.pos_cov, ref.vel_cov, None, ref.position, ref.velocity
     )
     m = RegistrationMemory(a, None)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from service.correlation import DecisionContext, PairCorrelator, TrackSnapshot
+from service.correlation import DecisionContext, PairCorrelator, PredictedTracks
 from service.correlation.svd_topology import SvdTopologyCorrelator, SvdTopologyParams
 from service.tracking.base import TrackTable
 from topofusion_lab.evaluation.correlation_scenario import make_sites
@@ -40,7 +40,7 @@ class _Spy(SvdTopologyCorrelator):
         super().__init__(params)
         self.calls: list[tuple[int, int, int, int, set[str], set[str]]] = []
 
-    def decide(self, a: TrackSnapshot, b: TrackSnapshot, context: DecisionContext):  # type: ignore[no-untyped-def]
+    def decide(self, a: PredictedTracks, b: PredictedTracks, context: DecisionContext):  # type: ignore[no-untyped-def]
         dec = super().decide(a, b, context)
         ref_a = set(range(len(a))) if context.reference_a is None else set(context.reference_a.tolist())
         ref_b = set(range(len(b))) if context.reference_b is None else set(context.reference_b.tolist())
@@ -138,8 +138,8 @@ def test_diverging_confirmed_pair_fails_the_recheck_and_is_redecided(warmed) -> 
 
 
 def _reference_recheck(
-    a: TrackSnapshot,
-    b: TrackSnapshot,
+    a: PredictedTracks,
+    b: PredictedTracks,
     ia: np.ndarray,
     ib: np.ndarray,
     reg_a: np.ndarray,
@@ -160,14 +160,14 @@ def _reference_recheck(
     return q, ok
 
 
-def _random_snapshot(rng: np.random.Generator, site, n: int, ids: str) -> TrackSnapshot:  # type: ignore[no-untyped-def]
+def _random_snapshot(rng: np.random.Generator, site, n: int, ids: str) -> PredictedTracks:  # type: ignore[no-untyped-def]
     pos = site.origin_ecef + rng.normal(0, 50_000.0, (n, 3))
     vel = rng.normal(0, 200.0, (n, 3))
     la = rng.normal(size=(n, 3, 3))
     lv = rng.normal(size=(n, 3, 3))
     pcov = la @ np.swapaxes(la, 1, 2) * 200.0**2 + np.eye(3) * 100.0
     vcov = lv @ np.swapaxes(lv, 1, 2) * 5.0**2 + np.eye(3)
-    return TrackSnapshot(
+    return PredictedTracks(
         np.array([f"{ids}{k}" for k in range(n)]),
         pos,
         vel,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from service.correlation.assignment import assign_unambiguous
-from service.correlation.base import DecisionContext, Reason, TrackSnapshot
+from service.correlation.base import DecisionContext, PredictedTracks, Reason
 from service.correlation.external import GmmCorrelator
 from service.correlation.gmm import GmmParams, candidate_pairs, gmm_associate, sigma_floor_m
 from tests.correlation_support import snapshot_of
@@ -102,7 +102,7 @@ def test_sigma_held_to_the_tracks_errors_on_a_dense_lattice() -> None:
 # -- the stream adapter -------------------------------------------------------------------------
 
 
-def two_close_targets(noise: float = 100.0) -> tuple[TrackSnapshot, TrackSnapshot, int]:
+def two_close_targets(noise: float = 100.0) -> tuple[PredictedTracks, PredictedTracks, int]:
     """Twelve aircraft 8 km apart plus one 150 m from the last (closer than the two radars'
     relative error, ~140 m per axis): radar A and B snapshots with azimuth biases, and the
     index of the close pair's first aircraft (tracks ``k`` and ``k + 1`` in both radars)."""
@@ -146,7 +146,7 @@ def test_paper_decision_guesses_on_close_targets() -> None:
 
 def test_degenerate_snapshot_gives_no_decisions() -> None:
     sa, sb, _ = two_close_targets()
-    one = TrackSnapshot(
+    one = PredictedTracks(
         sb.track_id[:1],
         sb.position[:1],
         sb.velocity[:1],

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.correlation.base import TrackSnapshot
+from service.correlation.base import PredictedTracks
 from service.correlation.registration import (
     GAIN,
     N_TERMS,
@@ -45,12 +45,12 @@ def _sites() -> dict[str, Site]:
 
 def _snapshot(
     site: Site | None, ids: list[str], pos: np.ndarray, vel: np.ndarray, var: float
-) -> TrackSnapshot:
+) -> PredictedTracks:
     n = len(pos)
     cov = np.broadcast_to(np.eye(3) * var, (n, 3, 3)).copy()
     if site is None:
-        return TrackSnapshot(np.array(ids), pos, vel, cov, cov.copy(), None, pos, vel)
-    return TrackSnapshot(
+        return PredictedTracks(np.array(ids), pos, vel, cov, cov.copy(), None, pos, vel)
+    return PredictedTracks(
         np.array(ids), pos, vel, cov, cov.copy(), site, site.ecef_to_enu(pos), vel @ site.rotation
     )
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.correlation.base import TrackSnapshot
+from service.correlation.base import PredictedTracks
 from service.correlation.registration import (
     GAIN,
     N_TERMS,
@@ -55,7 +55,7 @@ def _observed(
     terms: np.ndarray,
     rng: np.random.Generator,
     noise: float,
-) -> TrackSnapshot:
+) -> PredictedTracks:
     """What a radar with ``terms`` reports at (its) time ``t`` of targets truly at ``truth``
     then: the polar model applied to where they were at ``t - tau``, plus white noise."""
     r, az, el = site.ecef_to_polar(truth - terms[TIME] * vel)
@@ -66,16 +66,18 @@ def _observed(
     n = len(pos)
     cov = np.broadcast_to(np.eye(3) * max(noise, 1.0) ** 2, (n, 3, 3)).copy()
     ids = np.array([f"{site.site_id}{i}" for i in range(n)])
-    return TrackSnapshot(
+    return PredictedTracks(
         ids, pos, vel.copy(), cov, cov.copy(), site, site.ecef_to_enu(pos), vel @ site.rotation
     )
 
 
-def _reference(truth: np.ndarray, vel: np.ndarray) -> TrackSnapshot:
+def _reference(truth: np.ndarray, vel: np.ndarray) -> PredictedTracks:
     """A bias-free reference (ADS-B) of the same aircraft, 10 m errors."""
     n = len(truth)
     cov = np.broadcast_to(np.eye(3) * 100.0, (n, 3, 3)).copy()
-    return TrackSnapshot(np.array([f"R{i}" for i in range(n)]), truth, vel, cov, cov.copy(), None, truth, vel)
+    return PredictedTracks(
+        np.array([f"R{i}" for i in range(n)]), truth, vel, cov, cov.copy(), None, truth, vel
+    )
 
 
 def _network(
