@@ -66,7 +66,8 @@ def test_the_readme_demo_and_its_curl_block_run_as_written(tmp_path: Path) -> No
         time.sleep(0.2)  # (the reader thread takes the last lines)
         # the README's progress line: "batches N  plots N (N/s)  confirmed tracks N  pairs N ..."
         progress = re.compile(
-            r"batches [\d,]+\s+plots [\d,]+ \([\d,]+/s\)\s+confirmed tracks \d+\s+pairs \d+ confirmed"
+            r"batches [\d,]+\s+plots [\d,]+ \([\d,]+/s\)\s+confirmed tracks \d+\s+"
+            r"pairs \d+ confirmed \(\d+ right by simulator truth\)"
         )
         assert progress.search(demo.output()), demo.output()[-2000:]
     status, tracks, pairs, biases = (json.loads(o) for o in outputs)
