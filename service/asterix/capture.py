@@ -353,12 +353,9 @@ def _read_pcapng(f: BinaryIO, counters: collections.Counter[str]) -> Iterator[Da
             if total < 28 or total % 4 or total > MAX_RECORD_BYTES:
                 counters["bad_block"] += 1
                 break
-            body = f.read(total - 12)
-            if len(body) < total - 12:
-                counters["truncated_file"] += 1
-                break
-            if struct.unpack(order + "I", body[-4:])[0] != total:
-                counters["bad_block"] += 1
+            rest = _block_rest(f, total, 12, order)
+            if isinstance(rest, str):
+                counters[rest] += 1
                 break
             interfaces = []  # interface ids are numbered per section
             continue
@@ -375,14 +372,11 @@ def _read_pcapng(f: BinaryIO, counters: collections.Counter[str]) -> Iterator[Da
         if total > MAX_RECORD_BYTES:
             counters["bad_block"] += 1
             break
-        body = f.read(total - 8)
-        if len(body) < total - 8:
-            counters["truncated_file"] += 1
+        rest = _block_rest(f, total, 8, order)
+        if isinstance(rest, str):
+            counters[rest] += 1
             break
-        if struct.unpack(order + "I", body[-4:])[0] != total:
-            counters["bad_block"] += 1
-            break
-        body = body[:-4]
+        body = rest[:-4]
         if block_type == 1:
             interface = _interface(body, order)
             if interface is None:
@@ -399,6 +393,17 @@ def _read_pcapng(f: BinaryIO, counters: collections.Counter[str]) -> Iterator[Da
         if datagram is not None:
             yield datagram
     frames.finish()
+
+
+def _block_rest(f: BinaryIO, total: int, read: int, order: str) -> bytes | str:
+    """The rest of a block of ``total`` bytes whose first ``read`` are read, ending in the block's
+    length (checked); else the counter to raise as reading must stop."""
+    rest = f.read(total - read)
+    if len(rest) < total - read:
+        return "truncated_file"
+    if struct.unpack(order + "I", rest[-4:])[0] != total:
+        return "bad_block"
+    return rest
 
 
 def _skip_block(f: BinaryIO, total: int, order: str) -> str | None:

@@ -395,7 +395,7 @@ class PairCorrelator:
             sel.rotation_weight,
             sel.scale,
             sel.neighbors,
-            np.nan_to_num(sel.extras["basis"], nan=-1.0).astype(np.int8) if "basis" in sel.extras else None,
+            _basis_codes(sel.extras["basis"]) if "basis" in sel.extras else None,
             confirm_now=now,
         )
         if ev is not None:
@@ -590,7 +590,7 @@ class PairCorrelator:
             take.rotation_weight,
             take.scale,
             take.neighbors,
-            np.nan_to_num(self._basis(take), nan=-1.0).astype(np.int8),
+            _basis_codes(self._basis(take)),
             probability,
         )
 
@@ -720,6 +720,11 @@ def estimate_biases(
 ) -> list[RadarBias]:
     """:func:`joint_solution` as one :class:`RadarBias` per radar."""
     return to_estimates(joint_solution(correlators, time_s, params), time_s)
+
+
+def _basis_codes(basis: np.ndarray) -> NDArray[np.int8]:
+    """The book's basis codes of :meth:`PairCorrelator._basis` values (NaN, none to give: -1)."""
+    return np.nan_to_num(basis, nan=-1.0).astype(np.int8)
 
 
 def _identities_differ(a: PredictedTracks, b: PredictedTracks, d: Decisions) -> NDArray[np.bool_]:

@@ -29,6 +29,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from service.columns import concat_rows
 from service.correlation.base import FloatArray
 from service.correlation.pairs import StrongPairs
 
@@ -64,13 +65,7 @@ class Implied:
     @staticmethod
     def concat(parts: list[Implied]) -> Implied:
         parts = [p for p in parts if len(p)]
-        if not parts:
-            return Implied.empty()
-        return Implied(
-            np.concatenate([p.track_a for p in parts]),
-            np.concatenate([p.track_b for p in parts]),
-            np.concatenate([p.strength for p in parts]),
-        )
+        return concat_rows(Implied, parts) if parts else Implied.empty()
 
 
 def implied_pairs(xz: StrongPairs, x_first: bool, zy: StrongPairs, z_first: bool) -> Implied:

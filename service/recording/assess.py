@@ -412,24 +412,19 @@ def _radar_section(r: dict[str, Any]) -> str:
         charts.append(_bars(title, edges[: len(counts)], counts, counts, unit))
     series = r["bias_series"]
     times = [s["time_s"] for s in series]
-    charts.append(
-        _series(
-            "Range bias against the references, window fit (band: 1 sigma)",
-            times,
-            [s["range_bias_m"] for s in series],
-            [s["range_bias_sigma_m"] for s in series],
-            "m",
+    for field, sigma, name, unit in (
+        ("range_bias_m", "range_bias_sigma_m", "Range", "m"),
+        ("azimuth_bias_deg", "azimuth_bias_sigma_deg", "Azimuth", "deg"),
+    ):
+        charts.append(
+            _series(
+                f"{name} bias against the references, window fit (band: 1 sigma)",
+                times,
+                [s[field] for s in series],
+                [s[sigma] for s in series],
+                unit,
+            )
         )
-    )
-    charts.append(
-        _series(
-            "Azimuth bias against the references, window fit (band: 1 sigma)",
-            times,
-            [s["azimuth_bias_deg"] for s in series],
-            [s["azimuth_bias_sigma_deg"] for s in series],
-            "deg",
-        )
-    )
     history = r.get("registration", [])
     for field, sigma, title, unit in REGISTRATION_TERMS:
         solved = [h for h in history if h.get(field) is not None]

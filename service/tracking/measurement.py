@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.columns import concat_rows, take_rows
 from service.geo import FloatArray, Site, polar_jacobian, polar_to_enu
 from service.tracking.base import PlotColumns
 from service.tracking.params import MeasurementParams
@@ -34,7 +35,7 @@ class Measurements:
         return int(self.time_s.shape[0])
 
     def take(self, index: np.ndarray) -> Measurements:
-        return Measurements(self.time_s[index], self.enu_m[index], self.covariance[index])
+        return take_rows(self, index)
 
     @staticmethod
     def empty() -> Measurements:
@@ -42,13 +43,7 @@ class Measurements:
 
     @staticmethod
     def concat(parts: list[Measurements]) -> Measurements:
-        if not parts:
-            return Measurements.empty()
-        return Measurements(
-            np.concatenate([p.time_s for p in parts]),
-            np.concatenate([p.enu_m for p in parts]),
-            np.concatenate([p.covariance for p in parts]),
-        )
+        return concat_rows(Measurements, parts) if parts else Measurements.empty()
 
 
 def polar_covariance_enu(

@@ -943,6 +943,17 @@
     return `<dl>${items.map(([k, v]) => `<dt>${k}</dt><dd>${v}</dd>`).join("")}</dl>`;
   }
 
+  // What a system track's and a radar track's panels both show; C: the row's column indices.
+  function trackFacts(row, C) {
+    return [
+      ["Mode S", text(row[C.mode_s])],
+      ["Mode 3/A", text(row[C.mode_3a])],
+      ["flight level", flText(row[C.fl])],
+      ["speed, heading", motion(row[C.ve], row[C.vn])],
+      ["age", duration(row[C.age_s])],
+    ];
+  }
+
   function renderSelection() {
     const box = $("selection");
     const sel = state.selection;
@@ -974,11 +985,7 @@
       body.innerHTML =
         `<h3 id="selection-title">System track ${esc(row[S.id])} \u00b7 ${row[S.confirmed] ? "confirmed" : "tentative"}</h3>` +
         facts([
-          ["Mode S", text(row[S.mode_s])],
-          ["Mode 3/A", text(row[S.mode_3a])],
-          ["flight level", flText(row[S.fl])],
-          ["speed, heading", motion(row[S.ve], row[S.vn])],
-          ["age", duration(row[S.age_s])],
+          ...trackFacts(row, S),
           ["position \u03c3", `${f(row[S.sigma_m])} m`],
           ["basis", `${row[S.members].length} member(s): ${row[S.members].map((m) => esc(m[0])).join(", ")}`],
         ]) +
@@ -996,11 +1003,7 @@
       body.innerHTML =
         `<h3 id="selection-title">Radar track ${esc(key)} \u00b7 ${row[T.confirmed] ? "confirmed" : "tentative"}</h3>` +
         facts([
-          ["Mode S", text(row[T.mode_s])],
-          ["Mode 3/A", text(row[T.mode_3a])],
-          ["flight level", flText(row[T.fl])],
-          ["speed, heading", motion(row[T.ve], row[T.vn])],
-          ["age", duration(row[T.age_s])],
+          ...trackFacts(row, T),
           [
             "system track",
             sys ? `<a href="#" data-select="${esc(sys[S.id])}">${esc(sys[S.id])}</a> (${sys[S.members].length} member(s))` : DASH,
