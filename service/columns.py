@@ -27,13 +27,13 @@ def take_rows(table: T, index: Any, **given: Any) -> T:
     """The rows ``index`` (indices or a mask) of every column of ``table``; a field named in
     ``given`` takes that value instead (a column that is not an array)."""
     cls: Any = type(table)
-    cols = (getattr(table, n)[index] for n in column_names(cls) if n not in given)
-    return cls(*cols, **given)
+    cols = {n: getattr(table, n)[index] for n in column_names(cls) if n not in given}
+    return cls(**cols, **given)
 
 
 def concat_rows(cls: type[T], parts: Sequence[T], **given: Any) -> T:
     """The rows of ``parts`` (at least one) one after the other, column by column; a field
     named in ``given`` takes that value instead."""
     names = column_names(cls)  # type: ignore[arg-type]  # (a class is hashable)
-    cols = (np.concatenate([getattr(p, n) for p in parts]) for n in names if n not in given)
-    return cls(*cols, **given)
+    cols = {n: np.concatenate([getattr(p, n) for p in parts]) for n in names if n not in given}
+    return cls(**cols, **given)

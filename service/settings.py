@@ -48,6 +48,10 @@ if TYPE_CHECKING:
 
     from service.engine import EngineConfig
 
+#: Settings whose empty value means "not set" (a path or a token of length zero is never
+#: meant); an empty variable leaves them to the config file or the default.
+EMPTY_IS_UNSET = ("zenoh_config", "sites", "config", "state_dir", "api_token")
+
 #: Connections the HTTP side port's cap always leaves beyond every request that may be in
 #: progress (at most ``max_requests`` ordinary ones and ``picture_max_clients`` streams): those
 #: are idle or still sending their request head, and such a connection gives way to a new one
@@ -350,7 +354,7 @@ class Settings(BaseSettings):
     ) -> tuple[PydanticBaseSettingsSource, ...]:
         return (
             init_settings,
-            env_settings,
+            _SetVariables(settings_cls, env_settings),
             dotenv_settings,
             _EngineVariables(settings_cls),
             _ConfigFile(settings_cls, init_settings),
@@ -364,7 +368,7 @@ class Settings(BaseSettings):
         self._engine_tree = merge(tree, from_environment())
 
     # -- validation -----------------------------------------------------------------------------
-    @field_validator("zenoh_config", "sites", "config", "state_dir", "api_token", mode="before")
+    @field_validator(*EMPTY_IS_UNSET, mode="before")
     @classmethod
     def _empty_is_none(cls, value: object) -> object:
         # An empty variable (e.g. compose's ``${TOPOFUSION_API_TOKEN:-}``) means "not set": not
@@ -463,6 +467,26 @@ def _settings_of_tree(tree: Mapping[str, Any]) -> dict[str, Any]:
             if setting is not None:
                 out[name] = setting
     return out
+
+
+class _SetVariables(PydanticBaseSettingsSource):
+    """The ``TOPOFUSION_*`` variables, less the empty ones of :data:`EMPTY_IS_UNSET`: such a
+    variable is not set (compose passes ``${TOPOFUSION_API_TOKEN:-}``), so that the config
+    file's value below it still applies (an empty token must not hide the file's one)."""
+
+    def __init__(self, settings_cls: type[BaseSettings], env_settings: PydanticBaseSettingsSource) -> None:
+        super().__init__(settings_cls)
+        self._env = env_settings
+
+    def get_field_value(self, field: FieldInfo, field_name: str) -> tuple[Any, str, bool]:
+        return None, field_name, False  # (all is done in __call__)
+
+    def __call__(self) -> dict[str, Any]:
+        return {
+            k: v
+            for k, v in self._env().items()
+            if not (k in EMPTY_IS_UNSET and isinstance(v, str) and not v.strip())
+        }
 
 
 class _EngineVariables(PydanticBaseSettingsSource):

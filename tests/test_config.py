@@ -4,6 +4,7 @@ environment and flags, validated at start."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -241,3 +242,40 @@ def test_a_state_directory_that_cannot_be_used_is_named(
     settings = Settings.load(overrides={"state_dir": blocker / "state", "correlation_process": False})
     with pytest.raises(RuntimeError, match=f"state directory {blocker / 'state'} cannot be used"):
         start_engine(settings)
+
+
+def test_an_empty_variable_leaves_the_config_files_value(
+    tmp_path: Path, clean_env: pytest.MonkeyPatch
+) -> None:
+    """Compose passes ``TOPOFUSION_API_TOKEN=${TOPOFUSION_API_TOKEN:-}``: empty, it is not set,
+    and the token of the config file must still hold (else the API would run without one)."""
+    sites = tmp_path / "sites.json"
+    sites.write_text("[]")
+    cfg = tmp_path / "service.toml"
+    cfg.write_text(f'api_token = "filetoken"\nsites = "{sites}"\n')
+    clean_env.setenv("TOPOFUSION_API_TOKEN", "")
+    clean_env.setenv("TOPOFUSION_SITES", "  ")
+    s = Settings.load(config_file=cfg)
+    assert s.api_token is not None and s.api_token.get_secret_value() == "filetoken"
+    assert s.sites is not None and Path(str(s.sites)) == sites
+    clean_env.setenv("TOPOFUSION_API_TOKEN", "envtoken")  # a set variable still wins
+    assert Settings.load(config_file=cfg).api_token.get_secret_value() == "envtoken"  # type: ignore[union-attr]
+
+
+def test_healthcheck_says_unhealthy_not_usage_error_on_a_bad_setting(tmp_path: Path) -> None:
+    """The contract's healthcheck exits 0 or 1 (a container runtime reserves 2)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TOPOFUSION_")}
+    for bad in (
+        {"TOPOFUSION_CONFIG": str(tmp_path / "missing.toml")},
+        {"TOPOFUSION_ENGINE__METHOD": "bogus"},
+        {"TOPOFUSION_HTTP_PORT": "not-a-port"},
+    ):
+        run = subprocess.run(
+            [sys.executable, "-m", "service", "healthcheck"],
+            capture_output=True,
+            text=True,
+            env={**env, **bad},
+            timeout=60,
+        )
+        assert run.returncode == 1, (bad, run.stderr)
+        assert "healthcheck:" in run.stderr

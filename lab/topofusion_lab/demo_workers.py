@@ -479,11 +479,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="topofusion")
     commands = parser.add_subparsers(dest="command", required=True)
     register(commands)
-    demo = commands.choices["demo"]
-    with contextlib.suppress(argparse.ArgumentError):  # unless the demo's parser has it already
-        demo.add_argument(
-            "--workers", type=int, default=2, metavar="N", help="partitioned workers (default 2)"
-        )
+    commands.choices["demo"].set_defaults(workers=2)  # (the demo's own default is 1: one process)
     args = parser.parse_args(["demo", *(sys.argv[1:] if argv is None else argv)])
     try:
         return run_workers_demo(args)

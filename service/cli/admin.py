@@ -88,7 +88,11 @@ def schemas_main(args: argparse.Namespace) -> int:
 def healthcheck_main(args: argparse.Namespace) -> int:
     import urllib.request
 
-    settings = Settings()
+    try:  # (the contract's exit status is 0 or 1: a setting it cannot read is "not healthy")
+        settings = Settings()
+    except (ValueError, OSError) as exc:  # (pydantic's ValidationError and ConfigError are ValueErrors)
+        print(f"healthcheck: {exc}", file=sys.stderr)
+        return 1
     host = "127.0.0.1" if settings.http_host in ("0.0.0.0", "::", "") else settings.http_host
     try:
         with urllib.request.urlopen(f"http://{host}:{settings.http_port}/healthz", timeout=2) as resp:

@@ -10,6 +10,7 @@ pure functions of the statuses.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from typing import Any
 
@@ -117,12 +118,16 @@ class PeerWorkers:
         #: Workers whose token left, and when (monotonic): waited for until ``grace_s``.
         self.gone_at: dict[int, float] = {}
         self._waited: set[int] | None = None
+        # Zenoh's threads change the tokens while the worker and HTTP threads read them: a set
+        # or dict changed during an iteration raises, and the worker thread must not die of it.
+        self._lock = threading.Lock()
 
     def declare(self, session: zenoh.Session) -> list[Any]:
         """At the session's start: follow the others' statuses and tokens, declare this
         worker's token; a worker not seen yet is waited for as one that just left."""
         now = time.monotonic()
-        self.gone_at = {k: now for k in range(1, self.partition.count + 1) if k != self.partition.index}
+        with self._lock:
+            self.gone_at = {k: now for k in range(1, self.partition.count + 1) if k != self.partition.index}
         return [
             session.declare_subscriber(
                 self.keys.worker_statuses, zenoh.handlers.Callback(self.on_status, indirect=False)
@@ -140,16 +145,15 @@ class PeerWorkers:
         index = str(sample.key_expr).rsplit("/", 1)[-1]
         if not index.isdigit():
             return
-        if sample.kind == zenoh.SampleKind.PUT:
-            self.alive.add(int(index))
-            self.gone_at.pop(int(index), None)
-        else:
-            self.alive.discard(int(index))
-            self.gone_at[int(index)] = time.monotonic()
-            if int(index) != self.partition.index:
-                log.warning(
-                    "worker %s/%d left (its radars and pairs are missing)", index, self.partition.count
-                )
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.alive.add(int(index))
+                self.gone_at.pop(int(index), None)
+            else:
+                self.alive.discard(int(index))
+                self.gone_at[int(index)] = time.monotonic()
+        if sample.kind != zenoh.SampleKind.PUT and int(index) != self.partition.index:
+            log.warning("worker %s/%d left (its radars and pairs are missing)", index, self.partition.count)
 
     def waited_changed(self) -> set[int] | None:
         """The workers the merger waits for, when they changed (else None): those alive, and
@@ -157,7 +161,8 @@ class PeerWorkers:
         (a session that lost its router for a moment under load) must not make the others stop
         waiting: they would correlate without its tables and take them late, out of order."""
         now = time.monotonic()
-        waited = set(self.alive) | {k for k, t in self.gone_at.items() if now - t < self.grace_s}
+        with self._lock:
+            waited = set(self.alive) | {k for k, t in self.gone_at.items() if now - t < self.grace_s}
         if waited == self._waited:
             return None
         self._waited = waited
@@ -165,9 +170,11 @@ class PeerWorkers:
 
     def own_section(self, radars: list[str], pair_sets: int, progress: Any) -> dict[str, Any]:
         """This worker's ``partition`` section of its own status."""
+        with self._lock:
+            alive = self.alive | {self.partition.index}
         section = partition_section(
             self.partition,
-            self.alive | {self.partition.index},
+            alive,
             {self.partition.index: (0.0, radars, pair_sets)},
         )
         section["progress"] = progress
@@ -177,14 +184,16 @@ class PeerWorkers:
         """The network's status from this worker's (changed in place) and every live worker's
         latest."""
         now = time.monotonic()
+        with self._lock:
+            alive = self.alive | {self.partition.index}
         peers: dict[int, tuple[float, dict[str, Any]]] = {}
         for k, (seen, raw) in list(self.statuses.items()):
-            if k in self.alive:
+            if k in alive:
                 try:
                     peers[k] = (now - seen, orjson.loads(raw))
                 except orjson.JSONDecodeError:
                     continue
-        return merge_statuses(own, peers, self.partition, self.alive | {self.partition.index})
+        return merge_statuses(own, peers, self.partition, alive)
 
 
 def network_radars(
