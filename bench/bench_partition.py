@@ -47,6 +47,7 @@ import zenoh
 
 from service.transport.session import ZenohOptions, open_session
 from service.wire.keys import parse_key
+from topofusion_lab.demo_workers import descendants
 from topofusion_lab.scenarios.catalog import get_scenario
 from topofusion_lab.scenarios.simulator import wire_messages
 
@@ -74,24 +75,9 @@ def wait(predicate: Any, timeout_s: float, what: str) -> None:
 
 
 # -- processes -------------------------------------------------------------------------------
-def children(pid: int) -> list[int]:
-    out = []
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            try:
-                stat = Path(f"/proc/{entry}/stat").read_text()
-            except OSError:
-                continue
-            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
-                out.append(int(entry))
-    return out
-
-
 def tree(pid: int) -> list[int]:
-    pids = [pid]
-    for child in children(pid):
-        pids += tree(child)
-    return pids
+    """``pid`` and every process below it."""
+    return [pid, *descendants(pid)]
 
 
 def cpu_s(pid: int) -> float:

@@ -14,6 +14,7 @@ from service.correlation.base import BoolArray, FloatArray
 from service.correlation.gls import N_PARAMS
 from service.correlation.topology import TopologyParams
 from service.correlation.umeyama import yaw_matrix
+from service.geo import Site
 
 
 def brute_force_neighbours(pts: np.ndarray, i: int, prm: TopologyParams) -> list[int]:
@@ -429,3 +430,29 @@ def robust_covariance_reference(
                 meat += np.outer(scores[i], scores[j])
     g = min(len({k for c in clusters for k in c}), len(set(clusters)))
     return np.asarray(cov @ (np.diag(prior) + meat * (g / (g - 1))) @ cov)
+
+
+def registration_jacobian(site: Site, p: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Plain form of a registration row's ``G`` (service/correlation/registration.py): the five
+    terms' effect on one point, through the polar coordinates (trigonometry, one point): range,
+    azimuth and elevation offsets, range gain (a stretch along the line of sight, ppm) and
+    time-stamp bias (``-tau v``)."""
+    from service.correlation.registration import GAIN, N_TERMS, PPM, TIME
+    from service.geo import polar_jacobian
+
+    r, az, el = (float(np.ravel(x)[0]) for x in site.ecef_to_polar(p[None]))
+    g = np.zeros((3, N_TERMS))
+    g[:, :3] = site.rotation @ polar_jacobian(r, az, el)
+    g[:, GAIN] = (p - site.origin_ecef) * PPM
+    g[:, TIME] = -v
+    return g
+
+
+def registration_remove(site: Site, p: np.ndarray, v: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Plain form of removing the five terms ``b`` from one point: the model's exact inverse,
+    a polar round trip, then ``+tau v``."""
+    from service.correlation.registration import GAIN, PPM, TIME
+
+    r, az, el = (float(np.ravel(x)[0]) for x in site.ecef_to_polar(p[None]))
+    q = site.polar_to_ecef((r - b[0]) / (1.0 + b[GAIN] * PPM), az - np.degrees(b[1]), el - np.degrees(b[2]))
+    return np.ravel(q) + b[TIME] * v

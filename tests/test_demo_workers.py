@@ -32,6 +32,7 @@ from tests.doc_commands import (
     with_ports,
 )
 from tests.support import wait_for
+from topofusion_lab.demo_workers import descendants
 
 #: ``demo: worker K/N  URL  picture URL  status URL  (pid P)``
 WORKER_LINE = re.compile(
@@ -47,19 +48,6 @@ def _alive(pid: int) -> bool:
     except OSError:
         return False
     return stat.rsplit(")", 1)[1].split()[0] != "Z"
-
-
-def _children(pid: int) -> list[int]:
-    found = []
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            try:
-                stat = Path(f"/proc/{entry}/stat").read_text()
-            except OSError:
-                continue
-            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
-                found.append(int(entry))
-    return found
 
 
 def _status(url: str) -> dict[str, Any]:
@@ -113,8 +101,8 @@ def test_demo_with_two_workers_serves_the_whole_network_and_stops_cleanly() -> N
         assert sorted(workers) == [1, 2]
         assert workers[1]["url"] != workers[2]["url"]
         for w in workers.values():
-            assert w["pid"] in _children(proc.pid), "each worker is a child of the demo"
-        worker_pids += [c for w in workers.values() for c in _children(w["pid"])]
+            assert w["pid"] in descendants(proc.pid), "each worker is a child of the demo"
+        worker_pids += [c for w in workers.values() for c in descendants(w["pid"])]
 
         # -- every partition present, both workers processing their own radars ----------------
         def owners(url: str) -> dict[str, int]:

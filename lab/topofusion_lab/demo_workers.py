@@ -268,7 +268,7 @@ def wait_ready(workers: list[Worker], stop: threading.Event) -> bool:
     return True
 
 
-def _descendants(pid: int) -> list[int]:
+def descendants(pid: int) -> list[int]:
     """Every process below ``pid`` (Linux ``/proc``; elsewhere none are found)."""
     parent_of: dict[int, int] = {}
     try:
@@ -306,7 +306,7 @@ def stop_workers(workers: list[Worker], timeout_s: float) -> None:
             w.proc.wait(timeout=max(deadline - time.monotonic(), 0.1))
         except subprocess.TimeoutExpired:
             print(f"demo: {w.name} (pid {w.proc.pid}) did not stop in time: killed", file=sys.stderr)
-            for pid in _descendants(w.proc.pid):
+            for pid in descendants(w.proc.pid):
                 with contextlib.suppress(OSError):
                     os.kill(pid, signal.SIGKILL)
             w.proc.kill()

@@ -18,14 +18,13 @@ from service.correlation.base import PredictedTracks
 from service.correlation.registration import (
     GAIN,
     N_TERMS,
-    PPM,
     TIME,
     RegistrationMemory,
     RegistrationParams,
     solve_biases,
 )
-from service.geo import Site, polar_jacobian
-from tests.reference_forms import robust_covariance_reference
+from service.geo import Site
+from tests.reference_forms import registration_jacobian, registration_remove, robust_covariance_reference
 from topofusion_lab.evaluation.correlation_scenario import make_sites, sample_references
 
 #: Polar offsets of the three radars (m, rad, rad); no gain and no time bias.
@@ -104,21 +103,16 @@ def _scene(
 # -- a plain form of the solve's pieces ----------------------------------------------------
 
 
-def _plain_jacobian(site: Site, p: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``G`` of one row through the polar coordinates (trigonometry, one point)."""
-    r, az, el = (float(np.ravel(x)[0]) for x in site.ecef_to_polar(p[None]))
-    g = np.zeros((3, N_TERMS))
-    g[:, :3] = site.rotation @ polar_jacobian(r, az, el)
-    g[:, GAIN] = (p - site.origin_ecef) * PPM
-    g[:, TIME] = -v
-    return g
-
-
-def _plain_remove(site: Site, p: np.ndarray, v: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The model's exact inverse for one point: polar round trip, then ``+tau v``."""
-    r, az, el = (float(np.ravel(x)[0]) for x in site.ecef_to_polar(p[None]))
-    q = site.polar_to_ecef((r - b[0]) / (1.0 + b[GAIN] * PPM), az - np.degrees(b[1]), el - np.degrees(b[2]))
-    return np.ravel(q) + b[TIME] * v
+def _prior(prm: RegistrationParams, radars: int) -> np.ndarray:
+    """The prior's information per term, radar after radar (the terms' order: TERMS)."""
+    per_radar = [
+        1 / prm.prior_range_m**2,
+        1 / np.radians(prm.prior_azimuth_deg) ** 2,
+        1 / np.radians(prm.prior_elevation_deg) ** 2,
+        1 / prm.prior_range_gain_ppm**2,
+        1 / prm.prior_time_bias_s**2,
+    ]
+    return np.tile(per_radar, radars)
 
 
 def _plain_pieces(
@@ -127,16 +121,7 @@ def _plain_pieces(
     """Row by row: every row's score ``G^T W r`` in every column at the solution ``terms``, its
     two tracks and its track pair as cluster keys, the model covariance ``H^-1`` and the prior."""
     nt, n = N_TERMS, N_TERMS * len(ids)
-    prior = np.tile(
-        [
-            1 / prm.prior_range_m**2,
-            1 / np.radians(prm.prior_azimuth_deg) ** 2,
-            1 / np.radians(prm.prior_elevation_deg) ** 2,
-            1 / prm.prior_range_gain_ppm**2,
-            1 / prm.prior_time_bias_s**2,
-        ],
-        len(ids),
-    )
+    prior = _prior(prm, len(ids))
     h = np.diag(prior)
     scores: list[np.ndarray] = []
     tracks: list[tuple[str, ...]] = []
@@ -147,11 +132,11 @@ def _plain_pieces(
         for i in range(len(m)):
             w = np.linalg.inv(m.s[i])
             g = np.zeros((3, n))
-            g[:, ka : ka + nt] = _plain_jacobian(m.site_a, m.p_a[i], m.v[i])
-            res = _plain_remove(m.site_a, m.p_a[i], m.v[i], terms[ka // nt]) - m.p_b[i]
+            g[:, ka : ka + nt] = registration_jacobian(m.site_a, m.p_a[i], m.v[i])
+            res = registration_remove(m.site_a, m.p_a[i], m.v[i], terms[ka // nt]) - m.p_b[i]
             if kb is not None and m.site_b is not None:
-                g[:, kb : kb + nt] = -_plain_jacobian(m.site_b, m.p_b[i], m.v[i])
-                res = res + m.p_b[i] - _plain_remove(m.site_b, m.p_b[i], m.v[i], terms[kb // nt])
+                g[:, kb : kb + nt] = -registration_jacobian(m.site_b, m.p_b[i], m.v[i])
+                res = res + m.p_b[i] - registration_remove(m.site_b, m.p_b[i], m.v[i], terms[kb // nt])
             h += g.T @ w @ g
             scores.append(g.T @ w @ res)
             track_a, track_b = str(m.pair[i]).split("\x1f")
@@ -224,26 +209,17 @@ def _true_covariance(
     error, the persistent and white errors of its A track less those of its B track (the
     white ones of one update, the reference's white ones of one update)."""
     nt, n = N_TERMS, N_TERMS * len(ids)
-    prior = np.tile(
-        [
-            1 / prm.prior_range_m**2,
-            1 / np.radians(prm.prior_azimuth_deg) ** 2,
-            1 / np.radians(prm.prior_elevation_deg) ** 2,
-            1 / prm.prior_range_gain_ppm**2,
-            1 / prm.prior_time_bias_s**2,
-        ],
-        len(ids),
-    )
+    prior = _prior(prm, len(ids))
     h = np.diag(prior)
     gtw, key_a, key_b, time = [], [], [], []
     for m in mems:
         ka = nt * ids.index(m.site_a.site_id)
         for i in range(len(m)):
             g = np.zeros((3, n))
-            g[:, ka : ka + nt] = _plain_jacobian(m.site_a, m.p_a[i], m.v[i])
+            g[:, ka : ka + nt] = registration_jacobian(m.site_a, m.p_a[i], m.v[i])
             if m.site_b is not None:
                 kb = nt * ids.index(m.site_b.site_id)
-                g[:, kb : kb + nt] = -_plain_jacobian(m.site_b, m.p_b[i], m.v[i])
+                g[:, kb : kb + nt] = -registration_jacobian(m.site_b, m.p_b[i], m.v[i])
             w = np.linalg.inv(m.s[i])
             h += g.T @ w @ g
             gtw.append(g.T @ w)

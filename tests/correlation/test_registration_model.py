@@ -29,7 +29,8 @@ from service.correlation.registration import (
     solve_biases,
     to_estimates,
 )
-from service.geo import Site, polar_jacobian
+from service.geo import Site
+from tests.reference_forms import registration_jacobian, registration_remove
 from topofusion_lab.evaluation.correlation_scenario import make_sites, sample_references
 
 #: Five terms per radar (m, rad, rad, ppm, s), the study's levels.
@@ -196,23 +197,6 @@ def test_terms_the_geometry_does_not_see_shrink_to_zero() -> None:
 # -- plain reference forms ----------------------------------------------------------------
 
 
-def _plain_jacobian(site: Site, p: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``G`` of one row through the polar coordinates (trigonometry, one point)."""
-    r, az, el = (float(np.ravel(x)[0]) for x in site.ecef_to_polar(p[None]))
-    g = np.zeros((3, N_TERMS))
-    g[:, :3] = site.rotation @ polar_jacobian(r, az, el)
-    g[:, GAIN] = site.rotation @ np.ravel(site.ecef_to_enu(p[None]) @ np.eye(3)) * PPM
-    g[:, TIME] = -v
-    return g
-
-
-def _plain_remove(site: Site, p: np.ndarray, v: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The model's exact inverse for one point: polar round trip, then ``+tau v``."""
-    r, az, el = (float(np.ravel(x)[0]) for x in site.ecef_to_polar(p[None]))
-    q = site.polar_to_ecef((r - b[0]) / (1.0 + b[GAIN] * PPM), az - np.degrees(b[1]), el - np.degrees(b[2]))
-    return np.ravel(q) + b[TIME] * v
-
-
 def _plain_solve(mem: RegistrationMemory, prm: RegistrationParams, iterations: int) -> np.ndarray:
     """Weighted least squares of one radar pair, one row at a time: the first iteration the
     linear model's solution, later ones Gauss-Newton steps on the exact residual."""
@@ -230,7 +214,9 @@ def _plain_solve(mem: RegistrationMemory, prm: RegistrationParams, iterations: i
     )
     rows = []
     for i in range(len(mem)):
-        g = np.hstack([_plain_jacobian(a, mem.p_a[i], mem.v[i]), -_plain_jacobian(b, mem.p_b[i], mem.v[i])])
+        g = np.hstack(
+            [registration_jacobian(a, mem.p_a[i], mem.v[i]), -registration_jacobian(b, mem.p_b[i], mem.v[i])]
+        )
         rows.append((g, np.linalg.inv(mem.s[i]), mem.p_a[i], mem.p_b[i], mem.v[i]))
     h = np.diag(prior)
     for g, w, *_ in rows:
@@ -239,7 +225,9 @@ def _plain_solve(mem: RegistrationMemory, prm: RegistrationParams, iterations: i
     for _ in range(iterations):
         grad = -prior * bias
         for g, w, pa, pb, v in rows:
-            res = _plain_remove(a, pa, v, bias[:N_TERMS]) - _plain_remove(b, pb, v, bias[N_TERMS:])
+            res = registration_remove(a, pa, v, bias[:N_TERMS]) - registration_remove(
+                b, pb, v, bias[N_TERMS:]
+            )
             grad += g.T @ w @ res
         bias = bias + np.linalg.solve(h, grad)
     return bias.reshape(2, N_TERMS)
@@ -265,7 +253,7 @@ def test_vectorised_solve_matches_the_plain_form() -> None:
     for i in range(0, len(mem), 17):
         np.testing.assert_allclose(
             model_jacobian(a, mem.p_a[i : i + 1], mem.v[i : i + 1])[0],
-            _plain_jacobian(a, mem.p_a[i], mem.v[i]),
+            registration_jacobian(a, mem.p_a[i], mem.v[i]),
             rtol=1e-8,
             atol=1e-6,
         )
@@ -294,9 +282,9 @@ def test_compensation_matches_the_plain_per_track_form() -> None:
         v = site.rotation @ v_enu
         np.testing.assert_allclose(out.velocity[k], v, atol=1e-9)
         np.testing.assert_allclose(
-            out.position[k], _plain_remove(site, snap.position[k], v, TERMS["A"]), atol=1e-6
+            out.position[k], registration_remove(site, snap.position[k], v, TERMS["A"]), atol=1e-6
         )
-        g = _plain_jacobian(site, snap.position[k], snap.velocity[k])
+        g = registration_jacobian(site, snap.position[k], snap.velocity[k])
         np.testing.assert_allclose(extra[k], g @ bias_cov @ g.T, rtol=1e-8, atol=1e-8)
     # without noise, compensation puts the tracks on the truth (up to the speed change of the
     # velocity estimate's own bias, second order: well under a metre here)
