@@ -31,6 +31,7 @@ from typing import Any
 from pydantic import TypeAdapter, ValidationError
 
 from service.assessment import AssessmentParams
+from service.config_sources import ENV_PREFIX, ConfigError, from_environment, load_file, merge
 from service.correlation import CorrelationParams
 from service.pipeline.correlation_stage import CadenceParams
 from service.pipeline.feed import FeedParams
@@ -39,7 +40,6 @@ from service.pipeline.sequencer import SequencerParams
 from service.pipeline.track_exchange import ExchangeParams
 from service.pipeline.tracking_stage import SiteParams
 from service.reference import ReferenceParams
-from service.settings import ENV_PREFIX, ConfigError, from_environment, load_file, merge
 from service.tracking.params import TrackerParams
 from service.wire.models import RadarSite
 

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from functools import cached_property
@@ -39,6 +38,7 @@ from pydantic_settings import (
     SettingsConfigDict,
 )
 
+from service.config_sources import ConfigError, from_environment, load_file, merge
 from service.wire.vocabulary import Method, is_source_id
 
 if TYPE_CHECKING:
@@ -46,7 +46,7 @@ if TYPE_CHECKING:
 
     from pydantic.fields import FieldInfo
 
-    from service.engine import EngineConfig
+    from service.config import EngineConfig
 
 #: Settings whose empty value means "not set" (a path or a token of length zero is never
 #: meant); an empty variable leaves them to the config file or the default.
@@ -59,84 +59,8 @@ EMPTY_IS_UNSET = ("zenoh_config", "sites", "config", "state_dir", "api_token")
 #: service/api/limits.py checks the limits against it).
 PROBE_ROOM = 16
 
-#: Environment variables of single engine parameters start with this (then ``SECTION__FIELD``).
-ENV_PREFIX = "TOPOFUSION_ENGINE__"
 #: How :meth:`Settings.effective` shows a secret (in a config file: not given).
 REDACTED = "**********"
-
-
-class ConfigError(ValueError):
-    """A configuration that cannot be used; the message names the key."""
-
-
-# -- reading a config file and the engine's variables ---------------------------------------------
-
-
-def load_file(path: str | Path) -> dict[str, Any]:
-    """A config file's content (TOML, YAML or JSON by suffix)."""
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"config file not found: {p}") from None
-    try:
-        if p.suffix.lower() == ".toml":
-            if sys.version_info >= (3, 11):
-                import tomllib
-            else:  # the same parser, before it joined the standard library
-                import tomli as tomllib
-
-            data: Any = tomllib.loads(text)
-        elif p.suffix.lower() in (".yaml", ".yml"):
-            import yaml
-
-            data = yaml.safe_load(text) or {}
-        elif p.suffix.lower() == ".json":
-            data = json.loads(text)
-        else:
-            raise ConfigError(f"config file {p}: use a .toml, .yaml, .yml or .json file")
-    except ConfigError:
-        raise
-    except Exception as exc:  # the parsers' own errors say where
-        raise ConfigError(f"config file {p} cannot be read: {exc}") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"config file {p}: the top level must be a table of sections")
-    return data
-
-
-def from_environment(environ: Mapping[str, str] | None = None) -> dict[str, Any]:
-    """``TOPOFUSION_ENGINE__A__B=value`` variables as a nested mapping ``{"a": {"b": value}}``
-    (a value is read as JSON when it parses, else as a string)."""
-    env = os.environ if environ is None else environ
-    out: dict[str, Any] = {}
-    for name, raw in sorted(env.items()):
-        if not name.upper().startswith(ENV_PREFIX):
-            continue
-        path = [part.lower() for part in name[len(ENV_PREFIX) :].split("__")]
-        if not all(path):
-            raise ConfigError(f"{name}: empty key in the variable's name")
-        try:
-            value: Any = json.loads(raw)
-        except json.JSONDecodeError:
-            value = raw
-        node = out
-        for part in path[:-1]:
-            node = node.setdefault(part, {})
-            if not isinstance(node, dict):
-                raise ConfigError(f"{name}: {part} is a value, not a section")
-        node[path[-1]] = value
-    return out
-
-
-def merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
-    """``over`` on top of ``base``, section by section."""
-    out = dict(base)
-    for key, value in over.items():
-        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
-            out[key] = merge(out[key], value)
-        else:
-            out[key] = value
-    return out
 
 
 # -- settings that are engine parameters too -----------------------------------------------------

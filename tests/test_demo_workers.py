@@ -11,7 +11,6 @@ import re
 import shlex
 import signal
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -38,7 +37,8 @@ from topofusion_lab.demo_workers import descendants
 WORKER_LINE = re.compile(
     r"^demo: worker (\d+)/(\d+)  (http://\S+)  picture (\S+)  status (\S+)  \(pid (\d+)\)$"
 )
-ENTRY = "import sys; from topofusion_lab.demo_workers import main; sys.exit(main(sys.argv[1:]))"
+#: The command as a user types it (``topofusion demo --workers N``).
+DEMO = [TOPOFUSION, "demo"]
 
 
 def _alive(pid: int) -> bool:
@@ -62,7 +62,7 @@ def test_demo_with_two_workers_serves_the_whole_network_and_stops_cleanly() -> N
     env["PYTHONUNBUFFERED"] = "1"
     args = ["--scenario", "two-radar", "--speed", "10", "--seed", "1", "--workers", "2"]
     proc = subprocess.Popen(
-        [sys.executable, "-c", ENTRY, *args, "--log-level", "WARNING"],
+        [*DEMO, *args, "--log-level", "WARNING"],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
@@ -189,7 +189,7 @@ def test_demo_exits_2_naming_a_worker_that_does_not_start(tmp_path: Path) -> Non
     env = {k: v for k, v in os.environ.items() if not k.startswith("TOPOFUSION_")}
     args = ["--scenario", "two-radar", "--workers", "2", "--state-dir", str(blocker)]
     proc = subprocess.Popen(
-        [sys.executable, "-c", ENTRY, *args],
+        [*DEMO, *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

@@ -467,31 +467,3 @@ def run_workers_demo(args: argparse.Namespace) -> int:
     if status == 0:
         _say(f"demo: stopped {count} worker(s) and the router")
     return status
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m topofusion_lab.demo_workers [demo flags] --workers N``: the same as
-    ``topofusion demo --workers N`` (the demo's own flags, from its parser)."""
-    from pydantic import ValidationError
-
-    from topofusion_lab.commands.demo import register
-
-    parser = argparse.ArgumentParser(prog="topofusion")
-    commands = parser.add_subparsers(dest="command", required=True)
-    register(commands)
-    commands.choices["demo"].set_defaults(workers=2)  # (the demo's own default is 1: one process)
-    args = parser.parse_args(["demo", *(sys.argv[1:] if argv is None else argv)])
-    try:
-        return run_workers_demo(args)
-    except KeyboardInterrupt:  # Ctrl-C before the demo took SIGINT over: nothing started yet
-        return 0
-    except ValidationError as exc:
-        print(f"topofusion: invalid setting: {exc}", file=sys.stderr)
-        return 2
-    except (ValueError, OSError, RuntimeError) as exc:
-        print(f"topofusion: {exc}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

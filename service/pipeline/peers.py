@@ -18,25 +18,36 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from service.correlation.registration import RegistrationRowsData
 from service.pipeline.correlation_runner import CorrelationRunner
+from service.pipeline.correlation_stage import CadenceParams
 from service.pipeline.decode import check_body_id, parse
 from service.pipeline.errors import RejectionError, unknown_radar
 from service.pipeline.merger import TableMerger
+from service.pipeline.partition import Partition
 from service.pipeline.sequencer import RADAR, Sequencer
-from service.pipeline.track_exchange import StatesReceiver, StatesSender, decode_states
+from service.pipeline.track_exchange import ExchangeParams, StatesReceiver, StatesSender, decode_states
 from service.pipeline.tracking_stage import TrackingStage
 from service.tracking.base import TrackTable
 from service.wire.keys import Keys
 from service.wire.models import BiasSet, RegistrationRows, WorkerClock
 from service.wire.outgoing import Outgoing
 
-if TYPE_CHECKING:  # (the configuration imports the stages: no import at run time)
-    from service.config import EngineConfig
+
+class PeerConfig(Protocol):
+    """What the exchange takes of the engine's configuration (``EngineConfig``, above)."""
+
+    @property
+    def partition(self) -> Partition: ...
+    @property
+    def exchange(self) -> ExchangeParams: ...
+    @property
+    def cadence(self) -> CadenceParams: ...
+
 
 #: Track states of radars whose site has not come yet, held until it comes (the owner can hear
 #: a radar's site before this worker does, and the workers' messages are taken ahead of
@@ -81,7 +92,7 @@ class Peers:
 
     def __init__(
         self,
-        config: EngineConfig,
+        config: PeerConfig,
         keys: Keys,
         sequencer: Sequencer,
         tracking: TrackingStage,
