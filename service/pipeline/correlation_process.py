@@ -55,14 +55,17 @@ def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     stage = CorrelationStage(*stage_args)
     timings: dict[str, Any] | None = None
+    timed = -1  # the stage's count of pair updates when ``timings`` was taken
     while True:
         msg = requests.recv()
         if msg is None:
             break
         op, args = msg
         got = answer(stage, op, args)
-        if got.updated or timings is None:  # timings change only with pair updates
-            timings = stage.timings()
+        # timings change only with a pair's full update (a prompt decision between two is not
+        # timed): two percentiles over the recent updates, not taken again for every message
+        if stage.updates != timed or timings is None:
+            timings, timed = stage.timings(), stage.updates
         answers.send(replace(got, timings=timings))
     answers.close()
 
