@@ -30,6 +30,19 @@ final snapshot: *correct* = confirmed pairs whose two tracks follow the same air
 confirmed pairs; *false* = the rest / all confirmed; *complete* = aircraft with confirmed tracks
 in both radars that have a correct confirmed pair / all such aircraft.
 
+Fused error (:func:`fused_sample`): the scene also carries an exact ADS-B source (every
+aircraft, no error, one report a second, as in :mod:`topofusion_lab.evaluation.system`) whose
+messages are kept out of the engine and give each aircraft's true position (its draws change
+the simulator's random stream: the same seed gives other noise than without it).  At every
+system-track update of the engine in the second half of the run, each confirmed system track
+whose members all follow one aircraft (a *pure* track, by the radar members' ``truth_id`` and
+the ADS-B members' Mode S address) is compared with that aircraft's true position at the
+batch's ``time_s``: the horizontal (local east-north) distance.  Per condition: its RMS and
+95th percentile over every such sample of every run, the RMS over the tracks without an ADS-B
+member (where only the radars' registration counts), the distinct system tracks behind them,
+and the purity (pure / (pure + mixed) confirmed system tracks, summed over the same samples;
+:func:`topofusion_lab.evaluation.system.score`).
+
 Goals (the issue): every gain within max(25 %, 100 ppm) of the truth, every time bias within
 max(20 %, 0.1 s), range and azimuth offsets within 10 %, pairs >= 0.97 complete and <= 0.02
 false; with no gain and no time bias in the data the new terms within 2 sigma of zero.
@@ -43,15 +56,20 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
 from service.config import EngineConfig
 from service.engine import Engine
-from topofusion_lab.evaluation.adsb import ADSB_ID, stream
+from service.geo import ecef_to_geodetic, enu_rotation
+from service.pipeline.read_model import Snapshot
+from service.wire.keys import Keys
+from topofusion_lab.evaluation.adsb import ADSB_ID, PREFIX, stream
 from topofusion_lab.evaluation.jobs import ratio, run_jobs
+from topofusion_lab.evaluation.system import TRUTH_ID, Truth, score, snapshot_inputs
 from topofusion_lab.scenarios.catalog import get_scenario
-from topofusion_lab.scenarios.simulator import AdsbSpec, Scenario
+from topofusion_lab.scenarios.simulator import AdsbSpec, Scenario, identity_of
 
 #: Data seconds of every run: the registration memory's length (``RegistrationParams.memory_s``).
 DURATION_S = 600.0
@@ -142,6 +160,16 @@ class RunResult:
     seconds: float = 0.0
     errors: int = 0
     notes: list[str] = field(default_factory=list)
+    #: Second half of the run (:func:`fused_sample`): horizontal error (m) of every pure
+    #: confirmed system track at every system-track update, the distinct system tracks behind
+    #: them, the confirmed pure / mixed system tracks summed over the updates, the updates.
+    fused_err: list[float] = field(default_factory=list)
+    #: ... of those without an ADS-B member (the radars' registration alone).
+    fused_err_radar: list[float] = field(default_factory=list)
+    fused_tracks: set[str] = field(default_factory=set)
+    pure: int = 0
+    mixed: int = 0
+    updates: int = 0
 
 
 def scenario_of(job: Job) -> Scenario:
@@ -161,7 +189,10 @@ def scenario_of(job: Job) -> Scenario:
         for k, r in enumerate(base.radars)
     )
     adsb = () if c.adsb_share is None else (AdsbSpec(ADSB_ID, equipped_share=c.adsb_share),)
-    return replace(base, radars=radars, targets=TARGETS, duration_s=job.duration_s, adsb=adsb)
+    exact = AdsbSpec(
+        TRUTH_ID, report_period_s=1.0, batch_period_s=1.0, position_sigma_m=0.0, height_sigma_m=0.0
+    )
+    return replace(base, radars=radars, targets=TARGETS, duration_s=job.duration_s, adsb=(*adsb, exact))
 
 
 def engine_config(c: Condition) -> EngineConfig:
@@ -173,15 +204,89 @@ def engine_config(c: Condition) -> EngineConfig:
     return replace(cfg, correlation=replace(cfg.correlation, registration=reg))
 
 
+def horizontal_error(position_ecef_m: Sequence[float] | np.ndarray, true_ecef_m: np.ndarray) -> float:
+    """Length of the position error's component in the local horizontal plane at the truth
+    (east and north; the up component along the ellipsoid normal is left out), metres."""
+    err = np.asarray(position_ecef_m, dtype=float) - true_ecef_m
+    lat, lon, _ = ecef_to_geodetic(true_ecef_m)
+    up = enu_rotation(float(lat), float(lon))[:, 2]
+    return float(np.linalg.norm(err - float(err @ up) * up))
+
+
+def fused_sample(
+    res: RunResult,
+    body: dict[str, Any],
+    label: dict[tuple[str, str], str | None],
+    true_position: Callable[[str, float], np.ndarray | None],
+) -> None:
+    """Add one ``SystemTrackBatch`` (``body``) to ``res``: the horizontal error of each
+    confirmed system track whose members all follow one aircraft (``label``: each radar
+    track's aircraft, None: clutter) against that aircraft's true position at the batch's
+    ``time_s`` (None: not known, the track left out), and its pure / mixed counts."""
+    when = float(body["time_s"])
+    got = score(body, label, set(), {}, true_position, max_cases=0)
+    res.pure += got.pure
+    res.mixed += got.mixed
+    res.updates += 1
+    for s in body["system_tracks"]:
+        if s["status"] != "confirmed":
+            continue
+        names = {label.get((m["radar_id"], m["track_id"])) for m in s["members"]}
+        if len(names) != 1 or None in names:
+            continue
+        true = true_position(str(names.pop()), when)
+        if true is None:
+            continue
+        res.fused_err.append(horizontal_error(s["position_ecef_m"], true))
+        if all(m["radar_id"] != ADSB_ID for m in s["members"]):
+            res.fused_err_radar.append(res.fused_err[-1])
+        res.fused_tracks.add(str(s["system_track_id"]))
+
+
+def _sample_engine(res: RunResult, snap: Snapshot, truth: Truth, from_s: float, accel_psd: float) -> None:
+    """:func:`fused_sample` of the engine's system tracks now, if they are from ``from_s`` on."""
+    body = snap.system_tracks("all")
+    if body["time_s"] is None or float(body["time_s"]) < from_s:
+        return
+    tables = {rid: table for rid, (_, table) in snap.tracks.items()}
+    label = snapshot_inputs(tables, float(body["time_s"]), accel_psd, {}).label
+    # an ADS-B member's track id is the Mode S address its aircraft transmits
+    names = {identity_of(n)[1]: n for n in set(label.values()) if n is not None}
+    for s in body["system_tracks"]:
+        for m in s["members"]:
+            if m["radar_id"] == ADSB_ID:
+                label[(m["radar_id"], m["track_id"])] = names.get(m["track_id"])
+
+    def true(name: str, t: float) -> np.ndarray | None:
+        return truth.position(identity_of(name)[1], t)
+
+    fused_sample(res, body, label, true)
+
+
 def run_one(job: Job) -> RunResult:
-    """Stream one job's scene through an engine; its biases and radar-radar pairs at the end."""
+    """Stream one job's scene through an engine; its biases and radar-radar pairs at the end,
+    and its fused error over the second half (module docstring)."""
     t_start = time.perf_counter()
     sc = scenario_of(job)
     engine = Engine(engine_config(job.condition))
+    accel_psd = engine.config.correlation.prediction.accel_psd
+    truth_key = Keys(PREFIX).input("adsb", TRUTH_ID)
+    from_s = sc.start_time_s + job.duration_s / 2.0
+    truth = Truth()
+    res = RunResult(job.index, job.seed, [])
     errors = 0
-    for _, key, payload, _ in stream(sc, job.seed):
-        errors += sum(o.key.endswith("/errors") for o in engine.ingest(key, payload, receive_time_s=0.0))
-    errors += sum(o.key.endswith("/errors") for o in engine.flush())
+    for _, key, payload, body in stream(sc, job.seed):
+        if key == truth_key:  # the truth: never given to the engine
+            truth.add(body)
+            continue
+        out = engine.ingest(key, payload, receive_time_s=0.0)
+        errors += sum(o.key.endswith("/errors") for o in out)
+        if any(o.key.endswith("/system/tracks") for o in out):
+            _sample_engine(res, engine.snapshot(), truth, from_s, accel_psd)
+    out = engine.flush()
+    errors += sum(o.key.endswith("/errors") for o in out)
+    if any(o.key.endswith("/system/tracks") for o in out):
+        _sample_engine(res, engine.snapshot(), truth, from_s, accel_psd)
     snap = engine.snapshot()
     estimates = {b["radar_id"]: b for b in snap.biases()}
     radars = []
@@ -195,16 +300,16 @@ def run_one(job: Job) -> RunResult:
                 {t[1]: est.get(t[2]) for t in TERM_FIELDS},
             )
         )
-    res = RunResult(job.index, job.seed, radars, seconds=0.0, errors=errors)
+    res.radars, res.errors = radars, errors
     _score_pairs(res, snap, {r.radar_id for r in sc.radars})
     res.seconds = time.perf_counter() - t_start
     return res
 
 
-def _score_pairs(res: RunResult, snap: object, radar_ids: set[str]) -> None:
+def _score_pairs(res: RunResult, snap: Snapshot, radar_ids: set[str]) -> None:
     """Radar-radar confirmed pairs of the final snapshot against the simulator's truth."""
-    tracks = snap.tracks  # type: ignore[attr-defined]
-    for ps in snap.pair_sets(status="confirmed"):  # type: ignore[attr-defined]
+    tracks = snap.tracks
+    for ps in snap.pair_sets(status="confirmed"):
         a, b = ps["radar_a"], ps["radar_b"]
         if a not in radar_ids or b not in radar_ids or a not in tracks or b not in tracks:
             continue
@@ -308,6 +413,30 @@ def z_table(conditions: dict[int, Condition], by_index: dict[int, list[RunResult
     return out
 
 
+def _rms(xs: Sequence[float]) -> float:
+    return math.sqrt(float(np.mean(np.square(xs)))) if len(xs) else math.nan
+
+
+def fused_error(runs: Sequence[RunResult]) -> tuple[float, float, float, int, float]:
+    """RMS and 95th percentile (m) of the runs' fused horizontal errors pooled, the RMS of
+    those without an ADS-B member, the system tracks behind them (distinct per run, summed
+    over runs), and the purity."""
+    err = [e for r in runs for e in r.fused_err]
+    p95 = float(np.percentile(err, 95.0)) if err else math.nan
+    radar = _rms([e for r in runs for e in r.fused_err_radar])
+    pure = sum(r.pure for r in runs)
+    purity = ratio(pure, pure + sum(r.mixed for r in runs))
+    return _rms(err), p95, radar, sum(len(r.fused_tracks) for r in runs), purity
+
+
+def fused_cells(runs: Sequence[RunResult]) -> str:
+    rms, p95, radar, tracks, purity = fused_error(runs)
+    return (
+        f"{_fmt('{:.0f}', rms)} | {_fmt('{:.0f}', p95)} | {_fmt('{:.0f}', radar)} | {tracks} | "
+        f"{_fmt('{:.3f}', purity)}"
+    )
+
+
 def markdown(jobs: Sequence[Job], results: Sequence[RunResult], duration_s: float) -> list[str]:
     """A summary per condition (largest errors, goals, radar-radar pairs), the distribution of
     error / sigma per condition and term kind (:func:`z_table`), then per condition, radar and
@@ -322,8 +451,9 @@ def markdown(jobs: Sequence[Job], results: Sequence[RunResult], duration_s: floa
     ]
     summary = [
         "| condition | model | max gain error (ppm) | max time-bias error (s) | max range-offset error "
-        "| max azimuth-offset error | terms in goal | pairs correct | false | complete | all goals |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+        "| max azimuth-offset error | terms in goal | pairs correct | false | complete | all goals "
+        "| fused RMS (m) | fused p95 (m) | fused RMS, no ADS-B member (m) | system tracks | purity |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|",
     ]
     for index in sorted(by_index):
         c = conditions[index]
@@ -365,7 +495,7 @@ def markdown(jobs: Sequence[Job], results: Sequence[RunResult], duration_s: floa
             f"{_fmt('{:.1%}', worst.get('range_bias_m'))} | "
             f"{_fmt('{:.1%}', worst.get('azimuth_bias_deg'))} | "
             f"{met}/{total} | {correct:.3f} | {false:.3f} | {complete:.3f} | "
-            f"{'yes' if pairs_ok and met == total else '**no**'} |"
+            f"{'yes' if pairs_ok and met == total else '**no**'} | {fused_cells(runs)} |"
         )
     errors = sum(r.errors for r in results)
     return [
@@ -377,7 +507,13 @@ def markdown(jobs: Sequence[Job], results: Sequence[RunResult], duration_s: floa
         "gain within max(25 %, 100 ppm), time bias within max(20 %, 0.1 s), range and azimuth "
         "offsets within 10 %, and where the scene has no gain and no time bias those two within 2 "
         "sigma of zero (per radar and run; elevation: no goal).  Pairs: radar-radar confirmed pairs "
-        "at the end, *complete* = aircraft tracked by both radars with a correct pair.",
+        "at the end, *complete* = aircraft tracked by both radars with a correct pair.  *Fused*: "
+        "horizontal error of the confirmed system tracks whose members follow one aircraft "
+        "against its true position, at every system-track update of the second half of each run "
+        "(RMS and 95th percentile over those samples and the runs; *no ADS-B member*: the RMS "
+        "over the tracks without an ADS-B member, the radars' registration alone; *system "
+        "tracks*: distinct ones behind them, summed over runs); *purity*: pure / (pure + "
+        "mixed) confirmed system tracks over the same updates.",
         "",
         *summary,
         "",
