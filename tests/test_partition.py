@@ -18,8 +18,10 @@ from pydantic import ValidationError
 
 from service.engine import Engine, EngineConfig
 from service.pipeline.errors import RejectionError
+from service.pipeline.merger import TableMerger
 from service.pipeline.partition import Partition
 from service.pipeline.peers import MAX_PENDING_STATES
+from service.pipeline.sequencer import RADAR
 from service.pipeline.track_exchange import (
     StatesMessage,
     StatesReceiver,
@@ -251,6 +253,7 @@ def test_n_engines_give_the_pair_updates_of_one(n: int, seed: int) -> None:
     for engine in engines:
         assert engine.rejected == {}
         assert not engine.peers.receiver.gaps
+        assert engine.peers.progress()["reordered"] == 0  # every table in one worker's order
 
 
 def _states_cases() -> list[tuple[str, object]]:
@@ -351,3 +354,21 @@ def test_track_states_before_the_radars_site_wait_for_it() -> None:
     out = other.ingest(f"fusion/radar/{z}/track-states", flood)  # the oldest held is given up
     assert other.rejected["unknown_radar"] == 1 and [o.key for o in out] == ["fusion/errors"]
     assert out[0].body()["radar_id"] == z
+
+
+def test_a_table_after_the_merge_passed_its_time_is_released_and_counted_as_reordered() -> None:
+    """A worker no longer waited for (its link down beyond the grace) publishes on: its tables
+    arrive after the merge went past their data time.  They are not lost nor held, but released
+    out of the one-worker order, and each is counted."""
+    merger = TableMerger()
+    merger.push(RADAR, "A", 1, 10.0, "A@10")
+    merger.progress(1, 20.0)  # worker 1 published up to 20 s; worker 2 is not waited for
+    assert [r.item for r in merger.release({1})] == ["A@10"] and merger.reordered == 0
+    merger.push(RADAR, "A", 2, 25.0, "A@25")  # in order: after the merge's 20 s
+    merger.push(RADAR, "B", 1, 5.0, "B@5")  # worker 2's, from before the merge's 20 s
+    merger.push(RADAR, "B", 2, 10.0, "B@10")  # at A@10's time, but after it in the order
+    merger.push(RADAR, "0", 1, 10.0, "0@10")  # at A@10's time, and before it in the order
+    assert merger.reordered == 2
+    merger.progress(1, 30.0)
+    assert [r.item for r in merger.release({1})] == ["B@5", "0@10", "B@10", "A@25"]
+    assert merger.reordered == 2  # (counted when they came, once each)

@@ -14,7 +14,10 @@ in, ``(time_s, kind, source_id, seq)``, without ever waiting on wall time:
 Since each worker publishes in release order and a session's messages arrive in the order they
 were put, everything at or below that limit has arrived: the release order is one worker's,
 whatever the interleaving on arrival.  A worker that is gone (its liveliness token left) is
-not waited for; its radars are missing until it is back.
+not waited for; its radars are missing until it is back.  What it published meanwhile and
+arrives after the merge has released a later item (a link down for longer than the grace) is
+released at once, out of the one-worker order: each such item is counted (:attr:`reordered`,
+``/status`` ``partition.progress.reordered``), never hidden.
 """
 
 from __future__ import annotations
@@ -39,6 +42,11 @@ class TableMerger:
         self._tie = itertools.count()
         #: Everything up to this data time has been released.
         self.last_limit = -np.inf
+        #: Items that arrived after the merge had released a later one (from a worker not
+        #: waited for any more): released at the next release, out of the one-worker order.
+        self.reordered = 0
+        #: The order key of the last item released.
+        self._last: tuple[float, int, str, int] | None = None
 
     def __len__(self) -> int:
         return len(self._heap)
@@ -49,6 +57,8 @@ class TableMerger:
         """A released item: a radar's table (``kind`` RADAR) or a reference batch; ``expiry``:
         the source expired (ordered after every batch of the same data time, as released)."""
         order_kind = EXPIRE if expiry else kind
+        if self._last is not None and (time_s, order_kind, source_id, seq) < self._last:
+            self.reordered += 1
         heapq.heappush(self._heap, (time_s, order_kind, source_id, seq, next(self._tie), kind, item))
 
     def progress(self, worker: int, released_s: float) -> None:
@@ -73,5 +83,6 @@ class TableMerger:
     def _until(self, limit: float) -> Iterator[Release]:
         self.last_limit = max(self.last_limit, limit)
         while self._heap and self._heap[0][0] <= limit:
-            time_s, _order, source_id, _seq, _tie, kind, item = heapq.heappop(self._heap)
+            time_s, order, source_id, seq, _tie, kind, item = heapq.heappop(self._heap)
+            self._last = (time_s, order, source_id, seq)
             yield Release(kind, source_id, time_s, item)

@@ -188,6 +188,7 @@ class Peers:
             "merged_s": finite_or_none(self.merger.last_limit),
             "held": len(self.merger),
             "state_gaps": sum(self.receiver.gaps.values()),
+            "reordered": self.merger.reordered,
             "waiting_for": sorted(
                 k for k in self.owners() if self.merger.released.get(k, -np.inf) <= self.merger.last_limit
             ),

@@ -444,7 +444,8 @@ class PartitionStatus(OutModel):
         default_factory=dict,
         description="this worker's data clocks: released_s (its tables), merged_s (every worker's, in "
         "order), correlated_s, held (tables waiting for a slower worker), state_gaps (track-state messages "
-        "that could not be applied)",
+        "that could not be applied), reordered (tables that came after the merge had released a later "
+        "one, from a worker no longer waited for, and were released out of order)",
     )
 
 
