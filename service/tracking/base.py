@@ -93,12 +93,14 @@ class TrackTable:
     velocity_ecef_mps: FloatArray  # (n, 3)
     covariance: FloatArray  # (n, 6, 6)
     plots: NDArray[np.int64]
-    truth_id: NDArray[np.object_]
-    mode_3a: NDArray[np.object_] = None  # type: ignore[assignment]  # filled by __post_init__
+    #: Evaluation only, carried through (left out by the trackers: all None; the simulator's
+    #: labels are written by service.evaluation.truth).
+    truth_id: NDArray[np.object_] = None  # type: ignore[assignment]  # filled by __post_init__
+    mode_3a: NDArray[np.object_] = None  # type: ignore[assignment]
     mode_s: NDArray[np.object_] = None  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
-        _fill_labels(self, self.track_id.shape[0], ("mode_3a", "mode_s"))
+        _fill_labels(self, self.track_id.shape[0], ("truth_id", "mode_3a", "mode_s"))
 
     def __len__(self) -> int:
         return int(self.track_id.shape[0])
@@ -113,7 +115,6 @@ class TrackTable:
             np.empty((0, 3)),
             np.empty((0, 6, 6)),
             np.empty(0, dtype=np.int64),
-            np.empty(0, dtype=object),
         )
 
     def take(self, index: NDArray[np.intp] | NDArray[np.bool_]) -> TrackTable:

@@ -27,8 +27,8 @@ Track ids ``{prefix}-{n}`` count from ``first_number`` (1 unless a restart's epo
 otherwise, :func:`~service.tracking.base.first_number`) and are never reused.  Every update
 records which plots joined which track (:attr:`TrackManager.joined`, plots with all their
 columns); from them it keeps each track's latest identity codes (Mode 3/A, Mode S:
-:mod:`.identity`), which association never reads.  The simulator's ``truth_id`` labels are
-tallied outside the tracker, by evaluation code (:mod:`service.evaluation.truth`).
+:mod:`.identity`), which association never reads.  Labels for evaluation are kept outside
+the tracker (:mod:`service.evaluation`).
 """
 
 from __future__ import annotations
@@ -234,7 +234,7 @@ class TrackManager(Tracker):
         first_number: int = 1,
     ) -> None:
         """``first_number``: the number of the first track's id (``f"{id_prefix}-{n}"``); the
-        track uids inside stay 1, 2, ... (the truth tally packs them into 32 bits)."""
+        track uids inside stay 1, 2, ... (service.evaluation packs them into 32 bits)."""
         super().__init__(site, window_s)
         self.params = params if params is not None else TrackerParams()
         mp = self.params.manager
@@ -379,7 +379,6 @@ class TrackManager(Tracker):
             vel,
             cov,
             tr.nplots.copy(),
-            np.full(n, None, dtype=object),  # plot labels per track: service.evaluation.truth
             **self.identity.of(tr.uid),
         )
 
