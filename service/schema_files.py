@@ -73,6 +73,7 @@ EXAMPLES: dict[str, Any] = {
                 "truth_id": None,
                 "mode_3a": "7000",
                 "mode_s": "3c6444",
+                "quality": 0.94,
             }
         ],
     },
@@ -169,6 +170,7 @@ EXAMPLES: dict[str, Any] = {
                 [float(40000 if i % 7 == 0 and i < 21 else 25 if i % 7 == 0 else 0) for i in range(36)]
             ],
             "plots": [12],
+            "quality": [0.94],
         },
     },
     "RegistrationRows": {

@@ -43,6 +43,7 @@ def track_batch(radar_id: str, time_s: float, tracks: TrackTable, status: str = 
         "truth_id": tracks.truth_id,
         "mode_3a": tracks.mode_3a,
         "mode_s": tracks.mode_s,
+        "quality": tracks.quality,
     }
     return {"radar_id": radar_id, "time_s": time_s, "tracks": track_rows(columns)}
 

@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 from service.pipeline.errors import RejectionError
 from service.tracking.base import TrackTable
 from service.wire.models import MAX_ECEF_M, MAX_TIME_S, MAX_TRACKS
+from service.wire.outputs import nullable
 from service.wire.vocabulary import is_source_id
 
 #: The label columns a table carries besides its state (sent only when one is set).
@@ -89,6 +90,8 @@ def changed_rows(old: TrackTable, new: TrackTable) -> tuple[np.ndarray, np.ndarr
     same &= np.all(old.covariance[pos].reshape(n, 36) == new.covariance.reshape(n, 36), axis=1)
     for name in LABELS:
         same &= getattr(old, name)[pos] == getattr(new, name)
+    q_old, q_new = old.quality[pos], new.quality
+    same &= (q_old == q_new) | (np.isnan(q_old) & np.isnan(q_new))
     kept = np.zeros(len(old), dtype=bool)
     kept[pos[known]] = True
     return ~same, old.track_id[~kept]
@@ -112,6 +115,8 @@ def states_body(
         labels = getattr(table, name).tolist()
         if any(x is not None for x in labels):
             columns[name] = labels
+    if np.isfinite(table.quality).any():
+        columns["quality"] = nullable(table.quality)
     return {
         "radar_id": radar_id,
         "seq": seq,
@@ -219,7 +224,10 @@ def decode_states(payload: bytes, radar_id: str) -> StatesMessage:
     if np.any(np.abs(pos) > MAX_ECEF_M) or np.any(np.abs(vel) > MAX_ECEF_M):
         raise _fail("out_of_range", "tracks position or velocity", radar_id)
     label = {name: _label_column(cols, name, n, radar_id) for name in LABELS}
-    rows = TrackTable(np.asarray(ids, dtype=str), c, t, pos, vel, cov.reshape(n, 6, 6), npl, **label).by_id()
+    quality = _quality_column(cols, n, radar_id)
+    rows = TrackTable(
+        np.asarray(ids, dtype=str), c, t, pos, vel, cov.reshape(n, 6, 6), npl, **label, quality=quality
+    ).by_id()
     return StatesMessage(rid, seq, float(time_s), full, count, np.asarray(removed, dtype=str), expiry, rows)
 
 
@@ -235,6 +243,22 @@ def _label_column(cols: dict[str, Any], name: str, n: int, radar_id: str) -> np.
         ):
             raise _fail("schema", f"tracks.{name}", radar_id)
         out[:] = labels
+    return out
+
+
+def _quality_column(cols: dict[str, Any], n: int, radar_id: str) -> np.ndarray:
+    """The optional ``quality`` column (numbers in [0, 1] or nulls), NaN where null or left out."""
+    out = np.full(n, np.nan)
+    values = cols.get("quality")
+    if values is None:
+        return out
+    if (
+        not isinstance(values, list)
+        or len(values) != n
+        or not all(x is None or (type(x) in (int, float) and 0.0 <= x <= 1.0) for x in values)
+    ):
+        raise _fail("schema", "tracks.quality must be numbers in [0, 1] or nulls", radar_id)
+    out[:] = [np.nan if x is None else float(x) for x in values]
     return out
 
 

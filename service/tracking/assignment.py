@@ -63,3 +63,28 @@ def assign(rows: IntArray, cols: IntArray, cost: FloatArray, miss_cost: float) -
         return direct
     chosen, _ = _dense_solve(rows[rest], cols[rest], cost[rest], miss_cost)
     return np.sort(np.concatenate([direct, rest[chosen]]))
+
+
+def clarity(rows: IntArray, cols: IntArray, d2: FloatArray, chosen: IntArray) -> FloatArray:
+    """How clearly each chosen candidate's plot belonged to its track, in (0, 1].
+
+    With the Gaussian likelihood ``L_k = exp(-d2_k / 2)`` of every gated candidate ``k``, the
+    clarity of a chosen candidate ``c`` of track ``r`` and plot ``j`` is
+
+        ``L_c / (sum_{k: row r} L_k + sum_{k: col j} L_k - L_c)``,
+
+    the share of the likelihood that the chosen association holds among every association it
+    competed with: the other plots in the track's gate and the other tracks whose gate held
+    the plot (the association events that involve ``r`` or ``j``, weighed as JPDA weighs them;
+    here only a figure of ambiguity: the update stays the one assignment; docs/tracking.md,
+    "Track quality").  1 when the track and the plot had no other candidate.  ``L_k`` never
+    underflows: the gate keeps ``d2 <= gate_chi2`` (16.3 by default), so ``L_k >= 3e-4``.
+    """
+    if chosen.shape[0] == 0:
+        return np.empty(0)
+    like = np.exp(-0.5 * d2)
+    by_row = np.bincount(rows, weights=like)
+    by_col = np.bincount(cols, weights=like)
+    r, c = rows[chosen], cols[chosen]
+    own = like[chosen]
+    return np.asarray(own / (by_row[r] + by_col[c] - own))

@@ -84,6 +84,9 @@ class TrackTable:
     States are in ECEF as the radar sees them: its systematic errors are *not* removed.
     ``covariance`` is the 6x6 covariance of ``[position, velocity]`` in ECEF.
     ``mode_3a`` / ``mode_s``: the latest identity codes of each track's plots (None: none seen).
+    ``quality``: how unambiguous the track's recent plot associations were, in [0, 1] (1: every
+    plot clearly its own; NaN: not known, e.g. no plot associated since its birth, or a
+    tracker that does not say; left out: all NaN).
     """
 
     track_id: NDArray[np.str_]
@@ -98,9 +101,13 @@ class TrackTable:
     truth_id: NDArray[np.object_] = None  # type: ignore[assignment]  # filled by __post_init__
     mode_3a: NDArray[np.object_] = None  # type: ignore[assignment]
     mode_s: NDArray[np.object_] = None  # type: ignore[assignment]
+    quality: FloatArray = None  # type: ignore[assignment]  # filled by __post_init__
 
     def __post_init__(self) -> None:
-        _fill_labels(self, self.track_id.shape[0], ("truth_id", "mode_3a", "mode_s"))
+        n = self.track_id.shape[0]
+        _fill_labels(self, n, ("truth_id", "mode_3a", "mode_s"))
+        if self.quality is None:
+            object.__setattr__(self, "quality", np.full(n, np.nan))
 
     def __len__(self) -> int:
         return int(self.track_id.shape[0])

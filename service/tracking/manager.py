@@ -33,7 +33,7 @@ the tracker (:mod:`service.evaluation`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -41,8 +41,9 @@ from scipy.spatial import cKDTree
 
 from service.geo import FloatArray, Site
 from service.tracking import kalman
-from service.tracking.assignment import assign
+from service.tracking.assignment import assign, clarity
 from service.tracking.base import PlotColumns, Tracker, TrackTable
+from service.tracking.duplicates import duplicate_losers, shared_plot_pairs
 from service.tracking.groups import fit_groups
 from service.tracking.identity import TrackCodes
 from service.tracking.initiators import get_initiator
@@ -88,58 +89,32 @@ class _Tracks:
     nplots: NDArray[np.int64]
     ids: NDArray[np.str_]  # "{prefix}-{uid}", made once at birth
     cov_ecef: FloatArray  # (n, 6, 6) ``P`` in ECEF, made when ``P`` is (see ``TrackManager.tracks``)
+    quality: FloatArray  # ``Track.quality``: average clarity of its associations, NaN before one
+    look_hits: NDArray[np.int64]  # the last ``_LOOK_BITS`` looks, 1 = a plot, newest in bit 0
+    look_n: NDArray[np.int64]  # looks in ``look_hits`` (at most ``_LOOK_BITS``)
 
     def __len__(self) -> int:
         return int(self.uid.shape[0])
 
     @staticmethod
     def empty() -> _Tracks:
-        def i() -> NDArray[np.int64]:
-            return np.empty(0, dtype=np.int64)
-
-        return _Tracks(
-            i(),
-            np.empty((0, 6)),
-            np.empty((0, 6, 6)),
-            np.empty(0),
-            i(),
-            i(),
-            i(),
-            np.empty(0, dtype=bool),
-            i(),
-            np.empty(0, dtype=str),
-            np.empty((0, 6, 6)),
-        )
+        i = np.empty(0, dtype=np.int64)
+        f = np.empty(0)
+        m = np.empty((0, 6, 6))
+        b, u = np.empty(0, dtype=bool), np.empty(0, dtype=str)
+        return _Tracks(i, np.empty((0, 6)), m, f, i, i, i, b, i, u, m, f, i, i)
 
     def take(self, keep: NDArray[np.bool_]) -> _Tracks:
-        return _Tracks(
-            self.uid[keep],
-            self.x[keep],
-            self.P[keep],
-            self.t[keep],
-            self.hist[keep],
-            self.looks[keep],
-            self.miss_run[keep],
-            self.confirmed[keep],
-            self.nplots[keep],
-            self.ids[keep],
-            self.cov_ecef[keep],
-        )
+        return _Tracks(*(getattr(self, f.name)[keep] for f in fields(self)))
 
     def append(self, new: _Tracks) -> _Tracks:
-        return _Tracks(
-            np.concatenate([self.uid, new.uid]),
-            np.concatenate([self.x, new.x]),
-            np.concatenate([self.P, new.P]),
-            np.concatenate([self.t, new.t]),
-            np.concatenate([self.hist, new.hist]),
-            np.concatenate([self.looks, new.looks]),
-            np.concatenate([self.miss_run, new.miss_run]),
-            np.concatenate([self.confirmed, new.confirmed]),
-            np.concatenate([self.nplots, new.nplots]),
-            np.concatenate([self.ids, new.ids]),
-            np.concatenate([self.cov_ecef, new.cov_ecef]),
-        )
+        return _Tracks(*(np.concatenate([getattr(self, f.name), getattr(new, f.name)]) for f in fields(self)))
+
+
+#: Looks kept in ``_Tracks.look_hits`` (bits of an int64 below the sign bit): the longest
+#: ``FormationParams.duplicate_looks`` can be.
+_LOOK_BITS = 62
+_LOOK_MASK = (1 << _LOOK_BITS) - 1
 
 
 Joined = list[tuple[NDArray[np.int64], PlotColumns]]
@@ -310,10 +285,16 @@ class TrackManager(Tracker):
             meas = plots_to_measurements(site, plots, self.params.measurement)
             used = np.zeros(len(meas), dtype=bool)
             hit = np.zeros(len(tracks), dtype=bool)
+            twins = np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
             if len(tracks) and len(meas):
                 rows, cols, d2, xp, pp = self._gate(tracks, meas)
                 chosen = assign(rows, cols, d2, fp.gate_chi2)
                 r, c = rows[chosen], cols[chosen]
+                clear = clarity(rows, cols, d2, chosen)
+                tracks = replace(tracks, quality=self._quality(tracks.quality, r, clear))
+                if self.params.formation.merge_duplicates:
+                    a, b = shared_plot_pairs(rows, cols)
+                    twins = tracks.uid[a], tracks.uid[b]
                 if r.shape[0]:
                     z, cov_z = meas.enu_m[c], meas.covariance[c]
                     x_new, p_new = kalman.update_state(xp[chosen], pp[chosen], z, cov_z)
@@ -333,6 +314,7 @@ class TrackManager(Tracker):
                     used[c] = True
                     joined.append((tracks.uid[r], plots.take(c)))
             tracks = self._life_cycle(tracks, hit, plots.azimuth_deg, float(time_s))
+            tracks = self._drop_duplicates(tracks, twins, float(time_s))
             window.extend(plots.take(~used), float(time_s), meas.take(~used))
             initiated_s = self._initiated_s
             next_uid = self._next_uid
@@ -380,6 +362,7 @@ class TrackManager(Tracker):
             cov,
             tr.nplots.copy(),
             **self.identity.of(tr.uid),
+            quality=tr.quality.copy(),
         )
 
     # -- association ------------------------------------------------------------------
@@ -451,6 +434,48 @@ class TrackManager(Tracker):
             np.concatenate(p_),
         )
 
+    # -- formations --------------------------------------------------------------------
+    def _quality(self, quality: FloatArray, rows: IntArray, clear: FloatArray) -> FloatArray:
+        """``Track.quality`` after this batch: each associated track's moves by
+        ``1 / quality_memory_looks`` of the way to its association's clarity
+        (:func:`.assignment.clarity`); a track's first association sets it."""
+        out = quality.copy()
+        q = out[rows]
+        out[rows] = np.where(np.isnan(q), clear, q + (clear - q) / self.params.formation.quality_memory_looks)
+        return out
+
+    def _drop_duplicates(
+        self, tracks: _Tracks, twins: tuple[NDArray[np.int64], NDArray[np.int64]], time_s: float
+    ) -> _Tracks:
+        """``tracks`` without the weaker track of each duplicate pair among ``twins`` (uids of
+        tracks whose gates held the same plot in this batch; :mod:`.duplicates`)."""
+        if twins[0].shape[0] == 0 or len(tracks) < 2:
+            return tracks
+        fm = self.params.formation
+        n = len(tracks)  # uids ascend with the rows (births append), so a search finds a row
+        ia = np.minimum(np.searchsorted(tracks.uid, twins[0]), n - 1)
+        ib = np.minimum(np.searchsorted(tracks.uid, twins[1]), n - 1)
+        alive = (tracks.uid[ia] == twins[0]) & (tracks.uid[ib] == twins[1])  # not deleted this batch
+        lose = duplicate_losers(
+            ia[alive],
+            ib[alive],
+            tracks.x,
+            tracks.P,
+            tracks.t,
+            tracks.look_hits,
+            tracks.look_n,
+            tracks.nplots,
+            time_s,
+            self.params.filter.process_noise_psd,
+            fm.duplicate_chi2,
+            fm.duplicate_looks,
+        )
+        if lose.shape[0] == 0:
+            return tracks
+        keep = np.ones(n, dtype=bool)
+        keep[lose] = False
+        return tracks.take(keep)
+
     # -- life cycle -------------------------------------------------------------------
     def _expected(self, tracks: _Tracks, azimuth_deg: FloatArray, time_s: float) -> NDArray[np.bool_]:
         """Tracks whose predicted azimuth lies inside the batch's covered arc (less a margin)."""
@@ -478,7 +503,17 @@ class TrackManager(Tracker):
         miss_run = np.where(hit, 0, tracks.miss_run + expected)
         hits = popcount(hist)
         confirmed = tracks.confirmed | (hits >= mp.confirm_m)
-        tracks = replace(tracks, hist=hist, looks=looks, miss_run=miss_run, confirmed=confirmed)
+        look_hits = np.where(looked, ((tracks.look_hits << 1) | hit) & _LOOK_MASK, tracks.look_hits)
+        look_n = np.where(looked, np.minimum(tracks.look_n + 1, _LOOK_BITS), tracks.look_n)
+        tracks = replace(
+            tracks,
+            hist=hist,
+            looks=looks,
+            miss_run=miss_run,
+            confirmed=confirmed,
+            look_hits=look_hits,
+            look_n=look_n,
+        )
         misses = looks - hits
         dead = (~confirmed & (misses > mp.confirm_n - mp.confirm_m)) | (
             confirmed & (miss_run >= mp.confirmed_max_misses)
@@ -525,6 +560,9 @@ class TrackManager(Tracker):
             births.plots[ok],
             np.char.add(f"{self.id_prefix}-", (uid + self._id_offset).astype(str)),
             big @ births.P[ok] @ big.T,
+            np.full(k, np.nan),
+            hist,  # the birth's plots are its first looks, as in ``hist``
+            first,
         )
         # Plots of accepted groups leave the window; label -> uid of the new track.
         label_uid = np.full(groups.count, -1, dtype=np.int64)

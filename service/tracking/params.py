@@ -283,6 +283,42 @@ class BoundParams:
 
 
 @dataclass(frozen=True)
+class FormationParams:
+    """Tracks in formations: the quality of a track's associations (``Track.quality``), and
+    duplicate tracks (two tracks of one radar fed by one aircraft's plots in turn;
+    :mod:`service.tracking.duplicates`)."""
+
+    quality_memory_looks: float = 5.0
+    """``Track.quality`` is an exponential average of the clarity of a track's associations
+    (:func:`service.tracking.assignment.clarity`) with this memory, in associations: each one
+    moves it ``1 / quality_memory_looks`` of the way to that association's clarity, so a swap
+    between two close aircraft shows within a few scans and fades after about this many clear
+    ones; a track's first association sets it."""
+
+    merge_duplicates: bool = True
+    """Whether duplicate tracks are looked for, and the weaker of each duplicate pair dropped."""
+
+    duplicate_chi2: float = 16.81
+    """Two tracks of one radar are *close* when the Mahalanobis distance of their state
+    difference (position and velocity, predicted to the batch's time, covariance the sum of
+    theirs) is at most this: chi-square with 6 degrees of freedom at 99 %."""
+
+    duplicate_looks: int = 8
+    """... and a close pair is a *duplicate* when, over the last this many looks of each, the
+    two never had a plot in the same look: one aircraft gives at most one plot a look, two
+    aircraft this close both give one.  Two real aircraft with detection probability ``Pd``
+    pass this by chance with probability ``(1 - Pd^2)^duplicate_looks`` per window of looks:
+    0.1 % at Pd 0.75, 0.5 % at Pd 0.7 (at 4, 7 % at Pd 0.7: too many); a duplicate lives about
+    this many looks before it is dropped.  At most 62."""
+
+    @staticmethod
+    def off() -> FormationParams:
+        """The tracker as it was before these rules: no duplicate search.  (Quality is
+        reported either way; association does not read it.)"""
+        return FormationParams(merge_duplicates=False)
+
+
+@dataclass(frozen=True)
 class TrackerParams:
     """All parameters of one radar's tracker."""
 
@@ -293,3 +329,4 @@ class TrackerParams:
     hough: HoughParams = field(default_factory=HoughParams)
     cluster: ClusterParams = field(default_factory=ClusterParams)
     bounds: BoundParams = field(default_factory=BoundParams)
+    formation: FormationParams = field(default_factory=FormationParams)

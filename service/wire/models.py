@@ -10,7 +10,16 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Annotated, Any, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictInt, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictFloat,
+    StrictInt,
+    ValidationError,
+    model_validator,
+)
 from pydantic_core import PydanticCustomError
 
 from service.wire.vocabulary import ID_PATTERN, PairBasis, RejectionReason
@@ -193,6 +202,10 @@ class OutModel(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+#: How unambiguous a track's recent plot associations were (``Track.quality``).
+Quality = Annotated[StrictFloat, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
+
+
 class Track(OutModel):
     track_id: str
     status: Literal["tentative", "confirmed"]
@@ -206,6 +219,11 @@ class Track(OutModel):
     truth_id: str | None = None
     mode_3a: str | None = Field(default=None, description="the latest Mode 3/A code of the track's plots")
     mode_s: str | None = Field(default=None, description="the latest Mode S address of the track's plots")
+    quality: Quality | None = Field(
+        default=None,
+        description="how unambiguous the track's recent plot associations were (1 = every plot "
+        "clearly its own); null when not known",
+    )
 
 
 class TrackBatch(OutModel):
@@ -319,6 +337,9 @@ class TrackStateColumns(ColumnsModel):
     )
     mode_3a: Annotated[list[str | None], Field(max_length=MAX_TRACKS)] | None = None
     mode_s: Annotated[list[str | None], Field(max_length=MAX_TRACKS)] | None = None
+    quality: Annotated[list[Quality | None], Field(max_length=MAX_TRACKS)] | None = Field(
+        default=None, description="as Track.quality; left out when no track has one"
+    )
 
 
 class TrackStates(WireModel):

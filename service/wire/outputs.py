@@ -39,7 +39,8 @@ def nullable(x: NDArray[np.float64]) -> list[float | None]:
 def track_rows(c: dict[str, np.ndarray]) -> list[dict[str, Any]]:
     """``TrackBatch.tracks`` from a radar's track columns (``track_id``, ``confirmed``,
     ``time_s``, ``latitude_deg``, ``longitude_deg``, ``altitude_m``, ``position_ecef_m``,
-    ``velocity_ecef_mps``, ``plots``, ``truth_id``, ``mode_3a``, ``mode_s``)."""
+    ``velocity_ecef_mps``, ``plots``, ``truth_id``, ``mode_3a``, ``mode_s``, ``quality``: NaN
+    for null)."""
     state = np.where(c["confirmed"], "confirmed", "tentative").tolist()
     return [
         {
@@ -55,8 +56,9 @@ def track_rows(c: dict[str, np.ndarray]) -> list[dict[str, Any]]:
             "truth_id": truth,
             "mode_3a": m3a,
             "mode_s": ms,
+            "quality": q,
         }
-        for tid, st, t, la, lo, al, p, v, n, truth, m3a, ms in zip(
+        for tid, st, t, la, lo, al, p, v, n, truth, m3a, ms, q in zip(
             c["track_id"].tolist(),
             state,
             c["time_s"].tolist(),
@@ -69,6 +71,7 @@ def track_rows(c: dict[str, np.ndarray]) -> list[dict[str, Any]]:
             c["truth_id"].tolist(),
             c["mode_3a"].tolist(),
             c["mode_s"].tolist(),
+            nullable(c["quality"]),
             strict=True,
         )
     ]
