@@ -86,6 +86,9 @@ class PredictedTracks:
     compensated: bool = False
     #: Each track's Mode S address (None: none); None: the source gave none at all.
     mode_s: NDArray[np.object_] | None = None
+    #: Each track's quality (``TrackTable.quality``: how unambiguous its recent plot
+    #: associations were, in [0, 1]; NaN: not known); None: the source gave none at all.
+    quality: FloatArray | None = None
 
     def __len__(self) -> int:
         return int(self.track_id.shape[0])

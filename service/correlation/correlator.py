@@ -25,6 +25,11 @@ Per :meth:`PairCorrelator.update` (all in data time, deterministic):
    hypothesis of both its tracks, and one a stronger chain through a third radar contradicts
    is decided afresh (:mod:`.cycles`).  A decided candidate with a source of looks is accepted
    from ``min_looks`` looks on while its accumulated test passes, at the cost ``q_rel - 3``.
+   A confirmed pair whose re-check chi-square jumps beyond the swap gate while a rival pairing
+   of one of its tracks passes is swapped (:mod:`.swap`): decided afresh without the confirmed
+   bonus, its two tracks' evidence forgotten before the update's looks, and out of the book at
+   once unless chosen again.  A pair is clear (confirmed at its first look, :mod:`.prompt`)
+   only when both tracks' quality is at least ``prompt.min_quality`` (NaN: not known, clear).
 4. One-to-one assignment with an ambiguity margin (:mod:`.assignment`) of the decided
    candidates (kept pairs share no track with them: nothing to assign); with the history
    evidence the margin is between joint assignments, and a candidate a chain through a third
@@ -77,7 +82,7 @@ from service.correlation.nearest import NearestCorrelator, NearestParams
 from service.correlation.pairkeys import find, isin_sorted, pair_keys
 from service.correlation.pairs import PairBook, PairBookParams, PairState
 from service.correlation.prediction import PredictionParams, predict_tracks
-from service.correlation.prompt import PromptParams, clear_of_rivals, isolated
+from service.correlation.prompt import PromptParams, clear_of_rivals, isolated, quality_clear
 from service.correlation.registration import (
     BiasSolution,
     RadarBias,
@@ -88,7 +93,8 @@ from service.correlation.registration import (
     solve_biases,
     to_estimates,
 )
-from service.correlation.svd_topology import SvdTopologyCorrelator, SvdTopologyParams
+from service.correlation.svd_topology import CHI2, DOF, SvdTopologyCorrelator, SvdTopologyParams
+from service.correlation.swap import SwapParams, jumped, rivals, with_rival
 from service.geo import Site
 from service.tracking.base import TrackTable
 
@@ -115,6 +121,9 @@ class CorrelationParams:
     group: GroupOffsetParams = field(default_factory=GroupOffsetParams)
     #: Clear pairs confirmed at their first update (:mod:`.prompt`; ``svd-topology``).
     prompt: PromptParams = field(default_factory=PromptParams)
+    #: A confirmed pair whose compensated residual jumps is re-decided at once (:mod:`.swap`;
+    #: ``svd-topology`` once registered).
+    swap: SwapParams = field(default_factory=SwapParams)
     #: Ambiguity margin of the one-to-one assignment (chi-square units; 6 ~ likelihood ratio 20).
     ambiguity_margin: float = 6.0
     #: Cost bonus for a candidate that is a currently confirmed pair (hysteresis from history).
@@ -275,6 +284,9 @@ class PairCorrelator:
         self.last_decisions: Decisions = Decisions.empty()
         #: Confirmed pairs the last update kept by the method's re-check (no full decision).
         self.last_reverified = 0
+        #: Confirmed pairs the last update found swapped (:mod:`.swap`), and all so far.
+        self.last_swaps = 0
+        self.swaps = 0
         self.time_s: float = float("nan")
         self.updates = 0
         self.settled = False
@@ -298,6 +310,27 @@ class PairCorrelator:
         raw_a, raw_b, a, b, ctx_kw = self._predicted(tracks_a, tracks_b, time_s)
         registered = bool(ctx_kw)
         ev = self.evidence
+        conf = self.book.confirmed
+        sorters = (np.argsort(a.track_id), np.argsort(b.track_id))  # the rows of a, b and raw_a, raw_b
+        ca_idx, cb_idx = _lookup_pairs(
+            a.track_id, b.track_id, self.book.track_a[conf], self.book.track_b[conf], sorters
+        )
+        ctx = DecisionContext(time_s=time_s, confirmed_a=ca_idx, confirmed_b=cb_idx, **ctx_kw)  # type: ignore[arg-type]
+        # The method's re-check of the confirmed pairs (before the looks: it reads none).
+        kept = self.correlator.reverify(a, b, ca_idx, cb_idx, ctx)
+        jump = self._jumps(kept, len(ca_idx), a, b, ctx)  # (re-check rows: the confirmed pairs', in order)
+        jumped_a, jumped_b = a.track_id[ca_idx[jump]], b.track_id[cb_idx[jump]]
+        if len(jumped_a):
+            # Swapped (module swap): not kept, no confirmed bonus, the two tracks' evidence reset
+            # before this update's looks; the book lets the pairs go below unless chosen again.
+            assert kept is not None
+            ca_idx, cb_idx = ca_idx[~jump], cb_idx[~jump]
+            ctx = replace(ctx, confirmed_a=ca_idx, confirmed_b=cb_idx)
+            kept = kept.take(~jump)
+            if ev is not None:
+                ev.forget_tracks(jumped_a, jumped_b)
+        self.last_swaps = len(jumped_a)
+        self.swaps += len(jumped_a)
         if ev is not None and registered:
             # Every candidate within the gate is one look at its pair (no censoring by the
             # decisions); a known pair outside it is no hypothesis any more.
@@ -305,18 +338,11 @@ class PairCorrelator:
             ia_e, ib_e, r, s_noise, s_common = registered_residuals(a, b, extra_a, extra_b, ev.params)  # type: ignore[arg-type]
             ev.observe(time_s, a.track_id[ia_e], b.track_id[ib_e], r, s_noise, s_common)
             ev.prune(time_s, a.track_id, b.track_id, unobserved_present=True)
-        conf = self.book.confirmed
-        sorters = (np.argsort(a.track_id), np.argsort(b.track_id))  # the rows of a, b and raw_a, raw_b
-        ca_idx, cb_idx = _lookup_pairs(
-            a.track_id, b.track_id, self.book.track_a[conf], self.book.track_b[conf], sorters
-        )
-        ctx = DecisionContext(time_s=time_s, confirmed_a=ca_idx, confirmed_b=cb_idx, **ctx_kw)  # type: ignore[arg-type]
         parts = []
         if implied is not None:
             # The implied pairs present in both snapshots, by rows (module cycles).
             ia_i, ib_i, found = _pair_rows(a.track_id, b.track_id, implied.track_a, implied.track_b, sorters)
             imp_a, imp_b, imp_s = ia_i[found], ib_i[found], implied.strength[found]
-        kept = self.correlator.reverify(a, b, ca_idx, cb_idx, ctx)
         if kept is not None:
             kept = kept.take(kept.accepted)
             if ev is not None:
@@ -398,6 +424,8 @@ class PairCorrelator:
             _basis_codes(sel.extras["basis"]) if "basis" in sel.extras else None,
             confirm_now=now,
         )
+        if len(jumped_a):
+            self.book.release(jumped_a, jumped_b, time_s)  # (unless this update chose them again)
         if ev is not None:
             # A pair's probability from its accumulated evidence; a pair with none (before
             # registration and outside any group) keeps the hit fraction: one update's
@@ -453,6 +481,29 @@ class PairCorrelator:
         self.updates += 1
         self.last_update_ms = (time.perf_counter() - t0) * 1e3
 
+    def _jumps(
+        self, checked: Decisions | None, n: int, a: PredictedTracks, b: PredictedTracks, ctx: DecisionContext
+    ) -> NDArray[np.bool_]:
+        """Per confirmed pair present (``n``, the rows of the re-check ``checked``; None: no
+        re-check): is it swapped (:mod:`.swap`): its compensated chi-square jumped beyond the
+        swap gate and (``require_rival``) a rival pairing of one of its tracks passes the
+        re-check?  The re-check's chi-square extras are taken out of ``checked``."""
+        if checked is None:
+            return np.zeros(n, dtype=bool)
+        q, dof = checked.extras.pop(CHI2, None), checked.extras.pop(DOF, None)
+        prm = self.params.swap
+        if not prm.enabled or q is None or dof is None:
+            return np.zeros(len(checked), dtype=bool)
+        jump = jumped(q, dof, prm.alpha)
+        rows = np.flatnonzero(jump)
+        if rows.size and prm.require_rival:
+            # (only when a pair jumped: a few rows against the other radar's tracks)
+            k, ri, rj = rivals(checked.index_a[rows], checked.index_b[rows], len(a), len(b))
+            rival = self.correlator.reverify(a, b, ri, rj, ctx)
+            passed = rival.accepted if rival is not None else np.zeros(len(k), dtype=bool)
+            jump[rows] = with_rival(k, passed, rows.size)
+        return jump
+
     def _predicted(
         self, tracks_a: TrackTable, tracks_b: TrackTable, time_s: float
     ) -> tuple[PredictedTracks, PredictedTracks, PredictedTracks, PredictedTracks, dict[str, object]]:
@@ -485,11 +536,18 @@ class PairCorrelator:
         time_s: float,
     ) -> np.ndarray:
         """Which of the update's candidates are clear (:mod:`.prompt`): no rival within the
-        margin, and both tracks isolated within their own radar's tables."""
+        margin, both tracks of at least ``min_quality``, and both isolated within their own
+        radar's tables."""
         prm = self.params.prompt
         if not prm.enabled or self.method != "svd-topology" or len(dec) == 0:
             return np.zeros(len(dec), dtype=bool)
         clear = clear_of_rivals(dec.index_a, dec.index_b, dec.cost, dec.accepted, prm.clear_margin)
+        if prm.min_quality > 0.0 and (a.quality is not None or b.quality is not None):
+            clear &= quality_clear(
+                None if a.quality is None else a.quality[dec.index_a],
+                None if b.quality is None else b.quality[dec.index_b],
+                prm.min_quality,
+            )
         rows = np.flatnonzero(clear)
         if rows.size:
             ua, inv_a = np.unique(dec.index_a[rows], return_inverse=True)

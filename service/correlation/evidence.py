@@ -199,6 +199,17 @@ class EvidenceBook:
         """Forget every entry."""
         self._keep(np.zeros(len(self), dtype=bool))
 
+    def forget_tracks(self, track_a: NDArray[np.str_], track_b: NDArray[np.str_]) -> int:
+        """Forget every entry whose A track is among ``track_a`` or whose B track is among
+        ``track_b`` (a few ids: a swap, :mod:`.swap`); how many entries went."""
+        if len(self) == 0:
+            return 0
+        gone = isin_sorted(self.track_a, np.unique(track_a)) | isin_sorted(self.track_b, np.unique(track_b))
+        n = int(np.count_nonzero(gone))
+        if n:
+            self._keep(~gone)
+        return n
+
     def _keep(self, keep: NDArray[np.bool_]) -> None:
         for name in self._columns:
             setattr(self, name, getattr(self, name)[keep])

@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
 from service.correlation.base import BASIS_NAMES, FloatArray
-from service.correlation.pairkeys import isin_few
+from service.correlation.pairkeys import find, isin_few
 from service.correlation.pairkeys import isin_sorted as _isin
 from service.correlation.pairkeys import pair_keys as _keys
 
@@ -286,6 +286,22 @@ class PairBook:
         self._confirm(rows[~self.confirmed[rows]])
         self.version += 1
         return bool(gone.any()) or fresh.size > 0 or int(np.count_nonzero(self.confirmed)) != before
+
+    def release(self, track_a: NDArray[np.str_], track_b: NDArray[np.str_], time_s: float) -> int:
+        """Drop the pairs ``(track_a[k], track_b[k])`` of the book that scored no hit at
+        ``time_s`` (a swap, :mod:`.swap`: re-decided at once rather than after
+        ``drop_misses`` misses); how many went."""
+        if len(self) == 0 or len(track_a) == 0:
+            return 0
+        at = find(self.keys, _keys(np.asarray(track_a), np.asarray(track_b)))
+        at = at[at >= 0]
+        at = at[self.cols["last_time_s"][at] < time_s]
+        if at.size == 0:
+            return 0
+        keep = np.ones(len(self), dtype=bool)
+        keep[at] = False
+        self._keep(keep)
+        return int(at.size)
 
     def _append(
         self,

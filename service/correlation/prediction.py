@@ -115,4 +115,5 @@ def predict_tracks(
         enu=enu,
         enu_velocity=enu_v,
         mode_s=table.mode_s[rows],
+        quality=np.asarray(table.quality, dtype=float)[rows],
     )

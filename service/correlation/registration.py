@@ -1172,6 +1172,7 @@ def compensate(
         enu_velocity=enu_v,
         compensated=True,
         mode_s=snapshot.mode_s,
+        quality=snapshot.quality,
     )
     return out, extra
 

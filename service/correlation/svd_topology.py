@@ -540,6 +540,11 @@ def compensated_chi2(
     return q_pos, ok, 3
 
 
+#: The extras of :meth:`SvdTopologyCorrelator.reverify`: each pair's compensated chi-square
+#: and its degrees of freedom (:mod:`.swap`).
+CHI2 = "chi2"
+DOF = "dof"
+
 #: The topology match of no candidate.
 _NO_MATCH = SvdMatchResult(
     accepted=np.zeros(0, dtype=bool),
@@ -761,6 +766,8 @@ class SvdTopologyCorrelator(CorrelationMethod):
         ``maintain_confirmed``; else None.  A pair passing at ``alpha_position`` is accepted
         with ``cost = chi2 - dof`` and ``statistic = chi2 / dof`` (the stage 2 convention);
         ``rotation_weight``, ``scale`` are NaN and ``neighbors`` 0: no topology was matched.
+        The extras ``CHI2`` and ``DOF`` hold the chi-square (NaN: singular) and its degrees of
+        freedom (:mod:`.swap`).
         """
         prm = self.params
         if not (context.registered and prm.maintain_confirmed):
@@ -772,4 +779,7 @@ class SvdTopologyCorrelator(CorrelationMethod):
         )
         dec = Decisions.build(ia, ib, accepted=passed, reason=reason, cost=q - dof, statistic=q / dof)
         dec.extras["stage"] = np.full(len(ia), 3.0)
+        # the chi-square and its degrees of freedom, for the caller's swap test (:mod:`.swap`)
+        dec.extras[CHI2] = np.where(ok, q, np.nan)
+        dec.extras[DOF] = np.full(len(ia), float(dof))
         return dec
