@@ -13,7 +13,7 @@ from service.cli.common import Commands, add_command
 
 #: The studies, each a module of topofusion_lab.evaluation with ``run(out, runs, seed, progress)``,
 #: in the order of the report.
-STUDIES = ("initiation", "correlation", "dense", "adsb", "system")
+STUDIES = ("initiation", "correlation", "dense", "adsb", "system", "formation")
 
 
 def register(commands: Commands) -> None:

@@ -47,7 +47,7 @@ from service.engine import Engine, EngineConfig, Snapshot
 from service.wire.keys import Keys
 from service.wire.vocabulary import METHODS
 from topofusion_lab.scenarios.catalog import get_scenario
-from topofusion_lab.scenarios.simulator import Scenario, generate
+from topofusion_lab.scenarios.simulator import Observer, Scenario, generate
 
 SCENARIO = "formation"
 #: Checkpoints during the run (besides the end), as fractions of the duration.
@@ -142,15 +142,17 @@ def run_pipeline(
     method: str = "svd-topology",
     at_s: Sequence[float] = (),
     config: EngineConfig | None = None,
+    observe: Observer | None = None,
 ) -> Iterator[tuple[float, Snapshot, Engine]]:
     """Feed ``sc``'s messages (seed ``seed``) into a fresh engine; yields ``(data seconds since
     the start, snapshot, engine)`` once the stream has passed each of ``at_s`` and, last, after
-    the whole stream and ``flush`` (at the scenario's duration)."""
+    the whole stream and ``flush`` (at the scenario's duration).  ``observe`` is the
+    simulator's truth observer (:func:`~topofusion_lab.scenarios.simulator.generate`)."""
     engine = Engine(replace(config or EngineConfig(), method=method))
     keys = Keys(engine.config.prefix)
     pending = sorted(at_s)
     try:
-        for m in generate(sc, seed):
+        for m in generate(sc, seed, observe):
             elapsed = m.time_s - sc.start_time_s
             while pending and elapsed > pending[0]:
                 yield pending.pop(0), engine.snapshot(), engine

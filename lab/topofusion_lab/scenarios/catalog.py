@@ -249,6 +249,95 @@ SCENARIOS: dict[str, Scenario] = {
         formation=_formation(),
     ),
 }
+
+
+# Two groups of the formation scenario's aircraft (half each, its radars, lattice, speed and
+# duration) in two more shapes, for the formation study (topofusion_lab.evaluation.formation):
+#
+# * crossing: the groups fly straight through each other, their headings ``crossing_deg``
+#   apart on either side of the formation's 070, both centred on the scenario centre at half
+#   time (at 40 deg and 230 m/s they close at 157 m/s: groups a few km across pass in under a minute);
+# * merging: the groups converge from either side, ``converge_deg`` off 070, and at
+#   ``merge_at_s`` each turns to 070 exactly where it makes one lattice with the other (left
+#   and right halves of the formation's columns, neighbours one spacing apart), then they fly
+#   on as one formation (the formation scenario's track from then on).
+def formation_crossing(spacing_m: float = 2_000.0, crossing_deg: float = 40.0, targets: int = 30) -> Scenario:
+    """The formation scenario's aircraft as two groups crossing at the centre at half time."""
+    base = SCENARIOS["formation"]
+    assert base.duration_s is not None
+    half = _FORMATION_SPEED_MPS * base.duration_s / 2.0
+    groups = []
+    for k, heading in enumerate(
+        (
+            _FORMATION_HEADING_DEG - crossing_deg / 2.0,
+            _FORMATION_HEADING_DEG + crossing_deg / 2.0,
+        )
+    ):
+        h = math.radians(heading)
+        groups.append(
+            FormationSpec(
+                spacing_m=spacing_m,
+                heading_deg=heading,
+                speed_mps=_FORMATION_SPEED_MPS,
+                start_east_m=-half * math.sin(h),
+                start_north_m=-half * math.cos(h),
+                count=targets // 2 if k == 0 else targets - targets // 2,
+            )
+        )
+    return replace(
+        base,
+        name="formation-crossing",
+        description=f"the formation as two groups crossing at {crossing_deg:.0f} deg",
+        targets=targets,
+        formation=None,
+        formations=tuple(groups),
+    )
+
+
+def formation_merging(
+    spacing_m: float = 2_000.0, converge_deg: float = 15.0, merge_at_s: float = 240.0, targets: int = 30
+) -> Scenario:
+    """The formation scenario's aircraft as two groups converging into one lattice."""
+    base = SCENARIOS["formation"]
+    assert base.duration_s is not None
+    cols = math.ceil(math.sqrt(targets))
+    cols += cols % 2  # an even count: half the columns each
+    h = math.radians(_FORMATION_HEADING_DEG)
+    ahead, right = (math.sin(h), math.cos(h)), (math.cos(h), -math.sin(h))
+    # the formation scenario's centre at merge_at_s
+    along = _FORMATION_SPEED_MPS * (merge_at_s - base.duration_s / 2.0)
+    groups = []
+    for k, side in enumerate((-1.0, 1.0)):
+        across = side * cols / 4.0 * spacing_m  # the centre of this half of the columns
+        at_merge = (along * ahead[0] + across * right[0], along * ahead[1] + across * right[1])
+        heading = _FORMATION_HEADING_DEG - side * converge_deg  # the left one heads right of 070
+        hg = math.radians(heading)
+        travel = _FORMATION_SPEED_MPS * merge_at_s
+        groups.append(
+            FormationSpec(
+                spacing_m=spacing_m,
+                heading_deg=heading,
+                speed_mps=_FORMATION_SPEED_MPS,
+                start_east_m=at_merge[0] - travel * math.sin(hg),
+                start_north_m=at_merge[1] - travel * math.cos(hg),
+                count=targets // 2 if k == 0 else targets - targets // 2,
+                columns=cols // 2,
+                lattice_heading_deg=_FORMATION_HEADING_DEG,
+                turn_at_s=merge_at_s,
+                turn_heading_deg=_FORMATION_HEADING_DEG,
+            )
+        )
+    return replace(
+        base,
+        name="formation-merging",
+        description=f"the formation as two groups converging at {converge_deg:.0f} deg, one lattice "
+        f"from {merge_at_s:.0f} s",
+        targets=targets,
+        formation=None,
+        formations=tuple(groups),
+    )
+
+
 #: The scenario of ``topofusion demo`` (runs until stopped).
 DEMO = replace(SCENARIOS["two-radar"], name="demo", duration_s=None)
 

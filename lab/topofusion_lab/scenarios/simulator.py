@@ -11,13 +11,18 @@ plus its ``time_bias_s``).
 Uniform clutter is added per sector.  The scan is reported in ``sectors`` batches.
 
 A scenario with a ``formation`` (:class:`FormationSpec`) starts its targets together instead:
-on a jittered lattice around one point, all with one heading and speed (see there).
+on a jittered lattice around one point, all with one heading and speed (see there); one with
+``formations`` starts them as several such groups (crossing or merging formations), each of
+which may turn once.
+
+``generate(..., observe=f)`` calls ``f(t, ids, pos, vel)`` with every target's true state at
+the start of each simulation step (evaluation only: the truth of a run).
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
@@ -142,10 +147,30 @@ class FormationSpec:
     speed_mps: float = 230.0
     start_east_m: float = 0.0
     start_north_m: float = 0.0
+    #: Of ``Scenario.formations`` (several groups): the aircraft of this group (``None``: all of
+    #: ``Scenario.targets``, the one formation of ``Scenario.formation``).
+    count: int | None = None
+    #: Aircraft abreast (``None``: ``ceil(sqrt(N))``).
+    columns: int | None = None
+    #: The lattice's orientation (its rows across this heading; ``None``: ``heading_deg``).
+    lattice_heading_deg: float | None = None
+    #: At this data time (s since the start) the whole group turns, at once, to
+    #: ``turn_heading_deg`` at ``turn_speed_mps`` (``None``: the heading and speed it has).
+    turn_at_s: float | None = None
+    turn_heading_deg: float | None = None
+    turn_speed_mps: float | None = None
 
     def __post_init__(self) -> None:
         if not (self.spacing_m > 0 and 0 <= self.jitter < 0.5):
             raise ValueError(f"formation: spacing_m must be > 0 and jitter in [0, 0.5), not {self}")
+        if (self.count is not None and self.count < 0) or (self.columns is not None and self.columns < 1):
+            raise ValueError(f"formation: count must be >= 0 and columns >= 1, not {self}")
+
+    def turn_velocity(self) -> tuple[float, float]:
+        """East and north velocity after the turn (m/s)."""
+        h = np.radians(self.heading_deg if self.turn_heading_deg is None else self.turn_heading_deg)
+        v = self.speed_mps if self.turn_speed_mps is None else self.turn_speed_mps
+        return float(v * np.sin(h)), float(v * np.cos(h))
 
 
 @dataclass(frozen=True)
@@ -183,10 +208,20 @@ class Scenario:
     respawn: Literal["edge", "uniform"] = "edge"
     #: The targets start as one formation (``None``: each where and how ``_Targets`` draws it).
     formation: FormationSpec | None = None
+    #: ... or as several groups, each a formation of its ``count`` aircraft (the counts add up
+    #: to ``targets``; ``formation`` then ``None``): crossing or merging formations.
+    formations: tuple[FormationSpec, ...] = ()
 
     def __post_init__(self) -> None:
         if self.respawn not in ("edge", "uniform"):
             raise ValueError(f"respawn must be 'edge' or 'uniform', not {self.respawn!r}")
+        if self.formations:
+            counts = [f.count for f in self.formations]
+            if self.formation is not None or None in counts or sum(c or 0 for c in counts) != self.targets:
+                raise ValueError(
+                    "formations: each group needs its count, the counts must add up to targets, "
+                    "and formation must be None"
+                )
 
 
 @dataclass(frozen=True)
@@ -208,17 +243,28 @@ class _Targets:
         self.pos = np.zeros((n, 3))
         self.vel = np.zeros((n, 3))
         self.ids = np.empty(n, dtype=object)
-        if sc.formation is None:
+        #: Data time of the targets' state (s since the start), and each target's turn (time,
+        #: inf: none; east/north velocity after it): groups of ``Scenario.formations`` only.
+        self.t = 0.0
+        self.turn_at = np.full(n, np.inf)
+        self.turn_vel = np.zeros((n, 2))
+        if sc.formations:
+            first = 0
+            for f in sc.formations:
+                assert f.count is not None
+                self._spawn_formation(f, np.arange(first, first + f.count))
+                first += f.count
+        elif sc.formation is None:
             self._spawn(np.arange(n), inside=True)
         else:
-            self._spawn_formation(sc.formation)
+            self._spawn_formation(sc.formation, np.arange(n))
 
-    def _spawn_formation(self, f: FormationSpec) -> None:
-        """Every target in formation ``f`` (see :class:`FormationSpec`)."""
-        sc, rng, n = self.sc, self.rng, self.sc.targets
+    def _spawn_formation(self, f: FormationSpec, idx: np.ndarray) -> None:
+        """The targets ``idx`` in formation ``f`` (see :class:`FormationSpec`)."""
+        sc, rng, n = self.sc, self.rng, len(idx)
         if n == 0:
             return
-        cols = int(np.ceil(np.sqrt(n)))
+        cols = int(np.ceil(np.sqrt(n))) if f.columns is None else f.columns
         rows = int(np.ceil(n / cols))
         k = np.arange(n)
         across = (k % cols - (cols - 1) / 2.0) * f.spacing_m
@@ -227,11 +273,21 @@ class _Targets:
         across = across + rng.uniform(-f.jitter, f.jitter, n) * f.spacing_m
         h = np.radians(f.heading_deg)
         ahead, right = np.array([np.sin(h), np.cos(h)]), np.array([np.cos(h), -np.sin(h)])
-        xy = np.array([f.start_east_m, f.start_north_m]) + along[:, None] * ahead + across[:, None] * right
-        self.pos[:, :2] = xy
-        self.pos[:, 2] = rng.uniform(*sc.altitude_m, n)
-        self.vel[:] = [f.speed_mps * ahead[0], f.speed_mps * ahead[1], 0.0]
-        for j in range(n):
+        if f.lattice_heading_deg is None:
+            l_ahead, l_right = ahead, right
+        else:
+            hl = np.radians(f.lattice_heading_deg)
+            l_ahead, l_right = np.array([np.sin(hl), np.cos(hl)]), np.array([np.cos(hl), -np.sin(hl)])
+        xy = (
+            np.array([f.start_east_m, f.start_north_m]) + along[:, None] * l_ahead + across[:, None] * l_right
+        )
+        self.pos[idx, :2] = xy
+        self.pos[idx, 2] = rng.uniform(*sc.altitude_m, n)
+        self.vel[idx] = [f.speed_mps * ahead[0], f.speed_mps * ahead[1], 0.0]
+        if f.turn_at_s is not None:
+            self.turn_at[idx] = f.turn_at_s
+            self.turn_vel[idx] = f.turn_velocity()
+        for j in idx:
             self.count += 1
             self.ids[j] = f"T{self.count}"
 
@@ -255,6 +311,7 @@ class _Targets:
         self.pos[idx, :2] = xy
         self.pos[idx, 2] = rng.uniform(*sc.altitude_m, k)
         self.vel[idx] = np.stack([speed * np.sin(heading), speed * np.cos(heading), np.zeros(k)], axis=1)
+        self.turn_at[idx] = np.inf  # a new target flies straight
         for j in idx:
             self.count += 1
             self.ids[j] = f"T{self.count}"
@@ -282,13 +339,29 @@ class _Targets:
         return np.stack([x, y], axis=1), heading, speed
 
     def advance(self, dt: float) -> None:
+        turning = np.flatnonzero(self.turn_at <= self.t + dt)
+        if turning.size:  # fly to the turn at the old velocity, then on at the new one
+            before = np.clip(self.turn_at[turning] - self.t, 0.0, dt)[:, None]
+            old = self.vel[turning].copy()
+            self.vel[turning, :2] = self.turn_vel[turning]
+            self.pos[turning] += (old - self.vel[turning]) * before
+            self.turn_at[turning] = np.inf
         self.pos += self.vel * dt
+        self.t += dt
         out = np.any(np.abs(self.pos[:, :2]) > self.sc.half_width_m, axis=1)
         self._spawn(np.flatnonzero(out), inside=False)
 
 
-def generate(sc: Scenario, seed: int = 0) -> Iterator[SimMessage]:
-    """Site messages, then plot batches in data-time order (deterministic for ``seed``)."""
+#: ``observe(t, ids, pos, vel)`` of :func:`generate`: data seconds since the start, each target's
+#: name, east-north-up position and velocity (m, m/s; copies) at ``t``.
+Observer = Callable[[float, np.ndarray, np.ndarray, np.ndarray], None]
+
+
+def generate(sc: Scenario, seed: int = 0, observe: Observer | None = None) -> Iterator[SimMessage]:
+    """Site messages, then plot batches in data-time order (deterministic for ``seed``).
+
+    ``observe``: called with the targets' true state at the start of every step, before the
+    step's batches are yielded (evaluation only; it changes nothing of the stream)."""
     rng = np.random.default_rng(seed)
     targets = _Targets(sc, rng)
     center = geodetic_to_ecef(sc.center_lat_deg, sc.center_lon_deg, 0.0)
@@ -302,6 +375,8 @@ def generate(sc: Scenario, seed: int = 0) -> Iterator[SimMessage]:
     t = 0.0
     while sc.duration_s is None or t < sc.duration_s:
         t_next = t + step
+        if observe is not None:
+            observe(t, targets.ids.copy(), targets.pos.copy(), targets.vel.copy())
         batches = []
         for r in sc.radars:
             sector_len = r.scan_period_s / r.sectors
@@ -376,6 +451,15 @@ def wire_messages(sc: Scenario, seed: int, prefix: str = "fusion") -> Iterator[t
         yield keys.input(m.kind, m.radar_id), json.dumps(m.body).encode()
 
 
+def in_coverage(r: RadarSpec, range_m: np.ndarray, altitude_m: np.ndarray) -> np.ndarray:
+    """Whether targets at ``range_m`` from radar ``r`` at ``altitude_m`` are within its reach:
+    its maximum range and the radio horizon (4/3 earth: ``d_km = 4.12 (sqrt(h_radar_m) +
+    sqrt(h_target_m))``); such a target is detected with probability ``r.pd`` a scan."""
+    h_target = np.maximum(altitude_m, 0.0)
+    horizon_m = 4120.0 * (np.sqrt(max(r.altitude_m, 0.0)) + np.sqrt(h_target))
+    return np.asarray((range_m <= r.max_range_m) & (range_m <= horizon_m))
+
+
 def _sector_batch(
     r: RadarSpec,
     site: Site,
@@ -400,10 +484,7 @@ def _sector_batch(
     ecef = pos_det @ rot.T + center
     rng_true, az_true, el_true = site.ecef_to_polar(ecef)
     in_sector = (az_true >= az_lo) & (az_true < az_hi)
-    # radio horizon, 4/3 earth: d_km = 4.12 (sqrt(h_radar_m) + sqrt(h_target_m))
-    h_target = np.maximum(targets.pos[:, 2], 0.0)
-    horizon_m = 4120.0 * (np.sqrt(max(r.altitude_m, 0.0)) + np.sqrt(h_target))
-    visible = (rng_true <= r.max_range_m) & (rng_true <= horizon_m)
+    visible = in_coverage(r, rng_true, targets.pos[:, 2])
     seen = in_sector & visible & (rng.random(len(az_true)) < r.pd)
     idx = np.flatnonzero(seen)
     n = len(idx)
