@@ -161,7 +161,11 @@ def _with_quality(table: TrackTable, track: str, q: float) -> TrackTable:
     return dataclasses.replace(table, quality=quality)
 
 
-def _first_confirmed(quality: float, min_quality: float = PromptParams().min_quality) -> int:
+#: The caution rule on (off by default, ``PromptParams.min_quality`` 0: docs/correlation.md).
+MIN_QUALITY = 0.8
+
+
+def _first_confirmed(quality: float, min_quality: float = MIN_QUALITY) -> int:
     tables, xa, xb = _late_stream()
     a, b = make_sites()
     prm = CorrelationParams(prompt=PromptParams(min_quality=min_quality))
@@ -182,6 +186,7 @@ def test_an_ambiguous_track_is_not_confirmed_promptly_but_by_its_evidence() -> N
     low = _first_confirmed(0.5)
     assert LATE_AT < low <= LATE_AT + 4  # waits for its looks and M of N, then confirmed
     assert _first_confirmed(0.5, min_quality=0.0) == LATE_AT  # (the rule off)
+    assert PromptParams().min_quality == 0.0  # off by default
 
 
 def test_an_ambiguous_fresh_track_is_not_admitted_between_updates() -> None:
@@ -189,7 +194,9 @@ def test_an_ambiguous_fresh_track_is_not_admitted_between_updates() -> None:
     tables, xa, xb = _late_stream()
     for quality, admitted in ((np.nan, True), (0.5, False)):
         a, b = make_sites()
-        corr = PairCorrelator("svd-topology", a, b)
+        corr = PairCorrelator(
+            "svd-topology", a, b, CorrelationParams(prompt=PromptParams(min_quality=MIN_QUALITY))
+        )
         for ta, tb, t in tables[:LATE_AT]:
             corr.update(ta, tb, t)
         ta, tb, t = tables[LATE_AT]
