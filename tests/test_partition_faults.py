@@ -76,9 +76,13 @@ def _latest_pair_time(port: int, a: str, b: str) -> float:
     return max((s["time_s"] for s in sets), default=0.0)
 
 
-def test_a_killed_worker_leaves_the_rest_going_and_a_restarted_one_rebuilds(
-    router: str, client: zenoh.Session
-) -> None:
+Messages = list[tuple[str, bytes]]
+
+
+def _stream_in_thirds() -> tuple[Messages, list[str], list[str], list[str], tuple[str, str], list[Messages]]:
+    """A 12-radar stream: its site messages, the radars, those worker 1 of 2 owns and the
+    others, a radar pair worker 1 owns across the two partitions, and the plot batches in
+    thirds."""
     stream = scenario_messages("national", duration_s=150.0, seed=3, targets=150)
     sites = [(k, p) for k, p in stream if k.endswith("/site")]
     batches = [(k, p) for k, p in stream if k.endswith("/plots")]
@@ -86,11 +90,19 @@ def test_a_killed_worker_leaves_the_rest_going_and_a_restarted_one_rebuilds(
     one, two = Partition(1, 2), Partition(2, 2)
     mine = [r for r in radars if one.owns(r)]
     theirs = [r for r in radars if two.owns(r)]
-    # a pair worker 1 owns whose radars it tracks itself, and one it owns across partitions
-    inside = next((a, b) for a, b in itertools.combinations(mine, 2) if one.owns_pair(a, b))
     across = next((a, b) for a, b in itertools.product(mine, theirs) if one.owns_pair(a, b))
-    thirds = [batches[: len(batches) // 3], batches[len(batches) // 3 : 2 * len(batches) // 3]]
-    thirds.append(batches[2 * len(batches) // 3 :])
+    n = len(batches)
+    thirds = [batches[: n // 3], batches[n // 3 : 2 * n // 3], batches[2 * n // 3 :]]
+    return sites, radars, mine, theirs, across, thirds
+
+
+def test_a_killed_worker_leaves_the_rest_going_and_a_restarted_one_rebuilds(
+    router: str, client: zenoh.Session
+) -> None:
+    sites, radars, mine, theirs, across, thirds = _stream_in_thirds()
+    one = Partition(1, 2)
+    # a pair worker 1 owns whose radars it tracks itself (``across``: one across partitions)
+    inside = next((a, b) for a, b in itertools.combinations(mine, 2) if one.owns_pair(a, b))
     p1, p2 = free_port(), free_port()
 
     def put_all(messages: list[tuple[str, bytes]]) -> None:
@@ -157,16 +169,7 @@ def test_a_worker_stopped_for_30_s_comes_back_without_disordering_the_picture(
     released out of order (documented: only lateness may grow).  The picture: worker 1's pairs
     across the two partitions move on again after the resume, and no pair names a track its
     radar's table does not hold."""
-    stream = scenario_messages("national", duration_s=150.0, seed=3, targets=150)
-    sites = [(k, p) for k, p in stream if k.endswith("/site")]
-    batches = [(k, p) for k, p in stream if k.endswith("/plots")]
-    radars = sorted(json.loads(p)["radar_id"] for _, p in sites)
-    one, two = Partition(1, 2), Partition(2, 2)
-    mine = [r for r in radars if one.owns(r)]
-    theirs = [r for r in radars if two.owns(r)]
-    across = next((a, b) for a, b in itertools.product(mine, theirs) if one.owns_pair(a, b))
-    thirds = [batches[: len(batches) // 3], batches[len(batches) // 3 : 2 * len(batches) // 3]]
-    thirds.append(batches[2 * len(batches) // 3 :])
+    sites, radars, mine, _, across, thirds = _stream_in_thirds()
     p1, p2 = free_port(), free_port()
     received: dict[str, list[float]] = {}
 
