@@ -11,7 +11,10 @@ DEMO_STAMP := $(VENV)/.installed-demo-stamp
 TEST_STAMP := $(VENV)/.installed-test-stamp
 PYPROJECTS := pyproject.toml lab/pyproject.toml
 LINTED := service tests bench lab
-PYTEST_ARGS ?=
+# Two test processes (pytest-xdist): the end-to-end tests mostly wait, so two halve the wall
+# time on a 2-core machine; every test uses its own free ports and processes.  `-n 0` runs
+# them in one process.
+PYTEST_ARGS ?= -n 2
 
 .PHONY: install install-demo demo run test lint imports typecheck unit bench evaluate schemas clean
 
