@@ -526,6 +526,18 @@ class PairCorrelator:
             {"registered": True, "registration_cov_a": extra_a, "registration_cov_b": extra_b},
         )
 
+    def _quality_ok(self, dec: Decisions, a: PredictedTracks, b: PredictedTracks) -> np.ndarray:
+        """Per candidate of ``dec``: are both tracks' qualities at least ``prompt.min_quality``
+        (:func:`.prompt.quality_clear`; all True with the rule off or no quality given)?"""
+        m = self.params.prompt.min_quality
+        if m <= 0.0 or (a.quality is None and b.quality is None):
+            return np.ones(len(dec), dtype=bool)
+        return quality_clear(
+            None if a.quality is None else a.quality[dec.index_a],
+            None if b.quality is None else b.quality[dec.index_b],
+            m,
+        )
+
     def _clear(
         self,
         dec: Decisions,
@@ -542,12 +554,7 @@ class PairCorrelator:
         if not prm.enabled or self.method != "svd-topology" or len(dec) == 0:
             return np.zeros(len(dec), dtype=bool)
         clear = clear_of_rivals(dec.index_a, dec.index_b, dec.cost, dec.accepted, prm.clear_margin)
-        if prm.min_quality > 0.0 and (a.quality is not None or b.quality is not None):
-            clear &= quality_clear(
-                None if a.quality is None else a.quality[dec.index_a],
-                None if b.quality is None else b.quality[dec.index_b],
-                prm.min_quality,
-            )
+        clear &= self._quality_ok(dec, a, b)
         rows = np.flatnonzero(clear)
         if rows.size:
             ua, inv_a = np.unique(dec.index_a[rows], return_inverse=True)
@@ -625,13 +632,7 @@ class PairCorrelator:
         # their usual cadence bring (hurrying them cost 11 % of the stage's CPU on the national
         # stream and gained nothing)
         unclear = (dec.accepted | np.isin(dec.reason, NO_DECISION_REASONS)) & fresh & ~clear
-        if unclear.any() and prm.prompt.min_quality > 0.0:
-            unclear &= quality_clear(
-                None if a.quality is None else a.quality[dec.index_a],
-                None if b.quality is None else b.quality[dec.index_b],
-                prm.prompt.min_quality,
-            )
-        self.settled &= not unclear.any()
+        self.settled &= not (unclear & self._quality_ok(dec, a, b)).any()
         ev = self.evidence
         if ev is not None and clear.any() and len(ev):
             e = find(ev.keys, pair_keys(a.track_id[dec.index_a], b.track_id[dec.index_b]))

@@ -67,25 +67,26 @@ def duplicate_losers(
     x: FloatArray,
     P: FloatArray,
     t: FloatArray,
-    look_hits: NDArray[np.int64],
-    look_n: NDArray[np.int64],
+    hist: NDArray[np.int64],
+    looks: NDArray[np.int64],
     plots: NDArray[np.int64],
     time_s: float,
     process_noise_psd: float,
     chi2: float,
-    looks: int,
+    window_looks: int,
 ) -> IntArray:
     """Rows to drop among the candidate pairs ``(a, b)`` (rows of the track arrays, which
     follow the tracks' birth order), in ascending order.
 
-    ``look_hits``: each track's looks as bits, newest in bit 0 (1 = a plot); ``look_n``: the
-    looks counted.  A track that loses to one twin is dropped even if it beats another.
+    ``hist``: each track's looks as bits, newest in bit 0 (1 = a plot); ``looks``: the looks
+    counted; ``window_looks``: ``FormationParams.duplicate_looks``.  A track that loses to one
+    twin is dropped even if it beats another.
     """
     if a.shape[0] == 0:
         return np.empty(0, dtype=np.intp)
-    window = (np.int64(1) << looks) - 1
-    enough = (look_n[a] >= looks) & (look_n[b] >= looks)
-    apart = (look_hits[a] & look_hits[b] & window) == 0
+    window = (np.int64(1) << window_looks) - 1
+    enough = (looks[a] >= window_looks) & (looks[b] >= window_looks)
+    apart = (hist[a] & hist[b] & window) == 0
     cand = np.flatnonzero(enough & apart)
     if cand.shape[0] == 0:
         return np.empty(0, dtype=np.intp)

@@ -82,16 +82,14 @@ class _Tracks:
     x: FloatArray  # (n, 6) ENU state
     P: FloatArray  # (n, 6, 6)
     t: FloatArray  # time of the state
-    hist: NDArray[np.int64]  # M-of-N look history, newest look in bit 0
-    looks: NDArray[np.int64]  # looks in the history (at most confirm_n)
+    hist: NDArray[np.int64]  # look history, 1 = a plot, newest look in bit 0 (``_LOOK_BITS`` looks)
+    looks: NDArray[np.int64]  # looks in the history (at most ``_LOOK_BITS``; M-of-N reads confirm_n)
     miss_run: NDArray[np.int64]  # expected misses in a row
     confirmed: NDArray[np.bool_]
     nplots: NDArray[np.int64]
     ids: NDArray[np.str_]  # "{prefix}-{uid}", made once at birth
     cov_ecef: FloatArray  # (n, 6, 6) ``P`` in ECEF, made when ``P`` is (see ``TrackManager.tracks``)
     quality: FloatArray  # ``Track.quality``: average clarity of its associations, NaN before one
-    look_hits: NDArray[np.int64]  # the last ``_LOOK_BITS`` looks, 1 = a plot, newest in bit 0
-    look_n: NDArray[np.int64]  # looks in ``look_hits`` (at most ``_LOOK_BITS``)
 
     def __len__(self) -> int:
         return int(self.uid.shape[0])
@@ -102,7 +100,7 @@ class _Tracks:
         f = np.empty(0)
         m = np.empty((0, 6, 6))
         b, u = np.empty(0, dtype=bool), np.empty(0, dtype=str)
-        return _Tracks(i, np.empty((0, 6)), m, f, i, i, i, b, i, u, m, f, i, i)
+        return _Tracks(i, np.empty((0, 6)), m, f, i, i, i, b, i, u, m, f)
 
     def take(self, keep: NDArray[np.bool_]) -> _Tracks:
         return _Tracks(*(getattr(self, f.name)[keep] for f in fields(self)))
@@ -111,8 +109,8 @@ class _Tracks:
         return _Tracks(*(np.concatenate([getattr(self, f.name), getattr(new, f.name)]) for f in fields(self)))
 
 
-#: Looks kept in ``_Tracks.look_hits`` (bits of an int64 below the sign bit): the longest
-#: ``FormationParams.duplicate_looks`` can be.
+#: Looks kept in ``_Tracks.hist`` (bits of an int64 below the sign bit): the M-of-N reads the
+#: last ``confirm_n`` of them, the duplicate rule the last ``FormationParams.duplicate_looks``.
 _LOOK_BITS = 62
 _LOOK_MASK = (1 << _LOOK_BITS) - 1
 
@@ -462,8 +460,8 @@ class TrackManager(Tracker):
             tracks.x,
             tracks.P,
             tracks.t,
-            tracks.look_hits,
-            tracks.look_n,
+            tracks.hist,
+            tracks.looks,
             tracks.nplots,
             time_s,
             self.params.filter.process_noise_psd,
@@ -498,23 +496,13 @@ class TrackManager(Tracker):
         mask = (1 << n_bits) - 1
         expected = self._expected(tracks, azimuth_deg, time_s) & ~hit
         looked = hit | expected
-        hist = np.where(looked, ((tracks.hist << 1) | hit.astype(np.int64)) & mask, tracks.hist)
-        looks = np.where(looked, np.minimum(tracks.looks + 1, n_bits), tracks.looks)
+        hist = np.where(looked, ((tracks.hist << 1) | hit.astype(np.int64)) & _LOOK_MASK, tracks.hist)
+        looks = np.where(looked, np.minimum(tracks.looks + 1, _LOOK_BITS), tracks.looks)
         miss_run = np.where(hit, 0, tracks.miss_run + expected)
-        hits = popcount(hist)
+        hits = popcount(hist & mask)  # the M-of-N's last ``confirm_n`` looks
         confirmed = tracks.confirmed | (hits >= mp.confirm_m)
-        look_hits = np.where(looked, ((tracks.look_hits << 1) | hit) & _LOOK_MASK, tracks.look_hits)
-        look_n = np.where(looked, np.minimum(tracks.look_n + 1, _LOOK_BITS), tracks.look_n)
-        tracks = replace(
-            tracks,
-            hist=hist,
-            looks=looks,
-            miss_run=miss_run,
-            confirmed=confirmed,
-            look_hits=look_hits,
-            look_n=look_n,
-        )
-        misses = looks - hits
+        tracks = replace(tracks, hist=hist, looks=looks, miss_run=miss_run, confirmed=confirmed)
+        misses = np.minimum(looks, n_bits) - hits
         dead = (~confirmed & (misses > mp.confirm_n - mp.confirm_m)) | (
             confirmed & (miss_run >= mp.confirmed_max_misses)
         )
@@ -561,8 +549,6 @@ class TrackManager(Tracker):
             np.char.add(f"{self.id_prefix}-", (uid + self._id_offset).astype(str)),
             big @ births.P[ok] @ big.T,
             np.full(k, np.nan),
-            hist,  # the birth's plots are its first looks, as in ``hist``
-            first,
         )
         # Plots of accepted groups leave the window; label -> uid of the new track.
         label_uid = np.full(groups.count, -1, dtype=np.int64)
