@@ -16,9 +16,15 @@ Per run: x real time (data seconds over wall seconds), CPU seconds of each worke
 tree (worker and correlation process) and of this process (router and publisher), peak RSS of
 every worker process, and accuracy from worker 1's HTTP port (the whole network): share of
 confirmed pairs whose two tracks follow the same aircraft (the simulator's ``truth_id``,
-evaluation only) and pair completeness.  ``--traffic`` also subscribes to ``{prefix}/**`` and
-reports messages and bytes per data second by key kind (the subscriber makes every output
-be sent, so those runs are slower: their speed is not comparable).
+evaluation only) and pair completeness; and the system tracks every worker serves (worker 1
+draws them), scored as the system-track study scores them: purity, duplicated aircraft and
+coverage (``topofusion_lab.evaluation.system``).  Then per worker: CPU seconds per data second
+(process tree) and peak RSS, and the ratio of its CPU to one worker's (the first count of
+``--workers``) on the same stream.  ``--traffic`` also subscribes to ``{prefix}/**`` and
+reports messages and bytes per data second by key kind, and each worker's payload bytes sent
+and received per data second (by who publishes and who subscribes to each key kind; the
+subscriber makes every output be sent, so those runs are slower: their speed is not
+comparable).
 
 Run: .venv/bin/python bench/bench_partition.py [--duration 300] [--seed 1] [--workers 1,2]
      [--repeat 1] [--one-process] [--traffic] [--cache FILE] [--compare] [--logs DIR]
@@ -45,9 +51,11 @@ from typing import Any
 import httpx
 import zenoh
 
+from service.pipeline.partition import Partition, pair_name
 from service.transport.session import ZenohOptions, open_session
 from service.wire.keys import parse_key
 from topofusion_lab.demo_workers import descendants
+from topofusion_lab.evaluation.system import score
 from topofusion_lab.scenarios.catalog import get_scenario
 from topofusion_lab.scenarios.simulator import wire_messages
 
@@ -174,8 +182,9 @@ def make_stream(duration_s: float, seed: int, cache: Path | None) -> list[tuple[
     return stream
 
 
-def accuracy(w: Worker, radars: list[str]) -> tuple[int, int, int, int]:
-    """(correct, false, found, common) from the whole network's pairs and tracks."""
+def labels(w: Worker, radars: list[str]) -> tuple[dict[tuple[str, str], str | None], dict[str, set[str]]]:
+    """Each radar track's aircraft (``truth_id``), and each radar's aircraft with a confirmed
+    track, from the whole network's tracks."""
     truth: dict[tuple[str, str], str | None] = {}
     confirmed: dict[str, set[str]] = {}
     for rid in radars:
@@ -185,6 +194,22 @@ def accuracy(w: Worker, radars: list[str]) -> tuple[int, int, int, int]:
             truth[(rid, t["track_id"])] = t["truth_id"]
             if t["status"] == "confirmed" and t["truth_id"] is not None:
                 confirmed[rid].add(t["truth_id"])
+    return truth, confirmed
+
+
+def system_accuracy(workers: list[Worker], radars: list[str]) -> tuple[int, float, float, float, bool]:
+    """(confirmed system tracks, purity, duplicated aircraft, coverage) of worker 1's system
+    tracks, and whether every other worker serves the same."""
+    truth, confirmed = labels(workers[0], radars)
+    bodies = [w.get("/system-tracks", status="all") for w in workers]
+    seen = set().union(*confirmed.values())
+    s = score(bodies[0], truth, seen, {}, lambda aircraft, time_s: None)
+    return s.tracks, s.purity, s.duplicates, s.coverage, all(b == bodies[0] for b in bodies[1:])
+
+
+def accuracy(w: Worker, radars: list[str]) -> tuple[int, int, int, int]:
+    """(correct, false, found, common) from the whole network's pairs and tracks."""
+    truth, confirmed = labels(w, radars)
     correct = false = found = common = 0
     for ps in w.get("/pairs", status="confirmed"):
         a, b = ps["radar_a"], ps["radar_b"]
@@ -218,6 +243,35 @@ class Result:
     pair_sets: int
     traffic: dict[str, list[float]]
     sequences: dict[str, list[bytes]]
+    data_s: float = 0.0
+    #: Confirmed system tracks, purity, duplicated aircraft, coverage, served alike by all.
+    system: tuple[int, float, float, float, bool] = (0, 0.0, 0.0, 0.0, False)
+    #: Payload bytes each worker sent and received per data second (``--traffic``).
+    sent: list[float] = field(default_factory=list)
+    received: list[float] = field(default_factory=list)
+
+
+def endpoints(kind: str, ids: tuple[str, ...], n: int) -> tuple[int | None, list[int]]:
+    """Who publishes a key of ``kind`` (None: an input or output of no worker's) and which
+    workers take it (by their subscriptions: every plot goes to every worker)."""
+    part = Partition(1, n)
+    everyone = list(range(1, n + 1))
+    if kind in ("plots", "site"):
+        return None, everyone
+    if kind in ("track_states", "tracks"):
+        k = part.owner(ids[0])
+        return k, [j for j in everyone if j != k] if kind == "track_states" else []
+    if kind in ("registration", "links", "pairs"):
+        k = part.owner(pair_name(ids[0], ids[1]))
+        return k, [1] if kind != "pairs" and k != 1 else []
+    if kind in ("worker_clock", "worker_progress", "worker_status"):
+        k = int(ids[0])
+        return k, [j for j in everyone if j != k]
+    if kind == "biases":
+        return 1, everyone[1:]
+    if kind == "system_tracks":
+        return 1, []
+    return None, []
 
 
 def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argparse.Namespace) -> Result:
@@ -228,6 +282,7 @@ def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argpar
     last_pairs = [0.0, 0]
     lock = threading.Lock()
     traffic: dict[str, list[float]] = defaultdict(lambda: [0, 0])
+    sent, received = [0.0] * (n + 1), [0.0] * (n + 1)
 
     sequences: dict[str, list[bytes]] = defaultdict(list)
 
@@ -238,11 +293,17 @@ def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argpar
             sequences[str(sample.key_expr)].append(sample.payload.to_bytes())
 
     def on_any(sample: zenoh.Sample) -> None:
-        kind, _ = parse_key(str(sample.key_expr), PREFIX)
+        kind, ids = parse_key(str(sample.key_expr), PREFIX)
+        size = len(sample.payload.to_bytes())
+        by, to = endpoints(kind, ids, n)
         with lock:
             t = traffic[kind]
             t[0] += 1
-            t[1] += len(sample.payload.to_bytes())
+            t[1] += size
+            if by is not None:
+                sent[by] += size
+            for k in to:
+                received[k] += size
 
     subs = [client.declare_subscriber(f"{PREFIX}/pairs/**", on_pairs)]
     if args.traffic:
@@ -308,6 +369,7 @@ def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argpar
         cpu_bench = time.process_time() - bench_cpu0
         peaks = [[peak_mb(p) for p in tree(w.proc.pid)] for w in workers]
         correct, false, found, common = accuracy(workers[0], radars)
+        system = system_accuracy(workers, radars)
         pair_sets = len(workers[0].get("/pairs", status="all"))
         print(f"#   status: {workers[0].get('/status')['pairs_confirmed']} confirmed pairs", file=sys.stderr)
     finally:
@@ -330,10 +392,15 @@ def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argpar
         pair_sets,
         {k: [v[0] / data_s, v[1] / data_s] for k, v in traffic.items()},
         dict(sequences),
+        data_s,
+        system,
+        [b / data_s for b in sent[1:]] if args.traffic else [],
+        [b / data_s for b in received[1:]] if args.traffic else [],
     )
 
 
-def report(r: Result) -> None:
+def report(r: Result, one: Result | None = None) -> None:
+    """One run's figures (``one``: the run of the first worker count, for the CPU ratios)."""
     judged = max(r.correct + r.false, 1)
     peaks = "; ".join("+".join(f"{p:.0f}" for p in w) for w in r.peaks)
     print(
@@ -346,6 +413,26 @@ def report(r: Result) -> None:
         f"({100 * r.correct / judged:.2f}%), false {r.false}; completeness {r.found}/{r.common} "
         f"({100 * r.found / max(r.common, 1):.1f}%)"
     )
+    tracks, purity, duplicates, coverage, same = r.system
+    print(
+        f"    system tracks (worker 1's): {tracks} confirmed, purity {100 * purity:.2f}%, duplicated "
+        f"aircraft {100 * duplicates:.2f}%, coverage {100 * coverage:.2f}%; "
+        f"{'every worker serves the same' if same else 'NOT the same on every worker'}"
+    )
+    base = sum(one.cpu_workers) if one is not None else None
+    for k, (cpu, peak) in enumerate(zip(r.cpu_workers, r.peaks, strict=True), start=1):
+        ratio = f", {cpu / base:.2f}x one worker's" if base else ""
+        io = (
+            f"; payload sent {r.sent[k - 1] / 1e3:.1f} kB/s, received {r.received[k - 1] / 1e3:.1f} kB/s"
+            if r.sent
+            else ""
+        )
+        print(
+            f"    worker {k}/{r.workers}: CPU {cpu / r.data_s:.3f} s per data s{ratio}; peak RSS "
+            f"{'+'.join(f'{p:.0f}' for p in peak)} MB{io}"
+        )
+    if base:
+        print(f"    total CPU {sum(r.cpu_workers) / base:.2f}x one worker's")
     if r.traffic:
         print("    Zenoh traffic per data second, by key kind (messages, kB):")
         for kind, (msgs, nbytes) in sorted(r.traffic.items(), key=lambda kv: -kv[1][1]):
@@ -381,7 +468,7 @@ def main() -> None:
             print(f"# run {rep + 1}/{args.repeat}: {n} worker(s)", file=sys.stderr, flush=True)
             r = one_run(n, stream, data_s, args)
             results[n].append(r)
-            report(r)
+            report(r, results[counts[0]][-1] if n != counts[0] else None)
     base = counts[0]
     for n in counts[1:]:
         # Same stream, same pair updates?  (The newest update of a pair may be held back.)

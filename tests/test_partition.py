@@ -10,7 +10,9 @@ import random
 import subprocess
 import sys
 from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -21,6 +23,7 @@ from service.pipeline.errors import RejectionError
 from service.pipeline.merger import TableMerger
 from service.pipeline.partition import Partition
 from service.pipeline.peers import MAX_PENDING_STATES
+from service.pipeline.read_model import SystemTrackView
 from service.pipeline.sequencer import RADAR
 from service.pipeline.track_exchange import (
     StatesMessage,
@@ -198,8 +201,11 @@ def _is_peer(key: str) -> bool:
     return Keys("fusion").classify_peer(key) is not None
 
 
-def _run_one(msgs: list[tuple[str, bytes]]) -> tuple[dict[str, list[bytes]], Engine]:
+def _run_one(
+    msgs: list[tuple[str, bytes]], watch: Callable[[Engine], object] = lambda e: None
+) -> tuple[dict[str, list[bytes]], Engine]:
     engine = Engine(one_worker_config())
+    watch(engine)
     pairs: dict[str, list[bytes]] = defaultdict(list)
     for key, payload in msgs:
         for o in engine.ingest(key, payload):
@@ -209,12 +215,14 @@ def _run_one(msgs: list[tuple[str, bytes]]) -> tuple[dict[str, list[bytes]], Eng
 
 
 def _run_partitioned(
-    msgs: list[tuple[str, bytes]], n: int, seed: int
+    msgs: list[tuple[str, bytes]], n: int, seed: int, watch: Callable[[Engine], object] = lambda e: None
 ) -> tuple[dict[str, list[bytes]], dict[str, set[int]], list[Engine]]:
     """N engines, each message delivered to each in its own random batches, the peers'
     messages to the others in the order they were produced, at random later moments."""
     rng = random.Random(seed)
     engines = [Engine(EngineConfig(partition=Partition(k, n))) for k in range(1, n + 1)]
+    for engine in engines:
+        watch(engine)
     queues: list[list[tuple[str, bytes]]] = [[] for _ in engines]
     pairs: dict[str, list[bytes]] = defaultdict(list)
     publishers: dict[str, set[int]] = defaultdict(set)
@@ -268,6 +276,52 @@ def test_n_engines_give_the_pair_updates_of_one(n: int, seed: int) -> None:
         assert engine.rejected == {}
         assert not engine.peers.receiver.gaps
         assert engine.peers.progress()["reordered"] == 0  # every table in one worker's order
+
+
+def _drawn(engine: Engine) -> list[SystemTrackView]:
+    """Every system-track picture ``engine`` draws from now on (its system tracker watched:
+    a partitioned worker 1 may publish only the newest of several drawn at once)."""
+    drawn: list[SystemTrackView] = []
+    tracker = engine.correlation.stage.system.tracker  # type: ignore[attr-defined]
+    update = tracker.update
+
+    def recorded(members: Any, la: Any, lb: Any, score: Any, time_s: float) -> Any:
+        tracks = update(members, la, lb, score, time_s)
+        drawn.append(SystemTrackView.of(time_s, tracks, members))
+        return tracks
+
+    tracker.update = recorded
+    return drawn
+
+
+@pytest.mark.parametrize(("n", "seed"), [(2, 3), (3, 4)])
+def test_worker_1_draws_the_system_tracks_one_worker_draws(n: int, seed: int) -> None:
+    """The fused picture of N workers: drawn by worker 1 from its own pairs (2 workers: B/C)
+    and the links the others send (A/B, A/C; 3 workers: every pair), at the same data times
+    from the same inputs as one worker's, so the same groups, numbers, states and members."""
+    msgs = scenario_messages("three-radar", duration_s=150.0, seed=2)
+    pictures: dict[int, list[SystemTrackView]] = {}
+    _run_one(msgs, lambda e: pictures.setdefault(0, _drawn(e)))
+    _, _, engines = _run_partitioned(
+        msgs, n, seed, lambda e: pictures.setdefault(e.partition.index, _drawn(e))
+    )
+    one, many = pictures[0], pictures[1]
+    assert all(not pictures[k] for k in range(2, n + 1))  # only worker 1 draws
+    assert len(one) > 50 and max(int(np.count_nonzero(np.diff(v.bounds) > 1)) for v in one) > 10
+    # the others send their links after they correlated: the newest pictures may wait
+    assert len(one) - 5 <= len(many) <= len(one)
+    owners = {Partition(1, n).owner(f"{a}/{b}") for a, b in itertools.combinations("ABC", 2)}
+    assert owners - {1}  # pairs of other workers feed worker 1's picture
+    for want, got in zip(one, many, strict=False):
+        assert got.time_s == want.time_s
+        np.testing.assert_array_equal(got.number, want.number)
+        np.testing.assert_array_equal(got.confirmed, want.confirmed)
+        np.testing.assert_array_equal(got.member_source, want.member_source)
+        np.testing.assert_array_equal(got.member_track, want.member_track)
+        np.testing.assert_array_equal(got.bounds, want.bounds)
+        np.testing.assert_allclose(got.position, want.position, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(got.velocity, want.velocity, rtol=0, atol=1e-9)
+    assert engines[0].correlation.stage.system.forced == 0  # type: ignore[attr-defined]
 
 
 def _states_cases() -> list[tuple[str, object]]:

@@ -4,7 +4,8 @@ One worker runs on prefix ``one``, workers 1/2 and 2/2 on prefix ``two``; a clie
 same stream under both prefixes.  Each pair's PairSet updates on ``two`` are those on ``one``
 (the newest may still be held back at the end of the input), including the pairs whose two
 radars the two workers track; the joint bias estimate is one the single worker made, and every
-worker serves it; ``/status``, ``/pairs`` and ``get {prefix}/...`` describe the whole network.
+worker serves it; worker 1 draws the system tracks the single worker draws, and both serve
+them; ``/status``, ``/pairs`` and ``get {prefix}/...`` describe the whole network.
 """
 
 from __future__ import annotations
@@ -87,6 +88,7 @@ def test_two_workers_give_the_results_of_one(router: str, client: zenoh.Session)
     n_batches = sum(k.endswith("/plots") for k, _ in stream)
     pairs_one, pairs_two = Collector(client, "one/pairs/**"), Collector(client, "two/pairs/**")
     biases_two = Collector(client, "two/biases")
+    system_one, system_two = Collector(client, "one/system/tracks"), Collector(client, "two/system/tracks")
     try:
         with network(router) as (one, w1, w2):
             for prefix in ("one", "two"):
@@ -103,7 +105,7 @@ def test_two_workers_give_the_results_of_one(router: str, client: zenoh.Session)
                     put_json(client, prefix + key.removeprefix("fusion"), payload)
             wait_for(lambda: _batches(one) == n_batches, timeout=120)
             wait_for(lambda: _batches(w1) == n_batches, timeout=120)  # w1's /status: the whole network
-            wait_for(_settled([pairs_one, pairs_two, biases_two]), timeout=60, interval=1.0)
+            wait_for(_settled([pairs_one, pairs_two, biases_two, system_two]), timeout=60, interval=1.0)
 
             one_pairs, two_pairs = pairs_one.snapshot(), pairs_two.snapshot()
             status = w1.http.get("/status").json()
@@ -117,8 +119,16 @@ def test_two_workers_give_the_results_of_one(router: str, client: zenoh.Session)
             gathered = {str(r.ok.key_expr) for r in client.get("two/pairs/**") if r.ok is not None}
             zstatus = [orjson.loads(r.ok.payload.to_bytes()) for r in client.get("two/status") if r.ok]
             published = [orjson.loads(b)["biases"] for b in biases_two.snapshot()["two/biases"]]
+            pictures = [w.http.get("/system-tracks", params={"status": "all"}).json() for w in (w1, w2)]
+            zpicture = [
+                orjson.loads(r.ok.payload.to_bytes()) for r in client.get("two/system/tracks") if r.ok
+            ]
+            drawn_one: dict[float, Any] = {}  # as drawn: the first of each time (then held)
+            for body in map(orjson.loads, system_one.snapshot()["one/system/tracks"]):
+                drawn_one.setdefault(body["time_s"], body)
+            drawn_two = [orjson.loads(b) for b in system_two.snapshot()["two/system/tracks"]]
     finally:
-        for c in (pairs_one, pairs_two, biases_two):
+        for c in (pairs_one, pairs_two, biases_two, system_one, system_two):
             c.close()
 
     # Pair updates: the same, update for update, each pair from one worker only.
@@ -154,3 +164,21 @@ def test_two_workers_give_the_results_of_one(router: str, client: zenoh.Session)
     # Biases: worker 1 solves; its estimate is one the single worker made, served by both.
     assert single_biases and single_biases in published[-2:]
     assert worker_biases[0] == worker_biases[1] == published[-1]
+    # System tracks: worker 1 draws them (one answer to a get, served by both HTTP ports),
+    # each picture the single worker's of the same data time.
+    assert pictures[0] == pictures[1] and pictures[0]["system_tracks"]
+    assert len(zpicture) == 1 and zpicture[0]["time_s"] == pictures[0]["time_s"]
+    assert len(drawn_two) > 20
+    for got in drawn_two:
+        want = {t["system_track_id"]: t for t in drawn_one[got["time_s"]]["system_tracks"]}
+        mine = {t["system_track_id"]: t for t in got["system_tracks"]}
+        assert len(set(want) & set(mine)) >= 0.95 * len(want), got["time_s"]
+        for sid in set(want) & set(mine):
+            a, b = want[sid], mine[sid]
+            assert (
+                max(abs(x - y) for x, y in zip(a["position_ecef_m"], b["position_ecef_m"], strict=True))
+                < 1e-3
+            )
+            members = {(m["radar_id"], m["track_id"]) for m in b["members"]}
+            # a picture published later holds to the tables then: members may only have gone
+            assert members <= {(m["radar_id"], m["track_id"]) for m in a["members"]}

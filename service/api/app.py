@@ -451,7 +451,7 @@ def create_app(
         responses=_example(EXAMPLES["SystemTrackBatch"]),
     )
     def system_tracks(node: NodeDep, status: StatusFilter = "confirmed") -> dict[str, Any]:
-        return node.snapshot.system_tracks(status)
+        return node.system_tracks(status)
 
     @app.get(
         "/biases",

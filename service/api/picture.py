@@ -203,7 +203,7 @@ def picture_data(node: ServiceNode) -> dict[str, Any]:
     status's rows from it."""
     snap = node.snapshot
     sites = node.radars()
-    system = snap.system_tracks("all")
+    system = node.system_tracks("all")
     times = [t for t, _ in snap.tracks.values()]
     now_s = system["time_s"] if system["time_s"] is not None else max(times, default=None)
 

@@ -4,13 +4,14 @@ Each radar's tracks (tentative ones too: a radar track alone is a tentative or c
 track of one member) are extrapolated to the update's time and bias-compensated with the
 current joint estimate, their covariance widened by what the estimate's own uncertainty adds
 (:func:`~service.correlation.registration.compensate`).  Reference tracks (AIS, ADS-B) are
-extrapolated only.  The links are the confirmed pairs of every pair book, with their score.
+extrapolated only.  The links are the confirmed pairs of every pair book, with their score
+(:class:`Links`: taken from a book here, or received from the worker that correlates the pair).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -24,16 +25,35 @@ from service.geo import Site
 from service.tracking.base import TrackTable
 
 
+@dataclass(frozen=True)
+class Links:
+    """The confirmed pairs of one pair book: ``track_a[k]`` of ``source_a`` with ``track_b[k]``
+    of ``source_b``, at ``score[k]``."""
+
+    source_a: str
+    source_b: str
+    track_a: np.ndarray
+    track_b: np.ndarray
+    score: np.ndarray
+
+    @staticmethod
+    def of_book(source_a: str, source_b: str, book: PairBook) -> Links:
+        """A book's confirmed pairs (copies: the book changes on)."""
+        conf = book.confirmed
+        score = np.asarray(book.score[conf], dtype=float)
+        return Links(source_a, source_b, book.track_a[conf], book.track_b[conf], score)
+
+
 def members_and_links(
     time_s: float,
     radars: Mapping[str, tuple[Site, TrackTable]],
     references: Mapping[str, TrackTable],
-    books: Iterable[tuple[str, str, PairBook]],
+    links: Iterable[Links],
     solution: BiasSolution | None,
     prediction: PredictionParams,
 ) -> tuple[Members, IntArray, IntArray, FloatArray]:
-    """Members (radars in id order, then references) and the links ``(row a, row b, score)``;
-    ``books``: ``(source of track_a, source of track_b, book)``."""
+    """Members (radars in id order, then references) and the links ``(row a, row b, score)``
+    between them (``links``: every pair book's confirmed pairs)."""
     every = replace(prediction, confirmed_only=False)
     parts: list[Members] = []
     for rid in sorted(radars):
@@ -83,16 +103,15 @@ def members_and_links(
         return np.where(ids[at] == query, offset + order[at], -1)
 
     la, lb, sc = [], [], []
-    for source_a, source_b, book in books:
-        conf = book.confirmed
-        if not conf.any():
+    for link in links:
+        if not len(link.track_a):
             continue
-        a = rows(source_a, book.track_a[conf])
-        b = rows(source_b, book.track_b[conf])
+        a = rows(link.source_a, link.track_a)
+        b = rows(link.source_b, link.track_b)
         ok = (a >= 0) & (b >= 0)
         la.append(a[ok])
         lb.append(b[ok])
-        sc.append(np.asarray(book.score[conf], dtype=float)[ok])
+        sc.append(link.score[ok])
     if not la:
         return members, np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64), np.empty(0)
     return (

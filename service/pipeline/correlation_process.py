@@ -36,6 +36,7 @@ from service.geo import Site
 from service.pipeline.correlation_runner import Answer, Answers, Key, answer
 from service.pipeline.correlation_stage import CadenceParams, CorrelationStage, timings_dict
 from service.pipeline.partition import Partition
+from service.pipeline.system_stage import SharedLinks
 from service.reference import ReferenceParams
 from service.tracking.base import TrackTable, first_number
 
@@ -266,6 +267,12 @@ class ChildProcessRunner(Answers):
 
     def mirror_rows(self, key: Key, site_a: Site, site_b: Site | None, rows: RegistrationRowsData) -> None:
         self._send("mirror_rows", key, site_a, site_b, rows)
+
+    def mirror_links(self, shared: SharedLinks) -> None:
+        self._send("mirror_links", shared)
+
+    def others_through(self, time_s: float) -> None:
+        self._send("others_through", time_s)
 
     def export_state(self) -> dict[str, Any]:
         """:meth:`CorrelationStage.export_state` of the child, once it has answered everything

@@ -21,6 +21,7 @@ from service.correlation.registration import RegistrationRowsData
 from service.geo import Site
 from service.pipeline.correlation_stage import CorrelationStage, SharedRows
 from service.pipeline.read_model import PairSetView, SystemTrackView
+from service.pipeline.system_stage import SharedLinks
 from service.tracking.base import TrackTable
 
 Key = tuple[str, str]
@@ -36,6 +37,7 @@ class Answer:
     timings: dict[str, Any] | None  # None: unchanged (a local stage is read directly)
     error: tuple[str, str] | None = None  # (source id, detail) when the call failed
     rows: list[SharedRows] = field(default_factory=list)  # partitioned: rows for the bias worker
+    links: list[SharedLinks] = field(default_factory=list)  # partitioned: links for worker 1
     system: SystemTrackView | None = None  # new system tracks, if the call made them
     result: Any = None  # what the stage's call returned (``export_state``; None for the others)
 
@@ -54,7 +56,7 @@ def answer(stage: CorrelationStage, op: str, args: tuple[Any, ...]) -> Answer:
             result = getattr(stage, op)(*args)
     except Exception as exc:
         error = (str(args[0]) if args else "", f"correlation failed: {type(exc).__name__}: {exc}")
-    rebuilt = stage.take_system()  # at most one per call
+    rebuilt = stage.take_system()  # the newest is what the picture shows
     return Answer(
         op,
         [(k, stage.views[k]) for k in keys],
@@ -62,6 +64,7 @@ def answer(stage: CorrelationStage, op: str, args: tuple[Any, ...]) -> Answer:
         None,
         error,
         stage.take_rows(),
+        stage.take_links(),
         rebuilt[-1] if rebuilt else None,
         result,
     )
@@ -76,6 +79,7 @@ class Answers:
         self._answers: list[Answer] = []
         self._errors: list[tuple[str, str]] = []
         self._rows: list[SharedRows] = []
+        self._links: list[SharedLinks] = []
 
     def _take_answer(self, a: Answer) -> None:
         self._answers.append(a)
@@ -86,6 +90,7 @@ class Answers:
         if a.error is not None:
             self._errors.append(a.error)
         self._rows.extend(a.rows)
+        self._links.extend(a.links)
 
     def take_answers(self) -> list[Answer]:
         """The answers since the last call, in call order: one per call (a pair updated twice
@@ -96,6 +101,11 @@ class Answers:
     def take_rows(self) -> list[SharedRows]:
         """Registration rows the owned pairs added (answered since the last call)."""
         out, self._rows = self._rows, []
+        return out
+
+    def take_links(self) -> list[SharedLinks]:
+        """Links of the owned pairs updated (answered since the last call)."""
+        out, self._links = self._links, []
         return out
 
     def take_errors(self) -> list[tuple[str, str]]:
@@ -118,8 +128,11 @@ class CorrelationRunner(Protocol):
     def mirror_rows(
         self, key: Key, site_a: Site, site_b: Site | None, rows: RegistrationRowsData
     ) -> None: ...
+    def mirror_links(self, shared: SharedLinks) -> None: ...
+    def others_through(self, time_s: float) -> None: ...
     def take_answers(self) -> list[Answer]: ...
     def take_rows(self) -> list[SharedRows]: ...
+    def take_links(self) -> list[SharedLinks]: ...
     def take_errors(self) -> list[tuple[str, str]]: ...
     def timings(self) -> dict[str, Any]: ...
     @property
@@ -163,6 +176,12 @@ class InProcessRunner(Answers):
 
     def mirror_rows(self, key: Key, site_a: Site, site_b: Site | None, rows: RegistrationRowsData) -> None:
         self._call("mirror_rows", key, site_a, site_b, rows)
+
+    def mirror_links(self, shared: SharedLinks) -> None:
+        self._call("mirror_links", shared)
+
+    def others_through(self, time_s: float) -> None:
+        self._call("others_through", time_s)
 
     def timings(self) -> dict[str, Any]:
         return self.stage.timings()

@@ -46,11 +46,11 @@ from service.correlation.registration import (
     solution_state,
     to_estimates,
 )
-from service.fusion.members import members_and_links
-from service.fusion.system_tracks import SystemTracker
+from service.fusion.members import Links
 from service.geo import Site
 from service.pipeline.partition import Partition
 from service.pipeline.read_model import PairSetView, SystemTrackView
+from service.pipeline.system_stage import LAST, Picture, SharedLinks, SystemStage, take_picture
 from service.reference import ReferenceKind, ReferenceParams, ReferenceTracks
 from service.tracking.base import TrackTable
 from service.wire.outputs import bias_dict
@@ -204,11 +204,10 @@ class CorrelationStage:
         self._rows_out: list[SharedRows] = []
         self._share_rows = not self.partition.whole and not self.partition.solves_biases
         self._solves = self.partition.solves_biases
-        #: System tracks: one worker only (a partitioned worker holds only its own pairs).
-        self.system_tracker = SystemTracker()
-        self.system_view: SystemTrackView | None = None
-        self._system_out: list[SystemTrackView] = []
-        self._next_system_s = -np.inf
+        #: System tracks: drawn by one worker (worker 1 of N, from every worker's links).
+        self.system = SystemStage(
+            self.params.system_interval_s, self.partition, self.correlation_params.prediction
+        )
 
     # -- the sources ---------------------------------------------------------------------------
     def reference(
@@ -246,6 +245,7 @@ class CorrelationStage:
             self._next_decision.pop(key, None)
         for key in [k for k in self.mirrors if source_id in k]:
             del self.mirrors[key]
+        self.system.forget(source_id)
 
     def moved(self, site: Site) -> None:
         """A radar moved: its pairs keep their books but re-register from scratch.
@@ -367,7 +367,7 @@ class CorrelationStage:
                 if own_now is None:  # every track of the radar at the update time, once
                     own_now = positions_at(radar.tracks(time_s), time_s)
                 if self._prompt(corr, radar, other, time_s, self._undecided.pop(key), own_now):
-                    self.views[key] = PairSetView.of(key, corr, time_s)
+                    self._changed(key, corr, time_s, radar.source_id)
                     updated.append(key)
                 scans = self.params.prompt_interval_scans
                 self._next_decision[key] = time_s + scans * self._scan(radar.geometry, other.geometry)
@@ -403,7 +403,7 @@ class CorrelationStage:
             # side="left": a time equal to a bound counts in that bound's bucket (``le``)
             self.duration_counts[np.searchsorted(DURATION_BUCKETS_S, self.last_ms / 1000.0)] += 1
             self.duration_sum_s += self.last_ms / 1000.0
-            self.views[key] = PairSetView.of(key, corr, time_s)
+            self._changed(key, corr, time_s, radar.source_id)
             updated.append(key)
             if self._share_rows and corr.last_rows is not None:
                 self._rows_out.append(
@@ -413,8 +413,13 @@ class CorrelationStage:
                 )
         if self._solves:
             self._solve_due(time_s)
-        self._system_due(time_s)
+        self.system.due(time_s, radar.source_id, self._picture)
         return updated
+
+    def _changed(self, key: tuple[str, str], corr: PairCorrelator, time_s: float, release: str) -> None:
+        """A pair's book changed at the release of ``release``'s table at ``time_s``."""
+        self.views[key] = PairSetView.of(key, corr, time_s)
+        self.system.updated(key, lambda: _links(key, corr), time_s, release)
 
     def _prompt(
         self,
@@ -436,38 +441,27 @@ class CorrelationStage:
             return corr.decide_new(own, theirs, time_s, mine, others, now_a=own_now)
         return corr.decide_new(theirs, own, time_s, others, mine, now_b=own_now)
 
-    def _system_due(self, clock_s: float) -> None:
-        step = self.params.system_interval_s
-        if step <= 0 or not self.partition.whole:
-            return
-        grid = float(np.floor(clock_s / step) * step)
-        if grid >= self._next_system_s:
-            self._next_system_s = grid + step
-            try:
-                self._system(clock_s)
-            except Exception:  # a bug here must not cost the pair updates: the old view stays
-                log.exception("system tracks: rebuild at %.3f failed", clock_s)
-
-    def _system(self, time_s: float) -> None:
-        """Rebuild the system tracks at ``time_s`` (:mod:`service.fusion`)."""
-        books = []
-        for (s1, s2), corr in sorted(self.pair_correlators.items()):
-            first = corr.site_a.site_id
-            books.append((first, s2 if s1 == first else s1, corr.book))
-        references = {
-            sid: ref.table(time_s) for sid, ref in self._references.items() if sid not in self._silent
-        }
-        members, la, lb, score = members_and_links(
-            time_s, self._radars, references, books, self._joint, self.correlation_params.prediction
-        )
-        tracks = self.system_tracker.update(members, la, lb, score, time_s)
-        self.system_view = SystemTrackView.of(time_s, tracks, members)
-        self._system_out.append(self.system_view)
+    def _picture(self, time_s: float, release: str) -> Picture:
+        """What the system tracks of ``time_s`` are drawn from (:mod:`.system_stage`)."""
+        own = {key: _links(key, corr) for key, corr in self.pair_correlators.items()}
+        return take_picture(time_s, release, self._radars, self._references, self._silent, self._joint, own)
 
     def take_system(self) -> list[SystemTrackView]:
-        """The system tracks rebuilt since the last call, oldest first."""
-        out, self._system_out = self._system_out, []
-        return out
+        """The system tracks drawn since the last call, oldest first."""
+        return self.system.take_views()
+
+    def take_links(self) -> list[SharedLinks]:
+        """Links of the owned pairs updated since the last call (partitioned, not worker 1)."""
+        return self.system.take_links()
+
+    def mirror_links(self, shared: SharedLinks) -> None:
+        """Another worker's pair's links (worker 1 draws the picture from them)."""
+        self.system.mirror(shared)
+
+    def others_through(self, time_s: float) -> None:
+        """Every other live worker has correlated through ``time_s`` (worker 1): the pictures
+        up to it are drawn."""
+        self.system.through(time_s)
 
     def _implied(self, key: tuple[str, str]) -> Implied | None:
         """The pairs of radar pair ``key`` that confirmed pairs through third radars imply
@@ -484,8 +478,7 @@ class CorrelationStage:
         times += [float(m.memory.time[-1]) for m in self.mirrors.values() if len(m.memory)]
         if times and self._solves:
             self._solve_biases(max(times))
-        if times and self.partition.whole and self.params.system_interval_s > 0:
-            self._system(max(times))
+        self.system.finish(self._picture(max(times), LAST) if times else None)
 
     def _solve_biases(self, time_s: float) -> None:
         # Warm-started from the previous solve: the rows changed little since, so one or two
@@ -553,7 +546,7 @@ class CorrelationStage:
     def continue_numbers(self, number: int) -> None:
         """New system tracks numbered from ``number`` on (a correlation process started afresh:
         :class:`~service.pipeline.correlation_process.ChildProcessRunner`)."""
-        self.system_tracker.continue_from(number)
+        self.system.continue_from(number)
 
     def restore_state(self, state: Mapping[str, Any] | None, epoch: int, sites: Mapping[str, Site]) -> None:
         """Take what :meth:`export_state` gave (``None``: nothing), before any input.
@@ -581,7 +574,7 @@ class CorrelationStage:
                     mirrors[key] = MirroredPair(RegistrationMemory.restored(site_a, site_b, kept["rows"]))
             if state["joint"] is not None:
                 joint = (solution_from_state(state["joint"]), float(state["joint_time_s"]))
-        self.system_tracker = SystemTracker(self.system_tracker.params, epoch)
+        self.system.restart(epoch)
         self.mirrors = mirrors
         if joint is not None:
             self._set_joint(*joint)
@@ -597,6 +590,12 @@ class CorrelationStage:
         return timings_dict(
             self.updates, self.last_ms, self.timings_ms, self.duration_counts, self.duration_sum_s
         )
+
+
+def _links(key: tuple[str, str], corr: PairCorrelator) -> Links:
+    """A pair's confirmed pairs, its A side first."""
+    first = corr.site_a.site_id
+    return Links.of_book(first, key[1] if key[0] == first else key[0], corr.book)
 
 
 def _ids(parts: list[np.ndarray] | None) -> np.ndarray:

@@ -4,10 +4,10 @@ what comes from them.
 Each worker tracks its own radars and correlates its own pairs (:mod:`.partition`).  To the
 others it sends every table its radars' batches give (a change on top of the previous one,
 :mod:`.track_exchange`), how far it has released and correlated, its radars' data clocks, and
-the registration rows its pairs add (for the worker that solves the joint biases, which sends
-back the biases).  From them it takes the same.  The tables of every worker meet in the
-engine's :class:`~.merger.TableMerger`, which puts them in the order one worker would have
-released them in.
+the registration rows and links its pairs add (for worker 1, which solves the joint biases and
+draws the system tracks, and sends back the biases).  From them it takes the same.  The
+tables of every worker meet in the engine's :class:`~.merger.TableMerger`, which puts them in
+the order one worker would have released them in.
 
 A worker alone (``1/1``) is the one-owner case: it sends nothing, takes nothing, and its
 merger releases each table as soon as it is pushed.  :class:`Peers` never calls the engine: it
@@ -23,6 +23,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from service.correlation.registration import RegistrationRowsData
+from service.fusion.members import Links
 from service.pipeline.correlation_runner import CorrelationRunner
 from service.pipeline.correlation_stage import CadenceParams
 from service.pipeline.decode import check_body_id, parse
@@ -30,11 +31,12 @@ from service.pipeline.errors import RejectionError, unknown_radar
 from service.pipeline.merger import TableMerger
 from service.pipeline.partition import Partition
 from service.pipeline.sequencer import RADAR, Sequencer
+from service.pipeline.system_stage import SharedLinks
 from service.pipeline.track_exchange import ExchangeParams, StatesReceiver, StatesSender, decode_states
 from service.pipeline.tracking_stage import TrackingStage
 from service.tracking.base import TrackTable
 from service.wire.keys import Keys
-from service.wire.models import BiasSet, RegistrationRows, WorkerClock
+from service.wire.models import BiasSet, PairLinks, RegistrationRows, WorkerClock
 from service.wire.outgoing import Outgoing
 
 
@@ -78,6 +80,20 @@ def _rows_body(source_a: str, source_b: str, reference: bool, rows: Registration
     }
 
 
+def _links_body(shared: SharedLinks) -> dict[str, Any]:
+    """The ``PairLinks`` payload of an owned pair's links."""
+    links = shared.links
+    return {
+        "source_a": links.source_a,
+        "source_b": links.source_b,
+        "time_s": shared.time_s,
+        "release": shared.release,
+        "track_a": links.track_a.tolist(),
+        "track_b": links.track_b.tolist(),
+        "score": links.score.tolist(),
+    }
+
+
 @dataclass(frozen=True)
 class PeerInput:
     """What a message of another worker gave: held messages given up (each a rejection on its
@@ -114,6 +130,8 @@ class Peers:
         self.receiver = StatesReceiver()
         #: Each other worker's ``correlated_s`` (the bias worker waits for them).
         self._correlated_by: dict[int, float] = {}
+        #: The earliest of them last told to the correlation (worker 1 draws the picture to it).
+        self._through: float | None = None
         self._clock_sent: dict[str, Any] | None = None
         self._progress_sent: dict[str, Any] | None = None
         #: (radar id, decoded message, payload bytes, key), oldest first.
@@ -178,6 +196,18 @@ class Peers:
 
     def wait_for(self, workers: set[int]) -> None:
         self.waited = set(workers) | {self.partition.index}
+        self._others_through()
+
+    def _others_through(self) -> None:
+        """Worker 1: tell the correlation how far every other live worker has correlated (it
+        draws the system tracks up to there, :mod:`.system_stage`)."""
+        if self.alone or not self.partition.solves_biases:
+            return
+        others = self.waited - {self.partition.index}
+        through = min((self._correlated_by.get(k, -np.inf) for k in others), default=np.inf)
+        if through != self._through:
+            self._through = through
+            self.correlation.others_through(through)
 
     def progress(self) -> dict[str, Any]:
         """How far this worker has got (``/status`` ``partition.progress``; none alone)."""
@@ -222,6 +252,10 @@ class Peers:
             )
             for r in self.correlation.take_rows()
         ]
+        out += [
+            Outgoing(self.keys.links(*s.key), lambda s=s: _links_body(s))  # type: ignore[misc]
+            for s in self.correlation.take_links()
+        ]
         biases = self.correlation.biases
         if self.partition.solves_biases and biases is not self._biases_sent and biases:
             self._biases_sent = biases
@@ -231,7 +265,7 @@ class Peers:
                 "biases": list(biases),
             }
             out.append(Outgoing(self.keys.biases, lambda: body))
-        return out + self._clock(idle)  # after the rows: it says they are all out
+        return out + self._clock(idle)  # after the rows and links: it says they are all out
 
     def _due(
         self, new: dict[str, Any], sent: dict[str, Any] | None, fields: tuple[str, ...], idle: bool
@@ -308,9 +342,12 @@ class Peers:
                 self._correlated_by[worker] = (
                     clock.correlated_s if clock.correlated_s is not None else -np.inf
                 )
+                self._others_through()
             return PeerInput(moved=True)
         if kind == "registration":
             self._registration(ids, payload)
+        elif kind == "links":
+            self._links(ids, payload)
         elif kind == "biases" and not self.partition.solves_biases:
             self.published_biases = parse(BiasSet, payload, None).model_dump()
         return PeerInput()  # worker status: the transport's
@@ -336,6 +373,23 @@ class Peers:
             None if rows.v is None else np.asarray(rows.v, dtype=float).reshape(k, 3),
         )
         self.correlation.mirror_rows((ids[0], ids[1]), site_a, site_b, data)
+
+    def _links(self, ids: tuple[str, ...], payload: bytes) -> None:
+        if not self.partition.solves_biases:
+            return
+        got: PairLinks = parse(PairLinks, payload, ids[0])
+        if sorted((got.source_a, got.source_b)) != sorted(ids):
+            raise RejectionError("schema", f"sources {got.source_a}, {got.source_b} != key {ids}", ids[0])
+        if self.partition.owns_pair(got.source_a, got.source_b):
+            return  # our own pair
+        links = Links(
+            got.source_a,
+            got.source_b,
+            np.asarray(got.track_a, dtype=str),
+            np.asarray(got.track_b, dtype=str),
+            np.asarray(got.score, dtype=float),
+        )
+        self.correlation.mirror_links(SharedLinks((ids[0], ids[1]), got.time_s, got.release, links))
 
     def _hold_states(self, radar_id: str, msg: Any, size: int) -> tuple[tuple[str, RejectionError], ...]:
         """Hold a radar's track states until its site comes; beyond the bounds the oldest held

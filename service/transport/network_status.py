@@ -243,3 +243,22 @@ def network_pair_sets(
             body = {**body, "pairs": [p for p in body.get("pairs", []) if p.get("status") == status]}
         out.append(body)
     return sorted(out, key=lambda p: (p["radar_a"], p["radar_b"]))
+
+
+def network_system_tracks(
+    session: zenoh.Session, keys: Keys, status: str, timeout_s: float
+) -> dict[str, Any]:
+    """``GET /system-tracks`` of a partitioned worker other than 1: worker 1's, the one that
+    draws them (a Zenoh ``get``); none while it does not answer."""
+    selector = f"{keys.system_tracks}?status={status}"
+    replies = session.get(selector, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s)
+    for reply in replies:
+        if reply.ok is None:
+            continue
+        try:
+            body = orjson.loads(reply.ok.payload.to_bytes())
+        except orjson.JSONDecodeError:
+            continue
+        if isinstance(body, dict) and isinstance(body.get("system_tracks"), list):
+            return body
+    return {"time_s": None, "system_tracks": []}

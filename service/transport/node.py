@@ -36,7 +36,12 @@ from service.settings import Settings
 from service.startup import build_engine, start_engine
 from service.state import StateKeeper
 from service.transport.intake import Intake
-from service.transport.network_status import PeerWorkers, network_pair_sets, network_radars
+from service.transport.network_status import (
+    PeerWorkers,
+    network_pair_sets,
+    network_radars,
+    network_system_tracks,
+)
 from service.transport.options import NodeOptions
 from service.transport.publisher import MAX_PUBLISHERS, UNCONDITIONAL_PUTS, Publisher
 from service.transport.queryables import declare_queryables
@@ -188,7 +193,7 @@ class ServiceNode:
         ]
         if self._stopping.is_set():  # a signal while they were declared: stop_input missed them
             self._undeclare(self._inputs)
-        self._declared = declare_queryables(s, self.keys, self)
+        self._declared = declare_queryables(s, self.keys, self, self.partition)
         if self.peers is not None:
             self._declared += self.peers.declare(s)
         self.publisher.start(s)
@@ -286,6 +291,13 @@ class ServiceNode:
             return own
         counters = {r["radar_id"]: r for r in self.status()["radars"]}
         return network_radars(own, self.snapshot.sites, counters)
+
+    def system_tracks(self, status: str = "confirmed") -> dict[str, Any]:
+        """``GET /system-tracks``; partitioned, worker 1's (it draws them; a Zenoh ``get``)."""
+        snap, session = self.snapshot, self.connection.session
+        if self.peers is None or self.partition.solves_biases or session is None:
+            return snap.system_tracks(status)
+        return network_system_tracks(session, self.keys, status, self.options.peer_query_timeout_s)
 
     def pair_sets(
         self, radar_a: str | None = None, radar_b: str | None = None, status: str = "confirmed"

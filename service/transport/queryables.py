@@ -1,6 +1,7 @@
 """The service's queryables (contract §1): ``get {prefix}/status``, ``{prefix}/pairs/**``,
-``{prefix}/system_tracks`` and ``{prefix}/radar/*/performance``, answered from the latest
-snapshot without locks (Zenoh's threads run them)."""
+``{prefix}/system/tracks`` and ``{prefix}/radar/*/performance``, answered from the latest
+snapshot without locks (Zenoh's threads run them).  Partitioned, only the worker that draws the
+system tracks (worker 1) declares ``{prefix}/system/tracks``: the others' answer would be empty."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from typing import Any, Protocol
 import zenoh
 
 from service.engine import Snapshot
+from service.pipeline.partition import Partition
 from service.wire.keys import Keys
 from service.wire.outputs import encode
 
@@ -24,14 +26,24 @@ class Views(Protocol):
     def status(self) -> dict[str, Any]: ...
 
 
-def declare_queryables(session: zenoh.Session, keys: Keys, views: Views) -> list[Any]:
+#: The system tracks a ``get {prefix}/system/tracks?status=...`` may ask for (default confirmed).
+SYSTEM_STATUSES = ("confirmed", "tentative", "all")
+
+
+def declare_queryables(
+    session: zenoh.Session, keys: Keys, views: Views, partition: Partition | None = None
+) -> list[Any]:
     """Declare the queryables on ``session``; returns them (to undeclare at the stop)."""
 
     def on_status(query: zenoh.Query) -> None:
         query.reply(keys.status, encode(views.status()), encoding=_JSON)
 
     def on_system(query: zenoh.Query) -> None:
-        query.reply(keys.system_tracks, encode(views.snapshot.system_tracks("confirmed")), encoding=_JSON)
+        status = query.parameters.get("status") or "confirmed"
+        if status not in SYSTEM_STATUSES:
+            query.reply_err(f"status {status!r}: expected one of {', '.join(SYSTEM_STATUSES)}")
+            return
+        query.reply(keys.system_tracks, encode(views.snapshot.system_tracks(status)), encoding=_JSON)
 
     def on_performance(query: zenoh.Query) -> None:
         """Each radar whose ``RadarPerformance`` key the query's selector names."""
@@ -51,9 +63,10 @@ def declare_queryables(session: zenoh.Session, keys: Keys, views: Views) -> list
             if wanted.intersects(zenoh.KeyExpr(key)):
                 query.reply(key, encode(view.body("all")), encoding=_JSON)
 
+    draws = partition is None or partition.whole or partition.solves_biases
     return [
         session.declare_queryable(keys.status, on_status),
         session.declare_queryable(keys.pairs_all, on_pairs),
-        session.declare_queryable(keys.system_tracks, on_system),
+        *([session.declare_queryable(keys.system_tracks, on_system)] if draws else []),
         session.declare_queryable(keys.performance_all, on_performance),
     ]

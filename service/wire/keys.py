@@ -17,6 +17,7 @@ from service.wire.models import (
     AdsbBatch,
     AisBatch,
     BiasSet,
+    PairLinks,
     PairSet,
     PlotBatch,
     RadarPerformance,
@@ -43,6 +44,7 @@ KeyKind = Literal[
     "status",
     "track_states",
     "registration",
+    "links",
     "biases",
     "worker_status",
     "worker_clock",
@@ -58,12 +60,14 @@ REFERENCE_KINDS: frozenset[KeyKind] = frozenset({"ais", "adsb"})
 
 #: Kinds partitioned workers publish for each other (and take from each other).
 PEER_KINDS: frozenset[KeyKind] = frozenset(
-    {"track_states", "registration", "biases", "worker_status", "worker_clock", "worker_progress"}
+    {"track_states", "registration", "links", "biases", "worker_status", "worker_clock", "worker_progress"}
 )
 #: Peer kinds a worker takes ahead of its inputs (node.py): they only move the correlation on.
 #: A worker's radar clocks (``worker_clock``) stay in arrival order with the inputs: taken
 #: early, they would make this worker's own radars look behind the network.
-PRIORITY_KINDS: frozenset[KeyKind] = frozenset({"track_states", "registration", "biases", "worker_progress"})
+PRIORITY_KINDS: frozenset[KeyKind] = frozenset(
+    {"track_states", "registration", "links", "biases", "worker_progress"}
+)
 
 #: Payload model per key kind (contract §1 table).
 MODEL_BY_KIND: dict[KeyKind, type[BaseModel]] = {
@@ -78,6 +82,7 @@ MODEL_BY_KIND: dict[KeyKind, type[BaseModel]] = {
     "status": Status,
     "track_states": TrackStates,
     "registration": RegistrationRows,
+    "links": PairLinks,
     "biases": BiasSet,
     "worker_status": Status,
     "worker_clock": WorkerClock,
@@ -99,6 +104,7 @@ _SHAPES: tuple[tuple[KeyKind, str], ...] = (
     ("status", r"status"),
     ("track_states", rf"radar/({ID_REGEX})/track-states"),
     ("registration", rf"registration/({ID_REGEX})/({ID_REGEX})"),
+    ("links", rf"links/({ID_REGEX})/({ID_REGEX})"),
     ("biases", r"biases"),
     ("worker_status", r"workers/([0-9]{1,6})/status"),
     ("worker_clock", r"workers/([0-9]{1,6})/clock"),
@@ -157,6 +163,11 @@ class Keys:
         """Rows of the pair ``source_a``, ``source_b`` (in string order in the key)."""
         a, b = sorted((source_a, source_b))
         return f"{self.prefix}/registration/{a}/{b}"
+
+    def links(self, source_a: str, source_b: str) -> str:
+        """Links of the pair ``source_a``, ``source_b`` (in string order in the key)."""
+        a, b = sorted((source_a, source_b))
+        return f"{self.prefix}/links/{a}/{b}"
 
     def worker(self, index: int) -> str:
         """A partitioned worker's liveliness token."""
@@ -220,6 +231,7 @@ class Keys:
         return (
             f"{self.prefix}/radar/*/track-states",
             f"{self.prefix}/registration/*/*",
+            f"{self.prefix}/links/*/*",
             self.biases,
             f"{self.prefix}/workers/*/clock",
             f"{self.prefix}/workers/*/progress",

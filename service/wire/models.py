@@ -203,6 +203,8 @@ class OutModel(BaseModel):
 
 
 #: How unambiguous a track's recent plot associations were (``Track.quality``).
+#: A probability, e.g. a pair's score.
+Probability = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
 Quality = Annotated[StrictFloat, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
 
 
@@ -398,6 +400,25 @@ class RegistrationRows(WireModel):
     @model_validator(mode="after")
     def _check_lengths(self) -> RegistrationRows:
         return _equal_lengths(self, ("track_a", "track_b", "p_a", "p_b", "s", "v"))
+
+
+class PairLinks(WireModel):
+    """A pair's confirmed pairs after one of its updates, for the worker that draws the system
+    tracks (worker 1 of a partitioned network): pair ``k`` is track ``track_a[k]`` of
+    ``source_a`` with track ``track_b[k]`` of ``source_b``, at ``score[k]``.  The update
+    followed the release of radar ``release``'s table at data time ``time_s``."""
+
+    source_a: SourceId
+    source_b: SourceId
+    time_s: TimeS
+    release: SourceId
+    track_a: Annotated[list[str], Field(max_length=MAX_TRACKS)]
+    track_b: Annotated[list[str], Field(max_length=MAX_TRACKS)]
+    score: Annotated[list[Probability], Field(max_length=MAX_TRACKS)]
+
+    @model_validator(mode="after")
+    def _check_lengths(self) -> PairLinks:
+        return _equal_lengths(self, ("track_a", "track_b", "score"))
 
 
 class ZenohInfo(OutModel):
@@ -707,6 +728,7 @@ WIRE_MODELS: dict[str, type[BaseModel]] = {
     "RadarInfo": RadarInfo,
     "TrackStates": TrackStates,
     "RegistrationRows": RegistrationRows,
+    "PairLinks": PairLinks,
     "BiasSet": BiasSet,
     "WorkerClock": WorkerClock,
     "RadarPerformance": RadarPerformance,

@@ -1,0 +1,220 @@
+"""When the system tracks are rebuilt, and from which links: one worker, or N partitioned ones.
+
+One worker rebuilds the system tracks (:mod:`service.fusion`) once per ``system_interval_s``
+of data time, at the release whose clock crosses a multiple of it: every radar's latest table,
+the references, the joint bias estimate and every pair book's confirmed pairs (the *links*) as
+they are after that release's pair updates.
+
+Partitioned (``--partition K/N``), worker 1 builds the one picture of the whole network, the
+one a single worker would build, from the same inputs at the same releases:
+
+* its merge releases every radar's tables in one worker's order (:mod:`.merger`), so at the
+  release that crosses a multiple it holds the same tables, references and joint estimate; it
+  takes them then (a :class:`Picture`), with the links of the pairs it correlates;
+* every other worker sends the links of each pair it updates, tagged with the release they
+  follow (``{prefix}/links/{a}/{b}``, ``PairLinks``: :meth:`SystemStage.take_links`);
+* once every other live worker says it has correlated past the picture's data time
+  (``correlated_s`` of ``{prefix}/workers/{k}/progress``, sent after the links it covers),
+  worker 1 holds every pair's links up to that release and draws the picture: for each other
+  worker's pair, its latest links at or before the release (:meth:`SystemStage.through`).
+
+The picture is then late by how far the slowest other worker is behind worker 1 (in a
+replay at full speed a few scans of data time, live a few network round trips); at most
+:data:`MAX_PENDING_PICTURES` wait, beyond which the oldest is drawn with the links known
+(counted in ``forced``).  Worker 1 puts the picture on ``{prefix}/system/tracks`` and answers
+its queryable; the other workers' ``GET /system-tracks`` ask it (contract §6).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from service.correlation.prediction import PredictionParams
+from service.correlation.registration import BiasSolution
+from service.fusion.members import Links, members_and_links
+from service.fusion.system_tracks import SystemTracker
+from service.geo import Site
+from service.pipeline.partition import Partition
+from service.pipeline.read_model import SystemTrackView
+from service.tracking.base import TrackTable
+
+Key = tuple[str, str]
+#: A release's place in one worker's order: its data time, then the radar released.
+Position = tuple[float, str]
+
+#: A release after every radar's at its data time (the end of the input).
+LAST = "\U0010ffff"
+#: Pictures taken and waiting for the other workers' links; beyond, the oldest is drawn with
+#: the links known (at one picture per ``system_interval_s`` of 2 s: a minute of data time).
+MAX_PENDING_PICTURES = 30
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SharedLinks:
+    """A pair's links after one of its updates, for worker 1 (``PairLinks`` on the wire)."""
+
+    key: Key
+    time_s: float  # the data time of the release the update followed ...
+    release: str  # ... and the radar released
+    links: Links
+
+    @property
+    def position(self) -> Position:
+        return (self.time_s, self.release)
+
+
+@dataclass(frozen=True)
+class Picture:
+    """The inputs of one rebuild, taken at the release that crossed its time."""
+
+    time_s: float
+    release: str
+    radars: dict[str, tuple[Site, TrackTable]]
+    references: dict[str, TrackTable]
+    joint: BiasSolution | None
+    own: dict[Key, Links]  # the links of the pairs this worker correlates
+
+
+class SystemStage:
+    """The system tracks' schedule and inputs (see module docstring)."""
+
+    def __init__(self, interval_s: float, partition: Partition, prediction: PredictionParams) -> None:
+        self.interval_s = interval_s
+        self.partition = partition
+        self.prediction = prediction
+        self.tracker = SystemTracker()
+        #: The latest system tracks drawn (None: none yet).
+        self.view: SystemTrackView | None = None
+        #: This worker draws the picture: the only worker, or worker 1 of N.
+        self.draws = interval_s > 0 and (partition.whole or partition.solves_biases)
+        #: This worker sends its pairs' links to worker 1.
+        self.shares = interval_s > 0 and not self.draws
+        self.forced = 0
+        self._next_s = -np.inf
+        self._out: list[SystemTrackView] = []
+        self._links_out: list[SharedLinks] = []
+        self._pending: deque[Picture] = deque()
+        #: Every other worker's pairs: their links, oldest first (a base and what came after).
+        self._mirrored: dict[Key, deque[SharedLinks]] = {}
+        #: Data time every other live worker has correlated through (alone: no one to wait for).
+        self._others_s = np.inf if partition.whole else -np.inf
+
+    # -- every worker ------------------------------------------------------------------------
+    def updated(self, key: Key, links: Callable[[], Links], time_s: float, release: str) -> None:
+        """An owned pair's book changed at the release ``(time_s, release)``."""
+        if self.shares:
+            self._links_out.append(SharedLinks(key, time_s, release, links()))
+
+    def take_links(self) -> list[SharedLinks]:
+        out, self._links_out = self._links_out, []
+        return out
+
+    def take_views(self) -> list[SystemTrackView]:
+        """The system tracks drawn since the last call, oldest first."""
+        out, self._out = self._out, []
+        return out
+
+    # -- the worker that draws -------------------------------------------------------------------
+    def mirror(self, shared: SharedLinks) -> None:
+        """Another worker's pair's links (worker 1; in the order its owner updated it)."""
+        if not self.draws or self.partition.whole or self.partition.owns_pair(*shared.key):
+            return
+        self._mirrored.setdefault(shared.key, deque()).append(shared)
+
+    def forget(self, source_id: str) -> None:
+        for key in [k for k in self._mirrored if source_id in k]:
+            del self._mirrored[key]
+
+    def due(self, clock_s: float, release: str, take: Callable[[float, str], Picture]) -> None:
+        """A release at ``clock_s`` of radar ``release``: if it crosses a multiple of the
+        interval, take the picture's inputs (``take``) and draw what may be drawn."""
+        if not self.draws:
+            return
+        grid = float(np.floor(clock_s / self.interval_s) * self.interval_s)
+        if grid < self._next_s:
+            return
+        self._next_s = grid + self.interval_s
+        self._pending.append(take(clock_s, release))
+        self._draw()
+
+    def through(self, others_s: float) -> None:
+        """Every other live worker has correlated (and sent its links) through ``others_s``."""
+        self._others_s = others_s
+        self._draw()
+
+    def finish(self, picture: Picture | None) -> None:
+        """End of the input: every picture waiting, then one of now (``picture``)."""
+        self._others_s = np.inf
+        self._draw()
+        if picture is not None and self.draws:
+            self._build(picture)
+
+    def _draw(self) -> None:
+        while self._pending and (
+            self._pending[0].time_s <= self._others_s or len(self._pending) > MAX_PENDING_PICTURES
+        ):
+            picture = self._pending.popleft()
+            if picture.time_s > self._others_s:
+                self.forced += 1
+            self._build(picture)
+
+    def _links_at(self, picture: Picture) -> dict[Key, Links]:
+        """Every pair's links as they were after the picture's release."""
+        at: Position = (picture.time_s, picture.release)
+        out = dict(picture.own)
+        for key, queue in self._mirrored.items():
+            latest = None
+            while queue and queue[0].position <= at:
+                latest = queue.popleft()
+            if latest is not None:  # (none: the pair had no update yet then)
+                queue.appendleft(latest)  # the base of the pictures to come
+                out[key] = latest.links
+        return out
+
+    def _build(self, picture: Picture) -> None:
+        try:
+            links = self._links_at(picture)
+            members, la, lb, score = members_and_links(
+                picture.time_s,
+                picture.radars,
+                picture.references,
+                [links[k] for k in sorted(links)],  # one worker's order: by pair
+                picture.joint,
+                self.prediction,
+            )
+            tracks = self.tracker.update(members, la, lb, score, picture.time_s)
+        except Exception:  # a bug here must not cost the pair updates: the old view stays
+            log.exception("system tracks: rebuild at %.3f failed", picture.time_s)
+            return
+        self.view = SystemTrackView.of(picture.time_s, tracks, members)
+        self._out.append(self.view)
+
+    # -- numbering across restarts -----------------------------------------------------------------
+    def continue_from(self, number: int) -> None:
+        self.tracker.continue_from(number)
+
+    def restart(self, epoch: int) -> None:
+        self.tracker = SystemTracker(self.tracker.params, epoch)
+
+
+def take_picture(
+    time_s: float,
+    release: str,
+    radars: Mapping[str, tuple[Site, TrackTable]],
+    references: Mapping[str, Any],
+    silent: set[str],
+    joint: BiasSolution | None,
+    own: Mapping[Key, Links],
+) -> Picture:
+    """A :class:`Picture` of the stage's state now (``references``: each source's
+    :class:`~service.reference.ReferenceTracks`; the silent ones are left out)."""
+    refs = {sid: ref.table(time_s) for sid, ref in references.items() if sid not in silent}
+    return Picture(time_s, release, dict(radars), refs, joint, dict(own))
