@@ -91,8 +91,6 @@ class SystemStage:
         self.partition = partition
         self.prediction = prediction
         self.tracker = SystemTracker()
-        #: The latest system tracks drawn (None: none yet).
-        self.view: SystemTrackView | None = None
         #: This worker draws the picture: the only worker, or worker 1 of N.
         self.draws = interval_s > 0 and (partition.whole or partition.solves_biases)
         #: This worker sends its pairs' links to worker 1.
@@ -125,9 +123,8 @@ class SystemStage:
     # -- the worker that draws -------------------------------------------------------------------
     def mirror(self, shared: SharedLinks) -> None:
         """Another worker's pair's links (worker 1; in the order its owner updated it)."""
-        if not self.draws or self.partition.whole or self.partition.owns_pair(*shared.key):
-            return
-        self._mirrored.setdefault(shared.key, deque()).append(shared)
+        if self.draws:
+            self._mirrored.setdefault(shared.key, deque()).append(shared)
 
     def forget(self, source_id: str) -> None:
         for key in [k for k in self._mirrored if source_id in k]:
@@ -194,8 +191,7 @@ class SystemStage:
         except Exception:  # a bug here must not cost the pair updates: the old view stays
             log.exception("system tracks: rebuild at %.3f failed", picture.time_s)
             return
-        self.view = SystemTrackView.of(picture.time_s, tracks, members)
-        self._out.append(self.view)
+        self._out.append(SystemTrackView.of(picture.time_s, tracks, members))
 
     # -- numbering across restarts -----------------------------------------------------------------
     def continue_from(self, number: int) -> None:

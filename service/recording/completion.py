@@ -23,6 +23,7 @@ from typing import Any
 import orjson
 
 from service.recording.reader import RecordedMessage
+from service.transport.session import json_replies
 
 #: Sources more than this far behind the newest source's last batch do not hold back the end
 #: (the service's ``sequencer.max_lag_s`` default).
@@ -47,16 +48,7 @@ def service_statuses(
     """
     deadline = time.monotonic() + wait_s
     while True:
-        answers = []
-        for reply in session.get(f"{prefix}/status", timeout=STATUS_QUERY_S):
-            if reply.ok is None:
-                continue
-            try:
-                body = orjson.loads(reply.ok.payload.to_bytes())
-            except orjson.JSONDecodeError:
-                continue
-            if isinstance(body, dict):
-                answers.append(body)
+        answers = list(json_replies(session.get(f"{prefix}/status", timeout=STATUS_QUERY_S)))
         if answers:
             return answers
         left = deadline - time.monotonic()

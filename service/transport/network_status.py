@@ -19,6 +19,7 @@ import zenoh
 
 from service.engine import Snapshot
 from service.pipeline.partition import BIAS_WORKER, Partition
+from service.transport.session import json_replies
 from service.wire.keys import Keys, parse_key
 
 log = logging.getLogger(__name__)
@@ -228,13 +229,10 @@ def network_pair_sets(
     wanted = {x for x in radars if x is not None}
     out = list(own)
     replies = session.get(keys.pairs_all, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s)
-    for reply in replies:
-        if reply.ok is None:
-            continue
+    for body in json_replies(replies):
         try:
-            body = orjson.loads(reply.ok.payload.to_bytes())
             key = (body["radar_a"], body["radar_b"])
-        except (orjson.JSONDecodeError, KeyError, TypeError):
+        except KeyError:
             continue
         if key in have or not wanted <= set(key):
             continue
@@ -252,13 +250,7 @@ def network_system_tracks(
     draws them (a Zenoh ``get``); none while it does not answer."""
     selector = f"{keys.system_tracks}?status={status}"
     replies = session.get(selector, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s)
-    for reply in replies:
-        if reply.ok is None:
-            continue
-        try:
-            body = orjson.loads(reply.ok.payload.to_bytes())
-        except orjson.JSONDecodeError:
-            continue
-        if isinstance(body, dict) and isinstance(body.get("system_tracks"), list):
+    for body in json_replies(replies):
+        if isinstance(body.get("system_tracks"), list):
             return body
     return {"time_s": None, "system_tracks": []}

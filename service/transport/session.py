@@ -10,12 +10,13 @@ import re
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
+import orjson
 import zenoh
 
 if TYPE_CHECKING:
@@ -163,6 +164,20 @@ def listening(endpoints: list[str], timeout_s: float = 0.5) -> list[str]:
         except OSError:
             continue
     return found
+
+
+def json_replies(replies: Iterable[zenoh.Reply]) -> Iterator[dict[str, Any]]:
+    """The JSON objects among the replies to a ``get`` (error replies, payloads that are not
+    JSON and JSON that is not an object are passed over)."""
+    for reply in replies:
+        if reply.ok is None:
+            continue
+        try:
+            body = orjson.loads(reply.ok.payload.to_bytes())
+        except orjson.JSONDecodeError:
+            continue
+        if isinstance(body, dict):
+            yield body
 
 
 def open_session(
