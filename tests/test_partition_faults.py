@@ -156,7 +156,8 @@ def test_a_killed_worker_leaves_the_rest_going_and_a_restarted_one_rebuilds(
             wait_for(lambda: sorted(r["radar_id"] for r in _get(p1, "/status")["radars"]) == radars)
             tracks = _get(p2, f"/radars/{theirs[0]}/tracks")
             assert tracks["tracks"], "the restarted worker has confirmed tracks again"
-            assert _get(p1, f"/radars/{theirs[0]}/tracks")["tracks"], "and worker 1 holds them too"
+            # and worker 1 holds them too, once their track states have reached it
+            wait_for(lambda: _get(p1, f"/radars/{theirs[0]}/tracks")["tracks"], timeout=30)
 
 
 def test_a_worker_stopped_for_30_s_comes_back_without_disordering_the_picture(

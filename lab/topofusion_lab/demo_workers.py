@@ -293,24 +293,39 @@ def descendants(pid: int) -> list[int]:
     return found
 
 
+def _running(pid: int) -> bool:
+    """The process exists and is no zombie (Linux /proc)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
 def stop_workers(workers: list[Worker], timeout_s: float) -> None:
     """SIGTERM to every worker still running, then SIGKILL to any (and what it started) still
-    there after ``timeout_s``."""
+    there after ``timeout_s``.  What a worker started (its correlation process) may outlive it
+    by a moment: it is waited for too, within the same time."""
+    below: set[int] = set()
     for w in workers:
         if w.proc.poll() is None:
+            below.update(descendants(w.proc.pid))
             with contextlib.suppress(ProcessLookupError):
                 w.proc.send_signal(signal.SIGTERM)
     deadline = time.monotonic() + timeout_s
     for w in workers:
+        below.update(descendants(w.proc.pid))  # (one started since)
         try:
             w.proc.wait(timeout=max(deadline - time.monotonic(), 0.1))
         except subprocess.TimeoutExpired:
             print(f"demo: {w.name} (pid {w.proc.pid}) did not stop in time: killed", file=sys.stderr)
-            for pid in descendants(w.proc.pid):
-                with contextlib.suppress(OSError):
-                    os.kill(pid, signal.SIGKILL)
             w.proc.kill()
             w.proc.wait()
+    while any(map(_running, below)) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    for pid in filter(_running, below):
+        with contextlib.suppress(OSError):
+            os.kill(pid, signal.SIGKILL)
 
 
 # -- what is printed -----------------------------------------------------------------------------
