@@ -1,11 +1,13 @@
-"""Scale-out benchmark: the ``national`` scenario through 1 and N partitioned workers on Zenoh.
+"""Scale-out benchmark: the ``national`` scenario (``--scenario continental`` for sizing: 45 radars,
+5 500 aircraft) through 1 and N partitioned workers on Zenoh.
 
 Prints figures, never asserts.  Each run starts a Zenoh router (a router-mode session in this
 process, on a free loopback port, multicast scouting off) and ``N`` workers as the operator
 runs them (``topofusion run --partition K/N`` subprocesses, clients of the router, each with
 its correlation process unless ``--one-process``), announces the sites, then publishes the
 stream as fast as the workers take it (``CongestionControl.BLOCK``, as a replay at
-``--speed 0``).  A client subscribed to ``{prefix}/pairs/**`` stamps every PairSet it receives.
+``--speed 0``, and waiting while a worker's queue is half full, so that none drops a
+message).  A client subscribed to ``{prefix}/pairs/**`` stamps every PairSet it receives.
 The run ends when worker 1's ``/status`` (the whole network's) counts every batch, every
 worker's queue is empty and its merge has reached the network's release clock, and no PairSet
 came for two seconds; its wall time is from the first plot batch put to the last PairSet
@@ -26,8 +28,9 @@ and received per data second (by who publishes and who subscribes to each key ki
 subscriber makes every output be sent, so those runs are slower: their speed is not
 comparable).
 
-Run: .venv/bin/python bench/bench_partition.py [--duration 300] [--seed 1] [--workers 1,2]
-     [--repeat 1] [--one-process] [--traffic] [--cache FILE] [--compare] [--logs DIR]
+Run: .venv/bin/python bench/bench_partition.py [--duration 300] [--seed 1] [--scenario national]
+     [--workers 1,2] [--repeat 1] [--one-process] [--balance] [--traffic] [--cache FILE] [--compare]
+     [--logs DIR]
 """
 
 from __future__ import annotations
@@ -51,7 +54,7 @@ from typing import Any
 import httpx
 import zenoh
 
-from service.pipeline.partition import Partition, pair_name
+from service.pipeline.partition import PAIR_KM, Partition, balanced_salt, candidate_pairs, pair_name
 from service.transport.session import ZenohOptions, open_session
 from service.wire.keys import parse_key
 from topofusion_lab.demo_workers import descendants
@@ -61,6 +64,10 @@ from topofusion_lab.scenarios.simulator import wire_messages
 
 TOPOFUSION = str(Path(sys.executable).parent / "topofusion")
 PREFIX = "fusion"
+#: The publisher looks at the workers' queues every this many messages, and waits while one
+#: holds more than PACE_DEPTH (half the default queue).
+PACE_EVERY = 256
+PACE_DEPTH = 2048
 TICK = os.sysconf("SC_CLK_TCK")
 
 
@@ -129,13 +136,16 @@ class Worker:
         return [cpu_s(p) - self.cpu0.get(p, 0.0) for p in tree(self.proc.pid)]
 
 
-def start_workers(n: int, endpoint: str, one_process: bool, log_dir: Path | None = None) -> list[Worker]:
+def start_workers(
+    n: int, endpoint: str, one_process: bool, log_dir: Path | None = None, salt: int = 0
+) -> list[Worker]:
     workers = []
     for k in range(1, n + 1):
         port = free_port()
         env = {key: v for key, v in os.environ.items() if not key.startswith("TOPOFUSION_")}
         env.update(
             TOPOFUSION_PARTITION=f"{k}/{n}",
+            TOPOFUSION_PARTITION_SALT=str(salt),
             TOPOFUSION_ZENOH_MODE="client",
             TOPOFUSION_ZENOH_CONNECT=endpoint,
             TOPOFUSION_HTTP_PORT=str(port),
@@ -167,8 +177,8 @@ def stop_workers(workers: list[Worker]) -> None:
 
 
 # -- the stream and its truth ----------------------------------------------------------------
-def make_stream(duration_s: float, seed: int, cache: Path | None) -> list[tuple[str, bytes]]:
-    sc = replace(get_scenario("national"), duration_s=duration_s)
+def make_stream(scenario: str, duration_s: float, seed: int, cache: Path | None) -> list[tuple[str, bytes]]:
+    sc = replace(get_scenario(scenario), duration_s=duration_s)
     tag = hashlib.sha256(repr((sc, seed)).encode()).hexdigest()[:16]
     if cache is not None and cache.exists():
         with cache.open("rb") as f:
@@ -249,6 +259,9 @@ class Result:
     #: Payload bytes each worker sent and received per data second (``--traffic``).
     sent: list[float] = field(default_factory=list)
     received: list[float] = field(default_factory=list)
+    #: Radars and radar pairs (of those with a pair set) each worker owns.
+    shares: list[tuple[int, int]] = field(default_factory=list)
+    salt: int = 0
 
 
 def endpoints(kind: str, ids: tuple[str, ...], n: int) -> tuple[int | None, list[int]]:
@@ -274,10 +287,18 @@ def endpoints(kind: str, ids: tuple[str, ...], n: int) -> tuple[int | None, list
     return None, []
 
 
+def balanced(n: int, stream: list[tuple[str, bytes]]) -> int:
+    """The salt ``topofusion partition --balance`` gives for the stream's sites and N workers."""
+    sites = [json.loads(p) for k, p in stream if k.endswith("/site")]
+    positions = {s["radar_id"]: (s["latitude_deg"], s["longitude_deg"]) for s in sites}
+    return balanced_salt(n, sorted(positions), candidate_pairs(sorted(positions), positions, PAIR_KM * 1e3))
+
+
 def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argparse.Namespace) -> Result:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(ZenohOptions(mode="router", listen=(endpoint,)))
-    workers = start_workers(n, endpoint, args.one_process, args.logs)
+    salt = balanced(n, stream) if args.balance and n > 1 else 0
+    workers = start_workers(n, endpoint, args.one_process, args.logs, salt)
     client = open_session(ZenohOptions(mode="client", connect=(endpoint,)))
     last_pairs = [0.0, 0]
     lock = threading.Lock()
@@ -337,6 +358,11 @@ def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argpar
         progress = time.monotonic()
         for i, (key, payload) in enumerate(stream[len(sites) :]):
             put(key, payload)
+            if i % PACE_EVERY == PACE_EVERY - 1:
+                # a worker's queue drops what does not fit (its capacity, 4 096 samples): keep
+                # every worker's backlog under half of it, so that nothing is lost
+                while max(w.get("/status")["queue"]["depth"] for w in workers) > PACE_DEPTH:
+                    time.sleep(0.05)
             if time.monotonic() - progress > 10:
                 progress = time.monotonic()
                 print(f"#   published {i}/{len(stream)}", file=sys.stderr, flush=True)
@@ -370,7 +396,15 @@ def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argpar
         peaks = [[peak_mb(p) for p in tree(w.proc.pid)] for w in workers]
         correct, false, found, common = accuracy(workers[0], radars)
         system = system_accuracy(workers, radars)
-        pair_sets = len(workers[0].get("/pairs", status="all"))
+        held = workers[0].get("/pairs", status="all")
+        pair_sets = len(held)
+        shares = [
+            (
+                sum(Partition(k, n, salt).owns(r) for r in radars),
+                sum(Partition(k, n, salt).owns_pair(ps["radar_a"], ps["radar_b"]) for ps in held),
+            )
+            for k in range(1, n + 1)
+        ]
         print(f"#   status: {workers[0].get('/status')['pairs_confirmed']} confirmed pairs", file=sys.stderr)
     finally:
         for s in subs:
@@ -396,6 +430,8 @@ def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argpar
         system,
         [b / data_s for b in sent[1:]] if args.traffic else [],
         [b / data_s for b in received[1:]] if args.traffic else [],
+        shares,
+        salt,
     )
 
 
@@ -403,10 +439,11 @@ def report(r: Result, one: Result | None = None) -> None:
     """One run's figures (``one``: the run of the first worker count, for the CPU ratios)."""
     judged = max(r.correct + r.false, 1)
     peaks = "; ".join("+".join(f"{p:.0f}" for p in w) for w in r.peaks)
+    salted = f" (salt {r.salt})" if r.salt else ""
     print(
-        f"  {r.workers} worker(s): {r.x_real_time:5.1f}x real time (wall {r.wall_s:.1f} s); CPU s per worker "
-        f"{', '.join(f'{c:.1f}' for c in r.cpu_workers)} (bench process {r.cpu_bench:.1f}); peak RSS MB per "
-        f"worker (process+children) {peaks}"
+        f"  {r.workers} worker(s){salted}: {r.x_real_time:5.1f}x real time (wall {r.wall_s:.1f} s); "
+        f"CPU s per worker {', '.join(f'{c:.1f}' for c in r.cpu_workers)} (bench process "
+        f"{r.cpu_bench:.1f}); peak RSS MB per worker (process+children) {peaks}"
     )
     print(
         f"    pairs: {r.correct + r.false} confirmed in {r.pair_sets} radar pairs, correct {r.correct} "
@@ -422,13 +459,14 @@ def report(r: Result, one: Result | None = None) -> None:
     base = sum(one.cpu_workers) if one is not None else None
     for k, (cpu, peak) in enumerate(zip(r.cpu_workers, r.peaks, strict=True), start=1):
         ratio = f", {cpu / base:.2f}x one worker's" if base else ""
+        owns = f"owns {r.shares[k - 1][0]} radars, {r.shares[k - 1][1]} pairs; " if r.shares else ""
         io = (
             f"; payload sent {r.sent[k - 1] / 1e3:.1f} kB/s, received {r.received[k - 1] / 1e3:.1f} kB/s"
             if r.sent
             else ""
         )
         print(
-            f"    worker {k}/{r.workers}: CPU {cpu / r.data_s:.3f} s per data s{ratio}; peak RSS "
+            f"    worker {k}/{r.workers}: {owns}CPU {cpu / r.data_s:.3f} s per data s{ratio}; peak RSS "
             f"{'+'.join(f'{p:.0f}' for p in peak)} MB{io}"
         )
     if base:
@@ -443,23 +481,31 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--duration", type=float, default=300.0, help="data seconds (default 300)")
     p.add_argument("--seed", type=int, default=1)
+    p.add_argument(
+        "--scenario", default="national", help="national (default), or continental for sizing (45 radars)"
+    )
     p.add_argument("--workers", default="1,2", help="worker counts, side by side (default 1,2)")
     p.add_argument("--repeat", type=int, default=1)
     p.add_argument("--one-process", action="store_true", help="workers without their correlation process")
+    p.add_argument(
+        "--balance",
+        action="store_true",
+        help="give the workers the salt `topofusion partition --balance` finds for the sites",
+    )
     p.add_argument("--traffic", action="store_true", help="count every message by key kind (slower)")
     p.add_argument("--cache", type=Path, help="keep the generated stream in this file")
     p.add_argument("--compare", action="store_true", help="list the radar pairs whose updates differ")
     p.add_argument("--logs", type=Path, help="write each worker's log into this folder")
     args = p.parse_args()
     counts = [int(x) for x in args.workers.split(",")]
-    stream = make_stream(args.duration, args.seed, args.cache)
+    stream = make_stream(args.scenario, args.duration, args.seed, args.cache)
     plots = sum(len(json.loads(pl)["plots"]["time_s"]) for k, pl in stream if k.endswith("/plots"))
     times = [json.loads(pl)["time_s"] for k, pl in stream if k.endswith("/plots")]
     data_s = max(times) - min(times)
     print(
-        f"# national scenario, {args.duration:g} s of data (seed {args.seed}): {len(stream)} messages, "
-        f"{plots} plots; workers {'without' if args.one_process else 'with'} their correlation process; "
-        f"{os.cpu_count()} cores"
+        f"# {args.scenario} scenario, {args.duration:g} s of data (seed {args.seed}): "
+        f"{len(stream)} messages, {plots} plots; workers {'without' if args.one_process else 'with'} "
+        f"their correlation process; {os.cpu_count()} cores"
     )
     print(f"# command: {' '.join(sys.argv)}")
     results: dict[int, list[Result]] = defaultdict(list)

@@ -78,8 +78,9 @@ def _partition_to_engine(value: str) -> dict[str, int]:
 
 
 def _partition_from_engine(value: Any) -> Any:
-    """The engine's form (``{index, count}``) as the setting's ``K/N``; a ``K/N`` as it is."""
-    if isinstance(value, Mapping) and set(value) == {"index", "count"}:
+    """The engine's form (``{index, count, salt}``) as the setting's ``K/N`` (the salt is its
+    own setting); a ``K/N`` as it is."""
+    if isinstance(value, Mapping) and {"index", "count"} <= set(value) <= {"index", "count", "salt"}:
         return f"{value['index']}/{value['count']}"
     return value
 
@@ -169,6 +170,12 @@ class Settings(BaseSettings):
     #: (``service.pipeline.partition``: which worker owns which radar and radar pair).
     partition: Annotated[str, EngineKey("partition", _partition_to_engine, _partition_from_engine)] = Field(
         default="1/1", pattern=r"^\s*\d+\s*/\s*\d+\s*$"
+    )
+    #: Mixed into the rendezvous weights of ``partition`` (0: none): a balanced assignment
+    #: for a network's radars (``topofusion partition --balance``); every worker the same.
+    #: Unset: the engine configuration's ``partition.salt`` (default 0).
+    partition_salt: Annotated[int | None, EngineKey("partition.salt")] = Field(
+        default=None, ge=0, le=2**31 - 1
     )
     #: Capacity of the queue between Zenoh callbacks and the worker (samples).
     queue_size: int = Field(default=4096, ge=1)
@@ -481,6 +488,7 @@ FLAGS: dict[str, str] = {
     "initiator": "initiator",
     "radars": "radars",
     "partition": "partition",
+    "partition_salt": "partition_salt",
     "log_level": "log_level",
     "config": "config",
     "state_dir": "state_dir",

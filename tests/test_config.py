@@ -171,6 +171,14 @@ def test_the_engine_form_of_a_shared_setting_is_taken_everywhere(
     assert Settings.load(path).engine.partition == Partition(3, 3)
     clean_env.setenv("TOPOFUSION_PERFORMANCE_WINDOW_S", "120")
     assert Settings.load(path).engine.assessment.window_s == 120
+    # the partition's salt: its own setting, or the engine tree's partition.salt
+    clean_env.delenv("TOPOFUSION_ENGINE__PARTITION__INDEX")
+    clean_env.delenv("TOPOFUSION_ENGINE__PARTITION__COUNT")
+    path.write_text("partition: {index: 2, count: 3, salt: 46}\n")
+    assert Settings.load(path).engine.partition == Partition(2, 3, 46)
+    clean_env.setenv("TOPOFUSION_PARTITION_SALT", "7")
+    assert Settings.load(path).engine.partition == Partition(2, 3, 7)
+    assert Settings.load(path).effective()["partition_salt"] == 7
 
 
 def test_a_file_key_neither_setting_nor_engine_section_is_refused(
@@ -197,7 +205,7 @@ def test_the_effective_settings_are_a_config_file_with_secrets_redacted(
     shown = settings.effective()
     assert shown["api_token"] == REDACTED and "s3cret" not in settings.render() + settings.render("json")
     assert shown["http_port"] == 9000 and shown["cadence"]["cadence_scans"] == 2
-    assert shown["partition"] == {"index": 1, "count": 2}  # shared keys in the engine's form
+    assert shown["partition"] == {"index": 1, "count": 2, "salt": 0}  # shared keys in the engine's form
     assert {k: shown[k] for k in as_dict(settings.engine)} == as_dict(settings.engine)
     for fmt in ("yaml", "json"):
         path = tmp_path / f"shown.{fmt}"

@@ -21,7 +21,7 @@ from pydantic import ValidationError
 from service.engine import Engine, EngineConfig
 from service.pipeline.errors import RejectionError
 from service.pipeline.merger import TableMerger
-from service.pipeline.partition import Partition
+from service.pipeline.partition import FIRST_WORKER_EXTRA, Partition, balanced_salt, shares
 from service.pipeline.peers import MAX_PENDING_STATES
 from service.pipeline.read_model import SystemTrackView
 from service.pipeline.sequencer import RADAR
@@ -73,6 +73,69 @@ def test_shares_are_even_and_a_new_worker_only_takes_names() -> None:
     moved = [(a, b) for a, b in zip(three, four, strict=True) if a != b]
     assert all(b == 4 for _, b in moved)  # names move only to the new worker
     assert abs(len(moved) - 750) < 4 * np.sqrt(3000 * 0.25 * 0.75)
+
+
+def test_a_salt_is_mixed_into_every_weight_as_documented() -> None:
+    """With salt S the weights are those of "{S}:{k}:{name}"; salt 0 is the plain rule."""
+    names = [f"R{i}" for i in range(200)]
+
+    def by_hand(name: str, n: int, salt: int) -> int:
+        text = [f"{salt}:{k}:{name}" for k in range(1, n + 1)]
+        weights = [int(hashlib.blake2b(t.encode(), digest_size=8).hexdigest(), 16) for t in text]
+        return 1 + weights.index(max(weights))
+
+    for n in (2, 3):
+        assert [Partition(1, n, 7).owner(x) for x in names] == [by_hand(x, n, 7) for x in names]
+        assert [Partition(1, n, 0).owner(x) for x in names] == [_owner_by_hand(x, n) for x in names]
+        assert [Partition(1, n, 7).owner(x) for x in names] != [Partition(1, n).owner(x) for x in names]
+    # still rendezvous: a fourth worker takes names, nothing else moves
+    three = [Partition(1, 3, 7).owner(x) for x in names]
+    four = [Partition(1, 4, 7).owner(x) for x in names]
+    assert all(b == 4 for a, b in zip(three, four, strict=True) if a != b)
+    with pytest.raises(ValueError, match="salt"):
+        Partition(1, 2, -1)
+
+
+def test_the_balanced_salt_is_the_best_of_those_tried() -> None:
+    """:func:`balanced_salt` against a plain reference: every salt's shares counted through
+    ``Partition.owns``, the lowest salt of the smallest busiest share."""
+    radars = [f"N{i:02d}" for i in range(1, 13)]
+    pairs = list(itertools.combinations(radars, 2))
+    for n in (2, 4):
+
+        def busiest(salt: int, n: int = n) -> float:
+            parts = [Partition(k, n, salt) for k in range(1, n + 1)]
+            r = [sum(p.owns(x) for x in radars) / len(radars) for p in parts]
+            q = [sum(p.owns_pair(a, b) for a, b in pairs) / len(pairs) for p in parts]
+            loads = [(x + y) / 2 for x, y in zip(r, q, strict=True)]
+            loads[0] += FIRST_WORKER_EXTRA  # worker 1 also draws the picture, solves the biases
+            return max(loads)
+
+        tries = 60
+        want = min(range(tries), key=lambda s: (round(busiest(s), 12), s))
+        got = balanced_salt(n, radars, pairs, tries)
+        assert got == want
+        assert max(shares(n, got, radars, pairs)) == pytest.approx(busiest(got))
+        assert busiest(got) <= busiest(0)
+    # with its thousand tries, 2 workers get an even split of these 12 radars and 66 pairs,
+    # worker 1's extra counted: within one pair and one radar of the ideal
+    ideal = (1 + FIRST_WORKER_EXTRA) / 2
+    assert max(shares(2, balanced_salt(2, radars, pairs), radars, pairs)) <= ideal + (1 / 12 + 1 / 66) / 2
+
+
+def test_workers_of_other_salts_are_refused() -> None:
+    """A progress message of a worker hashing with another salt would split the names
+    differently: refused, counted, and nothing changes."""
+    engine = Engine(EngineConfig(partition=Partition(1, 2, 5)))
+    keys = Keys("fusion")
+    body = {"partition": "2/2", "released_s": 10.0, "correlated_s": 10.0}
+    before = engine.peers.progress()
+    out = engine.ingest(keys.worker_progress(2), json.dumps(body).encode())
+    assert engine.rejected == {"schema": 1}
+    assert "TOPOFUSION_PARTITION_SALT" in json.loads(out[0].payload)["detail"]
+    assert engine.peers.progress() == before
+    engine.ingest(keys.worker_progress(2), json.dumps({**body, "salt": 5}).encode())
+    assert engine.rejected == {"schema": 1}  # the same salt: taken
 
 
 @pytest.mark.parametrize("spec", ["0/2", "3/2", "1", "a/b", "1/0"])
@@ -215,12 +278,16 @@ def _run_one(
 
 
 def _run_partitioned(
-    msgs: list[tuple[str, bytes]], n: int, seed: int, watch: Callable[[Engine], object] = lambda e: None
+    msgs: list[tuple[str, bytes]],
+    n: int,
+    seed: int,
+    watch: Callable[[Engine], object] = lambda e: None,
+    salt: int = 0,
 ) -> tuple[dict[str, list[bytes]], dict[str, set[int]], list[Engine]]:
     """N engines, each message delivered to each in its own random batches, the peers'
     messages to the others in the order they were produced, at random later moments."""
     rng = random.Random(seed)
-    engines = [Engine(EngineConfig(partition=Partition(k, n))) for k in range(1, n + 1)]
+    engines = [Engine(EngineConfig(partition=Partition(k, n, salt))) for k in range(1, n + 1)]
     for engine in engines:
         watch(engine)
     queues: list[list[tuple[str, bytes]]] = [[] for _ in engines]
@@ -251,11 +318,11 @@ def _run_partitioned(
     return pairs, publishers, engines
 
 
-@pytest.mark.parametrize(("n", "seed"), [(2, 0), (3, 1)])
-def test_n_engines_give_the_pair_updates_of_one(n: int, seed: int) -> None:
+@pytest.mark.parametrize(("n", "seed", "salt"), [(2, 0, 0), (3, 1, 0), (2, 2, 46)])
+def test_n_engines_give_the_pair_updates_of_one(n: int, seed: int, salt: int) -> None:
     msgs = scenario_messages("three-radar", duration_s=150.0, seed=2)
     one, single = _run_one(msgs)
-    many, publishers, engines = _run_partitioned(msgs, n, seed)
+    many, publishers, engines = _run_partitioned(msgs, n, seed, salt=salt)
     assert sorted(many) == sorted(one)
     for key in one:
         assert len(publishers[key]) == 1, f"{key} correlated by workers {publishers[key]}"
@@ -263,8 +330,8 @@ def test_n_engines_give_the_pair_updates_of_one(n: int, seed: int) -> None:
         # input the newest update of a pair may still be held back, never a different one.
         assert len(one[key]) - 1 <= len(many[key]) <= len(one[key])
         assert many[key] == one[key][: len(many[key])], key
-    a, b, c = (Partition(1, n).owner(x) for x in "ABC")
-    crossing = [k for k in one if len({Partition(1, n).owner(r) for r in k.split("/")[-2:]}) > 1]
+    a, b, c = (Partition(1, n, salt).owner(x) for x in "ABC")
+    crossing = [k for k in one if len({Partition(1, n, salt).owner(r) for r in k.split("/")[-2:]}) > 1]
     assert crossing, (a, b, c)  # the stream has pairs whose radars two workers track
     # The joint bias estimate: solved by worker 1 over every worker's rows, at the same data
     # times over the same rows as one worker's, so the very same numbers; every worker serves it.
@@ -400,6 +467,29 @@ def test_partition_command_prints_the_assignment_the_workers_use() -> None:
         assert radars == [i for i in ids if p.owns(i)] or (radars == ["-"] and not any(map(p.owns, ids)))
         want = [f"{a}/{b}" for a, b in itertools.combinations(ids, 2) if p.owns_pair(a, b)]
         assert pairs == want or (pairs == ["-"] and not want)
+
+
+def test_partition_balance_prints_the_salt_and_its_assignment(tmp_path: Path) -> None:
+    """``--balance`` names the salt balanced_salt finds for the sites' pairs (those at most
+    --pair-km apart), and prints the assignment the workers given that salt use."""
+    ids = [f"N{i:02d}" for i in range(1, 13)]
+    sites = [{"radar_id": r, "latitude_deg": 46.0, "longitude_deg": 1.0 + 2.0 * i} for i, r in enumerate(ids)]
+    path = tmp_path / "sites.json"
+    path.write_text(json.dumps(sites))
+    exe = str(Path(sys.executable).parent / "topofusion")
+    argv = [exe, "partition", "--count", "2", "--sites", str(path), "--balance", "--pair-km", "400"]
+    out = subprocess.run(argv, capture_output=True, text=True, check=True).stdout
+    salt = int(out.split("TOPOFUSION_PARTITION_SALT=")[1].split()[0])
+    # neighbours 2 degrees of longitude apart (about 155 km): pairs up to two apart are near
+    near = [(a, b) for a, b in itertools.combinations(ids, 2) if abs(ids.index(a) - ids.index(b)) <= 2]
+    assert salt == balanced_salt(2, ids, near)
+    blocks = out.split("\nworker ")[1:]
+    assert len(blocks) == 2
+    for k, block in enumerate(blocks, start=1):
+        p = Partition(k, 2, salt)
+        assert block.split("radars:")[1].split("\n")[0].split() == [i for i in ids if p.owns(i)]
+        assert block.split("pairs:")[1].split() == [f"{a}/{b}" for a, b in near if p.owns_pair(a, b)]
+        assert f"share {shares(2, salt, ids, near)[k - 1]:.3f}" in block
 
 
 def test_track_states_before_the_radars_site_wait_for_it() -> None:

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from service.cli.common import Commands, add_command, settings_from
+from service.pipeline.partition import PAIR_KM
 from service.settings import Settings
 
 
@@ -30,6 +31,22 @@ def register(commands: Commands) -> None:
     part.add_argument("--count", type=int, required=True, metavar="N", help="number of workers")
     part.add_argument("--sites", metavar="FILE", help="the radars of a sites file (a JSON list of RadarSite)")
     part.add_argument("ids", nargs="*", metavar="ID", help="radar or reference source ids")
+    part.add_argument(
+        "--salt", type=int, default=0, metavar="S", help="the salt of the hashing (TOPOFUSION_PARTITION_SALT)"
+    )
+    part.add_argument(
+        "--balance",
+        action="store_true",
+        help="find the salt that shares the radars and radar pairs most evenly, and use it",
+    )
+    part.add_argument(
+        "--pair-km",
+        type=float,
+        default=PAIR_KM,
+        metavar="KM",
+        help=f"with --sites: count only pairs of sites at most this far apart, those whose cover can "
+        f"overlap (default {PAIR_KM:g}: two 300 km radars)",
+    )
     sch = add_command(
         commands, "schemas", schemas_main, help="write JSON Schemas of every payload into schemas/"
     )
@@ -38,28 +55,34 @@ def register(commands: Commands) -> None:
 
 def partition_main(args: argparse.Namespace) -> int:
     """``topofusion partition --count N``: each worker's radars and radar pairs (rendezvous
-    hashing, contract §4.6), with each worker's share."""
-    import itertools
-
+    hashing, contract §6), with each worker's share; ``--balance``: with the salt that shares
+    them most evenly."""
     from service.config import load_sites
-    from service.pipeline.partition import Partition
+    from service.pipeline.partition import MAX_SALT, Partition, balanced_salt, candidate_pairs, shares
 
-    if args.count < 1:
-        print("--count must be at least 1", file=sys.stderr)
+    if args.count < 1 or not 0 <= args.salt <= MAX_SALT:
+        print(f"--count must be at least 1 and --salt in 0..{MAX_SALT}", file=sys.stderr)
         return 2
-    ids = list(args.ids)
-    if args.sites:
-        ids += [s.radar_id for s in load_sites(args.sites)]
-    ids = sorted(set(ids))
+    sites = {s.radar_id: s for s in load_sites(args.sites)} if args.sites else {}
+    ids = sorted(set(args.ids) | set(sites))
     if not ids:
         print("give radar ids or --sites FILE", file=sys.stderr)
         return 2
-    pairs = list(itertools.combinations(ids, 2))
+
+    positions = {rid: (site.latitude_deg, site.longitude_deg) for rid, site in sites.items()}
+    pairs = candidate_pairs(ids, positions, args.pair_km * 1000.0)
+    salt = balanced_salt(args.count, ids, pairs) if args.balance else args.salt
+    if args.balance:
+        print(f"salt {salt}: give every worker TOPOFUSION_PARTITION_SALT={salt} (or --partition-salt {salt})")
+    share = shares(args.count, salt, ids, pairs)
     for k in range(1, args.count + 1):
-        p = Partition(k, args.count)
+        p = Partition(k, args.count, salt)
         radars = [i for i in ids if p.owns(i)]
         owned = [f"{a}/{b}" for a, b in pairs if p.owns_pair(a, b)]
-        print(f"worker {k}/{args.count}: {len(radars)} radars, {len(owned)} of {len(pairs)} pairs")
+        print(
+            f"worker {k}/{args.count}: {len(radars)} radars, {len(owned)} of {len(pairs)} pairs "
+            f"(share {share[k - 1]:.3f})"
+        )
         print(f"  radars: {' '.join(radars) or '-'}")
         print(f"  pairs:  {' '.join(owned) or '-'}")
     return 0

@@ -47,6 +47,13 @@ def service_flags(p: argparse.ArgumentParser) -> None:
         metavar="K/N",
         help="worker K of N on one prefix (default 1/1); see `topofusion partition` for who owns what",
     )
+    p.add_argument(
+        "--partition-salt",
+        type=int,
+        metavar="S",
+        help="salt of the partition's hashing (default 0), the same on every worker: "
+        "`topofusion partition --balance` finds a balanced one",
+    )
     p.add_argument("--log-level", help="logging level (default INFO)")
     p.add_argument("--config", metavar="FILE", help="engine parameters, TOML/YAML/JSON (see `config --show`)")
     p.add_argument(

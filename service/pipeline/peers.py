@@ -291,13 +291,16 @@ class Peers:
         released and correlated) and its radars' data clocks (the network watermark,
         :meth:`Sequencer.observe`)."""
         merged = self.merger.last_limit
-        progress = {
+        salted = {"salt": self.partition.salt} if self.partition.salt else {}
+        progress: dict[str, Any] = {
             "partition": str(self.partition),
+            **salted,
             "released_s": finite_or_none(self.sequencer.last_limit),
             "correlated_s": finite_or_none(self.correlation.correlated_through(merged)),
         }
-        clocks = {
+        clocks: dict[str, Any] = {
             "partition": str(self.partition),
+            **salted,
             "clocks": {
                 rid: s.last_time_s
                 for rid, s in sorted(self.sequencer.sources.items())
@@ -331,6 +334,12 @@ class Peers:
             worker = int(ids[0])
             if clock.partition != f"{worker}/{self.partition.count}":
                 raise RejectionError("schema", f"worker {clock.partition} on the key of worker {worker}")
+            if (clock.salt or 0) != self.partition.salt:
+                raise RejectionError(
+                    "schema",
+                    f"worker {worker} hashes with salt {clock.salt or 0}, this worker with "
+                    f"{self.partition.salt}: every worker needs the same TOPOFUSION_PARTITION_SALT",
+                )
             if worker == self.partition.index:
                 return PeerInput()
             if kind == "worker_clock":

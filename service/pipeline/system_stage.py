@@ -11,8 +11,13 @@ one a single worker would build, from the same inputs at the same releases:
 * its merge releases every radar's tables in one worker's order (:mod:`.merger`), so at the
   release that crosses a multiple it holds the same tables, references and joint estimate; it
   takes them then (a :class:`Picture`), with the links of the pairs it correlates;
-* every other worker sends the links of each pair it updates, tagged with the release they
-  follow (``{prefix}/links/{a}/{b}``, ``PairLinks``: :meth:`SystemStage.take_links`);
+* every other worker sends, at the release that crosses a multiple (it merges the same
+  releases in the same order), the links of each pair it updated since the previous one, as
+  they were after the pair's latest update and tagged with that update's release
+  (``{prefix}/links/{a}/{b}``, ``PairLinks``: :meth:`SystemStage.take_links`): a picture reads
+  only a pair's latest links at or before its release, so the links of an update that another
+  update of the pair follows before the next picture are never sent (a pair updates about once
+  a scan, a picture is taken every ``system_interval_s``);
 * once every other live worker says it has correlated past the picture's data time
   (``correlated_s`` of ``{prefix}/workers/{k}/progress``, sent after the links it covers),
   worker 1 holds every pair's links up to that release and draws the picture: for each other
@@ -99,6 +104,8 @@ class SystemStage:
         self._next_s = -np.inf
         self._out: list[SystemTrackView] = []
         self._links_out: list[SharedLinks] = []
+        #: Owned pairs updated since the last picture's release: their latest links (sharing).
+        self._updated: dict[Key, SharedLinks] = {}
         self._pending: deque[Picture] = deque()
         #: Every other worker's pairs: their links, oldest first (a base and what came after).
         self._mirrored: dict[Key, deque[SharedLinks]] = {}
@@ -107,9 +114,14 @@ class SystemStage:
 
     # -- every worker ------------------------------------------------------------------------
     def updated(self, key: Key, links: Callable[[], Links], time_s: float, release: str) -> None:
-        """An owned pair's book changed at the release ``(time_s, release)``."""
+        """An owned pair's book changed at the release ``(time_s, release)``: its links as they
+        are now go out at the next picture's release (:meth:`due`)."""
         if self.shares:
-            self._links_out.append(SharedLinks(key, time_s, release, links()))
+            self._updated[key] = SharedLinks(key, time_s, release, links())
+
+    def _share(self) -> None:
+        self._links_out.extend(self._updated[k] for k in sorted(self._updated))
+        self._updated = {}
 
     def take_links(self) -> list[SharedLinks]:
         out, self._links_out = self._links_out, []
@@ -129,16 +141,22 @@ class SystemStage:
     def forget(self, source_id: str) -> None:
         for key in [k for k in self._mirrored if source_id in k]:
             del self._mirrored[key]
+        for key in [k for k in self._updated if source_id in k]:
+            del self._updated[key]
 
     def due(self, clock_s: float, release: str, take: Callable[[float, str], Picture]) -> None:
-        """A release at ``clock_s`` of radar ``release``: if it crosses a multiple of the
-        interval, take the picture's inputs (``take``) and draw what may be drawn."""
-        if not self.draws:
+        """A release at ``clock_s`` of radar ``release``, after its pair updates: if it crosses a
+        multiple of the interval, take the picture's inputs (``take``) and draw what may be
+        drawn; a sharing worker sends the links the picture of this release reads."""
+        if not (self.draws or self.shares):
             return
         grid = float(np.floor(clock_s / self.interval_s) * self.interval_s)
         if grid < self._next_s:
             return
         self._next_s = grid + self.interval_s
+        if self.shares:
+            self._share()
+            return
         self._pending.append(take(clock_s, release))
         self._draw()
 
@@ -148,7 +166,10 @@ class SystemStage:
         self._draw()
 
     def finish(self, picture: Picture | None) -> None:
-        """End of the input: every picture waiting, then one of now (``picture``)."""
+        """End of the input: every picture waiting, then one of now (``picture``); a sharing
+        worker sends the links of the pairs updated since the last picture."""
+        if self.shares:
+            self._share()
         self._others_s = np.inf
         self._draw()
         if picture is not None and self.draws:

@@ -27,6 +27,7 @@ import numpy as np
 import orjson
 from numpy.typing import NDArray
 
+from service.correlation.pairkeys import isin_sorted
 from service.pipeline.errors import RejectionError
 from service.tracking.base import TrackTable
 from service.wire.models import MAX_ECEF_M, MAX_TIME_S, MAX_TRACKS
@@ -51,25 +52,12 @@ class ExchangeParams:
     step_s: float = 1.0
 
 
-def id_keys(ids: NDArray[np.str_]) -> NDArray[np.uint64]:
-    """A 64-bit FNV-1a hash of each id's code points (vectorised over ids, a loop over character
-    positions; the same id hashes alike in arrays of any width):
-    integer keys match in a fraction of the time strings take.  A match is confirmed on the
-    strings themselves where it decides (:func:`changed_rows`); elsewhere a collision (one in
-    2^64 per pair of ids) would fail the receiver's ``count`` check, a counted gap."""
-    a = np.ascontiguousarray(np.asarray(ids, dtype=str))
-    n = a.shape[0]
-    width = a.dtype.itemsize // 4
-    h = np.full(n, 0xCBF29CE484222325, dtype=np.uint64)
-    if n == 0 or width == 0:
-        return h
-    points = a.view(np.uint32).reshape(n, width)
-    prime = np.uint64(0x100000001B3)
-    for j in range(width):
-        # (numpy pads shorter ids with NULs to the array's width: they are not part of the id)
-        cp = points[:, j].astype(np.uint64)
-        h = np.where(cp != 0, (h ^ cp) * prime, h)
-    return h
+def _positions(ids: NDArray[np.str_], query: NDArray[np.str_]) -> NDArray[np.intp]:
+    """Where each ``query`` id would sit in ``ids`` (a table's ids, in canonical order: sorted,
+    so one binary search; unsorted ids are sorted first), clipped to a valid row."""
+    order = None if bool(np.all(ids[1:] >= ids[:-1])) else np.argsort(ids, kind="stable")
+    pos = np.minimum(np.searchsorted(ids, query, sorter=order), len(ids) - 1)
+    return pos if order is None else order[pos]
 
 
 def changed_rows(old: TrackTable, new: TrackTable) -> tuple[np.ndarray, np.ndarray]:
@@ -78,10 +66,8 @@ def changed_rows(old: TrackTable, new: TrackTable) -> tuple[np.ndarray, np.ndarr
     n = len(new)
     if len(old) == 0:
         return np.ones(n, dtype=bool), np.empty(0, dtype=str)
-    k_old, k_new = id_keys(old.track_id), id_keys(new.track_id)
-    order = np.argsort(k_old, kind="stable")
-    pos = order[np.minimum(np.searchsorted(k_old, k_new, sorter=order), len(old) - 1)]
-    known = (k_old[pos] == k_new) & (old.track_id[pos] == new.track_id)
+    pos = _positions(old.track_id, new.track_id)
+    known = old.track_id[pos] == new.track_id
     same = known & (old.confirmed[pos] == new.confirmed)
     same &= old.time_s[pos] == new.time_s
     same &= old.plots[pos] == new.plots
@@ -130,9 +116,33 @@ def states_body(
 
 def apply_change(base: TrackTable, rows: TrackTable, removed: np.ndarray) -> TrackTable:
     """``base`` with ``rows`` put in (new or changed) and the ids ``removed`` taken out, in
-    canonical order: the table :func:`changed_rows` was computed from."""
-    gone = np.isin(id_keys(base.track_id), id_keys(np.concatenate([removed, rows.track_id])))
-    return TrackTable.concat([base.take(~gone), rows]).by_id()
+    canonical order: the table :func:`changed_rows` was computed from.
+
+    Both tables are in canonical (id) order, so the few ids of the change are found among the
+    many by binary search, and the rows merged into place without sorting the whole table
+    again (the many: a radar's table, about ten times a change's rows)."""
+    ids, new_ids = base.track_id, rows.track_id
+    if not (_ascending(ids) and _ascending(new_ids)):  # (not canonical: sort it)
+        gone = isin_sorted(ids, np.concatenate([removed, new_ids]))
+        return TrackTable.concat([base.take(~gone), rows]).by_id()
+    kept = np.ones(len(ids), dtype=bool)
+    if len(ids):
+        out = np.concatenate([removed, new_ids])
+        pos = np.minimum(np.searchsorted(ids, out), len(ids) - 1)
+        kept[pos[ids[pos] == out]] = False
+    kept_at = np.flatnonzero(kept)
+    # row j of the change goes after the kept ids below it, and after the j rows before it
+    at = np.searchsorted(ids[kept_at], new_ids) + np.arange(len(new_ids))
+    from_rows = np.zeros(len(kept_at) + len(new_ids), dtype=bool)
+    from_rows[at] = True
+    order = np.empty(len(from_rows), dtype=np.intp)
+    order[from_rows] = len(ids) + np.arange(len(new_ids))
+    order[~from_rows] = kept_at
+    return TrackTable.concat([base, rows]).take(order)
+
+
+def _ascending(ids: NDArray[np.str_]) -> bool:
+    return bool(np.all(ids[1:] > ids[:-1]))
 
 
 @dataclass(frozen=True)

@@ -36,6 +36,7 @@ def partition_section(partition: Partition, alive: set[int], workers: dict[int, 
         "partition": str(partition),
         "count": n,
         "bias_worker": BIAS_WORKER,
+        "salt": partition.salt,
         "workers": [
             {
                 "partition": f"{k}/{n}",

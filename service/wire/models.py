@@ -375,6 +375,13 @@ class WorkerClock(WireModel):
         description="every correlation update up to this data time is done and its rows are published",
     )
     clocks: Annotated[dict[SourceId, TimeS], Field(max_length=MAX_TRACKS)] = Field(default_factory=dict)
+    salt: int | None = Field(
+        default=None,
+        ge=0,
+        le=2**31 - 1,
+        description="the salt of the partition's hashing (TOPOFUSION_PARTITION_SALT), when not 0: "
+        "every worker of a network needs the same",
+    )
 
 
 class RegistrationRows(WireModel):
@@ -478,6 +485,7 @@ class PartitionStatus(OutModel):
     partition: str = Field(description="this worker, K/N")
     count: int
     bias_worker: int = Field(description="the partition that solves the joint bias estimate")
+    salt: int = Field(default=0, description="the salt of the hashing (TOPOFUSION_PARTITION_SALT; 0: none)")
     workers: list[WorkerInfo]
     missing: list[int] = Field(
         description="partitions with no live worker: their radars and pairs are absent"

@@ -39,32 +39,64 @@ _NATIONAL_RADARS = (
 )
 
 
+def _network_radar(name: str, lat: float, lon: float, row: tuple[float, ...]) -> RadarSpec:
+    """An en-route radar of a load scenario at ``lat``/``lon`` with one row of
+    :data:`_NATIONAL_RADARS` (scan period, biases, clutter, Pd, height), 300 km range."""
+    period, rb, ab, eb, clutter, pd, alt = row
+    return RadarSpec(
+        name,
+        round(lat, 5),
+        round(lon, 5),
+        altitude_m=alt,
+        scan_period_s=period,
+        range_bias_m=rb,
+        azimuth_bias_deg=ab,
+        elevation_bias_deg=eb,
+        pd=pd,
+        clutter_per_scan=clutter,
+        max_range_m=300_000.0,
+        sectors=8,
+    )
+
+
 def _national_radars() -> tuple[RadarSpec, ...]:
     out = []
     cos_lat = math.cos(math.radians(_NATIONAL_LAT))
-    for i, (period, rb, ab, eb, clutter, pd, alt) in enumerate(_NATIONAL_RADARS):
+    for i, row in enumerate(_NATIONAL_RADARS):
         bearing = math.radians(360.0 * i / len(_NATIONAL_RADARS))
         east, north = _NATIONAL_RING_M * math.sin(bearing), _NATIONAL_RING_M * math.cos(bearing)
         # metres to degrees on a sphere: good to well under 1 km at this scale, and the sites
         # are sent with the radars' exact positions anyway
         lat = _NATIONAL_LAT + north / 111_195.0
         lon = _NATIONAL_LON + east / (111_195.0 * cos_lat)
-        out.append(
-            RadarSpec(
-                f"N{i + 1:02d}",
-                round(lat, 5),
-                round(lon, 5),
-                altitude_m=alt,
-                scan_period_s=period,
-                range_bias_m=rb,
-                azimuth_bias_deg=ab,
-                elevation_bias_deg=eb,
-                pd=pd,
-                clutter_per_scan=clutter,
-                max_range_m=300_000.0,
-                sectors=8,
-            )
-        )
+        out.append(_network_radar(f"N{i + 1:02d}", lat, lon, row))
+    return tuple(out)
+
+
+# A continental network, for sizing a partitioned deployment: 45 radars on a 250 km grid
+# (7 x 7 without its corners, 1 500 km across), 5 500 aircraft over a square 1 800 km wide on
+# the earth's curve, so each aircraft is seen by about 3-4 radars (300 km range, the horizon)
+# and each radar overlaps its 8 nearest neighbours and more.  The radars take the national
+# radars' scan periods, biases, clutter, Pd and heights in turn.  About 4 000 plots/s, 2.2
+# times the national rate.
+_CONTINENTAL_LAT, _CONTINENTAL_LON = 48.0, 10.0
+_CONTINENTAL_GRID, _CONTINENTAL_STEP_M = 7, 250_000.0
+
+
+def _continental_radars() -> tuple[RadarSpec, ...]:
+    out: list[RadarSpec] = []
+    last = _CONTINENTAL_GRID - 1
+    for row in range(_CONTINENTAL_GRID):
+        for col in range(_CONTINENTAL_GRID):
+            if row in (0, last) and col in (0, last):
+                continue  # the corners
+            east, north = (col - last / 2) * _CONTINENTAL_STEP_M, (last / 2 - row) * _CONTINENTAL_STEP_M
+            # as the curved scenario places its aircraft: north along the meridian, then east
+            # along the parallel (a grid on the surface, 250 km apart in both directions)
+            lat = _CONTINENTAL_LAT + north / 111_195.0
+            lon = _CONTINENTAL_LON + east / (111_195.0 * math.cos(math.radians(lat)))
+            spec = _NATIONAL_RADARS[len(out) % len(_NATIONAL_RADARS)]
+            out.append(_network_radar(f"C{len(out) + 1:02d}", lat, lon, spec))
     return tuple(out)
 
 
@@ -233,6 +265,18 @@ SCENARIOS: dict[str, Scenario] = {
         half_width_m=370_000.0,
         targets=1500,
         duration_s=600.0,
+    ),
+    "continental": Scenario(
+        name="continental",
+        description="45 radars on a 250 km grid 1 500 km across, 5 500 aircraft on the earth's "
+        "curve, 4-6 s scans, per-radar biases and clutter, about 4 000 plots/s",
+        radars=_continental_radars(),
+        center_lat_deg=_CONTINENTAL_LAT,
+        center_lon_deg=_CONTINENTAL_LON,
+        half_width_m=900_000.0,
+        targets=5500,
+        duration_s=600.0,
+        curved=True,
     ),
     "formation": Scenario(
         name="formation",

@@ -211,6 +211,12 @@ class Scenario:
     #: ... or as several groups, each a formation of its ``count`` aircraft (the counts add up
     #: to ``targets``; ``formation`` then ``None``): crossing or merging formations.
     formations: tuple[FormationSpec, ...] = ()
+    #: The area lies on the earth's curve: a target's east and north offsets are distances
+    #: along the surface from the centre and its height is above the ellipsoid.  ``False``
+    #: (every scenario a few hundred km across): on the centre's tangent plane, whose height
+    #: grows by d^2 / 2R off the centre (11 km at 370 km, 64 km at 900 km), too much for an
+    #: area a continent wide.
+    curved: bool = False
 
     def __post_init__(self) -> None:
         if self.respawn not in ("edge", "uniform"):
@@ -352,6 +358,19 @@ class _Targets:
         self._spawn(np.flatnonzero(out), inside=False)
 
 
+#: Metres of the earth's surface per degree of latitude (a sphere; the sites are exact anyway).
+_M_PER_DEG = 111_195.0
+
+
+def _ecef(sc: Scenario, enu: np.ndarray, center: np.ndarray, rot: np.ndarray) -> np.ndarray:
+    """ECEF of targets at east-north-up ``enu`` of the scenario's centre (:attr:`Scenario.curved`)."""
+    if not sc.curved:
+        return np.asarray(enu @ rot.T + center)
+    lat = sc.center_lat_deg + enu[..., 1] / _M_PER_DEG
+    lon = sc.center_lon_deg + enu[..., 0] / (_M_PER_DEG * np.cos(np.radians(lat)))
+    return geodetic_to_ecef(lat, lon, enu[..., 2])
+
+
 #: ``observe(t, ids, pos, vel)`` of :func:`generate`: data seconds since the start, each target's
 #: name, east-north-up position and velocity (m, m/s; copies) at ``t``.
 Observer = Callable[[float, np.ndarray, np.ndarray, np.ndarray], None]
@@ -477,11 +496,11 @@ def _sector_batch(
     az_lo, az_hi = 360.0 * j / sectors, 360.0 * (j + 1) / sectors
     scan_start = scan * period
     # true positions at the current step; refine each target to its detection time
-    ecef_now = targets.pos @ rot.T + center
+    ecef_now = _ecef(targets.sc, targets.pos, center, rot)
     rng_true, az_true, _ = site.ecef_to_polar(ecef_now)
     t_det = scan_start + az_true / 360.0 * period
     pos_det = targets.pos + targets.vel * (t_det - t_now)[:, None]
-    ecef = pos_det @ rot.T + center
+    ecef = _ecef(targets.sc, pos_det, center, rot)
     rng_true, az_true, el_true = site.ecef_to_polar(ecef)
     in_sector = (az_true >= az_lo) & (az_true < az_hi)
     visible = in_coverage(r, rng_true, targets.pos[:, 2])
@@ -562,7 +581,7 @@ def _adsb_batch(
     for tr in times:
         enu = targets.pos[idx] + targets.vel[idx] * (tr - t_now)
         if b.identity:
-            true_alt = np.atleast_1d(ecef_to_geodetic(enu @ rot.T + center)[2])
+            true_alt = np.atleast_1d(ecef_to_geodetic(_ecef(targets.sc, enu, center, rot))[2])
             rows_fl += [round(float(a) / 30.48 * 4.0) / 4.0 for a in true_alt]
             rows_m3a += [identity_of(str(targets.ids[i]))[0] for i in idx]
         enu = enu + rng.normal(0.0, 1.0, enu.shape) * [
@@ -570,7 +589,7 @@ def _adsb_batch(
             b.position_sigma_m,
             b.height_sigma_m,
         ]
-        lat, lon, alt = ecef_to_geodetic(enu @ rot.T + center)
+        lat, lon, alt = ecef_to_geodetic(_ecef(targets.sc, enu, center, rot))
         dropped = rng.random(len(idx)) < b.no_height
         rows_t += [round(t0 + float(tr), 3)] * len(idx)
         rows_id += [identity_of(str(targets.ids[i]))[1] for i in idx]
@@ -600,7 +619,7 @@ def _ais_batch(
     rows_t, rows_id, rows_lat, rows_lon = [], [], [], []
     for tr in times:
         enu = targets.pos[idx] + targets.vel[idx] * (tr - t_now)
-        lat, lon, _ = ecef_to_geodetic(enu @ rot.T + center)
+        lat, lon, _ = ecef_to_geodetic(_ecef(targets.sc, enu, center, rot))
         rows_t += [round(t0 + float(tr), 3)] * len(idx)
         rows_id += [f"{412000000 + int(str(targets.ids[i])[1:]):09d}" for i in idx]
         rows_lat += [round(float(x), 7) for x in lat]
