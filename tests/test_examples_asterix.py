@@ -15,6 +15,7 @@ import json
 import re
 import socket
 import subprocess
+import time
 from pathlib import Path
 from typing import Any
 
@@ -182,8 +183,16 @@ def test_the_readme_walkthrough_gives_pairs_and_cat062(tmp_path: Path) -> None:
         url = re.search(r"curl -s (\S+)", curl_line)
         assert url is not None
         with httpx.Client(timeout=10) as http:
+            # the bridge is done once it has sent; on a loaded machine the service may still
+            # be working through its queue: read once it has taken and answered everything
+            deadline = time.monotonic() + PROCESS_S
+            while True:
+                status = http.get(f"http://localhost:{ports['8000']}/status").json()
+                idle = status["queue"]["depth"] == 0 and status["correlation"]["pending"] == 0
+                if idle or time.monotonic() > deadline:
+                    break
+                time.sleep(0.2)
             pair_sets = http.get(f"http://{url.group(1)}").json()
-            status = http.get(f"http://localhost:{ports['8000']}/status").json()
     pairs = {(ps["radar_a"], ps["radar_b"]): len(ps["pairs"]) for ps in pair_sets}
     assert {("A", "B"), ("A", "C"), ("B", "C"), ("A", "adsb"), ("B", "adsb"), ("C", "adsb")} <= set(pairs)
     assert sum(pairs.values()) >= MIN_PAIRS, pairs

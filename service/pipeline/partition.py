@@ -7,10 +7,10 @@ owner: the worker ``k`` with the highest weight
     w(k, name) = the 8-byte BLAKE2b digest of the UTF-8 text "{k}:{name}", big-endian
 
 (ties, which need a 64-bit collision, go to the lower ``k``); with a salt ``S`` > 0
-(``TOPOFUSION_PARTITION_SALT``) the text is ``"{S}:{k}:{name}"``.  The assignment depends only on
-the name and on N, so an operator can predict it (``topofusion partition``), every worker
-computes the same answer without talking to the others, and a name never moves while N stays
-the same.  A weight does not depend on N, so going from N to N+1 workers moves only the names
+(``TOPOFUSION_PARTITION_SALT``) the text is ``"{S}:{k}:{name}"``.  The assignment depends
+only on the name, N and the salt, so an operator can predict it (``topofusion partition``),
+every worker computes the same answer without talking to the others, and a name never moves
+while N stays the same.  A weight does not depend on N, so going from N to N+1 workers moves only the names
 the new worker wins, about ``1/(N+1)`` of them, and nothing else (the property rendezvous
 hashing is chosen for).  Workers of one network must agree on N and on the salt.
 
