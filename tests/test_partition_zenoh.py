@@ -12,9 +12,12 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import re
+import subprocess
 import threading
 from collections import defaultdict
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import orjson
@@ -22,6 +25,7 @@ import zenoh
 
 from service.engine import EngineConfig
 from service.pipeline.partition import Partition
+from tests.doc_commands import PROCESS_S, TOPOFUSION, environment
 from tests.scenario_helpers import scenario_messages
 from tests.support import (
     RunningService,
@@ -31,6 +35,7 @@ from tests.support import (
     wait_for,
     wait_subscribed,
 )
+from tests.test_examples_asterix import CAPTURE, MIN_CAT062_TRACKS, SITES
 
 
 class Collector:
@@ -182,3 +187,42 @@ def test_two_workers_give_the_results_of_one(router: str, client: zenoh.Session)
             members = {(m["radar_id"], m["track_id"]) for m in b["members"]}
             # a picture published later holds to the tables then: members may only have gone
             assert members <= {(m["radar_id"], m["track_id"]) for m in a["members"]}
+
+
+def test_the_cat062_bridge_works_against_partitioned_workers(router: str, tmp_path: Path) -> None:
+    """The ASTERIX bridge as against one worker (the README's walkthrough), but against workers
+    1/2 and 2/2: it feeds the capture to both, and writes out as CAT062 the system tracks
+    worker 1 draws from the radars and pairs of both."""
+    out = tmp_path / "system-tracks.ast"
+    owners = {rid: Partition(1, 2).owner(rid) for rid in "ABC"}
+    assert set(owners.values()) == {1, 2}  # each worker tracks a radar of the capture
+    with (
+        running_service(
+            router, EngineConfig(prefix="two", partition=Partition(1, 2)), correlation_process=False
+        ) as w1,
+        running_service(
+            router, EngineConfig(prefix="two", partition=Partition(2, 2)), correlation_process=False
+        ),
+    ):
+        argv = [TOPOFUSION, "asterix", "--mode", "client", "--connect", router, "--prefix", "two"]
+        argv += ["--sites", str(SITES), "--file", str(CAPTURE), "--speed", "20", "--wait-service", "30"]
+        argv += ["--out-file", str(out)]
+        bridge = subprocess.run(
+            argv, cwd=tmp_path, env=environment(), capture_output=True, text=True, timeout=4 * PROCESS_S
+        )
+        assert bridge.returncode == 0, bridge.stderr
+        assert "left out: nothing" in bridge.stderr, bridge.stderr
+        system = w1.http.get("/system-tracks").json()
+    # the picture joins tracks of both workers' radars
+    members = {m["radar_id"] for t in system["system_tracks"] for m in t["members"]}
+    assert {rid for rid, k in owners.items() if k == 1} & members
+    assert {rid for rid, k in owners.items() if k == 2} & members
+    cat062 = out.read_bytes()
+    blocks = position = 0
+    while position < len(cat062):  # whole CAT062 data blocks, one after the other
+        assert cat062[position] == 62
+        position += int.from_bytes(cat062[position + 1 : position + 3], "big")
+        blocks += 1
+    assert position == len(cat062) and blocks > 0
+    written = re.search(r"CAT062 out: (\d+) tracks", bridge.stderr)
+    assert written is not None and int(written.group(1)) >= MIN_CAT062_TRACKS

@@ -358,6 +358,10 @@ class CorrelationStage:
             corr = self.pair_correlators.get(key)
             if corr is None and not self.partition.owns_pair(*key):
                 continue
+            if key in self.views and time_s < self.views[key].time_s:
+                # A table released late (a worker back after the grace, released out of
+                # order: docs/scale-out.md) never takes a pair's book back in data time.
+                continue
             if time_s < self.next_due.get(key, -np.inf):
                 if corr is not None and fresh is not None and len(fresh):
                     self._undecided.setdefault(key, {}).setdefault(radar.source_id, []).append(fresh)
