@@ -15,7 +15,6 @@ import json
 import re
 import socket
 import subprocess
-import time
 from pathlib import Path
 from typing import Any
 
@@ -185,26 +184,30 @@ def test_the_readme_walkthrough_gives_pairs_and_cat062(tmp_path: Path) -> None:
         with httpx.Client(timeout=10) as http:
             # the bridge is done once it has sent; on a loaded machine the service may still
             # be working through its queue: read once it has taken and answered everything
-            deadline = time.monotonic() + PROCESS_S
-            while True:
+            def idle() -> Any:
                 status = http.get(f"http://localhost:{ports['8000']}/status").json()
-                idle = status["queue"]["depth"] == 0 and status["correlation"]["pending"] == 0
-                if idle or time.monotonic() > deadline:
-                    break
-                time.sleep(0.2)
+                return status if status["queue"]["depth"] == status["correlation"]["pending"] == 0 else None
+
+            status = wait_for(idle, timeout=PROCESS_S, interval=0.2)
             pair_sets = http.get(f"http://{url.group(1)}").json()
     pairs = {(ps["radar_a"], ps["radar_b"]): len(ps["pairs"]) for ps in pair_sets}
     assert {("A", "B"), ("A", "C"), ("B", "C"), ("A", "adsb"), ("B", "adsb"), ("C", "adsb")} <= set(pairs)
     assert sum(pairs.values()) >= MIN_PAIRS, pairs
     assert status["rejected"] == {}
-    cat062 = (tmp_path / "system-tracks.ast").read_bytes()
+    assert_cat062_written(tmp_path / "system-tracks.ast", bridge.stderr)
+
+
+def assert_cat062_written(path: Path, bridge_stderr: str) -> None:
+    """The bridge's ``--out-file``: whole CAT062 data blocks, one after the other, and at least
+    :data:`MIN_CAT062_TRACKS` track reports by its own count."""
+    cat062 = path.read_bytes()
     blocks = position = 0
-    while position < len(cat062):  # whole CAT062 data blocks, one after the other
+    while position < len(cat062):
         assert cat062[position] == 62
         position += int.from_bytes(cat062[position + 1 : position + 3], "big")
         blocks += 1
     assert position == len(cat062) and blocks > 0
-    written = re.search(r"CAT062 out: (\d+) tracks", bridge.stderr)
+    written = re.search(r"CAT062 out: (\d+) tracks", bridge_stderr)
     assert written is not None and int(written.group(1)) >= MIN_CAT062_TRACKS
 
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import contextlib
 import itertools
-import re
 import subprocess
 import threading
 from collections import defaultdict
@@ -35,7 +34,7 @@ from tests.support import (
     wait_for,
     wait_subscribed,
 )
-from tests.test_examples_asterix import CAPTURE, MIN_CAT062_TRACKS, SITES
+from tests.test_examples_asterix import CAPTURE, SITES, assert_cat062_written
 
 
 class Collector:
@@ -217,12 +216,4 @@ def test_the_cat062_bridge_works_against_partitioned_workers(router: str, tmp_pa
     members = {m["radar_id"] for t in system["system_tracks"] for m in t["members"]}
     assert {rid for rid, k in owners.items() if k == 1} & members
     assert {rid for rid, k in owners.items() if k == 2} & members
-    cat062 = out.read_bytes()
-    blocks = position = 0
-    while position < len(cat062):  # whole CAT062 data blocks, one after the other
-        assert cat062[position] == 62
-        position += int.from_bytes(cat062[position + 1 : position + 3], "big")
-        blocks += 1
-    assert position == len(cat062) and blocks > 0
-    written = re.search(r"CAT062 out: (\d+) tracks", bridge.stderr)
-    assert written is not None and int(written.group(1)) >= MIN_CAT062_TRACKS
+    assert_cat062_written(out, bridge.stderr)

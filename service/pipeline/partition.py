@@ -133,14 +133,12 @@ def candidate_pairs(
 ) -> list[tuple[str, str]]:
     """The pairs of ``ids`` whose cover can overlap: sites (``positions``: latitude and
     longitude, degrees) at most ``max_m`` apart; a pair with an id of no known position counts."""
-    out = []
-    for a, b in itertools.combinations(sorted(ids), 2):
-        if a in positions and b in positions:
-            pa, pb = (geodetic_to_ecef(*positions[x], 0.0) for x in (a, b))
-            if float(np.linalg.norm(pa - pb)) > max_m:
-                continue
-        out.append((a, b))
-    return out
+    ecef = {rid: geodetic_to_ecef(*positions[rid], 0.0) for rid in ids if rid in positions}
+    return [
+        (a, b)
+        for a, b in itertools.combinations(sorted(ids), 2)
+        if a not in ecef or b not in ecef or float(np.linalg.norm(ecef[a] - ecef[b])) <= max_m
+    ]
 
 
 def shares(count: int, salt: int, radars: Sequence[str], pairs: Sequence[tuple[str, str]]) -> list[float]:

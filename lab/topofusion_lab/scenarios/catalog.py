@@ -5,7 +5,14 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
-from topofusion_lab.scenarios.simulator import AdsbSpec, AisSpec, FormationSpec, RadarSpec, Scenario
+from topofusion_lab.scenarios.simulator import (
+    AdsbSpec,
+    AisSpec,
+    FormationSpec,
+    RadarSpec,
+    Scenario,
+    surface_point,
+)
 
 # Two radars ~200 km apart (SVD paper, Section 3: random errors 200 m / 0.2 deg, systematic
 # errors 100 m / 0.1 deg); targets over the common area between them.
@@ -91,12 +98,11 @@ def _continental_radars() -> tuple[RadarSpec, ...]:
             if row in (0, last) and col in (0, last):
                 continue  # the corners
             east, north = (col - last / 2) * _CONTINENTAL_STEP_M, (last / 2 - row) * _CONTINENTAL_STEP_M
-            # as the curved scenario places its aircraft: north along the meridian, then east
-            # along the parallel (a grid on the surface, 250 km apart in both directions)
-            lat = _CONTINENTAL_LAT + north / 111_195.0
-            lon = _CONTINENTAL_LON + east / (111_195.0 * math.cos(math.radians(lat)))
+            # as the curved scenario places its aircraft (a grid on the surface, 250 km apart
+            # in both directions)
+            lat, lon = surface_point(_CONTINENTAL_LAT, _CONTINENTAL_LON, east, north)
             spec = _NATIONAL_RADARS[len(out) % len(_NATIONAL_RADARS)]
-            out.append(_network_radar(f"C{len(out) + 1:02d}", lat, lon, spec))
+            out.append(_network_radar(f"C{len(out) + 1:02d}", float(lat), float(lon), spec))
     return tuple(out)
 
 

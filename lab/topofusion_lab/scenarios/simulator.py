@@ -362,12 +362,19 @@ class _Targets:
 _M_PER_DEG = 111_195.0
 
 
+def surface_point(lat0: float, lon0: float, east_m: Any, north_m: Any) -> tuple[Any, Any]:
+    """Latitude and longitude (deg) ``north_m`` along the meridian from ``(lat0, lon0)``, then
+    ``east_m`` along that parallel (a sphere; broadcasts): where a curved scenario puts a target
+    of those offsets."""
+    lat = lat0 + np.asarray(north_m) / _M_PER_DEG
+    return lat, lon0 + np.asarray(east_m) / (_M_PER_DEG * np.cos(np.radians(lat)))
+
+
 def _ecef(sc: Scenario, enu: np.ndarray, center: np.ndarray, rot: np.ndarray) -> np.ndarray:
     """ECEF of targets at east-north-up ``enu`` of the scenario's centre (:attr:`Scenario.curved`)."""
     if not sc.curved:
         return np.asarray(enu @ rot.T + center)
-    lat = sc.center_lat_deg + enu[..., 1] / _M_PER_DEG
-    lon = sc.center_lon_deg + enu[..., 0] / (_M_PER_DEG * np.cos(np.radians(lat)))
+    lat, lon = surface_point(sc.center_lat_deg, sc.center_lon_deg, enu[..., 0], enu[..., 1])
     return geodetic_to_ecef(lat, lon, enu[..., 2])
 
 
