@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter, deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Collection, Iterable
 from itertools import chain
 from typing import Any
 
@@ -206,10 +206,10 @@ class Engine:
         self._snapshot = None
         return out
 
-    def expire_silent(self, now_s: float) -> list[Outgoing]:
+    def expire_silent(self, now_s: float, waiting: Collection[str] = ()) -> list[Outgoing]:
         """Expire the sources silent for the feed's wall-clock limit (:mod:`.pipeline.feed`;
-        ``now_s`` on ``time.monotonic()``)."""
-        if not any([self.sequencer.expire_now(sid) for sid in self.feed.silent(now_s)]):
+        ``now_s`` on ``time.monotonic()``; ``waiting``: the sources with input still queued)."""
+        if not any([self.sequencer.expire_now(sid) for sid in self.feed.silent(now_s, waiting)]):
             return []
         self._snapshot = None
         seq = self.sequencer

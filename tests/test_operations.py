@@ -107,6 +107,7 @@ def test_fair_queue_takes_sources_in_turn_and_drops_a_flooders_excess_at_once() 
     # in arrival order, but after one of the flooder's the oldest of another source comes next
     assert taken == ["a0", "b0", "f0", "a1", "f1", "b1", "f2"]
     assert q.items() == [f"f{i}" for i in range(3, share)]
+    assert q.classes() == {"F"}  # the sources with samples still queued (the feed's watch)
     # busy with everyone: a sample over its share waits for room (here: until one is taken)
     busy = BoundedQueue(max_items=64, max_bytes=10**6, fair_by=lambda key: key)
     for i in range(64):

@@ -16,7 +16,7 @@ import pytest
 import zenoh
 
 from service.engine import EngineConfig
-from service.pipeline.feed import FeedParams
+from service.pipeline.feed import FeedParams, FeedWatch
 from service.pipeline.sequencer import SequencerParams
 from tests.scenario_helpers import scenario_messages
 from tests.support import put_json, run_engine, running_service, wait_for, wait_subscribed
@@ -158,3 +158,17 @@ def test_over_zenoh_the_outage_is_taken_and_a_silent_feed_is_reported_stale(
     lines = [r.getMessage() for r in caplog.records]
     assert any("outage" in m and "900 s" in m for m in lines)
     assert any(m.startswith("rejected out_of_range from A") and "ahead" in m for m in lines)
+
+
+def test_a_source_with_input_queued_is_not_silent_on_the_wall_clock(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A worker that stalls longer than ``source_expiry_wall_s`` with a source's batches still
+    queued is behind, not facing a silent feed: only the source with nothing queued expires."""
+    now = [100.0]
+    monkeypatch.setattr("service.pipeline.feed.time.monotonic", lambda: now[0])
+    watch = FeedWatch(FeedParams(source_expiry_wall_s=2.5))
+    watch.taken("A", 10.0)
+    watch.taken("B", 10.0)
+    now[0] += 3.0
+    assert watch.silent(now[0], waiting={"A"}) == ["B"]
+    assert watch.silent(now[0]) == ["A"]  # the queue ran dry with nothing of A's: silent now
+    assert watch.expired_by_wall == 2 and watch.silent(now[0] + 10) == []  # each once

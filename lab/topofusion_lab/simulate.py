@@ -32,7 +32,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from service.recording.completion import RecordingEnd, service_statuses
+from service.recording.completion import RecordingEnd, service_statuses, wait_for_outputs
 from topofusion_lab.scenarios.simulator import AdsbSpec, Scenario, generate, generate_looped
 
 #: ``--start-time resume`` waits this long (wall s) for a service to answer ``{prefix}/status``
@@ -199,8 +199,6 @@ def run_simulation(
             say(line)
         complete = True
         if args.wait > 0 and not args.loop and not stop.is_set():
-            from service.recording.commands import wait_for_outputs
-
             complete = wait_for_outputs(session, prefix, RecordingEnd(last), args.wait, "the run")
         if rejections.by_reason.get("duplicate_seq") or not complete:
             return 1

@@ -77,6 +77,14 @@ MAX_ORIGINS = 4096
 #: radar's plots as ``unknown_radar`` only until then); a site equal to the one a service holds
 #: changes nothing there.  A site is a few hundred bytes: a dozen radars cost under 1 kB/s.
 SITE_EVERY_S = 5.0
+#: ``--wait`` (s): with a CAT062 output, how long the bridge waits after its inputs' end for the
+#: service to report its outputs complete through them (contract §5.1); a busy service is still
+#: working through its queue when the last message is sent.  As ``replay``'s.
+OUTPUTS_WAIT_S = 120.0
+#: Then the last system tracks the service put are taken once none came for this long (s), ...
+OUTPUTS_QUIET_S = 0.5
+#: ... at most this long (s): a picture arrives within a moment of the status saying it is out.
+OUTPUTS_SETTLE_S = 5.0
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -173,6 +181,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="before the first message, wait up to S s for a service to answer {prefix}/status (default 0)",
     )
     p.add_argument(
+        "--wait",
+        type=float,
+        default=OUTPUTS_WAIT_S,
+        metavar="S",
+        help="with --out-udp/--out-file: after the inputs' last message, wait up to S s until the service "
+        "reports its outputs complete through it, so the CAT062 output holds the whole picture; 0: do not "
+        f"wait (default {OUTPUTS_WAIT_S:g}, as replay's)",
+    )
+    p.add_argument(
         "--no-fl-altitude",
         action="store_true",
         help="leave altitude_m out where only a flight level is known (default: FL x 30.48 m)",
@@ -202,6 +219,8 @@ class Publisher:
         self.unsent: Counter[str] = Counter()
         self.last_error = ""
         self.plots = 0
+        #: Each key's latest batch time sent (where the service's outputs can be complete through).
+        self.last_time_s: dict[str, float] = {}
         #: Monotonic time after which nothing more is put (None: no limit).
         self.deadline: float | None = None
 
@@ -219,6 +238,8 @@ class Publisher:
                 self.last_error = str(exc)
                 continue
             self.sent[m.kind] += 1
+            time_s = float(m.body["time_s"])
+            self.last_time_s[key] = max(time_s, self.last_time_s.get(key, time_s))
             if m.kind == "plots":
                 self.plots += len(m.body["plots"]["time_s"])
 
@@ -298,10 +319,13 @@ class Cat062Writer:
         self._lock = threading.Lock()
         self.blocks = 0
         self.tracks = 0
+        #: Monotonic time of the last batch received (written or not).
+        self.last_write = time.monotonic()
         self.bad = 0
         self.send_errors = 0
 
     def write(self, payload: bytes) -> None:
+        self.last_write = time.monotonic()
         try:
             body = orjson.loads(payload)
             tracks = self.tracks_of(body)
@@ -564,6 +588,26 @@ class Run:
         return "\n".join(lines)
 
 
+def _outputs_complete(
+    session: Any, prefix: str, publisher: Publisher, writer: Cat062Writer, wait_s: float
+) -> None:
+    """``--wait``: the service's outputs complete through what was sent, then the system tracks
+    it published last: once none came for ``OUTPUTS_QUIET_S`` since (at most ``OUTPUTS_SETTLE_S``)."""
+    from service.recording.completion import RecordingEnd, wait_for_outputs
+
+    def say(line: str) -> None:
+        print(f"asterix: {line}", file=sys.stderr, flush=True)
+
+    if not wait_for_outputs(
+        session, prefix, RecordingEnd(dict(publisher.last_time_s)), wait_s, "the input", say
+    ):
+        return
+    done = time.monotonic()
+    end = done + OUTPUTS_SETTLE_S
+    while time.monotonic() < end and time.monotonic() - max(writer.last_write, done) < OUTPUTS_QUIET_S:
+        time.sleep(OUTPUTS_QUIET_S / 5)
+
+
 def _check_writable(path: Path) -> None:
     """A file the bridge will write: refused now, before any connection, if it cannot be."""
     if path.is_dir():
@@ -619,8 +663,8 @@ def asterix_main(
             raise ValueError(f"asterix: {exc}") from None
     if args.out_file is not None:
         _check_writable(args.out_file)
-    if not (args.site_every >= 0 and args.wait_service >= 0):
-        raise ValueError("asterix: --site-every and --wait-service must be >= 0")
+    if not (args.site_every >= 0 and args.wait_service >= 0 and args.wait >= 0):
+        raise ValueError("asterix: --site-every, --wait-service and --wait must be >= 0")
     start = (
         dt.datetime.combine(args.date, dt.time(), tzinfo=dt.timezone.utc).timestamp() if args.date else None
     )
@@ -697,6 +741,8 @@ def asterix_main(
             run.finish(time.monotonic() + STOP_FLUSH_S if stop.is_set() else None)
             print(run.summary(), file=sys.stderr)
             if writer is not None:
+                if args.wait > 0 and publisher.last_time_s and not stop.is_set():
+                    _outputs_complete(session, prefix, publisher, writer, args.wait)
                 out_sub.undeclare()
                 writer.close()
                 print(

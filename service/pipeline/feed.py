@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Collection
 from dataclasses import dataclass
 
 import numpy as np
@@ -110,11 +111,13 @@ class FeedWatch:
     def forget(self, source_id: str) -> None:
         self._taken_at.pop(source_id, None)
 
-    def silent(self, now_s: float) -> list[str]:
+    def silent(self, now_s: float, waiting: Collection[str] = ()) -> list[str]:
         """The sources with no batch taken for ``source_expiry_wall_s``, forgotten here (each is
-        expired once; its next batch makes it live again)."""
+        expired once; its next batch makes it live again).  A source in ``waiting`` has input
+        queued for the worker: it is not silent, the worker is behind (a stall of the worker's,
+        say under a loaded machine, must not expire a feed that is still coming)."""
         limit = now_s - self.params.source_expiry_wall_s
-        quiet = [sid for sid, t in self._taken_at.items() if t < limit]
+        quiet = [sid for sid, t in self._taken_at.items() if t < limit and sid not in waiting]
         for sid in quiet:
             del self._taken_at[sid]
         self.expired_by_wall += len(quiet)

@@ -20,7 +20,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from service.recording.completion import RecordingEnd, service_statuses, wait_complete
+from service.recording.completion import RecordingEnd, service_statuses, wait_for_outputs
 from service.recording.reader import RecordedMessage, RecordingError
 from service.recording.recorder import DEFAULT_QUEUE_BYTES, DEFAULT_QUEUE_SAMPLES, record
 from service.recording.replay import ReplayOptions, preflight, replay
@@ -270,52 +270,6 @@ def _wait_for_service(session: Any, prefix: str, wait_s: float, stop: threading.
         say("replay: the service answers: replaying")
     else:
         say(f"replay: no service answered {prefix}/status within {wait_s:g} s: replaying anyway")
-
-
-def wait_for_outputs(
-    session: Any, prefix: str, end: RecordingEnd, timeout_s: float, what: str = "the recording"
-) -> bool:
-    """Wait until the service's outputs are complete through the end of ``what`` was sent
-    (contract §5.1), saying so; False (with a line saying why) when it did not get there in
-    time.  ``replay`` and ``simulate`` (``what``: "the run") end so."""
-    target = end.target_s()
-    if target is None:
-        return True
-
-    def status() -> dict[str, Any] | None:
-        for reply in session.get(f"{prefix}/status", timeout=1.0):
-            if reply.ok is not None:
-                try:
-                    answer: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
-                    return answer
-                except ValueError:
-                    return None
-        return None
-
-    def say(line: str) -> None:
-        print(line, file=sys.stderr, flush=True)
-
-    t0 = time.monotonic()
-    done, seen, answered = wait_complete(status, target, timeout_s, say)
-    if not answered:
-        say(f"no service answered {prefix}/status: not waiting for its outputs")
-        return True
-    if done:
-        say(
-            f"the service's outputs are complete through data time {seen:.3f} "
-            f"({what}'s end, {target:.3f}), {time.monotonic() - t0:.1f} s after the last message"
-        )
-        return True
-    got = (
-        "the service reports no outputs yet"
-        if seen is None
-        else f"its outputs are complete through {seen:.3f} only"
-    )
-    say(
-        f"WARNING: {got} after {timeout_s:g} s; {what} ends at data time {target:.3f} "
-        f"(a busy service may still be processing it: --wait S to wait longer, 0 not to wait)"
-    )
-    return False
 
 
 class RejectionWatch:

@@ -14,6 +14,7 @@ for data that never comes (they are released at the service's stop).
 
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -121,3 +122,63 @@ def wait_complete(
             behind = "no answer yet" if seen is None else f"{target_s - seen:.1f} s of data time behind"
             say(f"waiting for the service's outputs: {behind}")
         sleep(POLL_S)
+
+
+def wait_for_outputs(
+    session: Any,
+    prefix: str,
+    end: RecordingEnd,
+    timeout_s: float,
+    what: str = "the recording",
+    say: Callable[[str], None] | None = None,
+) -> bool:
+    """Wait until the service's outputs are complete through the end of ``what`` was sent
+    (contract §5.1), saying so (``say``: a line to stderr by default); False (with a line saying
+    why) when it did not get there in time.  ``replay``, ``simulate`` (``what``: "the run") and
+    the ASTERIX bridge writing CAT062 end so.  Partitioned workers each answer: the outputs are
+    complete through the lowest of their times, with the sum of their pending answers."""
+    target = end.target_s()
+    if target is None:
+        return True
+    if say is None:
+
+        def say(line: str) -> None:
+            print(line, file=sys.stderr, flush=True)
+
+    def status() -> dict[str, Any] | None:
+        answers = list(json_replies(session.get(f"{prefix}/status", timeout=STATUS_QUERY_S)))
+        return merged_status(answers) if answers else None
+
+    t0 = time.monotonic()
+    done, seen, answered = wait_complete(status, target, timeout_s, say)
+    if not answered:
+        say(f"no service answered {prefix}/status: not waiting for its outputs")
+        return True
+    if done:
+        say(
+            f"the service's outputs are complete through data time {seen:.3f} "
+            f"({what}'s end, {target:.3f}), {time.monotonic() - t0:.1f} s after the last message"
+        )
+        return True
+    got = (
+        "the service reports no outputs yet"
+        if seen is None
+        else f"its outputs are complete through {seen:.3f} only"
+    )
+    say(
+        f"WARNING: {got} after {timeout_s:g} s; {what} ends at data time {target:.3f} "
+        f"(a busy service may still be processing it: --wait S to wait longer, 0 not to wait)"
+    )
+    return False
+
+
+def merged_status(answers: list[dict[str, Any]]) -> dict[str, Any]:
+    """The answers of every worker as one: ``outputs_time_s`` the lowest (None while any has
+    none), ``correlation.pending`` the sum (what :func:`wait_complete` reads)."""
+    times = [a.get("outputs_time_s") for a in answers]
+    known = [float(t) for t in times if t is not None]
+    pending = sum(int((a.get("correlation") or {}).get("pending", 0)) for a in answers)
+    return {
+        "outputs_time_s": min(known) if len(known) == len(times) else None,
+        "correlation": {"pending": pending},
+    }

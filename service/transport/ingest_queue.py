@@ -214,6 +214,11 @@ class BoundedQueue:
     def dropped_total(self) -> int:
         return sum(self.dropped_counts().values())
 
+    def classes(self) -> set[str]:
+        """The classes with samples queued (with ``fair_by``: the sources waiting to be taken)."""
+        with self._cond:
+            return {c for c in self._fifo if c is not _MARKERS}
+
     def qsize(self) -> int:
         return self._n
 

@@ -90,7 +90,7 @@ class Worker:
             item = intake.next_item(wait)
             if time.monotonic() >= next_expiry:  # sources silent on the wall clock (pipeline.feed)
                 next_expiry = time.monotonic() + EXPIRY_POLL_S
-                self._publish(engine.expire_silent(time.monotonic()))
+                self._publish(engine.expire_silent(time.monotonic(), intake.queue.classes()))
             if item is None:
                 out = engine.poll()
                 if out:

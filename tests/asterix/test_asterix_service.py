@@ -13,6 +13,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 from collections import Counter
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -30,6 +31,8 @@ from tests.support import RunningService, free_port, running_service, wait_for
 TOPOFUSION = str(Path(sys.executable).parent / "topofusion")
 #: The capture's radars: SAC 25, these SICs (its data sources); positions are not in the data.
 SICS = (11, 12, 13, 14, 201, 204, 205)
+#: Between two datagrams sent to the bridge over UDP (s).
+UDP_PACE_S = 0.002
 
 
 @pytest.fixture(scope="module")
@@ -149,6 +152,10 @@ def test_a_real_capture_through_udp(capture: Path, router: str, tmp_path: Path) 
             junk = [b"\x30\x00", b"\x30\x00\x09\xff\xff\xff\xff\xff\xff", b"\x3e\x00\x04\x00", b"garbage!"]
             with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
                 for i, p in enumerate(payloads):
+                    # paced as a radar's sectors come (far faster still): a burst of the whole
+                    # capture can overflow the socket's buffer while a loaded machine starves
+                    # the bridge, and the count below is exact
+                    time.sleep(UDP_PACE_S)
                     tx.sendto(p, ("127.0.0.1", port))
                     if i % 25 == 0:  # malformed datagrams in between: counted, never fatal
                         tx.sendto(junk[(i // 25) % len(junk)], ("127.0.0.1", port))

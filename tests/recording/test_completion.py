@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from service.recording.completion import RecordingEnd, wait_complete
+from service.recording.completion import RecordingEnd, merged_status, wait_complete
 from service.recording.reader import RecordedMessage
 
 
@@ -57,3 +57,12 @@ def test_gives_up_after_the_timeout_and_when_nobody_answers() -> None:
     now[0] = 0.0
     done, seen, answered = wait_complete(lambda: None, 50.0, 60.0, lambda _: None, lambda: now[0], sleep)
     assert (done, seen, answered) == (False, None, False) and now[0] < 10.0
+
+
+def test_partitioned_workers_are_complete_through_the_lowest_of_their_times() -> None:
+    """Each worker answers ``{prefix}/status``: the outputs are complete once every one is."""
+    one = {"outputs_time_s": 120.0, "correlation": {"pending": 0}}
+    two = {"outputs_time_s": 104.0, "correlation": {"pending": 2}}
+    assert merged_status([one, two]) == {"outputs_time_s": 104.0, "correlation": {"pending": 2}}
+    starting = {"outputs_time_s": None, "correlation": {"pending": 0}}
+    assert merged_status([one, starting])["outputs_time_s"] is None
