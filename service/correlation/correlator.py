@@ -603,7 +603,7 @@ class PairCorrelator:
         sub_a = tracks_a.take(np.flatnonzero(near_a.any(axis=1)))
         sub_b = tracks_b.take(np.flatnonzero(near_b.any(axis=1)))
         _, _, a, b, ctx_kw = self._predicted(sub_a, sub_b, time_s)
-        fa, fb = np.isin(a.track_id, fresh_a), np.isin(b.track_id, fresh_b)
+        fa, fb = isin_sorted(a.track_id, fresh_a), isin_sorted(b.track_id, fresh_b)
         if not (fa.any() or fb.any()):
             return False
         conf = self.book.confirmed
@@ -631,8 +631,9 @@ class PairCorrelator:
         # track's low quality: it waits for the evidence's looks, which the pair's updates on
         # their usual cadence bring (hurrying them cost 11 % of the stage's CPU on the national
         # stream and gained nothing)
-        unclear = (dec.accepted | np.isin(dec.reason, NO_DECISION_REASONS)) & fresh & ~clear
-        self.settled &= not (unclear & self._quality_ok(dec, a, b)).any()
+        open_ = np.flatnonzero(fresh & ~clear)  # (few: the reasons are read for these only)
+        unclear = dec.accepted[open_] | np.isin(dec.reason[open_], NO_DECISION_REASONS)
+        self.settled &= not (unclear & self._quality_ok(dec, a, b)[open_]).any()
         ev = self.evidence
         if ev is not None and clear.any() and len(ev):
             e = find(ev.keys, pair_keys(a.track_id[dec.index_a], b.track_id[dec.index_b]))

@@ -283,7 +283,7 @@ class PairBook:
             )
         rows = np.concatenate([pos, len(self) - fresh.size + np.arange(fresh.size)]).astype(np.intp)
         before = int(np.count_nonzero(self.confirmed))
-        self._confirm(rows[~self.confirmed[rows]])
+        self._confirm(rows[~self.confirmed[rows]], free=True)  # (none of them is busy: above)
         self.version += 1
         return bool(gone.any()) or fresh.size > 0 or int(np.count_nonzero(self.confirmed)) != before
 
@@ -336,11 +336,11 @@ class PairBook:
         }
         self.cols = {k: np.concatenate([v, add[k]]) for k, v in self.cols.items()}
 
-    def _confirm(self, idx: NDArray[np.intp]) -> None:
+    def _confirm(self, idx: NDArray[np.intp], free: bool = False) -> None:
         """Confirm the pairs ``idx`` whose tracks are in no confirmed pair; among them, conflicts
-        are settled by a one-to-one assignment on the score."""
-        score = self.hit_fraction
-        if idx.size:  # (the busy test only for these: in a steady state they are few)
+        are settled by a one-to-one assignment on the score.  ``free``: the caller has already
+        left out every pair with a track in a confirmed pair."""
+        if idx.size and not free:  # (the busy test only for these: in a steady state they are few)
             conf = self.confirmed
             idx = idx[
                 ~isin_few(self.track_a[idx], self.track_a[conf])
@@ -353,7 +353,8 @@ class PairBook:
                 self.confirmed[idx] = True
             else:
                 # Prefer higher score, then more recent hit, then lower statistic.
-                val = score[idx] * 1e3 - np.nan_to_num(self.cols["statistic"][idx], nan=1e2).clip(0, 1e2)
+                statistic = np.nan_to_num(self.cols["statistic"][idx], nan=1e2).clip(0, 1e2)
+                val = self.hit_fraction[idx] * 1e3 - statistic
                 mat = np.full((ua.size, ub.size), -1e12)
                 mat[ra, rb] = val
                 r, c = linear_sum_assignment(mat, maximize=True)

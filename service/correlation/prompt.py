@@ -174,8 +174,11 @@ def isolated(
         return np.ones(n, dtype=bool)
     pos = table.position_ecef_m + table.velocity_ecef_mps * (time_s - table.time_s)[:, None]
     ids = table.track_id
-    order = np.argsort(ids)
-    at = order[np.minimum(np.searchsorted(ids, track_ids, sorter=order), len(ids) - 1)]
+    if bool(np.all(ids[1:] >= ids[:-1])):  # (a track table's ids are sorted: no sort needed)
+        at = np.minimum(np.searchsorted(ids, track_ids), len(ids) - 1)
+    else:
+        order = np.argsort(ids)
+        at = order[np.minimum(np.searchsorted(ids, track_ids, sorter=order), len(ids) - 1)]
     found = ids[at] == track_ids
     up = site.rotation[:, 2] if site is not None else None
     near = companions(pos, table.velocity_ecef_mps, up, at, radius_m, velocity_mps, ~table.confirmed)
