@@ -61,18 +61,23 @@ class Publication:
         old = self._ids.get(radar_id)
         self._ids[radar_id] = ids
         self.tables[radar_id] = (time_s, table)
-        if old is None or isin_sorted(old, ids).all():  # (nothing gone)
+        if old is None:
+            return []
+        gone = old[~isin_sorted(old, ids)]  # (sorted, as ``old``; a few)
+        if gone.size == 0:
             return []
         self._lost_s[radar_id] = time_s
+        # Every view held names only tracks of the radar's previous table (held to it then, or
+        # made from tables published before it): taking out the gone ones holds it to this one.
         out = []
         for key, view in list(self.views.items()):
             if radar_id in key:
-                held = view.held(key.index(radar_id), ids)
+                held = view.without(key.index(radar_id), gone)
                 if held is not view:
                     self.views[key] = held
                     out.append(Outgoing(self.keys.pairs(*key), held.body))
         if self.system is not None:
-            held_system = self.system.held(radar_id, ids)
+            held_system = self.system.without(radar_id, gone)
             if held_system is not self.system:
                 self.system = held_system
                 out.append(self._system_out(held_system))

@@ -84,8 +84,15 @@ class PairSetView:
     def held(self, side: int, held_ids: np.ndarray) -> PairSetView:
         """The view without the pairs whose track of side ``side`` (0: A, 1: B) is not among
         ``held_ids`` (sorted): the same view when none goes."""
-        ids = self.columns["track_a" if side == 0 else "track_b"]
-        keep = isin_sorted(ids, held_ids)
+        return self._kept(isin_sorted(self.columns["track_a" if side == 0 else "track_b"], held_ids))
+
+    def without(self, side: int, gone_ids: np.ndarray) -> PairSetView:
+        """The view without the pairs whose track of side ``side`` is among ``gone_ids`` (sorted;
+        a table's lost tracks, a few: cheaper than :meth:`held` against the whole table when the
+        view names only tracks of the table before): the same view when none goes."""
+        return self._kept(~isin_sorted(self.columns["track_a" if side == 0 else "track_b"], gone_ids))
+
+    def _kept(self, keep: np.ndarray) -> PairSetView:
         if keep.all():
             return self
         cols = {k: v[keep] for k, v in self.columns.items()}
@@ -161,11 +168,20 @@ class SystemTrackView:
         """The view without the members of ``source_id`` that are not among ``held_ids``
         (sorted), and without the system tracks left with no member: the same view when none
         goes.  The states stay as fused (until the next rebuild)."""
+        return self._kept(source_id, held_ids, True)
+
+    def without(self, source_id: str, gone_ids: np.ndarray) -> SystemTrackView:
+        """The view without the members of ``source_id`` among ``gone_ids`` (sorted; see
+        :meth:`PairSetView.without`), and the system tracks left with no member."""
+        return self._kept(source_id, gone_ids, False)
+
+    def _kept(self, source_id: str, ids: np.ndarray, held: bool) -> SystemTrackView:
+        """Members of ``source_id`` kept where their track is among ``ids`` (``held``) or is not."""
         mine = self.member_source == source_id
         if not mine.any():
             return self
         keep = ~mine
-        keep[mine] = isin_sorted(self.member_track[mine], held_ids)
+        keep[mine] = isin_sorted(self.member_track[mine], ids) == held
         if keep.all():
             return self
         group = np.repeat(np.arange(len(self)), np.diff(self.bounds))
