@@ -6,6 +6,7 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
+import scipy.stats
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
@@ -283,6 +284,19 @@ def fuse_reference(
             vec += pk @ x[k]
     cov = np.linalg.inv(info)
     return cov @ vec, cov
+
+
+def diverged_reference(
+    position: FloatArray, pos_cov: FloatArray, links: list[tuple[int, int]], alpha: float
+) -> list[bool]:
+    """Per link, one at a time: the Mahalanobis distance of the members' position difference
+    under their summed covariance, above chi-square's upper ``alpha`` quantile (3 dof)?"""
+    gate = float(scipy.stats.chi2.isf(alpha, 3))
+    out = []
+    for a, b in links:
+        d = position[a] - position[b]
+        out.append(bool(d @ np.linalg.solve(pos_cov[a] + pos_cov[b], d) > gate))
+    return out
 
 
 def cfar_consistency_reference(

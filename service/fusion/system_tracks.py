@@ -5,7 +5,12 @@ with the current joint estimate, :func:`service.correlation.registration.compens
 covariance the estimate's uncertainty adds; reference tracks as they are) and the confirmed
 pairs between them as *links*, each with its evidence (``score``).
 
-1. **Groups.**  The links form a graph; each connected group with at most one track per source
+1. **Groups.**  A link whose two members have *diverged* (their bias-compensated positions
+   differ by more than a chi-square gate of their summed covariances,
+   :attr:`SystemTrackParams.split_alpha`: a track swapped onto another aircraft, or two
+   aircraft that flew apart while their pair still stands) is left out first, so the system
+   track they made splits at this update (each part keeps or takes a number, step 2).  The
+   other links form a graph; each connected group with at most one track per source
    is one system track.  A group that holds two tracks of one source (a chain A1-B1-A2) is cut:
    its links are taken strongest first and a link that would put a second track of a source
    into a group is left out (the weakest link goes).  Only such groups take this step, a plain
@@ -41,7 +46,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from service.correlation.linalg import inv3
+from service.correlation.linalg import chi2_upper, inv3
 from service.correlation.pairkeys import SEP  # a member's key: source, SEP, track id
 from service.tracking.base import first_number
 
@@ -114,6 +119,17 @@ def groups(n: int, source_code: IntArray, link_a: IntArray, link_b: IntArray, sc
     rank = np.empty_like(order)
     rank[order] = np.arange(order.shape[0])
     return rank[comp].astype(np.int64)
+
+
+def diverged(members: Members, link_a: IntArray, link_b: IntArray, alpha: float) -> NDArray[np.bool_]:
+    """Per link: have its two members' positions diverged (:attr:`SystemTrackParams.split_alpha`;
+    a singular covariance never splits; ``alpha`` 0: none has)?"""
+    if alpha <= 0.0 or link_a.shape[0] == 0:
+        return np.zeros(link_a.shape[0], dtype=bool)
+    d = members.position[link_a] - members.position[link_b]
+    info, ok = inv3(members.pos_cov[link_a] + members.pos_cov[link_b])
+    d2 = np.einsum("ni,nij,nj->n", d, info, d)
+    return np.asarray(ok & (d2 > chi2_upper(alpha, 3.0)))
 
 
 def _components(n: int, a: IntArray, b: IntArray) -> IntArray:
@@ -202,6 +218,13 @@ class SystemTrackParams:
     #: (docs/evaluation/system.md): such stray tracks are younger than a minute and sit within a
     #: few kilometres (a young track at 300 km is off by up to about 1 km per 0.2 deg of noise).
     solo_gate_m: float = 5_000.0
+    #: Two linked members have diverged when the squared Mahalanobis distance of their position
+    #: difference under the sum of their position covariances (compensation uncertainty
+    #: included) exceeds the chi-square's upper ``split_alpha`` quantile with 3 degrees of
+    #: freedom (1e-6: 30.7): a right link does so once in a million pictures, as the
+    #: correlation's swap rule (``SwapParams.alpha``), which re-decides such a pair within a
+    #: scan; the split takes the two aircraft apart at the picture already.  0: never split.
+    split_alpha: float = 1e-6
 
 
 class SystemTracker:
@@ -226,6 +249,8 @@ class SystemTracker:
         self, members: Members, link_a: IntArray, link_b: IntArray, score: FloatArray, time_s: float = 0.0
     ) -> SystemTracks:
         n = len(members)
+        keep = ~diverged(members, link_a, link_b, self.params.split_alpha)
+        link_a, link_b, score = link_a[keep], link_b[keep], score[keep]
         linked = np.zeros(n, dtype=bool)
         linked[link_a] = linked[link_b] = True
         _, source_code = np.unique(members.source.astype(str), return_inverse=True)

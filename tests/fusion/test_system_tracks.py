@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.fusion.system_tracks import Members, SystemTracker, SystemTrackParams, fuse, groups
-from tests.reference_forms import fuse_reference, system_groups_reference
+from service.fusion.system_tracks import Members, SystemTracker, SystemTrackParams, diverged, fuse, groups
+from tests.reference_forms import diverged_reference, fuse_reference, system_groups_reference
 
 
 def members(
@@ -16,7 +16,8 @@ def members(
     rng = np.random.default_rng(seed)
     n = len(source)
     a = rng.normal(size=(n, 3, 3))
-    cov = a @ np.swapaxes(a, 1, 2) * 100.0 + np.eye(3) * 50.0
+    # (errors of a few hundred metres, as radar tracks have: members 100 m apart agree)
+    cov = a @ np.swapaxes(a, 1, 2) * 1e4 + np.eye(3) * 5e3
     return Members(
         source=np.array(source, dtype=str),
         track_id=np.array(track, dtype=str),
@@ -169,3 +170,36 @@ def test_two_young_lone_tracks_of_one_new_aircraft_do_not_hold_each_other_back()
     empty = np.empty(0, dtype=np.int64)
     s = tracker.update(m, empty, empty, np.empty(0), time_s=100.0)
     assert s.confirmed.tolist() == [True, False]  # one stands (the lower group), one waits
+
+
+def test_diverged_links_equal_the_plain_form() -> None:
+    rng = np.random.default_rng(5)
+    m = members([f"S{k % 4}" for k in range(40)], [str(k) for k in range(40)], seed=5)
+    m = Members(**{**m.__dict__, "position": rng.normal(size=(40, 3)) * 600.0})  # some apart
+    a, b = rng.integers(0, 40, 300), rng.integers(0, 40, 300)
+    got = diverged(m, a.astype(np.int64), b.astype(np.int64), 1e-6)
+    want = diverged_reference(m.position, m.pos_cov, list(zip(a.tolist(), b.tolist(), strict=True)), 1e-6)
+    assert got.tolist() == want and 0 < sum(want) < len(want)
+    assert not diverged(m, a.astype(np.int64), b.astype(np.int64), 0.0).any()  # the rule off
+
+
+def test_a_system_track_whose_members_diverge_splits() -> None:
+    """A1-B1 and A2-B2 fused; then B2 is 5 km from A2 (a track swapped onto another aircraft,
+    its pair not yet dropped): the system track splits at that update, A2 keeping its number
+    (a tie of one member each: the lower member row), B2 taking a new one; with the rule off it
+    stays fused."""
+    base = members(["A", "B", "A", "B"], ["1", "1", "2", "2"])
+    cov = np.broadcast_to(np.eye(3) * 200.0**2, (4, 3, 3)).copy()  # 200 m per axis
+    together = np.array([[0.0, 0, 0], [150, 0, 0], [10_000, 0, 0], [10_100, 0, 0]])
+    apart = together + np.array([[0.0, 0, 0], [0, 0, 0], [0, 0, 0], [0, 5_000, 0]])
+    links = (np.array([0, 2]), np.array([1, 3]), np.array([0.95, 0.95]))
+    for alpha, groups_after in ((1e-6, 3), (0.0, 2)):
+        tracker = SystemTracker(SystemTrackParams(split_alpha=alpha))
+        s = tracker.update(Members(**{**base.__dict__, "position": together, "pos_cov": cov}), *links)
+        assert s.number.tolist() == [1, 2]
+        s = tracker.update(Members(**{**base.__dict__, "position": apart, "pos_cov": cov}), *links)
+        assert len(s) == groups_after
+        if alpha:
+            assert s.member_group[2] != s.member_group[3]
+            assert s.number[s.member_group[0]] == s.number[s.member_group[1]] == 1
+            assert (s.number[s.member_group[2]], s.number[s.member_group[3]]) == (2, 3)
