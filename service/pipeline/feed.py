@@ -9,7 +9,8 @@ module watches the feed on the wall clock, for operations only:
 * the outputs are **stale** once the data clock has not moved for ``stale_s`` (``/readyz``
   answers 503 with the reason, ``/status`` ``feed.stale`` is true), counting the inputs refused
   since the last one taken, so "everything is being refused" reads as such;
-* a source with no batch taken for ``source_expiry_wall_s`` expires even while the data clock
+* a source with no batch taken for ``source_expiry_wall_s``, and none of its input waiting in
+  the ingest queue (a worker behind is no silent feed), expires even while the data clock
   stands still (:meth:`FeedWatch.silent`), whichever of that and the sequencer's data-time
   ``source_expiry_s`` comes first.  It is set well above the data-time expiry, so a replay at
   anything above half speed never meets it.
