@@ -16,12 +16,14 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import httpx
+import numpy as np
 import uvicorn
 import zenoh
 
 from service.api.app import create_app
 from service.engine import Engine, EngineConfig
 from service.settings import Settings
+from service.tracking.base import TrackTable
 from service.transport.node import ServiceNode
 from service.transport.session import ZenohOptions, open_session
 from service.wire.outgoing import Outgoing
@@ -198,3 +200,20 @@ def one_worker_config(**kw: object) -> EngineConfig:
     return replace(
         cfg, correlation=replace(cfg.correlation, cycles=replace(cfg.correlation.cycles, enabled=False))
     )
+
+
+def random_track_table(rng: np.random.Generator, ids: list[str]) -> TrackTable:
+    """A table of ``ids`` with random states, labels and qualities, in id order."""
+    n = len(ids)
+    truth = np.array([f"t{i}" if i % 3 else None for i in range(n)], dtype=object)
+    return TrackTable(
+        np.asarray(ids, dtype=str),
+        rng.random(n) > 0.5,
+        rng.random(n) * 100,
+        rng.normal(size=(n, 3)) * 1e6,
+        rng.normal(size=(n, 3)) * 100,
+        rng.normal(size=(n, 6, 6)),
+        rng.integers(0, 50, n),
+        truth,
+        quality=np.where(rng.random(n) < 0.2, np.nan, rng.random(n)),
+    ).by_id()

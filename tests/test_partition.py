@@ -38,7 +38,7 @@ from service.wire.models import TrackStates
 from service.wire.outgoing import Outgoing
 from service.wire.outputs import encode
 from tests.scenario_helpers import scenario_messages
-from tests.support import one_worker_config
+from tests.support import one_worker_config, random_track_table
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -167,22 +167,6 @@ def _changed_by_hand(old: TrackTable, new: TrackTable) -> tuple[list[str], list[
     return [k for k in n if o.get(k) != n[k]], [k for k in o if k not in n]
 
 
-def _random_table(rng: np.random.Generator, ids: list[str]) -> TrackTable:
-    n = len(ids)
-    truth = np.array([f"t{i}" if i % 3 else None for i in range(n)], dtype=object)
-    return TrackTable(
-        np.asarray(ids, dtype=str),
-        rng.random(n) > 0.5,
-        rng.random(n) * 100,
-        rng.normal(size=(n, 3)) * 1e6,
-        rng.normal(size=(n, 3)) * 100,
-        rng.normal(size=(n, 6, 6)),
-        rng.integers(0, 50, n),
-        truth,
-        quality=np.where(rng.random(n) < 0.2, np.nan, rng.random(n)),
-    ).by_id()
-
-
 def _evolve(rng: np.random.Generator, t: TrackTable, next_id: int) -> tuple[TrackTable, int]:
     keep = rng.random(len(t)) > 0.1
     t = t.take(keep)
@@ -203,13 +187,13 @@ def _evolve(rng: np.random.Generator, t: TrackTable, next_id: int) -> tuple[Trac
         t.truth_id,
         quality=quality,
     )
-    new = _random_table(rng, [f"A-{next_id + i}" for i in range(int(rng.integers(0, 5)))])
+    new = random_track_table(rng, [f"A-{next_id + i}" for i in range(int(rng.integers(0, 5)))])
     return TrackTable.concat([t, new]).by_id(), next_id + len(new)
 
 
 def test_changed_rows_matches_its_reference_form() -> None:
     rng = np.random.default_rng(4)
-    t = _random_table(rng, [f"A-{i}" for i in range(60)])
+    t = random_track_table(rng, [f"A-{i}" for i in range(60)])
     next_id = 60
     for _ in range(30):
         new, next_id = _evolve(rng, t, next_id)
@@ -230,7 +214,7 @@ def test_a_peer_rebuilds_the_owners_tables_bit_for_bit_and_recovers_from_a_gap()
     rng = np.random.default_rng(5)
     sender = StatesSender()
     receiver = StatesReceiver()
-    t = _random_table(rng, [f"A-{i}" for i in range(80)])
+    t = random_track_table(rng, [f"A-{i}" for i in range(80)])
     next_id = 80
     fulls = 0
     for step in range(200):

@@ -10,7 +10,7 @@ from service.pipeline.publication import Publication
 from service.pipeline.read_model import PairSetView, SystemTrackView
 from service.tracking.base import TrackTable
 from service.wire.keys import Keys
-from tests.test_partition import _random_table
+from tests.support import random_track_table
 
 RADARS = ("A", "B", "C")
 
@@ -54,7 +54,7 @@ def _ids_of(view: PairSetView, side: int) -> set[str]:
 def test_a_table_that_lost_tracks_takes_them_out_of_every_view_as_holding_to_it_would() -> None:
     rng = np.random.default_rng(7)
     pub = Publication(Keys("fusion"))
-    tables = {r: _random_table(rng, [f"{r}-{i}" for i in range(60)]) for r in RADARS}
+    tables = {r: random_track_table(rng, [f"{r}-{i}" for i in range(60)]) for r in RADARS}
     for r in RADARS:
         assert pub.tracks(r, 10.0, tables[r], own=True)[-1].key == f"fusion/radar/{r}/tracks"
     ids = {r: tables[r].track_id for r in RADARS}
@@ -66,7 +66,7 @@ def test_a_table_that_lost_tracks_takes_them_out_of_every_view_as_holding_to_it_
         r = RADARS[step % 3]
         keep = rng.random(len(tables[r])) > 0.15  # some tracks go, some come
         born = [f"{r}-{60 + 3 * step + j}" for j in range(2)]
-        table = TrackTable.concat([tables[r].take(keep), _random_table(rng, born)]).by_id()
+        table = TrackTable.concat([tables[r].take(keep), random_track_table(rng, born)]).by_id()
         before = dict(pub.views), pub.system
         out = pub.tracks(r, 10.0 + step, table, own=False)
         tables[r] = table

@@ -320,12 +320,12 @@ class Cat062Writer:
         self.blocks = 0
         self.tracks = 0
         #: Monotonic time of the last batch received (written or not).
-        self.last_write = time.monotonic()
+        self.last_received = time.monotonic()
         self.bad = 0
         self.send_errors = 0
 
     def write(self, payload: bytes) -> None:
-        self.last_write = time.monotonic()
+        self.last_received = time.monotonic()
         try:
             body = orjson.loads(payload)
             tracks = self.tracks_of(body)
@@ -604,7 +604,7 @@ def _outputs_complete(
         return
     done = time.monotonic()
     end = done + OUTPUTS_SETTLE_S
-    while time.monotonic() < end and time.monotonic() - max(writer.last_write, done) < OUTPUTS_QUIET_S:
+    while time.monotonic() < end and time.monotonic() - max(writer.last_received, done) < OUTPUTS_QUIET_S:
         time.sleep(OUTPUTS_QUIET_S / 5)
 
 

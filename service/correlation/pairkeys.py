@@ -15,22 +15,28 @@ def pair_keys(a: NDArray[np.str_], b: NDArray[np.str_]) -> NDArray[np.str_]:
 
 
 def find(keys: NDArray[np.str_], query: NDArray[np.str_]) -> NDArray[np.intp]:
-    """Index of each ``query`` key in ``keys`` (unique), -1 where absent (one sort, one search)."""
+    """Index of each ``query`` key in ``keys`` (unique), -1 where absent (one search, after one
+    sort unless ``keys`` is sorted already, as a track table's ids are)."""
     if len(keys) == 0 or len(query) == 0:
         return np.full(len(query), -1, dtype=np.intp)
-    order = np.argsort(keys)
-    pos = np.minimum(np.searchsorted(keys, query, sorter=order), len(keys) - 1)
-    idx = order[pos]
+    if is_ascending(keys):
+        idx = np.minimum(np.searchsorted(keys, query), len(keys) - 1)
+    else:
+        order = np.argsort(keys)
+        idx = order[np.minimum(np.searchsorted(keys, query, sorter=order), len(keys) - 1)]
     return np.where(keys[idx] == query, idx, -1).astype(np.intp)
+
+
+def is_ascending(y: NDArray[np.str_]) -> bool:
+    """Whether ``y`` is sorted (one comparison pass)."""
+    return y.shape[0] < 2 or bool(np.all(y[1:] >= y[:-1]))
 
 
 def ascending(y: NDArray[np.str_]) -> NDArray[np.str_]:
     """``y`` sorted: as it is when it already is (a track table's ids are: one comparison pass
     instead of a sort)."""
     y = np.asarray(y)
-    if y.shape[0] < 2 or bool(np.all(y[1:] >= y[:-1])):
-        return y
-    return np.sort(y)
+    return y if is_ascending(y) else np.sort(y)
 
 
 def isin_sorted(x: NDArray[np.str_], y: NDArray[np.str_]) -> NDArray[np.bool_]:

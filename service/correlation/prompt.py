@@ -43,6 +43,7 @@ from scipy.spatial import cKDTree
 
 from service.correlation.assignment import rival_costs
 from service.correlation.base import BoolArray, FloatArray, IntArray
+from service.correlation.pairkeys import find
 from service.geo import Site
 from service.tracking.base import TrackTable
 
@@ -173,13 +174,8 @@ def isolated(
     if n == 0 or len(table) < 2:
         return np.ones(n, dtype=bool)
     pos = table.position_ecef_m + table.velocity_ecef_mps * (time_s - table.time_s)[:, None]
-    ids = table.track_id
-    if bool(np.all(ids[1:] >= ids[:-1])):  # (a track table's ids are sorted: no sort needed)
-        at = np.minimum(np.searchsorted(ids, track_ids), len(ids) - 1)
-    else:
-        order = np.argsort(ids)
-        at = order[np.minimum(np.searchsorted(ids, track_ids, sorter=order), len(ids) - 1)]
-    found = ids[at] == track_ids
+    idx = find(table.track_id, track_ids)
+    found, at = idx >= 0, np.maximum(idx, 0)
     up = site.rotation[:, 2] if site is not None else None
     near = companions(pos, table.velocity_ecef_mps, up, at, radius_m, velocity_mps, ~table.confirmed)
     return np.asarray(~found | ~near)
