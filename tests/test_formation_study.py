@@ -189,7 +189,8 @@ def test_grid_and_variants() -> None:
     assert sc.formation is not None and sc.formation.spacing_m == pytest.approx(3 * unit)
     assert {r.pd for r in sc.radars} == {0.7}
     before = fs.engine_config("before")
-    assert before.tracking.formation == FormationParams.off()
+    assert before.tracking.formation == FormationParams.off() and not before.tracking.filter.imm
+    assert fs.engine_config("now").tracking.filter.imm
     assert before.correlation.prompt.min_quality == 0.0 and not before.correlation.swap.enabled
     assert fs.engine_config("now") == EngineConfig()
 

@@ -97,3 +97,66 @@ def velocity_cluster_reference(
                     sets[b] = set()
                     changed = True
     return [np.sort(np.array([order[q] for q in st], dtype=np.intp)) for st in sets if len(st) >= p.min_plots]
+
+
+def imm_cycle_reference(
+    xm: FloatArray,
+    pm: FloatArray,
+    mu: FloatArray,
+    dt: FloatArray,
+    z: FloatArray,
+    R: FloatArray,
+    psd: tuple[float, float],
+    sojourn_s: tuple[float, float],
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Plain loop form of one IMM cycle of two constant-velocity models per track (for tests):
+    the textbook's mixing, prediction, update and combination one track and one model at a
+    time, the transition matrix from the chain's generator by ``scipy.linalg.expm``, and the
+    likelihoods as full Gaussian densities.  Returns ``(x, P, mu, d2)``: the combined updated
+    state and covariance, the models' probabilities, and ``d^2`` of the plot against the
+    moment-matched prediction."""
+    from scipy.linalg import expm
+    from scipy.stats import multivariate_normal
+
+    rate = np.array([1.0 / sojourn_s[0], 1.0 / sojourn_s[1]])
+    gen = np.array([[-rate[0], rate[0]], [rate[1], -rate[1]]])
+    H = np.hstack([np.eye(3), np.zeros((3, 3))])
+    out_x, out_p, out_mu, out_d2 = [], [], [], []
+    for k in range(xm.shape[0]):
+        p = expm(gen * abs(dt[k]))
+        c = np.array([sum(p[i, j] * mu[k, i] for i in range(2)) for j in range(2)])
+        xs, ps = [], []
+        for j in range(2):
+            w = [p[i, j] * mu[k, i] / c[j] for i in range(2)]
+            x0 = sum(w[i] * xm[k, i] for i in range(2))
+            p0 = sum(w[i] * (pm[k, i] + np.outer(xm[k, i] - x0, xm[k, i] - x0)) for i in range(2))
+            F = np.eye(6)
+            F[:3, 3:] = dt[k] * np.eye(3)
+            a = abs(dt[k])
+            Q = np.zeros((6, 6))
+            Q[:3, :3] = psd[j] * a**3 / 3 * np.eye(3)
+            Q[:3, 3:] = Q[3:, :3] = psd[j] * dt[k] * a / 2 * np.eye(3)
+            Q[3:, 3:] = psd[j] * a * np.eye(3)
+            xs.append(F @ x0)
+            ps.append(F @ p0 @ F.T + Q)
+        xbar = sum(c[j] * xs[j] for j in range(2))
+        pbar = sum(c[j] * (ps[j] + np.outer(xs[j] - xbar, xs[j] - xbar)) for j in range(2))
+        ybar = z[k] - H @ xbar
+        out_d2.append(float(ybar @ np.linalg.inv(H @ pbar @ H.T + R[k]) @ ybar))
+        like, xu, pu = [], [], []
+        for j in range(2):
+            S = H @ ps[j] @ H.T + R[k]
+            K = ps[j] @ H.T @ np.linalg.inv(S)
+            y = z[k] - H @ xs[j]
+            like.append(multivariate_normal(np.zeros(3), S).pdf(y))
+            xu.append(xs[j] + K @ y)
+            ikh = np.eye(6) - K @ H
+            pu.append(ikh @ ps[j] @ ikh.T + K @ R[k] @ K.T)
+        post = np.array([like[j] * c[j] for j in range(2)])
+        m = post / post.sum()
+        x = sum(m[j] * xu[j] for j in range(2))
+        P = sum(m[j] * (pu[j] + np.outer(xu[j] - x, xu[j] - x)) for j in range(2))
+        out_x.append(x)
+        out_p.append(P)
+        out_mu.append(m)
+    return np.array(out_x), np.array(out_p), np.array(out_mu), np.array(out_d2)

@@ -76,7 +76,7 @@ def clarity(rows: IntArray, cols: IntArray, d2: FloatArray, chosen: IntArray) ->
     the share of the likelihood that the chosen association holds among every association it
     competed with: the other plots in the track's gate and the other tracks whose gate held
     the plot (the association events that involve ``r`` or ``j``, weighed as JPDA weighs them;
-    here only a figure of ambiguity: the update stays the one assignment; docs/tracking.md,
+    here only a figure of ambiguity: the update stays the one assignment; docs/architecture.md,
     "Track quality").  1 when the track and the plot had no other candidate.  ``L_k`` never
     underflows: the gate keeps ``d2 <= gate_chi2`` (16.3 by default), so ``L_k >= 3e-4``.
     """

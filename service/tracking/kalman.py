@@ -32,8 +32,9 @@ def cv_transition(dt: FloatArray) -> FloatArray:
     return f
 
 
-def cv_process_noise(dt: FloatArray, q: float) -> FloatArray:
-    """``Q(dt)`` of the CWNA model for each ``dt``, shape ``(n, 6, 6)``."""
+def cv_process_noise(dt: FloatArray, q: float | FloatArray) -> FloatArray:
+    """``Q(dt)`` of the CWNA model for each ``dt``, shape ``(n, 6, 6)`` (``q``: one for all,
+    or one per ``dt``)."""
     dt = np.asarray(dt, dtype=float)
     a = np.abs(dt)
     out = np.zeros((*dt.shape, 6, 6))
@@ -45,7 +46,9 @@ def cv_process_noise(dt: FloatArray, q: float) -> FloatArray:
     return out
 
 
-def predict(x: FloatArray, P: FloatArray, dt: FloatArray, q: float) -> tuple[FloatArray, FloatArray]:
+def predict(
+    x: FloatArray, P: FloatArray, dt: FloatArray, q: float | FloatArray
+) -> tuple[FloatArray, FloatArray]:
     """Predict states ``(n, 6)`` and covariances ``(n, 6, 6)`` over ``dt`` ``(n,)``."""
     f = cv_transition(dt)
     x_new = np.einsum("nij,nj->ni", f, x)
@@ -69,19 +72,21 @@ def update(
     """Kalman update of each state with its plot; returns ``(x+, P+, nis)`` (Joseph form)."""
     y, S = innovation(x, P, z, R)
     nis = np.einsum("ni,ni->n", y, np.linalg.solve(S, y[..., None])[..., 0])
-    return (*_update(x, P, R, y, S), nis)
+    return (*update_innovation(x, P, R, y, S), nis)
 
 
 def update_state(x: FloatArray, P: FloatArray, z: FloatArray, R: FloatArray) -> tuple[FloatArray, FloatArray]:
     """:func:`update` without the NIS (the same ``x+`` and ``P+``), for callers that do not
     use it."""
     y, S = innovation(x, P, z, R)
-    return _update(x, P, R, y, S)
+    return update_innovation(x, P, R, y, S)
 
 
-def _update(
+def update_innovation(
     x: FloatArray, P: FloatArray, R: FloatArray, y: FloatArray, S: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
+    """The update of :func:`update_state` from the innovation ``y`` and its covariance ``S``
+    already at hand (:func:`innovation`)."""
     # K = P H^T S^-1, computed as (S^-1 H P)^T since S and P are symmetric.
     K = np.swapaxes(np.linalg.solve(S, P[..., :3, :]), -1, -2)  # (n, 6, 3)
     x_new = x + np.einsum("nij,nj->ni", K, y)

@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from service.geo import FloatArray, Site
-from service.tracking import kalman
+from service.tracking import imm, kalman
 from service.tracking.assignment import assign, clarity
 from service.tracking.base import PlotColumns, Tracker, TrackTable
 from service.tracking.duplicates import duplicate_losers, shared_plot_pairs
@@ -90,17 +90,37 @@ class _Tracks:
     ids: NDArray[np.str_]  # "{prefix}-{uid}", made once at birth
     cov_ecef: FloatArray  # (n, 6, 6) ``P`` in ECEF, made when ``P`` is (see ``TrackManager.tracks``)
     quality: FloatArray  # ``Track.quality``: average clarity of its associations, NaN before one
+    xm: FloatArray  # (n, M, 6) each filter model's state (:mod:`.imm`); ``x`` is their mixture
+    Pm: FloatArray  # (n, M, 6, 6)
+    mu: FloatArray  # (n, M) the models' probabilities
 
     def __len__(self) -> int:
         return int(self.uid.shape[0])
 
     @staticmethod
-    def empty() -> _Tracks:
+    def empty(models: int) -> _Tracks:
         i = np.empty(0, dtype=np.int64)
         f = np.empty(0)
         m = np.empty((0, 6, 6))
         b, u = np.empty(0, dtype=bool), np.empty(0, dtype=str)
-        return _Tracks(i, np.empty((0, 6)), m, f, i, i, i, b, i, u, m, f)
+        k = models
+        return _Tracks(
+            i,
+            np.empty((0, 6)),
+            m,
+            f,
+            i,
+            i,
+            i,
+            b,
+            i,
+            u,
+            m,
+            f,
+            np.empty((0, k, 6)),
+            np.empty((0, k, 6, 6)),
+            np.empty((0, k)),
+        )
 
     def take(self, keep: NDArray[np.bool_]) -> _Tracks:
         return _Tracks(*(getattr(self, f.name)[keep] for f in fields(self)))
@@ -116,9 +136,10 @@ _LOOK_MASK = (1 << _LOOK_BITS) - 1
 
 
 Joined = list[tuple[NDArray[np.int64], PlotColumns]]
-#: The arrays an update writes in place and the rows it wrote, with their previous values:
-#: ``(tracks, rows, x, P, t, nplots, cov_ecef)``.
-_Saved = tuple[_Tracks, IntArray, FloatArray, FloatArray, FloatArray, NDArray[np.int64], FloatArray]
+#: The fields of ``_Tracks`` an update writes in place, row by row (``TrackManager.update``).
+_WRITTEN = ("x", "P", "t", "nplots", "cov_ecef", "xm", "Pm", "mu")
+#: The tracks an update wrote in, the rows it wrote, and their previous values by field.
+_Saved = tuple[_Tracks, IntArray, dict[str, NDArray]]
 
 #: Association memory: a (track, plot) pair of the KD-tree pre-gate search costs about 90 bytes
 #: (its output and masks), a gate prediction about 1.3 kB, so the search runs on chunks of
@@ -223,7 +244,9 @@ class TrackManager(Tracker):
         self.last_time_s = -np.inf
         #: Data time of the last search of the window by the initiators (``update``).
         self._initiated_s = -np.inf
-        self._tracks = _Tracks.empty()
+        #: The filter's models (:mod:`.imm`; one: the plain constant-velocity filter).
+        self._models = imm.models_of(self.params.filter)
+        self._tracks = _Tracks.empty(self._models.count)
         #: The site rotation that ``_tracks.cov_ecef`` was made with, and the site that the
         #: window's measurements were made with (a site can be replaced, see ``update``).
         self._ecef_rotation = np.array(self.site.rotation, dtype=float, copy=True)
@@ -236,7 +259,7 @@ class TrackManager(Tracker):
 
     # -- contract ---------------------------------------------------------------------
     def drop_tracks(self) -> None:
-        self._tracks = _Tracks.empty()
+        self._tracks = _Tracks.empty(self._models.count)
         self._window.clear()
         self.joined = []
         self.identity.keep(self._tracks.uid)
@@ -285,7 +308,7 @@ class TrackManager(Tracker):
             hit = np.zeros(len(tracks), dtype=bool)
             twins = np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
             if len(tracks) and len(meas):
-                rows, cols, d2, xp, pp = self._gate(tracks, meas)
+                rows, cols, d2, xp, pp, cw = self._gate(tracks, meas)
                 chosen = assign(rows, cols, d2, fp.gate_chi2)
                 r, c = rows[chosen], cols[chosen]
                 clear = clarity(rows, cols, d2, chosen)
@@ -295,17 +318,12 @@ class TrackManager(Tracker):
                     twins = tracks.uid[a], tracks.uid[b]
                 if r.shape[0]:
                     z, cov_z = meas.enu_m[c], meas.covariance[c]
-                    x_new, p_new = kalman.update_state(xp[chosen], pp[chosen], z, cov_z)
-                    saved = (
-                        tracks,
-                        r,
-                        tracks.x[r],
-                        tracks.P[r],
-                        tracks.t[r],
-                        tracks.nplots[r],
-                        tracks.cov_ecef[r],
+                    x_new, p_new, xm_new, pm_new, mu_new = imm.update(
+                        xp[chosen], pp[chosen], cw[chosen], z, cov_z
                     )
+                    saved = (tracks, r, {name: getattr(tracks, name)[r] for name in _WRITTEN})
                     tracks.x[r], tracks.P[r], tracks.t[r] = x_new, p_new, meas.time_s[c]
+                    tracks.xm[r], tracks.Pm[r], tracks.mu[r] = xm_new, pm_new, mu_new
                     tracks.nplots[r] += 1
                     tracks.cov_ecef[r] = big @ p_new @ big.T
                     hit[r] = True
@@ -321,9 +339,9 @@ class TrackManager(Tracker):
                 initiated_s = float(time_s)
         except BaseException:
             if saved is not None:  # back into the very arrays written
-                written, rs, x0, p0, t0, n0, c0 = saved
-                written.x[rs], written.P[rs], written.t[rs], written.nplots[rs] = x0, p0, t0, n0
-                written.cov_ecef[rs] = c0
+                written, rs, before = saved
+                for name, values in before.items():
+                    getattr(written, name)[rs] = values
             raise
         # Commit: plain assignments only, after every step that can fail.
         self._tracks, self._window, self.joined, self._next_uid = tracks, window, joined, next_uid
@@ -366,8 +384,10 @@ class TrackManager(Tracker):
     # -- association ------------------------------------------------------------------
     def _gate(
         self, tracks: _Tracks, meas: Measurements
-    ) -> tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray]:
-        """Gated candidates ``(track, plot, d^2)`` and each candidate's predicted state.
+    ) -> tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Gated candidates ``(track, plot, d^2)`` and each candidate's predicted state by
+        filter model, with the models' prior weights (:func:`.imm.predict`); ``d^2`` is taken
+        against the models' mixture (:func:`.imm.combine`).
 
         Only the tracks near the batch's plots (:func:`_near_tracks`: a sector batch of a
         scanning radar covers an eighth of its tracks) are predicted and searched; the others
@@ -380,25 +400,28 @@ class TrackManager(Tracker):
         chunks whose candidates within the pre-gate radius are at most
         ``_SEARCH_PAIRS_PER_PREDICTION * gate_block`` (counted on a grid first,
         :func:`.pairs.cell_counts`; plus one track's own), and the per-candidate predictions are
-        made ``gate_block`` at a time.  Normal batches are one chunk and one block, the form
-        used before these bounds."""
+        made ``gate_block`` per model at a time.  Normal batches are one chunk and one block,
+        the form used before these bounds.  The pre-gate radius takes the largest of the
+        models' process noise, so it holds every model's prediction."""
         fp = self.params.filter
+        models = self._models
         tb = float(np.median(meas.time_s))
         near = _near_tracks(tracks, meas.enu_m, tb, fp.coarse_gate_max_m)
         if near is None:
-            x, P, t = tracks.x, tracks.P, tracks.t
+            x, P, t, xm, pm, mu = tracks.x, tracks.P, tracks.t, tracks.xm, tracks.Pm, tracks.mu
         else:
             x, P, t = tracks.x[near], tracks.P[near], tracks.t[near]
-        out: list[tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray]] = []
+            xm, pm, mu = tracks.xm[near], tracks.Pm[near], tracks.mu[near]
+        out: list[tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray, FloatArray]] = []
         if x.shape[0]:
-            xb, pb = kalman.predict(x, P, tb - t, fp.process_noise_psd)
+            xb, pb = kalman.predict(x, P, tb - t, max(models.psd))
             span = float(np.max(np.abs(meas.time_s - tb)))
             sig_t = np.sqrt(np.trace(pb[:, :3, :3], axis1=1, axis2=2))
             sig_p = float(np.sqrt(np.max(np.trace(meas.covariance, axis1=1, axis2=2))))
             speed = np.linalg.norm(xb[:, 3:], axis=1)
             radius = np.sqrt(fp.gate_chi2) * (sig_t + sig_p) + speed * span
             radius = np.minimum(radius, fp.coarse_gate_max_m)
-            gb = max(self.params.bounds.gate_block, 1)
+            gb = max(self.params.bounds.gate_block // models.count, 1)
             tree_p = cKDTree(meas.enu_m)
             chunks = _track_chunks(
                 xb[:, :3], meas.enu_m, float(radius.max()), _SEARCH_PAIRS_PER_PREDICTION * gb
@@ -413,23 +436,25 @@ class TrackManager(Tracker):
                 rows, cols = rows[keep], cols[keep]
                 for b0 in range(0, rows.shape[0], gb):  # the exact gate, ``gate_block`` at a time
                     r, c = rows[b0 : b0 + gb], cols[b0 : b0 + gb]
-                    xp, pp = kalman.predict(x[r], P[r], meas.time_s[c] - t[r], fp.process_noise_psd)
-                    y, S = kalman.innovation(xp, pp, meas.enu_m[c], meas.covariance[c])
+                    xp, pp, cw = imm.predict(xm[r], pm[r], mu[r], meas.time_s[c] - t[r], models)
+                    y, S = kalman.innovation(*imm.combine(cw, xp, pp), meas.enu_m[c], meas.covariance[c])
                     d2 = kalman.mahalanobis2(y, S)
                     ok = d2 <= fp.gate_chi2
-                    out.append((r[ok] if near is None else near[r[ok]], c[ok], d2[ok], xp[ok], pp[ok]))
+                    rows_ok = r[ok] if near is None else near[r[ok]]
+                    out.append((rows_ok, c[ok], d2[ok], xp[ok], pp[ok], cw[ok]))
         if len(out) == 1:
             return out[0]
         if not out:
-            e = np.empty(0, dtype=np.intp)
-            return e, e, np.empty(0), np.empty((0, 6)), np.empty((0, 6, 6))
-        r_, c_, d_, x_, p_ = zip(*out, strict=True)
+            e, m = np.empty(0, dtype=np.intp), models.count
+            return e, e, np.empty(0), np.empty((0, m, 6)), np.empty((0, m, 6, 6)), np.empty((0, m))
+        r_, c_, d_, x_, p_, w_ = zip(*out, strict=True)
         return (
             np.concatenate(r_),
             np.concatenate(c_),
             np.concatenate(d_),
             np.concatenate(x_),
             np.concatenate(p_),
+            np.concatenate(w_),
         )
 
     # -- formations --------------------------------------------------------------------
@@ -536,6 +561,7 @@ class TrackManager(Tracker):
         n_bits = p.manager.confirm_n
         first = np.minimum(births.plots[ok], n_bits).astype(np.int64)
         hist = (np.int64(1) << first) - 1
+        xm, pm, mu = imm.born(births.x[ok], births.P[ok], self._models)
         born = _Tracks(
             uid,
             births.x[ok],
@@ -549,6 +575,9 @@ class TrackManager(Tracker):
             np.char.add(f"{self.id_prefix}-", (uid + self._id_offset).astype(str)),
             big @ births.P[ok] @ big.T,
             np.full(k, np.nan),
+            xm,
+            pm,
+            mu,
         )
         # Plots of accepted groups leave the window; label -> uid of the new track.
         label_uid = np.full(groups.count, -1, dtype=np.int64)
