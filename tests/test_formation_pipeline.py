@@ -109,6 +109,10 @@ def test_scores_through_the_engine() -> None:
         assert s["pairs"] == _recount(snap)
         tot = s["total"]
         assert tot == {f: sum(p[f] for p in s["pairs"].values()) for f in tot}
+        # the score bins hold every judged confirmed pair once, the right ones among them
+        assert sum(s["scores"]["score_n"]) == tot["confirmed"] - tot["gone"]
+        assert sum(s["scores"]["score_right"]) == tot["correct"]
+        assert 0.0 <= s["scores"]["brier_sum"] <= tot["confirmed"] - tot["gone"]
     final = score_snapshot(runs[-1][1])
     assert set(final["pairs"]) == {"A-B", "A-C", "B-C"}
     assert set(final["radars"]) == {"A", "B", "C"}

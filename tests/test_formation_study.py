@@ -18,6 +18,7 @@ from service.tracking.params import FormationParams
 from tests.scenario_helpers import scenario_messages
 from topofusion_lab.commands.evaluate import STUDIES
 from topofusion_lab.evaluation import formation as fs
+from topofusion_lab.evaluation.formation_pipeline import SCORE_BINS
 from topofusion_lab.scenarios.catalog import formation_crossing, formation_merging, get_scenario
 from topofusion_lab.scenarios.simulator import generate
 
@@ -208,6 +209,7 @@ def test_a_tiny_run_reports_both_trackers(tmp_path: Path) -> None:
     )
     assert "| 2x (" in section and "| before |" in section and "| now |" in section
     assert "| goal | before | now |" in section
+    assert "| 2x (" in section.split("Pair scores through the whole pipeline")[1]
     runs = json.loads((tmp_path / "formation.json").read_text())["runs"]
     assert [r["variant"] for r in runs] == ["before", "now"]
     if fs.variants_equal():  # one run gives both rows
@@ -225,3 +227,6 @@ def test_a_tiny_run_reports_both_trackers(tmp_path: Path) -> None:
         assert s["switches_per_h"] >= 0.0
         assert 0.0 < s["position_mean_m"] < 2_000.0
         assert math.isnan(s["quality"]) or 0.0 <= s["quality"] <= 1.0
+        judged = sum(s[f"score_n_{b}"] for b in range(len(SCORE_BINS) - 1))
+        assert judged == r["pairs_judged"]  # every judged pair of the pair samples, in one bin
+        assert math.isnan(s["brier"]) or 0.0 <= s["brier"] <= 1.0

@@ -148,10 +148,12 @@ def update(
     y, S = kalman.innovation(flat_x, flat_p, np.repeat(z, m, axis=0), rr)
     d2 = kalman.mahalanobis2(y, S)
     # log N(y; 0, S) up to the constant shared by the models (same dimension)
-    loglike = (-0.5 * (d2 + np.log(np.linalg.det(S)))).reshape(k, m)
+    loglike = (-0.5 * (d2 + np.linalg.slogdet(S)[1])).reshape(k, m)
     loglike -= loglike.max(axis=1, keepdims=True)  # (scaled: no underflow of exp)
     post = np.exp(loglike) * c
-    mu = post / post.sum(axis=1, keepdims=True)
+    total = post.sum(axis=1, keepdims=True)
+    # a likelihood that is not a number (a degenerate S) leaves the prior weights
+    mu = np.where(np.isfinite(total) & (total > 0.0), post / np.where(total > 0.0, total, 1.0), c)
     xm, pm = kalman.update_innovation(flat_x, flat_p, rr, y, S)
     xm, pm = xm.reshape(k, m, 6), pm.reshape(k, m, 6, 6)
     x, P = combine(mu, xm, pm)

@@ -300,9 +300,11 @@ class BoundParams:
     changes no result."""
 
     gate_block: int = 32_768
-    """Association: (track, plot) candidates of the exact gate predicted at once (the KD-tree
-    pre-gate search runs on chunks of tracks of the same memory).  A candidate costs about
-    1.3 kB (its own 6x6 prediction and temporaries), so a block about 40 MB; the benchmark's
+    """Association: (track, plot) candidate predictions of the exact gate made at once, one per
+    filter model (so with the two-model filter, half this many candidates a block; the KD-tree
+    pre-gate search runs on chunks of tracks of the same memory).  A prediction costs about
+    1.3 kB (its own 6x6 covariance and temporaries), so a block about 40 MB (47 MB measured
+    with the two-model filter's mixing); the benchmark's
     batches have at most about 4 000 candidates, so they stay one block."""
 
     max_cluster_plots: int = 200

@@ -70,7 +70,11 @@ to its ``truth_id`` (:func:`siap_sample`); every sum runs over radars, samples a
 * **pairs correct / false**: :func:`~topofusion_lab.evaluation.formation_pipeline.
   score_snapshot`'s ``found / common`` and ``false / judged`` (all radar pairs together),
   pooled over the samples from :data:`PAIR_WARMUP_S` on (the registration of the biases
-  takes the first minutes); the mean over seeds, and for false pairs also the worst seed.
+  takes the first minutes); the mean over seeds, and for false pairs also the worst seed;
+* **score reliability**: over the same samples, every judged confirmed pair's published score
+  in the bins of :data:`~topofusion_lab.evaluation.formation_pipeline.SCORE_BINS`, the share
+  of each bin that is right, and the Brier score (the mean of ``(score - right)^2``): whether a
+  pair's score means what it says through the whole pipeline, the trackers' mistakes included.
 
 The formation goals are checked per configuration: false pairs <= 2 % in every seed at every
 spacing, correct pairs >= 92 % on average at spacing >= 2x, duplicate tracks <= 2 %, and ID
@@ -89,6 +93,7 @@ import sys
 import time
 from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, replace
+from itertools import pairwise
 from typing import Any
 
 import numpy as np
@@ -96,7 +101,12 @@ import numpy as np
 from service.config import EngineConfig
 from service.geo import Site, ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from service.tracking.params import FormationParams
-from topofusion_lab.evaluation.formation_pipeline import formation_scenario, run_pipeline, score_snapshot
+from topofusion_lab.evaluation.formation_pipeline import (
+    SCORE_BINS,
+    formation_scenario,
+    run_pipeline,
+    score_snapshot,
+)
 from topofusion_lab.evaluation.jobs import ratio, run_jobs
 from topofusion_lab.scenarios.catalog import formation_crossing, formation_merging, get_scenario
 from topofusion_lab.scenarios.simulator import RadarSpec, Scenario, in_coverage
@@ -354,6 +364,9 @@ def run_one(job: Job) -> dict[str, Any]:
     errors = 0
     quality_sum, quality_n = 0.0, 0
     pairs = dict.fromkeys(("common", "found", "false", "judged"), 0)
+    score_n = [0] * (len(SCORE_BINS) - 1)
+    score_right = [0] * (len(SCORE_BINS) - 1)
+    brier = 0.0
     samples = 0
     for t, snap, _ in run_pipeline(sc, job.seed, config=engine_config(job.variant), at_s=at, observe=truth):
         samples += 1
@@ -394,7 +407,14 @@ def run_one(job: Job) -> dict[str, Any]:
             quality_sum += float(q.sum())
             quality_n += int(q.size)
         if t >= pair_warmup - 1e-9:
-            total = score_snapshot(snap)["total"]
+            scored = score_snapshot(snap)
+            total = scored["total"]
+            for b, (n_b, right_b) in enumerate(
+                zip(scored["scores"]["score_n"], scored["scores"]["score_right"], strict=True)
+            ):
+                score_n[b] += n_b
+                score_right[b] += right_b
+            brier += scored["scores"]["brier_sum"]
             pairs["common"] += total["common"]
             pairs["found"] += total["found"]
             pairs["false"] += total["false"]
@@ -419,6 +439,9 @@ def run_one(job: Job) -> dict[str, Any]:
         "quality_sum": quality_sum,
         "quality_n": quality_n,
         **{f"pairs_{k}": v for k, v in pairs.items()},
+        "score_n": score_n,
+        "score_right": score_right,
+        "brier_sum": brier,
         "wall_s": time.perf_counter() - started,
     }
 
@@ -431,6 +454,8 @@ def summarize(runs: Sequence[Mapping[str, Any]]) -> dict[str, float]:
         return float(sum(r[k] for r in runs))
 
     per_correct = [100.0 * ratio(r["pairs_found"], r["pairs_common"]) for r in runs]
+    score_n = np.sum([r.get("score_n", [0] * (len(SCORE_BINS) - 1)) for r in runs], axis=0)
+    score_right = np.sum([r.get("score_right", [0] * (len(SCORE_BINS) - 1)) for r in runs], axis=0)
     per_false = [100.0 * ratio(r["pairs_false"], r["pairs_judged"]) for r in runs]
     hours = tot("tracked_samples") * SAMPLE_S / 3600.0
     return {
@@ -449,6 +474,14 @@ def summarize(runs: Sequence[Mapping[str, Any]]) -> dict[str, float]:
         "correct_pct": _nanmean(per_correct),
         "false_pct": _nanmean(per_false),
         "false_worst_pct": _nanmax(per_false),
+        **{f"score_n_{k}": float(v) for k, v in enumerate(score_n)},
+        **{
+            f"score_right_{k}": ratio(float(r), float(n))
+            for k, (r, n) in enumerate(zip(score_right, score_n, strict=True))
+        },
+        "brier": ratio(
+            tot("brier_sum") if all("brier_sum" in r for r in runs) else math.nan, float(sum(score_n))
+        ),
     }
 
 
@@ -518,6 +551,7 @@ def report(
             "_The two engine configurations are equal in this tree: each run gives both rows (the "
             "engine is deterministic)._",
         ]
+    lines += ["", *reliability(points, summaries, unit)]
     lines += ["", *goals(points, by, summaries)]
     lines += [
         "",
@@ -525,6 +559,30 @@ def report(
         "`formation.json`.",
     ]
     return "\n".join(lines)
+
+
+def reliability(
+    points: Sequence[Point], summaries: Mapping[tuple[int, str], Mapping[str, float]], unit: float
+) -> list[str]:
+    """The reliability table: per point and configuration, the share of the judged confirmed
+    pairs in each score bin that are right (and how many there are), and the Brier score."""
+    edges = [f"{lo:g}-{hi:g}" for lo, hi in pairwise(SCORE_BINS)]
+    rows = [
+        "Pair scores through the whole pipeline (the published `score` of every judged confirmed "
+        "pair at every pair sample): the share right in each score bin (pairs in it), and the "
+        "Brier score, the mean of (score - right)^2.  A score means what it says when the share "
+        "right lies within its bin.",
+        "",
+        "| point | tracker | " + " | ".join(f"score {e}" for e in edges) + " | Brier |",
+        "|---|---|" + "---|" * (len(edges) + 1),
+    ]
+    for (i, variant), s in summaries.items():
+        cells = [
+            f"{_f(100 * s[f'score_right_{k}'], '.0f')} % ({s[f'score_n_{k}']:.0f})" for k in range(len(edges))
+        ]
+        label = f"{points[i].label} ({points[i].spacing_x * unit:.0f} m)"
+        rows.append(f"| {label} | {variant} | " + " | ".join(cells) + f" | {_f(s['brier'], '.3f')} |")
+    return rows
 
 
 def goals(

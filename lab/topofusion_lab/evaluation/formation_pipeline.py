@@ -17,6 +17,11 @@ Per radar pair at a checkpoint:
   of ``common`` with such a pair (``correct`` can exceed it only through duplicate tracks);
 * ``false``: the other judged confirmed pairs (different aircraft, or a track on clutter).
 
+Scores: every judged confirmed pair's published score (``PairSet`` ``score``) counted in the
+bins of :data:`SCORE_BINS` with whether it is correct (``score_n``, ``score_right``), and the
+sum of ``(score - correct)^2`` over them (``brier_sum``): the reliability of the scores through
+the whole pipeline, trackers' mistakes included.
+
 Rates: ``correct_pct = 100 found / common`` (the share of the common pairs the service has
 confirmed right) and ``false_pct = 100 false / (confirmed - gone)``, each over all radar pairs
 together (sums) and per radar pair.  Per radar, the tracking behind it: confirmed tracks,
@@ -35,6 +40,7 @@ import argparse
 import json
 import sys
 import time
+from bisect import bisect_right
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
@@ -52,6 +58,9 @@ from topofusion_lab.scenarios.simulator import Observer, Scenario, generate
 SCENARIO = "formation"
 #: Checkpoints during the run (besides the end), as fractions of the duration.
 CHECKPOINTS = 4
+#: Edges of the score bins of the reliability count (:func:`score_snapshot`); the last bin
+#: holds 1.0 itself.
+SCORE_BINS = (0.0, 0.5, 0.8, 0.9, 0.95, 0.99, 1.0)
 
 
 def formation_scenario(
@@ -90,13 +99,18 @@ def score_snapshot(snap: Snapshot) -> dict[str, Any]:
             "clutter": conf.count(None),
         }
     pairs: dict[str, dict[str, int]] = {}
+    score_n = [0] * (len(SCORE_BINS) - 1)
+    score_right = [0] * (len(SCORE_BINS) - 1)
+    brier = 0.0
     for view in snap.pair_views:
         a, b = view.radar_a, view.radar_b
         cols = view.columns
         common = confirmed_truths.get(a, set()) & confirmed_truths.get(b, set())
         confirmed = correct = false = gone = 0
         found: set[str] = set()
-        for ta, tb, ok in zip(cols["track_a"], cols["track_b"], cols["confirmed"], strict=True):
+        for ta, tb, ok, score in zip(
+            cols["track_a"], cols["track_b"], cols["confirmed"], cols["score"], strict=True
+        ):
             if not ok:
                 continue
             confirmed += 1
@@ -105,12 +119,17 @@ def score_snapshot(snap: Snapshot) -> dict[str, Any]:
                 gone += 1
                 continue
             wa, wb = ka[str(ta)], kb[str(tb)]
-            if wa is not None and wa == wb:
+            right = wa is not None and wa == wb
+            if right:
                 correct += 1
                 if wa in common:
                     found.add(wa)
             else:
                 false += 1
+            k = min(bisect_right(SCORE_BINS, float(score)) - 1, len(score_n) - 1)
+            score_n[k] += 1
+            score_right[k] += right
+            brier += (float(score) - right) ** 2
         pairs[f"{a}-{b}"] = {
             "common": len(common),
             "confirmed": confirmed,
@@ -123,7 +142,8 @@ def score_snapshot(snap: Snapshot) -> dict[str, Any]:
         k: sum(p[k] for p in pairs.values())
         for k in ("common", "confirmed", "correct", "found", "false", "gone")
     }
-    return {"pairs": pairs, "total": total, "radars": radars, **rates(total)}
+    scores = {"score_n": score_n, "score_right": score_right, "brier_sum": brier}
+    return {"pairs": pairs, "total": total, "radars": radars, "scores": scores, **rates(total)}
 
 
 def rates(counts: dict[str, int]) -> dict[str, float]:
