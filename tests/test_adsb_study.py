@@ -217,8 +217,10 @@ def test_a_tiny_study_end_to_end(tmp_path: Path) -> None:
     assert "| A, B, 30 aircraft | 1 x 2 |" in md
     assert "**Pairs, reading (1)**" in md and "**Lone-radar biases within 10 %**" in md
     assert len(messages) == 3  # the plan and one line per run
-    # the runs themselves: a clean stream, right pairs, absolute biases within 10 %
-    res = adsb.run_one(adsb.Job(0, lone, (0, 0, 0), 150.0))
+    # a run itself, of the study's length (its goal is stated for those: over 150 s the
+    # estimate of this seed's range bias is 9-11 % off, by the tracker's noise): a clean
+    # stream, right pairs, absolute biases within 10 %
+    res = adsb.run_one(adsb.Job(0, lone, (0, 0, 0), adsb.DURATION_S))
     assert res.errors == 0
     (radar,) = res.radars
     c = radar.counts

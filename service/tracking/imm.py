@@ -105,10 +105,16 @@ def combine(w: FloatArray, x: FloatArray, P: FloatArray) -> tuple[FloatArray, Fl
     ``P = sum w_j (P_j + (x_j - x)(x_j - x)^T)``."""
     if x.shape[1] == 1:  # one model: its own state, unchanged (no rounding through sums)
         return x[:, 0], P[:, 0]
+    # two models: x_j - x = (+w_2, -w_1) (x_1 - x_2), so the spread is w_1 w_2 (x_1 - x_2)(..)^T
     xc = np.einsum("kj,kjd->kd", w, x)
-    d = x - xc[:, None, :]
-    pc = np.einsum("kj,kjab->kab", w, P + d[..., :, None] * d[..., None, :])
+    pc = np.einsum("kj,kjab->kab", w, P) + (w[:, 0] * w[:, 1])[:, None, None] * _spread(x)
     return xc, pc
+
+
+def _spread(x: FloatArray) -> FloatArray:
+    """``(x_1 - x_2)(x_1 - x_2)^T`` of two models' states ``x`` ``(k, 2, 6)``."""
+    d = x[:, 0] - x[:, 1]
+    return np.asarray(d[:, :, None] * d[:, None, :])
 
 
 def predict(
@@ -126,8 +132,8 @@ def predict(
     c = joint.sum(axis=1)  # (k, j)
     w = joint / np.maximum(c[:, None, :], np.finfo(float).tiny)  # mu_{i|j}
     x0 = np.einsum("kij,kid->kjd", w, xm)
-    d = xm[:, :, None, :] - x0[:, None, :, :]  # (k, i, j, 6)
-    p0 = np.einsum("kij,kijab->kjab", w, pm[:, :, None] + d[..., :, None] * d[..., None, :])
+    # each mixed state's spread is w_1j w_2j (x_1 - x_2)(x_1 - x_2)^T, as in :func:`combine`
+    p0 = np.einsum("kij,kiab->kjab", w, pm) + (w[:, 0] * w[:, 1])[:, :, None, None] * _spread(xm)[:, None]
     q = np.tile(np.asarray(models.psd, dtype=float), k)
     xp, pp = kalman.predict(x0.reshape(k * m, 6), p0.reshape(k * m, 6, 6), np.repeat(dt, m), q)
     return xp.reshape(k, m, 6), pp.reshape(k, m, 6, 6), c
