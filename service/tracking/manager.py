@@ -5,8 +5,9 @@ One :meth:`TrackManager.update` per accepted batch, all in data time:
 1. plots to ENU positions with covariance (:mod:`.measurement`), each at its own time;
 2. gating: KD-tree pre-gate on the tracks predicted to the batch's median plot time, then the
    exact Mahalanobis gate of each candidate with the track predicted to *that plot's* time;
-3. one-to-one assignment (:mod:`.assignment`, ``linear_sum_assignment``) and the Kalman update
-   of every assigned track (:mod:`.kalman`), all vectorised across tracks;
+3. one-to-one assignment (:mod:`.assignment`, ``linear_sum_assignment``) and the filter update
+   of every assigned track (the two-model IMM of :mod:`.imm` over the constant-velocity Kalman
+   filter of :mod:`.kalman`), all vectorised across tracks;
 4. looks: a track is *expected* in a batch when its predicted azimuth lies inside the azimuth
    arc covered by the batch's plots (sector batches of a scanning radar), less a margin.  A hit
    or an expected miss is one look of its M-of-N history (a bit mask);
@@ -74,9 +75,9 @@ def covered_arc(azimuth_deg: FloatArray) -> tuple[float, float] | None:
 
 @dataclass(frozen=True)
 class _Tracks:
-    """The live tracks, one row each.  An update builds new arrays, except for the rows of
-    ``x``, ``P``, ``t`` and ``nplots`` that its Kalman update writes (and restores on failure,
-    :meth:`TrackManager.update`)."""
+    """The live tracks, one row each.  An update builds new arrays, except for the rows of the
+    fields in ``_WRITTEN`` (states, times, plot counts) that its filter update writes (and
+    restores on failure, :meth:`TrackManager.update`)."""
 
     uid: NDArray[np.int64]
     x: FloatArray  # (n, 6) ENU state
