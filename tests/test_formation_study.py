@@ -66,6 +66,9 @@ def test_siap_counts_match_a_plain_count() -> None:
             "pairs_found": 9,
             "pairs_false": 1,
             "pairs_judged": 10,
+            "score_n": [0, 0, 0, 0, 0, 10],
+            "score_right": [0, 0, 0, 0, 0, 9],
+            "brier_sum": 1.0,
         }
     ]
     s = fs.summarize(runs)

@@ -454,8 +454,8 @@ def summarize(runs: Sequence[Mapping[str, Any]]) -> dict[str, float]:
         return float(sum(r[k] for r in runs))
 
     per_correct = [100.0 * ratio(r["pairs_found"], r["pairs_common"]) for r in runs]
-    score_n = np.sum([r.get("score_n", [0] * (len(SCORE_BINS) - 1)) for r in runs], axis=0)
-    score_right = np.sum([r.get("score_right", [0] * (len(SCORE_BINS) - 1)) for r in runs], axis=0)
+    score_n = np.sum([r["score_n"] for r in runs], axis=0)
+    score_right = np.sum([r["score_right"] for r in runs], axis=0)
     per_false = [100.0 * ratio(r["pairs_false"], r["pairs_judged"]) for r in runs]
     hours = tot("tracked_samples") * SAMPLE_S / 3600.0
     return {
@@ -479,9 +479,7 @@ def summarize(runs: Sequence[Mapping[str, Any]]) -> dict[str, float]:
             f"score_right_{k}": ratio(float(r), float(n))
             for k, (r, n) in enumerate(zip(score_right, score_n, strict=True))
         },
-        "brier": ratio(
-            tot("brier_sum") if all("brier_sum" in r for r in runs) else math.nan, float(sum(score_n))
-        ),
+        "brier": ratio(tot("brier_sum"), float(sum(score_n))),
     }
 
 
