@@ -456,6 +456,13 @@ def test_picture_renders_the_stream_and_follows_it(live: Live, page: browser.Pag
     view = page.wait("new URLSearchParams(location.search).get('view')", what="the view in the address")
     # the address alone brings the same view back (a site within a pixel of where it was)
     page.goto(svc.base_url + "/picture?view=" + view)
+    # read once the page is laid out as it was (its panels filled: a first draw before the
+    # health rows arrive sits a few pixels off on a slow machine)
+    page.wait(
+        "Number(document.body.dataset.updates) >= 2"
+        " && document.querySelectorAll('#health tbody tr').length === 3",
+        what="the reloaded picture filled",
+    )
     again = page.wait(where, what="the sites drawn")
     xy = [[float(v) for v in re.findall(r"-?[\d.]+", d)[:2]] for d in (moved, again)]
     assert abs(xy[0][0] - xy[1][0]) < 1.0 and abs(xy[0][1] - xy[1][1]) < 1.0, (moved, again)

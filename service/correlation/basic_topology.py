@@ -29,8 +29,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2
 
+from service.chi2 import chi2_upper
 from service.correlation.base import (
     BoolArray,
     CorrelationMethod,
@@ -196,7 +196,7 @@ def basic_match(
     dof = 3 * n
     few = np.minimum(n_a, n_b) < prm.min_neighbours
     unequal = n_a != n_b
-    passed = best <= chi2.ppf(1.0 - prm.alpha, np.maximum(dof, 1))
+    passed = best <= chi2_upper(prm.alpha, np.maximum(dof, 1))
     reason = np.select(
         [few, unequal, sing, ~passed],
         [Reason.TOO_FEW_NEIGHBOURS, Reason.UNEQUAL_LENGTH, Reason.DEGENERATE_FIT, Reason.SHAPE_TEST],

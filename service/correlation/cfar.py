@@ -56,7 +56,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 from scipy.special import erf
-from scipy.stats import chi2
+
+from service.chi2 import chi2_quantile
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -733,7 +734,7 @@ def cfar_associate(
 
     # Step 4: least-squares bias, Eqs. (17)-(18), from the known and the consistent
     # confidential pairs; compensation of the radar tracks.
-    gate = float(chi2.ppf(p.gate_probability, df=2))
+    gate = float(chi2_quantile(p.gate_probability, 2))
     pi = np.concatenate([kr, ci])
     pj = np.concatenate([kj, cj])
     cons = consistent_pairs(polar_residuals(ref[pi], rad[pj]), cref[pi] + crad[pj], gate, p)

@@ -60,6 +60,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from service.chi2 import chi2_upper
 from service.correlation.assignment import assign_unambiguous
 from service.correlation.base import (
     NO_DECISION_REASONS,
@@ -77,7 +78,7 @@ from service.correlation.evidence import EvidenceBook, EvidenceParams, posterior
 from service.correlation.external import CfarCorrelator, GmmCorrelator
 from service.correlation.gmm import GmmParams
 from service.correlation.group_offset import GroupOffsetParams, group_residuals
-from service.correlation.linalg import chi2_upper, inv3, quad3
+from service.correlation.linalg import inv3, quad3
 from service.correlation.nearest import NearestCorrelator, NearestParams
 from service.correlation.pairkeys import find, isin_sorted, pair_keys
 from service.correlation.pairs import PairBook, PairBookParams, PairState

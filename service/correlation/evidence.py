@@ -63,9 +63,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from service.chi2 import chi2_upper
 from service.correlation.base import FloatArray, IntArray, PredictedTracks
 from service.correlation.candidates import candidate_pairs
-from service.correlation.linalg import chi2_upper, congruence, inv3, quad3
+from service.correlation.linalg import congruence, inv3, quad3
 from service.correlation.pairkeys import find, isin_sorted, pair_keys
 
 

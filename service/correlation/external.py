@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.stats import chi2
 
+from service.chi2 import chi2_quantile
 from service.correlation import cfar, gmm
 from service.correlation.base import (
     CorrelationMethod,
@@ -184,7 +184,7 @@ class CfarCorrelator(CorrelationMethod):
             return None
         rad, crad = self._polar(a, a.site, ia)
         ref, cref = self._polar(b, a.site, ib)
-        gate = float(chi2.ppf(p.keep_probability, df=2))
+        gate = float(chi2_quantile(p.keep_probability, 2))
         cons = cfar.consistent_pairs(cfar.polar_residuals(ref, rad), cref + crad, gate, p)
         n = len(ia)
         return Decisions.build(

@@ -1,10 +1,9 @@
 """Small batched linear algebra that never raises (closed-form 2x2 / 3x3 inverses with a rank
-flag), and the chi-square quantile every test of the correlation uses."""
+flag); the chi-square quantile every test of the correlation uses is :mod:`service.chi2`'s."""
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import gammaincinv
 
 from service.correlation.base import BoolArray, FloatArray
 
@@ -163,12 +162,3 @@ def yaw_congruence(yaw: FloatArray, s: FloatArray) -> FloatArray:
     out[..., :, 1] = sy[..., None] * m[..., :, 0] + cy[..., None] * m[..., :, 1]
     out[..., :, 2] = m[..., :, 2]
     return out
-
-
-def chi2_upper(alpha: float, dof: FloatArray | float) -> FloatArray:
-    """Upper ``alpha`` quantile of chi-square with ``dof`` degrees of freedom, ``chi2.ppf(1 - alpha, dof)``.
-
-    The same expression scipy evaluates (``2 gammaincinv(dof / 2, p)``), without
-    ``rv_continuous``'s per-call argument handling (a large share of a small call).
-    """
-    return np.asarray(2 * gammaincinv(np.asarray(dof, dtype=float) / 2, 1.0 - alpha))

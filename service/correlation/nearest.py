@@ -14,8 +14,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import chi2
 
+from service.chi2 import chi2_upper
 from service.correlation.base import (
     CorrelationMethod,
     DecisionContext,
@@ -74,7 +74,7 @@ def nearest_decide(
     q_pos, q_vel, ok = chi2_pairs(a, b, ia, ib, extra_cov_a, extra_cov_b)
     dof = 3 + (3 if params.use_velocity else 0)
     q = q_pos + (q_vel if params.use_velocity else 0.0)
-    passed = ok & (q <= chi2.ppf(1.0 - params.alpha, dof))
+    passed = ok & (q <= chi2_upper(params.alpha, dof))
     reason = np.where(~ok, Reason.DEGENERATE_FIT, np.where(passed, Reason.ACCEPTED, Reason.GATE))
     return Decisions.build(
         ia,

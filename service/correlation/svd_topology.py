@@ -66,6 +66,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from service.chi2 import chi2_upper
 from service.correlation.base import (
     BoolArray,
     CorrelationMethod,
@@ -78,7 +79,6 @@ from service.correlation.base import (
 from service.correlation.candidates import CandidateParams, candidate_pairs
 from service.correlation.gls import similarity_gls_batch
 from service.correlation.linalg import (
-    chi2_upper,
     congruence,
     inv3,
     mahalanobis2_h,

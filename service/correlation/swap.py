@@ -45,8 +45,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.chi2 import chi2_upper
 from service.correlation.base import BoolArray, FloatArray, IntArray
-from service.correlation.linalg import chi2_upper
 
 
 @dataclass(frozen=True)

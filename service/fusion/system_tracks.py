@@ -46,7 +46,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from service.correlation.linalg import chi2_upper, inv3
+from service.chi2 import chi2_upper
+from service.correlation.linalg import inv3
 from service.correlation.pairkeys import SEP  # a member's key: source, SEP, track id
 from service.tracking.base import first_number
 

@@ -145,6 +145,11 @@ class StateKeeper:
         return self._epoch
 
     # -- start -------------------------------------------------------------------------------
+    def prepare(self) -> None:
+        """Make the directory (``OSError`` if it cannot be made): a start checks it before it
+        builds its engine, so a bad ``--state-dir`` fails at once, not after the engine's start."""
+        self.directory.mkdir(parents=True, exist_ok=True)
+
     def restore(self, engine: Engine) -> None:
         """Restore ``engine`` from the directory's file, before any input (module docstring),
         log one line saying what, and write the state with this start's epoch at once.
@@ -153,7 +158,7 @@ class StateKeeper:
         run then: its track ids could repeat those of an earlier start), and
         :class:`EpochsExhaustedError` at the last epoch.  A directory that cannot be written
         (a full disk) is not one: the start goes on read-only (module docstring)."""
-        self.directory.mkdir(parents=True, exist_ok=True)
+        self.prepare()
         for stray in self.directory.glob(f"{_TMP_PREFIX}*{_TMP_SUFFIX}"):
             with contextlib.suppress(OSError):  # (a directory that cannot be written: it stays)
                 stray.unlink(missing_ok=True)  # a write a crash cut short; state.bin is whole

@@ -22,8 +22,8 @@ from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2 as chi2_dist
 
+from service.chi2 import chi2_quantile
 from service.geo import FloatArray
 
 BoolArray = NDArray[np.bool_]
@@ -126,7 +126,7 @@ def chi2_limits(confidence: float, max_dof: int) -> FloatArray:
     """``chi2.ppf(confidence, k)`` for ``k = 0 .. max_dof`` (rounded up to a power of two so
     that the cache stays small); entry 0 is unused."""
     size = 1 << max(int(max_dof), 1).bit_length()
-    return np.asarray(chi2_dist.ppf(confidence, np.maximum(np.arange(size + 1), 1)))
+    return np.asarray(chi2_quantile(confidence, np.maximum(np.arange(size + 1), 1)))
 
 
 def consistent(

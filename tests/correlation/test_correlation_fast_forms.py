@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from service.chi2 import chi2_upper
 from service.correlation.linalg import congruence, inv3, mahalanobis2_h, matvec3, quad3, quad3_large
 from service.correlation.pairs import _isin
-from service.correlation.svd_topology import chi2_upper, svd_match
+from service.correlation.svd_topology import svd_match
 from service.correlation.topology import TopologyParams, gather_points, neighbourhoods
 from tests.reference_forms import brute_force_neighbours
 from topofusion_lab.evaluation.correlation_scenario import Biases, make_sites, single_match_batch
