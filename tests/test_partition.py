@@ -3,6 +3,7 @@ giving the pair updates of one, whatever the interleaving of their messages."""
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import itertools
 import json
@@ -302,10 +303,19 @@ def _run_partitioned(
     return pairs, publishers, engines
 
 
+@functools.cache
+def _reference() -> tuple[list[tuple[str, bytes]], dict[str, list[bytes]], Engine, list[SystemTrackView]]:
+    """The three-radar stream the partitioned runs here take, and one worker's run of it (its
+    pair updates, engine and drawn pictures): run once per test process, read only."""
+    msgs = scenario_messages("three-radar", duration_s=150.0, seed=2)
+    drawn: list[list[SystemTrackView]] = []
+    pairs, engine = _run_one(msgs, lambda e: drawn.append(_drawn(e)))
+    return msgs, pairs, engine, drawn[0]
+
+
 @pytest.mark.parametrize(("n", "seed", "salt"), [(2, 0, 0), (3, 1, 0), (2, 2, 46)])
 def test_n_engines_give_the_pair_updates_of_one(n: int, seed: int, salt: int) -> None:
-    msgs = scenario_messages("three-radar", duration_s=150.0, seed=2)
-    one, single = _run_one(msgs)
+    msgs, one, single, _ = _reference()
     many, publishers, engines = _run_partitioned(msgs, n, seed, salt=salt)
     assert sorted(many) == sorted(one)
     for key in one:
@@ -350,13 +360,12 @@ def test_worker_1_draws_the_system_tracks_one_worker_draws(n: int, seed: int) ->
     """The fused picture of N workers: drawn by worker 1 from its own pairs (2 workers: B/C)
     and the links the others send (A/B, A/C; 3 workers: every pair), at the same data times
     from the same inputs as one worker's, so the same groups, numbers, states and members."""
-    msgs = scenario_messages("three-radar", duration_s=150.0, seed=2)
+    msgs, _, _, one = _reference()
     pictures: dict[int, list[SystemTrackView]] = {}
-    _run_one(msgs, lambda e: pictures.setdefault(0, _drawn(e)))
     _, _, engines = _run_partitioned(
         msgs, n, seed, lambda e: pictures.setdefault(e.partition.index, _drawn(e))
     )
-    one, many = pictures[0], pictures[1]
+    many = pictures[1]
     assert all(not pictures[k] for k in range(2, n + 1))  # only worker 1 draws
     assert len(one) > 50 and max(int(np.count_nonzero(np.diff(v.bounds) > 1)) for v in one) > 10
     # the others send their links after they correlated: the newest pictures may wait
