@@ -23,7 +23,7 @@ def test_the_quantiles_are_scipy_stats_numbers() -> None:
 
 
 def test_a_service_process_does_not_import_scipy_stats() -> None:
-    """About a second of every start (each worker, each correlation process, each CLI call)."""
+    """0.6-1 s of every start (each worker, each correlation process, each CLI call)."""
     code = (
         "import sys, service.cli.serve, service.api.app, service.transport.node, service.engine\n"
         "print('scipy.stats' in sys.modules)"
