@@ -26,6 +26,10 @@ Prints figures, never asserts.  The simulated stream is generated before any clo
   node's worker, waits for the correlation process included: p50, p99, max);
   ``--subscribe`` adds a subscriber to its tracks, pairs and errors.
 * ``--profile``: the in-process run (B) under cProfile; top functions by cumulative and own time.
+* ``--breakdown``: the in-process run (B) with a wall-clock timer on each part of the stages
+  (no profiler's overhead): where the settled part's time goes (prompt decisions, full pair
+  updates, system-track rebuilds, bias solves, cycles, views; tracking), seconds, calls and
+  milliseconds a call, and the process's CPU over the settled part.
 * ``--soak-minutes M``: a never-ending stream, generated in chunks, fed for M wall minutes to an
   engine with its correlation process (``--one-process``: without).  The stream is the national
   scenario with ``respawn="uniform"``: with the scenario's own respawn at the area's edge the
@@ -1267,6 +1271,74 @@ def run_profile(args: argparse.Namespace) -> None:
         pstats.Stats(profiler, stream=sys.stdout).strip_dirs().sort_stats(order).print_stats(args.top)
 
 
+#: The parts ``--breakdown`` times: (module, class, method); nested parts are timed inside
+#: their callers too (a prompt decision inside the stage's update).
+BREAKDOWN = (
+    ("service.engine", "Engine", "ingest"),
+    ("service.pipeline.tracking_stage", "TrackingStage", "update"),
+    ("service.pipeline.correlation_stage", "CorrelationStage", "update"),
+    ("service.correlation.correlator", "PairCorrelator", "decide_new"),
+    ("service.correlation.correlator", "PairCorrelator", "update"),
+    ("service.pipeline.system_stage", "SystemStage", "due"),
+    ("service.pipeline.correlation_stage", "CorrelationStage", "_solve_due"),
+    ("service.pipeline.correlation_stage", "CorrelationStage", "_implied"),
+    ("service.pipeline.correlation_stage", "CorrelationStage", "_changed"),
+)
+
+
+def run_breakdown(args: argparse.Namespace) -> None:
+    """The in-process pipeline with a timer on each part of :data:`BREAKDOWN`, counted over
+    the settled part of the stream (``--settle-s``)."""
+    import importlib
+
+    sc = scenario(args.duration)
+    stream = make_stream(sc, args.seed, args.cache)
+    start_s = min(json.loads(p).get("time_s", np.inf) for _, p in stream)
+    first = settle_index(stream, start_s, settle_s(args))
+    spent: dict[str, float] = {}
+    calls: dict[str, int] = {}
+    counting = [False]
+    restore = []
+
+    def timed(label: str, f: Callable[..., Any]) -> Callable[..., Any]:
+        def wrapper(*a: Any, **k: Any) -> Any:
+            t0 = time.perf_counter()
+            try:
+                return f(*a, **k)
+            finally:
+                if counting[0]:
+                    spent[label] = spent.get(label, 0.0) + time.perf_counter() - t0
+                    calls[label] = calls.get(label, 0) + 1
+
+        return wrapper
+
+    for module, cls_name, method in BREAKDOWN:
+        cls = getattr(importlib.import_module(module), cls_name)
+        original = getattr(cls, method)
+        restore.append((cls, method, original))
+        setattr(cls, method, timed(f"{cls_name}.{method}", original))
+    engine = Engine(EngineConfig())
+    try:
+        for i, (key, payload) in enumerate(stream):
+            if i == first:
+                counting[0], cpu0 = True, time.process_time()
+            engine.ingest(key, payload)
+        engine.flush()
+        cpu = time.process_time() - cpu0 if counting[0] else float("nan")
+    finally:
+        engine.close()
+        for cls, method, original in restore:
+            setattr(cls, method, original)
+    data_s = float(sc.duration_s or 0.0) - settle_s(args)
+    print(f"[breakdown, in process, the settled {data_s:.0f} data s: messages {first}..{len(stream)}]")
+    print(f"  CPU of the process over the settled part: {cpu:.2f} s")
+    stage = spent.get("CorrelationStage.update", float("nan"))
+    print(f"  {'part':<34} {'s':>8} {'calls':>7} {'ms/call':>8} {'of stage':>9}")
+    for label in sorted(spent, key=lambda k: -spent[k]):
+        sec, n = spent[label], calls[label]
+        print(f"  {label:<34} {sec:8.2f} {n:7d} {1e3 * sec / n:8.3f} {sec / stage:9.0%}")
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -1931,6 +2003,9 @@ def main() -> None:
     )
     mode.add_argument("--profile", action="store_true", help="the in-process full pipeline under cProfile")
     mode.add_argument(
+        "--breakdown", action="store_true", help="where the settled part's time goes, by part of the stages"
+    )
+    mode.add_argument(
         "--soak-minutes", type=float, help="feed a never-ending stream for this many wall minutes"
     )
     # a run of the in-process mode, in a process of its own (see one_run)
@@ -1964,6 +2039,8 @@ def main() -> None:
         run_zenoh(args)
     elif args.profile:
         run_profile(args)
+    elif args.breakdown:
+        run_breakdown(args)
     elif args.soak_minutes is not None:
         run_soak(args)
     else:
