@@ -17,6 +17,7 @@ def chi2_quantile(p: ArrayLike, dof: ArrayLike) -> NDArray[np.float64]:
     return np.asarray(2 * gammaincinv(np.asarray(dof, dtype=float) / 2, p), dtype=float)
 
 
-def chi2_upper(alpha: ArrayLike, dof: ArrayLike) -> NDArray[np.float64]:
-    """Upper ``alpha`` quantile, ``chi2.ppf(1 - alpha, dof)``."""
-    return chi2_quantile(1.0 - np.asarray(alpha, dtype=float), dof)
+def chi2_upper(alpha: float, dof: ArrayLike) -> NDArray[np.float64]:
+    """Upper ``alpha`` quantile, ``chi2.ppf(1 - alpha, dof)`` (``alpha`` a number: the gates'
+    named parameters)."""
+    return chi2_quantile(1.0 - alpha, dof)

@@ -1,5 +1,5 @@
 """Small batched linear algebra that never raises (closed-form 2x2 / 3x3 inverses with a rank
-flag); the chi-square quantile every test of the correlation uses is :mod:`service.chi2`'s."""
+flag)."""
 
 from __future__ import annotations
 
