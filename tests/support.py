@@ -12,7 +12,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import httpx
@@ -191,15 +191,6 @@ def run_engine(
         out.extend(engine.ingest(key, payload, receive_time_s=0.0))
     out.extend(engine.flush())
     return engine, out
-
-
-def one_worker_config(**kw: object) -> EngineConfig:
-    """The one worker N partitioned workers equal: without the cycle step, which needs every
-    pair of a triangle in one place and is off in a partitioned worker (docs/contract.md)."""
-    cfg = EngineConfig(**kw)  # type: ignore[arg-type]
-    return replace(
-        cfg, correlation=replace(cfg.correlation, cycles=replace(cfg.correlation.cycles, enabled=False))
-    )
 
 
 def random_track_table(rng: np.random.Generator, ids: list[str]) -> TrackTable:

@@ -39,7 +39,7 @@ from service.wire.models import TrackStates
 from service.wire.outgoing import Outgoing
 from service.wire.outputs import encode
 from tests.scenario_helpers import scenario_messages
-from tests.support import one_worker_config, random_track_table
+from tests.support import random_track_table
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -252,7 +252,7 @@ def _is_peer(key: str) -> bool:
 def _run_one(
     msgs: list[tuple[str, bytes]], watch: Callable[[Engine], object] = lambda e: None
 ) -> tuple[dict[str, list[bytes]], Engine]:
-    engine = Engine(one_worker_config())
+    engine = Engine(EngineConfig())
     watch(engine)
     pairs: dict[str, list[bytes]] = defaultdict(list)
     for key, payload in msgs:
@@ -268,9 +268,11 @@ def _run_partitioned(
     seed: int,
     watch: Callable[[Engine], object] = lambda e: None,
     salt: int = 0,
+    lagging: int | None = None,
 ) -> tuple[dict[str, list[bytes]], dict[str, set[int]], list[Engine]]:
     """N engines, each message delivered to each in its own random batches, the peers'
-    messages to the others in the order they were produced, at random later moments."""
+    messages to the others in the order they were produced, at random later moments;
+    ``lagging``: that worker (1..N) takes its messages seldom, so it falls far behind."""
     rng = random.Random(seed)
     engines = [Engine(EngineConfig(partition=Partition(k, n, salt))) for k in range(1, n + 1)]
     for engine in engines:
@@ -296,27 +298,51 @@ def _run_partitioned(
         for j in range(n):
             queues[j].append((key, payload))
         for j in rng.sample(range(n), n):
-            run(j, rng.randint(0, len(queues[j])))
+            if j + 1 != lagging or rng.random() < 0.02:
+                run(j, rng.randint(0, len(queues[j])))
     while any(queues):
         for j in range(n):
             run(j, len(queues[j]))
     return pairs, publishers, engines
 
 
+def _chains(engine: Engine) -> list[int]:
+    """The number of implied pairs each of ``engine``'s radar-pair updates takes from now on."""
+    counts: list[int] = []
+    cycles = engine.correlation.stage.system.cycles  # type: ignore[attr-defined]
+    implied = cycles.implied
+
+    def counted(key: tuple[str, str], time_s: float) -> Any:
+        out = implied(key, time_s)
+        counts.append(len(out))
+        return out
+
+    cycles.implied = counted
+    return counts
+
+
 @functools.cache
 def _reference() -> tuple[list[tuple[str, bytes]], dict[str, list[bytes]], Engine, list[SystemTrackView]]:
     """The three-radar stream the partitioned runs here take, and one worker's run of it (its
-    pair updates, engine and drawn pictures): run once per test process, read only."""
+    pair updates, engine and drawn pictures; the cycle step on, as by default, and its chains
+    naming pairs): run once per test process, read only."""
     msgs = scenario_messages("three-radar", duration_s=150.0, seed=2)
     drawn: list[list[SystemTrackView]] = []
-    pairs, engine = _run_one(msgs, lambda e: drawn.append(_drawn(e)))
+    chains: list[list[int]] = []
+    pairs, engine = _run_one(msgs, lambda e: (drawn.append(_drawn(e)), chains.append(_chains(e))))
+    assert sum(n > 0 for n in chains[0]) > 0.5 * len(chains[0]) > 10
     return msgs, pairs, engine, drawn[0]
 
 
-@pytest.mark.parametrize(("n", "seed", "salt"), [(2, 0, 0), (3, 1, 0), (2, 2, 46)])
-def test_n_engines_give_the_pair_updates_of_one(n: int, seed: int, salt: int) -> None:
+@pytest.mark.parametrize(
+    ("n", "seed", "salt", "lagging"), [(2, 0, 0, None), (3, 1, 0, 3), (2, 2, 46, 1), (3, 5, 16, 1)]
+)
+def test_n_engines_give_the_pair_updates_of_one(n: int, seed: int, salt: int, lagging: int | None) -> None:
+    """Every pair update of one worker, the cycle step on, whichever worker owns which pair of
+    the triangle, also when one worker falls far behind the others (its chains are then read
+    from links it sent long before)."""
     msgs, one, single, _ = _reference()
-    many, publishers, engines = _run_partitioned(msgs, n, seed, salt=salt)
+    many, publishers, engines = _run_partitioned(msgs, n, seed, salt=salt, lagging=lagging)
     assert sorted(many) == sorted(one)
     for key in one:
         assert len(publishers[key]) == 1, f"{key} correlated by workers {publishers[key]}"
@@ -552,3 +578,24 @@ def test_a_late_table_never_takes_a_pair_back_in_data_time() -> None:
     # at the pair's own time or later it is correlated as ever
     later = stage.radar(rid, geometry, table, view.time_s + 60.0)
     assert key in later and stage.views[key].time_s == view.time_s + 60.0
+
+
+def test_the_merge_says_how_far_it_has_released_when_a_cap_holds_tables_back() -> None:
+    """A worker whose merge a cap holds back (the cycle step: at most ``lag_s`` ahead of the
+    others) says it released everything up to just short of its oldest table held, not only
+    up to the cap: the workers waiting for it must hear that, or two capped workers wait for
+    each other forever."""
+    merger = TableMerger()
+    merger.progress(1, 30.0)
+    merger.push(RADAR, "A", 1, 12.0, "A@12")
+    merger.push(RADAR, "A", 2, 17.0, "A@17")
+    assert [r.item for r in merger.release({1}, cap=10.0)] == []
+    assert merger.last_limit == 10.0
+    assert merger.through({1}) == np.nextafter(12.0, -np.inf)  # nothing below 12 s is held
+    assert [r.item for r in merger.release({1}, cap=15.0)] == ["A@12"]
+    assert merger.through({1}) == np.nextafter(17.0, -np.inf)
+    assert [r.item for r in merger.release({1})] == ["A@17"]
+    assert merger.through({1}) == 30.0  # nothing held: as far as every owner published
+    merger.progress(1, 40.0)
+    merger.push(RADAR, "A", 3, 35.0, "A@35")
+    assert merger.through({1}) == np.nextafter(35.0, -np.inf)  # not released yet: held

@@ -28,7 +28,6 @@ from tests.doc_commands import PROCESS_S, TOPOFUSION, environment
 from tests.scenario_helpers import scenario_messages
 from tests.support import (
     RunningService,
-    one_worker_config,
     put_json,
     running_service,
     wait_for,
@@ -60,7 +59,7 @@ class Collector:
 @contextlib.contextmanager
 def network(router: str) -> Iterator[tuple[RunningService, RunningService, RunningService]]:
     with (
-        running_service(router, one_worker_config(prefix="one"), correlation_process=False) as one,
+        running_service(router, EngineConfig(prefix="one"), correlation_process=False) as one,
         running_service(
             router, EngineConfig(prefix="two", partition=Partition(1, 2)), correlation_process=False
         ) as w1,

@@ -16,8 +16,9 @@ from ``min_strength`` on.  In X-Y's update (:class:`~.correlator.PairCorrelator`
   weakest link is one of the chain's pairs, that pair meets the same test in its own update
   from the cycle's other side.
 
-Every pair of a triangle must be in one place: with ``--partition N`` > 1 a worker owns only
-some pairs, so the step is off there (docs/contract.md, partitioning).
+The correlation stage joins the books as they were at a recent point of a data-time grid, the
+same for one worker and for N partitioned ones, whichever worker owns which pair of a
+triangle (:mod:`service.pipeline.cycle_links`); :func:`implied_for` joins them as they are now.
 """
 
 from __future__ import annotations
@@ -38,12 +39,17 @@ from service.correlation.pairs import StrongPairs
 class CycleParams:
     """The cycle step (every threshold named)."""
 
-    #: Use the cycles (one worker only: every pair of a triangle is needed).
+    #: Use the cycles.
     enabled: bool = True
     #: A chain counts from this strength on (its weaker pair's probability of being right).
     min_strength: float = 0.9
     #: Cost bonus of a candidate a chain implies (chi-square units; 6 ~ likelihood ratio 20).
     bonus: float = 6.0
+    #: The chains of an update at data time ``t`` are those of the books as they were at the
+    #: latest point of the links' grid (``system_interval_s``) at or before ``t - lag_s``:
+    #: partitioned workers then have every other worker's books of that point in time, and a
+    #: worker's correlation runs at most this far ahead of the slowest other's (data s).
+    lag_s: float = 4.0
 
 
 @dataclass(frozen=True)
@@ -136,24 +142,32 @@ class _Pair(Protocol):
     def site_b(self) -> _Site | None: ...
 
 
+#: Each radar pair's strong confirmed pairs with the id of its A side, keyed by sorted radar ids.
+Books = Mapping[tuple[str, str], tuple[str, StrongPairs]]
+
+
+def implied_from(key: tuple[str, str], books: Books) -> Implied:
+    """The pairs of radar pair ``key`` (``key[0]``'s tracks first) that the strong confirmed
+    pairs of ``books`` (radar pairs only) imply through every third radar."""
+    x, y = key
+    parts = []
+    for z in sorted({r for k in books for r in k if r not in key}):
+        xz = books.get((min(x, z), max(x, z)))
+        zy = books.get((min(z, y), max(z, y)))
+        if xz is None or zy is None:
+            continue
+        parts.append(implied_pairs(xz[1], xz[0] == x, zy[1], zy[0] == z))
+    return Implied.concat(parts)
+
+
 def implied_for(
     key: tuple[str, str], correlators: Mapping[tuple[str, str], _Pair], min_strength: float
 ) -> Implied:
-    """The pairs of radar pair ``key`` (``key[0]``'s tracks first) that the confirmed pairs of
-    ``correlators`` (keyed by sorted radar ids) imply through every third radar."""
-    x, y = key
-    parts = []
-    for z in sorted({r for k in correlators for r in k if r not in key}):
-        xz = correlators.get((min(x, z), max(x, z)))
-        zy = correlators.get((min(z, y), max(z, y)))
-        if xz is None or zy is None or xz.site_b is None or zy.site_b is None:
-            continue
-        parts.append(
-            implied_pairs(
-                xz.book.strong_confirmed(min_strength),
-                xz.site_a.site_id == x,
-                zy.book.strong_confirmed(min_strength),
-                zy.site_a.site_id == z,
-            )
-        )
-    return Implied.concat(parts)
+    """The pairs of radar pair ``key`` that the books of ``correlators`` imply as they are now
+    (keyed by sorted radar ids; pairs with a reference source are no link of a chain)."""
+    books = {
+        k: (c.site_a.site_id, c.book.strong_confirmed(min_strength))
+        for k, c in correlators.items()
+        if c.site_b is not None
+    }
+    return implied_from(key, books)

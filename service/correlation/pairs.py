@@ -80,6 +80,10 @@ class StrongPairs:
     order_a: NDArray[np.intp]
     order_b: NDArray[np.intp]
 
+    @staticmethod
+    def of(track_a: NDArray[np.str_], track_b: NDArray[np.str_], score: FloatArray) -> StrongPairs:
+        return StrongPairs(track_a, track_b, score, np.argsort(track_a), np.argsort(track_b))
+
 
 class PairBook:
     """Columnar M-of-N book for one radar pair."""
@@ -109,8 +113,7 @@ class PairBook:
         if self._strong is not None and self._strong[:2] == (self.version, min_score):
             return self._strong[2]
         keep = self.confirmed & (self.score >= min_score)
-        a, b = self.track_a[keep], self.track_b[keep]
-        out = StrongPairs(a, b, self.score[keep], np.argsort(a), np.argsort(b))
+        out = StrongPairs.of(self.track_a[keep], self.track_b[keep], self.score[keep])
         self._strong = (self.version, min_score, out)
         return out
 

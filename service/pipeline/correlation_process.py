@@ -36,7 +36,7 @@ from service.geo import Site
 from service.pipeline.correlation_runner import Answer, Answers, Key, answer
 from service.pipeline.correlation_stage import CadenceParams, CorrelationStage, timings_dict
 from service.pipeline.partition import Partition
-from service.pipeline.system_stage import SharedLinks
+from service.pipeline.shared_links import SharedLinks
 from service.reference import ReferenceParams
 from service.tracking.base import TrackTable, first_number
 

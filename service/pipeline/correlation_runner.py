@@ -21,7 +21,7 @@ from service.correlation.registration import RegistrationRowsData
 from service.geo import Site
 from service.pipeline.correlation_stage import CorrelationStage, SharedRows
 from service.pipeline.read_model import PairSetView, SystemTrackView
-from service.pipeline.system_stage import SharedLinks
+from service.pipeline.shared_links import SharedLinks
 from service.tracking.base import TrackTable
 
 Key = tuple[str, str]

@@ -36,7 +36,6 @@ import numpy as np
 
 from service.correlation import CorrelationParams, PairCorrelator, joint_solution
 from service.correlation.correlator import positions_at
-from service.correlation.cycles import Implied, implied_for
 from service.correlation.pairkeys import isin_sorted
 from service.correlation.registration import (
     BiasSolution,
@@ -50,7 +49,8 @@ from service.fusion.members import Links
 from service.geo import Site
 from service.pipeline.partition import Partition
 from service.pipeline.read_model import PairSetView, SystemTrackView
-from service.pipeline.system_stage import LAST, Picture, SharedLinks, SystemStage, take_picture
+from service.pipeline.shared_links import SharedLinks
+from service.pipeline.system_stage import LAST, Picture, SystemStage, take_picture
 from service.reference import ReferenceKind, ReferenceParams, ReferenceTracks
 from service.tracking.base import TrackTable
 from service.wire.outputs import bias_dict
@@ -206,7 +206,10 @@ class CorrelationStage:
         self._solves = self.partition.solves_biases
         #: System tracks: drawn by one worker (worker 1 of N, from every worker's links).
         self.system = SystemStage(
-            self.params.system_interval_s, self.partition, self.correlation_params.prediction
+            self.params.system_interval_s,
+            self.partition,
+            self.correlation_params.prediction,
+            self.correlation_params.cycles,
         )
 
     # -- the sources ---------------------------------------------------------------------------
@@ -398,7 +401,8 @@ class CorrelationStage:
             own = radar.tracks(time_s) if own is None else own
             other_table = table if table is not None else other.tracks(time_s)
             ta, tb = (own, other_table) if first is radar else (other_table, own)
-            corr.update(ta, tb, time_s, self._implied(key) if second.geometry is not None else None)
+            chains = self.system.implied(key, time_s) if second.geometry is not None else None
+            corr.update(ta, tb, time_s, chains)
             self._undecided.pop(key, None)  # (the update decided them)
             self.next_due[key] = time_s + self._interval(radar.geometry, other.geometry, corr)
             self.updates += 1
@@ -417,7 +421,7 @@ class CorrelationStage:
                 )
         if self._solves:
             self._solve_due(time_s)
-        self.system.due(time_s, radar.source_id, self._picture)
+        self.system.due(time_s, radar.source_id, self._picture, self._radars.keys())
         return updated
 
     def _changed(self, key: tuple[str, str], corr: PairCorrelator, time_s: float, release: str) -> None:
@@ -466,15 +470,6 @@ class CorrelationStage:
         """Every other live worker has correlated through ``time_s`` (worker 1): the pictures
         up to it are drawn."""
         self.system.through(time_s)
-
-    def _implied(self, key: tuple[str, str]) -> Implied | None:
-        """The pairs of radar pair ``key`` that confirmed pairs through third radars imply
-        (:mod:`service.correlation.cycles`); None when the cycle step is off: disabled, or a
-        partitioned worker (it owns only some pairs of a triangle)."""
-        prm = self.correlation_params.cycles
-        if not (prm.enabled and self.partition.whole):
-            return None
-        return implied_for(key, self.pair_correlators, prm.min_strength)
 
     def finish(self) -> None:
         """End of the input: the joint bias estimate at the last update's data time."""

@@ -71,9 +71,18 @@ class TableMerger:
         published."""
         return min((self.released.get(k, -np.inf) for k in owners), default=np.inf)
 
+    def through(self, owners: Iterable[int]) -> float:
+        """Data time up to which everything has been released: the last limit, or further,
+        just short of the oldest item held back by a cap, where every owner has published:
+        everything below has arrived and none of it is held."""
+        limit = self.limit(owners)
+        if self._heap:
+            limit = min(limit, float(np.nextafter(self._heap[0][0], -np.inf)))
+        return max(self.last_limit, limit)
+
     def release(self, owners: Iterable[int], cap: float = np.inf) -> Iterator[Release]:
-        """Release what every live owner has published; at most up to ``cap`` (the bias
-        worker's correlation stays behind every other worker's, see ``Engine``)."""
+        """Release what every live owner has published; at most up to ``cap`` (a worker's
+        correlation stays close behind every other worker's, ``Peers.cap``)."""
         yield from self._until(min(self.limit(owners), cap))
 
     def flush(self) -> Iterator[Release]:

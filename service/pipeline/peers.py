@@ -22,6 +22,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from service.correlation.correlator import CorrelationParams
 from service.correlation.registration import RegistrationRowsData
 from service.fusion.members import Links
 from service.pipeline.correlation_runner import CorrelationRunner
@@ -31,7 +32,7 @@ from service.pipeline.errors import RejectionError, unknown_radar
 from service.pipeline.merger import TableMerger
 from service.pipeline.partition import Partition
 from service.pipeline.sequencer import RADAR, Sequencer
-from service.pipeline.system_stage import SharedLinks
+from service.pipeline.shared_links import SharedLinks
 from service.pipeline.track_exchange import ExchangeParams, StatesReceiver, StatesSender, decode_states
 from service.pipeline.tracking_stage import TrackingStage
 from service.tracking.base import TrackTable
@@ -49,6 +50,8 @@ class PeerConfig(Protocol):
     def exchange(self) -> ExchangeParams: ...
     @property
     def cadence(self) -> CadenceParams: ...
+    @property
+    def correlation(self) -> CorrelationParams: ...
 
 
 #: Track states of radars whose site has not come yet, held until it comes (the owner can hear
@@ -119,6 +122,8 @@ class Peers:
         self.keys = keys
         self.exchange = exchange = config.exchange
         self.cadence = config.cadence
+        #: Every worker takes the others' links for the cycle step (:mod:`.cycle_links`).
+        self.cycles = config.correlation.cycles
         self.sequencer = sequencer
         self.tracking = tracking
         self.merger = merger
@@ -185,14 +190,19 @@ class Peers:
         return (owners & self.waited) | {self.partition.index}
 
     def cap(self) -> float:
-        """How far the merger may release.  The bias worker's correlation stays within
-        ``bias_lag_s`` of every other worker's (``correlated_s``), so that when it solves for a
-        time ``T`` it holds every row up to ``T`` (``CorrelationStage._solve_due``)."""
-        if not self.partition.solves_biases or self.alone:
+        """How far the merger may release.  With the cycle step on, a worker's correlation stays
+        within ``cycles.lag_s`` of every other worker's (``correlated_s``), so that the chains
+        of an update at ``t`` find every pair's links of ``t - lag_s`` (:mod:`.cycle_links`);
+        the bias worker's within ``bias_lag_s``, so that when it solves for a time ``T`` it
+        holds every row up to ``T`` (``CorrelationStage._solve_due``)."""
+        lags = [self.cycles.lag_s] if self.cycles.enabled else []
+        if self.partition.solves_biases:
+            lags.append(self.cadence.bias_lag_s)
+        if self.alone or not lags:
             return np.inf
         others = self.waited - {self.partition.index}
         cap = min((self._correlated_by.get(k, -np.inf) for k in others), default=np.inf)
-        return cap + self.cadence.bias_lag_s
+        return cap + min(lags)
 
     def wait_for(self, workers: set[int]) -> None:
         self.waited = set(workers) | {self.partition.index}
@@ -290,7 +300,9 @@ class Peers:
         """This worker's state for the others, when it changed: its progress (how far it has
         released and correlated) and its radars' data clocks (the network watermark,
         :meth:`Sequencer.observe`)."""
-        merged = self.merger.last_limit
+        # How far everything is released: the merge's limit, or just short of the oldest
+        # table it holds back (:meth:`cap`: a worker waiting for this one must hear it).
+        merged = self.merger.through(self.owners())
         salted = {"salt": self.partition.salt} if self.partition.salt else {}
         progress: dict[str, Any] = {
             "partition": str(self.partition),
@@ -384,7 +396,7 @@ class Peers:
         self.correlation.mirror_rows((ids[0], ids[1]), site_a, site_b, data)
 
     def _links(self, ids: tuple[str, ...], payload: bytes) -> None:
-        if not self.partition.solves_biases:
+        if not (self.partition.solves_biases or self.cycles.enabled):
             return
         got: PairLinks = parse(PairLinks, payload, ids[0])
         if sorted((got.source_a, got.source_b)) != sorted(ids):

@@ -34,46 +34,34 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from service.correlation.cycles import CycleParams, Implied
 from service.correlation.prediction import PredictionParams
 from service.correlation.registration import BiasSolution
 from service.fusion.members import Links, members_and_links
 from service.fusion.system_tracks import SystemTracker
 from service.geo import Site
+from service.pipeline.cycle_links import CycleLinks
 from service.pipeline.partition import Partition
 from service.pipeline.read_model import SystemTrackView
+from service.pipeline.shared_links import Key, LinksHistory, SharedLinks
 from service.tracking.base import TrackTable
-
-Key = tuple[str, str]
-#: A release's place in one worker's order: its data time, then the radar released.
-Position = tuple[float, str]
 
 #: A release after every radar's at its data time (the end of the input).
 LAST = "\U0010ffff"
 #: Pictures taken and waiting for the other workers' links; beyond, the oldest is drawn with
 #: the links known (at one picture per ``system_interval_s`` of 2 s: a minute of data time).
 MAX_PENDING_PICTURES = 30
+#: The links' grid when no system tracks are drawn (``system_interval_s`` 0) and the cycle step
+#: needs one (data s).
+LINKS_GRID_S = 2.0
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class SharedLinks:
-    """A pair's links after one of its updates, for worker 1 (``PairLinks`` on the wire)."""
-
-    key: Key
-    time_s: float  # the data time of the release the update followed ...
-    release: str  # ... and the radar released
-    links: Links
-
-    @property
-    def position(self) -> Position:
-        return (self.time_s, self.release)
 
 
 @dataclass(frozen=True)
@@ -89,39 +77,45 @@ class Picture:
 
 
 class SystemStage:
-    """The system tracks' schedule and inputs (see module docstring)."""
+    """The system tracks' schedule and inputs, and the links' grid (see module docstring)."""
 
-    def __init__(self, interval_s: float, partition: Partition, prediction: PredictionParams) -> None:
+    def __init__(
+        self,
+        interval_s: float,
+        partition: Partition,
+        prediction: PredictionParams,
+        cycles: CycleParams | None = None,
+    ) -> None:
         self.interval_s = interval_s
         self.partition = partition
         self.prediction = prediction
         self.tracker = SystemTracker()
+        #: The cycle step's chains on the links' grid (None: the step is off).
+        self.cycles = CycleLinks(cycles) if cycles is not None and cycles.enabled else None
+        self.grid_s = interval_s if interval_s > 0 else LINKS_GRID_S
         #: This worker draws the picture: the only worker, or worker 1 of N.
         self.draws = interval_s > 0 and (partition.whole or partition.solves_biases)
-        #: This worker sends its pairs' links to worker 1.
-        self.shares = interval_s > 0 and not self.draws
+        #: This worker sends its pairs' links: to worker 1, and to every worker for the cycles.
+        self.shares = not partition.whole and ((interval_s > 0 and not self.draws) or self.cycles is not None)
         self.forced = 0
         self._next_s = -np.inf
         self._out: list[SystemTrackView] = []
         self._links_out: list[SharedLinks] = []
-        #: Owned pairs updated since the last picture's release: their latest links (sharing).
-        self._updated: dict[Key, SharedLinks] = {}
+        #: Owned pairs updated since the last crossing: their latest update's release and links.
+        self._updated: dict[Key, tuple[float, str, Callable[[], Links]]] = {}
         self._pending: deque[Picture] = deque()
         #: Every other worker's pairs: their links, oldest first (a base and what came after).
-        self._mirrored: dict[Key, deque[SharedLinks]] = {}
+        self._mirrored = LinksHistory()
         #: Data time every other live worker has correlated through (alone: no one to wait for).
         self._others_s = np.inf if partition.whole else -np.inf
 
     # -- every worker ------------------------------------------------------------------------
     def updated(self, key: Key, links: Callable[[], Links], time_s: float, release: str) -> None:
         """An owned pair's book changed at the release ``(time_s, release)``: its links as they
-        are now go out at the next picture's release (:meth:`due`)."""
-        if self.shares:
-            self._updated[key] = SharedLinks(key, time_s, release, links())
-
-    def _share(self) -> None:
-        self._links_out.extend(self._updated[k] for k in sorted(self._updated))
-        self._updated = {}
+        are at the next crossing (:meth:`due`; the book changes only by its updates) go out
+        then and feed the cycle step."""
+        if self.shares or self.cycles is not None:
+            self._updated[key] = (time_s, release, links)
 
     def take_links(self) -> list[SharedLinks]:
         out, self._links_out = self._links_out, []
@@ -132,33 +126,55 @@ class SystemStage:
         out, self._out = self._out, []
         return out
 
+    def implied(self, key: Key, time_s: float) -> Implied | None:
+        """The pairs the cycle step's chains imply for radar pair ``key``'s update at
+        ``time_s`` (None: the step is off)."""
+        return None if self.cycles is None else self.cycles.implied(key, time_s)
+
     # -- the worker that draws -------------------------------------------------------------------
     def mirror(self, shared: SharedLinks) -> None:
-        """Another worker's pair's links (worker 1; in the order its owner updated it)."""
+        """Another worker's pair's links (in the order its owner updated it)."""
         if self.draws:
-            self._mirrored.setdefault(shared.key, deque()).append(shared)
+            self._mirrored.record(shared)
+        if self.cycles is not None:
+            self.cycles.mirror(shared)
 
     def forget(self, source_id: str) -> None:
-        for key in [k for k in self._mirrored if source_id in k]:
-            del self._mirrored[key]
+        self._mirrored.forget(source_id)
+        if self.cycles is not None:
+            self.cycles.forget(source_id)
         for key in [k for k in self._updated if source_id in k]:
             del self._updated[key]
 
-    def due(self, clock_s: float, release: str, take: Callable[[float, str], Picture]) -> None:
+    def due(
+        self, clock_s: float, release: str, take: Callable[[float, str], Picture], radars: Collection[str]
+    ) -> None:
         """A release at ``clock_s`` of radar ``release``, after its pair updates: if it crosses a
-        multiple of the interval, take the picture's inputs (``take``) and draw what may be
-        drawn; a sharing worker sends the links the picture of this release reads."""
-        if not (self.draws or self.shares):
+        multiple of the grid, the links of the owned pairs updated since the previous crossing
+        go out (sharing) and to the cycle step (with ``radars``, whose tables the stage holds),
+        and the worker that draws takes the picture's inputs (``take``) and draws what may be
+        drawn."""
+        if not (self.draws or self.shares or self.cycles is not None):
             return
-        grid = float(np.floor(clock_s / self.interval_s) * self.interval_s)
+        grid = float(np.floor(clock_s / self.grid_s) * self.grid_s)
         if grid < self._next_s:
             return
-        self._next_s = grid + self.interval_s
+        self._next_s = grid + self.grid_s
+        own = self._own()
+        if self.cycles is not None:
+            self.cycles.crossed((clock_s, release), own, radars)
+        if self.draws:
+            self._pending.append(take(clock_s, release))
+            self._draw()
+
+    def _own(self) -> list[SharedLinks]:
+        """The owned pairs updated since the previous crossing, with their links now (sent
+        when sharing)."""
+        own = [SharedLinks(k, t, r, links()) for k, (t, r, links) in sorted(self._updated.items())]
+        self._updated = {}
         if self.shares:
-            self._share()
-            return
-        self._pending.append(take(clock_s, release))
-        self._draw()
+            self._links_out.extend(own)
+        return own
 
     def through(self, others_s: float) -> None:
         """Every other live worker has correlated (and sent its links) through ``others_s``."""
@@ -168,8 +184,7 @@ class SystemStage:
     def finish(self, picture: Picture | None) -> None:
         """End of the input: every picture waiting, then one of now (``picture``); a sharing
         worker sends the links of the pairs updated since the last picture."""
-        if self.shares:
-            self._share()
+        self._own()
         self._others_s = np.inf
         self._draw()
         if picture is not None and self.draws:
@@ -186,16 +201,7 @@ class SystemStage:
 
     def _links_at(self, picture: Picture) -> dict[Key, Links]:
         """Every pair's links as they were after the picture's release."""
-        at: Position = (picture.time_s, picture.release)
-        out = dict(picture.own)
-        for key, queue in self._mirrored.items():
-            latest = None
-            while queue and queue[0].position <= at:
-                latest = queue.popleft()
-            if latest is not None:  # (none: the pair had no update yet then)
-                queue.appendleft(latest)  # the base of the pictures to come
-                out[key] = latest.links
-        return out
+        return {**picture.own, **self._mirrored.at((picture.time_s, picture.release))}
 
     def _build(self, picture: Picture) -> None:
         try:

@@ -319,7 +319,9 @@ def update_scan(
 ) -> None:
     """One scan's correlation: every radar pair's correlator updated with the two tables, in
     the order the correlation stage would, each with the pairs the other two pairs of its
-    triangles imply (the service's cycle step, :mod:`service.correlation.cycles`)."""
+    triangles imply as the books are now (the cycle step of :mod:`service.correlation.cycles`;
+    the service takes the books of a recent point of a data-time grid instead,
+    :mod:`service.pipeline.cycle_links`, a scan-by-scan study has no finer time)."""
     for (a, b), corr in correlators.items():
         cycles = corr.params.cycles
         implied = implied_for((a, b), correlators, cycles.min_strength) if cycles.enabled else None
