@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from service.correlation import CorrelationParams
-from service.correlation.cycles import Implied, contradicted, implied_pairs
+from service.correlation.cycles import CycleParams, Implied, contradicted, implied_pairs
 from service.correlation.pairs import StrongPairs
 from service.pipeline.correlation_stage import CorrelationStage
 from service.pipeline.partition import Partition
@@ -58,8 +58,12 @@ def test_contradicted_matches_the_plain_rule() -> None:
             assert got[k] == want
 
 
-def test_the_stage_runs_the_cycles_only_with_every_pair() -> None:
-    whole = CorrelationStage("svd-topology", correlation=CorrelationParams())
-    part = CorrelationStage("svd-topology", correlation=CorrelationParams(), partition=Partition(1, 2))
-    assert isinstance(whole._implied(("A", "B")), Implied)
-    assert part._implied(("A", "B")) is None
+def test_the_stage_runs_the_cycles_in_every_worker_unless_disabled() -> None:
+    """One worker and a partitioned one alike (their chains come from the links' grid,
+    service/pipeline/cycle_links.py); ``cycles.enabled = false`` turns the step off in both."""
+    off = CorrelationParams(cycles=CycleParams(enabled=False))
+    for partition in (Partition(), Partition(1, 2), Partition(2, 2)):
+        on = CorrelationStage("svd-topology", correlation=CorrelationParams(), partition=partition)
+        assert isinstance(on.system.implied(("A", "B"), 0.0), Implied)
+        stage = CorrelationStage("svd-topology", correlation=off, partition=partition)
+        assert stage.system.implied(("A", "B"), 0.0) is None
