@@ -329,7 +329,9 @@ class Engine:
 
     def _results(self, idle: bool = False) -> list[Outgoing]:
         """What the correlation answered since the last call (pair sets, failures, system
-        tracks), held to the tables as they are now, and what goes to the other workers."""
+        tracks), held to the tables as they are now, and what goes to the other workers (the
+        answers come first: a capped merge sends nothing, yet its ``correlated_s`` must move)."""
+        self.correlation.poll()
         out: list[Outgoing] = []
         for answer in self.correlation.take_answers():
             if answer.op == "radar":  # the table it answered for, then what the table changed
@@ -338,8 +340,7 @@ class Engine:
             self.assessment.pairs(answer.updated, self.reference_kinds)
             if answer.system is not None:
                 out.append(self.publication.system_tracks(answer.system))
-        errors = self.correlation.take_errors()
-        out += [self._internal(source_id or None, detail) for source_id, detail in errors]
+        out += [self._internal(sid or None, detail) for sid, detail in self.correlation.take_errors()]
         out += self.peers.outputs(idle)
         if self.assessment.advance(self.outputs_time_s) or out:
             self._snapshot = None
@@ -354,7 +355,6 @@ class Engine:
     def poll(self) -> list[Outgoing]:
         """What the correlation process answered while no input came (an idle service must
         still publish the last pair updates)."""
-        self.correlation.poll()
         return self._results(idle=True)
 
     def wait_for(self, workers: set[int]) -> list[Outgoing]:
