@@ -11,8 +11,9 @@ time ``t`` only once every other live worker has correlated through ``t - lag_s`
 (:meth:`.peers.Peers.cap`), so it then holds those links: the chains, and so every pair
 update, are one worker's, whichever worker owns which pair of a triangle.
 
-Cost: at each crossing a strong subset of every radar pair's links (a few small numpy calls a
-pair per ``system_interval_s``); each update then joins the two books of each third radar.
+Cost: at each crossing the strong subset of the links of each pair updated since the one
+before (a few small numpy calls a pair); each update then joins the two books of each third
+radar.
 """
 
 from __future__ import annotations
@@ -20,8 +21,9 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Collection, Iterable
 
-from service.correlation.cycles import Books, CycleParams, Implied, implied_from
+from service.correlation.cycles import CycleParams, Implied, implied_from
 from service.correlation.pairs import StrongPairs
+from service.fusion.members import Links
 from service.pipeline.shared_links import Key, LinksHistory, Position, SharedLinks
 
 
@@ -35,6 +37,9 @@ class CycleLinks:
         self._crossings: deque[tuple[Position, frozenset[str]]] = deque()
         #: The strong confirmed pairs of every radar pair at the crossing taken last.
         self._books: dict[Key, tuple[str, StrongPairs]] = {}
+        #: Each pair's latest links and their strong pairs: a pair updates about once a scan,
+        #: less often than the grid's crossings, and keeps them until it does.
+        self._strong: dict[Key, tuple[Links, tuple[str, StrongPairs]]] = {}
 
     def crossed(self, position: Position, own: Iterable[SharedLinks], radars: Collection[str]) -> None:
         """A release crossed a multiple of the grid at ``position``: the links of the owned
@@ -50,17 +55,15 @@ class CycleLinks:
 
     def forget(self, source_id: str) -> None:
         self.history.forget(source_id)
-        for key in [k for k in self._books if source_id in k]:
-            del self._books[key]
+        for held in (self._books, self._strong):
+            for key in [k for k in held if source_id in k]:
+                del held[key]
 
     def implied(self, key: Key, time_s: float) -> Implied:
         """The pairs of radar pair ``key`` (``key[0]``'s tracks first) the chains imply for an
         update at ``time_s``."""
         self._take(time_s)
         return implied_from(key, self._books)
-
-    def books(self) -> Books:
-        return self._books
 
     def _take(self, time_s: float) -> None:
         """Move to the latest crossing at or before ``time_s - lag_s`` (never back)."""
@@ -70,10 +73,17 @@ class CycleLinks:
         if taken is None:
             return
         position, radars = taken
-        least = self.params.min_strength
         self._books = {
-            key: (links.source_a, StrongPairs.of(links.track_a[keep], links.track_b[keep], links.score[keep]))
+            key: self._strong_of(key, links)
             for key, links in self.history.at(position).items()
             if key[0] in radars and key[1] in radars
-            for keep in [links.score >= least]
         }
+
+    def _strong_of(self, key: Key, links: Links) -> tuple[str, StrongPairs]:
+        """A pair's A side and its strong confirmed pairs in ``links``."""
+        held = self._strong.get(key)
+        if held is None or held[0] is not links:
+            keep = links.score >= self.params.min_strength
+            strong = StrongPairs.of(links.track_a[keep], links.track_b[keep], links.score[keep])
+            held = self._strong[key] = (links, (links.source_a, strong))
+        return held[1]
