@@ -1281,7 +1281,8 @@ BREAKDOWN = (
     ("service.correlation.correlator", "PairCorrelator", "update"),
     ("service.pipeline.system_stage", "SystemStage", "due"),
     ("service.pipeline.correlation_stage", "CorrelationStage", "_solve_due"),
-    ("service.pipeline.correlation_stage", "CorrelationStage", "_implied"),
+    ("service.pipeline.cycle_links", "CycleLinks", "implied"),
+    ("service.pipeline.system_stage", "SystemStage", "_build"),
     ("service.pipeline.correlation_stage", "CorrelationStage", "_changed"),
 )
 
