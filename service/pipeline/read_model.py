@@ -8,6 +8,7 @@ snapshot therefore costs in proportion to the number of radars and pairs, not tr
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -21,6 +22,8 @@ from service.wire.models import RadarSite, RadarStatus
 from service.wire.outputs import pair_rows, track_rows
 
 _NONE = np.array(None, dtype=object)
+#: A source whose track ids are Mode S addresses (ADS-B), as :meth:`Snapshot.identity` keys it.
+_ADSB = object()
 
 
 def track_batch(radar_id: str, time_s: float, tracks: TrackTable, status: str = "all") -> dict[str, Any]:
@@ -60,6 +63,9 @@ class PairSetView:
     confirmed: int
     tentative: int
     _cache: dict[str, dict[str, Any]] = field(default_factory=dict, compare=False, repr=False)
+    #: The identity counts of the confirmed pairs against the Mode S sources they were last
+    #: counted against (:meth:`Snapshot.identity`): a view outlives many snapshots.
+    _identity: list[tuple[Any, Any, int, int]] = field(default_factory=list, compare=False, repr=False)
 
     @staticmethod
     def of(key: tuple[str, str], corr: Any, time_s: float) -> PairSetView:
@@ -333,17 +339,40 @@ class Snapshot:
             "identity": self.identity(),
         }
 
-    def _mode_s(self, source_id: str, track_ids: np.ndarray) -> np.ndarray:
-        """The Mode S address of each of a source's tracks (None: none, or unknown track)."""
+    def _mode_s_source(self, source_id: str) -> Any:
+        """Where a source's Mode S addresses come from: ``_ADSB`` (its track ids), its table
+        (a track's ``mode_s``), or None (none known)."""
         if source_id in self.adsb_sources:
+            return _ADSB
+        held = self.tracks.get(source_id)
+        return None if held is None else held[1]
+
+    @staticmethod
+    def _mode_s(source: Any, track_ids: np.ndarray) -> np.ndarray:
+        """The Mode S address of each of a source's tracks (None: none, or unknown track)."""
+        if source is _ADSB:
             return track_ids.astype(object)
         out = np.full(track_ids.shape[0], None, dtype=object)
-        held = self.tracks.get(source_id)
-        if held is not None and track_ids.shape[0]:
-            table = held[1]
-            at = find(table.track_id, track_ids)
-            out[at >= 0] = table.mode_s[at[at >= 0]]
+        if source is not None and track_ids.shape[0]:
+            at = find(source.track_id, track_ids)
+            out[at >= 0] = source.mode_s[at[at >= 0]]
         return out
+
+    def _identity_of(self, v: PairSetView) -> tuple[int, int]:
+        """A view's confirmed pairs whose two tracks both carry a Mode S address, and how many
+        of those agree: counted once per view and pair of sources' tables (a status is asked
+        for far more often than a table changes; a table is remembered weakly)."""
+        sa, sb = self._mode_s_source(v.radar_a), self._mode_s_source(v.radar_b)
+        for ka, kb, n, k in v._identity:
+            if _holds(ka, sa) and _holds(kb, sb):
+                return n, k
+        c = v.columns["confirmed"]
+        a = self._mode_s(sa, v.columns["track_a"][c])
+        b = self._mode_s(sb, v.columns["track_b"][c])
+        both = np.not_equal(a, _NONE, dtype=bool) & np.not_equal(b, _NONE, dtype=bool)
+        n, k = int(both.sum()), int(np.count_nonzero(a[both] == b[both]))
+        v._identity[:] = [(_remembered(sa), _remembered(sb), n, k)]
+        return n, k
 
     def identity(self) -> dict[str, Any]:
         """Identity quality (contract §4.1): among confirmed pairs whose two tracks both carry
@@ -352,19 +381,10 @@ class Snapshot:
         for v in self.pair_views:
             if not v.confirmed:
                 continue
-            c = v.columns["confirmed"]
-            a = self._mode_s(v.radar_a, v.columns["track_a"][c])
-            b = self._mode_s(v.radar_b, v.columns["track_b"][c])
-            both = np.not_equal(a, _NONE, dtype=bool) & np.not_equal(b, _NONE, dtype=bool)
-            if both.any():
-                equal = int(np.count_nonzero(a[both] == b[both]))
+            n, k = self._identity_of(v)
+            if n:
                 rows.append(
-                    {
-                        "radar_a": v.radar_a,
-                        "radar_b": v.radar_b,
-                        "pairs_with_mode_s": int(both.sum()),
-                        "mode_s_equal": equal,
-                    }
+                    {"radar_a": v.radar_a, "radar_b": v.radar_b, "pairs_with_mode_s": n, "mode_s_equal": k}
                 )
         n = int(sum(r["pairs_with_mode_s"] for r in rows))
         k = int(sum(r["mode_s_equal"] for r in rows))
@@ -377,6 +397,19 @@ class Snapshot:
     def radars(self) -> list[dict[str, Any]]:
         keys = {"batches", "plots", "rejected", "lost_batches", "last_time_s"}
         return [{**r.site.model_dump(), **r.status.model_dump(include=keys)} for r in self.radar_rows]
+
+
+def _remembered(source: Any) -> Any:
+    """A Mode S source as a view remembers it: a table weakly (a view must not keep an old
+    table alive), the markers as they are."""
+    return weakref.ref(source) if isinstance(source, TrackTable) else source
+
+
+def _holds(remembered: Any, source: Any) -> bool:
+    """Whether a remembered Mode S source is ``source``."""
+    if isinstance(remembered, weakref.ref):
+        return remembered() is source
+    return remembered is source
 
 
 def build_snapshot(
