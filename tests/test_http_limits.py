@@ -186,30 +186,35 @@ def test_requests_past_the_concurrency_limit_are_refused_but_probes_are_not(serv
     stop = threading.Event()
 
     def ask() -> None:
+        # at least 25 requests each, and on until the watcher has its probes: every probe is
+        # asked while the flood goes on (a handful asked in the flood's first second, when
+        # the other tests' processes share the two cores too, made a median of noise)
         with httpx.Client(base_url=service.base_url, timeout=10) as http:
-            for _ in range(25):
+            done = 0
+            while done < 25 or not stop.is_set():
                 answer = http.get("/status")
+                done += 1
                 with lock:
                     codes[answer.status_code] += 1
                     if answer.status_code == 503:
                         retry_after.add(answer.headers.get("retry-after"))
 
     def watch() -> None:
-        while not stop.is_set():
-            probes.extend(probe_while(service.base_url, 1))
+        probes.extend(probe_while(service.base_url, PROBES))
+        stop.set()
 
     askers = [threading.Thread(target=ask) for _ in range(8)]
     watcher = threading.Thread(target=watch)
-    watcher.start()
     for t in askers:
         t.start()
+    watcher.start()
+    watcher.join(timeout=60)
+    stop.set()
     for t in askers:
         t.join(timeout=60)
-    stop.set()
-    watcher.join(timeout=10)
     assert set(codes) == {200, 503}, codes  # one at a time: some waited for none and got in
     assert retry_after == {"1"}
-    assert probes and statistics.median(probes) < PROBE_MAX_S / 2, probes
+    assert len(probes) == 2 * PROBES and kubelet_content(probes), probes
 
 
 def test_a_flood_past_the_open_file_limit_leaves_the_probes_answering(router: str) -> None:
