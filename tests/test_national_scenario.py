@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import sys
 from dataclasses import replace
 
 import numpy as np
@@ -109,3 +110,22 @@ def test_uniform_respawn_enters_on_the_boundary_heading_inwards() -> None:
     assert targets.count - before > 200
     with pytest.raises(ValueError, match="respawn"):
         replace(sc, respawn="inside")  # type: ignore[arg-type]
+
+
+def test_every_part_the_breakdown_times_exists(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``bench_national.py --breakdown`` wraps methods by name: a method renamed or moved must
+    fail here, not at the next time somebody needs the breakdown."""
+    import importlib
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "bench_national.py"
+    spec = importlib.util.spec_from_file_location("bench_national_parts", path)
+    assert spec is not None and spec.loader is not None
+    bench = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, spec.name, bench)  # (its dataclasses look themselves up)
+    spec.loader.exec_module(bench)
+    assert len(bench.BREAKDOWN) >= 5
+    for module, cls_name, method in bench.BREAKDOWN:
+        cls = getattr(importlib.import_module(module), cls_name)
+        assert callable(getattr(cls, method, None)), (module, cls_name, method)
