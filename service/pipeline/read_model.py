@@ -63,8 +63,9 @@ class PairSetView:
     confirmed: int
     tentative: int
     _cache: dict[str, dict[str, Any]] = field(default_factory=dict, compare=False, repr=False)
-    #: The identity counts of the confirmed pairs against the Mode S sources they were last
-    #: counted against (:meth:`Snapshot.identity`): a view outlives many snapshots.
+    #: The identity counts of the confirmed pairs with the Mode S sources they were last
+    #: counted against, one entry once counted (:meth:`Snapshot.identity`): a view outlives
+    #: many snapshots.
     _identity: list[tuple[Any, Any, int, int]] = field(default_factory=list, compare=False, repr=False)
 
     @staticmethod
@@ -363,7 +364,8 @@ class Snapshot:
         of those agree: counted once per view and pair of sources' tables (a status is asked
         for far more often than a table changes; a table is remembered weakly)."""
         sa, sb = self._mode_s_source(v.radar_a), self._mode_s_source(v.radar_b)
-        for ka, kb, n, k in v._identity:
+        if v._identity:  # (once set, never emptied)
+            ka, kb, n, k = v._identity[0]
             if _holds(ka, sa) and _holds(kb, sb):
                 return n, k
         c = v.columns["confirmed"]
