@@ -78,9 +78,9 @@ def test_every_output_names_only_tracks_the_latest_tables_hold(router: str, clie
     report = monitor.report()
     assert report.dangling.references == 0, report.dangling.examples
     assert report.confirmed_at_end >= 100 and report.false_at_end == 0
-    # promptly (the bounds, in scans of the slower radar; this stream is mostly the
-    # cold start, before the radars are registered, when pairs wait for their pair's scan)
-    assert report.median <= 0.75 and report.p95 <= 2.0, report.lines()
+    # promptly, in scans of the slower radar: within a scan, the cold start included (this
+    # stream is mostly the service's first minute, before the radars are registered)
+    assert report.median <= 0.5 and report.p95 <= 1.0, report.lines()
     # the HTTP snapshot is whole too: pairs and system tracks name tracks the same snapshot holds
     named = [(ps["radar_a"], p["track_a"]) for ps in pairs for p in ps["pairs"]]
     named += [(ps["radar_b"], p["track_b"]) for ps in pairs for p in ps["pairs"]]
