@@ -450,6 +450,14 @@ def _states_cases() -> list[tuple[str, object]]:
     variant("quality string", ["tracks", "quality"], ["high"])
     variant("quality bool", ["tracks", "quality"], [True])
     variant("quality wrong length", ["tracks", "quality"], [0.5, 0.5])
+    variant("valid integer quality", ["tracks", "quality"], [1])
+    variant("quality huge", ["tracks", "quality"], [1e300])
+    variant("long covariance row", ["tracks", "covariance"], [[1.0] * 37])
+    variant("covariance row an object", ["tracks", "covariance"], [{"a": 1.0}])
+    variant("covariance numbers not in rows", ["tracks", "covariance"], [1.0] * 36)
+    variant("position of lists", ["tracks", "position_ecef_m"], [[[1.0], [2.0], [3.0]]])
+    variant("truth not a string", ["tracks", "truth_id"], [5])
+    variant("removed an object", ["removed"], [{"id": "A-1"}])
     return cases
 
 
