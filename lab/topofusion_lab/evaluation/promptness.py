@@ -58,6 +58,11 @@ class PromptnessReport:
     confirmed_at_end: int
     dangling: Dangling
     outputs: int
+    #: Of each time in ``scans``: whether the aircraft became common within ``start_s`` of the
+    #: first confirmed track of the run (a service's start: every aircraft new at once, no
+    #: radar pair registered yet), to tell the start from the steady state.
+    at_start: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    start_s: float = 60.0
 
     @property
     def median(self) -> float:
@@ -67,6 +72,21 @@ class PromptnessReport:
     def p95(self) -> float:
         return float(np.percentile(self.scans, 95)) if self.scans.size else float("nan")
 
+    def split(self) -> str:
+        """The time to pair of the aircraft common from the start and of those common later."""
+        parts = []
+        for name, sel in (
+            (f"common within {self.start_s:.0f} s of the first track", self.at_start),
+            ("common later", ~self.at_start),
+        ):
+            x = self.scans[sel] if self.at_start.shape == self.scans.shape else np.zeros(0)
+            if x.size:
+                parts.append(
+                    f"{name}: {x.size}, median {np.median(x):.2f}, p95 {np.percentile(x, 95):.2f}, "
+                    f"more than a scan {np.mean(x > 1.0):.1%}"
+                )
+        return "time to pair by when the aircraft became common: " + ("; ".join(parts) or "none")
+
     def lines(self) -> list[str]:
         end = self.paired_at_end / self.common_at_end if self.common_at_end else float("nan")
         false = self.false_at_end / self.confirmed_at_end if self.confirmed_at_end else float("nan")
@@ -75,6 +95,7 @@ class PromptnessReport:
             f"time to pair (data time, scans of the slower radar): median {self.median:.2f}, "
             f"p95 {self.p95:.2f}, max {float(self.scans.max(initial=0.0)):.2f} over "
             f"{self.scans.size} paired common aircraft; never paired {self.never_paired} of {self.common}",
+            self.split(),
             f"at the end: {self.paired_at_end}/{self.common_at_end} ({end:.4f}) of the common aircraft "
             f"paired right; false {self.false_at_end}/{self.confirmed_at_end} ({false:.4f}) of the "
             "confirmed pairs",
@@ -185,8 +206,12 @@ class OutputMonitor:
                 d.examples.append(f"{bad[0][0]}:{bad[0][1]}")
 
     # -- result -------------------------------------------------------------------------------
-    def report(self) -> PromptnessReport:
+    def report(self, start_s: float = 60.0) -> PromptnessReport:
+        """``start_s``: aircraft common within this much data time of the run's first confirmed
+        track count as the start's (:attr:`PromptnessReport.at_start`)."""
         scans: list[float] = []
+        at_start: list[bool] = []
+        first = min(self.first_held.values(), default=0.0)
         never = common = 0
         end = self.last_time_s
         for a, b in sorted(self.correlated):
@@ -199,6 +224,7 @@ class OutputMonitor:
                 paired = self.first_paired.get((a, b, x))
                 if paired is not None:
                     scans.append(max(0.0, paired - start) / period)
+                    at_start.append(start - first <= start_s)
                     common += 1
                 elif end - start >= self.settle_scans * period:
                     never += 1
@@ -231,4 +257,6 @@ class OutputMonitor:
             confirmed_at_end=confirmed_end,
             dangling=self.dangling,
             outputs=self.outputs,
+            at_start=np.asarray(at_start, dtype=bool),
+            start_s=start_s,
         )
