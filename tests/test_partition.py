@@ -10,7 +10,7 @@ import json
 import random
 import subprocess
 import sys
-from collections import defaultdict
+from collections import defaultdict, deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -27,6 +27,7 @@ from service.pipeline.peers import MAX_PENDING_STATES
 from service.pipeline.read_model import SystemTrackView
 from service.pipeline.sequencer import RADAR
 from service.pipeline.track_exchange import (
+    ExchangeParams,
     StatesMessage,
     StatesReceiver,
     StatesSender,
@@ -38,6 +39,7 @@ from service.wire.keys import Keys
 from service.wire.models import TrackStates
 from service.wire.outgoing import Outgoing
 from service.wire.outputs import encode
+from service.wire.packed import pack_floats
 from tests.scenario_helpers import scenario_messages
 from tests.support import random_track_table
 
@@ -211,7 +213,8 @@ def _through_the_wire(body: dict[str, object]) -> StatesMessage:
     return decode_states(payload, "A")
 
 
-def test_a_peer_rebuilds_the_owners_tables_bit_for_bit_and_recovers_from_a_gap() -> None:
+@pytest.mark.parametrize("packed", [False, True])
+def test_a_peer_rebuilds_the_owners_tables_bit_for_bit_and_recovers_from_a_gap(packed: bool) -> None:
     rng = np.random.default_rng(5)
     sender = StatesSender()
     receiver = StatesReceiver()
@@ -219,7 +222,8 @@ def test_a_peer_rebuilds_the_owners_tables_bit_for_bit_and_recovers_from_a_gap()
     next_id = 80
     fulls = 0
     for step in range(200):
-        body = sender.states("A", t, 1000.0 + step)  # full once per 60 data seconds
+        body = sender.states("A", t, 1000.0 + step, packed)  # full once per 60 data seconds
+        assert isinstance(body["tracks"]["covariance"], str) == packed
         fulls += bool(body["full"])
         # step 100 is lost on the way: the receiver has no base until the next full table
         got = None if step == 100 else receiver.apply(_through_the_wire(body))
@@ -242,6 +246,44 @@ def test_a_peer_rebuilds_the_owners_tables_bit_for_bit_and_recovers_from_a_gap()
         t, next_id = _evolve(rng, t, next_id)
     assert fulls == 4
     assert receiver.gaps["A"] >= 1
+
+
+def _states_forms(packing: tuple[bool, ...]) -> list[set[bool]]:
+    """Workers, each with ``exchange.packed`` as given, on a three-radar stream:
+    per worker, the forms (packed or not) of the track states it sent after the first 200
+    messages (each worker has heard the others' progress by then)."""
+    n = len(packing)
+    engines = [
+        Engine(EngineConfig(partition=Partition(k + 1, n), exchange=ExchangeParams(packed=p)))
+        for k, p in enumerate(packing)
+    ]
+    forms: list[set[bool]] = [set() for _ in engines]
+    pending: deque[tuple[int, str, bytes]] = deque()
+
+    def take(j: int, out: list[Outgoing], late: bool) -> None:
+        for o in out:
+            if _is_peer(o.key):
+                pending.append((j, o.key, o.payload))
+                if o.key.endswith("/track-states") and late:
+                    forms[j].add(isinstance(o.body()["tracks"]["time_s"], str))
+
+    for i, (key, payload) in enumerate(scenario_messages("three-radar", duration_s=60.0, seed=2)):
+        for j, engine in enumerate(engines):
+            take(j, engine.ingest(key, payload), i >= 200)
+        while pending:  # every peer message to every other worker, in order
+            j, peer_key, body = pending.popleft()
+            for k, engine in enumerate(engines):
+                if k != j:
+                    take(k, engine.ingest(peer_key, body), i >= 200)
+    for engine in engines:
+        engine.close()
+    return forms
+
+
+def test_track_states_go_packed_once_every_other_worker_reads_them() -> None:
+    assert _states_forms((True, True)) == [{True}, {True}]
+    # a worker that does not read them (packing off, or a version before it) gets numbers
+    assert _states_forms((True, False)) == [{False}, {False}]
 
 
 # -- N engines give the pair updates of one --------------------------------------------------
@@ -458,6 +500,20 @@ def _states_cases() -> list[tuple[str, object]]:
     variant("position of lists", ["tracks", "position_ecef_m"], [[[1.0], [2.0], [3.0]]])
     variant("truth not a string", ["tracks", "truth_id"], [5])
     variant("removed an object", ["removed"], [{"id": "A-1"}])
+    n = len(good["tracks"]["track_id"])
+    cov = np.asarray(good["tracks"]["covariance"], dtype=float)
+    variant("valid packed covariance", ["tracks", "covariance"], pack_floats(cov))
+    variant("valid packed time", ["tracks", "time_s"], pack_floats(np.asarray(good["tracks"]["time_s"])))
+    variant("valid packed quality with a null", ["tracks", "quality"], pack_floats(np.full(n, np.nan)))
+    variant("packed covariance short", ["tracks", "covariance"], pack_floats(cov.ravel()[:-1]))
+    variant("packed covariance not base64", ["tracks", "covariance"], "%%%%" * 96)
+    variant("packed covariance bad padding", ["tracks", "covariance"], pack_floats(cov)[:-1])
+    variant("packed covariance infinite", ["tracks", "covariance"], pack_floats(np.full(36 * n, np.inf)))
+    variant("packed covariance NaN", ["tracks", "covariance"], pack_floats(np.full(36 * n, np.nan)))
+    variant("packed position far", ["tracks", "position_ecef_m"], pack_floats(np.full(3 * n, 1e9)))
+    variant("packed time negative", ["tracks", "time_s"], pack_floats(np.full(n, -1.0)))
+    variant("packed quality above one", ["tracks", "quality"], pack_floats(np.full(n, 1.5)))
+    variant("packed plots", ["tracks", "plots"], pack_floats(np.ones(n)))
     return cases
 
 

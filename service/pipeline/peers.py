@@ -147,6 +147,8 @@ class Peers:
         self._biases_sent: object = None
         #: A lone worker's own numbering of its tables (the merger's tie order).
         self._table_seq: dict[str, int] = {}
+        #: Each other worker's word, in its latest progress, on reading packed track states.
+        self._reads_packed: dict[int, bool] = {}
 
     @property
     def alone(self) -> bool:
@@ -160,10 +162,16 @@ class Peers:
             seq = self._table_seq[radar_id] = self._table_seq.get(radar_id, 0) + 1
             self.merger.push(RADAR, radar_id, seq, time_s, table, expiry=expiry)
             return []
-        body = self.sender.states(radar_id, table, time_s)
+        body = self.sender.states(radar_id, table, time_s, self._pack())
         body["expiry"] = expiry
         self.merger.push(RADAR, radar_id, body["seq"], time_s, table, expiry=expiry)
         return [Outgoing(self.keys.track_states(radar_id), lambda: body)]
+
+    def _pack(self) -> bool:
+        """Whether this worker's track states go packed: every other worker of the partition
+        said, in its latest progress, that it reads them (:attr:`ExchangeParams.packed`)."""
+        others = set(range(1, self.partition.count + 1)) - {self.partition.index}
+        return self.exchange.packed and all(self._reads_packed.get(k, False) for k in others)
 
     def forget(self, source_id: str) -> None:
         self.sender.forget(source_id)
@@ -309,6 +317,7 @@ class Peers:
             **salted,
             "released_s": finite_or_none(self.sequencer.last_limit),
             "correlated_s": finite_or_none(self.correlation.correlated_through(merged)),
+            **({"packed_states": True} if self.exchange.packed else {}),
         }
         clocks: dict[str, Any] = {
             "partition": str(self.partition),
@@ -359,6 +368,7 @@ class Peers:
                     if not self.partition.owns(rid):
                         self.sequencer.observe(rid, c)
             else:
+                self._reads_packed[worker] = bool(clock.packed_states)
                 self.merger.progress(worker, clock.released_s if clock.released_s is not None else -np.inf)
                 self._correlated_by[worker] = (
                     clock.correlated_s if clock.correlated_s is not None else -np.inf

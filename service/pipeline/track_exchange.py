@@ -12,9 +12,11 @@ one ``TrackStates`` per released table on ``{prefix}/radar/{id}/track-states``:
   radar's batch covers a sector of its scan, so about a tenth of its tracks) and the ids that
   left.  ``count`` is the size of the table after the change, a check.
 
-Floats travel as JSON numbers in their shortest round-trip form, so a rebuilt table equals the
-owner's.  A receiver applies a change only on top of the table of ``seq - 1``; after a gap
-(a lost message, a restarted owner) it waits for the next full table and counts the gap.
+Floats travel as JSON numbers in their shortest round-trip form, or packed (the doubles
+themselves, :mod:`service.wire.packed`) once every other worker has said it reads them
+(:attr:`ExchangeParams.packed`); either way a rebuilt table equals the owner's.  A receiver
+applies a change only on top of the table of ``seq - 1``; after a gap (a lost message, a
+restarted owner) it waits for the next full table and counts the gap.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from service.pipeline.errors import RejectionError
 from service.tracking.base import TrackTable
 from service.wire.models import MAX_ECEF_M, MAX_TIME_S, MAX_TRACKS
 from service.wire.outputs import nullable
+from service.wire.packed import pack_floats, unpack_floats
 from service.wire.vocabulary import is_source_id
 
 #: The label columns a table carries besides its state (sent only when one is set).
@@ -50,6 +53,12 @@ class ExchangeParams:
     #: data time (s), and whenever it is idle.  They only pace the others' merge: coarser
     #: means a little more latency, never another result.
     step_s: float = 1.0
+    #: Whether this worker reads track states with packed float columns, says so in its
+    #: progress, and packs its own once every other worker has said it reads them
+    #: (:mod:`service.wire.packed`: the same tables, bit for bit, a fraction of the JSON
+    #: numbers' parsing).  Off: JSON numbers only, both ways (a worker of a version before
+    #: packing never says it reads them, so it is never sent any).
+    packed: bool = True
 
 
 def _positions(ids: NDArray[np.str_], query: NDArray[np.str_]) -> NDArray[np.intp]:
@@ -84,17 +93,28 @@ def changed_rows(old: TrackTable, new: TrackTable) -> tuple[np.ndarray, np.ndarr
 
 
 def states_body(
-    radar_id: str, seq: int, time_s: float, table: TrackTable, full: bool, removed: np.ndarray, count: int
+    radar_id: str,
+    seq: int,
+    time_s: float,
+    table: TrackTable,
+    full: bool,
+    removed: np.ndarray,
+    count: int,
+    packed: bool = False,
 ) -> dict[str, Any]:
-    """The ``TrackStates`` payload of ``table``'s rows (numpy columns: encoded as they are)."""
+    """The ``TrackStates`` payload of ``table``'s rows (numpy columns: encoded as they are;
+    ``packed``: the float columns packed, :mod:`service.wire.packed`)."""
     n = len(table)
-    columns: dict[str, Any] = {
-        "track_id": table.track_id.tolist(),
-        "confirmed": np.ascontiguousarray(table.confirmed),
+    floats = {
         "time_s": np.ascontiguousarray(table.time_s, dtype=float),
         "position_ecef_m": np.ascontiguousarray(table.position_ecef_m, dtype=float),
         "velocity_ecef_mps": np.ascontiguousarray(table.velocity_ecef_mps, dtype=float),
         "covariance": np.ascontiguousarray(table.covariance, dtype=float).reshape(n, 36),
+    }
+    columns: dict[str, Any] = {
+        "track_id": table.track_id.tolist(),
+        "confirmed": np.ascontiguousarray(table.confirmed),
+        **({k: pack_floats(v) for k, v in floats.items()} if packed else floats),
         "plots": np.ascontiguousarray(table.plots, dtype=np.int64),
     }
     for name in LABELS:
@@ -102,7 +122,7 @@ def states_body(
         if any(x is not None for x in labels):
             columns[name] = labels
     if np.isfinite(table.quality).any():
-        columns["quality"] = nullable(table.quality)
+        columns["quality"] = pack_floats(table.quality) if packed else nullable(table.quality)
     return {
         "radar_id": radar_id,
         "seq": seq,
@@ -165,7 +185,12 @@ def _fail(reason: str, detail: str, radar_id: str | None) -> RejectionError:
 
 def _column(cols: dict[str, Any], name: str, shape: tuple[int, ...], dtype: type, rid: str) -> np.ndarray:
     try:
-        a: np.ndarray = np.asarray(cols[name], dtype=dtype)
+        values = cols[name]
+        a: np.ndarray = (
+            unpack_floats(values, int(np.prod(shape))).reshape(shape)
+            if isinstance(values, str) and dtype is float
+            else np.asarray(values, dtype=dtype)
+        )
     except KeyError:
         raise _fail("schema", f"tracks.{name} missing", rid) from None
     except (TypeError, ValueError):
@@ -262,6 +287,16 @@ def _quality_column(cols: dict[str, Any], n: int, radar_id: str) -> np.ndarray:
     values = cols.get("quality")
     if values is None:
         return out
+    if isinstance(values, str):  # packed: NaN for null
+        try:
+            out = unpack_floats(values, n)
+        except ValueError:
+            raise _fail(
+                "schema", "tracks.quality: not a packed column of one number per track", radar_id
+            ) from None
+        if not np.all(np.isnan(out) | ((out >= 0.0) & (out <= 1.0))):
+            raise _fail("schema", "tracks.quality must be numbers in [0, 1] or nulls", radar_id)
+        return out
     if (
         not isinstance(values, list)
         or len(values) != n
@@ -277,22 +312,29 @@ class StatesSender:
 
     def __init__(self, params: ExchangeParams | None = None) -> None:
         self.params = params or ExchangeParams()
-        # radar -> (seq of the last message, its table, data time of the last full table)
-        self._sent: dict[str, tuple[int, TrackTable, float]] = {}
+        # radar -> (seq of the last message, its table, data time of the last full table,
+        # whether it was packed)
+        self._sent: dict[str, tuple[int, TrackTable, float, bool]] = {}
 
-    def states(self, radar_id: str, table: TrackTable, time_s: float) -> dict[str, Any]:
-        """The message for ``table`` (canonical order) at data time ``time_s``."""
+    def states(self, radar_id: str, table: TrackTable, time_s: float, packed: bool = False) -> dict[str, Any]:
+        """The message for ``table`` (canonical order) at data time ``time_s``; ``packed``: its
+        float columns packed.  A change of form sends the whole table: a worker that could not
+        read the last form is whole again at once."""
         last = self._sent.get(radar_id)
-        full = last is None or not (last[2] <= time_s < last[2] + self.params.full_interval_s)
+        full = (
+            last is None
+            or not (last[2] <= time_s < last[2] + self.params.full_interval_s)
+            or last[3] != packed
+        )
         seq = 1 if last is None else last[0] + 1
         if full or last is None:
-            body = states_body(radar_id, seq, time_s, table, True, np.empty(0, dtype=str), len(table))
+            body = states_body(radar_id, seq, time_s, table, True, np.empty(0, dtype=str), len(table), packed)
             full_s = time_s
         else:
             changed, removed = changed_rows(last[1], table)
-            body = states_body(radar_id, seq, time_s, table.take(changed), False, removed, len(table))
+            body = states_body(radar_id, seq, time_s, table.take(changed), False, removed, len(table), packed)
             full_s = last[2]
-        self._sent[radar_id] = (seq, table, full_s)
+        self._sent[radar_id] = (seq, table, full_s, packed)
         return body
 
     def forget(self, radar_id: str) -> None:

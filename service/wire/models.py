@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Annotated, Any, Literal, TypeVar
 
+import numpy as np
 from pydantic import (
     BaseModel,
     ConfigDict,
@@ -22,6 +23,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
+from service.wire.packed import PACKED_PATTERN, unpack_floats
 from service.wire.vocabulary import ID_PATTERN, PairBasis, RejectionReason
 
 #: At most this many plots (or AIS reports) per batch.
@@ -324,24 +326,61 @@ Covariance = Annotated[list[Finite], Field(min_length=36, max_length=36)]
 Covariance3 = Annotated[list[Finite], Field(min_length=9, max_length=9)]
 
 
+#: A float column packed (:mod:`service.wire.packed`): the base64 of its little-endian doubles in
+#: row order; at most a whole table's covariances.
+Packed = Annotated[
+    str,
+    Field(
+        pattern=PACKED_PATTERN,
+        max_length=(MAX_TRACKS * 36 * 8 + 2) // 3 * 4,
+        description="base64 (RFC 4648, padded) of the column's little-endian IEEE-754 doubles in row order",
+    ),
+]
+#: The columns a ``TrackStates`` may pack: values per track, bounds (NaN: allowed, as null).
+_PACKABLE: dict[str, tuple[int, float, float, bool]] = {
+    "time_s": (1, 0.0, MAX_TIME_S, False),
+    "position_ecef_m": (3, -MAX_ECEF_M, MAX_ECEF_M, False),
+    "velocity_ecef_mps": (3, -MAX_ECEF_M, MAX_ECEF_M, False),
+    "covariance": (36, -np.inf, np.inf, False),
+    "quality": (1, 0.0, 1.0, True),
+}
+
+
 class TrackStateColumns(ColumnsModel):
-    """One row per track: what correlation needs of a radar's tracks (state and covariance)."""
+    """One row per track: what correlation needs of a radar's tracks (state and covariance).
+    The float columns are each a list of numbers or packed (:data:`Packed`)."""
 
     track_id: Annotated[list[str], Field(max_length=MAX_TRACKS)]
     confirmed: Annotated[list[StrictBool], Field(max_length=MAX_TRACKS)]
-    time_s: Annotated[list[TimeS], Field(max_length=MAX_TRACKS)]
-    position_ecef_m: Annotated[list[Vec3], Field(max_length=MAX_TRACKS)]
-    velocity_ecef_mps: Annotated[list[Vec3], Field(max_length=MAX_TRACKS)]
-    covariance: Annotated[list[Covariance], Field(max_length=MAX_TRACKS)]
+    time_s: Annotated[list[TimeS], Field(max_length=MAX_TRACKS)] | Packed
+    position_ecef_m: Annotated[list[Vec3], Field(max_length=MAX_TRACKS)] | Packed
+    velocity_ecef_mps: Annotated[list[Vec3], Field(max_length=MAX_TRACKS)] | Packed
+    covariance: Annotated[list[Covariance], Field(max_length=MAX_TRACKS)] | Packed
     plots: Annotated[list[Annotated[StrictInt, Field(ge=0)]], Field(max_length=MAX_TRACKS)]
     truth_id: Annotated[list[str | None], Field(max_length=MAX_TRACKS)] | None = Field(
         default=None, description="simulation only, as in TrackBatch"
     )
     mode_3a: Annotated[list[str | None], Field(max_length=MAX_TRACKS)] | None = None
     mode_s: Annotated[list[str | None], Field(max_length=MAX_TRACKS)] | None = None
-    quality: Annotated[list[Quality | None], Field(max_length=MAX_TRACKS)] | None = Field(
-        default=None, description="as Track.quality; left out when no track has one"
+    quality: Annotated[list[Quality | None], Field(max_length=MAX_TRACKS)] | Packed | None = Field(
+        default=None, description="as Track.quality; left out when no track has one; packed: NaN for null"
     )
+
+    @model_validator(mode="after")
+    def _check_lengths(self) -> TrackStateColumns:
+        """The listed columns have one length, and each packed one holds that many rows of
+        numbers within the list form's bounds."""
+        names = [n for n in type(self).model_fields if not isinstance(getattr(self, n), str)]
+        _equal_lengths(self, names)
+        n = len(self.track_id)
+        for name, (width, low, high, nan_ok) in _PACKABLE.items():
+            text = getattr(self, name)
+            if isinstance(text, str):
+                values = unpack_floats(text, n * width)  # (ValueError: not valid)
+                ok = np.isfinite(values) & (values >= low) & (values <= high)
+                if not np.all(ok | np.isnan(values) if nan_ok else ok):
+                    raise ValueError(f"{name}: numbers outside [{low}, {high}] or not finite")
+        return self
 
 
 class TrackStates(WireModel):
@@ -381,6 +420,11 @@ class WorkerClock(WireModel):
         le=2**31 - 1,
         description="the salt of the partition's hashing (TOPOFUSION_PARTITION_SALT), when not 0: "
         "every worker of a network needs the same",
+    )
+    packed_states: bool | None = Field(
+        default=None,
+        description="(progress) this worker reads TrackStates with packed float columns; a worker "
+        "packs its own once every other worker has said so",
     )
 
 
