@@ -86,7 +86,7 @@ from typing import Any
 import numpy as np
 
 from service.engine import Engine, EngineConfig, Snapshot
-from topofusion_lab.evaluation.promptness import OutputMonitor, PromptnessReport
+from topofusion_lab.evaluation.promptness import OutputMonitor, PromptnessReport, watch_engine
 from topofusion_lab.scenarios.catalog import get_scenario
 from topofusion_lab.scenarios.simulator import Scenario, wire_messages
 
@@ -1229,16 +1229,7 @@ def promptness(sc: Scenario, stream: Stream) -> PromptnessReport:
     to every key would; the correlation in process gives the same outputs in data time as the
     correlation process)."""
     monitor = OutputMonitor({r.radar_id: r.scan_period_s for r in sc.radars})
-    engine = Engine(EngineConfig())
-    try:
-        for key, payload in stream:
-            for out in engine.ingest(key, payload, receive_time_s=0.0):
-                monitor.feed(out.key, out.body())
-        for out in engine.flush():
-            monitor.feed(out.key, out.body())
-    finally:
-        engine.close()
-    report = monitor.report()
+    report = watch_engine(Engine(EngineConfig()), stream, monitor)
     print("[outputs as published, untimed pass in process]")
     for line in report.lines():
         print(f"  {line}")

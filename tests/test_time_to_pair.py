@@ -17,7 +17,7 @@ import pytest
 from service.config import EngineConfig
 from service.engine import Engine
 from tests.scenario_helpers import scenario_messages
-from topofusion_lab.evaluation.promptness import OutputMonitor, PromptnessReport
+from topofusion_lab.evaluation.promptness import OutputMonitor, PromptnessReport, watch_engine
 
 
 def _time_to_pair(name: str, duration_s: float, seed: int, config: EngineConfig) -> PromptnessReport:
@@ -25,17 +25,7 @@ def _time_to_pair(name: str, duration_s: float, seed: int, config: EngineConfig)
     scans = {
         json.loads(p)["radar_id"]: json.loads(p)["scan_period_s"] for k, p in stream if k.endswith("/site")
     }
-    monitor = OutputMonitor(scans)
-    engine = Engine(config)
-    try:
-        for key, payload in stream:
-            for out in engine.ingest(key, payload, receive_time_s=0.0):
-                monitor.feed(out.key, out.body())
-        for out in engine.flush():
-            monitor.feed(out.key, out.body())
-    finally:
-        engine.close()
-    return monitor.report()
+    return watch_engine(Engine(config), stream, OutputMonitor(scans))
 
 
 STREAMS = [("three-radar", 150.0, 1), ("large-bias", 200.0, 2)]

@@ -23,10 +23,13 @@ left out: they have no ``TrackBatch``.
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
+from service.engine import Engine
 
 
 @dataclass
@@ -260,3 +263,20 @@ class OutputMonitor:
             at_start=np.asarray(at_start, dtype=bool),
             start_s=start_s,
         )
+
+
+def watch_engine(
+    engine: Engine, stream: Iterable[tuple[str, bytes]], monitor: OutputMonitor
+) -> PromptnessReport:
+    """Feed ``stream`` (key, payload) through ``engine`` in this process and every output it
+    returns, then those of its ``flush``, to ``monitor`` in publish order (as a subscriber to
+    every key hears them); the engine is closed after.  ``monitor``'s report."""
+    try:
+        for key, payload in stream:
+            for out in engine.ingest(key, payload, receive_time_s=0.0):
+                monitor.feed(out.key, out.body())
+        for out in engine.flush():
+            monitor.feed(out.key, out.body())
+    finally:
+        engine.close()
+    return monitor.report()
