@@ -64,8 +64,8 @@ class PromptnessReport:
     #: Of each time in ``scans``: whether the aircraft became common within ``start_s`` of the
     #: first confirmed track of the run (a service's start: every aircraft new at once, no
     #: radar pair registered yet), to tell the start from the steady state.
-    at_start: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
-    start_s: float = 60.0
+    at_start: np.ndarray
+    start_s: float
 
     @property
     def median(self) -> float:
@@ -82,7 +82,7 @@ class PromptnessReport:
             (f"common within {self.start_s:.0f} s of the first track", self.at_start),
             ("common later", ~self.at_start),
         ):
-            x = self.scans[sel] if self.at_start.shape == self.scans.shape else np.zeros(0)
+            x = self.scans[sel]
             if x.size:
                 parts.append(
                     f"{name}: {x.size}, median {np.median(x):.2f}, p95 {np.percentile(x, 95):.2f}, "
