@@ -26,11 +26,13 @@ coverage (``topofusion_lab.evaluation.system``).  Then per worker: CPU seconds p
 reports messages and bytes per data second by key kind, and each worker's payload bytes sent
 and received per data second (by who publishes and who subscribes to each key kind; the
 subscriber makes every output be sent, so those runs are slower: their speed is not
-comparable).
+comparable).  ``--pace X`` publishes no faster than ``X`` data seconds a wall second (each
+message at its data time over ``X``), so that every configuration runs below the machine's
+limit: the CPU a worker pays at a live rate, where it idles between messages.
 
 Run: .venv/bin/python bench/bench_partition.py [--duration 300] [--seed 1] [--scenario national]
-     [--workers 1,2] [--repeat 1] [--one-process] [--balance] [--traffic] [--cache FILE] [--compare]
-     [--logs DIR]
+     [--workers 1,2] [--repeat 1] [--one-process] [--balance] [--pace X] [--traffic] [--cache FILE]
+     [--compare] [--logs DIR]
 """
 
 from __future__ import annotations
@@ -294,6 +296,17 @@ def balanced(n: int, stream: list[tuple[str, bytes]]) -> int:
     return balanced_salt(n, sorted(positions), candidate_pairs(sorted(positions), positions, PAIR_KM * 1e3))
 
 
+def data_times(stream: list[tuple[str, bytes]]) -> list[float]:
+    """Each message's data time: its ``time_s``, or the latest before it for a message without."""
+    out, last = [], -float("inf")
+    for _, payload in stream:
+        t = json.loads(payload).get("time_s")
+        last = last if not isinstance(t, (int, float)) else max(last, float(t))
+        out.append(last)
+    first = next((t for t in out if t > -float("inf")), 0.0)
+    return [max(t, first) for t in out]
+
+
 def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argparse.Namespace) -> Result:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(ZenohOptions(mode="router", listen=(endpoint,)))
@@ -353,10 +366,16 @@ def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argpar
         n_batches = sum(k.endswith("/plots") for k, _ in stream)
         for w in workers:
             w.cpu0 = {p: cpu_s(p) for p in tree(w.proc.pid)}
+        rest = stream[len(sites) :]
+        due = data_times(rest)
         bench_cpu0 = time.process_time()
         t0 = time.perf_counter()
         progress = time.monotonic()
-        for i, (key, payload) in enumerate(stream[len(sites) :]):
+        for i, (key, payload) in enumerate(rest):
+            if args.pace > 0:  # no faster than ``pace`` data seconds a wall second
+                ahead = (due[i] - due[0]) / args.pace - (time.perf_counter() - t0)
+                if ahead > 0:
+                    time.sleep(ahead)
             put(key, payload)
             if i % PACE_EVERY == PACE_EVERY - 1:
                 # a worker's queue drops what does not fit (its capacity, 4 096 samples): keep
@@ -491,6 +510,13 @@ def main() -> None:
         "--balance",
         action="store_true",
         help="give the workers the salt `topofusion partition --balance` finds for the sites",
+    )
+    p.add_argument(
+        "--pace",
+        type=float,
+        default=0.0,
+        help="publish no faster than this many data seconds a wall second (default 0: as fast as "
+        "the workers take it); below the machine's limit every configuration runs unsaturated",
     )
     p.add_argument("--traffic", action="store_true", help="count every message by key kind (slower)")
     p.add_argument("--cache", type=Path, help="keep the generated stream in this file")
