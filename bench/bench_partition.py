@@ -367,7 +367,7 @@ def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argpar
         for w in workers:
             w.cpu0 = {p: cpu_s(p) for p in tree(w.proc.pid)}
         rest = stream[len(sites) :]
-        due = data_times(rest)
+        due = data_times(rest) if args.pace > 0 else []
         bench_cpu0 = time.process_time()
         t0 = time.perf_counter()
         progress = time.monotonic()
