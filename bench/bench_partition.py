@@ -61,6 +61,7 @@ from service.transport.session import ZenohOptions, open_session
 from service.wire.keys import parse_key
 from topofusion_lab.demo_workers import descendants
 from topofusion_lab.evaluation.system import score
+from topofusion_lab.pacing import Pacer
 from topofusion_lab.scenarios.catalog import get_scenario
 from topofusion_lab.scenarios.simulator import wire_messages
 
@@ -296,17 +297,6 @@ def balanced(n: int, stream: list[tuple[str, bytes]]) -> int:
     return balanced_salt(n, sorted(positions), candidate_pairs(sorted(positions), positions, PAIR_KM * 1e3))
 
 
-def data_times(stream: list[tuple[str, bytes]]) -> list[float]:
-    """Each message's data time: its ``time_s``, or the latest before it for a message without."""
-    out, last = [], -float("inf")
-    for _, payload in stream:
-        t = json.loads(payload).get("time_s")
-        last = last if not isinstance(t, (int, float)) else max(last, float(t))
-        out.append(last)
-    first = next((t for t in out if t > -float("inf")), 0.0)
-    return [max(t, first) for t in out]
-
-
 def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argparse.Namespace) -> Result:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(ZenohOptions(mode="router", listen=(endpoint,)))
@@ -367,15 +357,15 @@ def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argpar
         for w in workers:
             w.cpu0 = {p: cpu_s(p) for p in tree(w.proc.pid)}
         rest = stream[len(sites) :]
-        due = data_times(rest) if args.pace > 0 else []
+        # each message's data time (None: it has none), read before the clock starts; [] unpaced
+        due = [json.loads(payload).get("time_s") for _, payload in rest] if args.pace > 0 else []
+        pacer = Pacer(args.pace, threading.Event())
         bench_cpu0 = time.process_time()
         t0 = time.perf_counter()
         progress = time.monotonic()
         for i, (key, payload) in enumerate(rest):
-            if args.pace > 0:  # no faster than ``pace`` data seconds a wall second
-                ahead = (due[i] - due[0]) / args.pace - (time.perf_counter() - t0)
-                if ahead > 0:
-                    time.sleep(ahead)
+            if due and isinstance(due[i], (int, float)):  # ``pace`` data seconds a wall second
+                pacer.due(float(due[i]))
             put(key, payload)
             if i % PACE_EVERY == PACE_EVERY - 1:
                 # a worker's queue drops what does not fit (its capacity, 4 096 samples): keep
