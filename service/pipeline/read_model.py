@@ -289,6 +289,8 @@ class Snapshot:
     #: Each radar's performance against the references (a ``PerformanceView``; None: none).
     performance: Any = None
     _batches: dict[tuple[str, str], dict[str, Any]] = field(default_factory=dict, compare=False, repr=False)
+    #: Per source: whether its table carries any Mode S address (:meth:`_mode_s_source`).
+    _carries_mode_s: dict[str, bool] = field(default_factory=dict, compare=False, repr=False)
 
     def track_batch(self, radar_id: str, status: str = "confirmed") -> dict[str, Any] | None:
         if radar_id not in self.tracks:
@@ -346,7 +348,15 @@ class Snapshot:
         if source_id in self.adsb_sources:
             return _ADSB
         held = self.tracks.get(source_id)
-        return None if held is None else held[1]
+        if held is None:
+            return None
+        # A table without any address (most radars' plots carry none) gives none: its pairs
+        # are then counted without a search (a status is built every second; tables change
+        # with every batch).
+        carries = self._carries_mode_s.get(source_id)
+        if carries is None:
+            carries = self._carries_mode_s[source_id] = bool(np.not_equal(held[1].mode_s, _NONE).any())
+        return held[1] if carries else None
 
     @staticmethod
     def _mode_s(source: Any, track_ids: np.ndarray) -> np.ndarray:
@@ -364,6 +374,8 @@ class Snapshot:
         of those agree: counted once per view and pair of sources' tables (a status is asked
         for far more often than a table changes; a table is remembered weakly)."""
         sa, sb = self._mode_s_source(v.radar_a), self._mode_s_source(v.radar_b)
+        if sa is None or sb is None:
+            return 0, 0  # a side without addresses: no pair has one on both
         if v._identity:  # (once set, never emptied)
             ka, kb, n, k = v._identity[0]
             if _holds(ka, sa) and _holds(kb, sb):
