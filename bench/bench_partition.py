@@ -28,7 +28,8 @@ and received per data second (by who publishes and who subscribes to each key ki
 subscriber makes every output be sent, so those runs are slower: their speed is not
 comparable).  ``--pace X`` publishes no faster than ``X`` data seconds a wall second (each
 message at its data time over ``X``), so that every configuration runs below the machine's
-limit: the CPU a worker pays at a live rate, where it idles between messages.
+limit: the CPU a worker pays at a live rate, where it idles between messages.  With
+``--repeat R`` it ends with every repeat's busiest-worker and total CPU ratios and their medians.
 
 Run: .venv/bin/python bench/bench_partition.py [--duration 300] [--seed 1] [--scenario national]
      [--workers 1,2] [--repeat 1] [--one-process] [--balance] [--pace X] [--traffic] [--cache FILE]
@@ -553,6 +554,33 @@ def main() -> None:
         print(
             f"# {n} workers / {base}: {', '.join(f'{x:.2f}' for x in ratios)} "
             f"(median {sorted(ratios)[len(ratios) // 2]:.2f})"
+        )
+    if args.repeat > 1:
+        cpu_ratios(results, counts)
+
+
+def _median(xs: list[float]) -> float:
+    s = sorted(xs)
+    return (s[(len(s) - 1) // 2] + s[len(s) // 2]) / 2.0
+
+
+def cpu_ratios(results: dict[int, list[Result]], counts: list[int]) -> None:
+    """The CPU ratios of every repeat side by side, and their medians: on a noisy machine one
+    run's ratio can be off by a sixth (the first count's own CPU varies as much)."""
+    base = counts[0]
+    ones = [sum(r.cpu_workers) / r.data_s for r in results[base]]
+    print(
+        f"# {base} worker(s), CPU s per data s: {', '.join(f'{x:.3f}' for x in ones)} "
+        f"(median {_median(ones):.3f})"
+    )
+    for n in counts[1:]:
+        pairs = list(zip(results[base], results[n], strict=True))
+        busiest = [max(b.cpu_workers) / sum(a.cpu_workers) for a, b in pairs]
+        total = [sum(b.cpu_workers) / sum(a.cpu_workers) for a, b in pairs]
+        print(
+            f"# {n} workers against the {base}-worker run beside each: busiest "
+            f"{', '.join(f'{x:.2f}' for x in busiest)} (median {_median(busiest):.2f}); total "
+            f"{', '.join(f'{x:.2f}' for x in total)} (median {_median(total):.2f})"
         )
 
 
