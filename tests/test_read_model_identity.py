@@ -99,3 +99,10 @@ def test_identity_follows_the_tables_of_each_snapshot() -> None:
     adsb = _snapshot({"A": table_a}, view, frozenset({"B"}))
     want3 = _plain(adsb)
     assert {k: adsb.identity()[k] for k in want3} == want3
+    # B's next table carries no address at all (the common radar): nothing counted, and the
+    # table after it, with addresses again, is counted afresh
+    bare = _snapshot({"A": table_a, "B": replace(table_b, mode_s=np.full(50, None, dtype=object))}, view)
+    assert _plain(bare)["pairs_with_mode_s"] == 0
+    assert {k: bare.identity()[k] for k in want} == _plain(bare)
+    again = _snapshot({"A": table_a, "B": table_b2}, view)
+    assert {k: again.identity()[k] for k in want2} == want2
