@@ -30,10 +30,13 @@ comparable).  ``--pace X`` publishes no faster than ``X`` data seconds a wall se
 message at its data time over ``X``), so that every configuration runs below the machine's
 limit: the CPU a worker pays at a live rate, where it idles between messages.  With
 ``--repeat R`` it ends with every repeat's busiest-worker and total CPU ratios and their medians.
+``--in-process`` runs the engines alone instead, every count's side by side in this process,
+message by message (:func:`in_process`): the division of the engines' own work, which a drift
+of the machine's speed between runs cannot move.
 
 Run: .venv/bin/python bench/bench_partition.py [--duration 300] [--seed 1] [--scenario national]
-     [--workers 1,2] [--repeat 1] [--one-process] [--balance] [--pace X] [--traffic] [--cache FILE]
-     [--compare] [--logs DIR]
+     [--workers 1,2] [--repeat 1] [--one-process] [--balance] [--pace X] [--traffic] [--in-process]
+     [--cache FILE] [--compare] [--logs DIR]
 """
 
 from __future__ import annotations
@@ -57,9 +60,11 @@ from typing import Any
 import httpx
 import zenoh
 
+from service.config import EngineConfig
+from service.engine import Engine
 from service.pipeline.partition import PAIR_KM, Partition, balanced_salt, candidate_pairs, pair_name
 from service.transport.session import ZenohOptions, open_session
-from service.wire.keys import parse_key
+from service.wire.keys import Keys, parse_key
 from topofusion_lab.demo_workers import descendants
 from topofusion_lab.evaluation.system import score
 from topofusion_lab.pacing import Pacer
@@ -487,6 +492,67 @@ def report(r: Result, one: Result | None = None) -> None:
             print(f"      {kind:14s} {msgs:8.1f} msg/s {nbytes / 1e3:9.1f} kB/s")
 
 
+def in_process(
+    counts: list[int], stream: list[tuple[str, bytes]], data_s: float, args: argparse.Namespace
+) -> None:
+    """``--in-process``: one engine per worker of every count, all in this process (no Zenoh, no
+    correlation process, no HTTP), fed message by message side by side: each input goes to
+    every count's engines (a partitioned one takes only its own radars' plots, as its
+    subscription's filter does), and what an engine puts for the other workers reaches them
+    before the next input.  Each engine's CPU is its thread's time in ``ingest`` (and in
+    encoding what it puts for the others and its pair sets), so a drift of the machine's speed
+    weighs on every count alike: the division of the engines' own work, without the costs of
+    transport, pipes and status, which the process figures add."""
+    keys = Keys(PREFIX)
+    groups: list[list[tuple[Partition, Engine]]] = []
+    for n in counts:
+        salt = balanced(n, stream) if args.balance and n > 1 else 0
+        parts = [Partition(k, n, salt) for k in range(1, n + 1)]
+        groups.append([(part, Engine(EngineConfig(prefix=PREFIX, partition=part))) for part in parts])
+    cpu = [[0.0] * len(g) for g in groups]
+    waiting: list[list[list[tuple[str, bytes]]]] = [[[] for _ in g] for g in groups]
+
+    def run(c: int, j: int, items: list[tuple[str, bytes]]) -> None:
+        engine = groups[c][j][1]
+        t = time.thread_time()
+        out = [o for key, payload in items for o in engine.ingest(key, payload)]
+        peer = [(o.key, o.payload) for o in out if keys.classify_peer(o.key) is not None]
+        for o in out:
+            if "/pairs/" in o.key:
+                o.payload  # noqa: B018  (encoded, as for the benchmark's subscriber)
+        cpu[c][j] += time.thread_time() - t
+        for other in range(len(groups[c])):
+            if other != j:
+                waiting[c][other] += peer
+
+    step = max(1, len(stream) // 10)
+    for i, (key, payload) in enumerate(stream):
+        kind, ids = parse_key(key, PREFIX)
+        for c, group in enumerate(groups):
+            for j, (part, _) in enumerate(group):
+                items, waiting[c][j] = waiting[c][j], []
+                if not (kind == "plots" and not part.owns(ids[0])):
+                    items.append((key, payload))
+                run(c, j, items)
+        if (i + 1) % step == 0:
+            print(f"#   {i + 1}/{len(stream)} messages", file=sys.stderr, flush=True)
+    while any(w for ws in waiting for w in ws):  # the last messages between the workers
+        for c, group in enumerate(groups):
+            for j in range(len(group)):
+                items, waiting[c][j] = waiting[c][j], []
+                run(c, j, items)
+    one = sum(cpu[0])
+    for n, group, spent in zip(counts, groups, cpu, strict=True):
+        each = ", ".join(
+            f"{x / data_s:.3f}" + (f" ({x / one:.2f}x)" if n != counts[0] else "") for x in spent
+        )
+        print(f"  {n} engine(s): CPU s per data s {each}")
+        if n != counts[0]:
+            print(f"    busiest {max(spent) / one:.2f}x, total {sum(spent) / one:.2f}x one engine's")
+        for _, engine in group:
+            engine.close()
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--duration", type=float, default=300.0, help="data seconds (default 300)")
@@ -510,6 +576,11 @@ def main() -> None:
         "the workers take it); below the machine's limit every configuration runs unsaturated",
     )
     p.add_argument("--traffic", action="store_true", help="count every message by key kind (slower)")
+    p.add_argument(
+        "--in-process",
+        action="store_true",
+        help="the engines alone, side by side in this process: their division free of the machine's drift",
+    )
     p.add_argument("--cache", type=Path, help="keep the generated stream in this file")
     p.add_argument("--compare", action="store_true", help="list the radar pairs whose updates differ")
     p.add_argument("--logs", type=Path, help="write each worker's log into this folder")
@@ -519,12 +590,19 @@ def main() -> None:
     plots = sum(len(json.loads(pl)["plots"]["time_s"]) for k, pl in stream if k.endswith("/plots"))
     times = [json.loads(pl)["time_s"] for k, pl in stream if k.endswith("/plots")]
     data_s = max(times) - min(times)
+    how = (
+        "engines in this process"
+        if args.in_process
+        else f"workers {'without' if args.one_process else 'with'} their correlation process"
+    )
     print(
         f"# {args.scenario} scenario, {args.duration:g} s of data (seed {args.seed}): "
-        f"{len(stream)} messages, {plots} plots; workers {'without' if args.one_process else 'with'} "
-        f"their correlation process; {os.cpu_count()} cores"
+        f"{len(stream)} messages, {plots} plots; {how}; {os.cpu_count()} cores"
     )
     print(f"# command: {' '.join(sys.argv)}")
+    if args.in_process:
+        in_process(counts, stream, data_s, args)
+        return
     results: dict[int, list[Result]] = defaultdict(list)
     for rep in range(args.repeat):
         for n in counts:
