@@ -55,6 +55,7 @@ import time
 from collections import defaultdict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from statistics import median
 from typing import Any
 
 import httpx
@@ -637,11 +638,6 @@ def main() -> None:
         cpu_ratios(results, counts)
 
 
-def _median(xs: list[float]) -> float:
-    s = sorted(xs)
-    return (s[(len(s) - 1) // 2] + s[len(s) // 2]) / 2.0
-
-
 def cpu_ratios(results: dict[int, list[Result]], counts: list[int]) -> None:
     """The CPU ratios of every repeat side by side, and their medians: on a noisy machine one
     run's ratio can be off by a sixth (the first count's own CPU varies as much)."""
@@ -649,7 +645,7 @@ def cpu_ratios(results: dict[int, list[Result]], counts: list[int]) -> None:
     ones = [sum(r.cpu_workers) / r.data_s for r in results[base]]
     print(
         f"# {base} worker(s), CPU s per data s: {', '.join(f'{x:.3f}' for x in ones)} "
-        f"(median {_median(ones):.3f})"
+        f"(median {median(ones):.3f})"
     )
     for n in counts[1:]:
         pairs = list(zip(results[base], results[n], strict=True))
@@ -657,8 +653,8 @@ def cpu_ratios(results: dict[int, list[Result]], counts: list[int]) -> None:
         total = [sum(b.cpu_workers) / sum(a.cpu_workers) for a, b in pairs]
         print(
             f"# {n} workers against the {base}-worker run beside each: busiest "
-            f"{', '.join(f'{x:.2f}' for x in busiest)} (median {_median(busiest):.2f}); total "
-            f"{', '.join(f'{x:.2f}' for x in total)} (median {_median(total):.2f})"
+            f"{', '.join(f'{x:.2f}' for x in busiest)} (median {median(busiest):.2f}); total "
+            f"{', '.join(f'{x:.2f}' for x in total)} (median {median(total):.2f})"
         )
 
 

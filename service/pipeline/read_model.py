@@ -344,7 +344,7 @@ class Snapshot:
 
     def _mode_s_source(self, source_id: str) -> Any:
         """Where a source's Mode S addresses come from: ``_ADSB`` (its track ids), its table
-        (a track's ``mode_s``), or None (none known)."""
+        (a track's ``mode_s``), or None (none known, or a table that carries none)."""
         if source_id in self.adsb_sources:
             return _ADSB
         held = self.tracks.get(source_id)
@@ -360,11 +360,12 @@ class Snapshot:
 
     @staticmethod
     def _mode_s(source: Any, track_ids: np.ndarray) -> np.ndarray:
-        """The Mode S address of each of a source's tracks (None: none, or unknown track)."""
+        """The Mode S address of each of a source's tracks (``source``: ``_ADSB`` or a table;
+        None: none, or unknown track)."""
         if source is _ADSB:
             return track_ids.astype(object)
         out = np.full(track_ids.shape[0], None, dtype=object)
-        if source is not None and track_ids.shape[0]:
+        if track_ids.shape[0]:
             at = find(source.track_id, track_ids)
             out[at >= 0] = source.mode_s[at[at >= 0]]
         return out
