@@ -28,11 +28,21 @@ from service.transport.node import ServiceNode
 from service.transport.session import ZenohOptions, open_session
 from service.wire.outgoing import Outgoing
 
+_HANDED_OUT: set[int] = set()
+
 
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    """A loopback port free now and never handed out before in this process: the kernel may
+    give a just-released port again, and two settings of one test (a Zenoh endpoint and an
+    HTTP port) must never meet on one."""
+    for _ in range(1000):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = int(s.getsockname()[1])
+        if port not in _HANDED_OUT:
+            _HANDED_OUT.add(port)
+            return port
+    raise RuntimeError("no loopback port left that this process has not handed out")
 
 
 @contextlib.contextmanager

@@ -17,7 +17,6 @@ import json
 import os
 import re
 import shutil
-import socket
 import subprocess
 import time
 from pathlib import Path
@@ -28,6 +27,7 @@ import yaml
 import zenoh
 
 from service.settings import Settings
+from tests.support import free_port
 from tests.test_container import (
     LAB_COMMANDS,
     LAB_DOCKERFILE,
@@ -479,16 +479,10 @@ def test_mesh_manifest_routers_are_the_config_files() -> None:
     assert host.split(".")[:2] == ["router", namespaces["a"]], "site B connects to site A's router Service"
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def test_mesh_routes_between_sites_on_loopback() -> None:
     """The two site configurations, moved onto loopback ports: a put by a client of router A
     reaches a subscriber that is a client of router B."""
-    port_a, port_b = _free_port(), _free_port()
+    port_a, port_b = free_port(), free_port()
     conf_a, conf_b = _config_file("a"), _config_file("b")
     conf_a.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port_a}"]))
     conf_b.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port_b}"]))
