@@ -141,6 +141,25 @@ def test_workers_of_other_salts_are_refused() -> None:
     assert engine.rejected == {"schema": 1}  # the same salt: taken
 
 
+@pytest.mark.parametrize("kind", ["links", "registration"])
+def test_a_workers_own_pair_messages_heard_back_are_not_parsed_the_others_are(kind: str) -> None:
+    """Worker 1 hears its own pairs' links and registration rows back, as it hears its own track
+    states: it skips them unread (it made them); another worker's are read and checked, and a
+    broken one is rejected and counted."""
+    partition = Partition(1, 2)
+    engine = Engine(EngineConfig(partition=partition))
+    keys = Keys("fusion")
+    names = [f"R{i}" for i in range(8)]
+    pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1 :]]
+    own = next(p for p in pairs if partition.owns_pair(*p))
+    other = next(p for p in pairs if not partition.owns_pair(*p))
+    key_of = keys.links if kind == "links" else keys.registration
+    assert engine.ingest(key_of(*own), b"{not json") == [] and engine.rejected == {}
+    out = engine.ingest(key_of(*other), b"{not json")
+    assert engine.rejected == {"malformed_json": 1}
+    assert [o.key for o in out] == ["fusion/errors"]
+
+
 @pytest.mark.parametrize("spec", ["0/2", "3/2", "1", "a/b", "1/0"])
 def test_bad_partitions_are_refused(spec: str) -> None:
     with pytest.raises(ValueError, match="partition"):

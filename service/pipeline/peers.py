@@ -384,13 +384,11 @@ class Peers:
         return PeerInput()  # worker status: the transport's
 
     def _registration(self, ids: tuple[str, ...], payload: bytes) -> None:
-        if not self.partition.solves_biases:
-            return
+        if not self.partition.solves_biases or self.partition.owns_pair(ids[0], ids[1]):
+            return  # (our own pair's rows, heard back: not even parsed, as our own track states)
         rows: RegistrationRows = parse(RegistrationRows, payload, ids[0])
         if sorted((rows.source_a, rows.source_b)) != sorted(ids):
             raise RejectionError("schema", f"sources {rows.source_a}, {rows.source_b} != key {ids}", ids[0])
-        if self.partition.owns_pair(rows.source_a, rows.source_b):
-            return  # our own pair
         site_a = self._geometry(rows.source_a)
         site_b = None if rows.reference else self._geometry(rows.source_b)
         k = len(rows.p_a)
@@ -406,13 +404,12 @@ class Peers:
         self.correlation.mirror_rows((ids[0], ids[1]), site_a, site_b, data)
 
     def _links(self, ids: tuple[str, ...], payload: bytes) -> None:
-        if not (self.partition.solves_biases or self.cycles.enabled):
-            return
+        wanted = self.partition.solves_biases or self.cycles.enabled
+        if not wanted or self.partition.owns_pair(ids[0], ids[1]):
+            return  # (our own pair's links, heard back: not even parsed, as our own track states)
         got: PairLinks = parse(PairLinks, payload, ids[0])
         if sorted((got.source_a, got.source_b)) != sorted(ids):
             raise RejectionError("schema", f"sources {got.source_a}, {got.source_b} != key {ids}", ids[0])
-        if self.partition.owns_pair(got.source_a, got.source_b):
-            return  # our own pair
         links = Links(
             got.source_a,
             got.source_b,
