@@ -8,9 +8,12 @@ The classic sliding-window logic (Blackman & Popoli 1999, Section 3.5; Bar-Shalo
    the gate of the straight-line prediction ``z_j + (z_j - z_i) tau``,
    ``tau = (t_k - t_j) / (t_j - t_i)``, whose covariance is
    ``R_k + (1 + tau)^2 R_j + tau^2 R_i + (a dt^2 / 2)^2 I`` (acceleration allowance);
-3. conflicts (a plot in several triples) are resolved greedily by increasing ``d^2``, all in
+3. conflicts (a plot in several triples) are resolved greedily by increasing cost, all in
    parallel: a triple wins when it is the best triple of each of its plots; winners and the
-   triples they block are removed and the round repeats (a handful of rounds).
+   triples they block are removed and the round repeats (a handful of rounds).  The cost is
+   ``d^2 - support_weight * ln(support)`` (:func:`velocity_support`: how many triples nearby
+   share this one's velocity), so that in a formation each aircraft's own plots win over a
+   line across the formation that is just as straight (:class:`LogicParams`).
 Plots in the window are candidates only (not used by tracks), so every triple starts a
 tentative track whose three plots count as three hits of its M-of-N history.
 
@@ -24,6 +27,7 @@ first).
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from service.tracking import kalman
 from service.tracking.groups import Groups, IntArray
@@ -130,10 +134,31 @@ def logic_initiate(
     cost = np.concatenate(costs) if costs else np.empty(0)
     if trip.shape[0] == 0:
         return Groups.empty()
+    if params.support_weight > 0.0:
+        support = velocity_support(meas, trip, params.support_radius_m, params.support_sigma)
+        cost = cost - params.support_weight * np.log(support)
     chosen = resolve_conflicts(trip, cost, len(meas))
     trip = trip[chosen]
     g = trip.shape[0]
     return Groups(trip.ravel(), np.repeat(np.arange(g, dtype=np.intp), 3), g)
+
+
+def velocity_support(meas: Measurements, trip: IntArray, radius_m: float, k_sigma: float) -> np.ndarray:
+    """Per triple ``(a, b, c)`` of ``trip``: how many triples (itself included) have their first
+    plot within ``radius_m`` of its first plot and their two-point velocity
+    ``(z_c - z_a) / (t_c - t_a)`` within ``k_sigma`` velocity errors of its own, on each
+    horizontal axis (the error: the median over the triples of
+    ``sqrt(trace(R_a + R_c)) / (t_c - t_a)`` in the plane).  One k-d tree count in the four
+    scaled coordinates (Chebyshev distance 1), ``O(T log T)`` for ``T`` triples."""
+    t, z, R = meas.time_s, meas.enu_m, meas.covariance
+    a, c = trip[:, 0], trip[:, 2]
+    dt = t[c] - t[a]
+    velocity = (z[c, :2] - z[a, :2]) / dt[:, None]
+    sigma = np.sqrt(np.trace(R[a, :2, :2] + R[c, :2, :2], axis1=1, axis2=2)) / dt
+    scale = max(k_sigma * float(np.median(sigma)), 1e-9)
+    points = np.column_stack([z[a, :2] / radius_m, velocity / scale])
+    counts = cKDTree(points).query_ball_point(points, 1.0, p=np.inf, return_length=True)
+    return np.asarray(counts, dtype=float)
 
 
 def resolve_conflicts(members: IntArray, cost: np.ndarray, n_plots: int) -> IntArray:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+from dataclasses import replace
 
 import numpy as np
 
@@ -12,7 +13,7 @@ from service.tracking.cvfit import PlotStats, fit_sets, plot_stats, residual_d2
 from service.tracking.groups import Groups
 from service.tracking.hough import classic_hough, pg_hough
 from service.tracking.initiators import hough_velocity, local_clusters
-from service.tracking.logic import logic_initiate, resolve_conflicts
+from service.tracking.logic import logic_initiate, resolve_conflicts, velocity_support
 from service.tracking.measurement import Measurements
 from service.tracking.params import ClusterParams, HoughParams, LogicParams, TrackerParams
 from service.tracking.velocity_tracks import drop_redundant
@@ -112,6 +113,73 @@ def test_logic_two_targets_on_one_line_at_different_times() -> None:
         _meas3(np.concatenate([a, b]), np.concatenate([t, t + 12.0]), 30.0), LogicParams(), 4.0
     )
     assert sorted(sorted(x.tolist()) for x in g.to_lists()) == [[0, 1, 2], [3, 4, 5]]
+
+
+def _lattice_triples(seed: int, support_weight: float) -> tuple[int, int]:
+    """Three scans of 20 aircraft on a jittered 1.5 km lattice flying east at 250 m/s with 6 s
+    scans (a scan's travel is the spacing: a line across the lattice is as straight as one
+    aircraft's); the logic initiator's triples, and how many hold one aircraft's plots."""
+    rng = np.random.default_rng(seed)
+    nx, ny, spacing, speed, scan, sig = 5, 4, 1500.0, 250.0, 6.0, 150.0
+    gx, gy = np.meshgrid(np.arange(nx) * spacing, np.arange(ny) * spacing)
+    n = nx * ny
+    start = np.stack([gx.ravel(), gy.ravel()], axis=1) + rng.uniform(-300.0, 300.0, (n, 2))
+    t = np.concatenate([k * scan + rng.uniform(0.0, 0.2, n) for k in range(3)])
+    owner = np.tile(np.arange(n), 3)
+    xy = start[owner] + np.stack([speed * t, 0.0 * t], axis=1) + rng.normal(0.0, sig, (3 * n, 2))
+    xyz = np.column_stack([xy, 9000.0 + rng.normal(0.0, sig, 3 * n)])
+    order = np.argsort(t)
+    meas = _meas3(xyz[order], t[order], sig)
+    groups = logic_initiate(meas, replace(LogicParams(), support_weight=support_weight), scan).to_lists()
+    own = sum(len(set(owner[order][g].tolist())) == 1 for g in groups)
+    return own, len(groups)
+
+
+def test_logic_in_a_formation_starts_each_aircraft_on_its_own_plots() -> None:
+    """Ranked by their velocity's support, the triples follow the aircraft; by straightness
+    alone most run across the formation (10 seeds)."""
+    on = [_lattice_triples(seed, LogicParams().support_weight) for seed in range(10)]
+    off = [_lattice_triples(seed, 0.0) for seed in range(10)]
+    own_on, all_on = map(sum, zip(*on, strict=True))
+    own_off, all_off = map(sum, zip(*off, strict=True))
+    assert own_on >= 0.9 * all_on and all_on >= 0.9 * 200  # nearly every aircraft, on its own plots
+    assert own_off < 0.6 * all_off  # the same scenes without the rule
+
+
+def _velocity_support_reference(
+    meas: Measurements, trip: np.ndarray, radius_m: float, k_sigma: float
+) -> list[int]:
+    t, z, R = meas.time_s, meas.enu_m, meas.covariance
+    vel, sig, first = [], [], []
+    for a, _, c in trip.tolist():
+        dt = t[c] - t[a]
+        vel.append((z[c, :2] - z[a, :2]) / dt)
+        sig.append(np.sqrt(np.trace(R[a, :2, :2] + R[c, :2, :2])) / dt)
+        first.append(z[a, :2])
+    scale = k_sigma * float(np.median(sig))
+    out = []
+    for i in range(len(vel)):
+        out.append(
+            sum(
+                bool(np.all(np.abs(first[j] - first[i]) <= radius_m))
+                and bool(np.all(np.abs(vel[j] - vel[i]) <= scale))
+                for j in range(len(vel))
+            )
+        )
+    return out
+
+
+def test_velocity_support_matches_plain_reference() -> None:
+    rng = np.random.default_rng(12)
+    for _ in range(5):
+        n = 60
+        t = rng.uniform(0.0, 20.0, n)
+        z = np.column_stack([rng.uniform(-3e4, 3e4, (n, 2)), rng.uniform(0.0, 1e4, n)])
+        meas = _meas3(z, t, 300.0)
+        trip = np.array([sorted(rng.choice(n, 3, replace=False), key=lambda k: t[k]) for _ in range(80)])
+        trip = trip[t[trip[:, 2]] > t[trip[:, 0]]]
+        got = velocity_support(meas, trip, 15_000.0, 10.0)  # supports of 1 to 4
+        assert got.tolist() == _velocity_support_reference(meas, trip, 15_000.0, 10.0)
 
 
 def test_velocity_cluster_matches_reference() -> None:

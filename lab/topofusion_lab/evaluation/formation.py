@@ -8,7 +8,8 @@ exactly as :mod:`topofusion_lab.evaluation.formation_pipeline` does (``topofusio
 --offline``: the bytes ``topofusion simulate`` publishes, the service's code path, no Zenoh),
 twice per seed on the same messages: with every formation rule off (*before*: the tracker's
 duplicate rule, ``FormationParams.off()``; its two-model filter, ``FilterParams.imm`` off, so
-one constant-velocity model; correlation's caution with low-quality tracks,
+one constant-velocity model; its initiator's ranking by velocity support,
+``LogicParams.support_weight = 0``; correlation's caution with low-quality tracks,
 ``correlation.prompt.min_quality = 0``; its swap rule, ``correlation.swap.enabled = False``)
 and with the default configuration (*now*).  Nothing else of the service is changed or tuned.
 
@@ -185,8 +186,8 @@ def scenario(point: Point, duration_s: float | None = None, targets: int | None 
 
 def engine_config(variant: str) -> EngineConfig:
     """The engine's configuration of a variant (:data:`VARIANTS`): *before* has every formation
-    rule off (the tracker's duplicate rule and two-model filter, correlation's caution with
-    low-quality tracks and its swap rule), *now* is the default."""
+    rule off (the tracker's duplicate rule, two-model filter and initiator's velocity support,
+    correlation's caution with low-quality tracks and its swap rule), *now* is the default."""
     cfg = EngineConfig()
     if variant == "before":
         corr = cfg.correlation
@@ -196,6 +197,7 @@ def engine_config(variant: str) -> EngineConfig:
                 cfg.tracking,
                 formation=FormationParams.off(),
                 filter=replace(cfg.tracking.filter, imm=False),
+                logic=replace(cfg.tracking.logic, support_weight=0.0),
             ),
             correlation=replace(
                 corr,
@@ -511,8 +513,9 @@ def report(
         "",
         f"The catalog's `formation` scenario (3 radars, {first['targets']} aircraft, "
         f"{first['duration_s']:.0f} s) through the engine, per point {n} seed(s), each run twice on "
-        "the same messages: *before*, every formation rule off (the tracker's duplicate rule and "
-        "two-model filter, correlation's caution with low-quality tracks and its swap rule), and "
+        "the same messages: *before*, every formation rule off (the tracker's duplicate rule, "
+        "two-model filter and initiator's velocity support, correlation's caution with "
+        "low-quality tracks and its swap rule), and "
         "*now*, the default "
         "configuration.  Spacing in cross-range "
         f"errors (1x = {unit:.0f} m: radar C's 0.20 deg at 115 km); Pd the catalog's (0.95/0.92/0.75) "
