@@ -27,6 +27,7 @@ first).
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from service.tracking import kalman
@@ -135,7 +136,9 @@ def logic_initiate(
     if trip.shape[0] == 0:
         return Groups.empty()
     if params.support_weight > 0.0:
-        support = velocity_support(meas, trip, params.support_radius_m, params.support_sigma)
+        support = velocity_support(
+            meas, trip, params.support_radius_m, params.support_sigma, params.support_max_pairs
+        )
         cost = cost - params.support_weight * np.log(support)
     chosen = resolve_conflicts(trip, cost, len(meas))
     trip = trip[chosen]
@@ -143,13 +146,26 @@ def logic_initiate(
     return Groups(trip.ravel(), np.repeat(np.arange(g, dtype=np.intp), 3), g)
 
 
-def velocity_support(meas: Measurements, trip: IntArray, radius_m: float, k_sigma: float) -> np.ndarray:
+def velocity_support(
+    meas: Measurements,
+    trip: IntArray,
+    radius_m: float,
+    k_sigma: float,
+    max_pairs: int = LogicParams.support_max_pairs,
+) -> np.ndarray:
     """Per triple ``(a, b, c)`` of ``trip``: how many triples (itself included) have their first
     plot within ``radius_m`` of its first plot and their two-point velocity
     ``(z_c - z_a) / (t_c - t_a)`` within ``k_sigma`` velocity errors of its own, on each
     horizontal axis (the error: the median over the triples of
-    ``sqrt(trace(R_a + R_c)) / (t_c - t_a)`` in the plane).  One k-d tree count in the four
-    scaled coordinates (Chebyshev distance 1), ``O(T log T)`` for ``T`` triples."""
+    ``sqrt(trace(R_a + R_c)) / (t_c - t_a)`` in the plane): one k-d tree count in the four
+    scaled coordinates (Chebyshev distance 1).
+
+    Its work is the number of (triple, neighbour) pairs, which grows with the square of a dense
+    window's triples (a formation's first scans, a flood of plots).  The triples are first
+    counted in the cells of side 2 (a ball's width) of the scaled coordinates; when the sum of
+    the squared cell counts, the pairs a ball count would visit about, exceeds ``max_pairs``,
+    each triple's support is the count of its own cell instead: ``O(T log T)`` for ``T``
+    triples either way."""
     t, z, R = meas.time_s, meas.enu_m, meas.covariance
     a, c = trip[:, 0], trip[:, 2]
     dt = t[c] - t[a]
@@ -157,8 +173,19 @@ def velocity_support(meas: Measurements, trip: IntArray, radius_m: float, k_sigm
     sigma = np.sqrt(np.trace(R[a, :2, :2] + R[c, :2, :2], axis1=1, axis2=2)) / dt
     scale = max(k_sigma * float(np.median(sigma)), 1e-9)
     points = np.column_stack([z[a, :2] / radius_m, velocity / scale])
-    counts = cKDTree(points).query_ball_point(points, 1.0, p=np.inf, return_length=True)
-    return np.asarray(counts, dtype=float)
+    in_cell = cell_counts(points)
+    if float(np.sum(in_cell.astype(float))) <= max_pairs:  # (each triple's own count: sum n_c^2)
+        counts = cKDTree(points).query_ball_point(points, 1.0, p=np.inf, return_length=True)
+        return np.asarray(counts, dtype=float)
+    return in_cell.astype(float)
+
+
+def cell_counts(points: np.ndarray) -> NDArray[np.int64]:
+    """Per row of ``points``: how many rows share its cell of side 2 (``floor(x / 2)`` on every
+    axis)."""
+    cells = np.floor(points / 2.0).astype(np.int64)
+    _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    return np.asarray(counts[inverse.reshape(-1)], dtype=np.int64)
 
 
 def resolve_conflicts(members: IntArray, cost: np.ndarray, n_plots: int) -> IntArray:

@@ -153,6 +153,15 @@ class LogicParams:
     first and third plots' horizontal position sigma (root of the trace of their summed
     covariances) over their time apart."""
 
+    support_max_pairs: int = 10_000_000
+    """Work bound of the support count (:func:`service.tracking.logic.velocity_support`): the
+    (triple, neighbour) pairs it may visit, estimated as the sum of the squared counts of the
+    triples' cells; beyond it, a triple's support is its cell's count.  Measured, about 0.04 s
+    per million pairs (5 000 triples all within one another's reach, 4.8 million pairs: 0.39 s;
+    20 000: 4.6 s; the formation study's densest first scans, 12 000 triples and 12.9 million
+    estimated: 0.55 s), so one count costs at most about 0.4 s.  The national network's counts
+    took 0.09 s in all over 120 s of data; a flood of 100 000 plots a scan counts cells."""
+
 
 @dataclass(frozen=True)
 class HoughParams:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-from dataclasses import replace
 
 import numpy as np
 
@@ -115,7 +114,7 @@ def test_logic_two_targets_on_one_line_at_different_times() -> None:
     assert sorted(sorted(x.tolist()) for x in g.to_lists()) == [[0, 1, 2], [3, 4, 5]]
 
 
-def _lattice_triples(seed: int, support_weight: float) -> tuple[int, int]:
+def _lattice_triples(seed: int, params: LogicParams) -> tuple[int, int]:
     """Three scans of 20 aircraft on a jittered 1.5 km lattice flying east at 250 m/s with 6 s
     scans (a scan's travel is the spacing: a line across the lattice is as straight as one
     aircraft's); the logic initiator's triples, and how many hold one aircraft's plots."""
@@ -130,7 +129,7 @@ def _lattice_triples(seed: int, support_weight: float) -> tuple[int, int]:
     xyz = np.column_stack([xy, 9000.0 + rng.normal(0.0, sig, 3 * n)])
     order = np.argsort(t)
     meas = _meas3(xyz[order], t[order], sig)
-    groups = logic_initiate(meas, replace(LogicParams(), support_weight=support_weight), scan).to_lists()
+    groups = logic_initiate(meas, params, scan).to_lists()
     own = sum(len(set(owner[order][g].tolist())) == 1 for g in groups)
     return own, len(groups)
 
@@ -138,11 +137,14 @@ def _lattice_triples(seed: int, support_weight: float) -> tuple[int, int]:
 def test_logic_in_a_formation_starts_each_aircraft_on_its_own_plots() -> None:
     """Ranked by their velocity's support, the triples follow the aircraft; by straightness
     alone most run across the formation (10 seeds)."""
-    on = [_lattice_triples(seed, LogicParams().support_weight) for seed in range(10)]
-    off = [_lattice_triples(seed, 0.0) for seed in range(10)]
+    on = [_lattice_triples(seed, LogicParams()) for seed in range(10)]
+    cells = [_lattice_triples(seed, LogicParams(support_max_pairs=0)) for seed in range(10)]
+    off = [_lattice_triples(seed, LogicParams(support_weight=0.0)) for seed in range(10)]
     own_on, all_on = map(sum, zip(*on, strict=True))
+    own_cells, all_cells = map(sum, zip(*cells, strict=True))
     own_off, all_off = map(sum, zip(*off, strict=True))
     assert own_on >= 0.9 * all_on and all_on >= 0.9 * 200  # nearly every aircraft, on its own plots
+    assert own_cells >= 0.8 * all_cells and all_cells >= 0.9 * 200  # beyond the work bound: cells
     assert own_off < 0.6 * all_off  # the same scenes without the rule
 
 
@@ -180,6 +182,31 @@ def test_velocity_support_matches_plain_reference() -> None:
         trip = trip[t[trip[:, 2]] > t[trip[:, 0]]]
         got = velocity_support(meas, trip, 15_000.0, 10.0)  # supports of 1 to 4
         assert got.tolist() == _velocity_support_reference(meas, trip, 15_000.0, 10.0)
+
+
+def test_velocity_support_beyond_its_work_bound_is_the_cell_count() -> None:
+    """Past ``support_max_pairs`` a triple's support is the number of triples in its cell (side
+    twice the reach in the scaled coordinates), as a plain count gives it."""
+    rng = np.random.default_rng(13)
+    n = 60
+    t = rng.uniform(0.0, 20.0, n)
+    z = np.column_stack([rng.uniform(-3e4, 3e4, (n, 2)), rng.uniform(0.0, 1e4, n)])
+    meas = _meas3(z, t, 300.0)
+    trip = np.array([sorted(rng.choice(n, 3, replace=False), key=lambda k: t[k]) for _ in range(80)])
+    trip = trip[t[trip[:, 2]] > t[trip[:, 0]]]
+    exact = velocity_support(meas, trip, 15_000.0, 10.0)
+    cells = velocity_support(meas, trip, 15_000.0, 10.0, max_pairs=0)
+    sig = [
+        np.sqrt(np.trace(meas.covariance[a, :2, :2] + meas.covariance[c, :2, :2])) / (t[c] - t[a])
+        for a, _, c in trip
+    ]
+    scale = 10.0 * float(np.median(sig))
+    keys = []
+    for a, _, c in trip.tolist():
+        v = (z[c, :2] - z[a, :2]) / (t[c] - t[a])
+        keys.append(tuple(int(np.floor(x / 2.0)) for x in [*(z[a, :2] / 15_000.0), *(v / scale)]))
+    assert cells.tolist() == [keys.count(k) for k in keys]
+    assert not np.array_equal(cells, exact)  # (the two counts differ here: the bound took effect)
 
 
 def test_velocity_cluster_matches_reference() -> None:
