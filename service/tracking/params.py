@@ -138,9 +138,10 @@ class LogicParams:
     plot, then a neighbour's, then the next one's: as straight as one aircraft's when the
     spacing is about a scan's travel) has the common velocity plus a lattice step per scan,
     which fewer triples share.  An aircraft alone has support 1 (ln 1 = 0): its ranking is as
-    before.  Measured in the formation study (3 seeds, 8 points): ID switches per aircraft-hour
-    fell at every point (2x: 13.7 to 7.3), correct pairs rose at 7 of 8 points; 4 held much
-    the same and 16 gave no more.  0 turns the rule off."""
+    before.  Measured in the formation study (3 seeds, 8 points, docs/results.md): ID switches
+    per aircraft-hour fell at 7 of 8 points (2x: 13.7 to 7.6; merging: 8.6 to 8.8), correct
+    pairs rose at 6 (4x: 77 to 87 %); a weight of 4 gave less, 16 no more.  0 turns the rule
+    off."""
 
     support_radius_m: float = 10_000.0
     """Triples support each other when their first plots lie within this distance (m) on each
