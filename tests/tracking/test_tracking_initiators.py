@@ -171,15 +171,19 @@ def _velocity_support_reference(
     return out
 
 
+def _random_triples(rng: np.random.Generator) -> tuple[Measurements, np.ndarray]:
+    """60 plots over 60 km and 20 s, and up to 80 time-ordered triples of them."""
+    n = 60
+    t = rng.uniform(0.0, 20.0, n)
+    z = np.column_stack([rng.uniform(-3e4, 3e4, (n, 2)), rng.uniform(0.0, 1e4, n)])
+    trip = np.array([sorted(rng.choice(n, 3, replace=False), key=lambda k: t[k]) for _ in range(80)])
+    return _meas3(z, t, 300.0), trip[t[trip[:, 2]] > t[trip[:, 0]]]
+
+
 def test_velocity_support_matches_plain_reference() -> None:
     rng = np.random.default_rng(12)
     for _ in range(5):
-        n = 60
-        t = rng.uniform(0.0, 20.0, n)
-        z = np.column_stack([rng.uniform(-3e4, 3e4, (n, 2)), rng.uniform(0.0, 1e4, n)])
-        meas = _meas3(z, t, 300.0)
-        trip = np.array([sorted(rng.choice(n, 3, replace=False), key=lambda k: t[k]) for _ in range(80)])
-        trip = trip[t[trip[:, 2]] > t[trip[:, 0]]]
+        meas, trip = _random_triples(rng)
         got = velocity_support(meas, trip, 15_000.0, 10.0)  # supports of 1 to 4
         assert got.tolist() == _velocity_support_reference(meas, trip, 15_000.0, 10.0)
 
@@ -187,13 +191,8 @@ def test_velocity_support_matches_plain_reference() -> None:
 def test_velocity_support_beyond_its_work_bound_is_the_cell_count() -> None:
     """Past ``support_max_pairs`` a triple's support is the number of triples in its cell (side
     twice the reach in the scaled coordinates), as a plain count gives it."""
-    rng = np.random.default_rng(13)
-    n = 60
-    t = rng.uniform(0.0, 20.0, n)
-    z = np.column_stack([rng.uniform(-3e4, 3e4, (n, 2)), rng.uniform(0.0, 1e4, n)])
-    meas = _meas3(z, t, 300.0)
-    trip = np.array([sorted(rng.choice(n, 3, replace=False), key=lambda k: t[k]) for _ in range(80)])
-    trip = trip[t[trip[:, 2]] > t[trip[:, 0]]]
+    meas, trip = _random_triples(np.random.default_rng(13))
+    t, z = meas.time_s, meas.enu_m
     exact = velocity_support(meas, trip, 15_000.0, 10.0)
     cells = velocity_support(meas, trip, 15_000.0, 10.0, max_pairs=0)
     sig = [
