@@ -424,6 +424,11 @@ class PairCorrelator:
             sel.neighbors,
             _basis_codes(sel.extras["basis"]) if "basis" in sel.extras else None,
             confirm_now=now,
+            quality=self.book.pair_quality(
+                len(sel),
+                None if a.quality is None else a.quality[sel.index_a],
+                None if b.quality is None else b.quality[sel.index_b],
+            ),
         )
         if len(jumped_a):
             self.book.release(jumped_a, jumped_b, time_s)  # (unless this update chose them again)
@@ -663,6 +668,11 @@ class PairCorrelator:
             take.neighbors,
             _basis_codes(self._basis(take)),
             probability,
+            self.book.pair_quality(
+                len(take),
+                None if a.quality is None else a.quality[take.index_a],
+                None if b.quality is None else b.quality[take.index_b],
+            ),
         )
 
     def _basis(self, dec: Decisions) -> np.ndarray:

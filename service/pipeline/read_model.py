@@ -79,7 +79,7 @@ class PairSetView:
             "track_a": ta[order],
             "track_b": tb[order],
             "confirmed": book.confirmed[order],
-            "score": book.score[order],
+            "score": book.published_score[order],
             "neighbors": book.neighbors[order],
             "hits": book.hits[order],
             "basis": book.basis[order],

@@ -86,3 +86,40 @@ def test_set_membership_forms_equal_numpy(x: list[str], y: list[str]) -> None:
     assert isin_few(xs, ys).tolist() == want.tolist()
     assert isin_sorted(xs, ys).tolist() == want.tolist()
     assert isin_sorted(ys, xs).tolist() == np.isin(ys, xs).tolist()
+
+
+def test_published_score_counts_the_tracks_quality() -> None:
+    """A pair is right only if both its tracks follow their aircraft: the published score is
+    the correlation's score times the geometric mean of the tracks' qualities at the pair's
+    latest look (not known: 1), the book's own score (read by the cycles and the system
+    tracks) is not."""
+    book = PairBook(PairBookParams(window=4, confirm_hits=2))
+    pairs = [("a1", "b1"), ("a2", "b2"), ("a3", "b3")]
+    present = (tuple(p[0] for p in pairs), tuple(p[1] for p in pairs))
+    for t, qa in ((1.0, [1.0, 0.2, np.nan]), (2.0, [1.0, 0.64, np.nan])):
+        ca, cb = (np.array([p[k] for p in pairs], dtype=str) for k in (0, 1))
+        quality = book.pair_quality(3, np.array(qa), np.array([1.0, 1.0, 0.81]))
+        book.update(
+            t, *(np.array(p) for p in present), ca, cb, np.ones(3), np.ones(3), np.ones(3),
+            np.full(3, 4, dtype=np.int64), quality=quality,
+        )  # fmt: skip
+    score = {(s.track_a, s.track_b): s.score for s in book.states()}
+    own = dict(zip(zip(book.track_a, book.track_b, strict=True), book.score, strict=True))
+    assert score[("a1", "b1")] == own[("a1", "b1")] > 0
+    assert np.isclose(score[("a2", "b2")], own[("a2", "b2")] * 0.8)  # the latest look's: sqrt(0.64)
+    assert np.isclose(score[("a3", "b3")], own[("a3", "b3")] * 0.9)  # NaN counts as 1
+    plain = PairBook(PairBookParams(quality_exponent=0.0))
+    assert np.array_equal(plain.pair_quality(2, np.array([0.1, np.nan]), None), np.ones(2))
+
+
+def test_a_pair_confirmed_at_its_first_look_publishes_its_tracks_quality() -> None:
+    book = PairBook()
+    one = np.ones(1)
+    quality = book.pair_quality(1, np.array([0.25]), np.array([1.0]))
+    book.admit(
+        1.0, None, None, np.array(["a1"]), np.array(["b1"]), one, one, one,
+        np.array([4]), np.array([1], dtype=np.int8), np.array([0.99]), quality,
+    )  # fmt: skip
+    (state,) = book.states()
+    assert state.status == "confirmed" and np.isclose(state.score, 0.99 * 0.5)
+    assert np.isclose(book.score[0], 0.99)
