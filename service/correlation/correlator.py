@@ -242,6 +242,16 @@ def _pairs_within(
     return rows_a[ia].astype(np.intp), rows_b[ib].astype(np.intp)
 
 
+def _qualities(
+    dec: Decisions, a: PredictedTracks, b: PredictedTracks
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Each decision's two tracks' qualities (``TrackTable.quality``; None: the side gives none)."""
+    return (
+        None if a.quality is None else a.quality[dec.index_a],
+        None if b.quality is None else b.quality[dec.index_b],
+    )
+
+
 def _other_rows(n: int, rows: np.ndarray) -> np.ndarray:
     """The rows ``0..n-1`` not in ``rows``, ascending."""
     free = np.ones(n, dtype=bool)
@@ -424,11 +434,7 @@ class PairCorrelator:
             sel.neighbors,
             _basis_codes(sel.extras["basis"]) if "basis" in sel.extras else None,
             confirm_now=now,
-            quality=self.book.pair_quality(
-                len(sel),
-                None if a.quality is None else a.quality[sel.index_a],
-                None if b.quality is None else b.quality[sel.index_b],
-            ),
+            quality=self.book.pair_quality(len(sel), *_qualities(sel, a, b)),
         )
         if len(jumped_a):
             self.book.release(jumped_a, jumped_b, time_s)  # (unless this update chose them again)
@@ -538,11 +544,7 @@ class PairCorrelator:
         m = self.params.prompt.min_quality
         if m <= 0.0 or (a.quality is None and b.quality is None):
             return np.ones(len(dec), dtype=bool)
-        return quality_clear(
-            None if a.quality is None else a.quality[dec.index_a],
-            None if b.quality is None else b.quality[dec.index_b],
-            m,
-        )
+        return quality_clear(*_qualities(dec, a, b), m)
 
     def _clear(
         self,
@@ -668,11 +670,7 @@ class PairCorrelator:
             take.neighbors,
             _basis_codes(self._basis(take)),
             probability,
-            self.book.pair_quality(
-                len(take),
-                None if a.quality is None else a.quality[take.index_a],
-                None if b.quality is None else b.quality[take.index_b],
-            ),
+            self.book.pair_quality(len(take), *_qualities(take, a, b)),
         )
 
     def _basis(self, dec: Decisions) -> np.ndarray:
