@@ -46,6 +46,24 @@ def test_same_tracks_pairs_and_biases_as_in_process() -> None:
     assert monitor.report().dangling.references == 0 and monitor.outputs > 100
 
 
+def test_a_site_move_gives_the_same_system_tracks_as_in_process() -> None:
+    """The system tracks are drawn in the engine's process from the tables it sent the child:
+    after a radar's move (a new site, the same tables: its next batches come 20 s later) they
+    are those of the in-process stage."""
+    stream = scenario_messages("three-radar", duration_s=60.0, targets=30)
+    site_c = json.loads(next(p for k, p in stream if k == "fusion/radar/C/site"))
+    moved = {**site_c, "latitude_deg": site_c["latitude_deg"] + 0.01}  # 1.1 km
+    half = len(stream) // 2
+    rest = stream[half:]
+    move_s = json.loads(rest[0][1])["time_s"]
+    rest = [(k, p) for k, p in rest if k != "fusion/radar/C/plots" or json.loads(p)["time_s"] > move_s + 20]
+    stream = [*stream[:half], ("fusion/radar/C/site", json.dumps(moved).encode()), *rest]
+    local, out_local = run(stream, process=False)
+    remote, out_remote = run(stream, process=True)
+    assert remote["system"] == local["system"] and local["system"]["system_tracks"]
+    assert [(o.key, o.payload) for o in out_remote] == [(o.key, o.payload) for o in out_local]
+
+
 def test_a_failing_update_is_reported_and_the_process_goes_on() -> None:
     """A message the stage cannot take (here: a site move of an unknown kind of object) costs
     that message only; the next batches are correlated as before."""
@@ -70,7 +88,9 @@ def test_a_failing_update_is_reported_and_the_process_goes_on() -> None:
 
 def test_a_killed_correlation_process_is_restarted_and_reported() -> None:
     """The child dies (killed from outside): the engine does not wait for it, says so once as an
-    ``internal`` rejection, and correlates again with a fresh process."""
+    ``internal`` rejection, and correlates again with a fresh process.  The system tracks are
+    drawn in the engine's process, so their numbers go on: a number of before still shown
+    follows the aircraft it followed."""
     stream = scenario_messages("two-radar", duration_s=60.0)
     engine = Engine(EngineConfig(), correlation_process=True)
     try:
@@ -80,10 +100,14 @@ def test_a_killed_correlation_process_is_restarted_and_reported() -> None:
         remote = engine.correlation
         assert isinstance(remote, ChildProcessRunner)
 
-        def system_ids() -> set[str]:
-            return {t["system_track_id"] for t in engine.snapshot().system_tracks("all")["system_tracks"]}
+        def numbers() -> dict[tuple[str, str], str]:
+            """The system track number of each member radar track."""
+            tracks = engine.snapshot().system_tracks("all")["system_tracks"]
+            return {
+                (m["radar_id"], m["track_id"]): t["system_track_id"] for t in tracks for m in t["members"]
+            }
 
-        before = system_ids()
+        before = numbers()
         remote._process.kill()
         remote._process.join(10)
         out = []
@@ -93,14 +117,20 @@ def test_a_killed_correlation_process_is_restarted_and_reported() -> None:
         errors = [json.loads(o.payload) for o in out if o.key == "fusion/errors"]
         assert remote.restarts == 1
         assert [e["reason"] for e in errors] == ["internal"] and "died" in errors[0]["detail"]
-        # the fresh process numbers its system tracks on: no number of before comes again
-        after = system_ids()
-        assert before and after and not before & after
-        assert (
-            engine.snapshot().status_core()["pairs_tentative"]
-            + engine.snapshot().status_core()["pairs_confirmed"]
-            > 0
-        )
+        after = numbers()
+        # a number of before that is still shown holds a member it held before (it was not
+        # given out again to another aircraft), and most of before's numbers are still shown
+        members_of: dict[str, dict[str, set[tuple[str, str]]]] = {"before": {}, "after": {}}
+        for when, got in (("before", before), ("after", after)):
+            for member, number in got.items():
+                members_of[when].setdefault(number, set()).add(member)
+        shown = members_of["before"].keys() & members_of["after"].keys()
+        assert len(shown) >= len(members_of["before"]) // 2
+        assert all(members_of["before"][n] & members_of["after"][n] for n in shown)
+        # numbers stay unique: no two system tracks share one
+        tracks = engine.snapshot().system_tracks("all")["system_tracks"]
+        assert len({t["system_track_id"] for t in tracks}) == len(tracks)
+        assert engine.snapshot().status_core()["pairs_confirmed"] > 0
     finally:
         engine.close()
 

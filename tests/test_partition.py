@@ -430,7 +430,7 @@ def _drawn(engine: Engine) -> list[SystemTrackView]:
     """Every system-track picture ``engine`` draws from now on (its system tracker watched:
     a partitioned worker 1 may publish only the newest of several drawn at once)."""
     drawn: list[SystemTrackView] = []
-    tracker = engine.correlation.stage.system.tracker  # type: ignore[attr-defined]
+    tracker = engine.correlation.drawer.tracker  # type: ignore[attr-defined]
     update = tracker.update
 
     def recorded(members: Any, la: Any, lb: Any, score: Any, time_s: float) -> Any:

@@ -17,6 +17,7 @@ next updates.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing as mp
 import queue
@@ -34,11 +35,12 @@ from service.correlation import CorrelationParams, PairCorrelator
 from service.correlation.registration import RegistrationRowsData
 from service.geo import Site
 from service.pipeline.correlation_runner import Answer, Answers, Key, answer
-from service.pipeline.correlation_stage import CadenceParams, CorrelationStage, timings_dict
+from service.pipeline.correlation_stage import CadenceParams, CorrelationStage, change_radars, timings_dict
 from service.pipeline.partition import Partition
 from service.pipeline.shared_links import SharedLinks
+from service.pipeline.system_stage import Drawing
 from service.reference import ReferenceParams
-from service.tracking.base import TrackTable, first_number
+from service.tracking.base import TrackTable
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +69,10 @@ def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
         # timed): two percentiles over the recent updates, not taken again for every message
         if stage.updates != timed or timings is None:
             timings, timed = stage.timings(), stage.updates
-        answers.send(replace(got, timings=timings))
+        # A picture taken by this call is of the tables the parent sent: it has them (and fills
+        # them in, :meth:`ChildProcessRunner._answered_radars`), they are not sent back.
+        drawings = [replace(d, radars=None) if d.taken_now else d for d in got.drawings]
+        answers.send(replace(got, timings=timings, drawings=drawings))
     answers.close()
 
 
@@ -83,17 +88,19 @@ class ChildProcessRunner(Answers):
         partition: Partition | None = None,
         max_in_flight: int = 64,
     ) -> None:
-        super().__init__()
+        super().__init__((correlation or CorrelationParams()).prediction)
         self._args = (method, cadence, reference, correlation, partition)
         self.max_in_flight = max_in_flight
         #: The child's latest ``timings()`` (its update time histogram with them).
         self._timings: dict[str, Any] = timings_dict()
         #: Data times of the radar messages sent and not answered yet, oldest first.
         self._unanswered: deque[float | None] = deque()
+        #: The radars' sites and tables as the child holds them after the last answer taken
+        #: (its stage's ``_radars``), and each unanswered message's change of them: a picture the
+        #: child draws at once is of these, so its tables need not come back down the pipe.
+        self._radars: dict[str, tuple[Site, TrackTable]] = {}
+        self._radar_changes: deque[tuple[str, Any] | None] = deque()
         self.restarts = 0
-        #: The start's track-id epoch (:meth:`restore_state`): a child started afresh numbers its
-        #: system tracks on from the last one published, never again from the epoch's first.
-        self._epoch = 0
         #: The last answer applied (:meth:`_call` reads its result).
         self._last: Answer | None = None
         #: The latest ``export_state`` the child answered (:meth:`request_state`).
@@ -168,6 +175,7 @@ class ChildProcessRunner(Answers):
                 self._lost("stopped answering")
         self._outbox.put((op, args))
         self._unanswered.append(float(args[3]) if op == "radar" else None)
+        self._radar_changes.append((op, args[:3]) if op in ("radar", "forget", "moved") else None)
         self._pending += 1
         self._apply(block=False)
 
@@ -192,6 +200,10 @@ class ChildProcessRunner(Answers):
                 self._exported = got.result
             if self._unanswered:
                 self._unanswered.popleft()
+            if self._radar_changes:
+                self._apply_change(self._radar_changes.popleft())
+            if got.drawings:
+                got = replace(got, drawings=[self._answered_radars(d) for d in got.drawings])
             if got.timings is not None:
                 self._timings = got.timings
             self._take_answer(got)
@@ -222,15 +234,23 @@ class ChildProcessRunner(Answers):
         for t in self._unanswered:
             self._answers.append(Answer("radar" if t is not None else "lost", [], None, None))
         self._unanswered.clear()
+        self._radar_changes.clear()
+        self._radars = {}  # (a child started afresh holds no table)
         self._process.kill()
         self._outbox.put(None)
-        self._start()
-        self._send("continue_numbers", self._next_system_number())
+        self._start()  # (the system tracks are drawn here: their numbers go on)
 
-    def _next_system_number(self) -> int:
-        view = self.system_view
-        published = int(view.number.max()) + 1 if view is not None and len(view.number) else 0
-        return max(first_number(self._epoch), published)
+    def _apply_change(self, change: tuple[str, Any] | None) -> None:
+        """An answered message's change of the radars' tables, as the child's stage made it."""
+        if change is None:
+            return
+        # (a call the child's stage failed failed there the same way, before any change)
+        with contextlib.suppress(Exception):
+            change_radars(self._radars, *change)
+
+    def _answered_radars(self, drawing: Drawing) -> Drawing:
+        """``drawing`` with the radars' tables filled in where the child left them out."""
+        return drawing if drawing.radars is not None else replace(drawing, radars=dict(self._radars))
 
     def correlated_through(self, released_s: float) -> float:
         """Data time up to which every update has been answered, given that everything up to
@@ -301,8 +321,8 @@ class ChildProcessRunner(Answers):
     def restore_state(self, state: Mapping[str, Any] | None, epoch: int, sites: Mapping[str, Site]) -> None:
         """:meth:`CorrelationStage.restore_state` in the child (its biases come back with the
         answer).  A child started afresh later (it died) starts without it."""
-        self._epoch = epoch
-        self._call("restore_state", state, epoch, dict(sites))
+        self.drawer.restart(epoch)
+        self._call("restore_state", state, dict(sites))
 
     def finish(self) -> None:
         """Solve the final biases and wait until every message is answered."""

@@ -3,7 +3,9 @@
 The engine feeds the :class:`~.correlation_stage.CorrelationStage` in release order (a radar's
 tracks after each batch, reference reports, site moves, departures) and takes back what each
 call changed as an :class:`Answer`: the views of the pairs it updated, the biases when it
-re-solved them, the system tracks when it rebuilt them, a failure.  :class:`InProcessRunner`
+re-solved them, the system-track pictures it took, a failure.  The pictures are drawn here, as
+the answers are taken (:class:`~.system_stage.SystemDrawer`): with the stage in a child process
+the rebuilds run beside its next pair updates.  :class:`InProcessRunner`
 answers every call at once; :class:`~.correlation_process.ChildProcessRunner` sends each to a
 child process (tracking and correlation on two cores at once) and its answers come later.
 Both keep the answers in one :class:`Answers` book, so the engine reads them alike
@@ -13,15 +15,17 @@ Both keep the answers in one :class:`Answers` book, so the engine reads them ali
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 from service.correlation import PairCorrelator
+from service.correlation.prediction import PredictionParams
 from service.correlation.registration import RegistrationRowsData
 from service.geo import Site
 from service.pipeline.correlation_stage import CorrelationStage, SharedRows
 from service.pipeline.read_model import PairSetView, SystemTrackView
 from service.pipeline.shared_links import SharedLinks
+from service.pipeline.system_stage import Drawing, SystemDrawer
 from service.tracking.base import TrackTable
 
 Key = tuple[str, str]
@@ -38,8 +42,9 @@ class Answer:
     error: tuple[str, str] | None = None  # (source id, detail) when the call failed
     rows: list[SharedRows] = field(default_factory=list)  # partitioned: rows for the bias worker
     links: list[SharedLinks] = field(default_factory=list)  # partitioned: links for worker 1
-    system: SystemTrackView | None = None  # new system tracks, if the call made them
+    system: SystemTrackView | None = None  # new system tracks, if the call made them (drawn)
     result: Any = None  # what the stage's call returned (``export_state``; None for the others)
+    drawings: list[Drawing] = field(default_factory=list)  # pictures to draw, oldest first
 
 
 def answer(stage: CorrelationStage, op: str, args: tuple[Any, ...]) -> Answer:
@@ -56,7 +61,6 @@ def answer(stage: CorrelationStage, op: str, args: tuple[Any, ...]) -> Answer:
             result = getattr(stage, op)(*args)
     except Exception as exc:
         error = (str(args[0]) if args else "", f"correlation failed: {type(exc).__name__}: {exc}")
-    rebuilt = stage.take_system()  # the newest is what the picture shows
     return Answer(
         op,
         [(k, stage.views[k]) for k in keys],
@@ -65,15 +69,18 @@ def answer(stage: CorrelationStage, op: str, args: tuple[Any, ...]) -> Answer:
         error,
         stage.take_rows(),
         stage.take_links(),
-        rebuilt[-1] if rebuilt else None,
+        None,
         result,
+        stage.take_drawings(),
     )
 
 
 class Answers:
-    """The answers taken so far, until the engine takes them (in call order)."""
+    """The answers taken so far, until the engine takes them (in call order); the system tracks
+    of their pictures drawn as they are taken (:class:`~.system_stage.SystemDrawer`)."""
 
-    def __init__(self) -> None:
+    def __init__(self, prediction: PredictionParams) -> None:
+        self.drawer = SystemDrawer(prediction)
         self.biases: list[dict[str, Any]] = []
         self.system_view: SystemTrackView | None = None
         self._answers: list[Answer] = []
@@ -82,6 +89,10 @@ class Answers:
         self._links: list[SharedLinks] = []
 
     def _take_answer(self, a: Answer) -> None:
+        if a.drawings:  # every picture drawn, in order; the newest is what is shown
+            views = [self.drawer.draw(d) for d in a.drawings]
+            drawn = [v for v in views if v is not None]
+            a = replace(a, drawings=[], system=drawn[-1] if drawn else None)
         self._answers.append(a)
         if a.biases is not None:
             self.biases = a.biases
@@ -119,6 +130,7 @@ class CorrelationRunner(Protocol):
 
     biases: list[dict[str, Any]]
     system_view: SystemTrackView | None
+    drawer: SystemDrawer
 
     def radar(self, radar_id: str, geometry: Site, table: TrackTable, time_s: float) -> None: ...
     def reference(self, source_id: str, time_s: float, *columns: Any) -> None: ...
@@ -153,8 +165,8 @@ class InProcessRunner(Answers):
     """The stage in this process: every call answered at once."""
 
     def __init__(self, *stage_args: Any) -> None:
-        super().__init__()
         self.stage = CorrelationStage(*stage_args)
+        super().__init__(self.stage.correlation_params.prediction)
 
     def _call(self, op: str, *args: Any) -> None:
         self._take_answer(answer(self.stage, op, args))
@@ -207,7 +219,8 @@ class InProcessRunner(Answers):
         return lambda: state
 
     def restore_state(self, state: Mapping[str, Any] | None, epoch: int, sites: Mapping[str, Site]) -> None:
-        self.stage.restore_state(state, epoch, sites)
+        self.drawer.restart(epoch)
+        self.stage.restore_state(state, sites)
         self.biases = self.stage.biases
 
     def pair_correlators(self) -> list[PairCorrelator]:

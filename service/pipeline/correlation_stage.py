@@ -48,9 +48,9 @@ from service.correlation.registration import (
 from service.fusion.members import Links
 from service.geo import Site
 from service.pipeline.partition import Partition
-from service.pipeline.read_model import PairSetView, SystemTrackView
+from service.pipeline.read_model import PairSetView
 from service.pipeline.shared_links import SharedLinks
-from service.pipeline.system_stage import LAST, Picture, SystemStage, take_picture
+from service.pipeline.system_stage import LAST, Drawing, Picture, SystemStage, take_picture
 from service.reference import ReferenceKind, ReferenceParams, ReferenceTracks
 from service.tracking.base import TrackTable
 from service.wire.outputs import bias_dict
@@ -246,7 +246,7 @@ class CorrelationStage:
 
     def forget(self, source_id: str) -> None:
         """A source left the engine: its pairs go."""
-        self._radars.pop(source_id, None)
+        change_radars(self._radars, "forget", (source_id,))
         self._references.pop(source_id, None)
         self._silent.discard(source_id)
         for key in [k for k in self.pair_correlators if source_id in k]:
@@ -265,8 +265,7 @@ class CorrelationStage:
         The remembered registration rows were measured from the old position; pairs of the
         other radars are untouched.
         """
-        if site.site_id in self._radars:
-            self._radars[site.site_id] = (site, self._radars[site.site_id][1])
+        change_radars(self._radars, "moved", (site,))
         for key, old in list(self.pair_correlators.items()):
             if site.site_id not in key:
                 continue
@@ -345,7 +344,7 @@ class CorrelationStage:
         """A radar's tracks after one of its batches: correlate it with every partner due, and
         decide its newly confirmed tracks with every other partner at once."""
         before = self._radars.get(radar_id)
-        self._radars[radar_id] = (geometry, table)
+        change_radars(self._radars, "radar", (radar_id, geometry, table))
         me = Source(radar_id, geometry, lambda t: table, int(np.count_nonzero(table.confirmed)))
         fresh = _newly_confirmed(before[1] if before is not None else None, table)
         return self.update(me, self._partners(radar_id), time_s, fresh)
@@ -460,9 +459,10 @@ class CorrelationStage:
         own = {key: _links(key, corr) for key, corr in self.pair_correlators.items()}
         return take_picture(time_s, release, self._radars, self._references, self._silent, self._joint, own)
 
-    def take_system(self) -> list[SystemTrackView]:
-        """The system tracks drawn since the last call, oldest first."""
-        return self.system.take_views()
+    def take_drawings(self) -> list[Drawing]:
+        """The system-track pictures ready to draw since the last call, oldest first (drawn by
+        the runner's :class:`~service.pipeline.system_stage.SystemDrawer`)."""
+        return self.system.take_drawings()
 
     def take_links(self) -> list[SharedLinks]:
         """Links of the owned pairs updated since the last call (partitioned, not worker 1)."""
@@ -548,21 +548,15 @@ class CorrelationStage:
             "joint_time_s": self._next_bias_s,
         }
 
-    def continue_numbers(self, number: int) -> None:
-        """New system tracks numbered from ``number`` on (a correlation process started afresh:
-        :class:`~service.pipeline.correlation_process.ChildProcessRunner`)."""
-        self.system.continue_from(number)
-
-    def restore_state(self, state: Mapping[str, Any] | None, epoch: int, sites: Mapping[str, Site]) -> None:
+    def restore_state(self, state: Mapping[str, Any] | None, sites: Mapping[str, Site]) -> None:
         """Take what :meth:`export_state` gave (``None``: nothing), before any input.
 
         Each registration memory waits as a mirror until its pair's correlator is made, which
         then takes it over (:meth:`_adopt`): the pair registers at its first update instead of
         after minutes of confirmed pairs.  A memory of a radar that is not at the same place in
         ``sites`` now (its site moved or is unknown) is left out: its rows were measured from
-        elsewhere.  The joint solution and biases are those of before.  New system tracks are
-        numbered from ``epoch``'s first number.  Everything is read before anything changes
-        (``KeyError``, ``TypeError`` or ``ValueError`` on a state that is not one)."""
+        elsewhere.  The joint solution and biases are those of before.  Everything is read
+        before anything changes (``KeyError``, ``TypeError`` or ``ValueError`` on a state that is not one)."""
         mirrors: dict[tuple[str, str], MirroredPair] = {}
         joint: tuple[BiasSolution, float] | None = None
         if state is not None:
@@ -579,7 +573,6 @@ class CorrelationStage:
                     mirrors[key] = MirroredPair(RegistrationMemory.restored(site_a, site_b, kept["rows"]))
             if state["joint"] is not None:
                 joint = (solution_from_state(state["joint"]), float(state["joint_time_s"]))
-        self.system.restart(epoch)
         self.mirrors = mirrors
         if joint is not None:
             self._set_joint(*joint)
@@ -595,6 +588,21 @@ class CorrelationStage:
         return timings_dict(
             self.updates, self.last_ms, self.timings_ms, self.duration_counts, self.duration_sum_s
         )
+
+
+def change_radars(radars: dict[str, tuple[Site, TrackTable]], op: str, args: tuple[Any, ...]) -> None:
+    """What the stage's call ``op`` with ``args`` does to its radars' sites and tables (in
+    place): the one place of it, so that the child process's parent, which holds the same
+    tables, keeps them as the child does (:mod:`.correlation_process`).  A call whose
+    arguments are not what it takes raises before it changes anything."""
+    if op == "radar":
+        radars[args[0]] = (args[1], args[2])
+    elif op == "forget":
+        radars.pop(args[0], None)
+    elif op == "moved":
+        site_id = args[0].site_id
+        if site_id in radars:
+            radars[site_id] = (args[0], radars[site_id][1])
 
 
 def _links(key: tuple[str, str], corr: PairCorrelator) -> Links:

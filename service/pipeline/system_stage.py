@@ -33,6 +33,7 @@ its queryable; the other workers' ``GET /system-tracks`` ask it (contract §6).
 from __future__ import annotations
 
 import logging
+import time
 from collections import deque
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
@@ -44,7 +45,7 @@ from service.correlation.cycles import CycleParams, Implied
 from service.correlation.prediction import PredictionParams
 from service.correlation.registration import BiasSolution
 from service.fusion.members import Links, members_and_links
-from service.fusion.system_tracks import SystemTracker
+from service.fusion.system_tracks import SystemTracker, SystemTrackParams
 from service.geo import Site
 from service.pipeline.cycle_links import CycleLinks
 from service.pipeline.partition import Partition
@@ -89,7 +90,6 @@ class SystemStage:
         self.interval_s = interval_s
         self.partition = partition
         self.prediction = prediction
-        self.tracker = SystemTracker()
         #: The cycle step's chains on the links' grid (None: the step is off).
         self.cycles = CycleLinks(cycles) if cycles is not None and cycles.enabled else None
         self.grid_s = interval_s if interval_s > 0 else LINKS_GRID_S
@@ -99,11 +99,13 @@ class SystemStage:
         self.shares = not partition.whole and ((interval_s > 0 and not self.draws) or self.cycles is not None)
         self.forced = 0
         self._next_s = -np.inf
-        self._out: list[SystemTrackView] = []
+        self._out: list[Drawing] = []
         self._links_out: list[SharedLinks] = []
         #: Owned pairs updated since the last crossing: their latest update's release and links.
         self._updated: dict[Key, tuple[float, str, Callable[[], Links]]] = {}
         self._pending: deque[Picture] = deque()
+        #: The picture taken by the current :meth:`due` (drawn at once unless it must wait).
+        self._taking: Picture | None = None
         #: Every other worker's pairs: their links, oldest first (a base and what came after).
         self._mirrored = LinksHistory()
         #: Data time every other live worker has correlated through (alone: no one to wait for).
@@ -121,8 +123,8 @@ class SystemStage:
         out, self._links_out = self._links_out, []
         return out
 
-    def take_views(self) -> list[SystemTrackView]:
-        """The system tracks drawn since the last call, oldest first."""
+    def take_drawings(self) -> list[Drawing]:
+        """The pictures ready to draw since the last call, oldest first (:class:`SystemDrawer`)."""
         out, self._out = self._out, []
         return out
 
@@ -164,8 +166,10 @@ class SystemStage:
         if self.cycles is not None:
             self.cycles.crossed((clock_s, release), own, radars)
         if self.draws:
-            self._pending.append(take(clock_s, release))
+            self._taking = take(clock_s, release)
+            self._pending.append(self._taking)
             self._draw()
+            self._taking = None
 
     def _own(self) -> list[SharedLinks]:
         """The owned pairs updated since the previous crossing, with their links now (sent
@@ -188,7 +192,9 @@ class SystemStage:
         self._others_s = np.inf
         self._draw()
         if picture is not None and self.draws:
+            self._taking = picture
             self._build(picture)
+            self._taking = None
 
     def _draw(self) -> None:
         while self._pending and (
@@ -204,27 +210,78 @@ class SystemStage:
         return {**picture.own, **self._mirrored.at((picture.time_s, picture.release))}
 
     def _build(self, picture: Picture) -> None:
-        try:
-            links = self._links_at(picture)
-            members, la, lb, score = members_and_links(
+        """Hand out the picture's :class:`Drawing` (:meth:`take_drawings`): its links now."""
+        links = self._links_at(picture)
+        self._out.append(
+            Drawing(
                 picture.time_s,
                 picture.radars,
                 picture.references,
-                [links[k] for k in sorted(links)],  # one worker's order: by pair
                 picture.joint,
+                [links[k] for k in sorted(links)],  # one worker's order: by pair
+                picture is self._taking,
+            )
+        )
+
+
+@dataclass(frozen=True)
+class Drawing:
+    """Everything one rebuild of the system tracks reads: a :class:`Picture`'s tables and joint
+    estimate with every pair's links as they were after its release, in one worker's order."""
+
+    time_s: float
+    #: Every radar's site and table (None only between the two processes of
+    #: :mod:`.correlation_process`, when ``taken_now``: the engine's own copy fills it in).
+    radars: dict[str, tuple[Site, TrackTable]] | None
+    references: dict[str, TrackTable]
+    joint: BiasSolution | None
+    links: list[Links]
+    #: The picture was taken by the same call that hands it out (not one that waited for the
+    #: other workers' links): its radars' tables are those the stage's inputs so far left.
+    taken_now: bool = False
+
+
+class SystemDrawer:
+    """Draws the system tracks (:mod:`service.fusion`) of each :class:`Drawing`, in order.
+
+    It runs where the engine takes the correlation's answers, not in the correlation stage:
+    with the stage in a child process (:mod:`.correlation_process`) the rebuilds, a tenth of
+    the stage's work on the national network, run on the engine's core beside the next pair
+    updates instead of after them, and the system tracks' numbers outlive a child started
+    afresh.  The drawings come in the order the stage made them, so the tracks are the same
+    wherever the stage runs."""
+
+    def __init__(self, prediction: PredictionParams, params: SystemTrackParams | None = None) -> None:
+        self.prediction = prediction
+        self.tracker = SystemTracker(params)
+        #: CPU seconds the rebuilds took (this thread's), and how many there were.
+        self.cpu_s = 0.0
+        self.drawn = 0
+
+    def draw(self, drawing: Drawing) -> SystemTrackView | None:
+        """The system tracks of ``drawing`` (None: the rebuild failed, the old view stays)."""
+        started = time.thread_time()
+        try:
+            assert drawing.radars is not None
+            members, la, lb, score = members_and_links(
+                drawing.time_s,
+                drawing.radars,
+                drawing.references,
+                drawing.links,
+                drawing.joint,
                 self.prediction,
             )
-            tracks = self.tracker.update(members, la, lb, score, picture.time_s)
-        except Exception:  # a bug here must not cost the pair updates: the old view stays
-            log.exception("system tracks: rebuild at %.3f failed", picture.time_s)
-            return
-        self._out.append(SystemTrackView.of(picture.time_s, tracks, members))
-
-    # -- numbering across restarts -----------------------------------------------------------------
-    def continue_from(self, number: int) -> None:
-        self.tracker.continue_from(number)
+            tracks = self.tracker.update(members, la, lb, score, drawing.time_s)
+            return SystemTrackView.of(drawing.time_s, tracks, members)
+        except Exception:  # a bug here must not cost the pair updates
+            log.exception("system tracks: rebuild at %.3f failed", drawing.time_s)
+            return None
+        finally:
+            self.cpu_s += time.thread_time() - started
+            self.drawn += 1
 
     def restart(self, epoch: int) -> None:
+        """Number new system tracks from ``epoch``'s first number (a start with state)."""
         self.tracker = SystemTracker(self.tracker.params, epoch)
 
 
