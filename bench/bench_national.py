@@ -84,6 +84,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from checkout import warn_if_elsewhere
 
 from service.engine import Engine, EngineConfig, Snapshot
 from topofusion_lab.evaluation.promptness import OutputMonitor, PromptnessReport, watch_engine
@@ -1979,6 +1980,7 @@ def run_soak(args: argparse.Namespace) -> None:
 
 
 def main() -> None:
+    warn_if_elsewhere()
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )

@@ -60,6 +60,7 @@ from typing import Any
 
 import httpx
 import zenoh
+from checkout import warn_if_elsewhere
 
 from service.config import EngineConfig
 from service.engine import Engine
@@ -555,6 +556,7 @@ def in_process(
 
 
 def main() -> None:
+    warn_if_elsewhere()
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--duration", type=float, default=300.0, help="data seconds (default 300)")
     p.add_argument("--seed", type=int, default=1)
