@@ -312,7 +312,13 @@ def _stop_under_load(
             wait_for(lambda: httpx.get(url + "/status").json()["queue"]["depth"] >= len(stream) // 2)
             proc.send_signal(signal.SIGTERM)
             out, _ = proc.communicate(timeout=grace_s + 30)
-            time.sleep(0.5)  # the last puts on their way
+            # the last puts on their way: until every batch the service says it processed has
+            # come (at most 5 s; the callers' assertions judge what came)
+            stop = STOP_LINE.search(out)
+            processed = int(stop.group(5)) if stop is not None else 0
+            deadline = time.monotonic() + 5.0
+            while sum(received.values()) < processed and time.monotonic() < deadline:
+                time.sleep(0.05)
             tracks.undeclare()
         finally:
             session.close()

@@ -241,11 +241,6 @@ class SystemTracker:
         self._since = np.empty(0)  # when each joined the picture (data s)
         self._next = first_number(epoch)
 
-    def continue_from(self, number: int) -> None:
-        """Number new system tracks from ``number`` on (if above the next one): a correlation
-        process started afresh goes on from the numbers its predecessor published."""
-        self._next = max(self._next, number)
-
     def update(
         self, members: Members, link_a: IntArray, link_b: IntArray, score: FloatArray, time_s: float = 0.0
     ) -> SystemTracks:

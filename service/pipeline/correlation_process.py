@@ -93,13 +93,13 @@ class ChildProcessRunner(Answers):
         self.max_in_flight = max_in_flight
         #: The child's latest ``timings()`` (its update time histogram with them).
         self._timings: dict[str, Any] = timings_dict()
-        #: Data times of the radar messages sent and not answered yet, oldest first.
-        self._unanswered: deque[float | None] = deque()
+        #: The messages sent and not answered yet, oldest first: a radar message's data time
+        #: (None: another message) and the message's change of the radars' tables (None: none).
+        self._unanswered: deque[tuple[float | None, tuple[str, Any] | None]] = deque()
         #: The radars' sites and tables as the child holds them after the last answer taken
-        #: (its stage's ``_radars``), and each unanswered message's change of them: a picture the
-        #: child draws at once is of these, so its tables need not come back down the pipe.
+        #: (its stage's ``_radars``): a picture the child draws at once is of these, so its
+        #: tables need not come back down the pipe.
         self._radars: dict[str, tuple[Site, TrackTable]] = {}
-        self._radar_changes: deque[tuple[str, Any] | None] = deque()
         self.restarts = 0
         #: The last answer applied (:meth:`_call` reads its result).
         self._last: Answer | None = None
@@ -174,8 +174,12 @@ class ChildProcessRunner(Answers):
             if not (self._process.is_alive() and self._reader.is_alive() and self._writer.is_alive()):
                 self._lost("stopped answering")
         self._outbox.put((op, args))
-        self._unanswered.append(float(args[3]) if op == "radar" else None)
-        self._radar_changes.append((op, args[:3]) if op in ("radar", "forget", "moved") else None)
+        self._unanswered.append(
+            (
+                float(args[3]) if op == "radar" else None,
+                (op, args[:3]) if op in ("radar", "forget", "moved") else None,
+            )
+        )
         self._pending += 1
         self._apply(block=False)
 
@@ -199,9 +203,7 @@ class ChildProcessRunner(Answers):
             if got.result is not None:
                 self._exported = got.result
             if self._unanswered:
-                self._unanswered.popleft()
-            if self._radar_changes:
-                self._apply_change(self._radar_changes.popleft())
+                self._apply_change(self._unanswered.popleft()[1])
             if got.drawings:
                 got = replace(got, drawings=[self._answered_radars(d) for d in got.drawings])
             if got.timings is not None:
@@ -231,10 +233,9 @@ class ChildProcessRunner(Answers):
         self._errors.append(("", detail))
         self.restarts += 1
         # the calls it did not answer are answered empty: a radar's tracks are still published
-        for t in self._unanswered:
+        for t, _ in self._unanswered:
             self._answers.append(Answer("radar" if t is not None else "lost", [], None, None))
         self._unanswered.clear()
-        self._radar_changes.clear()
         self._radars = {}  # (a child started afresh holds no table)
         self._process.kill()
         self._outbox.put(None)
@@ -255,7 +256,7 @@ class ChildProcessRunner(Answers):
     def correlated_through(self, released_s: float) -> float:
         """Data time up to which every update has been answered, given that everything up to
         ``released_s`` was sent."""
-        pending = [t for t in self._unanswered if t is not None]
+        pending = [t for t, _ in self._unanswered if t is not None]
         return float(np.nextafter(pending[0], -np.inf)) if pending else released_s
 
     @property

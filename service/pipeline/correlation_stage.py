@@ -217,7 +217,6 @@ class CorrelationStage:
         self.system = SystemStage(
             self.params.system_interval_s,
             self.partition,
-            self.correlation_params.prediction,
             self.correlation_params.cycles,
         )
 

@@ -84,12 +84,10 @@ class SystemStage:
         self,
         interval_s: float,
         partition: Partition,
-        prediction: PredictionParams,
         cycles: CycleParams | None = None,
     ) -> None:
         self.interval_s = interval_s
         self.partition = partition
-        self.prediction = prediction
         #: The cycle step's chains on the links' grid (None: the step is off).
         self.cycles = CycleLinks(cycles) if cycles is not None and cycles.enabled else None
         self.grid_s = interval_s if interval_s > 0 else LINKS_GRID_S
@@ -254,9 +252,8 @@ class SystemDrawer:
     def __init__(self, prediction: PredictionParams, params: SystemTrackParams | None = None) -> None:
         self.prediction = prediction
         self.tracker = SystemTracker(params)
-        #: CPU seconds the rebuilds took (this thread's), and how many there were.
+        #: CPU seconds the rebuilds took (this thread's).
         self.cpu_s = 0.0
-        self.drawn = 0
 
     def draw(self, drawing: Drawing) -> SystemTrackView | None:
         """The system tracks of ``drawing`` (None: the rebuild failed, the old view stays)."""
@@ -278,7 +275,6 @@ class SystemDrawer:
             return None
         finally:
             self.cpu_s += time.thread_time() - started
-            self.drawn += 1
 
     def restart(self, epoch: int) -> None:
         """Number new system tracks from ``epoch``'s first number (a start with state)."""
