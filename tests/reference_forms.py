@@ -470,3 +470,24 @@ def registration_remove(site: Site, p: np.ndarray, v: np.ndarray, b: np.ndarray)
     r, az, el = (float(np.ravel(x)[0]) for x in site.ecef_to_polar(p[None]))
     q = site.polar_to_ecef((r - b[0]) / (1.0 + b[GAIN] * PPM), az - np.degrees(b[1]), el - np.degrees(b[2]))
     return np.ravel(q) + b[TIME] * v
+
+
+def track_keys_reference(tables: list[list[str]], limit: int) -> list[list[int]]:
+    """Track keys by a dict per table (service.correlation.pairkeys.TrackKeys): a track keeps its
+    key while it is in consecutive tables; any other id takes the next number (modulo ``limit``)."""
+    last: dict[str, int] = {}
+    counter = 0
+    out = []
+    for ids in tables:
+        now = {}
+        keys = []
+        for track in ids:
+            if track in last:
+                key = last[track]
+            else:
+                key, counter = counter, (counter + 1) % limit
+            now[track] = key
+            keys.append(key)
+        last = now
+        out.append(keys)
+    return out

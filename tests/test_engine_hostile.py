@@ -159,9 +159,12 @@ def test_site_resent_slightly_moved_changes_nothing(
 
 
 def test_a_real_move_reregisters_only_that_radars_pairs() -> None:
-    stream = scenario_messages("three-radar", duration_s=60.0)
+    stream = scenario_messages("three-radar", duration_s=90.0)
+    times = [json.loads(p).get("time_s") for _, p in stream]
+    start = min(t for t in times if t is not None)
+    first = stream[: next(i for i, t in enumerate(times) if t is not None and t > start + 60.0)]
     engine = Engine()
-    for key, payload in stream:
+    for key, payload in first:
         engine.ingest(key, payload)
     before = {k: (c, c.book, c.memory) for k, c in engine.correlation.stage.pair_correlators.items()}
     assert set(before) == {("A", "B"), ("A", "C"), ("B", "C")}
@@ -174,6 +177,22 @@ def test_a_real_move_reregisters_only_that_radars_pairs() -> None:
         assert after[key].book is before[key][1]  # the pairs are kept...
         assert len(after[key].memory) == 0 < len(before[key][2])  # ...the registration starts again
         assert after[key].site_b is not None and after[key].site_b.latitude_deg == moved["latitude_deg"]
+    # ... and go on: a pair confirmed before the move whose tracks live on is the same pair
+    # after it (its first hit unchanged), not one dropped and found again
+    kept = {
+        key: {
+            (s.track_a, s.track_b): s.first_time_s for s in before[key][1].states() if s.status == "confirmed"
+        }
+        for key in (("A", "C"), ("B", "C"))
+    }
+    for key, payload in stream[len(first) :]:
+        engine.ingest(key, payload)
+    engine.flush()
+    for key, was in kept.items():
+        now = {(s.track_a, s.track_b): s.first_time_s for s in after[key].book.states()}
+        lasting = set(was) & set(now)
+        assert len(lasting) > len(was) // 2 > 0
+        assert all(now[pair] == was[pair] for pair in lasting)
 
 
 def test_many_fake_radar_ids_cost_nothing(stream: Stream, baseline: tuple[Engine, list[Any]]) -> None:

@@ -89,9 +89,19 @@ class PredictedTracks:
     #: Each track's quality (``TrackTable.quality``: how unambiguous its recent plot
     #: associations were, in [0, 1]; NaN: not known); None: the source gave none at all.
     quality: FloatArray | None = None
+    #: Each track's integer key (:class:`~.pairkeys.TrackKeys`, what the correlation's books
+    #: and evidence identify tracks by); None: not given (a snapshot only drawn or decided on).
+    track_key: NDArray[np.int64] | None = None
 
     def __len__(self) -> int:
         return int(self.track_id.shape[0])
+
+    @property
+    def keys(self) -> NDArray[np.int64]:
+        """``track_key``, which the snapshot must carry (``predict_tracks(..., keys=...)``)."""
+        if self.track_key is None:
+            raise ValueError("a snapshot without track keys: predict_tracks(..., keys=...) gives them")
+        return self.track_key
 
     def enu_cov(self) -> FloatArray:
         """Position covariance in the source's own ENU frame, ``(n, 3, 3)``."""

@@ -80,7 +80,7 @@ from service.correlation.gmm import GmmParams
 from service.correlation.group_offset import GroupOffsetParams, group_residuals
 from service.correlation.linalg import inv3, quad3
 from service.correlation.nearest import NearestCorrelator, NearestParams
-from service.correlation.pairkeys import find, isin_sorted, pair_keys
+from service.correlation.pairkeys import TrackKeys, find, isin_sorted, pair_keys
 from service.correlation.pairs import PairBook, PairBookParams, PairState
 from service.correlation.prediction import PredictionParams, predict_tracks
 from service.correlation.prompt import PromptParams, clear_of_rivals, isolated, quality_clear
@@ -263,8 +263,15 @@ class PairCorrelator:
     """Live correlation of radar ``site_a`` with ``site_b`` (None: a bias-free reference source)."""
 
     def __init__(
-        self, method: str, site_a: Site, site_b: Site | None, params: CorrelationParams | None = None
+        self,
+        method: str,
+        site_a: Site,
+        site_b: Site | None,
+        params: CorrelationParams | None = None,
+        keys: tuple[TrackKeys, TrackKeys] | None = None,
     ) -> None:
+        """``keys``: each side's track keys (:class:`~.pairkeys.TrackKeys`, one per source,
+        shared by all its pairs, so that its tables are keyed once; None: this pair's own)."""
         self.method = method
         self.params = params or CorrelationParams()
         self.correlator = make_correlator(method, self.params)
@@ -275,6 +282,9 @@ class PairCorrelator:
         self.site_a = site_a
         self.site_b = site_b
         self.book = PairBook(self.params.book)
+        #: Each side's track keys: the book and the evidence identify tracks by them; the
+        #: track ids name the book's pairs.
+        self.track_keys = keys if keys is not None else (TrackKeys(), TrackKeys())
         #: The track ids of each side the book's pairs were last checked against (the tables'
         #: own arrays: a radar's next table is a new object).
         self._checked: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
@@ -318,19 +328,19 @@ class PairCorrelator:
         through third radars imply (:mod:`.cycles`; None: no cycle step)."""
         t0 = time.perf_counter()
         prm = self.params
-        raw_a, raw_b, a, b, ctx_kw = self._predicted(tracks_a, tracks_b, time_s)
+        keys_a, keys_b = self.track_keys[0].of(tracks_a.track_id), self.track_keys[1].of(tracks_b.track_id)
+        raw_a, raw_b, a, b, ctx_kw = self._predicted(tracks_a, tracks_b, time_s, keys_a, keys_b)
+        ka, kb = a.keys, b.keys  # (raw_a, raw_b: the same rows)
         registered = bool(ctx_kw)
         ev = self.evidence
         conf = self.book.confirmed
-        sorters = (np.argsort(a.track_id), np.argsort(b.track_id))  # the rows of a, b and raw_a, raw_b
-        ca_idx, cb_idx = _lookup_pairs(
-            a.track_id, b.track_id, self.book.track_a[conf], self.book.track_b[conf], sorters
-        )
+        sorters = (np.argsort(ka), np.argsort(kb))  # the rows of a, b and raw_a, raw_b
+        ca_idx, cb_idx = _lookup_pairs(ka, kb, self.book.id_a[conf], self.book.id_b[conf], sorters)
         ctx = DecisionContext(time_s=time_s, confirmed_a=ca_idx, confirmed_b=cb_idx, **ctx_kw)  # type: ignore[arg-type]
         # The method's re-check of the confirmed pairs (before the looks: it reads none).
         kept = self.correlator.reverify(a, b, ca_idx, cb_idx, ctx)
         jump = self._jumps(kept, len(ca_idx), a, b, ctx)  # (re-check rows: the confirmed pairs', in order)
-        jumped_a, jumped_b = a.track_id[ca_idx[jump]], b.track_id[cb_idx[jump]]
+        jumped_a, jumped_b = ka[ca_idx[jump]], kb[cb_idx[jump]]
         if len(jumped_a):
             # Swapped (module swap): not kept, no confirmed bonus, the two tracks' evidence reset
             # before this update's looks; the book lets the pairs go below unless chosen again.
@@ -347,19 +357,20 @@ class PairCorrelator:
             # decisions); a known pair outside it is no hypothesis any more.
             extra_a, extra_b = ctx_kw["registration_cov_a"], ctx_kw["registration_cov_b"]
             ia_e, ib_e, r, s_noise, s_common = registered_residuals(a, b, extra_a, extra_b, ev.params)  # type: ignore[arg-type]
-            ev.observe(time_s, a.track_id[ia_e], b.track_id[ib_e], r, s_noise, s_common)
-            ev.prune(time_s, a.track_id, b.track_id, unobserved_present=True)
+            ev.observe(time_s, ka[ia_e], kb[ib_e], r, s_noise, s_common)
+            ev.prune(time_s, ka, kb, unobserved_present=True)
         parts = []
         if implied is not None:
-            # The implied pairs present in both snapshots, by rows (module cycles).
-            ia_i, ib_i, found = _pair_rows(a.track_id, b.track_id, implied.track_a, implied.track_b, sorters)
+            # The implied pairs present in both snapshots, by rows (module cycles; by track ids:
+            # the chains join books of other radar pairs, whose keys are their own).
+            ia_i, ib_i, found = _pair_rows(a.track_id, b.track_id, implied.track_a, implied.track_b)
             imp_a, imp_b, imp_s = ia_i[found], ib_i[found], implied.strength[found]
         if kept is not None:
             kept = kept.take(kept.accepted)
             if ev is not None:
                 # A kept pair must also pass its history and be the best hypothesis of both its
                 # tracks (``keep_margin``); else it is decided in full with the rest.
-                e = find(ev.keys, pair_keys(a.track_id[kept.index_a], b.track_id[kept.index_b]))
+                e = find(ev.keys, pair_keys(ka[kept.index_a], kb[kept.index_b]))
                 bad = e < 0
                 ok = ~bad
                 bad[ok] = ev.rejected()[e[ok]] | ev.rivals_better(e[ok], ev.params.keep_margin)
@@ -367,7 +378,7 @@ class PairCorrelator:
                 hist = ev.looks[e[~bad]] >= ev.params.min_looks
             if implied is not None and len(implied) and len(kept):
                 # The weakest link of a contradicted cycle goes: decided afresh (module cycles).
-                at = find(self.book.keys, pair_keys(a.track_id[kept.index_a], b.track_id[kept.index_b]))
+                at = find(self.book.keys, pair_keys(ka[kept.index_a], kb[kept.index_b]))
                 own = np.where(at >= 0, self.book.score[np.maximum(at, 0)], 0.0)
                 weak = contradicted(kept.index_a, kept.index_b, own, imp_a, imp_b, imp_s, len(a), len(b))
                 kept = kept.take(~weak)
@@ -389,12 +400,12 @@ class PairCorrelator:
             )
         self.last_reverified = len(kept) if kept is not None else 0
         decided = self.correlator.decide(a, b, ctx)
-        clear = self._clear(decided, a, b, tracks_a, tracks_b, time_s)
+        clear = self._clear(decided, a, b, (tracks_a, keys_a), (tracks_b, keys_b), time_s)
         decided = self._with_history(decided, a, b, time_s, registered, clear)
         if prm.identity_veto:
             decided = replace(decided, accepted=decided.accepted & ~_identities_differ(a, b, decided))
         if ev is not None and not registered:
-            ev.prune(time_s, a.track_id, b.track_id)
+            ev.prune(time_s, ka, kb)
         cost = decided.cost
         if len(decided) and len(ca_idx):
             # Confirmed pairs by row indices (those present in both snapshots).
@@ -424,10 +435,10 @@ class PairCorrelator:
         self._checked = (tracks_a.track_id, tracks_b.track_id)
         self.book.update(
             time_s,
-            np.asarray(tracks_a.track_id).astype(str),
-            np.asarray(tracks_b.track_id).astype(str),
-            a.track_id[sel.index_a],
-            b.track_id[sel.index_b],
+            keys_a,
+            keys_b,
+            ka[sel.index_a],
+            kb[sel.index_b],
             sel.statistic,
             sel.rotation_weight,
             sel.scale,
@@ -435,6 +446,7 @@ class PairCorrelator:
             _basis_codes(sel.extras["basis"]) if "basis" in sel.extras else None,
             confirm_now=now,
             quality=self.book.pair_quality(len(sel), *_qualities(sel, a, b)),
+            names=(a.track_id[sel.index_a], b.track_id[sel.index_b]),
         )
         if len(jumped_a):
             self.book.release(jumped_a, jumped_b, time_s)  # (unless this update chose them again)
@@ -446,9 +458,7 @@ class PairCorrelator:
             self.book.set_probability(np.append(ev.probability(), np.nan)[e])  # -1: none
         # Registration rows from the confirmed pairs (raw, uncompensated positions).
         conf = self.book.confirmed
-        pa_idx, pb_idx = _lookup_pairs(
-            raw_a.track_id, raw_b.track_id, self.book.track_a[conf], self.book.track_b[conf], sorters
-        )
+        pa_idx, pb_idx = _lookup_pairs(ka, kb, self.book.id_a[conf], self.book.id_b[conf], sorters)
         self.last_rows = None
         if len(pa_idx):
             cap = None
@@ -517,13 +527,19 @@ class PairCorrelator:
         return jump
 
     def _predicted(
-        self, tracks_a: TrackTable, tracks_b: TrackTable, time_s: float
+        self,
+        tracks_a: TrackTable,
+        tracks_b: TrackTable,
+        time_s: float,
+        keys_a: NDArray[np.int64],
+        keys_b: NDArray[np.int64],
     ) -> tuple[PredictedTracks, PredictedTracks, PredictedTracks, PredictedTracks, dict[str, object]]:
         """Both tables brought to ``time_s`` (raw), the same bias-compensated once registered,
-        and the decision context's registration fields (empty: not registered)."""
+        and the decision context's registration fields (empty: not registered); ``keys_*``:
+        each table's track keys."""
         prm = self.params
-        raw_a = predict_tracks(tracks_a, self.site_a, time_s, prm.prediction)
-        raw_b = predict_tracks(tracks_b, self.site_b, time_s, prm.prediction)
+        raw_a = predict_tracks(tracks_a, self.site_a, time_s, prm.prediction, keys_a)
+        raw_b = predict_tracks(tracks_b, self.site_b, time_s, prm.prediction, keys_b)
         if not self.registered or self.solution is None:
             return raw_a, raw_b, raw_a, raw_b, {}
         ba, pa = self.solution.of(self.site_a.site_id)
@@ -551,13 +567,13 @@ class PairCorrelator:
         dec: Decisions,
         a: PredictedTracks,
         b: PredictedTracks,
-        tracks_a: TrackTable,
-        tracks_b: TrackTable,
+        tracks_a: tuple[TrackTable, NDArray[np.int64]],
+        tracks_b: tuple[TrackTable, NDArray[np.int64]],
         time_s: float,
     ) -> np.ndarray:
         """Which of the update's candidates are clear (:mod:`.prompt`): no rival within the
         margin, both tracks of at least ``min_quality``, and both isolated within their own
-        radar's tables."""
+        radar's tables (``tracks_*``: each table and its track keys)."""
         prm = self.params.prompt
         if not prm.enabled or self.method != "svd-topology" or len(dec) == 0:
             return np.zeros(len(dec), dtype=bool)
@@ -567,11 +583,12 @@ class PairCorrelator:
         if rows.size:
             ua, inv_a = np.unique(dec.index_a[rows], return_inverse=True)
             ub, inv_b = np.unique(dec.index_b[rows], return_inverse=True)
+            (table_a, keys_a), (table_b, keys_b) = tracks_a, tracks_b
             iso_a = isolated(
-                tracks_a, self.site_a, time_s, a.track_id[ua], prm.isolation_m, prm.isolation_velocity_mps
+                table_a, self.site_a, time_s, a.keys[ua], prm.isolation_m, prm.isolation_velocity_mps, keys_a
             )
             iso_b = isolated(
-                tracks_b, self.site_b, time_s, b.track_id[ub], prm.isolation_m, prm.isolation_velocity_mps
+                table_b, self.site_b, time_s, b.keys[ub], prm.isolation_m, prm.isolation_velocity_mps, keys_b
             )
             clear[rows] = iso_a[inv_a] & iso_b[inv_b]
         return clear
@@ -581,15 +598,15 @@ class PairCorrelator:
         tracks_a: TrackTable,
         tracks_b: TrackTable,
         time_s: float,
-        fresh_a: NDArray[np.str_],
-        fresh_b: NDArray[np.str_],
+        fresh_a: NDArray[np.int64],
+        fresh_b: NDArray[np.int64],
         now_a: np.ndarray | None = None,
         now_b: np.ndarray | None = None,
     ) -> bool:
-        """Tracks confirmed since the pair's last update (``fresh_a``, ``fresh_b``: their ids)
-        between two updates: the clear pairs among them (:mod:`.prompt`) enter the book
-        confirmed now, without waiting for the pair's next update (which scores the book).
-        Whether the book changed.
+        """Tracks confirmed since the pair's last update (``fresh_a``, ``fresh_b``: their track
+        keys, :attr:`track_keys`) between two updates: the clear pairs among them
+        (:mod:`.prompt`) enter the book confirmed now, without waiting for the pair's next
+        update (which scores the book).  Whether the book changed.
 
         Only a registered pair (before, it is updated every scan, and the topology decision
         needs the whole tables' neighbourhoods), by the compensated test of the method's
@@ -602,22 +619,23 @@ class PairCorrelator:
         reach = 2.0 * prm.svd.candidates.gate_m
         now_a = positions_at(tracks_a, time_s) if now_a is None else now_a
         now_b = positions_at(tracks_b, time_s) if now_b is None else now_b
-        anchors_a = now_a[isin_sorted(tracks_a.track_id, fresh_a)]
-        anchors = np.concatenate([anchors_a, now_b[isin_sorted(tracks_b.track_id, fresh_b)]])
+        keys_a, keys_b = self.track_keys[0].of(tracks_a.track_id), self.track_keys[1].of(tracks_b.track_id)
+        anchors_a = now_a[isin_sorted(keys_a, fresh_a)]
+        anchors = np.concatenate([anchors_a, now_b[isin_sorted(keys_b, fresh_b)]])
         near_a, near_b = _near(now_a, anchors, reach), _near(now_b, anchors, reach)
         k = len(anchors_a)
         if not (near_b[:, :k].any() or near_a[:, k:].any()):
             return False  # no partner track within reach of a fresh one: nothing to decide
-        sub_a = tracks_a.take(np.flatnonzero(near_a.any(axis=1)))
-        sub_b = tracks_b.take(np.flatnonzero(near_b.any(axis=1)))
-        _, _, a, b, ctx_kw = self._predicted(sub_a, sub_b, time_s)
-        fa, fb = isin_sorted(a.track_id, fresh_a), isin_sorted(b.track_id, fresh_b)
+        rows_a, rows_b = np.flatnonzero(near_a.any(axis=1)), np.flatnonzero(near_b.any(axis=1))
+        sub_a, sub_b = tracks_a.take(rows_a), tracks_b.take(rows_b)
+        sub_keys = (keys_a[rows_a], keys_b[rows_b])
+        _, _, a, b, ctx_kw = self._predicted(sub_a, sub_b, time_s, *sub_keys)
+        ka, kb = a.keys, b.keys
+        fa, fb = isin_sorted(ka, fresh_a), isin_sorted(kb, fresh_b)
         if not (fa.any() or fb.any()):
             return False
         conf = self.book.confirmed
-        ca_idx, cb_idx = _lookup_pairs(
-            a.track_id, b.track_id, self.book.track_a[conf], self.book.track_b[conf]
-        )
+        ca_idx, cb_idx = _lookup_pairs(ka, kb, self.book.id_a[conf], self.book.id_b[conf])
         ref_a = _within(a.position, anchors, reach, busy=ca_idx)
         ref_b = _within(b.position, anchors, reach, busy=cb_idx)
         ctx = DecisionContext(
@@ -633,7 +651,7 @@ class PairCorrelator:
         checked = self.correlator.reverify(a, b, ia, ib, ctx)
         dec = checked if checked is not None else self.correlator.decide(a, b, ctx)
         fresh = fa[dec.index_a] | fb[dec.index_b]
-        clear = self._clear(dec, a, b, sub_a, sub_b, time_s) & fresh
+        clear = self._clear(dec, a, b, (sub_a, sub_keys[0]), (sub_b, sub_keys[1]), time_s) & fresh
         # a fresh track with an accepted candidate that is not clear waits for the pair's
         # next full update, which must then not wait long; but not one held back only by a
         # track's low quality: it waits for the evidence's looks, which the pair's updates on
@@ -644,13 +662,13 @@ class PairCorrelator:
         self.settled &= not (unclear & self._quality_ok(dec, a, b)[open_]).any()
         ev = self.evidence
         if ev is not None and clear.any() and len(ev):
-            e = find(ev.keys, pair_keys(a.track_id[dec.index_a], b.track_id[dec.index_b]))
+            e = find(ev.keys, pair_keys(ka[dec.index_a], kb[dec.index_b]))
             clear &= ~((e >= 0) & ev.rejected()[np.maximum(e, 0)])
         if not clear.any():
             return False
         # (two clear candidates cannot share a track: each would cost ``clear_margin`` less)
         probability = (
-            posterior(a.track_id[dec.index_a], b.track_id[dec.index_b], dec.cost, ev.params)[clear]
+            posterior(ka[dec.index_a], kb[dec.index_b], dec.cost, ev.params)[clear]
             if ev is not None
             else None
         )
@@ -660,10 +678,10 @@ class PairCorrelator:
         self._checked = (tracks_a.track_id, tracks_b.track_id)
         return self.book.admit(
             time_s,
-            None if seen_a is tracks_a.track_id else tracks_a.track_id,
-            None if seen_b is tracks_b.track_id else tracks_b.track_id,
-            a.track_id[take.index_a],
-            b.track_id[take.index_b],
+            None if seen_a is tracks_a.track_id else keys_a,
+            None if seen_b is tracks_b.track_id else keys_b,
+            ka[take.index_a],
+            kb[take.index_b],
             take.statistic,
             take.rotation_weight,
             take.scale,
@@ -671,6 +689,7 @@ class PairCorrelator:
             _basis_codes(self._basis(take)),
             probability,
             self.book.pair_quality(len(take), *_qualities(take, a, b)),
+            names=(a.track_id[take.index_a], b.track_id[take.index_b]),
         )
 
     def _basis(self, dec: Decisions) -> np.ndarray:
@@ -716,7 +735,7 @@ class PairCorrelator:
         sourced = np.full(len(dec), registered)
         if not registered and prm.group.enabled:
             dec, sourced = self._group_stage(dec, a, b, time_s)
-        e = find(ev.keys, pair_keys(a.track_id[dec.index_a], b.track_id[dec.index_b]))
+        e = find(ev.keys, pair_keys(a.keys[dec.index_a], b.keys[dec.index_b]))
         e0 = np.maximum(e, 0)
         have = e >= 0
         hist = have & (ev.looks[e0] >= ev.params.min_looks) if len(ev) else have
@@ -745,7 +764,7 @@ class PairCorrelator:
         if rows.size == 0:
             return dec, ok
         self.evidence.observe(
-            time_s, a.track_id[dec.index_a[rows]], b.track_id[dec.index_b[rows]], r, s_noise, s_common
+            time_s, a.keys[dec.index_a[rows]], b.keys[dec.index_b[rows]], r, s_noise, s_common
         )
         s_inv, good = inv3(s_noise + s_common)
         q = quad3(r, s_inv)

@@ -59,6 +59,7 @@ study in ``docs/evaluation``) and checked there by a reliability diagram and the
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -67,7 +68,7 @@ from service.chi2 import chi2_upper
 from service.correlation.base import FloatArray, IntArray, PredictedTracks
 from service.correlation.candidates import candidate_pairs
 from service.correlation.linalg import congruence, inv3, quad3
-from service.correlation.pairkeys import find, isin_sorted, pair_keys
+from service.correlation.pairkeys import find, isin_sorted, joined, pair_keys
 
 
 @dataclass(frozen=True)
@@ -141,7 +142,7 @@ def registered_residuals(
 
 
 def posterior(
-    track_a: NDArray[np.str_], track_b: NDArray[np.str_], cost: FloatArray, params: EvidenceParams
+    track_a: NDArray[Any], track_b: NDArray[Any], cost: FloatArray, params: EvidenceParams
 ) -> FloatArray:
     """The calibrated posterior of each hypothesis ``(track_a[k], track_b[k])`` of cost
     ``cost[k]`` (chi-square excess, ``-2 ln`` likelihood up to a constant; inf: no hypothesis)
@@ -177,9 +178,11 @@ class EvidenceBook:
 
     def __init__(self, params: EvidenceParams | None = None) -> None:
         self.params = params or EvidenceParams()
-        self.track_a = np.empty(0, dtype=str)
-        self.track_b = np.empty(0, dtype=str)
-        self.keys = np.empty(0, dtype=str)
+        # The candidate pairs' tracks, by the identifiers given (track keys or ids, as a pair
+        # book's, :mod:`.pairkeys`), and their pair keys.
+        self.track_a: NDArray[Any] = np.empty(0, dtype=np.int64)
+        self.track_b: NDArray[Any] = np.empty(0, dtype=np.int64)
+        self.keys: NDArray[Any] = np.empty(0, dtype=np.int64)
         # The residual's running mean (module docstring) ...
         self.weight = np.empty(0)
         self.n_eff = np.empty(0)
@@ -200,7 +203,7 @@ class EvidenceBook:
         """Forget every entry."""
         self._keep(np.zeros(len(self), dtype=bool))
 
-    def forget_tracks(self, track_a: NDArray[np.str_], track_b: NDArray[np.str_]) -> int:
+    def forget_tracks(self, track_a: NDArray[Any], track_b: NDArray[Any]) -> int:
         """Forget every entry whose A track is among ``track_a`` or whose B track is among
         ``track_b`` (a few ids: a swap, :mod:`.swap`); how many entries went."""
         if len(self) == 0:
@@ -215,7 +218,7 @@ class EvidenceBook:
         for name in self._columns:
             setattr(self, name, getattr(self, name)[keep])
 
-    def _ensure(self, track_a: NDArray[np.str_], track_b: NDArray[np.str_]) -> NDArray[np.intp]:
+    def _ensure(self, track_a: NDArray[Any], track_b: NDArray[Any]) -> NDArray[np.intp]:
         """The entry of each pair ``(track_a[k], track_b[k])`` (unique pairs), new ones empty."""
         keys = pair_keys(track_a, track_b)
         idx = find(self.keys, keys)
@@ -223,8 +226,8 @@ class EvidenceBook:
         if fresh.size:
             m, start = fresh.size, len(self)
             add = {
-                "track_a": np.asarray(track_a)[fresh].astype(str),
-                "track_b": np.asarray(track_b)[fresh].astype(str),
+                "track_a": np.asarray(track_a)[fresh],
+                "track_b": np.asarray(track_b)[fresh],
                 "keys": keys[fresh],
                 "weight": np.zeros(m),
                 "n_eff": np.zeros(m),
@@ -237,7 +240,7 @@ class EvidenceBook:
                 "q_rel": np.full(m, np.nan),
             }
             for name in self._columns:
-                setattr(self, name, np.concatenate([getattr(self, name), add[name]]))
+                setattr(self, name, joined(getattr(self, name), add[name]))
             idx = idx.copy()
             idx[fresh] = start + np.arange(m)
         return idx
@@ -252,8 +255,8 @@ class EvidenceBook:
     def observe(
         self,
         time_s: float,
-        track_a: NDArray[np.str_],
-        track_b: NDArray[np.str_],
+        track_a: NDArray[Any],
+        track_b: NDArray[Any],
         residual: FloatArray,
         noise_cov: FloatArray,
         common_cov: FloatArray | None = None,
@@ -287,8 +290,8 @@ class EvidenceBook:
     def prune(
         self,
         time_s: float,
-        present_a: NDArray[np.str_],
-        present_b: NDArray[np.str_],
+        present_a: NDArray[Any],
+        present_b: NDArray[Any],
         unobserved_present: bool = False,
     ) -> None:
         """Forget entries whose track left, or not looked at for ``forget_after_s``; with

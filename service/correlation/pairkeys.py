@@ -1,20 +1,83 @@
-"""String keys of track pairs and the set operations the books do on them (numpy, no loops)."""
+"""Keys of tracks and of track pairs, and the set operations the books do on them (numpy, no
+loops).
+
+A book identifies a track by an identifier of either kind, the same kind throughout: its track
+id (a string), or the integer key :class:`TrackKeys` gives it.  The correlation uses the keys:
+sorting, searching and comparing int64 is four to six times faster than the same on track ids
+(numpy compares strings character by character), and these operations run on every update.
+"""
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-#: Separates the two track ids of a key (a control character: no track id contains it).
+#: Separates the two track ids of a string key (a control character: no track id contains it).
 SEP = "\x1f"
 
+#: Track keys count from 0 to below this, then start again at 0 (:class:`TrackKeys`): a pair's
+#: key puts its A key above 32 bits, so each must stay below 2**31.
+KEY_LIMIT = 1 << 31
 
-def pair_keys(a: NDArray[np.str_], b: NDArray[np.str_]) -> NDArray[np.str_]:
-    """One string key per pair ``(a[k], b[k])``."""
-    return np.char.add(np.char.add(np.asarray(a).astype(str), SEP), np.asarray(b).astype(str))
+
+def pair_keys(a: NDArray[Any], b: NDArray[Any]) -> NDArray[Any]:
+    """One key per pair ``(a[k], b[k])``: ``a * 2**32 + b`` for track keys (int64), the two
+    ids joined by :data:`SEP` for track ids (strings)."""
+    a, b = np.asarray(a), np.asarray(b)
+    if a.dtype.kind in "iu" and b.dtype.kind in "iu":
+        return np.asarray(a.astype(np.int64) << 32 | b.astype(np.int64))
+    return np.char.add(np.char.add(a.astype(str), SEP), b.astype(str))
 
 
-def find(keys: NDArray[np.str_], query: NDArray[np.str_]) -> NDArray[np.intp]:
+def joined(old: NDArray[Any], new: NDArray[Any]) -> NDArray[Any]:
+    """``old`` then ``new``: a book's column grown by new rows (an empty column takes the new
+    rows as they are, so a book takes whichever kind of identifier it is given first)."""
+    return np.asarray(new) if old.shape[0] == 0 else np.concatenate([old, new])
+
+
+class TrackKeys:
+    """Integer keys for the tracks of one source's tables, as one correlator sees them.
+
+    A track keeps its key from table to table while it is in them; a track id not in the last
+    table given gets a new key, counted up from 0 (modulo :data:`KEY_LIMIT`).  Only the last
+    table's ids are remembered: memory as one table, one search of its ids a table.  A track
+    that left the table leaves the pair book and the evidence at their next check against a
+    table (its key is absent from every later one); an id that came back after a table without
+    it would be a new track to them (trackers never reuse an id; a reference source's vanished
+    track may come back, and is then paired afresh).  Keys come round again after 2**31 new
+    tracks of one source, far beyond the life of any book entry.
+    """
+
+    def __init__(self) -> None:
+        self._ids: NDArray[np.str_] = np.empty(0, dtype=str)  # the last table's ids, ascending
+        self._keys: NDArray[np.int64] = np.empty(0, dtype=np.int64)  # their keys
+        self._next = 0
+        self._last: tuple[NDArray[np.str_], NDArray[np.int64]] | None = None
+
+    def of(self, ids: NDArray[np.str_]) -> NDArray[np.int64]:
+        """The key of each of ``ids`` (a table's track ids, unique), row for row."""
+        if self._last is not None and self._last[0] is ids:
+            return self._last[1]  # (the same table again: a decision, then the pair's update)
+        ids = np.asarray(ids)
+        at = find(self._ids, ids)
+        known = at >= 0
+        keys = np.empty(ids.shape[0], dtype=np.int64)
+        keys[known] = self._keys[at[known]]
+        fresh = np.flatnonzero(~known)
+        keys[fresh] = (self._next + np.arange(fresh.shape[0])) % KEY_LIMIT
+        self._next = (self._next + int(fresh.shape[0])) % KEY_LIMIT
+        if is_ascending(ids):
+            self._ids, self._keys = ids, keys
+        else:
+            order = np.argsort(ids)
+            self._ids, self._keys = ids[order], keys[order]
+        self._last = (ids, keys)
+        return keys
+
+
+def find(keys: NDArray[Any], query: NDArray[Any]) -> NDArray[np.intp]:
     """Index of each ``query`` key in ``keys`` (unique), -1 where absent (one search, after one
     sort unless ``keys`` is sorted already, as a track table's ids are)."""
     if len(keys) == 0 or len(query) == 0:
@@ -27,20 +90,20 @@ def find(keys: NDArray[np.str_], query: NDArray[np.str_]) -> NDArray[np.intp]:
     return np.where(keys[idx] == query, idx, -1).astype(np.intp)
 
 
-def is_ascending(y: NDArray[np.str_]) -> bool:
+def is_ascending(y: NDArray[Any]) -> bool:
     """Whether ``y`` is sorted (one comparison pass)."""
     return y.shape[0] < 2 or bool(np.all(y[1:] >= y[:-1]))
 
 
-def ascending(y: NDArray[np.str_]) -> NDArray[np.str_]:
+def ascending(y: NDArray[Any]) -> NDArray[Any]:
     """``y`` sorted: as it is when it already is (a track table's ids are: one comparison pass
     instead of a sort)."""
     y = np.asarray(y)
     return y if is_ascending(y) else np.sort(y)
 
 
-def isin_sorted(x: NDArray[np.str_], y: NDArray[np.str_]) -> NDArray[np.bool_]:
-    """``np.isin(x, y)`` for string arrays by one sort of ``y`` (none when it is sorted already)
+def isin_sorted(x: NDArray[Any], y: NDArray[Any]) -> NDArray[np.bool_]:
+    """``np.isin(x, y)`` for keys or ids by one sort of ``y`` (none when it is sorted already)
     and a binary search (``np.isin`` sorts both sides and their union; this is the books' most
     frequent operation)."""
     x, y = np.asarray(x), np.asarray(y)
@@ -51,7 +114,7 @@ def isin_sorted(x: NDArray[np.str_], y: NDArray[np.str_]) -> NDArray[np.bool_]:
     return np.asarray(ys[pos] == x)
 
 
-def isin_few(x: NDArray[np.str_], y: NDArray[np.str_]) -> NDArray[np.bool_]:
+def isin_few(x: NDArray[Any], y: NDArray[Any]) -> NDArray[np.bool_]:
     """``np.isin(x, y)`` for a few ``x`` among many ``y`` (a book's new pairs against the whole
     book): the few are sorted and every ``y`` searched among them, then each ``x`` among the
     ``y`` found, so the many are never sorted (:func:`isin_sorted` sorts ``y`` unless it is)."""

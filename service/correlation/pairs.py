@@ -24,19 +24,22 @@ onto a neighbour, which no correlation evidence shows.  It is ``score * quality`
 pair's ``quality`` is ``(q_a q_b) ** quality_exponent`` of its tracks' qualities at its latest
 hit (a quality not known counts as 1).  ``basis`` records what the pair's latest hit rested on
 (:class:`~.base.Basis`, -1: not given).  Stored columnar (numpy), updated with set
-operations on string keys: no Python loop over pairs.
+operations on keys: no Python loop over pairs.  The book identifies tracks by what it is
+given, track keys or track ids (:mod:`.pairkeys`; the correlation gives keys, and the track ids
+as the pairs' names, ``track_a``/``track_b``, which is what it publishes).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
 from service.correlation.base import BASIS_NAMES, FloatArray
-from service.correlation.pairkeys import find, isin_few
+from service.correlation.pairkeys import find, isin_few, joined
 from service.correlation.pairkeys import isin_sorted as _isin
 from service.correlation.pairkeys import pair_keys as _keys
 
@@ -113,9 +116,14 @@ class PairBook:
         self.params = params or PairBookParams()
         if not 1 <= self.params.window <= 32:
             raise ValueError("window must be within 1..32")
+        #: The pairs' track ids (what the book publishes) ...
         self.track_a = np.empty(0, dtype=str)
         self.track_b = np.empty(0, dtype=str)
-        self.keys = np.empty(0, dtype=str)  # track_a + separator + track_b, kept with the rows
+        #: ... and the identifiers the book was given for them (track keys, or the ids again),
+        #: which its set operations run on, with the pair keys of the two.
+        self.id_a: NDArray[Any] = np.empty(0, dtype=np.int64)
+        self.id_b: NDArray[Any] = np.empty(0, dtype=np.int64)
+        self.keys: NDArray[Any] = np.empty(0, dtype=np.int64)
         self.history = np.empty(0, dtype=np.uint32)
         self.hits = np.empty(0, dtype=np.int64)
         self.misses = np.empty(0, dtype=np.int64)
@@ -175,6 +183,8 @@ class PairBook:
         self.version += 1
         self.track_a = self.track_a[keep]
         self.track_b = self.track_b[keep]
+        self.id_a = self.id_a[keep]
+        self.id_b = self.id_b[keep]
         self.keys = self.keys[keep]
         self.history = self.history[keep]
         self.hits = self.hits[keep]
@@ -187,10 +197,10 @@ class PairBook:
     def update(
         self,
         time_s: float,
-        present_a: NDArray[np.str_],
-        present_b: NDArray[np.str_],
-        chosen_a: NDArray[np.str_],
-        chosen_b: NDArray[np.str_],
+        present_a: NDArray[Any],
+        present_b: NDArray[Any],
+        chosen_a: NDArray[Any],
+        chosen_b: NDArray[Any],
         statistic: FloatArray,
         rotation_weight: FloatArray,
         scale: FloatArray,
@@ -198,11 +208,14 @@ class PairBook:
         basis: NDArray[np.int8] | None = None,
         confirm_now: NDArray[np.bool_] | None = None,
         quality: FloatArray | None = None,
+        names: tuple[NDArray[np.str_], NDArray[np.str_]] | None = None,
     ) -> None:
         """Score one update: ``chosen_*`` are this update's one-to-one single decisions;
         ``confirm_now``: those that are clear (:mod:`.prompt`) confirm at once, without the M
         hits (still one-to-one: never a track already in a confirmed pair); ``quality``: their
-        tracks' (:meth:`pair_quality`; None: not known).
+        tracks' (:meth:`pair_quality`; None: not known).  ``present_*`` and ``chosen_*`` are
+        identifiers (track keys or ids, module docstring); ``names``: the chosen pairs' track
+        ids (None: the identifiers are the ids).
 
         A hit pair's ``statistic``, ``rotation_weight``, ``scale`` and ``neighbors`` are those
         of the decision that scored it, the latest one: NaN where that decision computed none
@@ -248,10 +261,11 @@ class PairBook:
         fresh[src] = False
         nf = int(fresh.sum())
         if nf:
+            named_a, named_b = names if names is not None else (chosen_a, chosen_b)
             self._append(
                 time_s,
-                chosen_a[fresh],
-                chosen_b[fresh],
+                (chosen_a[fresh], chosen_b[fresh]),
+                (named_a[fresh], named_b[fresh]),
                 new_keys[fresh],
                 (statistic[fresh], rotation_weight[fresh], scale[fresh], np.full(nf, np.nan), quality[fresh]),
                 neighbors[fresh],
@@ -262,7 +276,7 @@ class PairBook:
             )
         # Drop.
         score = self.hit_fraction
-        gone = ~_isin(self.track_a, present_a) | ~_isin(self.track_b, present_b)
+        gone = ~_isin(self.id_a, present_a) | ~_isin(self.id_b, present_b)
         stale_tent = ~self.confirmed & (score <= 0)
         stale_conf = self.confirmed & (self.misses >= prm.drop_misses)
         keep = ~(gone | stale_tent | stale_conf)
@@ -277,10 +291,10 @@ class PairBook:
     def admit(
         self,
         time_s: float,
-        present_a: NDArray[np.str_] | None,
-        present_b: NDArray[np.str_] | None,
-        track_a: NDArray[np.str_],
-        track_b: NDArray[np.str_],
+        present_a: NDArray[Any] | None,
+        present_b: NDArray[Any] | None,
+        track_a: NDArray[Any],
+        track_b: NDArray[Any],
         statistic: FloatArray,
         rotation_weight: FloatArray,
         scale: FloatArray,
@@ -288,6 +302,7 @@ class PairBook:
         basis: NDArray[np.int8],
         probability: FloatArray | None = None,
         quality: FloatArray | None = None,
+        names: tuple[NDArray[np.str_], NDArray[np.str_]] | None = None,
     ) -> bool:
         """Confirm clear pairs between two updates (:mod:`.prompt`): a pair of the book is
         confirmed, a new one enters confirmed with one hit; neither scores the other pairs (the
@@ -295,9 +310,10 @@ class PairBook:
         their score (NaN: the hit fraction); ``quality``: their tracks' (:meth:`pair_quality`; None:
         not known).  As at an update, pairs whose track is not among
         ``present_a``/``present_b`` any more leave the book (None: that side's tracks are
-        those the book was last checked against, none gone).  Whether the book changed."""
+        those the book was last checked against, none gone).  Identifiers and ``names`` as at
+        :meth:`update`.  Whether the book changed."""
         gone = np.zeros(len(self), dtype=bool)
-        for present, tracks in ((present_a, self.track_a), (present_b, self.track_b)):
+        for present, tracks in ((present_a, self.id_a), (present_b, self.id_b)):
             if present is not None:
                 gone |= ~_isin(tracks, present)
         if gone.any():
@@ -305,11 +321,13 @@ class PairBook:
         keys = _keys(track_a, track_b)
         # (a few pairs against the whole book: searched among the few, the book never sorted)
         conf = self.confirmed
-        busy = isin_few(track_a, self.track_a[conf]) | isin_few(track_b, self.track_b[conf])
+        busy = isin_few(track_a, self.id_a[conf]) | isin_few(track_b, self.id_b[conf])
         if busy.all():
             return bool(gone.any())  # (``_keep`` counted the change)
         keep = ~busy
+        named_a, named_b = names if names is not None else (track_a, track_b)
         keys, track_a, track_b = keys[keep], track_a[keep], track_b[keep]
+        named_a, named_b = named_a[keep], named_b[keep]
         prob = np.full(len(keys), np.nan) if probability is None else np.asarray(probability)[keep]
         qual = np.full(len(keys), np.nan) if quality is None else np.asarray(quality, dtype=float)[keep]
         pos = np.flatnonzero(_isin(self.keys, keys))
@@ -321,8 +339,8 @@ class PairBook:
             k = np.flatnonzero(keep)[fresh]
             self._append(
                 time_s,
-                track_a[fresh],
-                track_b[fresh],
+                (track_a[fresh], track_b[fresh]),
+                (named_a[fresh], named_b[fresh]),
                 keys[fresh],
                 (np.clip(statistic[k], -1e6, 1e6), rotation_weight[k], scale[k], prob[fresh], qual[fresh]),
                 neighbors[k],
@@ -334,8 +352,8 @@ class PairBook:
         self.version += 1
         return bool(gone.any()) or fresh.size > 0 or int(np.count_nonzero(self.confirmed)) != before
 
-    def release(self, track_a: NDArray[np.str_], track_b: NDArray[np.str_], time_s: float) -> int:
-        """Drop the pairs ``(track_a[k], track_b[k])`` of the book that scored no hit at
+    def release(self, track_a: NDArray[Any], track_b: NDArray[Any], time_s: float) -> int:
+        """Drop the pairs ``(track_a[k], track_b[k])`` (identifiers) of the book that scored no hit at
         ``time_s`` (a swap, :mod:`.swap`: re-decided at once rather than after
         ``drop_misses`` misses); how many went."""
         if len(self) == 0 or len(track_a) == 0:
@@ -353,19 +371,21 @@ class PairBook:
     def _append(
         self,
         time_s: float,
-        track_a: NDArray[np.str_],
-        track_b: NDArray[np.str_],
-        keys: NDArray[np.str_],
+        ids: tuple[NDArray[Any], NDArray[Any]],
+        names: tuple[NDArray[np.str_], NDArray[np.str_]],
+        keys: NDArray[Any],
         values: tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray],
         neighbors: NDArray[np.int64],
         basis: NDArray[np.int8],
     ) -> None:
-        """New pairs, tentative with one hit at ``time_s``; ``values``: their statistic,
-        rotation weight, scale, probability and quality."""
+        """New pairs, tentative with one hit at ``time_s``: their identifiers, track ids and
+        keys; ``values``: their statistic, rotation weight, scale, probability and quality."""
         nf = len(keys)
-        self.track_a = np.concatenate([self.track_a, track_a.astype(str)])
-        self.track_b = np.concatenate([self.track_b, track_b.astype(str)])
-        self.keys = np.concatenate([self.keys, keys])
+        self.track_a = np.concatenate([self.track_a, np.asarray(names[0]).astype(str)])
+        self.track_b = np.concatenate([self.track_b, np.asarray(names[1]).astype(str)])
+        self.id_a = joined(self.id_a, ids[0])
+        self.id_b = joined(self.id_b, ids[1])
+        self.keys = joined(self.keys, keys)
         self.history = np.concatenate([self.history, np.ones(nf, dtype=np.uint32)])
         self.hits = np.concatenate([self.hits, np.ones(nf, dtype=np.int64)])
         self.misses = np.concatenate([self.misses, np.zeros(nf, dtype=np.int64)])
@@ -390,13 +410,10 @@ class PairBook:
         left out every pair with a track in a confirmed pair."""
         if idx.size and not free:  # (the busy test only for these: in a steady state they are few)
             conf = self.confirmed
-            idx = idx[
-                ~isin_few(self.track_a[idx], self.track_a[conf])
-                & ~isin_few(self.track_b[idx], self.track_b[conf])
-            ]
+            idx = idx[~isin_few(self.id_a[idx], self.id_a[conf]) & ~isin_few(self.id_b[idx], self.id_b[conf])]
         if idx.size:
-            ua, ra = np.unique(self.track_a[idx], return_inverse=True)
-            ub, rb = np.unique(self.track_b[idx], return_inverse=True)
+            ua, ra = np.unique(self.id_a[idx], return_inverse=True)
+            ub, rb = np.unique(self.id_b[idx], return_inverse=True)
             if ua.size == idx.size and ub.size == idx.size:
                 self.confirmed[idx] = True
             else:

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.correlation.base import FloatArray, PredictedTracks
 from service.geo import Site
@@ -75,12 +76,17 @@ def predict_blocks(
 
 
 def predict_tracks(
-    table: TrackTable, site: Site | None, time_s: float, params: PredictionParams | None = None
+    table: TrackTable,
+    site: Site | None,
+    time_s: float,
+    params: PredictionParams | None = None,
+    keys: NDArray[np.int64] | None = None,
 ) -> PredictedTracks:
     """Select usable rows of ``table`` and extrapolate them to ``time_s``.
 
     ``site`` None marks a bias-free reference source (AIS); its ``enu`` is then the ECEF
-    position itself (callers needing a plane use the other side's site).
+    position itself (callers needing a plane use the other side's site).  ``keys``: each row's
+    track key (:class:`~.pairkeys.TrackKeys`), carried to the snapshot's ``track_key``.
     """
     p = params or PredictionParams()
     keep = np.ones(len(table), dtype=bool)
@@ -107,6 +113,7 @@ def predict_tracks(
         enu_v = vel @ site.rotation
     return PredictedTracks(
         track_id=track_id.astype(str),
+        track_key=None if keys is None else keys[rows],
         position=pos,
         velocity=vel,
         pos_cov=pos_cov,

@@ -165,16 +165,19 @@ def isolated(
     track_ids: np.ndarray,
     radius_m: float,
     velocity_mps: float = np.inf,
+    table_ids: np.ndarray | None = None,
 ) -> BoolArray:
     """For each of ``track_ids`` (tracks of ``table``): no other track of the table within
     ``radius_m`` horizontally in the site's plane (every track brought to ``time_s`` at its
     velocity) that is tentative, or confirmed with a horizontal velocity within
-    ``velocity_mps`` of its own (a reference source, ``site`` None: in ECEF)."""
+    ``velocity_mps`` of its own (a reference source, ``site`` None: in ECEF).  ``table_ids``:
+    what ``track_ids`` are found among, row for row (None: the table's track ids; the
+    correlation gives track keys, :mod:`.pairkeys`)."""
     n = len(track_ids)
     if n == 0 or len(table) < 2:
         return np.ones(n, dtype=bool)
     pos = table.position_ecef_m + table.velocity_ecef_mps * (time_s - table.time_s)[:, None]
-    idx = find(table.track_id, track_ids)
+    idx = find(table.track_id if table_ids is None else table_ids, track_ids)
     found, at = idx >= 0, np.maximum(idx, 0)
     up = site.rotation[:, 2] if site is not None else None
     near = companions(pos, table.velocity_ecef_mps, up, at, radius_m, velocity_mps, ~table.confirmed)

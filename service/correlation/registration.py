@@ -1173,6 +1173,7 @@ def compensate(
         compensated=True,
         mode_s=snapshot.mode_s,
         quality=snapshot.quality,
+        track_key=snapshot.track_key,
     )
     return out, extra
 

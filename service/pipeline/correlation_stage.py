@@ -36,7 +36,7 @@ import numpy as np
 
 from service.correlation import CorrelationParams, PairCorrelator, joint_solution
 from service.correlation.correlator import positions_at
-from service.correlation.pairkeys import isin_sorted
+from service.correlation.pairkeys import TrackKeys, isin_sorted
 from service.correlation.registration import (
     BiasSolution,
     RegistrationMemory,
@@ -205,6 +205,8 @@ class CorrelationStage:
         self._next_bias_s = -np.inf
         self._joint: BiasSolution | None = None
         self._radars: dict[str, tuple[Site, TrackTable]] = {}
+        #: Each source's track keys, shared by all its pairs (:class:`PairCorrelator`).
+        self._track_keys: dict[str, TrackKeys] = {}
         self._references: dict[str, ReferenceTracks] = {}
         self._silent: set[str] = set()
         #: Other workers' pairs (the bias worker of a partitioned network).
@@ -248,6 +250,7 @@ class CorrelationStage:
         change_radars(self._radars, "forget", (source_id,))
         self._references.pop(source_id, None)
         self._silent.discard(source_id)
+        self._track_keys.pop(source_id, None)
         for key in [k for k in self.pair_correlators if source_id in k]:
             del self.pair_correlators[key]
             self.views.pop(key, None)
@@ -270,7 +273,8 @@ class CorrelationStage:
                 continue
             a = site if old.site_a.site_id == site.site_id else old.site_a
             b = site if old.site_b is not None and old.site_b.site_id == site.site_id else old.site_b
-            new = PairCorrelator(old.method, a, b, old.params)  # same parameters, new geometry
+            # same parameters and track keys (the book's), new geometry
+            new = PairCorrelator(old.method, a, b, old.params, old.track_keys)
             new.book = old.book
             self.pair_correlators[key] = new
         for key in [k for k in self.mirrors if site.site_id in k]:
@@ -335,6 +339,13 @@ class CorrelationStage:
         """The scan period of the slower radar of a pair (s)."""
         return max(a.scan_period_s, b.scan_period_s if b is not None else 0.0)
 
+    def _keys_of(self, source_id: str) -> TrackKeys:
+        """The track keys of ``source_id``'s tables, one for all its pairs."""
+        keys = self._track_keys.get(source_id)
+        if keys is None:
+            keys = self._track_keys[source_id] = TrackKeys()
+        return keys
+
     def _interval(self, a: Site, b: Site | None, scans: float) -> float:
         """Data time of ``scans`` scans of a pair's slower radar, at least ``min_interval_s``."""
         return max(self.params.min_interval_s, scans * self._scan(a, b))
@@ -345,15 +356,15 @@ class CorrelationStage:
         before = self._radars.get(radar_id)
         change_radars(self._radars, "radar", (radar_id, geometry, table))
         me = Source(radar_id, geometry, lambda t: table, int(np.count_nonzero(table.confirmed)))
-        fresh = _newly_confirmed(before[1] if before is not None else None, table)
+        fresh = _newly_confirmed(before[1] if before is not None else None, table, self._keys_of(radar_id))
         return self.update(me, self._partners(radar_id), time_s, fresh)
 
     def update(
         self, radar: Source, others: list[Source], time_s: float, fresh: np.ndarray | None = None
     ) -> list[tuple[str, str]]:
         """Correlate ``radar`` with every partner due for an update; a partner not due yet
-        decides the radar's tracks confirmed since its previous table (``fresh``, their ids)
-        at once (:meth:`PairCorrelator.decide_new`).  The keys updated."""
+        decides the radar's tracks confirmed since its previous table (``fresh``, their track
+        keys) at once (:meth:`PairCorrelator.decide_new`).  The keys updated."""
         assert radar.geometry is not None
         p = self.params
         updated = []
@@ -397,8 +408,9 @@ class CorrelationStage:
             if corr is None:
                 method = self.method if second.geometry is not None else REFERENCE_METHOD
                 assert first.geometry is not None
+                keys = (self._keys_of(first.source_id), self._keys_of(second.source_id))
                 corr = self.pair_correlators[key] = PairCorrelator(
-                    method, first.geometry, second.geometry, self.correlation_params
+                    method, first.geometry, second.geometry, self.correlation_params, keys
                 )
                 self._adopt(key, corr)
             own = radar.tracks(time_s) if own is None else own
@@ -611,17 +623,19 @@ def _links(key: tuple[str, str], corr: PairCorrelator) -> Links:
 
 
 def _ids(parts: list[np.ndarray] | None) -> np.ndarray:
-    """The ids of ``parts`` together, sorted, each once (none: an empty array)."""
-    return np.unique(np.concatenate(parts)) if parts else np.empty(0, dtype=str)
+    """The track keys of ``parts`` together, sorted, each once (none: an empty array)."""
+    return np.unique(np.concatenate(parts)) if parts else np.empty(0, dtype=np.int64)
 
 
-def _newly_confirmed(before: TrackTable | None, now: TrackTable) -> np.ndarray:
-    """The ids of the tracks confirmed in ``now`` that were not confirmed in ``before`` (none
-    at a radar's first table)."""
+def _newly_confirmed(before: TrackTable | None, now: TrackTable, keys: TrackKeys) -> np.ndarray:
+    """The track keys (``keys``: the radar's) of the tracks confirmed in ``now`` that were not
+    confirmed in ``before`` (none at a radar's first table)."""
     if before is None:
-        return np.empty(0, dtype=str)
-    ids = now.track_id[now.confirmed]
-    return ids[~isin_sorted(ids, before.track_id[before.confirmed])]
+        keys.of(now.track_id)
+        return np.empty(0, dtype=np.int64)
+    was = keys.of(before.track_id)[before.confirmed]  # (the table keyed last: no search)
+    now_keys = keys.of(now.track_id)[now.confirmed]
+    return now_keys[~isin_sorted(now_keys, was)]
 
 
 def _site_state(site: Site) -> dict[str, Any]:

@@ -200,7 +200,10 @@ def test_an_ambiguous_fresh_track_is_not_admitted_between_updates() -> None:
         for ta, tb, t in tables[:LATE_AT]:
             corr.update(ta, tb, t)
         ta, tb, t = tables[LATE_AT]
-        corr.decide_new(_with_quality(ta, xa, quality), tb, t - 2.0, np.array([xa]), np.array([xb]))
+        late = _with_quality(ta, xa, quality)
+        fresh_a = corr.track_keys[0].of(late.track_id)[late.track_id == xa]
+        fresh_b = corr.track_keys[1].of(tb.track_id)[tb.track_id == xb]
+        corr.decide_new(late, tb, t - 2.0, fresh_a, fresh_b)
         assert (_statuses(corr).get((xa, xb)) == "confirmed") is admitted
 
 
