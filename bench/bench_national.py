@@ -23,7 +23,9 @@ Prints figures, never asserts.  The simulated stream is generated before any clo
   node's process), and a client session publishing the stream with ``CongestionControl.BLOCK``
   as fast as the node takes it (as a replay at ``--speed 0`` does), until the node has
   processed every message; per message, its ingest stall (the time in ``Engine.ingest`` on the
-  node's worker, waits for the correlation process included: p50, p99, max);
+  node's worker, waits for the correlation process included: p50, p99, max), and the CPU of
+  correlation and fusion (the correlation process and the system tracks drawn on the node)
+  over the rest of the node's, over the whole run and over its settled part;
   ``--subscribe`` adds a subscriber to its tracks, pairs and errors.
 * ``--profile``: the in-process run (B) under cProfile; top functions by cumulative and own time.
 * ``--breakdown``: the in-process run (B) with a wall-clock timer on each part of the stages
