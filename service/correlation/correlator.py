@@ -270,8 +270,8 @@ class PairCorrelator:
         params: CorrelationParams | None = None,
         keys: tuple[TrackKeys, TrackKeys] | None = None,
     ) -> None:
-        """``keys``: each side's track keys (:class:`~.pairkeys.TrackKeys`, one per source,
-        shared by all its pairs, so that its tables are keyed once; None: this pair's own)."""
+        """``keys``: each side's track keys (:class:`~.pairkeys.TrackKeys`; a radar's are shared
+        by all its pairs, so that its tables are keyed once; None: this pair's own)."""
         self.method = method
         self.params = params or CorrelationParams()
         self.correlator = make_correlator(method, self.params)

@@ -38,15 +38,16 @@ def joined(old: NDArray[Any], new: NDArray[Any]) -> NDArray[Any]:
 
 
 class TrackKeys:
-    """Integer keys for the tracks of one source's tables, as one correlator sees them.
+    """Integer keys for the tracks of one source's tables, in the order the correlation reads them.
 
     A track keeps its key from table to table while it is in them; a track id not in the last
     table given gets a new key, counted up from 0 (modulo :data:`KEY_LIMIT`).  Only the last
     table's ids are remembered: memory as one table, one search of its ids a table.  A track
     that left the table leaves the pair book and the evidence at their next check against a
     table (its key is absent from every later one); an id that came back after a table without
-    it would be a new track to them (trackers never reuse an id; a reference source's vanished
-    track may come back, and is then paired afresh).  Keys come round again after 2**31 new
+    it would be a new track to them (trackers never reuse an id; a reference source's table
+    leaves out a track not heard from lately, which may come back: each of its pairs keys it
+    alone, so that only a pair that saw it absent pairs it afresh).  Keys come round again after 2**31 new
     tracks of one source, far beyond the life of any book entry.
     """
 

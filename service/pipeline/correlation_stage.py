@@ -408,7 +408,14 @@ class CorrelationStage:
             if corr is None:
                 method = self.method if second.geometry is not None else REFERENCE_METHOD
                 assert first.geometry is not None
-                keys = (self._keys_of(first.source_id), self._keys_of(second.source_id))
+                # A radar's keys are shared by its pairs (a track absent from its table is
+                # deleted); a reference source's are each pair's own: its table at a pair's
+                # update leaves out the tracks not heard from lately, which may report again,
+                # and a pair keeps such a track's pair unless its own update found it absent.
+                keys = (
+                    self._keys_of(first.source_id),
+                    self._keys_of(second.source_id) if second.geometry is not None else TrackKeys(),
+                )
                 corr = self.pair_correlators[key] = PairCorrelator(
                     method, first.geometry, second.geometry, self.correlation_params, keys
                 )
