@@ -328,7 +328,7 @@ class PairCorrelator:
         through third radars imply (:mod:`.cycles`; None: no cycle step)."""
         t0 = time.perf_counter()
         prm = self.params
-        keys_a, keys_b = self.track_keys[0].of(tracks_a.track_id), self.track_keys[1].of(tracks_b.track_id)
+        keys_a, keys_b = self._keys(tracks_a, tracks_b)
         raw_a, raw_b, a, b, ctx_kw = self._predicted(tracks_a, tracks_b, time_s, keys_a, keys_b)
         ka, kb = a.keys, b.keys  # (raw_a, raw_b: the same rows)
         registered = bool(ctx_kw)
@@ -526,6 +526,12 @@ class PairCorrelator:
             jump[rows] = with_rival(k, passed, rows.size)
         return jump
 
+    def _keys(
+        self, tracks_a: TrackTable, tracks_b: TrackTable
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """Each table's track keys, row for row."""
+        return self.track_keys[0].of(tracks_a.track_id), self.track_keys[1].of(tracks_b.track_id)
+
     def _predicted(
         self,
         tracks_a: TrackTable,
@@ -619,7 +625,7 @@ class PairCorrelator:
         reach = 2.0 * prm.svd.candidates.gate_m
         now_a = positions_at(tracks_a, time_s) if now_a is None else now_a
         now_b = positions_at(tracks_b, time_s) if now_b is None else now_b
-        keys_a, keys_b = self.track_keys[0].of(tracks_a.track_id), self.track_keys[1].of(tracks_b.track_id)
+        keys_a, keys_b = self._keys(tracks_a, tracks_b)
         anchors_a = now_a[isin_sorted(keys_a, fresh_a)]
         anchors = np.concatenate([anchors_a, now_b[isin_sorted(keys_b, fresh_b)]])
         near_a, near_b = _near(now_a, anchors, reach), _near(now_b, anchors, reach)

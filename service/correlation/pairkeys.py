@@ -47,8 +47,8 @@ class TrackKeys:
     table (its key is absent from every later one); an id that came back after a table without
     it would be a new track to them (trackers never reuse an id; a reference source's table
     leaves out a track not heard from lately, which may come back: each of its pairs keys it
-    alone, so that only a pair that saw it absent pairs it afresh).  Keys come round again after 2**31 new
-    tracks of one source, far beyond the life of any book entry.
+    alone, so that only a pair that saw it absent pairs it afresh).  Keys come round again
+    after 2**31 new tracks of one source, far beyond the life of any book entry.
     """
 
     def __init__(self) -> None:

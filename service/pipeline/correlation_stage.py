@@ -467,7 +467,7 @@ class CorrelationStage:
         if other.geometry is None:
             return False  # reference sources: their own method, on the cadence
         own, theirs = radar.tracks(time_s), other.tracks(time_s)
-        mine, others = (_ids(undecided.get(s.source_id)) for s in (radar, other))
+        mine, others = (_keys_in(undecided.get(s.source_id)) for s in (radar, other))
         if corr.site_a.site_id == radar.source_id:
             return corr.decide_new(own, theirs, time_s, mine, others, now_a=own_now)
         return corr.decide_new(theirs, own, time_s, others, mine, now_b=own_now)
@@ -629,7 +629,7 @@ def _links(key: tuple[str, str], corr: PairCorrelator) -> Links:
     return Links.of_book(first, key[1] if key[0] == first else key[0], corr.book)
 
 
-def _ids(parts: list[np.ndarray] | None) -> np.ndarray:
+def _keys_in(parts: list[np.ndarray] | None) -> np.ndarray:
     """The track keys of ``parts`` together, sorted, each once (none: an empty array)."""
     return np.unique(np.concatenate(parts)) if parts else np.empty(0, dtype=np.int64)
 
@@ -638,7 +638,6 @@ def _newly_confirmed(before: TrackTable | None, now: TrackTable, keys: TrackKeys
     """The track keys (``keys``: the radar's) of the tracks confirmed in ``now`` that were not
     confirmed in ``before`` (none at a radar's first table)."""
     if before is None:
-        keys.of(now.track_id)
         return np.empty(0, dtype=np.int64)
     was = keys.of(before.track_id)[before.confirmed]  # (the table keyed last: no search)
     now_keys = keys.of(now.track_id)[now.confirmed]
