@@ -168,19 +168,20 @@ def test_bad_partitions_are_refused(spec: str) -> None:
 
 # -- the track-state exchange ---------------------------------------------------------------
 def _changed_by_hand(old: TrackTable, new: TrackTable) -> tuple[list[str], list[str]]:
-    """Plain reference form of :func:`changed_rows`: compare row by row through dicts."""
+    """Plain reference form of :func:`changed_rows`: compare row by row through dicts (floats
+    by their bytes: exactly)."""
 
     def rows(t: TrackTable) -> dict[str, tuple[object, ...]]:
         return {
             str(t.track_id[i]): (
                 bool(t.confirmed[i]),
-                float(t.time_s[i]),
                 int(t.plots[i]),
-                tuple(t.position_ecef_m[i]),
-                tuple(t.velocity_ecef_mps[i]),
-                tuple(t.covariance[i].ravel()),
+                t.time_s[i].tobytes(),
+                t.position_ecef_m[i].tobytes(),
+                t.velocity_ecef_mps[i].tobytes(),
+                t.covariance[i].tobytes(),
+                t.quality[i].tobytes(),
                 t.truth_id[i],
-                None if np.isnan(t.quality[i]) else float(t.quality[i]),
             )
             for i in range(len(t))
         }
@@ -198,13 +199,16 @@ def _evolve(rng: np.random.Generator, t: TrackTable, next_id: int) -> tuple[Trac
     quality = t.quality.copy()
     requal = rng.random(len(t)) < 0.1  # only its quality changes: a changed row too
     quality[requal] = np.where(rng.random(int(requal.sum())) < 0.3, np.nan, rng.random(int(requal.sum())))
+    cov = t.covariance.copy()
+    signed = rng.random(len(t)) < 0.05  # a zero that changes its sign only: a changed row too
+    cov[signed, 2, 4] = np.where(np.signbit(cov[signed, 2, 4]), 0.0, -0.0)
     t = TrackTable(
         t.track_id,
         t.confirmed,
         t.time_s,
         pos,
         t.velocity_ecef_mps,
-        t.covariance,
+        cov,
         t.plots,
         t.truth_id,
         quality=quality,

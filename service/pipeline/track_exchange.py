@@ -71,25 +71,40 @@ def _positions(ids: NDArray[np.str_], query: NDArray[np.str_]) -> NDArray[np.int
 
 def changed_rows(old: TrackTable, new: TrackTable) -> tuple[np.ndarray, np.ndarray]:
     """Rows of ``new`` that are not in ``old`` exactly (a mask), and the ids of ``old`` that
-    are not in ``new``."""
+    are not in ``new``.  Floats are compared by their bits: a NaN equals the same NaN and
+    ``-0.0`` differs from ``0.0``, so that a table rebuilt from the change is the same, bit for
+    bit."""
     n = len(new)
     if len(old) == 0:
         return np.ones(n, dtype=bool), np.empty(0, dtype=str)
     pos = _positions(old.track_id, new.track_id)
     known = old.track_id[pos] == new.track_id
     same = known & (old.confirmed[pos] == new.confirmed)
-    same &= old.time_s[pos] == new.time_s
     same &= old.plots[pos] == new.plots
-    same &= np.all(old.position_ecef_m[pos] == new.position_ecef_m, axis=1)
-    same &= np.all(old.velocity_ecef_mps[pos] == new.velocity_ecef_mps, axis=1)
-    same &= np.all(old.covariance[pos].reshape(n, 36) == new.covariance.reshape(n, 36), axis=1)
+    for name, width in _FLOATS:
+        before = _bits(getattr(old, name), width)[pos]
+        same &= np.all(before == _bits(getattr(new, name), width), axis=1)
     for name in LABELS:
         same &= getattr(old, name)[pos] == getattr(new, name)
-    q_old, q_new = old.quality[pos], new.quality
-    same &= (q_old == q_new) | (np.isnan(q_old) & np.isnan(q_new))
     kept = np.zeros(len(old), dtype=bool)
     kept[pos[known]] = True
     return ~same, old.track_id[~kept]
+
+
+#: A table's float columns and their values per row.
+_FLOATS = (
+    ("time_s", 1),
+    ("position_ecef_m", 3),
+    ("velocity_ecef_mps", 3),
+    ("covariance", 36),
+    ("quality", 1),
+)
+
+
+def _bits(column: np.ndarray, width: int) -> NDArray[np.int64]:
+    """A float column's values as their 64-bit patterns, one row of ``width`` per track."""
+    values = np.ascontiguousarray(column, dtype=np.float64)
+    return values.reshape(values.shape[0], width).view(np.int64)
 
 
 def states_body(
