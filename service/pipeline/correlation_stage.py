@@ -92,13 +92,14 @@ class CadenceParams:
     #: one, together.  A decision's cost is mostly its fixed part (bringing the tables near the
     #: new tracks to the update time, compensating them, the rival and isolation tests), and a
     #: busy radar confirms a few tracks in every sector batch.  National network (120 s):
-    #: 0 took 10 017 decisions, 0.25 scans 4 441 and 0.5 about 2 500, the correlation stage's
-    #: CPU 28 / 15 / 14 s; the median time to pair 0.00 / 0.12 / 0.31 scans (three-radar
-    #: scenario: 0.00 / 0.20 / 0.38), p95 1.75 in all three (the ambiguous pairs, which wait
-    #: for updates anyway): a quarter scan keeps most of the saving at a fifth of a scan's
-    #: wait.  A track confirmed while the pair was quiet is still decided in the same
-    #: release.  0: every batch's at once.
-    prompt_interval_scans: float = 0.25
+    #: 0 took 10 017 decisions, 0.25 scans 4 441 and 0.5 about 2 500.  Half a scan, measured
+    #: against a quarter (docs/results.md): the correlation stage's CPU 17 % less (11.6
+    #: against 13.9 s in one process), the median time to pair 0.25 against 0.12 scans
+    #: (three-radar scenario 0.30; the service's goal is a median of at most 0.75 scans), p95
+    #: 0.78 against 0.75 (the ambiguous pairs, which wait for updates anyway).  A track
+    #: confirmed while the pair was quiet is still decided in the same release.  0: every
+    #: batch's at once.
+    prompt_interval_scans: float = 0.5
     #: A track confirmed between updates that its decision left open (a rival near, its
     #: neighbourhood crowded, or the pair not registered yet: at a service's start every
     #: aircraft is new at once and no pair is registered) waits for the pair's next update (and
