@@ -80,7 +80,7 @@ from service.correlation.gmm import GmmParams
 from service.correlation.group_offset import GroupOffsetParams, group_residuals
 from service.correlation.linalg import inv3, quad3
 from service.correlation.nearest import NearestCorrelator, NearestParams
-from service.correlation.pairkeys import TrackKeys, find, isin_sorted, pair_keys
+from service.correlation.pairkeys import TrackKeys, comparable, find, isin_sorted, pair_keys
 from service.correlation.pairs import PairBook, PairBookParams, PairState
 from service.correlation.prediction import PredictionParams, predict_tracks
 from service.correlation.prompt import PromptParams, clear_of_rivals, isolated, quality_clear
@@ -361,9 +361,11 @@ class PairCorrelator:
             ev.prune(time_s, ka, kb, unobserved_present=True)
         parts = []
         if implied is not None:
-            # The implied pairs present in both snapshots, by rows (module cycles; by track ids:
-            # the chains join books of other radar pairs, whose keys are their own).
-            ia_i, ib_i, found = _pair_rows(a.track_id, b.track_id, implied.track_a, implied.track_b)
+            # The implied pairs present in both snapshots, by rows (module cycles; by track ids,
+            # as integer codes where they have them: the chains join books of other workers'
+            # radar pairs, whose keys are their own).
+            ids = comparable(a.track_id, b.track_id, implied.track_a, implied.track_b)
+            ia_i, ib_i, found = _pair_rows(ids[0], ids[1], ids[2], ids[3])
             imp_a, imp_b, imp_s = ia_i[found], ib_i[found], implied.strength[found]
         if kept is not None:
             kept = kept.take(kept.accepted)

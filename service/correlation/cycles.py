@@ -78,11 +78,14 @@ def implied_pairs(xz: StrongPairs, x_first: bool, zy: StrongPairs, z_first: bool
     """The pairs ``x-y`` the strong confirmed pairs ``x-z`` (of book ``xz``, whose A side is X
     when ``x_first``) and ``z-y`` (of ``zy``, A side Z when ``z_first``) imply, joined on
     ``z``, with strength ``min(score_xz, score_zy)``."""
-    x_of_xz, z_of_xz = (xz.track_a, xz.track_b) if x_first else (xz.track_b, xz.track_a)
-    z_of_zy, y_of_zy = (zy.track_a, zy.track_b) if z_first else (zy.track_b, zy.track_a)
-    order = zy.order_a if z_first else zy.order_b
+    x_of_xz, z_of_xz = (xz.track_a, xz.key_b) if x_first else (xz.track_b, xz.key_a)
+    z_of_zy, y_of_zy = (zy.key_a, zy.track_b) if z_first else (zy.key_b, zy.track_a)
+    order = zy.order_a if z_first else zy.order_b  # (the same order on the ids as on their codes)
     if len(z_of_xz) == 0 or len(z_of_zy) == 0:
         return Implied.empty()
+    if z_of_xz.dtype.kind != z_of_zy.dtype.kind:  # (one side's ids have no codes: both as ids)
+        z_of_xz = xz.track_b if x_first else xz.track_a
+        z_of_zy = zy.track_a if z_first else zy.track_b
     pos = np.minimum(np.searchsorted(z_of_zy, z_of_xz, sorter=order), len(order) - 1)
     j = order[pos]
     hit = z_of_zy[j] == z_of_xz

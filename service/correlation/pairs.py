@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
 from service.correlation.base import BASIS_NAMES, FloatArray
-from service.correlation.pairkeys import find, isin_few, joined
+from service.correlation.pairkeys import comparable, find, isin_few, joined
 from service.correlation.pairkeys import isin_sorted as _isin
 from service.correlation.pairkeys import pair_keys as _keys
 
@@ -90,18 +90,22 @@ def _popcount(x: NDArray[np.uint32]) -> NDArray[np.int64]:
 
 @dataclass(frozen=True)
 class StrongPairs:
-    """A book's confirmed pairs of at least some score, with each side's sort order (what the
-    cycle step joins on, :mod:`.cycles`)."""
+    """A book's confirmed pairs of at least some score, with each side's track ids in the form
+    the cycle step joins on (:mod:`.cycles`; their integer codes where they have them,
+    :func:`~.pairkeys.comparable`) and its sort order."""
 
     track_a: NDArray[np.str_]
     track_b: NDArray[np.str_]
     score: FloatArray
+    key_a: NDArray[Any]
+    key_b: NDArray[Any]
     order_a: NDArray[np.intp]
     order_b: NDArray[np.intp]
 
     @staticmethod
     def of(track_a: NDArray[np.str_], track_b: NDArray[np.str_], score: FloatArray) -> StrongPairs:
-        return StrongPairs(track_a, track_b, score, np.argsort(track_a), np.argsort(track_b))
+        (key_a,), (key_b,) = comparable(track_a), comparable(track_b)
+        return StrongPairs(track_a, track_b, score, key_a, key_b, np.argsort(key_a), np.argsort(key_b))
 
 
 class PairBook:

@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from service.columns import concat_rows
-from service.correlation.pairkeys import find
+from service.correlation.pairkeys import comparable, find
 from service.correlation.pairs import PairBook
 from service.correlation.prediction import PredictionParams, predict_tracks
 from service.correlation.registration import BiasSolution, compensate
@@ -99,6 +99,7 @@ def members_and_links(
         if block is None or not len(query):
             return np.full(query.shape[0], -1, dtype=np.int64)
         offset, ids, order = block
+        ids, query = comparable(ids, query)
         at = np.minimum(np.searchsorted(ids, query), ids.shape[0] - 1)
         return np.where(ids[at] == query, offset + order[at], -1)
 

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from service.correlation.pairkeys import find, isin_sorted
+from service.correlation.pairkeys import comparable, find, isin_sorted
 from service.geo import ecef_to_geodetic
 from service.tracking.base import TrackTable
 from service.wire.models import RadarSite, RadarStatus
@@ -74,7 +74,7 @@ class PairSetView:
         book = corr.book
         swap = corr.site_a.site_id != key[0]
         ta, tb = (book.track_b, book.track_a) if swap else (book.track_a, book.track_b)
-        order = np.lexsort((tb, ta))
+        order = np.lexsort(comparable(tb, ta))
         cols = {
             "track_a": ta[order],
             "track_b": tb[order],

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from service.correlation import CorrelationParams
 from service.correlation.cycles import CycleParams, Implied, contradicted, implied_pairs
@@ -11,18 +12,25 @@ from service.pipeline.correlation_stage import CorrelationStage
 from service.pipeline.partition import Partition
 
 
-def _strong(rng: np.random.Generator, first: str, second: str, n: int) -> StrongPairs:
-    """A one-to-one set of strong confirmed pairs between two radars' tracks."""
-    a = np.array([f"{first}-{k}" for k in rng.permutation(n)[: n - 2]])
-    b = np.array([f"{second}-{k}" for k in rng.permutation(n)[: n - 2]])
-    return StrongPairs(a, b, rng.uniform(0.5, 1.0, len(a)), np.argsort(a), np.argsort(b))
+def _strong(rng: np.random.Generator, first: str, second: str, n: int, long: bool) -> StrongPairs:
+    """A one-to-one set of strong confirmed pairs between two radars' tracks.  Track ``k`` of
+    radar ``r`` is named alike in every book; ``long``: track 0's name is longer than 8
+    characters, so that the sides that hold it have no integer codes and the others do."""
+
+    def name(radar: str, k: int) -> str:
+        return f"{radar}{k:02d}" + ("-longname" if long and k == 0 else "")
+
+    a = np.array([name(first, k) for k in rng.permutation(n)[: n - 2]])
+    b = np.array([name(second, k) for k in rng.permutation(n)[: n - 2]])
+    return StrongPairs.of(a, b, rng.uniform(0.5, 1.0, len(a)))
 
 
-def test_implied_pairs_match_the_plain_join() -> None:
+@pytest.mark.parametrize("long", [False, True])
+def test_implied_pairs_match_the_plain_join(long: bool) -> None:
     rng = np.random.default_rng(2)
     for _ in range(50):
-        xz = _strong(rng, "X", "Z", 12)
-        zy = _strong(rng, "Z", "Y", 12)
+        xz = _strong(rng, "X", "Z", 12, long)
+        zy = _strong(rng, "Z", "Y", 12, long)
         for x_first, z_first in ((True, True), (False, True), (True, False)):
             xs, zs = (xz.track_a, xz.track_b) if x_first else (xz.track_b, xz.track_a)
             zs2, ys = (zy.track_a, zy.track_b) if z_first else (zy.track_b, zy.track_a)

@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from service.correlation.pairkeys import KEY_LIMIT, TrackKeys, pair_keys
+from service.correlation.pairkeys import KEY_LIMIT, TrackKeys, comparable, id_codes, pair_keys
 from service.correlation.pairs import PairBook, PairBookParams
 from tests.reference_forms import track_keys_reference
 
@@ -86,3 +86,30 @@ def _run(book: PairBook, steps: list[list[tuple[str, str]]], by_key: bool) -> li
 def test_a_book_on_keys_publishes_what_it_would_on_ids(steps: list[list[tuple[str, str]]]) -> None:
     params = PairBookParams(window=4, confirm_hits=2, drop_misses=2)
     assert _run(PairBook(params), steps, by_key=True) == _run(PairBook(params), steps, by_key=False)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.lists(st.text(alphabet=st.characters(max_codepoint=0x1FF), max_size=10), min_size=1, max_size=30),
+    st.lists(st.text(alphabet=st.characters(max_codepoint=0x1FF), max_size=10), max_size=10),
+)
+def test_id_codes_sort_search_and_compare_as_the_ids(ids: list[str], query: list[str]) -> None:
+    """Integer codes of track ids: every sort, search and comparison as on the ids (numpy's
+    string order); none for an id of more than 8 characters or one beyond U+00FF."""
+    a, q = np.array(ids, dtype=str), np.array(query, dtype=str)
+    fits = all(len(x.rstrip("\x00")) <= 8 and all(ord(c) <= 0xFF for c in x) for x in ids)
+    codes = id_codes(a)
+    assert (codes is not None) == fits
+    if codes is None:
+        assert comparable(a, q)[0] is a
+        return
+    ca, cq = comparable(a, q)
+    if cq is q:  # (the query has no codes: both stay ids)
+        assert ca is a
+        return
+    assert ca.dtype == np.uint64 and cq.dtype == np.uint64
+    assert np.array_equal(np.argsort(a, kind="stable"), np.argsort(ca, kind="stable"))
+    s, cs = np.sort(a), np.sort(ca)
+    assert np.array_equal(np.searchsorted(s, q), np.searchsorted(cs, cq))
+    assert np.array_equal(np.searchsorted(s, q, side="right"), np.searchsorted(cs, cq, side="right"))
+    assert np.array_equal(a[:, None] == q[None, :], ca[:, None] == cq[None, :])
