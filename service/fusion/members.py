@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from service.columns import concat_rows
-from service.correlation.pairkeys import comparable, find
+from service.correlation.pairkeys import find, id_codes
 from service.correlation.pairs import PairBook
 from service.correlation.prediction import PredictionParams, predict_tracks
 from service.correlation.registration import BiasSolution, compensate
@@ -85,21 +85,24 @@ def members_and_links(
     members = _concat(parts)
     # Each source's members are contiguous and in track id order (its table's order): a book's
     # tracks are looked up within their source's block alone.
-    blocks: dict[str, tuple[int, np.ndarray, np.ndarray]] = {}
+    # (their ids searched as integer codes where they have them, :func:`id_codes`)
+    blocks: dict[str, tuple[int, np.ndarray, np.ndarray | None, np.ndarray]] = {}
     start = 0
     for part in parts:
         if len(part.source):
             ids = part.track_id
             order = np.arange(len(ids)) if bool(np.all(ids[1:] >= ids[:-1])) else np.argsort(ids)
-            blocks[str(part.source[0])] = (start, ids[order], order)
+            blocks[str(part.source[0])] = (start, ids[order], id_codes(ids[order]), order)
         start += len(part.source)
 
     def rows(source: str, query: np.ndarray) -> np.ndarray:
         block = blocks.get(source)
         if block is None or not len(query):
             return np.full(query.shape[0], -1, dtype=np.int64)
-        offset, ids, order = block
-        ids, query = comparable(ids, query)
+        offset, ids, codes, order = block
+        query_codes = id_codes(query) if codes is not None else None
+        if codes is not None and query_codes is not None:
+            ids, query = codes, query_codes
         at = np.minimum(np.searchsorted(ids, query), ids.shape[0] - 1)
         return np.where(ids[at] == query, offset + order[at], -1)
 
