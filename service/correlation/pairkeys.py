@@ -117,7 +117,8 @@ def comparable(*columns: NDArray[Any]) -> tuple[NDArray[Any], ...]:
 
 def find(keys: NDArray[Any], query: NDArray[Any]) -> NDArray[np.intp]:
     """Index of each ``query`` key in ``keys`` (unique), -1 where absent (one search, after one
-    sort unless ``keys`` is sorted already, as a track table's ids are)."""
+    sort unless ``keys`` is sorted already, as a track table's ids are; ids searched as their
+    integer codes where they have them, :func:`comparable`)."""
     if len(keys) == 0 or len(query) == 0:
         return np.full(len(query), -1, dtype=np.intp)
     if np.asarray(keys).dtype.kind == "U":
@@ -145,7 +146,7 @@ def ascending(y: NDArray[Any]) -> NDArray[Any]:
 def isin_sorted(x: NDArray[Any], y: NDArray[Any]) -> NDArray[np.bool_]:
     """``np.isin(x, y)`` for keys or ids by one sort of ``y`` (none when it is sorted already)
     and a binary search (``np.isin`` sorts both sides and their union; this is the books' most
-    frequent operation)."""
+    frequent operation; ids as their integer codes where they have them, :func:`comparable`)."""
     x, y = np.asarray(x), np.asarray(y)
     if x.shape[0] == 0 or y.shape[0] == 0:
         return np.zeros(x.shape[0], dtype=bool)
