@@ -26,6 +26,7 @@ import numpy as np
 
 from service.correlation.pairkeys import isin_sorted
 from service.pipeline.read_model import PairSetView, SystemTrackView, track_batch
+from service.pipeline.track_payloads import TrackBatchEncoder
 from service.tracking.base import TrackTable
 from service.wire.keys import Keys
 from service.wire.outgoing import Outgoing
@@ -46,6 +47,8 @@ class Publication:
         self._ids: dict[str, np.ndarray] = {}
         #: The data time of each radar's latest table that lost tracks.
         self._lost_s: dict[str, float] = {}
+        #: ``TrackBatch`` payloads, each row encoded once while it does not change.
+        self.track_payloads = TrackBatchEncoder()
 
     def tracks(self, radar_id: str, time_s: float, table: TrackTable, own: bool) -> list[Outgoing]:
         """A radar's new tracks (rows in id order, :meth:`TrackTable.by_id`): the pair sets and
@@ -53,7 +56,13 @@ class Publication:
         ``TrackBatch``."""
         out = self._held_to(radar_id, time_s, table)
         if own:
-            out.append(Outgoing(self.keys.tracks(radar_id), lambda: track_batch(radar_id, time_s, table)))
+            out.append(
+                Outgoing(
+                    self.keys.tracks(radar_id),
+                    lambda: track_batch(radar_id, time_s, table),
+                    lambda: self.track_payloads.encode(radar_id, time_s, table),
+                )
+            )
         return out
 
     def _held_to(self, radar_id: str, time_s: float, table: TrackTable) -> list[Outgoing]:
@@ -108,6 +117,7 @@ class Publication:
         self._ids.pop(source_id, None)
         self.tables.pop(source_id, None)
         self._lost_s.pop(source_id, None)
+        self.track_payloads.forget(source_id)
         for key in [k for k in self.views if source_id in k]:
             del self.views[key]
         if self.system is not None:

@@ -32,8 +32,13 @@ def track_batch(radar_id: str, time_s: float, tracks: TrackTable, status: str = 
         tracks = tracks.take(tracks.confirmed)
     elif status == "tentative":
         tracks = tracks.take(~tracks.confirmed)
+    return {"radar_id": radar_id, "time_s": time_s, "tracks": track_rows(track_columns(tracks))}
+
+
+def track_columns(tracks: TrackTable) -> dict[str, np.ndarray]:
+    """The columns of a ``TrackBatch``'s tracks (:func:`~service.wire.outputs.track_rows`)."""
     lat, lon, alt = ecef_to_geodetic(tracks.position_ecef_m)
-    columns = {
+    return {
         "track_id": tracks.track_id,
         "confirmed": tracks.confirmed,
         "time_s": tracks.time_s,
@@ -48,7 +53,6 @@ def track_batch(radar_id: str, time_s: float, tracks: TrackTable, status: str = 
         "mode_s": tracks.mode_s,
         "quality": tracks.quality,
     }
-    return {"radar_id": radar_id, "time_s": time_s, "tracks": track_rows(columns)}
 
 
 @dataclass(frozen=True)

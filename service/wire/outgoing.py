@@ -15,14 +15,17 @@ class Outgoing:
     A transport with nobody listening on ``key`` never reads it, so unread outputs cost nothing.
     """
 
-    def __init__(self, key: str, body: Callable[[], Any]) -> None:
+    def __init__(self, key: str, body: Callable[[], Any], encoded: Callable[[], bytes] | None = None) -> None:
         self.key = key
         #: The payload as a JSON-ready object, built when called.
         self.body = body
+        #: The payload's bytes, when they are built another way than by encoding ``body`` (the
+        #: same bytes, sooner: :mod:`service.pipeline.track_payloads`).
+        self._encoded = encoded
 
     @cached_property
     def payload(self) -> bytes:
-        return encode(self.body())
+        return self._encoded() if self._encoded is not None else encode(self.body())
 
     def __eq__(self, other: object) -> bool:
         return isinstance(other, Outgoing) and (self.key, self.payload) == (other.key, other.payload)
