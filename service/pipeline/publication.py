@@ -25,8 +25,8 @@ from __future__ import annotations
 import numpy as np
 
 from service.correlation.pairkeys import isin_sorted
+from service.pipeline.payload_rows import PairPayloads, TrackPayloads
 from service.pipeline.read_model import PairSetView, SystemTrackView, track_batch
-from service.pipeline.track_payloads import TrackBatchEncoder
 from service.tracking.base import TrackTable
 from service.wire.keys import Keys
 from service.wire.outgoing import Outgoing
@@ -47,8 +47,9 @@ class Publication:
         self._ids: dict[str, np.ndarray] = {}
         #: The data time of each radar's latest table that lost tracks.
         self._lost_s: dict[str, float] = {}
-        #: ``TrackBatch`` payloads, each row encoded once while it does not change.
-        self.track_payloads = TrackBatchEncoder()
+        #: ``TrackBatch`` and ``PairSet`` payloads, each row encoded once while it does not change.
+        self.track_payloads = TrackPayloads()
+        self.pair_payloads = PairPayloads()
 
     def tracks(self, radar_id: str, time_s: float, table: TrackTable, own: bool) -> list[Outgoing]:
         """A radar's new tracks (rows in id order, :meth:`TrackTable.by_id`): the pair sets and
@@ -60,7 +61,7 @@ class Publication:
                 Outgoing(
                     self.keys.tracks(radar_id),
                     lambda: track_batch(radar_id, time_s, table),
-                    lambda: self.track_payloads.encode(radar_id, time_s, table),
+                    lambda: self.track_payloads.batch(radar_id, time_s, table),
                 )
             )
         return out
@@ -84,7 +85,7 @@ class Publication:
                 held = view.without(key.index(radar_id), gone)
                 if held is not view:
                     self.views[key] = held
-                    out.append(Outgoing(self.keys.pairs(*key), held.body))
+                    out.append(self._pairs_out(key, held))
         if self.system is not None:
             held_system = self.system.without(radar_id, gone)
             if held_system is not self.system:
@@ -98,7 +99,10 @@ class Publication:
             if self._lost_s.get(source, -np.inf) > view.time_s:
                 view = view.held(side, self._ids[source])
         self.views[key] = view
-        return Outgoing(self.keys.pairs(*key), view.body)
+        return self._pairs_out(key, view)
+
+    def _pairs_out(self, key: Key, view: PairSetView) -> Outgoing:
+        return Outgoing(self.keys.pairs(*key), view.body, lambda: self.pair_payloads.pair_set(view))
 
     def system_tracks(self, view: SystemTrackView) -> Outgoing:
         """System tracks the correlation rebuilt, held to the tables as they are now."""
@@ -120,6 +124,7 @@ class Publication:
         self.track_payloads.forget(source_id)
         for key in [k for k in self.views if source_id in k]:
             del self.views[key]
+            self.pair_payloads.forget(key)
         if self.system is not None:
             held = self.system.held(source_id, np.empty(0, dtype=str))
             if held is not self.system:
