@@ -20,7 +20,7 @@ class Outgoing:
         #: The payload as a JSON-ready object, built when called.
         self.body = body
         #: The payload's bytes, when they are built another way than by encoding ``body`` (the
-        #: same bytes, sooner: :mod:`service.pipeline.track_payloads`).
+        #: same bytes, sooner: :mod:`service.pipeline.payload_rows`).
         self._encoded = encoded
 
     @cached_property
