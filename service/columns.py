@@ -37,3 +37,13 @@ def concat_rows(cls: type[T], parts: Sequence[T], **given: Any) -> T:
     names = column_names(cls)  # type: ignore[arg-type]  # (a class is hashable)
     cols = {n: np.concatenate([getattr(p, n) for p in parts]) for n in names if n not in given}
     return cls(**cols, **given)
+
+
+def row_bits(columns: Sequence[tuple[Any, int]]) -> np.ndarray:
+    """Float columns, each ``(values, width)`` with ``width`` values a row, as the 64-bit
+    patterns of their values side by side, one row per table row: rows compared by these are
+    equal exactly when every value is the same bit for bit (a NaN equals the same NaN, ``-0.0``
+    differs from ``0.0``)."""
+    n = len(columns[0][0]) if columns else 0
+    parts = [np.asarray(values, dtype=np.float64).reshape(n, width) for values, width in columns]
+    return np.ascontiguousarray(np.concatenate(parts, axis=1)).view(np.int64)

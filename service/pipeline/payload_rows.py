@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from service.columns import row_bits
 from service.correlation.pairkeys import find, pair_keys
 from service.pipeline.read_model import PairSetView, track_columns
 from service.tracking.base import TrackTable
@@ -63,7 +64,7 @@ class PayloadRows:
     def encode(self, source: Hashable, head: dict[str, Any], ids: np.ndarray, cols: Columns) -> bytes:
         """``encode(head)`` with its last field, an empty list, holding the rows of ``cols``
         (``ids``: each row's identity, unique): the bytes of encoding it whole."""
-        bits = self._bits(cols, len(ids))
+        bits = row_bits([(cols[k], width) for k, width in self.numbers])
         values = {k: np.asarray(cols[k]) for k in self.values}
         rows = np.empty(len(ids), dtype=object)  # each row's bytes
         with self._lock:
@@ -95,11 +96,6 @@ class PayloadRows:
         """A source that left: its last payload is no base any more."""
         with self._lock:
             self._last.pop(source, None)
-
-    def _bits(self, cols: Columns, n: int) -> np.ndarray:
-        """Each row's published numbers as 64-bit patterns."""
-        parts = [np.asarray(cols[k], dtype=np.float64).reshape(n, width) for k, width in self.numbers]
-        return np.ascontiguousarray(np.concatenate(parts, axis=1)).view(np.int64)
 
 
 class TrackPayloads(PayloadRows):
@@ -136,6 +132,6 @@ class PairPayloads(PayloadRows):
             "radar_b": view.radar_b,
             "time_s": view.time_s,
             "method": view.method,
+            "pairs": [],
         }
-        ids = pair_keys(c["track_a"], c["track_b"])
-        return self.encode((view.radar_a, view.radar_b), {**head, "pairs": []}, ids, c)
+        return self.encode((view.radar_a, view.radar_b), head, pair_keys(c["track_a"], c["track_b"]), c)

@@ -29,6 +29,7 @@ import numpy as np
 import orjson
 from numpy.typing import NDArray
 
+from service.columns import row_bits
 from service.correlation.pairkeys import isin_sorted
 from service.pipeline.errors import RejectionError
 from service.tracking.base import TrackTable
@@ -81,9 +82,8 @@ def changed_rows(old: TrackTable, new: TrackTable) -> tuple[np.ndarray, np.ndarr
     known = old.track_id[pos] == new.track_id
     same = known & (old.confirmed[pos] == new.confirmed)
     same &= old.plots[pos] == new.plots
-    for name, width in _FLOATS:
-        before = _bits(getattr(old, name), width)[pos]
-        same &= np.all(before == _bits(getattr(new, name), width), axis=1)
+    before = row_bits([(getattr(old, name), width) for name, width in _FLOATS])[pos]
+    same &= np.all(before == row_bits([(getattr(new, name), width) for name, width in _FLOATS]), axis=1)
     for name in LABELS:
         same &= getattr(old, name)[pos] == getattr(new, name)
     kept = np.zeros(len(old), dtype=bool)
@@ -99,12 +99,6 @@ _FLOATS = (
     ("covariance", 36),
     ("quality", 1),
 )
-
-
-def _bits(column: np.ndarray, width: int) -> NDArray[np.int64]:
-    """A float column's values as their 64-bit patterns, one row of ``width`` per track."""
-    values = np.ascontiguousarray(column, dtype=np.float64)
-    return values.reshape(values.shape[0], width).view(np.int64)
 
 
 def states_body(
