@@ -79,6 +79,11 @@ PREFIX = "fusion"
 #: holds more than PACE_DEPTH (half the default queue).
 PACE_EVERY = 256
 PACE_DEPTH = 2048
+#: How often the benchmark asks the workers' /status while it waits (s).  Every call costs the
+#: worker a status build (about a millisecond on the national network), which counts in its
+#: CPU: ten a second from the first worker's status, all through a run, would be a cost no
+#: deployment has.
+POLL_S = 0.5
 TICK = os.sysconf("SC_CLK_TCK")
 
 
@@ -96,7 +101,7 @@ def wait(predicate: Any, timeout_s: float, what: str) -> None:
                 return
         except (httpx.HTTPError, KeyError, ValueError):
             pass
-        time.sleep(0.1)
+        time.sleep(POLL_S)
     raise SystemExit(f"timed out waiting for {what}")
 
 
@@ -379,7 +384,7 @@ def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argpar
                 # a worker's queue drops what does not fit (its capacity, 4 096 samples): keep
                 # every worker's backlog under half of it, so that nothing is lost
                 while max(w.get("/status")["queue"]["depth"] for w in workers) > PACE_DEPTH:
-                    time.sleep(0.05)
+                    time.sleep(POLL_S)
             if time.monotonic() - progress > 10:
                 progress = time.monotonic()
                 print(f"#   published {i}/{len(stream)}", file=sys.stderr, flush=True)
