@@ -20,6 +20,10 @@ def test_the_quantiles_are_scipy_stats_numbers() -> None:
             assert chi2_upper(alpha, k) == chi2.ppf(1.0 - alpha, k)
     # broadcast over degrees of freedom, as the gates use them
     assert np.array_equal(chi2_upper(0.01, dof), chi2.ppf(0.99, dof))
+    # a number's quantile is looked up once; each call still hands out an array of its own
+    first = chi2_upper(0.01, 3)
+    first[...] = -1.0
+    assert chi2_upper(0.01, 3) == chi2.ppf(0.99, 3) == chi2_upper(0.01, 3.0)
 
 
 def test_a_service_process_does_not_import_scipy_stats() -> None:

@@ -78,7 +78,7 @@ from service.correlation.evidence import EvidenceBook, EvidenceParams, posterior
 from service.correlation.external import CfarCorrelator, GmmCorrelator
 from service.correlation.gmm import GmmParams
 from service.correlation.group_offset import GroupOffsetParams, group_residuals
-from service.correlation.linalg import inv3, quad3
+from service.correlation.linalg import mahalanobis3
 from service.correlation.nearest import NearestCorrelator, NearestParams
 from service.correlation.pairkeys import TrackKeys, comparable, find, isin_sorted, pair_keys
 from service.correlation.pairs import PairBook, PairBookParams, PairState
@@ -774,8 +774,7 @@ class PairCorrelator:
         self.evidence.observe(
             time_s, a.keys[dec.index_a[rows]], b.keys[dec.index_b[rows]], r, s_noise, s_common
         )
-        s_inv, good = inv3(s_noise + s_common)
-        q = quad3(r, s_inv)
+        q, good = mahalanobis3(r, s_noise + s_common)
         undecided = np.isin(dec.reason[rows], NO_DECISION_REASONS) & good
         sub = rows[undecided]
         q = q[undecided]

@@ -67,7 +67,7 @@ from numpy.typing import NDArray
 from service.chi2 import chi2_upper
 from service.correlation.base import FloatArray, IntArray, PredictedTracks
 from service.correlation.candidates import candidate_pairs
-from service.correlation.linalg import congruence, inv3, quad3
+from service.correlation.linalg import congruence, mahalanobis3
 from service.correlation.pairkeys import find, isin_sorted, joined, pair_keys
 
 
@@ -136,8 +136,8 @@ def registered_residuals(
     r = (a.position[ia] - b.position[ib]) @ rot
     s_noise = congruence(rot.T, a.pos_cov[ia] + b.pos_cov[ib])
     s_common = congruence(rot.T, extra_a[ia] + extra_b[ib])
-    s_inv, ok = inv3(s_noise + s_common)
-    keep = ok & (quad3(r, s_inv) <= params.registered_gate_chi2)
+    q, ok = mahalanobis3(r, s_noise + s_common)
+    keep = ok & (q <= params.registered_gate_chi2)
     return ia[keep], ib[keep], r[keep], s_noise[keep], s_common[keep]
 
 
@@ -164,8 +164,8 @@ def accumulated_chi2(rbar: FloatArray, sbar: FloatArray, n_eff: FloatArray, comm
     """``q = rbar^T (Sbar / n + C)^-1 rbar`` per entry (NaN where the covariance is singular)."""
     if len(rbar) == 0:
         return np.empty(0)
-    s_inv, ok = inv3(sbar / n_eff[:, None, None] + common)
-    return np.where(ok, quad3(rbar, s_inv), np.nan)
+    q, ok = mahalanobis3(rbar, sbar / n_eff[:, None, None] + common)
+    return np.where(ok, q, np.nan)
 
 
 class EvidenceBook:

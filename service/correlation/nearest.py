@@ -26,7 +26,7 @@ from service.correlation.base import (
     Reason,
 )
 from service.correlation.candidates import CandidateParams, candidate_pairs
-from service.correlation.linalg import inv3, quad3
+from service.correlation.linalg import mahalanobis3
 
 
 @dataclass(frozen=True)
@@ -55,10 +55,9 @@ def chi2_pairs(
         s = s + extra_cov_a[ia]
     if extra_cov_b is not None:
         s = s + extra_cov_b[ib]
-    s_inv, ok = inv3(s)
-    dv = a.velocity[ia] - b.velocity[ib]
-    sv_inv, ok_v = inv3(a.vel_cov[ia] + b.vel_cov[ib])
-    return quad3(d, s_inv), np.where(ok_v, quad3(dv, sv_inv), 0.0), ok
+    q_pos, ok = mahalanobis3(d, s)
+    q_vel, _ = mahalanobis3(a.velocity[ia] - b.velocity[ib], a.vel_cov[ia] + b.vel_cov[ib])
+    return q_pos, q_vel, ok
 
 
 def nearest_decide(

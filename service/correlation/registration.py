@@ -1026,7 +1026,7 @@ def _columns(m: RegistrationMemory, col: dict[str, int]) -> NDArray[np.intp]:
     nt = N_TERMS
     ka = nt * col[m.site_a.site_id]
     kb = nt * col[m.site_b.site_id] if m.site_b is not None else ka
-    return np.r_[ka : ka + nt, kb : kb + nt].astype(np.intp)
+    return np.concatenate([np.arange(ka, ka + nt), np.arange(kb, kb + nt)]).astype(np.intp)
 
 
 def _cluster_labels(data: list[tuple[RegistrationMemory, np.ndarray, dict[str, np.ndarray]]]) -> None:

@@ -82,7 +82,7 @@ from service.correlation.linalg import (
     congruence,
     inv3,
     mahalanobis2_h,
-    quad3,
+    mahalanobis3,
     quad3_large,
     yaw_congruence,
 )
@@ -425,9 +425,8 @@ def svd_match(
     # topology vectors, so t is the A reference predicted from the neighbours minus the B
     # reference; its covariance is the references' own noise plus the fit's (GLS block).
     s_0 = (c**2)[:, None, None] * rm @ ca_r[:, 0] @ np.swapaxes(rm, 1, 2) + cb[:, 0]
-    s_ref_inv, ref_ok = inv3(s_0 + cov_t)
     t = np.where(np.isfinite(t_fit), t_fit, 0.0)
-    chi2_ref = quad3(t, s_ref_inv)
+    chi2_ref, ref_ok = mahalanobis3(t, s_0 + cov_t)
     dof_ref = np.full(len(m), 3, dtype=np.int64)
     chi2_vel = np.zeros(len(m))
     vel_ok = np.ones(len(m), dtype=bool)
@@ -436,8 +435,7 @@ def svd_match(
         va_r = va if no_rot else va @ rot0.T
         cva_r = cva if no_rot else congruence(rot0, cva)
         rv = vb - c[:, None] * (rm @ va_r[..., None])[..., 0]
-        sv_inv, sv_ok = inv3((c**2)[:, None, None] * rm @ cva_r @ np.swapaxes(rm, 1, 2) + cvb)
-        chi2_vel = np.where(sv_ok, quad3(rv, sv_inv), 0.0)
+        chi2_vel, sv_ok = mahalanobis3(rv, (c**2)[:, None, None] * rm @ cva_r @ np.swapaxes(rm, 1, 2) + cvb)
         vel_ok = chi2_vel <= chi2_upper(prm.alpha_position, 3)
         dof_ref = dof_ref + 3 * sv_ok
     # Section 1.5 on the unknown part of the rotation: M0 of Eq. (3) is known exactly from the

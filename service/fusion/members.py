@@ -106,12 +106,25 @@ def members_and_links(
         at = np.minimum(np.searchsorted(ids, query), ids.shape[0] - 1)
         return np.where(ids[at] == query, offset + order[at], -1)
 
+    # Every link's tracks of one source are searched at once (one search a source, not two a
+    # link: a national picture has 66 links a drawing), then handed back link by link.
+    given = [link for link in links if len(link.track_a)]
+    asked: dict[str, list[np.ndarray]] = {}
+    for link in given:
+        asked.setdefault(link.source_a, []).append(link.track_a)
+        asked.setdefault(link.source_b, []).append(link.track_b)
+    found = {source: rows(source, np.concatenate(parts)) for source, parts in asked.items()}
+    taken = dict.fromkeys(found, 0)
+
+    def next_rows(source: str, n: int) -> np.ndarray:
+        start = taken[source]
+        taken[source] = start + n
+        return found[source][start : start + n]
+
     la, lb, sc = [], [], []
-    for link in links:
-        if not len(link.track_a):
-            continue
-        a = rows(link.source_a, link.track_a)
-        b = rows(link.source_b, link.track_b)
+    for link in given:
+        a = next_rows(link.source_a, len(link.track_a))
+        b = next_rows(link.source_b, len(link.track_b))
         ok = (a >= 0) & (b >= 0)
         la.append(a[ok])
         lb.append(b[ok])

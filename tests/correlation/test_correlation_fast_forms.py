@@ -7,7 +7,15 @@ import pytest
 from scipy.stats import chi2
 
 from service.chi2 import chi2_upper
-from service.correlation.linalg import congruence, inv3, mahalanobis2_h, matvec3, quad3, quad3_large
+from service.correlation.linalg import (
+    congruence,
+    inv3,
+    mahalanobis2_h,
+    mahalanobis3,
+    matvec3,
+    quad3,
+    quad3_large,
+)
 from service.correlation.pairs import _isin
 from service.correlation.svd_topology import svd_match
 from service.correlation.topology import TopologyParams, gather_points, neighbourhoods
@@ -100,6 +108,15 @@ def test_small_linear_algebra_matches_numpy(stack: tuple[int, ...]) -> None:
     np.testing.assert_allclose(matvec3(s, v), (s @ v[..., None])[..., 0], rtol=1e-12)
     good = s[ok]
     np.testing.assert_allclose(quad3_large(v[ok], good), quad3(v[ok], good), rtol=1e-12)
+    # r^T S^-1 r without the inverse: each row against a plain solve; singular rows 0 with the
+    # flag of inv3
+    q, q_ok = mahalanobis3(v, s)
+    np.testing.assert_array_equal(q_ok, ok)
+    rows_v, rows_s = v.reshape(-1, 3), s.reshape(-1, 3, 3)
+    want_q = np.array(
+        [r @ np.linalg.solve(m, r) if k else 0.0 for r, m, k in zip(rows_v, rows_s, ok.ravel(), strict=True)]
+    )
+    np.testing.assert_allclose(q.ravel(), want_q, rtol=1e-9, atol=1e-12)
     r = rng.normal(size=(3, 3))
     np.testing.assert_allclose(congruence(r, good), r @ good @ r.T, rtol=1e-9, atol=1e-12)
     d = rng.normal(size=(*stack, 2)).reshape(-1, 2)
