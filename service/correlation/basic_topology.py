@@ -41,9 +41,9 @@ from service.correlation.base import (
     Reason,
 )
 from service.correlation.candidates import CandidateParams, candidate_pairs
-from service.correlation.linalg import inv3, quad3
 from service.correlation.topology import TopologyParams, gather_points, neighbourhoods, sort_by_azimuth
 from service.correlation.umeyama import yaw_matrix
+from service.linalg import inv3, quad3
 
 
 @dataclass(frozen=True)

@@ -78,7 +78,6 @@ from service.correlation.evidence import EvidenceBook, EvidenceParams, posterior
 from service.correlation.external import CfarCorrelator, GmmCorrelator
 from service.correlation.gmm import GmmParams
 from service.correlation.group_offset import GroupOffsetParams, group_residuals
-from service.correlation.linalg import mahalanobis3
 from service.correlation.nearest import NearestCorrelator, NearestParams
 from service.correlation.pairkeys import TrackKeys, comparable, find, isin_sorted, pair_keys
 from service.correlation.pairs import PairBook, PairBookParams, PairState
@@ -97,6 +96,7 @@ from service.correlation.registration import (
 from service.correlation.svd_topology import CHI2, DOF, SvdTopologyCorrelator, SvdTopologyParams
 from service.correlation.swap import SwapParams, jumped, rivals, with_rival
 from service.geo import Site
+from service.linalg import mahalanobis3
 from service.tracking.base import TrackTable
 
 _NONE = np.array(None, dtype=object)

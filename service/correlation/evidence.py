@@ -67,8 +67,8 @@ from numpy.typing import NDArray
 from service.chi2 import chi2_upper
 from service.correlation.base import FloatArray, IntArray, PredictedTracks
 from service.correlation.candidates import candidate_pairs
-from service.correlation.linalg import congruence, mahalanobis3
 from service.correlation.pairkeys import find, isin_sorted, joined, pair_keys
+from service.linalg import congruence, mahalanobis3
 
 
 @dataclass(frozen=True)

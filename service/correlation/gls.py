@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.correlation.base import BoolArray, FloatArray
-from service.correlation.linalg import inv3, matvec3, quad3_large
+from service.linalg import inv3, matvec3, quad3_large
 
 #: Parameters: a, b, t_e, t_n, t_u.
 N_PARAMS = 5

@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from service.correlation.base import FloatArray, IntArray, PredictedTracks
-from service.correlation.linalg import congruence
+from service.linalg import congruence
 
 
 @dataclass(frozen=True)

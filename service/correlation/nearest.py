@@ -26,7 +26,7 @@ from service.correlation.base import (
     Reason,
 )
 from service.correlation.candidates import CandidateParams, candidate_pairs
-from service.correlation.linalg import mahalanobis3
+from service.linalg import mahalanobis3
 
 
 @dataclass(frozen=True)

@@ -105,8 +105,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.correlation.base import FloatArray, PredictedTracks
-from service.correlation.linalg import congruence, inv3, quad3
 from service.geo import Site
+from service.linalg import congruence, inv3, quad3
 
 
 @dataclass(frozen=True)

@@ -78,14 +78,6 @@ from service.correlation.base import (
 )
 from service.correlation.candidates import CandidateParams, candidate_pairs
 from service.correlation.gls import similarity_gls_batch
-from service.correlation.linalg import (
-    congruence,
-    inv3,
-    mahalanobis2_h,
-    mahalanobis3,
-    quad3_large,
-    yaw_congruence,
-)
 from service.correlation.nearest import chi2_pairs
 from service.correlation.prompt import clear_of_rivals, companions
 from service.correlation.topology import TopologyParams, gather_points, neighbourhoods
@@ -95,6 +87,14 @@ from service.correlation.umeyama import (
     umeyama_batch,
     yaw_matrix,
     yaw_similarity_batch,
+)
+from service.linalg import (
+    congruence,
+    inv3,
+    mahalanobis2_h,
+    mahalanobis3,
+    quad3_large,
+    yaw_congruence,
 )
 
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.correlation.base import BoolArray, FloatArray
-from service.correlation.linalg import matvec3
+from service.linalg import matvec3
 
 #: Relative singular-value floor under which a cross-covariance is called rank deficient.
 RANK_RTOL = 1e3 * np.finfo(float).eps ** 0.5

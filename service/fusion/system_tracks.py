@@ -47,8 +47,8 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from service.chi2 import chi2_upper
-from service.correlation.linalg import inv3, mahalanobis3
 from service.correlation.pairkeys import SEP  # a member's key: source, SEP, track id
+from service.linalg import inv3, mahalanobis3
 from service.tracking.base import first_number
 
 FloatArray = NDArray[np.float64]

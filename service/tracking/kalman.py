@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from service.geo import FloatArray
+from service.linalg import inv3, mahalanobis3
 
 _I3 = np.eye(3)
 
@@ -62,7 +63,12 @@ def innovation(x: FloatArray, P: FloatArray, z: FloatArray, R: FloatArray) -> tu
 
 
 def mahalanobis2(y: FloatArray, S: FloatArray) -> FloatArray:
-    """``y^T S^-1 y`` for stacks of 3-vectors and 3x3 matrices."""
+    """``y^T S^-1 y`` for stacks of vectors and covariances (NaN where ``S`` is singular or not
+    finite: it passes no gate).  3x3: from the cofactors (:func:`service.linalg.mahalanobis3`;
+    a batched solve pays per matrix, and the gates and the filter ask for thousands a batch)."""
+    if S.shape[-1] == 3:
+        q, ok = mahalanobis3(y, S)
+        return np.where(ok, q, np.nan)
     return np.einsum("ni,ni->n", y, np.linalg.solve(S, y[..., None])[..., 0])
 
 
@@ -71,8 +77,7 @@ def update(
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Kalman update of each state with its plot; returns ``(x+, P+, nis)`` (Joseph form)."""
     y, S = innovation(x, P, z, R)
-    nis = np.einsum("ni,ni->n", y, np.linalg.solve(S, y[..., None])[..., 0])
-    return (*update_innovation(x, P, R, y, S), nis)
+    return (*update_innovation(x, P, R, y, S), mahalanobis2(y, S))
 
 
 def update_state(x: FloatArray, P: FloatArray, z: FloatArray, R: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -87,8 +92,9 @@ def update_innovation(
 ) -> tuple[FloatArray, FloatArray]:
     """The update of :func:`update_state` from the innovation ``y`` and its covariance ``S``
     already at hand (:func:`innovation`)."""
-    # K = P H^T S^-1, computed as (S^-1 H P)^T since S and P are symmetric.
-    K = np.swapaxes(np.linalg.solve(S, P[..., :3, :]), -1, -2)  # (n, 6, 3)
+    # K = P H^T S^-1 with the closed-form inverse of S (a singular S, which a plot's own
+    # covariance R > 0 never gives, leaves the state as it is: K = 0)
+    K = P[..., :, :3] @ inv3(S)[0]  # (n, 6, 3)
     x_new = x + np.einsum("nij,nj->ni", K, y)
     ikh = np.broadcast_to(np.eye(6), P.shape).copy()
     ikh[..., :, :3] -= K

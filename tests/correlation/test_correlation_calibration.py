@@ -12,10 +12,10 @@ from scipy.stats import chi2
 from service.correlation import PairCorrelator
 from service.correlation.basic_topology import _sequence_chi2, basic_match, search_span
 from service.correlation.gls import similarity_gls_batch
-from service.correlation.linalg import congruence, inv3, yaw_congruence
 from service.correlation.registration import RegistrationMemory, RegistrationParams, solve_biases
 from service.correlation.svd_topology import svd_match
 from service.correlation.umeyama import yaw_matrix
+from service.linalg import congruence, inv3, yaw_congruence
 from tests.correlation_support import snapshot_of
 from tests.reference_forms import sequence_chi2_reference, similarity_gls_reference
 from topofusion_lab.evaluation.correlation_scenario import (

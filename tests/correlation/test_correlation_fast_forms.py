@@ -7,8 +7,12 @@ import pytest
 from scipy.stats import chi2
 
 from service.chi2 import chi2_upper
-from service.correlation.linalg import (
+from service.correlation.pairs import _isin
+from service.correlation.svd_topology import svd_match
+from service.correlation.topology import TopologyParams, gather_points, neighbourhoods
+from service.linalg import (
     congruence,
+    det3,
     inv3,
     mahalanobis2_h,
     mahalanobis3,
@@ -16,9 +20,6 @@ from service.correlation.linalg import (
     quad3,
     quad3_large,
 )
-from service.correlation.pairs import _isin
-from service.correlation.svd_topology import svd_match
-from service.correlation.topology import TopologyParams, gather_points, neighbourhoods
 from tests.reference_forms import brute_force_neighbours
 from topofusion_lab.evaluation.correlation_scenario import Biases, make_sites, single_match_batch
 
@@ -117,6 +118,7 @@ def test_small_linear_algebra_matches_numpy(stack: tuple[int, ...]) -> None:
         [r @ np.linalg.solve(m, r) if k else 0.0 for r, m, k in zip(rows_v, rows_s, ok.ravel(), strict=True)]
     )
     np.testing.assert_allclose(q.ravel(), want_q, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(det3(good), np.linalg.det(good), rtol=1e-9, atol=1e-12)
     r = rng.normal(size=(3, 3))
     np.testing.assert_allclose(congruence(r, good), r @ good @ r.T, rtol=1e-9, atol=1e-12)
     d = rng.normal(size=(*stack, 2)).reshape(-1, 2)

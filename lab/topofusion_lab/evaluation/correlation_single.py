@@ -20,9 +20,9 @@ from scipy.stats import chi2
 
 from service.correlation.assignment import assign_unambiguous
 from service.correlation.basic_topology import BasicTopologyParams, basic_match, search_span
-from service.correlation.linalg import inv3, quad3
 from service.correlation.svd_topology import SvdTopologyParams, svd_match
 from service.geo import Site
+from service.linalg import inv3, quad3
 from topofusion_lab.evaluation.correlation_scenario import (
     Biases,
     MatchBatch,

@@ -1,11 +1,13 @@
 """Small batched linear algebra that never raises (closed-form 2x2 / 3x3 inverses with a rank
-flag)."""
+flag), for the trackers, the correlation and the fusion alike."""
 
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import NDArray
 
-from service.correlation.base import BoolArray, FloatArray
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
 
 #: A covariance whose determinant is below this fraction of (trace/d)^d is called singular.
 SINGULAR_RTOL = 1e-10
@@ -99,6 +101,14 @@ def quad3(r: FloatArray, s_inv: FloatArray) -> FloatArray:
 def quad3_large(r: FloatArray, s_inv: FloatArray) -> FloatArray:
     """:func:`quad3` through :func:`matvec3`: fewer passes over a large stack, more calls."""
     return (r * matvec3(s_inv, r)).sum(-1)
+
+
+def det3(s: FloatArray) -> FloatArray:
+    """The determinant of each of a stack of 3x3 matrices ``(..., 3, 3)``, written out."""
+    a, b, c = s[..., 0, 0], s[..., 0, 1], s[..., 0, 2]
+    d, e, f = s[..., 1, 0], s[..., 1, 1], s[..., 1, 2]
+    g, h, i = s[..., 2, 0], s[..., 2, 1], s[..., 2, 2]
+    return np.asarray(a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g))
 
 
 def mahalanobis3(r: FloatArray, s: FloatArray) -> tuple[FloatArray, BoolArray]:
