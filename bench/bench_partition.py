@@ -3,8 +3,10 @@
 
 Prints figures, never asserts.  Each run starts a Zenoh router (a router-mode session in this
 process, on a free loopback port, multicast scouting off) and ``N`` workers as the operator
-runs them (``topofusion run --partition K/N`` subprocesses, clients of the router, each with
-its correlation process unless ``--one-process``), announces the sites, then publishes the
+runs them (``topofusion run --partition K/N`` subprocesses, clients of the router, as the
+service's default runs them: one worker with its correlation process, a partitioned worker in
+one process; ``--one-process`` or ``--correlation-process`` gives every worker the one form),
+announces the sites, then publishes the
 stream as fast as the workers take it (``CongestionControl.BLOCK``, as a replay at
 ``--speed 0``, and waiting while a worker's queue is half full, so that none drops a
 message).  A client subscribed to ``{prefix}/pairs/**`` stamps every PairSet it receives.
@@ -35,7 +37,8 @@ message by message (:func:`in_process`): the division of the engines' own work, 
 of the machine's speed between runs cannot move.
 
 Run: .venv/bin/python bench/bench_partition.py [--duration 300] [--seed 1] [--scenario national]
-     [--workers 1,2] [--repeat 1] [--one-process] [--balance] [--pace X] [--traffic] [--in-process]
+     [--workers 1,2] [--repeat 1] [--one-process | --correlation-process] [--balance] [--pace X]
+     [--traffic] [--in-process]
      [--cache FILE] [--compare] [--logs DIR]
 """
 
@@ -152,8 +155,13 @@ class Worker:
         return [cpu_s(p) - self.cpu0.get(p, 0.0) for p in tree(self.proc.pid)]
 
 
+def process_setting(args: argparse.Namespace) -> bool | None:
+    """``TOPOFUSION_CORRELATION_PROCESS`` for every worker (None: the service's default)."""
+    return True if args.correlation_process else False if args.one_process else None
+
+
 def start_workers(
-    n: int, endpoint: str, one_process: bool, log_dir: Path | None = None, salt: int = 0
+    n: int, endpoint: str, process: bool | None, log_dir: Path | None = None, salt: int = 0
 ) -> list[Worker]:
     workers = []
     for k in range(1, n + 1):
@@ -167,8 +175,9 @@ def start_workers(
             TOPOFUSION_HTTP_PORT=str(port),
             TOPOFUSION_PREFIX=PREFIX,
             TOPOFUSION_LOG_LEVEL="WARNING",
-            TOPOFUSION_CORRELATION_PROCESS="false" if one_process else "true",
         )
+        if process is not None:  # (None: the service's default)
+            env["TOPOFUSION_CORRELATION_PROCESS"] = "true" if process else "false"
         # --logs DIR keeps each worker's log (e.g. "worker 2/2 left" when a session flaps)
         log_path = Path(log_dir) / f"worker-{k}-of-{n}.log" if log_dir else Path(os.devnull)
         with log_path.open("w") as log:
@@ -314,7 +323,7 @@ def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argpar
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(ZenohOptions(mode="router", listen=(endpoint,)))
     salt = balanced(n, stream) if args.balance and n > 1 else 0
-    workers = start_workers(n, endpoint, args.one_process, args.logs, salt)
+    workers = start_workers(n, endpoint, process_setting(args), args.logs, salt)
     client = open_session(ZenohOptions(mode="client", connect=(endpoint,)))
     last_pairs = [0.0, 0]
     lock = threading.Lock()
@@ -570,7 +579,11 @@ def main() -> None:
     )
     p.add_argument("--workers", default="1,2", help="worker counts, side by side (default 1,2)")
     p.add_argument("--repeat", type=int, default=1)
-    p.add_argument("--one-process", action="store_true", help="workers without their correlation process")
+    form = p.add_mutually_exclusive_group()
+    form.add_argument("--one-process", action="store_true", help="every worker without a correlation process")
+    form.add_argument(
+        "--correlation-process", action="store_true", help="every worker with its correlation process"
+    )
     p.add_argument(
         "--balance",
         action="store_true",
@@ -601,7 +614,12 @@ def main() -> None:
     how = (
         "engines in this process"
         if args.in_process
-        else f"workers {'without' if args.one_process else 'with'} their correlation process"
+        else {
+            None: "one worker with its correlation process, partitioned workers in one process each "
+            "(the service's default)",
+            True: "every worker with its correlation process",
+            False: "every worker in one process",
+        }[process_setting(args)]
     )
     print(
         f"# {args.scenario} scenario, {args.duration:g} s of data (seed {args.seed}): "

@@ -205,7 +205,9 @@ class Settings(BaseSettings):
     config: Path | None = None
     #: Run the correlation stage in its own process, so that tracking and correlation use two
     #: cores (same results; ``false``: one process, e.g. where processes cannot be started).
-    correlation_process: bool = True
+    #: Unset: a worker of the whole network does, a partitioned worker does not
+    #: (:attr:`two_processes`).
+    correlation_process: bool | None = None
     #: Partitioned: a worker whose Zenoh liveliness token left is still waited for this long
     #: (s, wall clock) before the others correlate without its radars: a session that loses
     #: its router for a moment (a lease missed under load) must not reorder anything.
@@ -349,6 +351,17 @@ class Settings(BaseSettings):
         data = merge(self._engine_tree, given)
         return engine_config_from(data)
 
+    @property
+    def two_processes(self) -> bool:
+        """Whether the correlation stage runs in its own process: as set, else for a worker of
+        the whole network only.  Partitioned, the workers are the parallelism: a worker in one
+        process spends none of its CPU on the pipe to a second one (every radar's table down,
+        the answers up: a tenth of its main process, docs/scale-out.md), and a pod of the
+        partitioned deployment is given one core."""
+        if self.correlation_process is not None:
+            return self.correlation_process
+        return bool(self.engine.partition.whole)
+
     def effective(self) -> dict[str, Any]:
         """The whole effective configuration as plain data (``topofusion config --show``):
         every setting but ``config``, then the engine's tree; a setting that is an engine
@@ -361,6 +374,7 @@ class Settings(BaseSettings):
         for name, value in self.model_dump(mode="json", exclude={"config"}).items():
             key = _engine_key(type(self).model_fields[name])
             out[name] = _at(engine, key.path) if key is not None else value
+        out["correlation_process"] = self.two_processes  # (unset: as this worker runs)
         out.update((k, v) for k, v in engine.items() if k not in out)
         return out
 

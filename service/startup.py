@@ -42,7 +42,7 @@ def start_engine(settings: Settings) -> tuple[Engine, StateKeeper | None]:
     try:
         if state is not None:
             state.prepare()  # before the engine (and its correlation process) starts
-        return build_engine(settings.engine, settings.correlation_process, state), state
+        return build_engine(settings.engine, settings.two_processes, state), state
     except OSError as exc:  # the state directory (the only file the engine's start opens)
         if settings.state_dir is None:
             raise

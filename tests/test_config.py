@@ -287,3 +287,21 @@ def test_healthcheck_says_unhealthy_not_usage_error_on_a_bad_setting(tmp_path: P
         )
         assert run.returncode == 1, (bad, run.stderr)
         assert "healthcheck:" in run.stderr
+
+
+def test_a_partitioned_worker_runs_its_correlation_in_its_own_process_only_when_told(
+    clean_env: pytest.MonkeyPatch,
+) -> None:
+    """Unset, the correlation process is a whole-network worker's (two cores for one worker)
+    and not a partitioned worker's (the workers are the parallelism); set, it is as set; and
+    the effective configuration says which."""
+    assert Settings.load().two_processes
+    assert not Settings.load(overrides={"partition": "2/3"}).two_processes
+    clean_env.setenv("TOPOFUSION_PARTITION", "1/2")
+    assert not Settings.load().two_processes
+    clean_env.setenv("TOPOFUSION_CORRELATION_PROCESS", "true")
+    partitioned = Settings.load()
+    assert partitioned.two_processes and partitioned.effective()["correlation_process"] is True
+    clean_env.delenv("TOPOFUSION_PARTITION")
+    clean_env.setenv("TOPOFUSION_CORRELATION_PROCESS", "false")
+    assert Settings.load().effective()["correlation_process"] is False
