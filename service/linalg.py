@@ -15,6 +15,13 @@ SINGULAR_RTOL = 1e-10
 _SMALL_STACK = 256
 
 
+def _invertible(det: FloatArray, a: FloatArray, e: FloatArray, i: FloatArray) -> BoolArray:
+    """The non-singular flag of 3x3 matrices from their determinant and diagonal: finite, and a
+    determinant above :data:`SINGULAR_RTOL` of ``(trace / 3)^3``."""
+    scale = np.abs(a + e + i) / 3.0
+    return np.asarray(np.isfinite(det) & (det > SINGULAR_RTOL * scale**3) & (scale > 0))
+
+
 def inv3(s: FloatArray) -> tuple[FloatArray, BoolArray]:
     """Inverse of a stack of 3x3 matrices ``(..., 3, 3)`` and a flag ``ok`` (non-singular, finite).
 
@@ -42,8 +49,7 @@ def inv3(s: FloatArray) -> tuple[FloatArray, BoolArray]:
         co[..., 2, 1] = -(a * h - b * g)
         co[..., 2, 2] = a * e - b * d
         det0 = a * co[..., 0, 0] + b * co[..., 1, 0] + c * co[..., 2, 0]
-        scale0 = np.abs(a + e + i) / 3.0
-        ok0 = np.isfinite(det0) & (det0 > SINGULAR_RTOL * scale0**3) & (scale0 > 0)
+        ok0 = _invertible(det0, a, e, i)
         safe = np.where(ok0, det0, 1.0)
         return np.where(ok0[..., None, None], co / safe[..., None, None], 0.0), ok0
     # Many matrices: in place, one scratch buffer (fewer passes over memory).
@@ -70,8 +76,7 @@ def inv3(s: FloatArray) -> tuple[FloatArray, BoolArray]:
     det = np.multiply(a, co[..., 0, 0], out=np.empty(s.shape[:-2]))
     det += b * co[..., 1, 0]
     det += c * co[..., 2, 0]
-    scale = np.abs(a + e + i) / 3.0
-    ok = np.isfinite(det) & (det > SINGULAR_RTOL * scale**3) & (scale > 0)
+    ok = _invertible(det, a, e, i)
     det[~ok] = 1.0
     co /= det[..., None, None]
     co[~ok] = 0.0
@@ -128,8 +133,7 @@ def mahalanobis3(r: FloatArray, s: FloatArray) -> tuple[FloatArray, BoolArray]:
     det = a * c00 + b * c01 + c * c02
     q = c00 * x * x + (a * i - c * c) * y * y + (a * e - b * b) * z * z
     q += 2.0 * (c01 * x * y + c02 * x * z + (b * c - a * f) * y * z)
-    scale = np.abs(a + e + i) / 3.0
-    ok = np.isfinite(det) & (det > SINGULAR_RTOL * scale**3) & (scale > 0)
+    ok = _invertible(det, a, e, i)
     return np.where(ok, q / np.where(ok, det, 1.0), 0.0), ok
 
 
