@@ -603,7 +603,11 @@ def main() -> None:
         help="the engines alone, side by side in this process: their division free of the machine's drift",
     )
     p.add_argument("--cache", type=Path, help="keep the generated stream in this file")
-    p.add_argument("--compare", action="store_true", help="list the radar pairs whose updates differ")
+    p.add_argument(
+        "--compare",
+        action="store_true",
+        help="(kept for old command lines: the radar pairs whose updates differ are always listed)",
+    )
     p.add_argument("--logs", type=Path, help="write each worker's log into this folder")
     args = p.parse_args()
     counts = [int(x) for x in args.workers.split(",")]
@@ -638,22 +642,14 @@ def main() -> None:
             report(r, results[counts[0]][-1] if n != counts[0] else None)
     base = counts[0]
     for n in counts[1:]:
-        # Same stream, same pair updates?  (The newest update of a pair may be held back.)
-        a, b = results[base][0].sequences, results[n][0].sequences
-        same = sum(
-            b.get(k, [])[: len(v)] == v[: len(b.get(k, []))] and len(b.get(k, [])) >= len(v) - 1
-            for k, v in a.items()
-        )
-        print(f"# pair update sequences equal to {base} worker(s)'s: {same}/{len(a)} radar pairs")
-        if args.compare:
-            for k in sorted(a):
-                x, y = a[k], b.get(k, [])
-                d = next((i for i in range(min(len(x), len(y))) if x[i] != y[i]), None)
-                if d is not None:
-                    print(
-                        f"#   {k}: {len(x)} vs {len(y)} updates, first difference at {d}: "
-                        f"{json.loads(x[d])['time_s']} / {json.loads(y[d])['time_s']}"
-                    )
+        for rep, (one, many) in enumerate(zip(results[base], results[n], strict=True), start=1):
+            same, differ = compare_sequences(one.sequences, many.sequences)
+            print(
+                f"# pair update sequences equal to {base} worker(s)'s: {same}/{len(one.sequences)} radar "
+                f"pairs" + (f" (run {rep})" if args.repeat > 1 else "")
+            )
+            for line in differ:
+                print(f"#   {line}")
         ratios = [b.x_real_time / a.x_real_time for a, b in zip(results[base], results[n], strict=True)]
         print(
             f"# {n} workers / {base}: {', '.join(f'{x:.2f}' for x in ratios)} "
@@ -661,6 +657,27 @@ def main() -> None:
         )
     if args.repeat > 1:
         cpu_ratios(results, counts)
+
+
+def compare_sequences(a: dict[str, list[bytes]], b: dict[str, list[bytes]]) -> tuple[int, list[str]]:
+    """How many radar pairs of ``a`` (one worker's PairSets by key, in order of arrival) ``b``
+    published alike, and a line for each other: where the two first differ, or how many
+    updates ``b`` lacks at the end.  The newest update of a pair may be held back at the end
+    of a run (the merge waits for the partner's next release), so ``b`` may lack one."""
+    same, differ = 0, []
+    for k in sorted(a):
+        x, y = a[k], b.get(k, [])
+        d = next((i for i in range(min(len(x), len(y))) if x[i] != y[i]), None)
+        if d is None and len(y) >= len(x) - 1:
+            same += 1
+        elif d is None:
+            differ.append(f"{k}: {len(x)} vs {len(y)} updates, the last {len(x) - len(y)} missing")
+        else:
+            differ.append(
+                f"{k}: {len(x)} vs {len(y)} updates, first difference at {d}: "
+                f"{json.loads(x[d])['time_s']} / {json.loads(y[d])['time_s']}"
+            )
+    return same, differ
 
 
 def cpu_ratios(results: dict[int, list[Result]], counts: list[int]) -> None:
