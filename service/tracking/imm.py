@@ -33,11 +33,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from service.geo import FloatArray
 from service.linalg import det3
 from service.tracking import kalman
-from service.tracking.params import FilterParams
+from service.tracking.params import FilterParams, FormationParams
 
 
 @dataclass(frozen=True)
@@ -91,6 +92,17 @@ def models_of(fp: FilterParams) -> Models:
     return Models((fp.quiet_psd, fp.manoeuvre_psd), (fp.quiet_sojourn_s, fp.manoeuvre_sojourn_s))
 
 
+def formation_models_of(fp: FilterParams, formation: FormationParams) -> Models | None:
+    """The models of a track in formation (:mod:`.formation`): the formation's quiet model and
+    the filter's manoeuvre model; None when the rule is off or the filter has one model."""
+    if not (fp.imm and formation.hold_formations):
+        return None
+    return Models(
+        (formation.formation_quiet_psd, fp.manoeuvre_psd),
+        (formation.formation_quiet_sojourn_s, fp.manoeuvre_sojourn_s),
+    )
+
+
 def born(x: FloatArray, P: FloatArray, models: Models) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Per-model states of new tracks (every model starts at the track's state) and their
     probabilities (the stationary shares)."""
@@ -119,16 +131,27 @@ def _spread(x: FloatArray) -> FloatArray:
 
 
 def predict(
-    xm: FloatArray, pm: FloatArray, mu: FloatArray, dt: FloatArray, models: Models
+    xm: FloatArray,
+    pm: FloatArray,
+    mu: FloatArray,
+    dt: FloatArray,
+    models: Models,
+    other: Models | None = None,
+    use_other: NDArray[np.bool_] | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Mixing and each model's prediction over ``dt`` ``(k,)`` (steps 1-2 of the module
     docstring): the models' predicted states ``(k, M, 6)``, covariances ``(k, M, 6, 6)`` and
-    their prior weights ``c`` ``(k, M)``."""
+    their prior weights ``c`` ``(k, M)``.  ``other``: models of the same count used instead
+    where ``use_other`` ``(k,)`` is true (their ``q`` and their chain's transitions)."""
     k, m = mu.shape
     if m == 1:
         xp, pp = kalman.predict(xm[:, 0], pm[:, 0], dt, models.psd[0])
         return xp[:, None], pp[:, None], np.ones((k, 1))
     p = models.transition(dt)  # (k, i, j)
+    q = np.tile(np.asarray(models.psd, dtype=float), k)
+    if other is not None and use_other is not None and use_other.any():
+        p = np.where(use_other[:, None, None], other.transition(dt), p)
+        q = np.where(np.repeat(use_other, m), np.tile(np.asarray(other.psd, dtype=float), k), q)
     joint = p * mu[:, :, None]
     c = joint.sum(axis=1)  # (k, j)
     w = joint / np.maximum(c[:, None, :], np.finfo(float).tiny)  # mu_{i|j}
@@ -137,7 +160,6 @@ def predict(
     # each mixed state's spread is w_1j w_2j (x_1 - x_2)(x_1 - x_2)^T, as in :func:`combine`
     p0 = w[:, 0, :, None, None] * pm[:, 0, None] + w[:, 1, :, None, None] * pm[:, 1, None]
     p0 += (w[:, 0] * w[:, 1])[:, :, None, None] * _spread(xm)[:, None]
-    q = np.tile(np.asarray(models.psd, dtype=float), k)
     xp, pp = kalman.predict(x0.reshape(k * m, 6), p0.reshape(k * m, 6, 6), np.repeat(dt, m), q)
     return xp.reshape(k, m, 6), pp.reshape(k, m, 6, 6), c
 

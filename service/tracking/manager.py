@@ -45,6 +45,7 @@ from service.tracking import imm, kalman
 from service.tracking.assignment import assign, clarity
 from service.tracking.base import PlotColumns, Tracker, TrackTable
 from service.tracking.duplicates import duplicate_losers, shared_plot_pairs
+from service.tracking.formation import formation_groups, manoeuvring
 from service.tracking.groups import fit_groups
 from service.tracking.identity import TrackCodes
 from service.tracking.initiators import get_initiator
@@ -94,6 +95,8 @@ class _Tracks:
     xm: FloatArray  # (n, M, 6) each filter model's state (:mod:`.imm`); ``x`` is their mixture
     Pm: FloatArray  # (n, M, 6, 6)
     mu: FloatArray  # (n, M) the models' probabilities
+    formation: IntArray  # its formation at the last search (:mod:`.formation`; -1: none)
+    free_until: FloatArray  # until this data time the filter's own models: its formation manoeuvred
 
     def __len__(self) -> int:
         return int(self.uid.shape[0])
@@ -121,6 +124,8 @@ class _Tracks:
             np.empty((0, k, 6)),
             np.empty((0, k, 6, 6)),
             np.empty((0, k)),
+            np.empty(0, dtype=np.intp),
+            f,
         )
 
     def take(self, keep: NDArray[np.bool_]) -> _Tracks:
@@ -247,6 +252,10 @@ class TrackManager(Tracker):
         self._initiated_s = -np.inf
         #: The filter's models (:mod:`.imm`; one: the plain constant-velocity filter).
         self._models = imm.models_of(self.params.filter)
+        #: The models of a track flying in formation (None: the rule is off), and the data
+        #: time of the last search for formations (``update``).
+        self._formation_models = imm.formation_models_of(self.params.filter, self.params.formation)
+        self._formations_s = -np.inf
         self._tracks = _Tracks.empty(self._models.count)
         #: The site rotation that ``_tracks.cov_ecef`` was made with, and the site that the
         #: window's measurements were made with (a site can be replaced, see ``update``).
@@ -308,6 +317,13 @@ class TrackManager(Tracker):
             used = np.zeros(len(meas), dtype=bool)
             hit = np.zeros(len(tracks), dtype=bool)
             twins = np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+            formations_s = self._formations_s
+            fm = self.params.formation
+            if self._formation_models is not None and (
+                time_s - formations_s >= fm.formation_interval_scans * site.scan_period_s
+            ):
+                tracks = replace(tracks, formation=self._formations(tracks, float(time_s)))
+                formations_s = float(time_s)
             if len(tracks) and len(meas):
                 rows, cols, d2, xp, pp, cw = self._gate(tracks, meas)
                 chosen = assign(rows, cols, d2, fp.gate_chi2)
@@ -330,6 +346,9 @@ class TrackManager(Tracker):
                     hit[r] = True
                     used[c] = True
                     joined.append((tracks.uid[r], plots.take(c)))
+                    tracks = self._release_manoeuvring(
+                        tracks, r, xp[chosen], pp[chosen], cw[chosen], z, cov_z, float(time_s)
+                    )
             tracks = self._life_cycle(tracks, hit, plots.azimuth_deg, float(time_s))
             tracks = self._drop_duplicates(tracks, twins, float(time_s))
             window.extend(plots.take(~used), float(time_s), meas.take(~used))
@@ -347,6 +366,7 @@ class TrackManager(Tracker):
         # Commit: plain assignments only, after every step that can fail.
         self._tracks, self._window, self.joined, self._next_uid = tracks, window, joined, next_uid
         self._initiated_s = initiated_s
+        self._formations_s = formations_s
         self._ecef_rotation, self._window_site = rotation, site
         self.last_time_s = max(self.last_time_s, float(time_s))
         self.identity.add(joined)
@@ -423,6 +443,14 @@ class TrackManager(Tracker):
             radius = np.sqrt(fp.gate_chi2) * (sig_t + sig_p) + speed * span
             radius = np.minimum(radius, fp.coarse_gate_max_m)
             gb = max(self.params.bounds.gate_block // models.count, 1)
+            grouped = None
+            if self._formation_models is not None and bool(np.any(tracks.formation >= 0)):
+                formation, free = (
+                    (tracks.formation, tracks.free_until)
+                    if near is None
+                    else (tracks.formation[near], tracks.free_until[near])
+                )
+                grouped = (formation >= 0) & (free < tb)
             tree_p = cKDTree(meas.enu_m)
             chunks = _track_chunks(
                 xb[:, :3], meas.enu_m, float(radius.max()), _SEARCH_PAIRS_PER_PREDICTION * gb
@@ -437,7 +465,15 @@ class TrackManager(Tracker):
                 rows, cols = rows[keep], cols[keep]
                 for b0 in range(0, rows.shape[0], gb):  # the exact gate, ``gate_block`` at a time
                     r, c = rows[b0 : b0 + gb], cols[b0 : b0 + gb]
-                    xp, pp, cw = imm.predict(xm[r], pm[r], mu[r], meas.time_s[c] - t[r], models)
+                    xp, pp, cw = imm.predict(
+                        xm[r],
+                        pm[r],
+                        mu[r],
+                        meas.time_s[c] - t[r],
+                        models,
+                        self._formation_models,
+                        None if grouped is None else grouped[r],
+                    )
                     y, S = kalman.innovation(*imm.combine(cw, xp, pp), meas.enu_m[c], meas.covariance[c])
                     d2 = kalman.mahalanobis2(y, S)
                     ok = d2 <= fp.gate_chi2
@@ -459,6 +495,48 @@ class TrackManager(Tracker):
         )
 
     # -- formations --------------------------------------------------------------------
+    def _formations(self, tracks: _Tracks, time_s: float) -> IntArray:
+        """Each track's formation at ``time_s`` (:func:`.formation.formation_groups` on the
+        states brought to it; -1 for a track with a state not finite)."""
+        x = tracks.x
+        pos = x[:, :3] + x[:, 3:] * (time_s - tracks.t)[:, None]
+        ok = np.flatnonzero(np.isfinite(pos).all(axis=1) & np.isfinite(x[:, 3:]).all(axis=1))
+        out = np.full(len(tracks), -1, dtype=np.intp)
+        fm = self.params.formation
+        out[ok] = formation_groups(pos[ok], x[ok, 3:], fm.formation_radius_m, fm.formation_speed_mps)
+        return out
+
+    def _release_manoeuvring(
+        self,
+        tracks: _Tracks,
+        r: IntArray,
+        xp: FloatArray,
+        pp: FloatArray,
+        cw: FloatArray,
+        z: FloatArray,
+        cov_z: FloatArray,
+        time_s: float,
+    ) -> _Tracks:
+        """The tracks of the formations that manoeuvred in this batch (:func:`.formation.manoeuvring`
+        on the innovations of their associated members ``r``: predictions ``xp``, ``pp``, ``cw``,
+        plots ``z``, ``cov_z``) on the filter's own models for ``formation_release_s``, their
+        model probabilities back to the filter's long-run shares."""
+        lab = tracks.formation[r]
+        grouped = lab >= 0
+        if not grouped.any():
+            return tracks
+        fm = self.params.formation
+        g = np.flatnonzero(grouped)
+        y, S = kalman.innovation(*imm.combine(cw[g], xp[g], pp[g]), z[g], cov_z[g])
+        moved = manoeuvring(lab[g], y, S, fm.formation_manoeuvre_chi2, fm.formation_manoeuvre_members)
+        if moved.size == 0:
+            return tracks
+        rows = np.flatnonzero(np.isin(tracks.formation, moved))
+        free_until, mu = tracks.free_until.copy(), tracks.mu.copy()
+        free_until[rows] = time_s + fm.formation_release_s
+        mu[rows] = self._models.stationary
+        return replace(tracks, free_until=free_until, mu=mu)
+
     def _quality(self, quality: FloatArray, rows: IntArray, clear: FloatArray) -> FloatArray:
         """``Track.quality`` after this batch: each associated track's moves by
         ``1 / quality_memory_looks`` of the way to its association's clarity
@@ -579,6 +657,8 @@ class TrackManager(Tracker):
             xm,
             pm,
             mu,
+            np.full(k, -1, dtype=np.intp),
+            np.full(k, -np.inf),
         )
         # Plots of accepted groups leave the window; label -> uid of the new track.
         label_uid = np.full(groups.count, -1, dtype=np.int64)

@@ -378,11 +378,58 @@ class FormationParams:
     0.1 % at Pd 0.75, 0.5 % at Pd 0.7 (at 4, 7 % at Pd 0.7: too many); a duplicate lives about
     this many looks before it is dropped.  At most 62."""
 
+    hold_formations: bool = True
+    """Whether a track flying in a formation (:mod:`service.tracking.formation`: a neighbour of
+    its radar within ``formation_radius_m`` at a velocity within ``formation_speed_mps``)
+    predicts with the quiet model of ``formation_quiet_psd`` and ``formation_quiet_sojourn_s``
+    instead of the filter's (the manoeuvre model is the same), unless its formation manoeuvred
+    within ``formation_release_s``.  Off: every track the filter's models."""
+
+    formation_radius_m: float = 3000.0
+    """A track's neighbour closer than this flies in formation with it: wider than the
+    formations' spacing (up to 1.6 km in the formation study), narrower than the 3 NM
+    (5.6 km) separation of controlled traffic in a terminal area."""
+
+    formation_speed_mps: float = 50.0
+    """... at a velocity within this of its own: aircraft in formation fly one velocity, and
+    their tracks' velocities differ by their errors (20-35 m/s on the formation study's radar
+    with the largest cross-range error)."""
+
+    formation_interval_scans: float = 1.0
+    """Formations are searched for once per this many scan periods of the radar's data time
+    (formations form and break up over minutes; a search at every batch would cost every
+    message), over all the radar's tracks; a track born since is in none until the next."""
+
+    formation_quiet_psd: float = 0.1
+    """q (m^2/s^3) of the quiet model of a track in formation (the filter's ``quiet_psd`` is
+    1): about 0.6 m/s of velocity change per 4 s scan."""
+
+    formation_quiet_sojourn_s: float = 3600.0
+    """Mean time (s) a track in formation stays in its quiet model (the filter's
+    ``quiet_sojourn_s`` is 120): the switch to the manoeuvre model needs the plots' evidence,
+    not the prior's drift."""
+
+    formation_manoeuvre_chi2: float = 11.34
+    """A formation manoeuvres when the sum of its associated members' innovations (without the
+    member that deviates most on its own) lies beyond this chi-square (3 degrees of freedom;
+    99 %) of its covariance, the sum of theirs (:func:`service.tracking.formation.manoeuvring`):
+    a common deviation that no member's own noise explains."""
+
+    formation_manoeuvre_members: int = 3
+    """... tested only with at least this many members associated in the batch (two, one left
+    out, would be one track's own test)."""
+
+    formation_release_s: float = 60.0
+    """... and its tracks then predict with the filter's own models (model probabilities back
+    to the filter's long-run shares) for this long (data s), enough for a rate-one turn
+    through 90 degrees (30 s) and the tracks to settle on the new leg; a turn still going on
+    at its end releases them again."""
+
     @staticmethod
     def off() -> FormationParams:
-        """The tracker as it was before these rules: no duplicate search.  (Quality is
-        reported either way; association does not read it.)"""
-        return FormationParams(merge_duplicates=False)
+        """The tracker as it was before these rules: no duplicate search, every track the
+        filter's models.  (Quality is reported either way; association does not read it.)"""
+        return FormationParams(merge_duplicates=False, hold_formations=False)
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,5 @@
-"""Tracks in formations: ``Track.quality`` (the clarity of associations) and duplicate tracks.
+"""Tracks in formations: ``Track.quality`` (the clarity of associations), duplicate tracks, and
+the formation's quiet model.
 
 The vectorised clarity is checked against a plain loop over the candidates, and the manager
 against hand-made plot streams: two plots close together, then one aircraft whose plots
@@ -17,6 +18,7 @@ from service.tracking import make_tracker
 from service.tracking.assignment import assign, clarity
 from service.tracking.base import PlotColumns
 from service.tracking.duplicates import duplicate_losers, shared_plot_pairs
+from service.tracking.formation import formation_groups, manoeuvring
 from service.tracking.manager import TrackManager
 from service.tracking.params import FormationParams, TrackerParams
 from topofusion_lab.evaluation.initiation_monostatic import SITE
@@ -192,3 +194,114 @@ def test_one_aircraft_feeding_two_tracks_in_turn_ends_with_one_track() -> None:
     assert len(kept) == len(both) - 1
     _stream(on, 10, start=8 + fm.duplicate_looks + 2)
     assert _near_x(on) == 1 and on.tracks().quality[_near_mask(on)][0] > 0.9
+
+
+def test_formation_groups_against_a_plain_loop() -> None:
+    rng = np.random.default_rng(7)
+    radius, speed = 3_000.0, 50.0
+    seen = set()
+    for _ in range(20):
+        n = int(rng.integers(0, 40))
+        pos = np.column_stack([rng.uniform(0.0, 20_000.0, (n, 2)), rng.uniform(8_000.0, 10_000.0, n)])
+        vel = rng.normal(size=(n, 3)) * 40.0 + np.array([200.0, 50.0, 0.0])
+        got = formation_groups(pos, vel, radius, speed)
+        alike = [
+            [
+                j != i and math.dist(pos[i], pos[j]) <= radius and math.dist(vel[i], vel[j]) <= speed
+                for j in range(n)
+            ]
+            for i in range(n)
+        ]
+        # the formations: the connected groups of alike neighbours, by a plain flood fill
+        want = [-1] * n
+        for start in range(n):
+            if want[start] >= 0 or not any(alike[start]):
+                continue
+            want[start], todo = start, [start]
+            while todo:
+                i = todo.pop()
+                for j in range(n):
+                    if alike[i][j] and want[j] < 0:
+                        want[j] = start
+                        todo.append(j)
+        assert [g >= 0 for g in got.tolist()] == [w >= 0 for w in want]
+        for i in range(n):  # the same partition (labels may differ)
+            for j in range(n):
+                if want[i] >= 0 and want[j] >= 0:
+                    assert (got[i] == got[j]) == (want[i] == want[j])
+        seen.update(w >= 0 for w in want)
+    assert seen == {True, False}  # the draws hold both kinds
+
+
+def test_manoeuvring_against_a_plain_loop() -> None:
+    rng = np.random.default_rng(9)
+    flagged = 0
+    for _ in range(40):
+        k = int(rng.integers(0, 25))
+        label = rng.integers(0, 4, size=k).astype(np.intp)
+        b = rng.normal(size=(k, 3, 3))
+        S = b @ np.swapaxes(b, -1, -2) + np.eye(3)
+        common = rng.normal(size=(4, 3)) * rng.uniform(0.0, 3.0)  # each group's common deviation
+        y = rng.normal(size=(k, 3)) + common[label]
+        got = manoeuvring(label, y, S, 11.34, 3)
+        want = []
+        for g in sorted(set(label.tolist())):
+            rows = [i for i in range(k) if label[i] == g]
+            if len(rows) < 3:
+                continue
+            own = [float(y[i] @ np.linalg.solve(S[i], y[i])) for i in rows]
+            rows.pop(own.index(max(own)))  # the member that deviates most on its own
+            total = sum(y[i] for i in rows)
+            cov = sum(S[i] for i in rows)
+            if float(total @ np.linalg.solve(cov, total)) > 11.34:
+                want.append(g)
+        assert got.tolist() == want
+        flagged += len(want)
+    assert flagged > 0
+
+
+def test_one_track_astray_is_not_a_manoeuvre_of_its_formation() -> None:
+    """Five members on their aircraft and one on a neighbour's plot far off: the sum of all
+    six would pass for a manoeuvre, the sum without the one that deviates most does not; all
+    six off the same way do."""
+    S = np.repeat(np.eye(3)[None] * 100.0**2, 6, axis=0)
+    y = np.zeros((6, 3))
+    y[5] = [900.0, 0.0, 0.0]
+    label = np.zeros(6, dtype=np.intp)
+    assert manoeuvring(label, y, S, 11.34, 1_000).size == 0  # too few members: no test
+    assert manoeuvring(label, y, S, 11.34, 3).size == 0
+    assert manoeuvring(label, y + np.array([200.0, 0.0, 0.0]), S, 11.34, 3).tolist() == [0]
+
+
+def _abreast(m: TrackManager, scans: int) -> None:
+    """Two aircraft flying outwards side by side, 1 deg (about 1 km) apart, and the four
+    isolated aircraft around (every plot exactly where its aircraft is)."""
+    for k in range(scans):
+        t = 1_000.0 + k * SCAN_S
+        r = 60_000.0 + 150.0 * (t - 1_000.0)
+        az = [45.0, 46.0, *ANCHORS_DEG]
+        rg = [r, r] + [80_000.0 - 100.0 * (t - 1_000.0)] * len(ANCHORS_DEG)
+        m.update(_plots(t, az, rg, ["X", "Y"] + ["A"] * len(ANCHORS_DEG)), t)
+
+
+def test_tracks_in_formation_predict_with_the_formation_quiet_model() -> None:
+    """Two aircraft abreast are a formation (a neighbour within ``formation_radius_m`` at the
+    same velocity): their tracks settle to a smaller velocity uncertainty than with the
+    filter's own quiet model (``hold_formations`` off); the isolated aircraft's tracks are
+    the same number for number either way."""
+    on = make_tracker(SITE)
+    off = make_tracker(
+        SITE, params=replace(TrackerParams(), formation=FormationParams(hold_formations=False))
+    )
+    for m in (on, off):
+        _abreast(m, 25)
+    a, b = on.tracks(), off.tracks()
+    assert a.track_id.tolist() == b.track_id.tolist() and len(a) == 2 + len(ANCHORS_DEG)
+    enu = (a.position_ecef_m - SITE.origin_ecef) @ SITE.rotation
+    pair = np.abs(np.degrees(np.arctan2(enu[:, 0], enu[:, 1])) - 45.5) < 2.0
+    assert np.count_nonzero(pair) == 2 and np.all(a.confirmed)
+    vel_var_on = np.trace(a.covariance[:, 3:, 3:], axis1=1, axis2=2)
+    vel_var_off = np.trace(b.covariance[:, 3:, 3:], axis1=1, axis2=2)
+    assert np.all(vel_var_on[pair] < 0.7 * vel_var_off[pair])
+    np.testing.assert_array_equal(a.covariance[~pair], b.covariance[~pair])
+    np.testing.assert_array_equal(a.position_ecef_m[~pair], b.position_ecef_m[~pair])

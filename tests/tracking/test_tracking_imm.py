@@ -160,3 +160,22 @@ def test_imm_holds_turns_better_and_straight_legs_tighter_than_one_model() -> No
             straight[on].append(float(np.nanmean(errors[15:30] ** 2)))
     assert changes[True] < 0.8 * changes[False]
     assert np.sqrt(np.mean(straight[True])) < 0.9 * np.sqrt(np.mean(straight[False]))
+
+
+def test_other_models_serve_their_rows_only() -> None:
+    """``predict`` with a second set of models for some rows: those rows are what the second
+    set alone gives, the others what the first alone gives, number for number."""
+    rng = np.random.default_rng(8)
+    k = 30
+    xm, pm = _random_states(rng, k, 2)
+    mu = rng.dirichlet([2.0, 2.0], size=k)
+    dt = rng.uniform(-1.0, 12.0, size=k)
+    other = imm.Models((0.1, 100.0), (3600.0, 30.0))
+    use = rng.random(k) < 0.5
+    got = imm.predict(xm, pm, mu, dt, MODELS, other, use)
+    first = imm.predict(xm, pm, mu, dt, MODELS)
+    second = imm.predict(xm, pm, mu, dt, other)
+    for g, f, s in zip(got, first, second, strict=True):
+        np.testing.assert_array_equal(g[use], s[use])
+        np.testing.assert_array_equal(g[~use], f[~use])
+    assert use.any() and (~use).any()

@@ -7,8 +7,8 @@ Every run feeds a formation scenario through :class:`service.engine.Engine` in t
 exactly as :mod:`topofusion_lab.evaluation.formation_pipeline` does (``topofusion replay
 --offline``: the bytes ``topofusion simulate`` publishes, the service's code path, no Zenoh),
 twice per seed on the same messages: with every formation rule off (*before*: the tracker's
-duplicate rule, ``FormationParams.off()``; its two-model filter, ``FilterParams.imm`` off, so
-one constant-velocity model; its initiator's ranking by velocity support,
+duplicate rule and its formation's quiet model, ``FormationParams.off()``; its two-model
+filter, ``FilterParams.imm`` off, so one constant-velocity model; its initiator's ranking by velocity support,
 ``LogicParams.support_weight = 0``; correlation's caution with low-quality tracks,
 ``correlation.prompt.min_quality = 0``; its swap rule, ``correlation.swap.enabled = False``;
 the published score's tracks' quality, ``correlation.book.quality_exponent = 0``) and with
@@ -187,9 +187,9 @@ def scenario(point: Point, duration_s: float | None = None, targets: int | None 
 
 def engine_config(variant: str) -> EngineConfig:
     """The engine's configuration of a variant (:data:`VARIANTS`): *before* has every formation
-    rule off (the tracker's duplicate rule, two-model filter and initiator's velocity support,
-    correlation's caution with low-quality tracks and its swap rule, the published score's
-    tracks' quality), *now* is the default."""
+    rule off (the tracker's duplicate rule, formation's quiet model, two-model filter and
+    initiator's velocity support, correlation's caution with low-quality tracks and its swap
+    rule, the published score's tracks' quality), *now* is the default."""
     cfg = EngineConfig()
     if variant == "before":
         corr = cfg.correlation
@@ -517,8 +517,9 @@ def report(
         f"The catalog's `formation` scenario (3 radars, {first['targets']} aircraft, "
         f"{first['duration_s']:.0f} s) through the engine, per point {n} seed(s), each run twice on "
         "the same messages: *before*, every formation rule off (the tracker's duplicate rule, "
-        "two-model filter and initiator's velocity support, correlation's caution with "
-        "low-quality tracks and its swap rule, the published score's tracks' quality), and "
+        "formation's quiet model, two-model filter and initiator's velocity support, "
+        "correlation's caution with low-quality tracks and its swap rule, the published "
+        "score's tracks' quality), and "
         "*now*, the default "
         "configuration.  Spacing in cross-range "
         f"errors (1x = {unit:.0f} m: radar C's 0.20 deg at 115 km); Pd the catalog's (0.95/0.92/0.75) "
