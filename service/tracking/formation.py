@@ -6,9 +6,9 @@ Such a track predicts with the formation's quiet model (:class:`~.params.Formati
 a missed plot then leaves it where its aircraft is instead of where its last few noisy plots
 pointed, and a neighbour's plot falls outside its gate more often.
 
-* :func:`formation_groups`: a track flies in formation when a neighbour of the same radar lies
-  within ``radius_m`` at a velocity within ``speed_mps`` of its own (both at one data time);
-  the formations are the connected groups of such neighbours.
+* :func:`formation_groups`: a track flies in formation when one of its few nearest neighbours
+  of the same radar lies within ``radius_m`` at a velocity within ``speed_mps`` of its own
+  (both at one data time); the formations are the connected groups of such neighbours.
 * :func:`manoeuvring`: a formation turns or changes speed as one, so its members' innovations
   share a common part, while their noise is each their own.  The sum of the members'
   innovations ``Y = sum y_i`` has covariance ``sum S_i`` when nothing is common, so
@@ -35,23 +35,28 @@ IntArray = NDArray[np.intp]
 
 
 def formation_groups(
-    position: FloatArray, velocity: FloatArray, radius_m: float, speed_mps: float
+    position: FloatArray, velocity: FloatArray, radius_m: float, speed_mps: float, neighbours: int
 ) -> IntArray:
     """Each track's formation (rows of ``position`` and ``velocity``, ``(n, 3)`` each): a label
-    shared by the tracks of one formation, -1 for a track with no neighbour within
-    ``radius_m`` whose velocity differs from its own by at most ``speed_mps``."""
+    shared by the tracks of one formation, -1 for a track none of whose ``neighbours`` nearest
+    tracks within ``radius_m`` has a velocity within ``speed_mps`` of its own.  The nearest
+    few, not every track within the radius: the work is ``n * neighbours`` however crowded the
+    tracks are, and a formation's nearest neighbours are its own members."""
     n = position.shape[0]
     out = np.full(n, -1, dtype=np.intp)
-    if n < 2 or radius_m <= 0.0:
+    k = min(neighbours, n - 1)
+    if k < 1 or radius_m <= 0.0:
         return out
-    pairs = cKDTree(position).query_pairs(radius_m, output_type="ndarray")
-    if pairs.shape[0] == 0:
+    _, near = cKDTree(position).query(position, k=k + 1, distance_upper_bound=radius_m)
+    i = np.repeat(np.arange(n), k + 1)
+    j = near.reshape(-1)
+    keep = (j < n) & (j != i)  # (n: no neighbour that near)
+    i, j = i[keep], j[keep]
+    dv = velocity[i] - velocity[j]
+    alike = np.einsum("kd,kd->k", dv, dv) <= speed_mps * speed_mps
+    i, j = i[alike], j[alike]
+    if i.shape[0] == 0:
         return out
-    dv = velocity[pairs[:, 0]] - velocity[pairs[:, 1]]
-    alike = pairs[np.einsum("kd,kd->k", dv, dv) <= speed_mps * speed_mps]
-    if alike.shape[0] == 0:
-        return out
-    i, j = alike[:, 0], alike[:, 1]
     graph = coo_matrix((np.ones(i.shape[0]), (i, j)), shape=(n, n))
     _, label = connected_components(graph, directed=False)
     member = np.zeros(n, dtype=bool)

@@ -503,7 +503,9 @@ class TrackManager(Tracker):
         ok = np.flatnonzero(np.isfinite(pos).all(axis=1) & np.isfinite(x[:, 3:]).all(axis=1))
         out = np.full(len(tracks), -1, dtype=np.intp)
         fm = self.params.formation
-        out[ok] = formation_groups(pos[ok], x[ok, 3:], fm.formation_radius_m, fm.formation_speed_mps)
+        out[ok] = formation_groups(
+            pos[ok], x[ok, 3:], fm.formation_radius_m, fm.formation_speed_mps, fm.formation_neighbours
+        )
         return out
 
     def _release_manoeuvring(

@@ -395,6 +395,11 @@ class FormationParams:
     their tracks' velocities differ by their errors (20-35 m/s on the formation study's radar
     with the largest cross-range error)."""
 
+    formation_neighbours: int = 8
+    """... among its this many nearest tracks (within ``formation_radius_m``): a lattice
+    member's nearest are its own formation's, and the search's work stays ``8 n`` however
+    crowded a radar's tracks are (every pair within the radius would be ``n^2``)."""
+
     formation_interval_scans: float = 1.0
     """Formations are searched for once per this many scan periods of the radar's data time
     (formations form and break up over minutes; a search at every batch would cost every

@@ -198,30 +198,30 @@ def test_one_aircraft_feeding_two_tracks_in_turn_ends_with_one_track() -> None:
 
 def test_formation_groups_against_a_plain_loop() -> None:
     rng = np.random.default_rng(7)
-    radius, speed = 3_000.0, 50.0
+    radius, speed, nearest = 3_000.0, 50.0, 4
     seen = set()
     for _ in range(20):
         n = int(rng.integers(0, 40))
         pos = np.column_stack([rng.uniform(0.0, 20_000.0, (n, 2)), rng.uniform(8_000.0, 10_000.0, n)])
         vel = rng.normal(size=(n, 3)) * 40.0 + np.array([200.0, 50.0, 0.0])
-        got = formation_groups(pos, vel, radius, speed)
-        alike = [
-            [
-                j != i and math.dist(pos[i], pos[j]) <= radius and math.dist(vel[i], vel[j]) <= speed
-                for j in range(n)
-            ]
-            for i in range(n)
-        ]
-        # the formations: the connected groups of alike neighbours, by a plain flood fill
+        got = formation_groups(pos, vel, radius, speed, nearest)
+        # i -> j: j among i's ``nearest`` nearest others within the radius, at an alike velocity
+        edge = [[False] * n for _ in range(n)]
+        for i in range(n):
+            others = sorted((math.dist(pos[i], pos[j]), j) for j in range(n) if j != i)
+            for d, j in others[:nearest]:
+                if d <= radius and math.dist(vel[i], vel[j]) <= speed:
+                    edge[i][j] = edge[j][i] = True
+        # the formations: the connected groups of such neighbours, by a plain flood fill
         want = [-1] * n
         for start in range(n):
-            if want[start] >= 0 or not any(alike[start]):
+            if want[start] >= 0 or not any(edge[start]):
                 continue
             want[start], todo = start, [start]
             while todo:
                 i = todo.pop()
                 for j in range(n):
-                    if alike[i][j] and want[j] < 0:
+                    if edge[i][j] and want[j] < 0:
                         want[j] = start
                         todo.append(j)
         assert [g >= 0 for g in got.tolist()] == [w >= 0 for w in want]
@@ -231,6 +231,18 @@ def test_formation_groups_against_a_plain_loop() -> None:
                     assert (got[i] == got[j]) == (want[i] == want[j])
         seen.update(w >= 0 for w in want)
     assert seen == {True, False}  # the draws hold both kinds
+
+
+def test_a_crowd_of_alike_tracks_is_one_formation() -> None:
+    """Two thousand tracks within a few hundred metres, all alike: each looks at its 8 nearest
+    only (every pair within the radius would be two million), and they still make one
+    formation, joined through their nearest."""
+    rng = np.random.default_rng(11)
+    n = 2_000
+    pos = rng.uniform(0.0, 300.0, size=(n, 3))
+    vel = np.tile([200.0, 0.0, 0.0], (n, 1))
+    got = formation_groups(pos, vel, 3_000.0, 50.0, 8)
+    assert np.all(got == got[0]) and got[0] >= 0
 
 
 def test_manoeuvring_against_a_plain_loop() -> None:
