@@ -74,8 +74,8 @@ def manoeuvring(label: IntArray, y: FloatArray, S: FloatArray, chi2: float, memb
     if label.shape[0] == 0:
         return np.empty(0, dtype=np.intp)
     groups, inv = np.unique(label, return_inverse=True)
-    own, _ = mahalanobis3(y, S)  # (not finite: the largest)
-    own = np.where(np.isfinite(own), own, np.inf)
+    own, fine = mahalanobis3(y, S)
+    own = np.where(fine, own, np.inf)  # (a singular or not finite S: the one left out)
     order = np.lexsort((-own, inv))  # by group, the largest first
     first = np.ones(order.shape[0], dtype=bool)
     first[1:] = inv[order[1:]] != inv[order[:-1]]
