@@ -31,6 +31,18 @@ def take_rows(table: T, index: Any, **given: Any) -> T:
     return cls(**cols, **given)
 
 
+def put_rows(table: T, index: Any, rows: T) -> T:
+    """A copy of ``table`` with its rows ``index`` (indices) replaced by ``rows``, row for row:
+    one copy of each column where taking and joining would make two."""
+    cls: Any = type(table)
+    cols = {}
+    for n in column_names(cls):
+        col = getattr(table, n).copy()
+        col[index] = getattr(rows, n)
+        cols[n] = col
+    return cls(**cols)
+
+
 def concat_rows(cls: type[T], parts: Sequence[T], **given: Any) -> T:
     """The rows of ``parts`` (at least one) one after the other, column by column; a field
     named in ``given`` takes that value instead."""

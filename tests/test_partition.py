@@ -28,13 +28,16 @@ from service.pipeline.read_model import SystemTrackView
 from service.pipeline.sequencer import RADAR
 from service.pipeline.track_exchange import (
     ExchangeParams,
+    StatesForm,
     StatesMessage,
     StatesReceiver,
     StatesSender,
     changed_rows,
     decode_states,
+    states_frame,
 )
 from service.tracking.base import TrackTable
+from service.wire.frames import decode_frame, is_frame
 from service.wire.keys import Keys
 from service.wire.models import TrackStates
 from service.wire.outgoing import Outgoing
@@ -230,14 +233,33 @@ def test_changed_rows_matches_its_reference_form() -> None:
         t = new
 
 
-def _through_the_wire(body: dict[str, object]) -> StatesMessage:
-    payload = encode(body)
-    TrackStates.model_validate_json(payload)  # what is sent is what the contract's model says
+def _through_the_wire(body: dict[str, Any], form: StatesForm) -> StatesMessage:
+    if form == "frame":
+        payload = states_frame(body)
+        header, _ = decode_frame(payload)
+        # the header is the message without its numbers, which the body holds in this order
+        assert {k: v for k, v in header.items() if k != "tracks"} == {
+            k: v for k, v in body.items() if k != "tracks"
+        }
+        assert header["tracks"]["track_id"] == body["tracks"]["track_id"]
+        binary = [
+            "plots",
+            "time_s",
+            "position_ecef_m",
+            "velocity_ecef_mps",
+            "covariance",
+            "quality",
+            "confirmed",
+        ]
+        assert header["tracks"]["binary"] == [x for x in binary if x in body["tracks"]]
+    else:
+        payload = encode(body)
+        TrackStates.model_validate_json(payload)  # what is sent is what the contract's model says
     return decode_states(payload, "A")
 
 
-@pytest.mark.parametrize("packed", [False, True])
-def test_a_peer_rebuilds_the_owners_tables_bit_for_bit_and_recovers_from_a_gap(packed: bool) -> None:
+@pytest.mark.parametrize("form", ["numbers", "packed", "frame"])
+def test_a_peer_rebuilds_the_owners_tables_bit_for_bit_and_recovers_from_a_gap(form: StatesForm) -> None:
     rng = np.random.default_rng(5)
     sender = StatesSender()
     receiver = StatesReceiver()
@@ -245,11 +267,11 @@ def test_a_peer_rebuilds_the_owners_tables_bit_for_bit_and_recovers_from_a_gap(p
     next_id = 80
     fulls = 0
     for step in range(200):
-        body = sender.states("A", t, 1000.0 + step, packed)  # full once per 60 data seconds
-        assert isinstance(body["tracks"]["covariance"], str) == packed
+        body = sender.states("A", t, 1000.0 + step, form)  # full once per 60 data seconds
+        assert isinstance(body["tracks"]["covariance"], str) == (form == "packed")
         fulls += bool(body["full"])
         # step 100 is lost on the way: the receiver has no base until the next full table
-        got = None if step == 100 else receiver.apply(_through_the_wire(body))
+        got = None if step == 100 else receiver.apply(_through_the_wire(body, form))
         if 100 <= step < 120 and not body["full"]:
             assert got is None
         else:
@@ -271,16 +293,21 @@ def test_a_peer_rebuilds_the_owners_tables_bit_for_bit_and_recovers_from_a_gap(p
     assert receiver.gaps["A"] >= 1
 
 
-def _states_forms(packing: tuple[bool, ...]) -> list[set[bool]]:
-    """Workers, each with ``exchange.packed`` as given, on a three-radar stream:
-    per worker, the forms (packed or not) of the track states it sent after the first 200
-    messages (each worker has heard the others' progress by then)."""
-    n = len(packing)
+def _form_of(payload: bytes) -> str:
+    if is_frame(payload):
+        return "frame"
+    return "packed" if isinstance(json.loads(payload)["tracks"]["time_s"], str) else "numbers"
+
+
+def _states_forms(exchange: tuple[ExchangeParams, ...]) -> list[set[str]]:
+    """Workers, each with the ``exchange`` settings given, on a three-radar stream: per worker,
+    the forms of the track states it sent after the first 200 messages (each worker has heard
+    the others' progress by then)."""
+    n = len(exchange)
     engines = [
-        Engine(EngineConfig(partition=Partition(k + 1, n), exchange=ExchangeParams(packed=p)))
-        for k, p in enumerate(packing)
+        Engine(EngineConfig(partition=Partition(k + 1, n), exchange=x)) for k, x in enumerate(exchange)
     ]
-    forms: list[set[bool]] = [set() for _ in engines]
+    forms: list[set[str]] = [set() for _ in engines]
     pending: deque[tuple[int, str, bytes]] = deque()
 
     def take(j: int, out: list[Outgoing], late: bool) -> None:
@@ -288,7 +315,7 @@ def _states_forms(packing: tuple[bool, ...]) -> list[set[bool]]:
             if _is_peer(o.key):
                 pending.append((j, o.key, o.payload))
                 if o.key.endswith("/track-states") and late:
-                    forms[j].add(isinstance(o.body()["tracks"]["time_s"], str))
+                    forms[j].add(_form_of(o.payload))
 
     for i, (key, payload) in enumerate(scenario_messages("three-radar", duration_s=60.0, seed=2)):
         for j, engine in enumerate(engines):
@@ -303,10 +330,17 @@ def _states_forms(packing: tuple[bool, ...]) -> list[set[bool]]:
     return forms
 
 
-def test_track_states_go_packed_once_every_other_worker_reads_them() -> None:
-    assert _states_forms((True, True)) == [{True}, {True}]
-    # a worker that does not read them (packing off, or a version before it) gets numbers
-    assert _states_forms((True, False)) == [{False}, {False}]
+def test_track_states_go_as_frames_or_packed_once_every_other_worker_reads_them() -> None:
+    default, no_frames, neither = (
+        ExchangeParams(),
+        ExchangeParams(frames=False),
+        ExchangeParams(packed=False, frames=False),
+    )
+    assert _states_forms((default, default)) == [{"frame"}, {"frame"}]
+    # a worker that does not read frames (frames off, or a version before them) gets packed
+    # columns; one that reads neither (a version before packing) gets numbers
+    assert _states_forms((default, no_frames)) == [{"packed"}, {"packed"}]
+    assert _states_forms((default, neither)) == [{"numbers"}, {"numbers"}]
 
 
 # -- N engines give the pair updates of one --------------------------------------------------

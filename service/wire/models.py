@@ -426,6 +426,11 @@ class WorkerClock(WireModel):
         description="(progress) this worker reads TrackStates with packed float columns; a worker "
         "packs its own once every other worker has said so",
     )
+    frame_states: bool | None = Field(
+        default=None,
+        description="(progress) this worker reads TrackStates as frames (docs/contract.md, "
+        "'Scale-out'); a worker sends its own so once every other worker has said so",
+    )
 
 
 class RegistrationRows(WireModel):
