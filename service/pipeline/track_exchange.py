@@ -213,7 +213,7 @@ def apply_change(base: TrackTable, rows: TrackTable, removed: np.ndarray) -> Tra
         out = np.concatenate([removed, new_ids])
         pos = np.minimum(np.searchsorted(ids, out), len(ids) - 1)
         found = ids[pos] == out
-        if not len(removed) and bool(np.all(found)):  # (the usual change: tracks updated)
+        if not len(removed) and bool(np.all(found)):  # (only tracks updated: a third of changes)
             return put_rows(base, pos, rows)
         kept[pos[found]] = False
     kept_at = np.flatnonzero(kept)
