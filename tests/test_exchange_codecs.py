@@ -4,12 +4,14 @@ applied to a table, each against its plain form (the contract's model, a whole s
 from __future__ import annotations
 
 import json
+import queue
 import struct
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import pytest
+import zenoh
 from pydantic import ValidationError
 
 from service.engine import Engine, EngineConfig
@@ -19,9 +21,11 @@ from service.pipeline.partition import Partition
 from service.pipeline.shared_links import SharedLinks, decode_links, links_body
 from service.pipeline.track_exchange import StatesSender, apply_change, decode_states, states_frame
 from service.tracking.base import TrackTable
+from service.transport.publisher import Publisher
 from service.wire.frames import MAGIC, decode_frame, encode_frame
 from service.wire.keys import Keys
 from service.wire.models import PairLinks
+from service.wire.outgoing import Outgoing
 from service.wire.outputs import encode
 from tests.support import random_track_table
 
@@ -245,3 +249,30 @@ def test_a_broken_frame_from_another_worker_is_rejected_counted_and_reported() -
     assert [o.key for o in out] == ["fusion/errors"]
     assert b"track states" in out[0].payload
     engine.close()
+
+
+def test_a_frame_is_put_as_octets_and_json_as_json(client: zenoh.Session) -> None:
+    """Through a router: the publisher puts a track-states frame with the encoding of raw
+    bytes, a JSON payload with its publisher's JSON, each byte for byte."""
+    keys = Keys("fusion")
+    got: queue.Queue[tuple[str, bytes]] = queue.Queue()
+    sub = client.declare_subscriber(
+        "fusion/radar/*/track-states", lambda s: got.put((str(s.encoding), s.payload.to_bytes()))
+    )
+    publisher = Publisher(keys, outbox_size=8)
+    publisher.start(client)
+    try:
+        frame = states_frame(StatesSender().states("A", _table(), 1000.0, "frame"))
+        json_body = StatesSender().states("B", _table(), 1000.0, "packed")
+        publisher.hand(
+            [
+                Outgoing(keys.track_states("A"), lambda: {}, lambda: frame),
+                Outgoing(keys.track_states("B"), lambda: json_body),
+            ]
+        )
+        first, second = got.get(timeout=10), got.get(timeout=10)
+    finally:
+        publisher.stop(5.0)
+        sub.undeclare()
+    assert first == (str(zenoh.Encoding.APPLICATION_OCTET_STREAM), frame)
+    assert second == (str(zenoh.Encoding.APPLICATION_JSON), encode(json_body))

@@ -14,6 +14,7 @@ from typing import Any
 
 import zenoh
 
+from service.wire.frames import is_frame
 from service.wire.keys import Keys
 from service.wire.outgoing import Outgoing
 
@@ -25,6 +26,7 @@ UNCONDITIONAL_PUTS = 8
 #: Most output publishers held; the least recently used beyond goes (``_bound_publishers``).
 #: A national network's worker puts on about a hundred keys (tracks, pairs, system tracks).
 MAX_PUBLISHERS = 1_024
+_OCTETS = zenoh.Encoding.APPLICATION_OCTET_STREAM
 
 
 class Publisher:
@@ -102,7 +104,9 @@ class Publisher:
                 pub, fresh = entry
                 if errors or fresh > 0 or pub.matching_status.matching:
                     entry[1] = fresh - 1
-                    pub.put(msg.payload)
+                    payload = msg.payload
+                    # (a frame is no JSON: its numbers are raw bytes, docs/contract.md "Scale-out")
+                    pub.put(payload, encoding=_OCTETS if is_frame(payload) else None)
             except Exception:
                 log.exception("publish failed on %s", msg.key)
 
