@@ -1,5 +1,5 @@
-"""The partitioned workers' fast readers: ``TrackStates`` frames, ``PairLinks``, and a change
-applied to a table, each against its plain form (the contract's model, a whole sort)."""
+"""The partitioned workers' track states as frames, and a change applied to a table, each
+against its plain form (the JSON form's rules, a whole sort); how a frame is put on Zenoh."""
 
 from __future__ import annotations
 
@@ -12,19 +12,15 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
-from pydantic import ValidationError
 
 from service.engine import Engine, EngineConfig
-from service.fusion.members import Links
 from service.pipeline.errors import RejectionError
 from service.pipeline.partition import Partition
-from service.pipeline.shared_links import SharedLinks, decode_links, links_body
 from service.pipeline.track_exchange import StatesSender, apply_change, decode_states, states_frame
 from service.tracking.base import TrackTable
 from service.transport.publisher import Publisher
 from service.wire.frames import MAGIC, decode_frame, encode_frame
 from service.wire.keys import Keys
-from service.wire.models import PairLinks
 from service.wire.outgoing import Outgoing
 from service.wire.outputs import encode
 from tests.support import random_track_table
@@ -174,69 +170,6 @@ def test_a_change_of_updated_rows_only_is_applied_as_a_whole_sort_would() -> Non
             assert np.array_equal(getattr(got, field), getattr(want, field)), field
         assert np.array_equal(got.quality, want.quality, equal_nan=True)
         assert got.covariance is not base.covariance  # (a new table: the base is not changed)
-
-
-def _links_cases() -> list[tuple[str, object]]:
-    good = links_body(
-        SharedLinks(
-            ("A", "B"),
-            1000.5,
-            "B",
-            Links("A", "B", np.array(["A-1", "A-2"]), np.array(["B-7", "B-9"]), np.array([0.5, 1.0])),
-        )
-    )
-    cases: list[tuple[str, object]] = [("valid", good)]
-
-    def variant(name: str, field: str, value: object) -> None:
-        cases.append((name, {**good, field: value}))
-
-    variant("valid swapped sources", "source_a", "B")
-    cases[-1] = ("valid swapped sources", {**good, "source_a": "B", "source_b": "A"})
-    variant("valid integer score", "score", [0, 1])
-    variant("valid integer time", "time_s", 1000)
-    variant("valid no links", "track_a", [])
-    cases[-1] = ("valid no links", {**good, "track_a": [], "track_b": [], "score": []})
-    variant("score above one", "score", [0.5, 1.5])
-    variant("score negative", "score", [-0.1, 0.5])
-    variant("score a string", "score", ["high", 0.5])
-    variant("valid score a bool (the model's lax float)", "score", [True, 0.5])
-    variant("score null", "score", [None, 0.5])
-    variant("score huge", "score", [1e300, 0.5])
-    variant("ids not strings", "track_a", [1, 2])
-    variant("ragged", "track_b", ["B-7"])
-    variant("time negative", "time_s", -1.0)
-    variant("time far", "time_s", 1e12)
-    variant("time string", "time_s", "now")
-    variant("time null", "time_s", None)
-    variant("bad release", "release", "a b")
-    variant("bad source", "source_b", "")
-    variant("source of another pair", "source_b", "C")
-    variant("links not a list", "track_a", "A-1")
-    cases.append(("not an object", [1, 2]))
-    cases.append(("missing scores", {k: v for k, v in good.items() if k != "score"}))
-    return cases
-
-
-@pytest.mark.parametrize(("name", "body"), _links_cases(), ids=[c[0] for c in _links_cases()])
-def test_fast_links_decoder_agrees_with_the_model(name: str, body: object) -> None:
-    payload = json.dumps(body).encode()
-    try:
-        model = PairLinks.model_validate_json(payload)
-        model_ok = sorted((model.source_a, model.source_b)) == ["A", "B"]  # (the key's check)
-    except ValidationError:
-        model_ok = False
-    try:
-        got = decode_links(payload, ("A", "B"))
-        fast_ok = True
-    except RejectionError:
-        fast_ok = False
-    assert fast_ok == model_ok, name
-    assert model_ok == name.startswith("valid")
-    if fast_ok:
-        assert isinstance(body, dict)
-        assert got.links.track_a.tolist() == body["track_a"]
-        assert got.links.score.tolist() == [float(x) for x in body["score"]]
-        assert (got.time_s, got.release, got.key) == (float(body["time_s"]), body["release"], ("A", "B"))
 
 
 def test_a_broken_frame_from_another_worker_is_rejected_counted_and_reported() -> None:

@@ -530,6 +530,7 @@ def _states_cases() -> list[tuple[str, object]]:
     variant("seq float", ["seq"], 1.5)
     variant("time far", ["time_s"], 1e12)
     variant("time string", ["time_s"], "now")
+    variant("valid time a bool (the model's lax float)", ["time_s"], True)
     variant("bad radar id", ["radar_id"], "a b")
     variant("full not bool", ["full"], 1)
     variant("short covariance", ["tracks", "covariance"], [[1.0] * 35])

@@ -24,6 +24,7 @@ import numpy as np
 
 from service.correlation.correlator import CorrelationParams
 from service.correlation.registration import RegistrationRowsData
+from service.fusion.members import Links
 from service.pipeline.correlation_runner import CorrelationRunner
 from service.pipeline.correlation_stage import CadenceParams
 from service.pipeline.decode import check_body_id, parse
@@ -31,7 +32,7 @@ from service.pipeline.errors import RejectionError, unknown_radar
 from service.pipeline.merger import TableMerger
 from service.pipeline.partition import Partition
 from service.pipeline.sequencer import RADAR, Sequencer
-from service.pipeline.shared_links import decode_links, links_body
+from service.pipeline.shared_links import SharedLinks, links_body
 from service.pipeline.track_exchange import (
     ExchangeParams,
     StatesForm,
@@ -43,7 +44,7 @@ from service.pipeline.track_exchange import (
 from service.pipeline.tracking_stage import TrackingStage
 from service.tracking.base import TrackTable
 from service.wire.keys import Keys
-from service.wire.models import BiasSet, RegistrationRows, WorkerClock
+from service.wire.models import BiasSet, PairLinks, RegistrationRows, WorkerClock
 from service.wire.outgoing import Outgoing
 
 
@@ -409,7 +410,17 @@ class Peers:
         wanted = self.partition.solves_biases or self.cycles.enabled
         if not wanted or self.partition.owns_pair(ids[0], ids[1]):
             return  # (our own pair's links, heard back: not even parsed, as our own track states)
-        self.correlation.mirror_links(decode_links(payload, (ids[0], ids[1])))
+        got: PairLinks = parse(PairLinks, payload, ids[0])
+        if sorted((got.source_a, got.source_b)) != sorted(ids):
+            raise RejectionError("schema", f"sources {got.source_a}, {got.source_b} != key {ids}", ids[0])
+        links = Links(
+            got.source_a,
+            got.source_b,
+            np.asarray(got.track_a, dtype=str),
+            np.asarray(got.track_b, dtype=str),
+            np.asarray(got.score, dtype=float),
+        )
+        self.correlation.mirror_links(SharedLinks((ids[0], ids[1]), got.time_s, got.release, links))
 
     def _hold_states(self, radar_id: str, msg: Any, size: int) -> tuple[tuple[str, RejectionError], ...]:
         """Hold a radar's track states until its site comes; beyond the bounds the oldest held

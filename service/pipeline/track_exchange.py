@@ -291,8 +291,10 @@ def decode_states(payload: bytes, radar_id: str) -> StatesMessage:
         raise _fail("schema", "radar_id", radar_id)
     if type(seq) is not int or not 0 <= seq <= 2**63 - 1:
         raise _fail("schema" if type(seq) is not int else "out_of_range", "seq", radar_id)
-    if type(time_s) not in (int, float) or not np.isfinite(time_s) or not 0 <= time_s <= MAX_TIME_S:
-        raise _fail("schema" if type(time_s) not in (int, float) else "out_of_range", "time_s", radar_id)
+    # (a number; the model's lax float takes true and false as 1 and 0 too)
+    number = isinstance(time_s, (int, float))
+    if not number or not np.isfinite(time_s) or not 0 <= time_s <= MAX_TIME_S:
+        raise _fail("out_of_range" if number else "schema", "time_s", radar_id)
     if type(full) is not bool or type(expiry) is not bool:
         raise _fail("schema", "full/expiry must be booleans", radar_id)
     if count is not None and (type(count) is not int or not 0 <= count <= MAX_TRACKS):
