@@ -30,7 +30,7 @@ INPUT_MODELS: dict[str, type[Any]] = {
 def list_of(values: object, *types: type) -> bool:
     """``values`` is a list whose items are each exactly of one of ``types``: JSON's own types,
     which a parser makes without subclasses.  One pass in C, not a Python test per item (a
-    peer's links carry hundreds of ids)."""
+    peer's whole table carries hundreds of ids and labels)."""
     return isinstance(values, list) and set(map(type, values)) <= set(types)
 
 
