@@ -32,7 +32,7 @@ from service.pipeline.errors import RejectionError, unknown_radar
 from service.pipeline.merger import TableMerger
 from service.pipeline.partition import Partition
 from service.pipeline.sequencer import RADAR, Sequencer
-from service.pipeline.shared_links import SharedLinks, links_body
+from service.pipeline.shared_links import SharedLinks
 from service.pipeline.track_exchange import (
     ExchangeParams,
     StatesForm,
@@ -87,6 +87,20 @@ def _rows_body(source_a: str, source_b: str, reference: bool, rows: Registration
         "p_b": rows.p_b.tolist(),
         "s": rows.s.reshape(len(rows), 9).tolist(),
         **({} if rows.v is None else {"v": rows.v.tolist()}),
+    }
+
+
+def _links_body(shared: SharedLinks) -> dict[str, Any]:
+    """The ``PairLinks`` payload of an owned pair's links."""
+    links = shared.links
+    return {
+        "source_a": links.source_a,
+        "source_b": links.source_b,
+        "time_s": shared.time_s,
+        "release": shared.release,
+        "track_a": links.track_a.tolist(),
+        "track_b": links.track_b.tolist(),
+        "score": links.score.tolist(),
     }
 
 
@@ -272,7 +286,7 @@ class Peers:
             for r in self.correlation.take_rows()
         ]
         out += [
-            Outgoing(self.keys.links(*s.key), lambda s=s: links_body(s))  # type: ignore[misc]
+            Outgoing(self.keys.links(*s.key), lambda s=s: _links_body(s))  # type: ignore[misc]
             for s in self.correlation.take_links()
         ]
         biases = self.correlation.biases

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-from typing import Any
 
 from service.fusion.members import Links
 
@@ -60,17 +59,3 @@ class LinksHistory:
     def forget(self, source_id: str) -> None:
         for key in [k for k in self._queues if source_id in k]:
             del self._queues[key]
-
-
-def links_body(shared: SharedLinks) -> dict[str, Any]:
-    """The ``PairLinks`` payload of a pair's links."""
-    links = shared.links
-    return {
-        "source_a": links.source_a,
-        "source_b": links.source_b,
-        "time_s": shared.time_s,
-        "release": shared.release,
-        "track_a": links.track_a.tolist(),
-        "track_b": links.track_b.tolist(),
-        "score": links.score.tolist(),
-    }
