@@ -38,8 +38,11 @@ def test_recorder_started_before_its_router_waits_for_it(
             pub = open_session(options)
             try:
                 wait_subscribed(pub, f"{PREFIX}/radar/A/plots", timeout=20)
-                pub.put(f"{PREFIX}/radar/A/plots", plots("A", 1, 1e9))
+                # the file's header comes first: stop only once the message is written after it
                 wait_for(lambda: out.exists() and out.stat().st_size > 0, timeout=10)
+                header = out.stat().st_size
+                pub.put(f"{PREFIX}/radar/A/plots", plots("A", 1, 1e9))
+                wait_for(lambda: out.stat().st_size > header, timeout=10)
             finally:
                 pub.close()
             stop.set()
