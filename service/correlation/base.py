@@ -63,6 +63,16 @@ NO_DECISION_REASONS = np.array(
     [Reason.TOO_FEW_NEIGHBOURS, Reason.DEGENERATE_FIT, Reason.UNEQUAL_LENGTH, Reason.AMBIGUOUS]
 )
 
+#: :data:`NO_DECISION_REASONS` as a table over every int8 code taken as a byte (a lookup costs
+#: a tenth of ``np.isin`` on the few decisions of a prompt one).
+_NO_DECISION_TABLE = np.zeros(256, dtype=bool)
+_NO_DECISION_TABLE[NO_DECISION_REASONS] = True
+
+
+def no_decision(reason: NDArray[np.integer]) -> NDArray[np.bool_]:
+    """Per reason code: does it mean "could not decide" (:data:`NO_DECISION_REASONS`)?"""
+    return np.asarray(_NO_DECISION_TABLE[np.asarray(reason).astype(np.uint8)])
+
 
 @dataclass(frozen=True)
 class PredictedTracks:

@@ -63,13 +63,13 @@ from numpy.typing import NDArray
 from service.chi2 import chi2_upper
 from service.correlation.assignment import assign_unambiguous
 from service.correlation.base import (
-    NO_DECISION_REASONS,
     Basis,
     CorrelationMethod,
     DecisionContext,
     Decisions,
     PredictedTracks,
     Reason,
+    no_decision,
 )
 from service.correlation.basic_topology import BasicTopologyCorrelator, BasicTopologyParams
 from service.correlation.cfar import CfarParams
@@ -499,7 +499,7 @@ class PairCorrelator:
         #: Nothing left to settle: registered, no tentative pair, no candidate accepted but not
         #: chosen or left undecided (the stage may then correlate the pair less often,
         #: :class:`CadenceParams`).
-        open_ = (decided.accepted & ~chosen) | np.isin(decided.reason, NO_DECISION_REASONS)
+        open_ = (decided.accepted & ~chosen) | no_decision(decided.reason)
         self.settled = self.registered and not (~self.book.confirmed).any() and not open_.any()
         self.time_s = time_s
         self.updates += 1
@@ -666,7 +666,7 @@ class PairCorrelator:
         # their usual cadence bring (hurrying them cost 11 % of the stage's CPU on the national
         # stream and gained nothing)
         open_ = np.flatnonzero(fresh & ~clear)  # (few: the reasons are read for these only)
-        unclear = dec.accepted[open_] | np.isin(dec.reason[open_], NO_DECISION_REASONS)
+        unclear = dec.accepted[open_] | no_decision(dec.reason[open_])
         self.settled &= not (unclear & self._quality_ok(dec, a, b)[open_]).any()
         ev = self.evidence
         if ev is not None and clear.any() and len(ev):
@@ -775,7 +775,7 @@ class PairCorrelator:
             time_s, a.keys[dec.index_a[rows]], b.keys[dec.index_b[rows]], r, s_noise, s_common
         )
         q, good = mahalanobis3(r, s_noise + s_common)
-        undecided = np.isin(dec.reason[rows], NO_DECISION_REASONS) & good
+        undecided = no_decision(dec.reason[rows]) & good
         sub = rows[undecided]
         q = q[undecided]
         passed = q <= chi2_upper(self.params.svd.alpha_position, 3)

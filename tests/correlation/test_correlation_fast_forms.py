@@ -7,6 +7,7 @@ import pytest
 from scipy.stats import chi2
 
 from service.chi2 import chi2_upper
+from service.correlation.base import NO_DECISION_REASONS, Reason, no_decision
 from service.correlation.pairs import _isin
 from service.correlation.svd_topology import svd_match
 from service.correlation.topology import TopologyParams, gather_points, neighbourhoods
@@ -252,3 +253,12 @@ def test_compensation_covariance_matches_per_track_product() -> None:
         np.testing.assert_allclose(extra[k], g[k] @ bias_cov @ g[k].T, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(out.position, remove_bias(site, pos, bias), atol=1e-6)
     np.testing.assert_allclose(out.enu, site.ecef_to_enu(out.position), atol=1e-6)
+
+
+def test_no_decision_lookup_matches_isin_for_every_int8_code() -> None:
+    # every reason the methods give, and every other int8 code (negative ones included)
+    codes = np.arange(-128, 128, dtype=np.int8)
+    assert np.array_equal(no_decision(codes), np.isin(codes, NO_DECISION_REASONS))
+    reasons = np.array([r.value for r in Reason], dtype=np.int8)
+    assert no_decision(reasons).sum() == len(NO_DECISION_REASONS)
+    assert no_decision(np.empty(0, dtype=np.int8)).shape == (0,)
