@@ -7,6 +7,7 @@ from typing import Any
 
 from service.engine import Engine, EngineConfig
 from service.pipeline.correlation_process import ChildProcessRunner
+from service.pipeline.correlation_stage import timings_dict
 from tests.scenario_helpers import scenario_messages
 from topofusion_lab.evaluation.promptness import OutputMonitor
 
@@ -156,5 +157,26 @@ def test_a_ctrl_c_to_the_process_group_leaves_the_child_to_its_parent() -> None:
             engine.ingest(key, payload)
         errors = [o for o in engine.flush() if o.key == "fusion/errors"]
         assert remote._process.is_alive() and remote.restarts == 0 and errors == []
+    finally:
+        engine.close()
+
+
+def test_status_timings_follow_every_update_as_taken_afresh() -> None:
+    # /status's correlation timings are taken again only after a pair's full update: after
+    # every message they equal those computed afresh from the stage's own figures
+    stream = scenario_messages("three-radar", duration_s=60.0, targets=20)
+    engine = Engine(EngineConfig(), correlation_process=False)
+    try:
+        stage = engine.correlation.stage  # type: ignore[attr-defined]
+        seen = set()
+        for key, payload in stream:
+            engine.ingest(key, payload, receive_time_s=0.0)
+            shown = {k: v for k, v in engine.snapshot().correlation.items() if k != "pending"}
+            fresh = timings_dict(
+                stage.updates, stage.last_ms, stage.timings_ms, stage.duration_counts, stage.duration_sum_s
+            )
+            assert shown == fresh
+            seen.add(shown["updates"])
+        assert len(seen) > 10  # (many updates, each shown)
     finally:
         engine.close()

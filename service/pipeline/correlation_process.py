@@ -57,18 +57,13 @@ def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
     after the last answers of a stop."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     stage = CorrelationStage(*stage_args)
-    timings: dict[str, Any] | None = None
-    timed = -1  # the stage's count of pair updates when ``timings`` was taken
     while True:
         msg = requests.recv()
         if msg is None:
             break
         op, args = msg
         got = answer(stage, op, args)
-        # timings change only with a pair's full update (a prompt decision between two is not
-        # timed): two percentiles over the recent updates, not taken again for every message
-        if stage.updates != timed or timings is None:
-            timings, timed = stage.timings(), stage.updates
+        timings = stage.timings()  # (taken again only after a pair's full update)
         # A picture taken by this call is of the tables the parent sent: it has them (and fills
         # them in, :meth:`ChildProcessRunner._answered_radars`), they are not sent back.
         drawings = [replace(d, radars=None) if d.taken_now else d for d in got.drawings]

@@ -199,6 +199,9 @@ class CorrelationStage:
         #: ``DURATION_BUCKETS_S`` (the last one above them all), and their sum (s).
         self.duration_counts = np.zeros(len(DURATION_LABELS), dtype=np.int64)
         self.duration_sum_s = 0.0
+        #: :meth:`timings` as of the update count it was taken at: they change only with an
+        #: update, and a snapshot asks after every message (two percentiles each time).
+        self._timings: tuple[int, dict[str, Any]] | None = None
         self.biases: list[dict[str, Any]] = []
         #: Every solve's ``biases`` with its data time, the newest ``BIAS_HISTORY`` (at one
         #: solve per ``bias_interval_s``, 30 s: a day); ``topofusion assess`` charts them.
@@ -604,9 +607,16 @@ class CorrelationStage:
             corr.memory = kept.memory
 
     def timings(self) -> dict[str, Any]:
-        return timings_dict(
-            self.updates, self.last_ms, self.timings_ms, self.duration_counts, self.duration_sum_s
-        )
+        """``/status`` ``correlation`` (:func:`timings_dict`), taken again only after an update
+        (the same dict until then: not to be changed by its readers)."""
+        if self._timings is None or self._timings[0] != self.updates:
+            self._timings = (
+                self.updates,
+                timings_dict(
+                    self.updates, self.last_ms, self.timings_ms, self.duration_counts, self.duration_sum_s
+                ),
+            )
+        return self._timings[1]
 
 
 def change_radars(radars: dict[str, tuple[Site, TrackTable]], op: str, args: tuple[Any, ...]) -> None:
