@@ -208,9 +208,17 @@ def positions_at(table: TrackTable, time_s: float) -> np.ndarray:
     return np.asarray(table.position_ecef_m + table.velocity_ecef_mps * (time_s - table.time_s)[:, None])
 
 
+#: Up to this many anchors :func:`_near` takes each row's difference to each anchor directly (a
+#: prompt decision's few new tracks: a third of the product form's time, and exact).
+_FEW_ANCHORS = 8
+
+
 def _near(positions: np.ndarray, anchors: np.ndarray, reach_m: float) -> np.ndarray:
     """``(rows, anchors)``: whether each row of ``positions`` lies within ``reach_m`` of each
     anchor (NaN rows and anchors are never near)."""
+    if len(anchors) <= _FEW_ANCHORS:
+        d = positions[:, None, :] - anchors[None, :, :]
+        return np.asarray(np.einsum("ijk,ijk->ij", d, d) <= reach_m**2)
     finite = np.flatnonzero(np.isfinite(anchors).all(axis=1))
     if len(positions) == 0 or len(finite) == 0:
         return np.zeros((len(positions), len(anchors)), dtype=bool)

@@ -8,6 +8,7 @@ from scipy.stats import chi2
 
 from service.chi2 import chi2_upper
 from service.correlation.base import NO_DECISION_REASONS, Reason, no_decision
+from service.correlation.correlator import _near
 from service.correlation.pairs import _isin
 from service.correlation.svd_topology import svd_match
 from service.correlation.topology import TopologyParams, gather_points, neighbourhoods
@@ -262,3 +263,20 @@ def test_no_decision_lookup_matches_isin_for_every_int8_code() -> None:
     reasons = np.array([r.value for r in Reason], dtype=np.int8)
     assert no_decision(reasons).sum() == len(NO_DECISION_REASONS)
     assert no_decision(np.empty(0, dtype=np.int8)).shape == (0,)
+
+
+@pytest.mark.parametrize("anchors", [0, 1, 3, 8, 9, 40])
+def test_near_anchors_match_a_plain_loop(anchors: int) -> None:
+    # the direct form (a few anchors) and the product form (many) against every distance taken
+    # one at a time; NaN rows and anchors are never near
+    rng = np.random.default_rng(anchors)
+    positions = rng.normal(0.0, 30_000.0, (60, 3)) + np.array([4.0e6, 3.0e5, 4.9e6])
+    positions[5] = np.nan
+    a = positions[rng.integers(0, 60, anchors)] + rng.normal(0.0, 20_000.0, (anchors, 3))
+    if anchors > 2:
+        a[1] = np.nan
+    got = _near(positions, a, 25_000.0)
+    want = np.array(
+        [[bool(np.sum((p - q) ** 2) <= 25_000.0**2) for q in a] for p in positions], dtype=bool
+    ).reshape(len(positions), anchors)
+    assert got.shape == want.shape and np.array_equal(got, want)
