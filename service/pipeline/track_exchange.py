@@ -179,6 +179,11 @@ _FRAME_COLUMNS = (
     ("quality", 1, "<f8"),
     ("confirmed", 1, "|u1"),
 )
+#: The two layouts a frame's ``tracks.binary`` may name: every column, or all but ``quality``.
+_FRAME_LAYOUTS = (
+    [name for name, _, _ in _FRAME_COLUMNS],
+    [name for name, _, _ in _FRAME_COLUMNS if name != "quality"],
+)
 
 
 def states_frame(body: dict[str, Any]) -> bytes:
@@ -351,8 +356,8 @@ def _frame_parts(payload: bytes, radar_id: str) -> tuple[dict[str, Any], dict[st
     if not isinstance(cols, dict) or not isinstance(cols.get("track_id"), list):
         raise _fail("schema", "not a frame with a tracks object of track ids", radar_id)
     names = cols.get("binary")
-    layout = [name for name, _, _ in _FRAME_COLUMNS]
-    if names not in (layout, [x for x in layout if x != "quality"]):
+    layout = _FRAME_LAYOUTS[0]
+    if names not in _FRAME_LAYOUTS:
         raise _fail("schema", f"tracks.binary must be {layout}, quality optional", radar_id)
     if any(name in cols for name in layout):
         raise _fail("schema", "a frame's tracks must not repeat its binary columns", radar_id)

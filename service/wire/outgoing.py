@@ -19,8 +19,9 @@ class Outgoing:
         self.key = key
         #: The payload as a JSON-ready object, built when called.
         self.body = body
-        #: The payload's bytes, when they are built another way than by encoding ``body`` (the
-        #: same bytes, sooner: :mod:`service.pipeline.payload_rows`).
+        #: The payload's bytes, when they are built another way than by encoding ``body``: the
+        #: same bytes, sooner (:mod:`service.pipeline.payload_rows`), or the same message as a
+        #: frame (:func:`service.pipeline.track_exchange.states_frame`).
         self._encoded = encoded
 
     @cached_property
