@@ -437,6 +437,34 @@ def test_the_other_workers_queue_is_bounded_too(router: str, client: zenoh.Sessi
         node.stop()
 
 
+def test_a_worker_does_not_hear_back_what_it_puts_for_the_others(router: str, client: zenoh.Session) -> None:
+    """A partitioned worker's track states reach the others, not its own queue of the others'
+    messages: the keys it takes from them take other sessions' samples only."""
+    from service.pipeline.partition import Partition
+
+    partition = Partition(1, 2)
+    node = ServiceNode(
+        EngineConfig(partition=partition),
+        ZenohOptions(mode="client", connect=(router,)),
+        correlation_process=False,
+    )
+    heard: list[str] = []
+    sub = client.declare_subscriber("fusion/radar/*/track-states", lambda s: heard.append(str(s.key_expr)))
+    node.start()
+    try:
+        stream = scenario_messages("three-radar", duration_s=30.0)
+        own = [(k, p) for k, p in stream if partition.owns(k.split("/")[2])]
+        assert own, "worker 1 of 2 owns a radar of the scenario"
+        wait_subscribed(client, own[0][0])
+        for key, payload in own:
+            put_json(client, key, payload)
+        wait_for(lambda: len(heard) >= 5, timeout=30)
+        assert node.peer_queue.taken == 0 and node.peer_queue.qsize() == 0
+    finally:
+        sub.undeclare()
+        node.stop()
+
+
 def test_a_router_that_refuses_the_session_is_told_from_one_that_is_down(
     caplog: pytest.LogCaptureFixture,
 ) -> None:

@@ -296,13 +296,16 @@ def test_a_peer_rebuilds_the_owners_tables_bit_for_bit_and_recovers_from_a_gap(f
 def _form_of(payload: bytes) -> str:
     if is_frame(payload):
         return "frame"
-    return "packed" if isinstance(json.loads(payload)["tracks"]["time_s"], str) else "numbers"
+    body = json.loads(payload)
+    if "tracks" not in body:
+        return "json"  # (links)
+    return "packed" if isinstance(body["tracks"]["time_s"], str) else "numbers"
 
 
-def _states_forms(exchange: tuple[ExchangeParams, ...]) -> list[set[str]]:
+def _states_forms(exchange: tuple[ExchangeParams, ...], kind: str = "/track-states") -> list[set[str]]:
     """Workers, each with the ``exchange`` settings given, on a three-radar stream: per worker,
-    the forms of the track states it sent after the first 200 messages (each worker has heard
-    the others' progress by then)."""
+    the forms of the track states (or of the messages whose key holds ``kind``) it sent
+    after the first 200 messages (each worker has heard the others' progress by then)."""
     n = len(exchange)
     engines = [
         Engine(EngineConfig(partition=Partition(k + 1, n), exchange=x)) for k, x in enumerate(exchange)
@@ -314,7 +317,7 @@ def _states_forms(exchange: tuple[ExchangeParams, ...]) -> list[set[str]]:
         for o in out:
             if _is_peer(o.key):
                 pending.append((j, o.key, o.payload))
-                if o.key.endswith("/track-states") and late:
+                if kind in o.key and late:
                     forms[j].add(_form_of(o.payload))
 
     for i, (key, payload) in enumerate(scenario_messages("three-radar", duration_s=60.0, seed=2)):
@@ -341,6 +344,12 @@ def test_track_states_go_as_frames_or_packed_once_every_other_worker_reads_them(
     # columns; one that reads neither (a version before packing) gets numbers
     assert _states_forms((default, no_frames)) == [{"packed"}, {"packed"}]
     assert _states_forms((default, neither)) == [{"numbers"}, {"numbers"}]
+
+
+def test_links_go_as_frames_once_every_other_worker_reads_them() -> None:
+    default, no_frames = ExchangeParams(), ExchangeParams(frames=False)
+    assert _states_forms((default, default), "/links/") == [{"frame"}, {"frame"}]
+    assert _states_forms((default, no_frames), "/links/") == [{"json"}, {"json"}]
 
 
 # -- N engines give the pair updates of one --------------------------------------------------

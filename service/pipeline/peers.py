@@ -24,15 +24,14 @@ import numpy as np
 
 from service.correlation.correlator import CorrelationParams
 from service.correlation.registration import RegistrationRowsData
-from service.fusion.members import Links
 from service.pipeline.correlation_runner import CorrelationRunner
 from service.pipeline.correlation_stage import CadenceParams
 from service.pipeline.decode import check_body_id, parse
 from service.pipeline.errors import RejectionError, unknown_radar
+from service.pipeline.link_exchange import decode_links, links_body, links_frame
 from service.pipeline.merger import TableMerger
 from service.pipeline.partition import Partition
 from service.pipeline.sequencer import RADAR, Sequencer
-from service.pipeline.shared_links import SharedLinks
 from service.pipeline.track_exchange import (
     ExchangeParams,
     StatesForm,
@@ -44,7 +43,7 @@ from service.pipeline.track_exchange import (
 from service.pipeline.tracking_stage import TrackingStage
 from service.tracking.base import TrackTable
 from service.wire.keys import Keys
-from service.wire.models import BiasSet, PairLinks, RegistrationRows, WorkerClock
+from service.wire.models import BiasSet, RegistrationRows, WorkerClock
 from service.wire.outgoing import Outgoing
 
 
@@ -87,20 +86,6 @@ def _rows_body(source_a: str, source_b: str, reference: bool, rows: Registration
         "p_b": rows.p_b.tolist(),
         "s": rows.s.reshape(len(rows), 9).tolist(),
         **({} if rows.v is None else {"v": rows.v.tolist()}),
-    }
-
-
-def _links_body(shared: SharedLinks) -> dict[str, Any]:
-    """The ``PairLinks`` payload of an owned pair's links."""
-    links = shared.links
-    return {
-        "source_a": links.source_a,
-        "source_b": links.source_b,
-        "time_s": shared.time_s,
-        "release": shared.release,
-        "track_a": links.track_a.tolist(),
-        "track_b": links.track_b.tolist(),
-        "score": links.score.tolist(),
     }
 
 
@@ -156,8 +141,10 @@ class Peers:
         self._table_seq: dict[str, int] = {}
         #: Each other worker's word, in its latest progress, on reading packed track states.
         self._reads_packed: dict[int, bool] = {}
-        #: ... and on reading track states as frames.
+        #: ... and on reading track states as frames ...
         self._reads_frames: dict[int, bool] = {}
+        #: ... and links as frames.
+        self._reads_frame_links: dict[int, bool] = {}
 
     @property
     def alone(self) -> bool:
@@ -182,11 +169,12 @@ class Peers:
         """How this worker's track states go: as frames, or packed, once every other worker
         of the partition said, in its latest progress, that it reads them
         (:meth:`ExchangeParams.form`)."""
+        return self.exchange.form(self._all_read(self._reads_frames), self._all_read(self._reads_packed))
+
+    def _all_read(self, reads: dict[int, bool]) -> bool:
+        """Every other worker of the partition said, in its latest progress, that it reads a form."""
         others = set(range(1, self.partition.count + 1)) - {self.partition.index}
-        return self.exchange.form(
-            all(self._reads_frames.get(k, False) for k in others),
-            all(self._reads_packed.get(k, False) for k in others),
-        )
+        return all(reads.get(k, False) for k in others)
 
     def forget(self, source_id: str) -> None:
         self.sender.forget(source_id)
@@ -285,8 +273,13 @@ class Peers:
             )
             for r in self.correlation.take_rows()
         ]
+        framed = self.exchange.frames and self._all_read(self._reads_frame_links)
         out += [
-            Outgoing(self.keys.links(*s.key), lambda s=s: _links_body(s))  # type: ignore[misc]
+            Outgoing(
+                self.keys.links(*s.key),
+                lambda s=s: links_body(s),  # type: ignore[misc]
+                (lambda s=s: links_frame(s)) if framed else None,  # type: ignore[misc]
+            )
             for s in self.correlation.take_links()
         ]
         biases = self.correlation.biases
@@ -333,7 +326,7 @@ class Peers:
             "released_s": finite_or_none(self.sequencer.last_limit),
             "correlated_s": finite_or_none(self.correlation.correlated_through(merged)),
             **({"packed_states": True} if self.exchange.packed else {}),
-            **({"frame_states": True} if self.exchange.frames else {}),
+            **({"frame_states": True, "frame_links": True} if self.exchange.frames else {}),
         }
         clocks: dict[str, Any] = {
             "partition": str(self.partition),
@@ -386,6 +379,7 @@ class Peers:
             else:
                 self._reads_packed[worker] = bool(clock.packed_states)
                 self._reads_frames[worker] = bool(clock.frame_states)
+                self._reads_frame_links[worker] = bool(clock.frame_links)
                 self.merger.progress(worker, clock.released_s if clock.released_s is not None else -np.inf)
                 self._correlated_by[worker] = (
                     clock.correlated_s if clock.correlated_s is not None else -np.inf
@@ -424,17 +418,7 @@ class Peers:
         wanted = self.partition.solves_biases or self.cycles.enabled
         if not wanted or self.partition.owns_pair(ids[0], ids[1]):
             return  # (our own pair's links, heard back: not even parsed, as our own track states)
-        got: PairLinks = parse(PairLinks, payload, ids[0])
-        if sorted((got.source_a, got.source_b)) != sorted(ids):
-            raise RejectionError("schema", f"sources {got.source_a}, {got.source_b} != key {ids}", ids[0])
-        links = Links(
-            got.source_a,
-            got.source_b,
-            np.asarray(got.track_a, dtype=str),
-            np.asarray(got.track_b, dtype=str),
-            np.asarray(got.score, dtype=float),
-        )
-        self.correlation.mirror_links(SharedLinks((ids[0], ids[1]), got.time_s, got.release, links))
+        self.correlation.mirror_links(decode_links(payload, (ids[0], ids[1])))
 
     def _hold_states(self, radar_id: str, msg: Any, size: int) -> tuple[tuple[str, RejectionError], ...]:
         """Hold a radar's track states until its site comes; beyond the bounds the oldest held

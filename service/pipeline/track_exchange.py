@@ -72,7 +72,8 @@ class ExchangeParams:
     #: numbers as raw columns, no base64 and no JSON to parse them from), says so in its
     #: progress, and sends its own so once every other worker has said it reads them; else
     #: packed or numbers as :attr:`packed` says.  The same tables, bit for bit, in three
-    #: quarters of the packed form's bytes and a fraction of its decoding.
+    #: quarters of the packed form's bytes and a fraction of its decoding.  The same for a
+    #: pair's links (:mod:`.link_exchange`: JSON otherwise).
     frames: bool = True
 
     def form(self, reads_frames: bool, reads_packed: bool) -> StatesForm:

@@ -187,8 +187,15 @@ class ServiceNode:
         # callback on its own thread, and a site could then reach the queue after the plots
         # that followed it on the wire.  Run on Zenoh's network thread, the callbacks keep the
         # wire order across keys, and a full queue pushes back on the link itself.
+        # What this worker puts for the others (its tables, links, rows, progress) it would hear
+        # back on the same keys, only to drop it: those keys take other sessions' samples only.
+        peers = set(self.keys.peer_inputs)
         self._inputs = [
-            s.declare_subscriber(key, zenoh.handlers.Callback(self._on_sample, indirect=False))
+            s.declare_subscriber(
+                key,
+                zenoh.handlers.Callback(self._on_sample, indirect=False),
+                allowed_origin=zenoh.Locality.REMOTE if key in peers else None,
+            )
             for key in self._input_keys()
         ]
         if self._stopping.is_set():  # a signal while they were declared: stop_input missed them

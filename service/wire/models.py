@@ -431,6 +431,11 @@ class WorkerClock(WireModel):
         description="(progress) this worker reads TrackStates as frames (docs/contract.md, "
         "'Scale-out'); a worker sends its own so once every other worker has said so",
     )
+    frame_links: bool | None = Field(
+        default=None,
+        description="(progress) this worker reads PairLinks as frames (docs/contract.md, "
+        "'Scale-out'); a worker sends its own so once every other worker has said so",
+    )
 
 
 class RegistrationRows(WireModel):

@@ -1,0 +1,167 @@
+"""A pair's links between partitioned workers as a frame: read back as the JSON form reads,
+held to the JSON form's rules and to the frame's layout, and a broken one rejected whole."""
+
+from __future__ import annotations
+
+import json
+import struct
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import pytest
+
+from service.engine import Engine, EngineConfig
+from service.fusion.members import Links
+from service.pipeline.errors import RejectionError
+from service.pipeline.link_exchange import LINK_COLUMNS, MAX_ID_CHARS, decode_links, links_body, links_frame
+from service.pipeline.partition import Partition
+from service.pipeline.shared_links import SharedLinks
+from service.wire.frames import decode_frame, encode_frame
+from service.wire.keys import Keys
+from service.wire.outputs import encode
+
+KEY = ("A", "B")
+
+
+def _shared(n: int, seed: int = 1, a_ids: list[str] | None = None) -> SharedLinks:
+    rng = np.random.default_rng(seed)
+    track_a = np.array(a_ids if a_ids is not None else [f"A-{i}" for i in rng.permutation(n)], dtype=str)
+    track_b = np.array([f"B-{i:06d}" for i in range(n)], dtype=str)
+    links = Links("A", "B", track_a, track_b, rng.random(n))
+    return SharedLinks(KEY, 1234.25, "B", links)
+
+
+def _same(got: SharedLinks, want: SharedLinks) -> None:
+    assert (got.key, got.time_s, got.release) == (want.key, want.time_s, want.release)
+    assert (got.links.source_a, got.links.source_b) == (want.links.source_a, want.links.source_b)
+    assert got.links.track_a.tolist() == want.links.track_a.tolist()
+    assert got.links.track_b.tolist() == want.links.track_b.tolist()
+    assert got.links.score.dtype == np.float64
+    assert got.links.score.tobytes() == want.links.score.tobytes()
+
+
+@pytest.mark.parametrize("n", [0, 1, 7, 490])
+def test_a_frame_reads_back_what_the_json_form_reads(n: int) -> None:
+    sent = _shared(n)
+    from_json = decode_links(encode(links_body(sent)), KEY)
+    from_frame = decode_links(links_frame(sent), KEY)
+    _same(from_json, sent)
+    _same(from_frame, sent)
+    # ids of other scripts and lengths: code points, not bytes, and each side its own width
+    odd = _shared(4, a_ids=["Ä-1", "航-22", "x", "😀-333"])
+    _same(decode_links(links_frame(odd), KEY), odd)
+    _same(decode_links(encode(links_body(odd)), KEY), odd)
+
+
+def test_an_id_too_long_for_a_frame_goes_as_json() -> None:
+    sent = _shared(2, a_ids=["a" * (MAX_ID_CHARS + 1), "b"])
+    payload = links_frame(sent)
+    assert payload.startswith(b"{")
+    _same(decode_links(payload, KEY), sent)
+
+
+Change = Callable[[dict[str, Any], dict[str, np.ndarray]], None]
+
+
+def _parts(sent: SharedLinks) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    header, body = decode_frame(links_frame(sent))
+    n, (wa, wb) = header["count"], header["widths"]
+    cols = {
+        "score": np.frombuffer(body, "<f8", n).copy(),
+        "track_a": np.frombuffer(body, "<u4", n * wa, 8 * n).copy(),
+        "track_b": np.frombuffer(body, "<u4", n * wb, 8 * n + 4 * n * wa).copy(),
+    }
+    return header, cols
+
+
+def _frame_cases() -> list[tuple[str, bytes]]:
+    good_header, good_cols = _parts(_shared(5))
+    cases = [("valid", encode_frame(good_header, b"".join(c.tobytes() for c in good_cols.values())))]
+
+    def variant(name: str, change: Change) -> None:
+        header, cols = json.loads(json.dumps(good_header)), {k: v.copy() for k, v in good_cols.items()}
+        change(header, cols)
+        cases.append((name, encode_frame(header, b"".join(c.tobytes() for c in cols.values()))))
+
+    def put(field: str, value: object) -> Change:
+        return lambda header, cols: header.__setitem__(field, value)
+
+    def col(name: str, at: int, value: float) -> Change:
+        return lambda header, cols: cols[name].__setitem__(at, value)
+
+    variant("score NaN", col("score", 1, np.nan))
+    variant("score above one", col("score", 2, 1.5))
+    variant("score negative", col("score", 0, -0.1))
+    variant("id a surrogate", col("track_a", 0, 0xD800))
+    variant("id beyond Unicode", col("track_b", 3, 0x110000))
+    variant("count one more", put("count", 6))
+    variant("count not an integer", put("count", 5.0))
+    variant("count negative", put("count", -1))
+    variant("width zero", put("widths", [0, good_header["widths"][1]]))
+    variant("width too large", put("widths", [MAX_ID_CHARS + 1, 1]))
+    variant("one width", put("widths", [3]))
+    variant("columns out of order", put("binary", list(reversed(LINK_COLUMNS))))
+    variant("a column repeated in the header", put("score", [0.5] * 5))
+    variant("source id bad", put("source_a", "a b"))
+    variant("release missing", lambda header, cols: header.pop("release"))
+    variant("time negative", put("time_s", -1.0))
+    variant("time a string", put("time_s", "now"))
+    variant("sources not the key's", put("source_b", "C"))
+    good = cases[0][1]
+    cases.append(("body one byte short", good[:-1]))
+    cases.append(("body one byte long", good + b"\0"))
+    cases.append(("header longer than the frame", good[:4] + struct.pack("<I", len(good)) + good[8:]))
+    cases.append(("header not an object", encode_frame([1, 2], b"")))  # type: ignore[arg-type]
+    return cases
+
+
+@pytest.mark.parametrize(("name", "payload"), _frame_cases(), ids=[c[0] for c in _frame_cases()])
+def test_a_links_frame_is_read_whole_or_rejected(name: str, payload: bytes) -> None:
+    try:
+        got = decode_links(payload, KEY)
+    except RejectionError:
+        assert name != "valid", name
+        return
+    assert name == "valid", name
+    _same(got, _shared(5))
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("time_s", -1.0), ("time_s", "now"), ("source_a", "a b"), ("release", None), ("time_s", 1e300)],
+)
+def test_the_header_keeps_the_json_forms_verdicts(field: str, value: object) -> None:
+    """A field the frame's header shares with the JSON form gets the same reason either way."""
+    header, cols = _parts(_shared(3))
+    body = links_body(_shared(3))
+    header[field] = body[field] = value
+    reasons = []
+    for payload in (encode_frame(header, b"".join(c.tobytes() for c in cols.values())), encode(body)):
+        with pytest.raises(RejectionError) as got:
+            decode_links(payload, KEY)
+        reasons.append(got.value.reason)
+    assert reasons[0] == reasons[1]
+
+
+def test_a_broken_links_frame_is_rejected_counted_and_reported() -> None:
+    partition = Partition(1, 2)  # worker 1 reads every other worker's links (picture, biases)
+    engine = Engine(EngineConfig(partition=partition))
+    a, b = next(
+        (f"R{i}", f"R{j}")
+        for i in range(50)
+        for j in range(i + 1, 50)
+        if not partition.owns_pair(f"R{i}", f"R{j}")
+    )
+    sent = _shared(4)
+    shared = SharedLinks(
+        (a, b),
+        sent.time_s,
+        a,
+        Links(a, b, *(getattr(sent.links, f) for f in LINK_COLUMNS[1:]), sent.links.score),
+    )
+    out = engine.ingest(Keys("fusion").links(a, b), links_frame(shared)[:-2])
+    assert engine.rejected == {"schema": 1}
+    assert [o.key for o in out] == ["fusion/errors"]
+    assert b"links frame" in out[0].payload
+    engine.close()
