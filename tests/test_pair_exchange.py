@@ -1,5 +1,6 @@
-"""A pair's links between partitioned workers as a frame: read back as the JSON form reads,
-held to the JSON form's rules and to the frame's layout, and a broken one rejected whole."""
+"""A pair's links and registration rows between partitioned workers as frames: read back as
+the JSON form reads, held to the JSON form's rules and to the frame's layout, and a broken one
+rejected whole."""
 
 from __future__ import annotations
 
@@ -11,13 +12,21 @@ from typing import Any
 import numpy as np
 import pytest
 
+from service.correlation.registration import RegistrationRowsData
 from service.engine import Engine, EngineConfig
 from service.fusion.members import Links
 from service.pipeline.errors import RejectionError
-from service.pipeline.link_exchange import LINK_COLUMNS, MAX_ID_CHARS, decode_links, links_body, links_frame
+from service.pipeline.pair_exchange import (
+    decode_links,
+    decode_rows,
+    links_body,
+    links_frame,
+    rows_body,
+    rows_frame,
+)
 from service.pipeline.partition import Partition
 from service.pipeline.shared_links import SharedLinks
-from service.wire.frames import decode_frame, encode_frame
+from service.wire.frames import MAX_ID_CHARS, decode_frame, encode_frame
 from service.wire.keys import Keys
 from service.wire.outputs import encode
 
@@ -101,7 +110,7 @@ def _frame_cases() -> list[tuple[str, bytes]]:
     variant("width zero", put("widths", [0, good_header["widths"][1]]))
     variant("width too large", put("widths", [MAX_ID_CHARS + 1, 1]))
     variant("one width", put("widths", [3]))
-    variant("columns out of order", put("binary", list(reversed(LINK_COLUMNS))))
+    variant("columns out of order", put("binary", ["track_a", "score", "track_b"]))
     variant("a column repeated in the header", put("score", [0.5] * 5))
     variant("source id bad", put("source_a", "a b"))
     variant("release missing", lambda header, cols: header.pop("release"))
@@ -158,10 +167,87 @@ def test_a_broken_links_frame_is_rejected_counted_and_reported() -> None:
         (a, b),
         sent.time_s,
         a,
-        Links(a, b, *(getattr(sent.links, f) for f in LINK_COLUMNS[1:]), sent.links.score),
+        Links(a, b, sent.links.track_a, sent.links.track_b, sent.links.score),
     )
     out = engine.ingest(Keys("fusion").links(a, b), links_frame(shared)[:-2])
     assert engine.rejected == {"schema": 1}
     assert [o.key for o in out] == ["fusion/errors"]
     assert b"links frame" in out[0].payload
     engine.close()
+
+
+# -- registration rows -------------------------------------------------------------------------
+def _rows(k: int, velocity: bool = True, seed: int = 2) -> RegistrationRowsData:
+    rng = np.random.default_rng(seed)
+    s = rng.normal(size=(k, 3, 3)) * 100.0
+    return RegistrationRowsData(
+        1234.5,
+        np.array([f"A-{i}" for i in range(k)], dtype=str),
+        np.array([f"Bé-{i:04d}" for i in range(k)], dtype=str),
+        rng.normal(size=(k, 3)) * 4e6,
+        rng.normal(size=(k, 3)) * 4e6,
+        s @ s.transpose(0, 2, 1),
+        rng.normal(size=(k, 3)) * 200.0 if velocity else None,
+    )
+
+
+def _same_rows(got: RegistrationRowsData, want: RegistrationRowsData) -> None:
+    assert got.time_s == want.time_s
+    assert got.track_a.tolist() == want.track_a.tolist()
+    assert got.track_b.tolist() == want.track_b.tolist()
+    for name in ("p_a", "p_b", "s", "v"):
+        a, b = getattr(got, name), getattr(want, name)
+        assert (a is None) == (b is None), name
+        if a is not None:
+            assert a.dtype == np.float64 and a.shape == b.shape and a.tobytes() == b.tobytes(), name
+
+
+@pytest.mark.parametrize(("k", "velocity"), [(0, True), (1, False), (40, True), (300, False)])
+def test_rows_read_back_the_same_from_a_frame_as_from_json(k: int, velocity: bool) -> None:
+    rows = _rows(k, velocity)
+    for payload in (rows_frame("A", "B", False, rows), encode(rows_body("A", "B", False, rows))):
+        got, data = decode_rows(payload, KEY)
+        assert (got.source_a, got.source_b, got.reference) == ("A", "B", False)
+        _same_rows(data, rows)
+
+
+def _rows_cases() -> list[tuple[str, bytes]]:
+    rows = _rows(4)
+    good = rows_frame("A", "B", True, rows)
+    header, body = decode_frame(good)
+    cols = {
+        name: np.frombuffer(body, "<f8", 4 * width, at).copy()
+        for name, width, at in (("p_a", 3, 0), ("p_b", 3, 96), ("s", 9, 192), ("v", 3, 480))
+    }
+    ids = body[576:]
+    cases = [("valid", good)]
+
+    def variant(name: str, change: Change) -> None:
+        h, c = json.loads(json.dumps(header)), {k: v.copy() for k, v in cols.items()}
+        change(h, c)
+        cases.append((name, encode_frame(h, b"".join(v.tobytes() for v in c.values()) + ids)))
+
+    def col(name: str, at: int, value: float) -> Change:
+        return lambda h, c: c[name].__setitem__(at, value)
+
+    variant("position beyond the bound", col("p_a", 2, 2e8))
+    variant("position NaN", col("p_b", 0, np.nan))
+    variant("covariance infinite", col("s", 5, np.inf))
+    variant("velocity NaN", col("v", 1, np.nan))
+    variant("reference not a boolean", lambda h, c: h.__setitem__("reference", [1]))
+    variant("time far", lambda h, c: h.__setitem__("time_s", 1e12))
+    variant("a column left out", lambda h, c: (h["binary"].remove("p_b"), c.pop("p_b")))
+    cases.append(("body one byte short", good[:-1]))
+    return cases
+
+
+@pytest.mark.parametrize(("name", "payload"), _rows_cases(), ids=[c[0] for c in _rows_cases()])
+def test_a_rows_frame_is_read_whole_or_rejected(name: str, payload: bytes) -> None:
+    try:
+        got, data = decode_rows(payload, KEY)
+    except RejectionError:
+        assert name != "valid", name
+        return
+    assert name == "valid", name
+    assert got.reference is True
+    _same_rows(data, _rows(4))

@@ -298,7 +298,7 @@ def _form_of(payload: bytes) -> str:
         return "frame"
     body = json.loads(payload)
     if "tracks" not in body:
-        return "json"  # (links)
+        return "json"  # (links, registration rows)
     return "packed" if isinstance(body["tracks"]["time_s"], str) else "numbers"
 
 
@@ -346,10 +346,13 @@ def test_track_states_go_as_frames_or_packed_once_every_other_worker_reads_them(
     assert _states_forms((default, neither)) == [{"numbers"}, {"numbers"}]
 
 
-def test_links_go_as_frames_once_every_other_worker_reads_them() -> None:
+@pytest.mark.parametrize("kind", ["/links/", "/registration/"])
+def test_links_and_rows_go_as_frames_once_every_other_worker_reads_them(kind: str) -> None:
     default, no_frames = ExchangeParams(), ExchangeParams(frames=False)
-    assert _states_forms((default, default), "/links/") == [{"frame"}, {"frame"}]
-    assert _states_forms((default, no_frames), "/links/") == [{"json"}, {"json"}]
+    # (worker 1 solves the biases itself: it sends no rows)
+    senders = slice(0, 2) if kind == "/links/" else slice(1, 2)
+    assert _states_forms((default, default), kind)[senders] == [{"frame"}, {"frame"}][senders]
+    assert _states_forms((default, no_frames), kind)[senders] == [{"json"}, {"json"}][senders]
 
 
 # -- N engines give the pair updates of one --------------------------------------------------

@@ -1,21 +1,21 @@
-"""A pair's links between partitioned workers (``{prefix}/links/{a}/{b}``, ``PairLinks``): as
-JSON, or as a frame whose ids and scores need no parsing.
+"""What a pair's owner sends the other partitioned workers: its links
+(``{prefix}/links/{a}/{b}``, ``PairLinks``) and the registration rows its updates add
+(``{prefix}/registration/{a}/{b}``, ``RegistrationRows``), each as JSON or as a frame of
+columns whose ids and numbers need no parsing.
 
-Every worker takes every other worker's links for the cycle step, and worker 1 for the picture
+**Links.** Every worker takes every other worker's links for the cycle step, and worker 1 for the picture
 too: about one message a pair per picture interval, each with a few hundred confirmed pairs.
 Read by the model, a JSON message of 490 links costs about 120 µs, most of it the ids made into
-lists and then into numpy arrays; as a frame (:mod:`service.wire.frames`) it is the header's
-few fields and three :func:`numpy.frombuffer` views, about 20 µs.  The body holds the scores
-(little-endian doubles), then each side's ids as fixed-width UTF-32LE (the form numpy keeps
-strings in: each id ``widths[side]`` code points, padded with NUL), so the sender writes its
-own arrays' bytes and the reader takes them as they are.  ``docs/contract.md``, "Scale-out".
+lists and then into numpy arrays; as a frame (:func:`service.wire.frames.columns_frame`: the
+scores as doubles, each side's ids as numpy keeps them) it is the header's few fields and three
+views, about 20 µs.  A frame is read with the JSON form's rules (the ``PairLinks`` model's, for
+the header's fields, and scores in [0, 1]) and the frame's layout.  ``docs/contract.md``,
+"Scale-out".
 
-A frame is read with the JSON form's rules (the ``PairLinks`` model's, for the header's
-fields and the scores) and the layout's: ``binary`` names the three columns in this order,
-``count`` the links, ``widths`` each side's characters an id (1 to :data:`MAX_ID_CHARS`), the
-body is exactly their bytes, and every code point is a Unicode scalar value.  A trailing NUL of
-an id is lost in that form (numpy strips it); such ids never occur (the sender's ids are numpy
-strings already), and an id longer than :data:`MAX_ID_CHARS` goes as JSON.
+**Rows.** Worker 1 takes every other worker's rows for the joint bias estimate: by the model,
+about 2.3 µs a row (three vectors and a 3x3 covariance of JSON numbers each); as a frame, the
+numbers are doubles read in place.  The JSON form's rules hold (the model's for the header's
+fields; positions and velocities within the model's ECEF bound, covariances finite).
 """
 
 from __future__ import annotations
@@ -25,21 +25,21 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
+from service.correlation.registration import RegistrationRowsData
 from service.fusion.members import Links
 from service.pipeline.decode import parse
 from service.pipeline.errors import RejectionError
 from service.pipeline.shared_links import SharedLinks
-from service.wire.frames import decode_frame, encode_frame, is_frame
-from service.wire.models import MAX_TRACKS, PairLinks, rejection_reason
+from service.wire.frames import columns_frame, is_frame, read_columns
+from service.wire.models import MAX_ECEF_M, MAX_TRACKS, PairLinks, RegistrationRows, rejection_reason
 from service.wire.outputs import encode
 
-#: The columns of a links frame's body, in order.
-LINK_COLUMNS = ["score", "track_a", "track_b"]
-#: The longest id (characters) a frame carries; longer ones go as JSON.
-MAX_ID_CHARS = 256
-#: Unicode's code points end here; 0xD800-0xDFFF are surrogates, no characters of their own.
-_CODE_POINTS_END = 0x110000
-_SURROGATES = (0xD800, 0xE000)
+#: A frame's id columns (links and rows alike).
+IDS = ("track_a", "track_b")
+#: A links frame's number columns (name, values a row).
+LINK_NUMBERS = (("score", 1),)
+#: A rows frame's number columns; ``v`` may be left out (rows that say nothing of time biases).
+ROW_NUMBERS = (("p_a", 3), ("p_b", 3), ("s", 9), ("v", 3))
 
 
 def links_body(shared: SharedLinks) -> dict[str, Any]:
@@ -57,32 +57,93 @@ def links_body(shared: SharedLinks) -> dict[str, Any]:
 
 
 def links_frame(shared: SharedLinks) -> bytes:
-    """The same message as a frame (the JSON bytes when an id is longer than
-    :data:`MAX_ID_CHARS`)."""
+    """The same message as a frame (the JSON bytes when an id is too long for one)."""
     links = shared.links
-    sides = [np.asarray(links.track_a, dtype=str), np.asarray(links.track_b, dtype=str)]
-    widths = [max(side.dtype.itemsize // 4, 1) for side in sides]
-    if max(widths) > MAX_ID_CHARS:
-        return encode(links_body(shared))
-    header = {
+    fields = {
         "source_a": links.source_a,
         "source_b": links.source_b,
         "time_s": shared.time_s,
         "release": shared.release,
-        "count": len(links.score),
-        "widths": widths,
-        "binary": LINK_COLUMNS,
     }
-    body = [np.ascontiguousarray(links.score, dtype="<f8").tobytes()]
-    body += [side.astype(f"<U{w}").tobytes() for side, w in zip(sides, widths, strict=True)]
-    return encode_frame(header, b"".join(body))
+    ids = [("track_a", links.track_a), ("track_b", links.track_b)]
+    framed = columns_frame(fields, [("score", links.score)], ids)
+    return framed if framed is not None else encode(links_body(shared))
+
+
+def rows_body(source_a: str, source_b: str, reference: bool, rows: RegistrationRowsData) -> dict[str, Any]:
+    """The ``RegistrationRows`` JSON body of rows an owned pair added."""
+    return {
+        **_rows_fields(source_a, source_b, reference, rows),
+        "track_a": rows.track_a.tolist(),
+        "track_b": rows.track_b.tolist(),
+        "p_a": rows.p_a.tolist(),
+        "p_b": rows.p_b.tolist(),
+        "s": rows.s.reshape(len(rows), 9).tolist(),
+        **({} if rows.v is None else {"v": rows.v.tolist()}),
+    }
+
+
+def rows_frame(source_a: str, source_b: str, reference: bool, rows: RegistrationRowsData) -> bytes:
+    """The same message as a frame (the JSON bytes when an id is too long for one)."""
+    numbers = [("p_a", rows.p_a), ("p_b", rows.p_b), ("s", rows.s)]
+    numbers += [] if rows.v is None else [("v", rows.v)]
+    fields = _rows_fields(source_a, source_b, reference, rows)
+    framed = columns_frame(fields, numbers, [("track_a", rows.track_a), ("track_b", rows.track_b)])
+    return framed if framed is not None else encode(rows_body(source_a, source_b, reference, rows))
+
+
+def _rows_fields(source_a: str, source_b: str, reference: bool, rows: RegistrationRowsData) -> dict[str, Any]:
+    return {"source_a": source_a, "source_b": source_b, "reference": reference, "time_s": rows.time_s}
+
+
+def decode_rows(payload: bytes, ids: tuple[str, str]) -> tuple[RegistrationRows, RegistrationRowsData]:
+    """A ``RegistrationRows`` (JSON or a frame) on the key of the pair ``ids``, checked: its
+    fields (the model, its lists empty for a frame) and its rows; a :class:`RejectionError`
+    when it breaks a rule."""
+    if is_frame(payload):
+        got, cols = checked_frame(
+            payload, RegistrationRows, ROW_NUMBERS, IDS, ids[0], "registration", frozenset({"v"})
+        )
+        k = len(cols["track_a"])
+        for name in ("p_a", "p_b", "v"):
+            if name in cols and not np.all(np.abs(cols[name]) <= MAX_ECEF_M):  # (NaN fails)
+                raise RejectionError("schema", f"registration frame: {name} beyond the ECEF bound", ids[0])
+        if not np.all(np.isfinite(cols["s"])):
+            raise RejectionError("schema", "registration frame: s must be finite", ids[0])
+        data = RegistrationRowsData(
+            got.time_s,
+            cols["track_a"],
+            cols["track_b"],
+            cols["p_a"].astype(float),
+            cols["p_b"].astype(float),
+            cols["s"].reshape(k, 3, 3).astype(float),
+            cols["v"].astype(float) if "v" in cols else None,
+        )
+    else:
+        got = parse(RegistrationRows, payload, ids[0])
+        k = len(got.p_a)
+        data = RegistrationRowsData(
+            got.time_s,
+            np.asarray(got.track_a, dtype=str),
+            np.asarray(got.track_b, dtype=str),
+            np.asarray(got.p_a, dtype=float).reshape(k, 3),
+            np.asarray(got.p_b, dtype=float).reshape(k, 3),
+            np.asarray(got.s, dtype=float).reshape(k, 3, 3),
+            None if got.v is None else np.asarray(got.v, dtype=float).reshape(k, 3),
+        )
+    if sorted((got.source_a, got.source_b)) != sorted(ids):
+        raise RejectionError("schema", f"sources {got.source_a}, {got.source_b} != key {ids}", ids[0])
+    return got, data
 
 
 def decode_links(payload: bytes, ids: tuple[str, str]) -> SharedLinks:
     """A ``PairLinks`` (JSON or a frame) on the key of the pair ``ids``, checked; a
     :class:`RejectionError` when it breaks a rule."""
     if is_frame(payload):
-        got, track_a, track_b, score = _frame(payload, ids[0])
+        got, cols = checked_frame(payload, PairLinks, LINK_NUMBERS, IDS, ids[0], "links")
+        track_a, track_b, score = cols["track_a"], cols["track_b"], cols["score"].astype(float)
+        if not np.all((score >= 0.0) & (score <= 1.0)):  # (NaN fails both)
+            raise RejectionError("schema", "links frame: scores must be numbers in [0, 1]", ids[0])
     else:
         got = parse(PairLinks, payload, ids[0])
         track_a, track_b = np.asarray(got.track_a, dtype=str), np.asarray(got.track_b, dtype=str)
@@ -93,45 +154,25 @@ def decode_links(payload: bytes, ids: tuple[str, str]) -> SharedLinks:
     return SharedLinks((ids[0], ids[1]), got.time_s, got.release, links)
 
 
-def _fail(detail: str, source_id: str) -> RejectionError:
-    return RejectionError("schema", f"links frame: {detail}", source_id)
-
-
-def _frame(payload: bytes, source_id: str) -> tuple[PairLinks, np.ndarray, np.ndarray, np.ndarray]:
-    """A frame's header fields (as the model, with empty columns) and its three columns."""
+def checked_frame(
+    payload: bytes,
+    model: type[Any],
+    numbers: tuple[tuple[str, int], ...],
+    ids: tuple[str, ...],
+    source_id: str,
+    what: str,
+    optional: frozenset[str] = frozenset(),
+) -> tuple[Any, dict[str, np.ndarray]]:
+    """A frame of columns of a message of ``model``: its header's fields validated by the model
+    (its list columns empty there), and its columns; a ``schema`` rejection naming ``what``
+    when the layout is broken, the model's reason when a field is."""
     try:
-        header, data = decode_frame(payload)
+        fields, cols = read_columns(payload, numbers, ids, optional, max_rows=MAX_TRACKS)
     except ValueError as exc:
-        raise _fail(str(exc), source_id) from None
-    if not isinstance(header, dict):
-        raise _fail("the header is not an object", source_id)
-    if header.get("binary") != LINK_COLUMNS:
-        raise _fail(f"binary must be {LINK_COLUMNS}", source_id)
-    if any(name in header for name in LINK_COLUMNS):
-        raise _fail("a binary column repeated in the header", source_id)
-    n, widths = header.get("count"), header.get("widths")
-    if type(n) is not int or not 0 <= n <= MAX_TRACKS:
-        raise _fail(f"count must be an integer 0..{MAX_TRACKS}", source_id)
-    if (
-        not isinstance(widths, list)
-        or len(widths) != 2
-        or not all(type(w) is int and 1 <= w <= MAX_ID_CHARS for w in widths)
-    ):
-        raise _fail(f"widths must be two integers 1..{MAX_ID_CHARS}", source_id)
-    try:  # the header's fields by the model's rules (its columns empty here)
-        got = PairLinks.model_validate({**header, "track_a": [], "track_b": [], "score": []})
+        raise RejectionError("schema", f"{what} frame: {exc}", source_id) from None
+    empty: dict[str, list[Any]] = {name: [] for name in (*(n for n, _ in numbers if n in cols), *ids)}
+    try:
+        return model.model_validate({**fields, **empty}), cols
     except ValidationError as exc:
         reason, detail = rejection_reason(exc)
         raise RejectionError(reason, detail, source_id) from None
-    size = n * (8 + 4 * widths[0] + 4 * widths[1])
-    if len(data) != size:
-        raise _fail(f"a body of {len(data)} bytes, {size} for {n} links", source_id)
-    score = np.frombuffer(data, dtype="<f8", count=n).astype(float)
-    if not np.all((score >= 0.0) & (score <= 1.0)):  # (NaN fails both)
-        raise _fail("scores must be numbers in [0, 1]", source_id)
-    units = np.frombuffer(data, dtype="<u4", offset=8 * n)
-    if np.any(units >= _CODE_POINTS_END) or np.any((units >= _SURROGATES[0]) & (units < _SURROGATES[1])):
-        raise _fail("ids must be UTF-32LE characters", source_id)
-    track_a = np.frombuffer(data, dtype=f"<U{widths[0]}", count=n, offset=8 * n)
-    track_b = np.frombuffer(data, dtype=f"<U{widths[1]}", count=n, offset=8 * n + 4 * widths[0] * n)
-    return got, track_a, track_b, score

@@ -23,13 +23,19 @@ from typing import Any, Protocol
 import numpy as np
 
 from service.correlation.correlator import CorrelationParams
-from service.correlation.registration import RegistrationRowsData
 from service.pipeline.correlation_runner import CorrelationRunner
 from service.pipeline.correlation_stage import CadenceParams
 from service.pipeline.decode import check_body_id, parse
 from service.pipeline.errors import RejectionError, unknown_radar
-from service.pipeline.link_exchange import decode_links, links_body, links_frame
 from service.pipeline.merger import TableMerger
+from service.pipeline.pair_exchange import (
+    decode_links,
+    decode_rows,
+    links_body,
+    links_frame,
+    rows_body,
+    rows_frame,
+)
 from service.pipeline.partition import Partition
 from service.pipeline.sequencer import RADAR, Sequencer
 from service.pipeline.track_exchange import (
@@ -43,7 +49,7 @@ from service.pipeline.track_exchange import (
 from service.pipeline.tracking_stage import TrackingStage
 from service.tracking.base import TrackTable
 from service.wire.keys import Keys
-from service.wire.models import BiasSet, RegistrationRows, WorkerClock
+from service.wire.models import BiasSet, WorkerClock
 from service.wire.outgoing import Outgoing
 
 
@@ -71,22 +77,6 @@ MAX_PENDING_STATES_BYTES = 64 * 1024 * 1024
 def finite_or_none(x: float) -> float | None:
     """``x`` as a JSON number, or None for an infinite clock (none yet)."""
     return float(x) if np.isfinite(x) else None
-
-
-def _rows_body(source_a: str, source_b: str, reference: bool, rows: RegistrationRowsData) -> dict[str, Any]:
-    """The ``RegistrationRows`` payload of rows an owned pair added."""
-    return {
-        "source_a": source_a,
-        "source_b": source_b,
-        "reference": reference,
-        "time_s": rows.time_s,
-        "track_a": rows.track_a.tolist(),
-        "track_b": rows.track_b.tolist(),
-        "p_a": rows.p_a.tolist(),
-        "p_b": rows.p_b.tolist(),
-        "s": rows.s.reshape(len(rows), 9).tolist(),
-        **({} if rows.v is None else {"v": rows.v.tolist()}),
-    }
 
 
 @dataclass(frozen=True)
@@ -143,8 +133,9 @@ class Peers:
         self._reads_packed: dict[int, bool] = {}
         #: ... and on reading track states as frames ...
         self._reads_frames: dict[int, bool] = {}
-        #: ... and links as frames.
+        #: ... and links and registration rows as frames.
         self._reads_frame_links: dict[int, bool] = {}
+        self._reads_frame_rows: dict[int, bool] = {}
 
     @property
     def alone(self) -> bool:
@@ -266,10 +257,12 @@ class Peers:
         worker's progress and clocks (``idle``: sent whatever moved)."""
         if self.alone:
             return []
+        framed = self.exchange.frames and self._all_read(self._reads_frame_rows)
         out = [
             Outgoing(
                 self.keys.registration(*r.key),
-                lambda r=r: _rows_body(r.source_a, r.source_b, r.reference, r.rows),  # type: ignore[misc]
+                lambda r=r: rows_body(r.source_a, r.source_b, r.reference, r.rows),  # type: ignore[misc]
+                (lambda r=r: rows_frame(r.source_a, r.source_b, r.reference, r.rows)) if framed else None,  # type: ignore[misc]
             )
             for r in self.correlation.take_rows()
         ]
@@ -326,7 +319,11 @@ class Peers:
             "released_s": finite_or_none(self.sequencer.last_limit),
             "correlated_s": finite_or_none(self.correlation.correlated_through(merged)),
             **({"packed_states": True} if self.exchange.packed else {}),
-            **({"frame_states": True, "frame_links": True} if self.exchange.frames else {}),
+            **(
+                dict.fromkeys(("frame_states", "frame_links", "frame_rows"), True)
+                if self.exchange.frames
+                else {}
+            ),
         }
         clocks: dict[str, Any] = {
             "partition": str(self.partition),
@@ -380,6 +377,7 @@ class Peers:
                 self._reads_packed[worker] = bool(clock.packed_states)
                 self._reads_frames[worker] = bool(clock.frame_states)
                 self._reads_frame_links[worker] = bool(clock.frame_links)
+                self._reads_frame_rows[worker] = bool(clock.frame_rows)
                 self.merger.progress(worker, clock.released_s if clock.released_s is not None else -np.inf)
                 self._correlated_by[worker] = (
                     clock.correlated_s if clock.correlated_s is not None else -np.inf
@@ -397,21 +395,9 @@ class Peers:
     def _registration(self, ids: tuple[str, ...], payload: bytes) -> None:
         if not self.partition.solves_biases or self.partition.owns_pair(ids[0], ids[1]):
             return  # (our own pair's rows, heard back: not even parsed, as our own track states)
-        rows: RegistrationRows = parse(RegistrationRows, payload, ids[0])
-        if sorted((rows.source_a, rows.source_b)) != sorted(ids):
-            raise RejectionError("schema", f"sources {rows.source_a}, {rows.source_b} != key {ids}", ids[0])
+        rows, data = decode_rows(payload, (ids[0], ids[1]))
         site_a = self._geometry(rows.source_a)
         site_b = None if rows.reference else self._geometry(rows.source_b)
-        k = len(rows.p_a)
-        data = RegistrationRowsData(
-            rows.time_s,
-            np.asarray(rows.track_a, dtype=str),
-            np.asarray(rows.track_b, dtype=str),
-            np.asarray(rows.p_a, dtype=float).reshape(k, 3),
-            np.asarray(rows.p_b, dtype=float).reshape(k, 3),
-            np.asarray(rows.s, dtype=float).reshape(k, 3, 3),
-            None if rows.v is None else np.asarray(rows.v, dtype=float).reshape(k, 3),
-        )
         self.correlation.mirror_rows((ids[0], ids[1]), site_a, site_b, data)
 
     def _links(self, ids: tuple[str, ...], payload: bytes) -> None:

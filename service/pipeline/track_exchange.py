@@ -73,7 +73,7 @@ class ExchangeParams:
     #: progress, and sends its own so once every other worker has said it reads them; else
     #: packed or numbers as :attr:`packed` says.  The same tables, bit for bit, in three
     #: quarters of the packed form's bytes and a fraction of its decoding.  The same for a
-    #: pair's links (:mod:`.link_exchange`: JSON otherwise).
+    #: pair's links and registration rows (:mod:`.pair_exchange`: JSON otherwise).
     frames: bool = True
 
     def form(self, reads_frames: bool, reads_packed: bool) -> StatesForm:

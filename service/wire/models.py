@@ -436,6 +436,11 @@ class WorkerClock(WireModel):
         description="(progress) this worker reads PairLinks as frames (docs/contract.md, "
         "'Scale-out'); a worker sends its own so once every other worker has said so",
     )
+    frame_rows: bool | None = Field(
+        default=None,
+        description="(progress) this worker reads RegistrationRows as frames (docs/contract.md, "
+        "'Scale-out'); a worker sends its own so once every other worker has said so",
+    )
 
 
 class RegistrationRows(WireModel):
