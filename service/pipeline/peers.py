@@ -349,7 +349,8 @@ class Peers:
         if kind == "track_states":
             radar_id = ids[0]
             if self.partition.owns(radar_id):
-                return PeerInput()  # our own, heard back
+                return PeerInput()  # our own (a former session's of this worker: the transport
+                # takes no sample of its own session on these keys)
             msg = decode_states(payload, radar_id)
             check_body_id("radar_id", msg.radar_id, radar_id)
             if radar_id not in self.tracking.tracked:
@@ -394,7 +395,7 @@ class Peers:
 
     def _registration(self, ids: tuple[str, ...], payload: bytes) -> None:
         if not self.partition.solves_biases or self.partition.owns_pair(ids[0], ids[1]):
-            return  # (our own pair's rows, heard back: not even parsed, as our own track states)
+            return  # (our own pair's rows, e.g. a former session's of this worker: not even parsed)
         rows, data = decode_rows(payload, (ids[0], ids[1]))
         site_a = self._geometry(rows.source_a)
         site_b = None if rows.reference else self._geometry(rows.source_b)
@@ -403,7 +404,7 @@ class Peers:
     def _links(self, ids: tuple[str, ...], payload: bytes) -> None:
         wanted = self.partition.solves_biases or self.cycles.enabled
         if not wanted or self.partition.owns_pair(ids[0], ids[1]):
-            return  # (our own pair's links, heard back: not even parsed, as our own track states)
+            return  # (our own pair's links, e.g. a former session's of this worker: not even parsed)
         self.correlation.mirror_links(decode_links(payload, (ids[0], ids[1])))
 
     def _hold_states(self, radar_id: str, msg: Any, size: int) -> tuple[tuple[str, RejectionError], ...]:
