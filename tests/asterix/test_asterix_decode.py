@@ -563,13 +563,15 @@ def test_a_datagram_is_decoded_up_to_max_records() -> None:
     decode_datagram(first + over + after, d)  # no cap
     assert len(d.cat048) == 17
     full = _blk(48, small * ((65_507 - 3) // 3))  # 21 834 records in one datagram
-    t0 = time.perf_counter()
+    # the fastest of ten runs each, so that a moment of load on the machine weighs on neither
+    capped = uncapped = float("inf")
     for _ in range(10):
         d = Decoded()
+        t0 = time.perf_counter()
         decode_datagram(full, d, max_records=1000)
+        capped = min(capped, time.perf_counter() - t0)
         assert d.errors == {"too_many_records": 1} and not d.cat048
-    capped = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    for _ in range(10):
+        t0 = time.perf_counter()
         decode_datagram(full, Decoded())
-    assert capped < (time.perf_counter() - t0) / 5  # the cost follows the cap, not the size
+        uncapped = min(uncapped, time.perf_counter() - t0)
+    assert capped < uncapped / 5  # the cost follows the cap, not the size
