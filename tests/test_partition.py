@@ -302,7 +302,7 @@ def _form_of(payload: bytes) -> str:
     return "packed" if isinstance(body["tracks"]["time_s"], str) else "numbers"
 
 
-def _states_forms(exchange: tuple[ExchangeParams, ...], kind: str = "/track-states") -> list[set[str]]:
+def _sent_forms(exchange: tuple[ExchangeParams, ...], kind: str = "/track-states") -> list[set[str]]:
     """Workers, each with the ``exchange`` settings given, on a three-radar stream: per worker,
     the forms of the track states (or of the messages whose key holds ``kind``) it sent
     after the first 200 messages (each worker has heard the others' progress by then)."""
@@ -339,11 +339,11 @@ def test_track_states_go_as_frames_or_packed_once_every_other_worker_reads_them(
         ExchangeParams(frames=False),
         ExchangeParams(packed=False, frames=False),
     )
-    assert _states_forms((default, default)) == [{"frame"}, {"frame"}]
+    assert _sent_forms((default, default)) == [{"frame"}, {"frame"}]
     # a worker that does not read frames (frames off, or a version before them) gets packed
     # columns; one that reads neither (a version before packing) gets numbers
-    assert _states_forms((default, no_frames)) == [{"packed"}, {"packed"}]
-    assert _states_forms((default, neither)) == [{"numbers"}, {"numbers"}]
+    assert _sent_forms((default, no_frames)) == [{"packed"}, {"packed"}]
+    assert _sent_forms((default, neither)) == [{"numbers"}, {"numbers"}]
 
 
 @pytest.mark.parametrize("kind", ["/links/", "/registration/"])
@@ -351,8 +351,8 @@ def test_links_and_rows_go_as_frames_once_every_other_worker_reads_them(kind: st
     default, no_frames = ExchangeParams(), ExchangeParams(frames=False)
     # (worker 1 solves the biases itself: it sends no rows)
     senders = slice(0, 2) if kind == "/links/" else slice(1, 2)
-    assert _states_forms((default, default), kind)[senders] == [{"frame"}, {"frame"}][senders]
-    assert _states_forms((default, no_frames), kind)[senders] == [{"json"}, {"json"}][senders]
+    assert _sent_forms((default, default), kind)[senders] == [{"frame"}, {"frame"}][senders]
+    assert _sent_forms((default, no_frames), kind)[senders] == [{"json"}, {"json"}][senders]
 
 
 # -- N engines give the pair updates of one --------------------------------------------------

@@ -46,10 +46,7 @@ def links_body(shared: SharedLinks) -> dict[str, Any]:
     """The ``PairLinks`` JSON body of a pair's links."""
     links = shared.links
     return {
-        "source_a": links.source_a,
-        "source_b": links.source_b,
-        "time_s": shared.time_s,
-        "release": shared.release,
+        **_links_fields(shared),
         "track_a": links.track_a.tolist(),
         "track_b": links.track_b.tolist(),
         "score": links.score.tolist(),
@@ -59,15 +56,19 @@ def links_body(shared: SharedLinks) -> dict[str, Any]:
 def links_frame(shared: SharedLinks) -> bytes:
     """The same message as a frame (the JSON bytes when an id is too long for one)."""
     links = shared.links
-    fields = {
+    ids = [("track_a", links.track_a), ("track_b", links.track_b)]
+    framed = columns_frame(_links_fields(shared), [("score", links.score)], ids)
+    return framed if framed is not None else encode(links_body(shared))
+
+
+def _links_fields(shared: SharedLinks) -> dict[str, Any]:
+    links = shared.links
+    return {
         "source_a": links.source_a,
         "source_b": links.source_b,
         "time_s": shared.time_s,
         "release": shared.release,
     }
-    ids = [("track_a", links.track_a), ("track_b", links.track_b)]
-    framed = columns_frame(fields, [("score", links.score)], ids)
-    return framed if framed is not None else encode(links_body(shared))
 
 
 def rows_body(source_a: str, source_b: str, reference: bool, rows: RegistrationRowsData) -> dict[str, Any]:
@@ -101,7 +102,7 @@ def decode_rows(payload: bytes, ids: tuple[str, str]) -> tuple[RegistrationRows,
     fields (the model, its lists empty for a frame) and its rows; a :class:`RejectionError`
     when it breaks a rule."""
     if is_frame(payload):
-        got, cols = checked_frame(
+        got, cols = _checked_frame(
             payload, RegistrationRows, ROW_NUMBERS, IDS, ids[0], "registration", frozenset({"v"})
         )
         k = len(cols["track_a"])
@@ -140,7 +141,7 @@ def decode_links(payload: bytes, ids: tuple[str, str]) -> SharedLinks:
     """A ``PairLinks`` (JSON or a frame) on the key of the pair ``ids``, checked; a
     :class:`RejectionError` when it breaks a rule."""
     if is_frame(payload):
-        got, cols = checked_frame(payload, PairLinks, LINK_NUMBERS, IDS, ids[0], "links")
+        got, cols = _checked_frame(payload, PairLinks, LINK_NUMBERS, IDS, ids[0], "links")
         track_a, track_b, score = cols["track_a"], cols["track_b"], cols["score"].astype(float)
         if not np.all((score >= 0.0) & (score <= 1.0)):  # (NaN fails both)
             raise RejectionError("schema", "links frame: scores must be numbers in [0, 1]", ids[0])
@@ -154,7 +155,7 @@ def decode_links(payload: bytes, ids: tuple[str, str]) -> SharedLinks:
     return SharedLinks((ids[0], ids[1]), got.time_s, got.release, links)
 
 
-def checked_frame(
+def _checked_frame(
     payload: bytes,
     model: type[Any],
     numbers: tuple[tuple[str, int], ...],

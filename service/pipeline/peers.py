@@ -129,13 +129,9 @@ class Peers:
         self._biases_sent: object = None
         #: A lone worker's own numbering of its tables (the merger's tie order).
         self._table_seq: dict[str, int] = {}
-        #: Each other worker's word, in its latest progress, on reading packed track states.
-        self._reads_packed: dict[int, bool] = {}
-        #: ... and on reading track states as frames ...
-        self._reads_frames: dict[int, bool] = {}
-        #: ... and links and registration rows as frames.
-        self._reads_frame_links: dict[int, bool] = {}
-        self._reads_frame_rows: dict[int, bool] = {}
+        #: Each other worker's latest progress: what forms it says it reads (packed_states,
+        #: frame_states, frame_links, frame_rows).
+        self._progress_of: dict[int, WorkerClock] = {}
 
     @property
     def alone(self) -> bool:
@@ -160,12 +156,13 @@ class Peers:
         """How this worker's track states go: as frames, or packed, once every other worker
         of the partition said, in its latest progress, that it reads them
         (:meth:`ExchangeParams.form`)."""
-        return self.exchange.form(self._all_read(self._reads_frames), self._all_read(self._reads_packed))
+        return self.exchange.form(self._all_read("frame_states"), self._all_read("packed_states"))
 
-    def _all_read(self, reads: dict[int, bool]) -> bool:
-        """Every other worker of the partition said, in its latest progress, that it reads a form."""
+    def _all_read(self, form: str) -> bool:
+        """Every other worker of the partition said, in its latest progress, that it reads
+        ``form`` (a ``WorkerClock`` field)."""
         others = set(range(1, self.partition.count + 1)) - {self.partition.index}
-        return all(reads.get(k, False) for k in others)
+        return all(bool(getattr(self._progress_of.get(k), form, False)) for k in others)
 
     def forget(self, source_id: str) -> None:
         self.sender.forget(source_id)
@@ -257,7 +254,7 @@ class Peers:
         worker's progress and clocks (``idle``: sent whatever moved)."""
         if self.alone:
             return []
-        framed = self.exchange.frames and self._all_read(self._reads_frame_rows)
+        framed = self.exchange.frames and self._all_read("frame_rows")
         out = [
             Outgoing(
                 self.keys.registration(*r.key),
@@ -266,7 +263,7 @@ class Peers:
             )
             for r in self.correlation.take_rows()
         ]
-        framed = self.exchange.frames and self._all_read(self._reads_frame_links)
+        framed = self.exchange.frames and self._all_read("frame_links")
         out += [
             Outgoing(
                 self.keys.links(*s.key),
@@ -375,10 +372,7 @@ class Peers:
                     if not self.partition.owns(rid):
                         self.sequencer.observe(rid, c)
             else:
-                self._reads_packed[worker] = bool(clock.packed_states)
-                self._reads_frames[worker] = bool(clock.frame_states)
-                self._reads_frame_links[worker] = bool(clock.frame_links)
-                self._reads_frame_rows[worker] = bool(clock.frame_rows)
+                self._progress_of[worker] = clock
                 self.merger.progress(worker, clock.released_s if clock.released_s is not None else -np.inf)
                 self._correlated_by[worker] = (
                     clock.correlated_s if clock.correlated_s is not None else -np.inf
