@@ -130,6 +130,165 @@ def test_hostile_messages_are_rejected_whole_and_change_nothing(
     assert "Z" not in engine.sequencer.sources and "coast-1" not in engine.sequencer.sources
 
 
+_SITE_A = {"radar_id": "A", "latitude_deg": 31.0, "longitude_deg": 118.0, "scan_period_s": 4.0}
+_PLOTS_A = {
+    "radar_id": "A",
+    "seq": 1,
+    "time_s": 100.0,
+    "plots": {"time_s": [99.0], "range_m": [5e4], "azimuth_deg": [10.0], "elevation_deg": [1.0]},
+}
+_ADSB = {
+    "source_id": "rx1",
+    "seq": 1,
+    "time_s": 100.0,
+    "reports": {"time_s": [99.0], "icao24": ["4ca1d3"], "latitude_deg": [31.2], "longitude_deg": [118.1]},
+}
+_AIS = {
+    "source_id": "coast-1",
+    "seq": 1,
+    "time_s": 100.0,
+    "reports": {"time_s": [99.0], "mmsi": ["244123456"], "latitude_deg": [31.2], "longitude_deg": [118.1]},
+}
+_INPUTS = {
+    "fusion/radar/A/site": _SITE_A,
+    "fusion/radar/A/plots": _PLOTS_A,
+    "fusion/adsb/rx1/reports": _ADSB,
+    "fusion/ais/coast-1/reports": _AIS,
+}
+
+
+def _changed(body: dict[str, Any], path: tuple[str, ...], value: object) -> bytes:
+    out = json.loads(json.dumps(body))
+    node = out
+    for p in path[:-1]:
+        node = node[p]
+    node[path[-1]] = [value] if isinstance(node[path[-1]], list) else value
+    return json.dumps(out).encode()
+
+
+def _numbers(body: dict[str, Any], prefix: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
+    """The paths of every number of ``body`` (a column of numbers counts once)."""
+    paths: list[tuple[str, ...]] = []
+    for k, v in body.items():
+        if isinstance(v, dict):
+            paths += _numbers(v, (*prefix, k))
+        elif isinstance(v, (int, float)) or (isinstance(v, list) and isinstance(v[0], (int, float))):
+            paths.append((*prefix, k))
+    return paths
+
+
+_TYPE_CASES = [
+    (key, path, bad) for key, body in _INPUTS.items() for path in _numbers(body) for bad in (True, "1.5")
+]
+
+
+def _ingest_site_first(key: str, payload: bytes) -> tuple[Engine, list[dict[str, Any]]]:
+    engine = Engine(CONFIG)
+    if key != "fusion/radar/A/site":
+        assert not engine.ingest("fusion/radar/A/site", json.dumps(_SITE_A).encode())
+    out = engine.ingest(key, payload)
+    return engine, [json.loads(o.payload) for o in out if o.key == "fusion/errors"]
+
+
+@pytest.mark.parametrize(("key", "path", "bad"), _TYPE_CASES)
+def test_a_number_sent_as_a_string_or_a_boolean_is_rejected_and_changes_nothing(
+    key: str, path: tuple[str, ...], bad: object
+) -> None:
+    """Inputs hold JSON numbers only, as their JSON Schemas say (contract §2): a lenient parse
+    would read ``"1.5"`` or ``true`` as a number and take the message."""
+    engine, errors = _ingest_site_first(key, _changed(_INPUTS[key], path, bad))
+    assert [e["reason"] for e in errors] == ["schema"], (key, path, bad)
+    assert ".".join(path) in errors[0]["detail"]
+    assert all(s.batches == 0 for s in engine.sequencer.sources.values())
+    radars = engine.snapshot().radars()
+    # (the site, sent first for the other kinds, is the one of _SITE_A, or none at all)
+    assert [r["latitude_deg"] for r in radars] == ([] if key.endswith("/site") else [31.0])
+
+
+@pytest.mark.parametrize("key", list(_INPUTS))
+def test_the_same_inputs_with_numbers_are_taken_integers_as_reals(key: str) -> None:
+    """The control of the test above: the same messages with JSON numbers are taken, an
+    integer where a real number belongs too; ``seq`` takes integers only."""
+    body = _INPUTS[key]
+    for payload in (json.dumps(body).encode(), _changed(body, ("time_s",), 100) if "seq" in body else None):
+        if payload is None:
+            continue
+        _, errors = _ingest_site_first(key, payload)
+        assert errors == [], (key, errors)
+    if "seq" in body:
+        _, errors = _ingest_site_first(key, _changed(body, ("seq",), 1.0))
+        assert [e["reason"] for e in errors] == ["schema"]
+
+
+def _paths(node: Any, prefix: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
+    """Every place of a JSON value (object keys, and the first items of lists)."""
+    items = node.items() if isinstance(node, dict) else enumerate(node[:3]) if isinstance(node, list) else []
+    out: list[tuple[Any, ...]] = []
+    for k, v in items:
+        out += [(*prefix, k), *_paths(v, (*prefix, k))]
+    return out
+
+
+_ODD_VALUES = [None, "", "x", "1.5", True, False, -1, 0, 0.5, 1e-320, 1e308, -1e308, 10**20, 2**63]
+_ODD_VALUES += [[], {}, [1]]
+
+
+@settings(
+    max_examples=25,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
+@given(
+    at=st.integers(min_value=0, max_value=10**6),
+    where=st.integers(min_value=0, max_value=10**6),
+    how=st.sampled_from(["set", "delete", "grow", "shrink", "extra"]),
+    value=st.sampled_from(_ODD_VALUES),
+)
+def test_a_real_message_changed_anywhere_is_taken_or_rejected_whole(
+    stream: list[tuple[str, bytes]],
+    baseline: tuple[Engine, list[Any]],
+    at: int,
+    where: int,
+    how: str,
+    value: Any,
+) -> None:
+    """One message of a real stream, changed at one place, sent just before the original: the
+    engine takes it (a valid message) or rejects it with a reason of the contract, and a
+    rejected one changes nothing: every output of the whole run is the baseline's."""
+    first = len(stream) // 4
+    i = first + at % (len(stream) - first)
+    key, payload = stream[i]
+    body = json.loads(payload)
+    paths = _paths(body)
+    path = paths[where % len(paths)]
+    parent = body
+    for p in path[:-1]:
+        parent = parent[p]
+    if how == "delete" and isinstance(parent, dict):
+        del parent[path[-1]]
+    elif how in ("grow", "shrink") and isinstance(parent[path[-1]], list) and parent[path[-1]]:
+        column = parent[path[-1]]
+        column.append(column[-1]) if how == "grow" else column.pop()
+    elif how == "extra" and isinstance(parent, dict):
+        parent["not_in_the_contract"] = value
+    else:
+        parent[path[-1]] = value
+    engine = Engine(CONFIG)
+    out: list[Any] = []
+    own: list[dict[str, Any]] = []
+    for j, (k, p) in enumerate([*stream[:i], (key, json.dumps(body).encode()), *stream[i:]]):
+        got = engine.ingest(k, p, receive_time_s=0.0)
+        if j == i:
+            own = [json.loads(o.payload) for o in got if o.key == "fusion/errors"]
+        out.extend(got)
+    out.extend(engine.flush())
+    assert all(e["reason"] in REASONS for e in own), own
+    if own:  # rejected whole: nothing changed
+        _, base_out = baseline
+        assert [o for o in out if o.key != "fusion/errors"] == base_out, (key, path, how, value)
+
+
 def _interleave(stream: list[tuple[str, bytes]], seed: int) -> list[tuple[str, bytes]]:
     """Another arrival order: sites first, each radar's batches in order, radars interleaved at random."""
     rng = random.Random(seed)

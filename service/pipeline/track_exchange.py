@@ -297,8 +297,7 @@ def decode_states(payload: bytes, radar_id: str) -> StatesMessage:
         raise _fail("schema", "radar_id", radar_id)
     if type(seq) is not int or not 0 <= seq <= 2**63 - 1:
         raise _fail("schema" if type(seq) is not int else "out_of_range", "seq", radar_id)
-    # (a number; the model's lax float takes true and false as 1 and 0 too)
-    number = isinstance(time_s, (int, float))
+    number = type(time_s) in (int, float)  # (a JSON number: not true or false, not a string)
     if not number or not np.isfinite(time_s) or not 0 <= time_s <= MAX_TIME_S:
         raise _fail("out_of_range" if number else "schema", "time_s", radar_id)
     if type(full) is not bool or type(expiry) is not bool:
@@ -337,13 +336,17 @@ def decode_states(payload: bytes, radar_id: str) -> StatesMessage:
 
 
 def _check_list_columns(cols: dict[str, Any], radar_id: str) -> None:
-    """The JSON form's columns that numpy would take too leniently: booleans and integers."""
+    """The JSON form's columns that numpy would take too leniently: booleans, integers and
+    times (numbers only: not true or false, not strings)."""
     confirmed = cols.get("confirmed")
     if not list_of(confirmed, bool):
         raise _fail("schema", "tracks.confirmed must be a list of booleans", radar_id)
     plots = cols.get("plots")
     if not list_of(plots, int):
         raise _fail("schema", "tracks.plots must be a list of integers", radar_id)
+    times = cols.get("time_s")
+    if isinstance(times, list) and not list_of(times, int, float):
+        raise _fail("schema", "tracks.time_s must be a list of numbers", radar_id)
 
 
 def _frame_parts(payload: bytes, radar_id: str) -> tuple[dict[str, Any], dict[str, Any]]:

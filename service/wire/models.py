@@ -46,20 +46,21 @@ MIN_ALTITUDE_M, MAX_ALTITUDE_M = -12_000.0, 1_000_000.0
 PLOT_TIME_TOLERANCE_S = 1.0
 
 TimeS = Annotated[
-    float, Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False, description="seconds since the Unix epoch, UTC")
+    StrictFloat,
+    Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False, description="seconds since the Unix epoch, UTC"),
 ]
-Range = Annotated[float, Field(ge=MIN_RANGE_M, le=MAX_RANGE_M, allow_inf_nan=False)]
-Altitude = Annotated[float, Field(ge=MIN_ALTITUDE_M, le=MAX_ALTITUDE_M, allow_inf_nan=False)]
-Azimuth = Annotated[float, Field(ge=0, lt=360, allow_inf_nan=False)]
-Elevation = Annotated[float, Field(ge=-90, le=90, allow_inf_nan=False)]
-Latitude = Annotated[float, Field(ge=-90, le=90, allow_inf_nan=False)]
-Longitude = Annotated[float, Field(ge=-180, le=180, allow_inf_nan=False)]
-Sigma = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+Range = Annotated[StrictFloat, Field(ge=MIN_RANGE_M, le=MAX_RANGE_M, allow_inf_nan=False)]
+Altitude = Annotated[StrictFloat, Field(ge=MIN_ALTITUDE_M, le=MAX_ALTITUDE_M, allow_inf_nan=False)]
+Azimuth = Annotated[StrictFloat, Field(ge=0, lt=360, allow_inf_nan=False)]
+Elevation = Annotated[StrictFloat, Field(ge=-90, le=90, allow_inf_nan=False)]
+Latitude = Annotated[StrictFloat, Field(ge=-90, le=90, allow_inf_nan=False)]
+Longitude = Annotated[StrictFloat, Field(ge=-180, le=180, allow_inf_nan=False)]
+Sigma = Annotated[StrictFloat, Field(gt=0, allow_inf_nan=False)]
 #: Largest accepted ``seq``: a signed 64-bit integer (what every publisher's counter fits in).
 MAX_SEQ = 2**63 - 1
-Seq = Annotated[int, Field(ge=0, le=MAX_SEQ)]
+Seq = Annotated[StrictInt, Field(ge=0, le=MAX_SEQ)]
 #: An ASTERIX data source identifier octet (SAC or SIC, I048/010, I034/010).
-SourceOctet = Annotated[int, Field(ge=0, le=255)]
+SourceOctet = Annotated[StrictInt, Field(ge=0, le=255)]
 #: Mode 3/A code: 4 octal digits (contract §4.1).
 Mode3A = Annotated[str, Field(pattern=r"^[0-7]{4}$")]
 #: ICAO 24-bit aircraft address: 6 lower-case hex digits (Mode S, ADS-B ``icao24``).
@@ -67,7 +68,7 @@ Icao24 = Annotated[str, Field(pattern=r"^[0-9a-f]{6}$")]
 #: Barometric flight level (FL = 100 ft): the valid ranges of ASTERIX I048/090 (-12 to 1270)
 #: and I021/145 (-15 to 1500), with a little room below.
 MIN_FLIGHT_LEVEL, MAX_FLIGHT_LEVEL = -20.0, 1500.0
-FlightLevel = Annotated[float, Field(ge=MIN_FLIGHT_LEVEL, le=MAX_FLIGHT_LEVEL, allow_inf_nan=False)]
+FlightLevel = Annotated[StrictFloat, Field(ge=MIN_FLIGHT_LEVEL, le=MAX_FLIGHT_LEVEL, allow_inf_nan=False)]
 
 
 class WireModel(BaseModel):
@@ -94,7 +95,7 @@ class RadarSite(WireModel):
     range_sigma_m: Sigma = 200.0
     azimuth_sigma_deg: Sigma = 0.2
     elevation_sigma_deg: Sigma = 0.2
-    scan_period_s: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 4.0
+    scan_period_s: Annotated[StrictFloat, Field(gt=0, allow_inf_nan=False)] = 4.0
     sac: SourceOctet | None = Field(default=None, description="ASTERIX system area code (I048/010)")
     sic: SourceOctet | None = Field(default=None, description="ASTERIX system identification code")
 
