@@ -15,6 +15,7 @@ from service.engine import Engine, EngineConfig
 from service.pipeline.sequencer import SequencerParams
 from service.tracking.base import PlotColumns
 from service.tracking.window import PlotWindow
+from service.wire import models
 from service.wire.models import RadarSite
 from service.wire.vocabulary import REJECTION_REASONS
 from tests.scenario_helpers import scenario_messages
@@ -218,6 +219,37 @@ def test_the_same_inputs_with_numbers_are_taken_integers_as_reals(key: str) -> N
     if "seq" in body:
         _, errors = _ingest_site_first(key, _changed(body, ("seq",), 1.0))
         assert [e["reason"] for e in errors] == ["schema"]
+
+
+_SITE_BOUNDS = {
+    "range_sigma_m": (models.MIN_RANGE_SIGMA_M, models.MAX_RANGE_SIGMA_M),
+    "azimuth_sigma_deg": (models.MIN_ANGLE_SIGMA_DEG, models.MAX_ANGLE_SIGMA_DEG),
+    "elevation_sigma_deg": (models.MIN_ANGLE_SIGMA_DEG, models.MAX_ANGLE_SIGMA_DEG),
+    "scan_period_s": (models.MIN_SCAN_PERIOD_S, models.MAX_SCAN_PERIOD_S),
+}
+
+
+@pytest.mark.parametrize("field", list(_SITE_BOUNDS))
+def test_a_site_with_implausible_sigmas_or_scan_period_is_rejected_and_changes_nothing(
+    stream: list[tuple[str, bytes]], baseline: tuple[Engine, list[Any]], field: str
+) -> None:
+    """A site re-sent mid-stream with a sigma of 1e308 made every later plot's covariance
+    overflow (the radar's tracks NaN, its pairs gone); a denormal sigma or a nanosecond scan
+    period deleted its tracks at once.  Outside the plausibility bounds a site is rejected
+    (out_of_range) and the stream goes on as without it; the bounds themselves are taken."""
+    low, high = _SITE_BOUNDS[field]
+    site = next(json.loads(p) for k, p in stream if k == "fusion/radar/B/site")
+    at = len(stream) // 3
+    for value in (1e-320, low * 0.99, high * 1.01, 1e308):
+        hostile = json.dumps({**site, field: value}).encode()
+        engine, out = run([*stream[:at], ("fusion/radar/B/site", hostile), *stream[at:]])
+        errors = [json.loads(o.payload) for o in out if o.key == "fusion/errors"]
+        assert [(e["reason"], e["radar_id"]) for e in errors] == [("out_of_range", "B")], (field, value)
+        assert [o for o in out if o.key != "fusion/errors"] == baseline[1], (field, value)
+    for value in (low, high):
+        engine = Engine(CONFIG)
+        assert engine.ingest("fusion/radar/B/site", json.dumps({**site, field: value}).encode()) == []
+        assert engine.snapshot().radars()[0][field] == value
 
 
 def _paths(node: Any, prefix: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:

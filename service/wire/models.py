@@ -55,7 +55,19 @@ Azimuth = Annotated[StrictFloat, Field(ge=0, lt=360, allow_inf_nan=False)]
 Elevation = Annotated[StrictFloat, Field(ge=-90, le=90, allow_inf_nan=False)]
 Latitude = Annotated[StrictFloat, Field(ge=-90, le=90, allow_inf_nan=False)]
 Longitude = Annotated[StrictFloat, Field(ge=-180, le=180, allow_inf_nan=False)]
-Sigma = Annotated[StrictFloat, Field(gt=0, allow_inf_nan=False)]
+#: Plausible 1-sigma measurement errors and scan periods of a radar (sites): wide enough for any
+#: real radar (a range sigma of tens to hundreds of metres, angles of hundredths to tenths of a
+#: degree, scans of 1 to 20 s), narrow enough to keep the numerics sane: a sigma of 1e308
+#: overflows a plot's covariance (every track of the radar NaN), a denormal one or a scan
+#: period of a nanosecond deletes every track at once.
+MIN_RANGE_SIGMA_M, MAX_RANGE_SIGMA_M = 0.1, 10_000.0
+MIN_ANGLE_SIGMA_DEG, MAX_ANGLE_SIGMA_DEG = 1e-4, 10.0
+MIN_SCAN_PERIOD_S, MAX_SCAN_PERIOD_S = 0.1, 600.0
+RangeSigma = Annotated[StrictFloat, Field(ge=MIN_RANGE_SIGMA_M, le=MAX_RANGE_SIGMA_M, allow_inf_nan=False)]
+AngleSigma = Annotated[
+    StrictFloat, Field(ge=MIN_ANGLE_SIGMA_DEG, le=MAX_ANGLE_SIGMA_DEG, allow_inf_nan=False)
+]
+ScanPeriod = Annotated[StrictFloat, Field(ge=MIN_SCAN_PERIOD_S, le=MAX_SCAN_PERIOD_S, allow_inf_nan=False)]
 #: Largest accepted ``seq``: a signed 64-bit integer (what every publisher's counter fits in).
 MAX_SEQ = 2**63 - 1
 Seq = Annotated[StrictInt, Field(ge=0, le=MAX_SEQ)]
@@ -92,10 +104,10 @@ class RadarSite(WireModel):
     latitude_deg: Latitude
     longitude_deg: Longitude
     altitude_m: Altitude = 0.0
-    range_sigma_m: Sigma = 200.0
-    azimuth_sigma_deg: Sigma = 0.2
-    elevation_sigma_deg: Sigma = 0.2
-    scan_period_s: Annotated[StrictFloat, Field(gt=0, allow_inf_nan=False)] = 4.0
+    range_sigma_m: RangeSigma = 200.0
+    azimuth_sigma_deg: AngleSigma = 0.2
+    elevation_sigma_deg: AngleSigma = 0.2
+    scan_period_s: ScanPeriod = 4.0
     sac: SourceOctet | None = Field(default=None, description="ASTERIX system area code (I048/010)")
     sic: SourceOctet | None = Field(default=None, description="ASTERIX system identification code")
 
