@@ -234,9 +234,10 @@ def test_a_site_with_implausible_sigmas_or_scan_period_is_rejected_and_changes_n
     stream: list[tuple[str, bytes]], baseline: tuple[Engine, list[Any]], field: str
 ) -> None:
     """A site re-sent mid-stream with a sigma of 1e308 made every later plot's covariance
-    overflow (the radar's tracks NaN, its pairs gone); a denormal sigma or a nanosecond scan
-    period deleted its tracks at once.  Outside the plausibility bounds a site is rejected
-    (out_of_range) and the stream goes on as without it; the bounds themselves are taken."""
+    overflow (the radar's tracks NaN, its pairs gone); a denormal sigma took every plot as
+    exact (its pairs fell by a fifth to a half), a scan period of 0.01 s deleted its tracks
+    at once.  Outside the plausibility bounds a site is rejected (out_of_range) and the
+    stream goes on as without it; the bounds themselves are taken."""
     low, high = _SITE_BOUNDS[field]
     site = next(json.loads(p) for k, p in stream if k == "fusion/radar/B/site")
     at = len(stream) // 3

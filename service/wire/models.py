@@ -58,8 +58,9 @@ Longitude = Annotated[StrictFloat, Field(ge=-180, le=180, allow_inf_nan=False)]
 #: Plausible 1-sigma measurement errors and scan periods of a radar (sites): wide enough for any
 #: real radar (a range sigma of tens to hundreds of metres, angles of hundredths to tenths of a
 #: degree, scans of 1 to 20 s), narrow enough to keep the numerics sane: a sigma of 1e308
-#: overflows a plot's covariance (every track of the radar NaN), a denormal one or a scan
-#: period of a nanosecond deletes every track at once.
+#: overflows a plot's covariance (every track of the radar NaN), a denormal one takes every
+#: plot as exact (the radar's tracks break up), a scan period of a nanosecond deletes every track
+#: at once.
 MIN_RANGE_SIGMA_M, MAX_RANGE_SIGMA_M = 0.1, 10_000.0
 MIN_ANGLE_SIGMA_DEG, MAX_ANGLE_SIGMA_DEG = 1e-4, 10.0
 MIN_SCAN_PERIOD_S, MAX_SCAN_PERIOD_S = 0.1, 600.0
