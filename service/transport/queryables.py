@@ -41,7 +41,8 @@ def declare_queryables(
     def on_system(query: zenoh.Query) -> None:
         status = query.parameters.get("status") or "confirmed"
         if status not in SYSTEM_STATUSES:
-            query.reply_err(f"status {status!r}: expected one of {', '.join(SYSTEM_STATUSES)}")
+            # (the parameter quoted in part: a selector may be kilobytes long)
+            query.reply_err(f"status {status[:40]!r}: expected one of {', '.join(SYSTEM_STATUSES)}")
             return
         query.reply(keys.system_tracks, encode(views.snapshot.system_tracks(status)), encoding=_JSON)
 

@@ -136,6 +136,12 @@ def test_system_tracks_over_zenoh_and_http(router: str, client: zenoh.Session) -
             replies = list(client.get("fusion/system/tracks"))
             body = json.loads(replies[0].ok.payload.to_bytes())
             SystemTrackBatch.model_validate(body)
+            # an unknown status is answered with an error reply, which quotes it only in part
+            for asked in ("bogus", "x" * 3000):
+                (reply,) = list(client.get(f"fusion/system/tracks?status={asked}"))
+                assert reply.err is not None
+                said = reply.err.payload.to_string()
+                assert "expected one of confirmed, tentative, all" in said and len(said) < 200
             wait_for(lambda: received, timeout=10)
             SystemTrackBatch.model_validate_json(received[-1])
         finally:
