@@ -132,8 +132,7 @@ def decode_rows(payload: bytes, ids: tuple[str, str]) -> tuple[RegistrationRows,
             np.asarray(got.s, dtype=float).reshape(k, 3, 3),
             None if got.v is None else np.asarray(got.v, dtype=float).reshape(k, 3),
         )
-    if sorted((got.source_a, got.source_b)) != sorted(ids):
-        raise RejectionError("schema", f"sources {got.source_a}, {got.source_b} != key {ids}", ids[0])
+    _check_sources(got.source_a, got.source_b, ids)
     return got, data
 
 
@@ -149,10 +148,15 @@ def decode_links(payload: bytes, ids: tuple[str, str]) -> SharedLinks:
         got = parse(PairLinks, payload, ids[0])
         track_a, track_b = np.asarray(got.track_a, dtype=str), np.asarray(got.track_b, dtype=str)
         score = np.asarray(got.score, dtype=float)
-    if sorted((got.source_a, got.source_b)) != sorted(ids):
-        raise RejectionError("schema", f"sources {got.source_a}, {got.source_b} != key {ids}", ids[0])
+    _check_sources(got.source_a, got.source_b, ids)
     links = Links(got.source_a, got.source_b, track_a, track_b, score)
     return SharedLinks((ids[0], ids[1]), got.time_s, got.release, links)
+
+
+def _check_sources(source_a: str, source_b: str, ids: tuple[str, str]) -> None:
+    """The body's two sources must be the key's pair (either order; ``schema`` otherwise)."""
+    if sorted((source_a, source_b)) != sorted(ids):
+        raise RejectionError("schema", f"sources {source_a}, {source_b} != key {ids}", ids[0])
 
 
 def _checked_frame(

@@ -254,21 +254,23 @@ class Peers:
         worker's progress and clocks (``idle``: sent whatever moved)."""
         if self.alone:
             return []
-        framed = self.exchange.frames and self._all_read("frame_rows")
+        rows_framed = self.exchange.frames and self._all_read("frame_rows")
+        links_framed = self.exchange.frames and self._all_read("frame_links")
         out = [
             Outgoing(
                 self.keys.registration(*r.key),
                 lambda r=r: rows_body(r.source_a, r.source_b, r.reference, r.rows),  # type: ignore[misc]
-                (lambda r=r: rows_frame(r.source_a, r.source_b, r.reference, r.rows)) if framed else None,  # type: ignore[misc]
+                (lambda r=r: rows_frame(r.source_a, r.source_b, r.reference, r.rows))  # type: ignore[misc]
+                if rows_framed
+                else None,
             )
             for r in self.correlation.take_rows()
         ]
-        framed = self.exchange.frames and self._all_read("frame_links")
         out += [
             Outgoing(
                 self.keys.links(*s.key),
                 lambda s=s: links_body(s),  # type: ignore[misc]
-                (lambda s=s: links_frame(s)) if framed else None,  # type: ignore[misc]
+                (lambda s=s: links_frame(s)) if links_framed else None,  # type: ignore[misc]
             )
             for s in self.correlation.take_links()
         ]
