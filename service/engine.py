@@ -37,7 +37,7 @@ from service.pipeline.peers import Peers, finite_or_none
 from service.pipeline.publication import Publication
 from service.pipeline.read_model import Snapshot, build_snapshot
 from service.pipeline.restart import EngineState, own_state, read_state, state_when_answered
-from service.pipeline.sequencer import RADAR, REFERENCE, Release, Sequencer
+from service.pipeline.sequencer import RADAR, REFERENCE, Held, Release, Sequencer
 from service.pipeline.tracking_stage import (
     SiteChange,
     TrackerFactory,
@@ -82,7 +82,6 @@ class Engine:
         self.publication = Publication(self.keys)
         #: Tables sent to correlation and not answered yet: (radar, data time, table, own).
         self._unpublished: deque[tuple[str, float, TrackTable, bool]] = deque()
-        self.plots: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
         self.feed = FeedWatch(c.feed)
         #: Each reference source's input kind (``ais`` or ``adsb``): an id is one or the other.
@@ -198,7 +197,7 @@ class Engine:
 
     def flush(self) -> list[Outgoing]:
         """Release every held batch regardless of the watermark (end of a replay or shutdown)."""
-        out = self._process(self.sequencer.flush())
+        out = self._refused_held(self.sequencer.drop_held(), False) + self._process(self.sequencer.flush())
         out += self._correlate(self.merger.flush())
         self.correlation.finish()
         out += self._results()
@@ -234,8 +233,6 @@ class Engine:
         for sid in source_ids:
             self.reference_kinds.pop(sid, None)
             self.tracking.clear(sid) if keep_site else self.tracking.drop(sid)
-            if not keep_site:
-                self.plots.pop(sid, None)
             self.correlation.forget(sid)
             self.peers.forget(sid)
             self.feed.forget(sid)
@@ -258,18 +255,24 @@ class Engine:
                 raise RejectionError("schema", detail, source_id)
             item, n, kind = batch, len(batch.reports.time_s), REFERENCE
         adm = self.sequencer.check(source_id, kind, batch.seq, batch.time_s)
-        out = self._drop(self.sequencer.accept(adm, item))  # accepted: from here on it changes state
+        evicted, refuted = self.sequencer.accept(adm, item, n)  # accepted: from here on it changes state
+        out = self._drop(evicted) + self._refused_held([(source_id, refuted)] if refuted else [], True)
         self.feed.taken(source_id, self.sequencer.newest_s)
         if kind == REFERENCE:
             self.reference_kinds[source_id] = what
-        self.plots[source_id] += n
         self._snapshot = None
         return out
 
+    def _refused_held(self, held: list[tuple[str, Held]], refuted: bool) -> list[Outgoing]:
+        """Batches held as a step ahead (``pipeline.sequencer``) and then refuted or unconfirmed."""
+        return [self._reject(self._input_key(sid), h.rejection(sid, refuted), None) for sid, h in held]
+
+    def _input_key(self, source_id: str) -> str:
+        return self.keys.input(self.reference_kinds.get(source_id) or "plots", source_id)
+
     def _internal(self, source_id: str | None, detail: str) -> Outgoing:
         """A failure processing a source's message (None: of no one message), on its input key."""
-        kind = self.reference_kinds.get(source_id or "")
-        key = self.keys.errors if not source_id else self.keys.input(kind or "plots", source_id)
+        key = self._input_key(source_id) if source_id else self.keys.errors
         return self._reject(key, RejectionError("internal", detail, source_id), None)
 
     # -- released batches: the one path --------------------------------------------------
@@ -376,25 +379,21 @@ class Engine:
     def snapshot(self) -> Snapshot:
         """An immutable view of the current state; costs O(radars + pairs), not O(tracks)."""
         if self._snapshot is None or self._snapshot.correlation["pending"] != self.correlation.pending:
-            self._snapshot = self._build_snapshot()
+            self._snapshot = build_snapshot(
+                tracking=self.tracking,
+                sources=self.sequencer.sources,
+                owned=self.partition.owns,
+                tables=self.publication.tables,
+                pair_views=self.publication.pair_views(),
+                system=self.publication.system,
+                biases=self.peers.biases(),
+                correlation={**self.correlation.timings(), "pending": self.correlation.pending},
+                rejected=dict(sorted(self.rejected.items())),
+                method=self.config.method,
+                prefix=self.config.prefix,
+                progress=self.peers.progress(),
+                adsb_sources=frozenset(k for k, kind in self.reference_kinds.items() if kind == "adsb"),
+                outputs_time_s=self.outputs_time_s,
+                performance=self.assessment.view,
+            )
         return self._snapshot
-
-    def _build_snapshot(self) -> Snapshot:
-        return build_snapshot(
-            tracking=self.tracking,
-            sources=self.sequencer.sources,
-            owned=self.partition.owns,
-            plots=self.plots,
-            tables=self.publication.tables,
-            pair_views=self.publication.pair_views(),
-            system=self.publication.system,
-            biases=self.peers.biases(),
-            correlation={**self.correlation.timings(), "pending": self.correlation.pending},
-            rejected=dict(sorted(self.rejected.items())),
-            method=self.config.method,
-            prefix=self.config.prefix,
-            progress=self.peers.progress(),
-            adsb_sources=frozenset(k for k, kind in self.reference_kinds.items() if kind == "adsb"),
-            outputs_time_s=self.outputs_time_s,
-            performance=self.assessment.view,
-        )

@@ -172,3 +172,79 @@ def test_a_source_with_input_queued_is_not_silent_on_the_wall_clock(monkeypatch:
     assert watch.silent(now[0], waiting={"A"}) == ["B"]
     assert watch.silent(now[0]) == ["A"]  # the queue ran dry with nothing of A's: silent now
     assert watch.expired_by_wall == 2 and watch.silent(now[0] + 10) == []  # each once
+
+
+# -- a lone step ahead: one batch stamped ahead within max_clock_skew_s ---------------------------
+def _outputs(out: list[Any]) -> list[tuple[str, Any]]:
+    """What a run published, but its error reports (a rejection's detail says why)."""
+    return [(o.key, o.payload) for o in out if o.key != "fusion/errors"]
+
+
+def _pair_counts(engine: Any) -> dict[tuple[str, str], int]:
+    return {
+        (p["radar_a"], p["radar_b"]): len(p["pairs"]) for p in engine.snapshot().pair_sets(status="confirmed")
+    }
+
+
+@pytest.mark.parametrize("ahead_s", [30.0, 100.0, 500.0])
+def test_one_batch_stamped_ahead_is_held_then_refused_and_changes_nothing(ahead_s: float) -> None:
+    """One batch of radar B stamped ``ahead_s`` into the future (a corrupted time stamp, within
+    ``max_clock_skew_s``), the next ones on time: taken at once, it moved B's clock ahead and its
+    honest batches found their tracks ahead of them (B's pairs went from 20 to 0).  Held, the
+    next batch refutes it: it is rejected, and every output is the one of the stream without it."""
+    stream = scenario_messages("three-radar", duration_s=90.0)
+    b_batches = [i for i, (k, _) in enumerate(stream) if k == "fusion/radar/B/plots"]
+    i = b_batches[len(b_batches) // 2]
+    glitched = [*stream[:i], (stream[i][0], shifted(stream[i][1], ahead_s)), *stream[i + 1 :]]
+    without = [*stream[:i], *stream[i + 1 :]]
+    engine, out = run_engine(glitched)
+    clean, clean_out = run_engine(without)
+    refused = errors(out)
+    assert [(e["radar_id"], e["reason"]) for e in refused] == [("B", "out_of_range")]
+    assert "max_step_s" in refused[0]["detail"] and "came back" in refused[0]["detail"]
+    assert _outputs(out) == _outputs(clean_out)
+    assert _pair_counts(engine) == _pair_counts(clean)
+    assert all(n >= 10 for n in _pair_counts(engine).values()) and len(_pair_counts(engine)) == 3
+    radar_b = next(r for r in engine.snapshot().status_core()["radars"] if r["radar_id"] == "B")
+    assert radar_b["rejected"] == 1
+    assert radar_b["plots"] == next(
+        r["plots"] for r in clean.snapshot().status_core()["radars"] if r["radar_id"] == "B"
+    )
+
+
+def test_a_step_ahead_confirmed_by_the_next_batch_is_taken() -> None:
+    """Every radar silent for 300 s (an outage shorter than ``max_clock_skew_s``): the first
+    radars back are ahead of the others' clock and their first batch is held, then confirmed
+    by the next.  Nothing is refused, and every output is the one the service gave before it
+    held steps (``max_step_s`` beyond the skew: never), some a batch later."""
+    stream = scenario_messages("three-radar", duration_s=150.0)
+    t0 = min(json.loads(p)["time_s"] for k, p in stream if k.endswith("/plots"))
+    gapped = [
+        (k, shifted(p, 300.0) if k.endswith("/plots") and json.loads(p)["time_s"] > t0 + CUT_S else p)
+        for k, p in stream
+    ]
+    engine, out = run_engine(gapped)
+    never = EngineConfig(sequencer=SequencerParams(max_step_s=1e6))
+    before, before_out = run_engine(gapped, never)
+    assert errors(out) == [] and errors(before_out) == []
+    # the same outputs, every one of them; those of a held radar come a batch later
+    assert sorted(_outputs(out)) == sorted(_outputs(before_out))
+    assert _pair_counts(engine) == _pair_counts(before) and len(_pair_counts(engine)) == 3
+
+
+def test_a_step_ahead_that_ends_the_input_is_refused() -> None:
+    """The input ends on a batch held as a step ahead: no next batch confirms it, so the flush
+    rejects it rather than take a clock it may not have."""
+    stream = scenario_messages("three-radar", duration_s=40.0)
+    last_b = max(i for i, (k, _) in enumerate(stream) if k == "fusion/radar/B/plots")
+    glitched = [
+        *stream[:last_b],
+        (stream[last_b][0], shifted(stream[last_b][1], 100.0)),
+        *stream[last_b + 1 :],
+    ]
+    engine, out = run_engine(glitched)
+    refused = errors(out)
+    assert [(e["radar_id"], e["reason"]) for e in refused] == [("B", "out_of_range")]
+    assert "no next batch came" in refused[0]["detail"]
+    status = {r["radar_id"]: r for r in engine.snapshot().status_core()["radars"]}
+    assert status["B"]["last_time_s"] < json.loads(glitched[last_b][1])["time_s"]

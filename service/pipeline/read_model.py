@@ -436,7 +436,6 @@ def build_snapshot(
     tracking: Any,
     sources: Mapping[str, Any],
     owned: Callable[[str], bool],
-    plots: Mapping[str, int],
     tables: Mapping[str, tuple[float, TrackTable]],
     pair_views: list[PairSetView],
     system: SystemTrackView | None,
@@ -464,7 +463,7 @@ def build_snapshot(
         status = RadarStatus(
             radar_id=rid,
             batches=clock.batches if clock else 0,
-            plots=plots.get(rid, 0),
+            plots=clock.plots if clock else 0,
             rejected=clock.rejected if clock else 0,
             lost_batches=clock.lost_batches if clock else 0,
             window_plots=tracking.window_plots(rid),

@@ -24,6 +24,19 @@ Valid but hostile input (each policy a named field of :class:`SequencerParams`)
   remembered for this vote (one number a source); the first batch the vote admits is logged
   and counted (:attr:`Sequencer.outages`), and the silent sources then expire in data time as
   usual, so the tracks of before the gap leave the picture.
+* **A lone step ahead.**  A batch stamped more than ``max_step_s`` ahead of both the other
+  sources' data clock and its own source's clock (but within ``max_clock_skew_s``) is *held*,
+  not taken, until the source's next batch says what it was: a next batch nearer the source's
+  clock of before than the held time shows the held one a glitch (one corrupted time stamp):
+  it is then rejected (``out_of_range``) and nothing of it was applied; a next batch at or
+  past the held time confirms it, and both are taken in order.  Taken at once, such a batch
+  would move the source's clock ahead, and its honest batches after it, behind that clock,
+  would find their tracks ahead of them: the radar would go dark until the true time caught
+  up.  An honest stream only ever confirms (a source back from its own silence ahead of the
+  others, the first sources back from a whole-feed outage), so what is taken, and in which
+  order, does not change; the held source's batches are one batch later.  A source holds at
+  most one such batch; one still held when the input ends (:meth:`Sequencer.drop_held`) is
+  rejected, never confirmed.
 * **An absurd ``seq`` jump.**  A jump of more than ``max_seq_jump`` batches that is also more
   than ``max_batch_rate_hz`` times the data time since the source's last batch is rejected
   (``out_of_range``): a radar back after a day's outage may legitimately skip many numbers, a
@@ -82,6 +95,11 @@ class SequencerParams:
     #: Radars and bridges stamp their own data; ten minutes is far beyond any clock error of a
     #: working sensor, and far below the hours a wrong date or time zone would give.
     max_clock_skew_s: float = 600.0
+    #: A batch stamped more than this (s) ahead of both the other sources' data clock and its own
+    #: source's clock is held until the source's next batch confirms it (module docstring).
+    #: Ten seconds is a few scans: well past the arrival skew of sources on one network, so an
+    #: honest batch is held only after its source's own silence, and then just one batch long.
+    max_step_s: float = 10.0
     #: A ``seq`` jump above this many batches may be rejected (see ``max_batch_rate_hz``).
     max_seq_jump: int = 10_000
     #: ...but only if it is also above this many batches per data second since the source's
@@ -117,6 +135,8 @@ class SourceClock:
     kind: int
     last_seq: int | None = None
     batches: int = 0
+    #: Plots (a radar) or reports (a reference source) of its batches taken.
+    plots: int = 0
     lost_batches: int = 0
     restarts: int = 0
     rejected: int = 0
@@ -133,6 +153,8 @@ class SourceClock:
     ahead_s: float | None = None
     #: The clock came from the state file (a restart), not from a batch of this run.
     restored: bool = False
+    #: A batch held as a lone step ahead, until the next batch confirms or refutes it.
+    held: Held | None = None
     pending: deque[tuple[float, int, Any]] = field(default_factory=deque)
 
 
@@ -148,6 +170,37 @@ class Admission:
     lost: int
     #: > 0: the batch ends a whole-feed outage this long (s of data time); see the docstring.
     outage: float = 0.0
+    #: From this source's clock of before (or the others'): a lone step ahead, to be held.
+    step_from_s: float | None = None
+    #: The source's held batch: +1 confirmed by this one (taken first), -1 refuted (rejected).
+    resolves: int = 0
+
+
+@dataclass(frozen=True)
+class Held:
+    """A batch stamped a lone step ahead (module docstring): not taken yet."""
+
+    admission: Admission
+    item: Any
+    #: The source's clock it stepped from (or the others', for a source with none yet).
+    before_s: float
+    #: Its plots or reports.
+    count: int
+
+    def refuted_by(self, time_s: float) -> bool:
+        """A next batch at ``time_s`` nearer the clock of before than the held time."""
+        return time_s < (self.before_s + self.admission.time_s) / 2
+
+    def rejection(self, source_id: str, refuted: bool) -> RejectionError:
+        """Its rejection: ``refuted`` by the next batch, or none came before the input ended."""
+        a = self.admission
+        why = "the next batch came back to that clock" if refuted else "no next batch came to confirm it"
+        return RejectionError(
+            "out_of_range",
+            f"batch seq {a.seq} at time_s {a.time_s:.3f} was held, {a.time_s - self.before_s:.1f} s ahead "
+            f"of this source's data clock {self.before_s:.3f} (max_step_s), and {why}",
+            source_id,
+        )
 
 
 @dataclass(frozen=True)
@@ -291,7 +344,12 @@ class Sequencer:
             for sid, s in self.sources.items()
             if sid != source_id and s.last_time_s is not None and not s.expired
         ]
-        outage = 0.0
+        outage, step_from, resolves = 0.0, None, 0
+        own = src.last_time_s if src is not None else None
+        if src is not None and src.held is not None:  # this batch says what the held one was
+            resolves = -1 if src.held.refuted_by(time_s) else 1
+            if resolves > 0:
+                own = src.held.admission.time_s if own is None else max(own, src.held.admission.time_s)
         if others:
             reference = _low_median([*others, time_s])
             if time_s > reference + p.max_clock_skew_s:
@@ -305,9 +363,11 @@ class Sequencer:
                         source_id,
                     )
                 outage = time_s - reference
+            elif time_s > reference + p.max_step_s and (own is None or time_s > own + p.max_step_s):
+                step_from = reference if own is None else own
         if src is None and len(self.sources) >= p.max_sources:
             self._make_room_check(source_id)
-        return Admission(source_id, kind, seq, time_s, restart, lost, outage)
+        return Admission(source_id, kind, seq, time_s, restart, lost, outage, step_from, resolves)
 
     @staticmethod
     def _duplicate(src: SourceClock, seq: int, time_s: float) -> str:
@@ -352,13 +412,42 @@ class Sequencer:
                 source_id,
             )
 
-    def accept(self, adm: Admission, item: Any) -> list[str]:
-        """Apply an admitted batch; returns the ids evicted to make room for a new source."""
+    def accept(self, adm: Admission, item: Any, count: int = 0) -> tuple[list[str], Held | None]:
+        """Apply an admitted batch of ``count`` plots or reports; returns the ids evicted to make
+        room for a new source, and the source's held batch this one refuted (to be reported
+        rejected: nothing of it was applied)."""
         evicted = []
         src = self.sources.get(adm.source_id)
         if src is None:
             evicted = self._make_room(adm.source_id)
             src = self.sources[adm.source_id] = SourceClock(adm.kind, announced_s=self.consensus())
+        held, src.held = src.held, None
+        if held is not None and adm.resolves > 0:
+            self._take(src, held.admission, held.item, held.count)
+        refuted = held if adm.resolves < 0 else None
+        if adm.step_from_s is not None:  # held, not taken: only its seq counts yet
+            src.held = Held(adm, item, adm.step_from_s, count)
+            self._count_seq(src, adm)
+            return evicted, refuted
+        self._take(src, adm, item, count)
+        return evicted, refuted
+
+    def drop_held(self) -> list[tuple[str, Held]]:
+        """The end of the input: every held batch is given up (each to be reported rejected)."""
+        out = []
+        for sid, src in self.sources.items():
+            if src.held is not None:
+                out.append((sid, src.held))
+                src.held = None
+        return out
+
+    @staticmethod
+    def _count_seq(src: SourceClock, adm: Admission) -> None:
+        src.last_seq = adm.seq
+        src.lost_batches += adm.lost
+        src.restarts += adm.restart
+
+    def _take(self, src: SourceClock, adm: Admission, item: Any, count: int) -> None:
         if adm.outage > 0:
             self.outages += 1
             self.last_outage_s = adm.outage
@@ -371,10 +460,10 @@ class Sequencer:
             )
         src.ahead_s = None
         src.restored = False
-        src.last_seq = adm.seq
+        if adm.step_from_s is None:  # (a held batch's seq was counted when it was held)
+            self._count_seq(src, adm)
         src.batches += 1
-        src.lost_batches += adm.lost
-        src.restarts += adm.restart
+        src.plots += count
         clock = max(adm.time_s, src.last_time_s if src.last_time_s is not None else -np.inf)
         src.last_time_s = clock
         self.newest_s = max(self.newest_s, clock)
@@ -383,7 +472,6 @@ class Sequencer:
         if not src.pending:
             heapq.heappush(self._heap, (clock, adm.kind, adm.source_id, adm.seq))
         src.pending.append((clock, adm.seq, item))
-        return evicted
 
     # -- kept across a restart (service.state) -------------------------------------------------
     def export_state(self) -> list[dict[str, Any]]:
