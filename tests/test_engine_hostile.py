@@ -8,6 +8,7 @@ the honest radars' tracks and pairs come out exactly as without them.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from typing import Any
 
 import pytest
@@ -259,3 +260,57 @@ def test_source_table_is_bounded() -> None:
     (err,) = errors(engine.ingest("fusion/radar/D/site", json.dumps({**site, "radar_id": "D"}).encode()))
     assert err["reason"] == "out_of_range" and "source table full" in err["detail"]
     assert "D" not in engine.sequencer.sources and len(engine.sequencer.sources) == 3
+
+
+def _declaring(stream: Stream, radar: str, period_s: float, after: int | None) -> Stream:
+    """``stream`` with ``radar``'s site declaring ``period_s``: from the start (``after`` None)
+    or re-sent after its ``after``-th batch."""
+    key = f"fusion/radar/{radar}/site"
+    site = {**json.loads(next(p for k, p in stream if k == key)), "scan_period_s": period_s}
+    if after is None:
+        return [(k, json.dumps(site).encode() if k == key else p) for k, p in stream]
+    return insert_after(stream, batches(stream, radar)[after][0], [(key, json.dumps(site).encode())])
+
+
+def _confirmed(engine: Engine) -> tuple[dict[str, int], dict[tuple[str, str], int]]:
+    snap = engine.snapshot()
+    tracks = {
+        b["radar_id"]: sum(t["status"] == "confirmed" for t in b["tracks"]) for b in snap.track_batches("all")
+    }
+    return tracks, {(p["radar_a"], p["radar_b"]): len(p["pairs"]) for p in snap.pair_sets(status="confirmed")}
+
+
+@pytest.mark.parametrize(("period_s", "after"), [(1.0, None), (1.0, 30), (2.0, None), (16.0, 30)])
+def test_a_site_declaring_the_wrong_scan_period_does_not_cost_the_radar_its_tracks(
+    period_s: float, after: int | None
+) -> None:
+    """Radar B turns in 4 s; its site says ``period_s``.  Counting its life cycle in a period 4x
+    too short deleted every track before its next look (B held no track, its pairs none).  The
+    tracker measures the revisit period from the plots and counts in that: B's tracks and pairs
+    are within a few of the honest run's, and ``/status`` shows the observed period."""
+    honest = scenario_messages("three-radar", duration_s=120.0)
+    wrong = _declaring(honest, "B", period_s, after)
+    clean, _ = run_engine(honest)
+    engine, out = run_engine(wrong)
+    assert errors(out) == []
+    (tracks, pairs), (clean_tracks, clean_pairs) = _confirmed(engine), _confirmed(clean)
+    assert tracks["B"] >= 0.95 * clean_tracks["B"] > 50
+    assert set(pairs) == set(clean_pairs) and all(pairs[k] >= 0.9 * clean_pairs[k] for k in pairs)
+    status = {r["radar_id"]: r for r in engine.snapshot().status_core()["radars"]}
+    assert status["B"]["scan_period_observed_s"] == pytest.approx(4.0, rel=0.02)
+
+
+def test_an_honest_site_keeps_the_tracker_exactly_as_it_was() -> None:
+    """The observed period within a quarter of the declared one: every output is the one of a
+    tracker that never measures it; and with the measurement off, a wrong period still costs
+    the radar its tracks (what the rule is for)."""
+    honest = scenario_messages("three-radar", duration_s=90.0)
+    config = EngineConfig()
+    off = replace(
+        config, tracking=replace(config.tracking, revisit=replace(config.tracking.revisit, enabled=False))
+    )
+    _, out = run_engine(honest)
+    _, out_off = run_engine(honest, off)
+    assert [(o.key, o.payload) for o in out] == [(o.key, o.payload) for o in out_off]
+    blind, _ = run_engine(_declaring(honest, "B", 1.0, None), off)
+    assert _confirmed(blind)[0].get("B", 0) == 0

@@ -212,3 +212,7 @@ class TruthLabelledTracker(Tracker):
     @property
     def window_evicted(self) -> int:
         return self.inner.window_evicted
+
+    @property
+    def scan_period_observed_s(self) -> float | None:
+        return self.inner.scan_period_observed_s

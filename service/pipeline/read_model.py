@@ -472,6 +472,7 @@ def build_snapshot(
             last_time_s=clock.last_time_s if clock else None,
             restarts=clock.restarts if clock else 0,
             window_evicted=tracking.window_evicted(rid),
+            scan_period_observed_s=tracking.scan_period_observed(rid),
             expired=clock.expired if clock else False,
         )
         rows.append(RadarRow(r.site, status))

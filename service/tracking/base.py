@@ -178,3 +178,9 @@ class Tracker(ABC):
         """Plots evicted from the sliding window so far because it held its maximum number of
         plots (0 for a tracker whose window has no such cap)."""
         return 0
+
+    @property
+    def scan_period_observed_s(self) -> float | None:
+        """The revisit period the radar's plots show (None: not measured, or not by this
+        tracker); the tracker counts in it where it departs from the site's."""
+        return None

@@ -52,6 +52,7 @@ from service.tracking.initiators import get_initiator
 from service.tracking.measurement import Measurements, plots_to_measurements
 from service.tracking.pairs import cell_counts
 from service.tracking.params import TrackerParams
+from service.tracking.revisit import RevisitMeter
 from service.tracking.window import PlotWindow
 
 IntArray = NDArray[np.intp]
@@ -266,11 +267,20 @@ class TrackManager(Tracker):
         self.joined: Joined = []
         #: Each track's latest Mode 3/A and Mode S codes (the columns of :meth:`tracks`).
         self.identity = TrackCodes()
+        #: The revisit period the plots show, against the site's (:mod:`.revisit`).
+        self.revisit = RevisitMeter(self.params.revisit, id_prefix)
+
+    @property
+    def scan_period_s(self) -> float:
+        """The scan period every life-cycle time scale is counted in: the site's, unless the
+        plots show another (:mod:`.revisit`)."""
+        return self.revisit.period(self.site.scan_period_s)
 
     # -- contract ---------------------------------------------------------------------
     def drop_tracks(self) -> None:
         self._tracks = _Tracks.empty(self._models.count)
         self._window.clear()
+        self.revisit.clear()
         self.joined = []
         self.identity.keep(self._tracks.uid)
 
@@ -282,6 +292,10 @@ class TrackManager(Tracker):
     def window_evicted(self) -> int:
         """Plots evicted so far because the window held ``bounds.max_window_plots``."""
         return self._window.evicted
+
+    @property
+    def scan_period_observed_s(self) -> float | None:
+        return self.revisit.observed_s
 
     @property
     def uids(self) -> NDArray[np.int64]:
@@ -301,6 +315,7 @@ class TrackManager(Tracker):
         both are made anew here, so results are those of converting everything every time."""
         fp = self.params.filter
         site = self.site
+        scan_s = self.scan_period_s
         joined: Joined = []
         tracks = self._tracks
         window = self._window.copy()
@@ -320,7 +335,7 @@ class TrackManager(Tracker):
             formations_s = self._formations_s
             fm = self.params.formation
             if self._formation_models is not None and (
-                time_s - formations_s >= fm.formation_interval_scans * site.scan_period_s
+                time_s - formations_s >= fm.formation_interval_scans * scan_s
             ):
                 tracks = replace(tracks, formation=self._formations(tracks, float(time_s)))
                 formations_s = float(time_s)
@@ -349,13 +364,13 @@ class TrackManager(Tracker):
                     tracks = self._release_manoeuvring(
                         tracks, r, xp[chosen], pp[chosen], cw[chosen], z, cov_z, float(time_s)
                     )
-            tracks = self._life_cycle(tracks, hit, plots.azimuth_deg, float(time_s))
+            tracks = self._life_cycle(tracks, hit, plots.azimuth_deg, float(time_s), scan_s)
             tracks = self._drop_duplicates(tracks, twins, float(time_s))
             window.extend(plots.take(~used), float(time_s), meas.take(~used))
             initiated_s = self._initiated_s
             next_uid = self._next_uid
-            if time_s - initiated_s >= self.params.manager.initiation_interval_scans * site.scan_period_s:
-                tracks, next_uid = self._initiate_from_window(tracks, window, joined, big)
+            if time_s - initiated_s >= self.params.manager.initiation_interval_scans * scan_s:
+                tracks, next_uid = self._initiate_from_window(tracks, window, joined, big, scan_s)
                 initiated_s = float(time_s)
         except BaseException:
             if saved is not None:  # back into the very arrays written
@@ -371,6 +386,7 @@ class TrackManager(Tracker):
         self.last_time_s = max(self.last_time_s, float(time_s))
         self.identity.add(joined)
         self.identity.keep(tracks.uid)
+        self.revisit.add(meas.enu_m[:, :2], meas.time_s, float(time_s))
 
     def tracks(self) -> TrackTable:
         """The live tracks in ECEF.  Covariances and ids come from the per-track caches (made
@@ -595,7 +611,7 @@ class TrackManager(Tracker):
         return np.asarray((off >= m) & (off <= width - m))
 
     def _life_cycle(
-        self, tracks: _Tracks, hit: NDArray[np.bool_], azimuth_deg: FloatArray, time_s: float
+        self, tracks: _Tracks, hit: NDArray[np.bool_], azimuth_deg: FloatArray, time_s: float, scan_s: float
     ) -> _Tracks:
         mp = self.params.manager
         n_bits = mp.confirm_n
@@ -612,12 +628,12 @@ class TrackManager(Tracker):
         dead = (~confirmed & (misses > mp.confirm_n - mp.confirm_m)) | (
             confirmed & (miss_run >= mp.confirmed_max_misses)
         )
-        dead |= time_s - tracks.t > mp.coast_scans * self.site.scan_period_s
+        dead |= time_s - tracks.t > mp.coast_scans * scan_s
         return tracks.take(~dead) if dead.any() else tracks
 
     # -- initiation -------------------------------------------------------------------
     def _initiate_from_window(
-        self, tracks: _Tracks, window: PlotWindow, joined: Joined, big: FloatArray
+        self, tracks: _Tracks, window: PlotWindow, joined: Joined, big: FloatArray, scan_s: float
     ) -> tuple[_Tracks, int]:
         """New tentative tracks from ``window`` (whose used plots it removes), their plots
         appended to ``joined``; returns the tracks and the next free uid.  ``big``: the map of
@@ -630,7 +646,7 @@ class TrackManager(Tracker):
         wm = window.measurements
         if wm is None:  # the window's plots all came with theirs (``update``); kept for safety
             wm = plots_to_measurements(self.site, wplots, p.measurement)
-        groups = self._initiate(wm, p, self.site.scan_period_s)
+        groups = self._initiate(wm, p, scan_s)
         if groups.count == 0:
             return tracks, next_uid
         births = fit_groups(wm, groups, p.filter.process_noise_psd, p.manager.birth_velocity_sigma_mps)

@@ -438,6 +438,31 @@ class FormationParams:
 
 
 @dataclass(frozen=True)
+class RevisitParams:
+    """How a radar's revisit period is measured from its plots, against the one its site
+    declares (:mod:`.revisit`)."""
+
+    enabled: bool = True
+    """Off: the declared ``scan_period_s`` always stands."""
+    interval_s: float = 30.0
+    """Data time (s) between two measurements of one radar; a tenth of it between tries until one
+    counts."""
+    max_plots: int = 2_000
+    """The newest plots of a radar a measurement uses: its cost is a KD-tree of this many points."""
+    radius_m: float = 5_000.0
+    """Two plots further apart than this (m, horizontally) are not one aircraft's consecutive
+    looks: 300 m/s for 15 s, with the plots' errors."""
+    min_dt_s: float = 0.25
+    """Plots closer in time than this (s) are one look (other aircraft of the same sweep)."""
+    neighbours: int = 8
+    """Nearest neighbours in space looked at per plot for the nearest earlier one."""
+    min_samples: int = 30
+    """Least number of plots with an earlier neighbour for a measurement to count."""
+    tolerance: float = 0.25
+    """The declared period stands while the observed one is within this share of it."""
+
+
+@dataclass(frozen=True)
 class TrackerParams:
     """All parameters of one radar's tracker."""
 
@@ -449,3 +474,4 @@ class TrackerParams:
     cluster: ClusterParams = field(default_factory=ClusterParams)
     bounds: BoundParams = field(default_factory=BoundParams)
     formation: FormationParams = field(default_factory=FormationParams)
+    revisit: RevisitParams = field(default_factory=RevisitParams)

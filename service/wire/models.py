@@ -522,6 +522,11 @@ class RadarStatus(OutModel):
         default=0, description="plots evicted from the window by its plot bound (oldest first)"
     )
     expired: bool = Field(default=False, description="no batch for the source expiry time of data")
+    scan_period_observed_s: float | None = Field(
+        default=None,
+        description="the revisit period (s) the radar's plots show (null: not measured yet); "
+        "the tracker counts in it where it departs from the site's scan_period_s by over a quarter",
+    )
 
 
 class CorrelationTimings(OutModel):
