@@ -386,7 +386,7 @@ class TrackManager(Tracker):
         self.last_time_s = max(self.last_time_s, float(time_s))
         self.identity.add(joined)
         self.identity.keep(tracks.uid)
-        self.revisit.add(meas.enu_m[:, :2], meas.time_s, float(time_s))
+        self.revisit.add(meas.enu_m[:, :2], meas.time_s, float(time_s), self.site.scan_period_s)
 
     def tracks(self) -> TrackTable:
         """The live tracks in ECEF.  Covariances and ids come from the per-track caches (made

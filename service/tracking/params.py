@@ -455,9 +455,15 @@ class RevisitParams:
     min_dt_s: float = 0.25
     """Plots closer in time than this (s) are one look (other aircraft of the same sweep)."""
     neighbours: int = 8
-    """Nearest neighbours in space looked at per plot for the nearest earlier one."""
+    """Nearest neighbours in space of a plot whose time gaps to it are counted."""
+    peak_width: float = 0.04
+    """Relative width of the span of gaps taken as the period (4 %: a radar's period varies by
+    far less, and neighbouring multiples are 50 % apart)."""
     min_samples: int = 30
-    """Least number of plots with an earlier neighbour for a measurement to count."""
+    """Least number of gaps at the period for a measurement to count."""
+    min_share: float = 0.25
+    """A longer period than the declared one contradicts it only while the gaps at the declared
+    period are fewer than this share of those at the observed one (:func:`.revisit.contradicted`)."""
     tolerance: float = 0.25
     """The declared period stands while the observed one is within this share of it."""
 

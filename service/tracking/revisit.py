@@ -8,20 +8,24 @@ configuration error, a bridge with a wrong default) breaks all of them at once: 
 is far enough apart to start one, so the radar holds no track at all.
 
 The revisit period is what the plots say: an aircraft seen on consecutive looks leaves plots
-one period apart in time and a short flight apart in space.  For each recent plot the nearest
-plot of the same radar (in the horizontal plane, within ``radius_m``) at least ``min_dt_s``
-earlier is most often the same aircraft's previous look (a missed look gives twice the
-period, another aircraft of the same look is closer in time than ``min_dt_s`` or rare): the
-median of those time gaps is the observed period (:func:`observed_period`).  It is measured on
-a data-time schedule, every ``interval_s`` (a tenth of it until one counts) from the radar's
-last ``max_plots`` plots, so it costs one KD-tree of at most that many points a radar per
-``interval_s``, and nothing per plot but keeping its position and time.
+one period apart in time and a short flight apart in space.  The time gaps from each recent
+plot to the plots of the same radar near it (its ``neighbours`` nearest in the horizontal
+plane, within ``radius_m``, at least ``min_dt_s`` earlier: another aircraft of the same look
+is closer in time than that) crowd at the period and its multiples, while other aircraft's
+spread out: the densest narrow span of them is the observed period (:func:`observed_period`).
+It is measured on a data-time schedule, every ``interval_s`` (a tenth of it until one counts)
+from the radar's last ``max_plots`` plots, so it costs one KD-tree of at most that many points
+a radar per ``interval_s``, and nothing per plot but keeping its position and time.
 
-The declared period stands while the observed one is within ``tolerance`` of it (an honest
-site's tracker is exactly what it was); beyond, the observed one is used, logged once per
-change, and shown in ``/status`` (``scan_period_observed_s``).  A measurement with fewer than
-``min_samples`` plots that have such a neighbour (quiet sky, a radar too slow for aircraft to
-stay within ``radius_m`` between looks) changes nothing: the last measured period stays.
+The declared period stands unless the gaps contradict it (:func:`contradicted`: a period
+shorter than the declared one by more than ``tolerance``, or a longer one with hardly any gap
+at the declared period); then the observed one is used and logged once per change.  Either
+way ``/status`` shows it (``scan_period_observed_s``).  A declared period too long is always
+corrected (no crowd of gaps forms below the true period); one too short, which deletes every
+track before its next look, is corrected when hardly any gap lies at it (a radar really
+turning that fast leaves them there).  A measurement with fewer than ``min_samples`` gaps at
+the period (quiet sky, a radar too slow for aircraft to stay within ``radius_m`` between
+looks) changes nothing.
 """
 
 from __future__ import annotations
@@ -40,25 +44,72 @@ log = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
 
 
-def observed_period(xy: FloatArray, t: FloatArray, p: RevisitParams) -> tuple[float, int] | None:
-    """The median time from each plot (``xy``: horizontal positions, m; ``t``: times, s) to the
-    nearest plot in space at least ``min_dt_s`` earlier within ``radius_m``, and how many plots
-    had one; None with fewer than ``min_samples``."""
+def gaps(xy: FloatArray, t: FloatArray, p: RevisitParams) -> FloatArray:
+    """The time from each plot (``xy``: horizontal positions, m; ``t``: times, s) to each of
+    its ``neighbours`` nearest plots in space (within ``radius_m``) at least ``min_dt_s``
+    earlier."""
     n = t.shape[0]
     if n < 2:
-        return None
+        return np.empty(0)
     k = min(p.neighbours + 1, n)
     dist, idx = cKDTree(xy).query(xy, k=k, distance_upper_bound=p.radius_m)
     dist, idx = dist.reshape(n, k), idx.reshape(n, k)  # (k == 1 gives flat arrays)
-    found = np.isfinite(dist)  # (absent neighbours: infinite distance, index n)
-    dt = t[:, None] - np.append(t, np.inf)[idx]
-    earlier = found & (dt >= p.min_dt_s)
-    has = earlier.any(axis=1)
-    if int(has.sum()) < p.min_samples:
+    dt = t[:, None] - np.append(t, np.inf)[idx]  # (absent neighbours: index n, -inf)
+    return np.asarray(dt[np.isfinite(dist) & (dt >= p.min_dt_s)])
+
+
+def densest(g: FloatArray, width: float) -> tuple[float, int]:
+    """The densest span of relative ``width`` among the gaps ``g`` (sorted): its median and
+    how many gaps it holds."""
+    hi = np.searchsorted(g, g * (1.0 + width), side="right")
+    counts = hi - np.arange(g.shape[0])
+    i = int(np.argmax(counts))
+    return float(np.median(g[i : hi[i]])), int(counts[i])
+
+
+def observed_period(g: FloatArray, p: RevisitParams) -> tuple[float, int] | None:
+    """The revisit period the gaps ``g`` (:func:`gaps`, sorted) show, and how many gaps say
+    so; None with fewer than ``min_samples``.
+
+    An aircraft leaves plots one period apart, and plots near each other are seen near the
+    same azimuth, so their gaps are whole periods: they crowd at the period and its multiples
+    (a missed look, an older look still near), while other aircraft's spread out.  The period
+    is the densest span of ``peak_width`` of them; a span at half of it holding at least half
+    as many gaps is the period instead (an aircraft seen every other look), and so on."""
+    if g.shape[0] < p.min_samples:
         return None
-    first = np.argmax(earlier, axis=1)  # nearest first: the first earlier one is the nearest
-    gaps = dt[np.flatnonzero(has), first[has]]
-    return float(np.median(gaps)), int(has.sum())
+    period, count = densest(g, p.peak_width)
+    while True:
+        half = support(g, period / 2, p.peak_width)
+        if half < max(count / 2, p.min_samples):
+            break
+        lo, hi = _span(g, period / 2, p.peak_width)
+        period, count = float(np.median(g[lo:hi])), half
+    return (period, count) if count >= p.min_samples else None
+
+
+def _span(g: FloatArray, x: float, width: float) -> tuple[int, int]:
+    lo, hi = np.searchsorted(g, [x / (1 + width / 2), x * (1 + width / 2)])
+    return int(lo), int(hi)
+
+
+def support(g: FloatArray, x: float, width: float) -> int:
+    """How many of the gaps ``g`` (sorted) lie within the relative ``width`` around ``x``."""
+    lo, hi = _span(g, x, width)
+    return hi - lo
+
+
+def contradicted(g: FloatArray, observed: tuple[float, int], declared_s: float, p: RevisitParams) -> bool:
+    """Whether the gaps ``g`` (sorted) contradict the declared period, ``observed`` being the
+    period they show and its count.  Gaps are whole periods, so a crowd at a period shorter
+    than the declared one means a shorter period; a longer one can be a multiple of the
+    declared one (a formation whose neighbour sits where it was two looks ago fills a plot's
+    nearest neighbours), so it contradicts only when hardly any gap is at the declared
+    period (``min_share`` of the observed one's)."""
+    period, count = observed
+    if abs(period - declared_s) <= p.tolerance * declared_s:
+        return False
+    return period < declared_s or support(g, declared_s, p.peak_width) < p.min_share * count
 
 
 class RevisitMeter:
@@ -73,9 +124,11 @@ class RevisitMeter:
         self._next_s = -np.inf
         #: The last measured period (s); None until a measurement counted.
         self.observed_s: float | None = None
-        self._told: float | None = None
+        #: The declared period the last decision was for, and the period it chose over it.
+        self._declared: float | None = None
+        self._use: float | None = None
 
-    def add(self, xy: FloatArray, t: FloatArray, time_s: float) -> None:
+    def add(self, xy: FloatArray, t: FloatArray, time_s: float, declared_s: float) -> None:
         """A batch's plots (horizontal positions and times) at data time ``time_s``."""
         p = self.params
         if not p.enabled:
@@ -85,32 +138,42 @@ class RevisitMeter:
             self._count += min(t.shape[0], p.max_plots)
             while self._count - self._chunks[0][1].shape[0] >= p.max_plots:
                 self._count -= self._chunks.popleft()[1].shape[0]
-        if time_s < self._next_s or self._count < p.min_samples:
-            return
-        xy, t = (np.concatenate([c[i] for c in self._chunks]) for i in (0, 1))
-        got = observed_period(xy, t, p)
+        if time_s >= self._next_s and self._count >= p.min_samples:
+            self._measure(declared_s)
+            self._next_s = time_s + (p.interval_s if self.observed_s is not None else p.interval_s / 10)
+
+    def _measure(self, declared_s: float) -> None:
+        if self._count:
+            xy, t = (np.concatenate([c[i] for c in self._chunks]) for i in (0, 1))
+            g = np.sort(gaps(xy, t, self.params))
+            got = observed_period(g, self.params)
+        else:
+            got = None
         if got is not None:
             self.observed_s = got[0]
-        self._next_s = time_s + (p.interval_s if self.observed_s is not None else p.interval_s / 10)
+            use = got[0] if contradicted(g, got, declared_s, self.params) else None
+            if use is not None and (
+                self._use is None or abs(use - self._use) > self.params.tolerance * self._use
+            ):
+                log.warning(
+                    "radar %s: its plots show a revisit period of %.2f s, its site declares %.2f s: "
+                    "tracking with %.2f s (tracking.revisit)",
+                    self.name,
+                    use,
+                    declared_s,
+                    use,
+                )
+            self._use = use
+        elif self._declared != declared_s:
+            self._use = None  # (a new declaration, nothing to judge it by)
+        self._declared = declared_s
 
     def period(self, declared_s: float) -> float:
-        """The period the tracker uses: the declared one, unless the observed one differs from
-        it by more than ``tolerance``."""
-        seen = self.observed_s
-        if seen is None or abs(seen - declared_s) <= self.params.tolerance * declared_s:
-            return declared_s
-        told = self._told
-        if told is None or abs(seen - told) > self.params.tolerance * told:  # (once per change)
-            self._told = seen
-            log.warning(
-                "radar %s: its plots show a revisit period of %.2f s, its site declares %.2f s: "
-                "tracking with %.2f s (tracking.revisit)",
-                self.name,
-                seen,
-                declared_s,
-                seen,
-            )
-        return seen
+        """The period the tracker uses: the declared one, unless the plots contradict it
+        (:func:`contradicted`); a new declaration is judged at once."""
+        if self.params.enabled and declared_s != self._declared and self._declared is not None:
+            self._measure(declared_s)
+        return self._use if self._use is not None else declared_s
 
     def clear(self) -> None:
         """The radar's plots of before go (it expired); the measured period stays."""

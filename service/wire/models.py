@@ -525,7 +525,7 @@ class RadarStatus(OutModel):
     scan_period_observed_s: float | None = Field(
         default=None,
         description="the revisit period (s) the radar's plots show (null: not measured yet); "
-        "the tracker counts in it where it departs from the site's scan_period_s by over a quarter",
+        "the tracker counts in it where it contradicts the site's scan_period_s",
     )
 
 
