@@ -300,17 +300,43 @@ def test_a_site_declaring_the_wrong_scan_period_does_not_cost_the_radar_its_trac
     assert status["B"]["scan_period_observed_s"] == pytest.approx(4.0, rel=0.02)
 
 
+def _without(*rules: str) -> EngineConfig:
+    """The default configuration with the tracker's ``rules`` (``revisit``, ``noise``) off."""
+    tracking = EngineConfig().tracking
+    off = {rule: replace(getattr(tracking, rule), enabled=False) for rule in rules}
+    return replace(EngineConfig(), tracking=replace(tracking, **off))
+
+
 def test_an_honest_site_keeps_the_tracker_exactly_as_it_was() -> None:
-    """The observed period within a quarter of the declared one: every output is the one of a
-    tracker that never measures it; and with the measurement off, a wrong period still costs
-    the radar its tracks (what the rule is for)."""
+    """The observed period and the innovations agree with the site: every output is the one of
+    a tracker that never measures them; and with the measurements off, a wrong period or
+    sigmas still cost the radar its tracks (what the rules are for)."""
     honest = scenario_messages("three-radar", duration_s=90.0)
-    config = EngineConfig()
-    off = replace(
-        config, tracking=replace(config.tracking, revisit=replace(config.tracking.revisit, enabled=False))
-    )
     _, out = run_engine(honest)
-    _, out_off = run_engine(honest, off)
+    _, out_off = run_engine(honest, _without("revisit", "noise"))
     assert [(o.key, o.payload) for o in out] == [(o.key, o.payload) for o in out_off]
-    blind, _ = run_engine(_declaring(honest, "B", 1.0, None), off)
+    blind, _ = run_engine(_declaring(honest, "B", 1.0, None), _without("revisit"))
     assert _confirmed(blind)[0].get("B", 0) == 0
+
+
+@pytest.mark.parametrize("share", [1 / 2, 1 / 3])
+def test_a_site_declaring_sigmas_too_small_does_not_cost_the_radar_its_tracks(share: float) -> None:
+    """Radar B's site declares its range, azimuth and elevation sigmas at ``share`` of the
+    truth: the filter trusted its plots too much and its gate refused the next ones (a third:
+    B kept half its tracks).  The innovations show it, the sigmas grow, B's tracks and pairs
+    are within a few of the honest run's."""
+    honest = scenario_messages("three-radar", duration_s=120.0)
+    key = "fusion/radar/B/site"
+    site = json.loads(next(p for k, p in honest if k == key))
+    site.update({f: site[f] * share for f in ("range_sigma_m", "azimuth_sigma_deg", "elevation_sigma_deg")})
+    wrong = [(k, json.dumps(site).encode() if k == key else p) for k, p in honest]
+    clean, _ = run_engine(honest)
+    engine, out = run_engine(wrong)
+    blind, _ = run_engine(wrong, _without("noise"))
+    assert errors(out) == []
+    (tracks, pairs), (clean_tracks, clean_pairs) = _confirmed(engine), _confirmed(clean)
+    assert tracks["B"] >= 0.95 * clean_tracks["B"] > 50
+    assert set(pairs) == set(clean_pairs) and all(pairs[k] >= 0.9 * clean_pairs[k] for k in pairs)
+    status = {r["radar_id"]: r for r in engine.snapshot().status_core()["radars"]}
+    assert status["B"]["measurement_sigma_scale"] > 1.5 and status["A"]["measurement_sigma_scale"] == 1.0
+    assert _confirmed(blind)[0]["B"] < tracks["B"]

@@ -216,3 +216,7 @@ class TruthLabelledTracker(Tracker):
     @property
     def scan_period_observed_s(self) -> float | None:
         return self.inner.scan_period_observed_s
+
+    @property
+    def measurement_sigma_scale(self) -> float:
+        return self.inner.measurement_sigma_scale

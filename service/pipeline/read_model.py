@@ -473,6 +473,7 @@ def build_snapshot(
             restarts=clock.restarts if clock else 0,
             window_evicted=tracking.window_evicted(rid),
             scan_period_observed_s=tracking.scan_period_observed(rid),
+            measurement_sigma_scale=tracking.sigma_scale(rid),
             expired=clock.expired if clock else False,
         )
         rows.append(RadarRow(r.site, status))

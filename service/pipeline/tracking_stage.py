@@ -168,3 +168,7 @@ class TrackingStage:
     def scan_period_observed(self, radar_id: str) -> float | None:
         tracker = self.tracked[radar_id].tracker
         return tracker.scan_period_observed_s if tracker is not None else None
+
+    def sigma_scale(self, radar_id: str) -> float:
+        tracker = self.tracked[radar_id].tracker
+        return tracker.measurement_sigma_scale if tracker is not None else 1.0

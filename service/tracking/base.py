@@ -180,6 +180,11 @@ class Tracker(ABC):
         return 0
 
     @property
+    def measurement_sigma_scale(self) -> float:
+        """What the tracker multiplies the site's sigmas by (1: the site's own)."""
+        return 1.0
+
+    @property
     def scan_period_observed_s(self) -> float | None:
         """The revisit period the radar's plots show (None: not measured, or not by this
         tracker); the tracker counts in it where it departs from the site's."""

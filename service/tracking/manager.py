@@ -50,6 +50,7 @@ from service.tracking.groups import fit_groups
 from service.tracking.identity import TrackCodes
 from service.tracking.initiators import get_initiator
 from service.tracking.measurement import Measurements, plots_to_measurements
+from service.tracking.noise import NoiseMeter
 from service.tracking.pairs import cell_counts
 from service.tracking.params import TrackerParams
 from service.tracking.revisit import RevisitMeter
@@ -269,6 +270,8 @@ class TrackManager(Tracker):
         self.identity = TrackCodes()
         #: The revisit period the plots show, against the site's (:mod:`.revisit`).
         self.revisit = RevisitMeter(self.params.revisit, id_prefix)
+        #: The measurement errors the innovations show, against the site's (:mod:`.noise`).
+        self.noise = NoiseMeter(self.params.noise, id_prefix)
 
     @property
     def scan_period_s(self) -> float:
@@ -281,6 +284,7 @@ class TrackManager(Tracker):
         self._tracks = _Tracks.empty(self._models.count)
         self._window.clear()
         self.revisit.clear()
+        self.noise.clear()
         self.joined = []
         self.identity.keep(self._tracks.uid)
 
@@ -296,6 +300,10 @@ class TrackManager(Tracker):
     @property
     def scan_period_observed_s(self) -> float | None:
         return self.revisit.observed_s
+
+    @property
+    def measurement_sigma_scale(self) -> float:
+        return self.noise.scale
 
     @property
     def uids(self) -> NDArray[np.int64]:
@@ -314,7 +322,7 @@ class TrackManager(Tracker):
         plots (made when their batch arrives).  When the engine has replaced the site since,
         both are made anew here, so results are those of converting everything every time."""
         fp = self.params.filter
-        site = self.site
+        site = self.noise.site(self.site)  # (the site's sigmas, grown if the innovations say so)
         scan_s = self.scan_period_s
         joined: Joined = []
         tracks = self._tracks
@@ -332,6 +340,7 @@ class TrackManager(Tracker):
             used = np.zeros(len(meas), dtype=bool)
             hit = np.zeros(len(tracks), dtype=bool)
             twins = np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+            nis = np.empty(0)
             formations_s = self._formations_s
             fm = self.params.formation
             if self._formation_models is not None and (
@@ -342,6 +351,7 @@ class TrackManager(Tracker):
             if len(tracks) and len(meas):
                 rows, cols, d2, xp, pp, cw = self._gate(tracks, meas)
                 chosen = assign(rows, cols, d2, fp.gate_chi2)
+                nis = d2[chosen]
                 r, c = rows[chosen], cols[chosen]
                 clear = clarity(rows, cols, d2, chosen)
                 tracks = replace(tracks, quality=self._quality(tracks.quality, r, clear))
@@ -387,6 +397,7 @@ class TrackManager(Tracker):
         self.identity.add(joined)
         self.identity.keep(tracks.uid)
         self.revisit.add(meas.enu_m[:, :2], meas.time_s, float(time_s), self.site.scan_period_s)
+        self.noise.add(nis, float(time_s))
 
     def tracks(self) -> TrackTable:
         """The live tracks in ECEF.  Covariances and ids come from the per-track caches (made
@@ -645,7 +656,7 @@ class TrackManager(Tracker):
         p = self.params
         wm = window.measurements
         if wm is None:  # the window's plots all came with theirs (``update``); kept for safety
-            wm = plots_to_measurements(self.site, wplots, p.measurement)
+            wm = plots_to_measurements(self.noise.site(self.site), wplots, p.measurement)
         groups = self._initiate(wm, p, scan_s)
         if groups.count == 0:
             return tracks, next_uid

@@ -527,6 +527,11 @@ class RadarStatus(OutModel):
         description="the revisit period (s) the radar's plots show (null: not measured yet); "
         "the tracker counts in it where it contradicts the site's scan_period_s",
     )
+    measurement_sigma_scale: float = Field(
+        default=1.0,
+        description="what the tracker multiplies the site's sigmas by: above 1 where the tracks' "
+        "innovations show the radar's errors larger than declared",
+    )
 
 
 class CorrelationTimings(OutModel):
