@@ -138,6 +138,17 @@ def test_no_usable_channel_is_a_clear_error(tmp_path: Path) -> None:
         select_channels(reader.survey(), "other", KeyFilter(None), include_outputs=False)
 
 
+def _mid_record(data: bytes, near: int) -> int:
+    """A byte in the middle of the body of the record (opcode, 8-byte length, body) that holds
+    byte ``near``: a cut there ends the file mid-record, wherever the records fall."""
+    at = 8  # (the leading magic)
+    while True:
+        end = at + 9 + int.from_bytes(data[at + 1 : at + 9], "little")
+        if end > near:
+            return at + 9 + (end - at - 9) // 2
+        at = end
+
+
 def test_a_truncated_recording_replays_what_it_holds_and_says_where(tmp_path: Path) -> None:
     path = tmp_path / "rec.mcap"
     sent = _write_demo(path, n=400, chunk_bytes=4096)  # many small chunks
@@ -147,7 +158,8 @@ def test_a_truncated_recording_replays_what_it_holds_and_says_where(tmp_path: Pa
     # where the summary starts; the schemas it repeats can be half the file), mid-chunk, no
     # summary, no footer
     summary_start = int.from_bytes(data[-37 + 9 : -37 + 17], "little")
-    cut.write_bytes(data[: summary_start // 2 + 7])
+    at = _mid_record(data, summary_start // 2)
+    cut.write_bytes(data[:at])
     got: list[str] = []
     with RecordingReader(cut, PREFIX) as reader:
         assert not reader.survey().indexed
@@ -156,10 +168,7 @@ def test_a_truncated_recording_replays_what_it_holds_and_says_where(tmp_path: Pa
     assert 0 < len(got) < len(inputs)
     assert got == [k for k, _, _ in inputs[: len(got)]]  # a prefix of the recording, in order
     assert report.damage is not None
-    assert (
-        f"of {summary_start // 2 + 7}" in report.damage
-        and "truncated record starting at byte" in report.damage
-    )
+    assert f"of {at}" in report.damage and "truncated record starting at byte" in report.damage
     assert any("WARNING" in line and "replayed what it holds" in line for line in report.lines())
 
 
