@@ -11,6 +11,7 @@ import json
 from dataclasses import replace
 from typing import Any
 
+import numpy as np
 import pytest
 
 from service.engine import Engine, EngineConfig
@@ -280,7 +281,7 @@ def _confirmed(engine: Engine) -> tuple[dict[str, int], dict[tuple[str, str], in
     return tracks, {(p["radar_a"], p["radar_b"]): len(p["pairs"]) for p in snap.pair_sets(status="confirmed")}
 
 
-@pytest.mark.parametrize(("period_s", "after"), [(1.0, None), (1.0, 30), (2.0, None), (16.0, 30)])
+@pytest.mark.parametrize(("period_s", "after"), [(1.0, None), (1.0, 30), (2.0, None), (6.0, 30)])
 def test_a_site_declaring_the_wrong_scan_period_does_not_cost_the_radar_its_tracks(
     period_s: float, after: int | None
 ) -> None:
@@ -340,3 +341,43 @@ def test_a_site_declaring_sigmas_too_small_does_not_cost_the_radar_its_tracks(sh
     status = {r["radar_id"]: r for r in engine.snapshot().status_core()["radars"]}
     assert status["B"]["measurement_sigma_scale"] > 1.5 and status["A"]["measurement_sigma_scale"] == 1.0
     assert _confirmed(blind)[0]["B"] < tracks["B"]
+
+
+def test_heavy_clutter_does_not_set_the_site_checks_off() -> None:
+    """Radar B's batches each carry 400 clutter plots spread over its sector (3 200 a scan):
+    the gaps between plots show no period (the declared one stands) and the clutter its gates
+    take raises the innovations, but growing the sigmas does not bring them down, so the
+    growth is undone and held: B's confirmed tracks stay near those of a tracker without
+    either check (grown on, the sigmas reached ten times and B confirmed 3 500 tracks against
+    270), and the pairs with B stand."""
+    honest = scenario_messages("three-radar", duration_s=120.0)
+    rng = np.random.default_rng(7)
+    cluttered = []
+    for key, payload in honest:
+        if key == "fusion/radar/B/plots":
+            body = json.loads(payload)
+            plots, n = body["plots"], 400
+            t0, az = min(plots["time_s"], default=body["time_s"] - 0.5), plots["azimuth_deg"]
+            extra = {
+                "time_s": rng.uniform(t0, body["time_s"], n),
+                "range_m": rng.uniform(5e3, 250e3, n),
+                "azimuth_deg": rng.uniform(min(az, default=0.0), max(az, default=45.0), n),
+                "altitude_m": rng.uniform(1e3, 12e3, n),
+                "elevation_deg": rng.uniform(0.0, 5.0, n),
+            }
+            for column, values in plots.items():
+                plots[column] = values + (list(extra[column]) if column in extra else [None] * n)
+            payload = json.dumps(body).encode()
+        cluttered.append((key, payload))
+    engine, out = run_engine(cluttered)
+    blind, _ = run_engine(cluttered, _without("revisit", "noise"))
+    assert errors(out) == []
+    status = {r["radar_id"]: r for r in engine.snapshot().status_core()["radars"]}
+    assert status["B"]["measurement_sigma_scale"] == 1.0
+    assert (
+        status["B"]["scan_period_observed_s"] is None
+        or abs(status["B"]["scan_period_observed_s"] - 4.0) < 0.2
+    )
+    (tracks, pairs), (blind_tracks, blind_pairs) = _confirmed(engine), _confirmed(blind)
+    assert tracks["B"] <= 1.3 * blind_tracks["B"]
+    assert set(pairs) == set(blind_pairs) and all(pairs[k] >= 0.9 * blind_pairs[k] for k in pairs)

@@ -351,9 +351,9 @@ class TrackManager(Tracker):
             if len(tracks) and len(meas):
                 rows, cols, d2, xp, pp, cw = self._gate(tracks, meas)
                 chosen = assign(rows, cols, d2, fp.gate_chi2)
-                nis = d2[chosen]
                 r, c = rows[chosen], cols[chosen]
                 clear = clarity(rows, cols, d2, chosen)
+                nis = d2[chosen][clear >= 1.0]  # (unambiguous ones: clutter in a gate would inflate it)
                 tracks = replace(tracks, quality=self._quality(tracks.quality, r, clear))
                 if self.params.formation.merge_duplicates:
                     a, b = shared_plot_pairs(rows, cols)

@@ -12,14 +12,19 @@ An association's normalised innovation squared (NIS, the ``d^2`` the gate takes,
 degrees of freedom) is chi-square distributed when the declared errors are the radar's:
 median 2.37.  With sigmas declared too small it grows (median 6.7 at a half, 8.5 at a third);
 honest radars stay between 1.9 and 3.2 in every lab scenario, formations included.  Every
-``interval_s`` of data time the median NIS of the radar's last ``max_samples`` associations
-is read: above ``high_median`` every sigma the tracker uses grows by the square root of its
+``interval_s`` of data time the median NIS of the radar's last ``max_samples`` unambiguous
+associations (no other plot in the track's gate, no other track's gate holding the plot) is
+read: above ``high_median`` every sigma the tracker uses grows by the square root of its
 ratio to 2.37 (at most twice a step, at most ``max_scale`` in all), below ``low_median`` a
 grown scale shrinks back the same way (never below the site's sigmas); after a change the
-samples start again, so each step is judged on innovations of the new scale.  The scale is
-logged once per change and shown in ``/status`` (``measurement_sigma_scale``).  It only ever
-grows the sigmas: sigmas declared too large cost little (ten times the truth kept every
-track), and an honest site's tracker is exactly what it was.
+samples start again, so each step is judged on innovations of the new scale.  A growth that
+does not bring the next reading's median below ``min_drop`` of the one that called for it
+shows the sigmas are not what is wrong (clutter plots taken by the gates: growing them would
+take more, three thousand false tracks instead of two hundred with 400 clutter plots a batch):
+the scale goes back and is held there.  The scale is logged once per change and shown in
+``/status`` (``measurement_sigma_scale``).  It only ever grows the sigmas: sigmas declared too
+large cost little (ten times the truth kept every track), and an honest site's tracker is
+exactly what it was.
 """
 
 from __future__ import annotations
@@ -64,6 +69,11 @@ class NoiseMeter:
         self._count = 0
         self._next_s = -np.inf
         self._scaled: tuple[Site, float, Site] | None = None
+        #: The last growth: the scale before it and the median NIS that called for it.
+        self._grown: tuple[float, float] | None = None
+        #: A growth that did not bring the innovations down: the sigmas are not what is wrong
+        #: (clutter in the gates), the scale went back and stays.
+        self.held = False
 
     def add(self, nis: NDArray[np.float64], time_s: float) -> None:
         """The NIS of a batch's associations at data time ``time_s``."""
@@ -81,20 +91,33 @@ class NoiseMeter:
             self._next_s = time_s + p.interval_s / 10
             return
         self._next_s = time_s + p.interval_s
+        if self.held:
+            return
         median = float(np.median(np.concatenate(self._nis)))
+        grown, self._grown = self._grown, None
+        if grown is not None and median > p.min_drop * grown[1]:
+            self.held = True
+            self._change(grown[0], median, "did not bring them down: back, and held")
+            return
         scale = next_scale(self.scale, median, p)
+        if scale > self.scale:
+            self._grown = (self.scale, median)
         if scale != self.scale:
-            log.warning(
-                "radar %s: its tracks' innovations (median NIS %.1f, consistent: %.1f) call for its "
-                "site's sigmas times %.2f (were times %.2f) (tracking.noise)",
-                self.name,
-                median,
-                NIS_MEDIAN,
-                scale,
-                self.scale,
-            )
-            self.scale = scale
-            self.clear()
+            self._change(scale, median, "call for it")
+
+    def _change(self, scale: float, median: float, why: str) -> None:
+        log.warning(
+            "radar %s: its tracks' innovations (median NIS %.1f, consistent: %.1f) %s: the site's "
+            "sigmas times %.2f (were times %.2f) (tracking.noise)",
+            self.name,
+            median,
+            NIS_MEDIAN,
+            why,
+            scale,
+            self.scale,
+        )
+        self.scale = scale
+        self.clear()
 
     def site(self, declared: Site) -> Site:
         """``declared`` with its sigmas times the scale (the same object at scale 1)."""

@@ -461,6 +461,9 @@ class RevisitParams:
     far less, and neighbouring multiples are 50 % apart)."""
     min_samples: int = 30
     """Least number of gaps at the period for a measurement to count."""
+    prominence: float = 3.0
+    """The gaps at the period must be this many times those half a period beyond it (where an
+    aircraft leaves none): evenly spread gaps (clutter) show no period."""
     min_share: float = 0.25
     """A longer period than the declared one contradicts it only while the gaps at the declared
     period are fewer than this share of those at the observed one (:func:`.revisit.contradicted`)."""
@@ -489,6 +492,9 @@ class NoiseParams:
     """Below this median NIS a grown scale shrinks back (never below the site's sigmas)."""
     max_scale: float = 10.0
     """The most the sigmas are multiplied by."""
+    min_drop: float = 0.85
+    """A growth must bring the next reading's median NIS below this share of the one that
+    called for it, else it is undone and the scale held (:mod:`.noise`: clutter)."""
 
 
 @dataclass(frozen=True)

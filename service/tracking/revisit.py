@@ -17,15 +17,16 @@ It is measured on a data-time schedule, every ``interval_s`` (a tenth of it unti
 from the radar's last ``max_plots`` plots, so it costs one KD-tree of at most that many points
 a radar per ``interval_s``, and nothing per plot but keeping its position and time.
 
-The declared period stands unless the gaps contradict it (:func:`contradicted`: a period
-shorter than the declared one by more than ``tolerance``, or a longer one with hardly any gap
-at the declared period); then the observed one is used and logged once per change.  Either
-way ``/status`` shows it (``scan_period_observed_s``).  A declared period too long is always
-corrected (no crowd of gaps forms below the true period); one too short, which deletes every
-track before its next look, is corrected when hardly any gap lies at it (a radar really
-turning that fast leaves them there).  A measurement with fewer than ``min_samples`` gaps at
-the period (quiet sky, a radar too slow for aircraft to stay within ``radius_m`` between
-looks) changes nothing.
+The declared period stands unless the gaps contradict it (:func:`contradicted`): the observed
+period is off by more than ``tolerance`` and hardly any gap lies at the declared one, which a
+radar really turning at that period always leaves.  Then the observed period is used and
+logged once per change; either way ``/status`` shows it (``scan_period_observed_s``).  A
+period is judged only from plots spanning two declared periods (a radar with more plots per
+scan than ``max_plots`` is not judged), must stand out from the gaps around it
+(``prominence``: clutter spreads them evenly), and needs ``min_samples`` gaps.  So a period
+declared too short, which deletes every track before its next look, is corrected, as is one
+too long by a fraction; one too long by a whole factor stands (its gaps are real too), as do
+a formation's and a cluttered radar's honest ones.
 """
 
 from __future__ import annotations
@@ -75,7 +76,10 @@ def observed_period(g: FloatArray, p: RevisitParams) -> tuple[float, int] | None
     same azimuth, so their gaps are whole periods: they crowd at the period and its multiples
     (a missed look, an older look still near), while other aircraft's spread out.  The period
     is the densest span of ``peak_width`` of them; a span at half of it holding at least half
-    as many gaps is the period instead (an aircraft seen every other look), and so on."""
+    as many gaps is the period instead (an aircraft seen every other look), and so on.  It
+    must stand out: ``prominence`` times as many gaps as half a period beyond it, which the
+    gaps must reach (else None: clutter spreads gaps evenly, and a radar whose last
+    ``max_plots`` plots span less than that cannot be judged)."""
     if g.shape[0] < p.min_samples:
         return None
     period, count = densest(g, p.peak_width)
@@ -85,6 +89,11 @@ def observed_period(g: FloatArray, p: RevisitParams) -> tuple[float, int] | None
             break
         lo, hi = _span(g, period / 2, p.peak_width)
         period, count = float(np.median(g[lo:hi])), half
+    # A period is a crowd, not the densest stretch of gaps spread evenly (clutter, or plots
+    # too many for the kept ones to span a period): half a period beyond it, gaps are few.
+    beyond = 1.5 * period
+    if g[-1] < beyond * (1 + p.peak_width / 2) or p.prominence * support(g, beyond, p.peak_width) > count:
+        return None
     return (period, count) if count >= p.min_samples else None
 
 
@@ -101,15 +110,15 @@ def support(g: FloatArray, x: float, width: float) -> int:
 
 def contradicted(g: FloatArray, observed: tuple[float, int], declared_s: float, p: RevisitParams) -> bool:
     """Whether the gaps ``g`` (sorted) contradict the declared period, ``observed`` being the
-    period they show and its count.  Gaps are whole periods, so a crowd at a period shorter
-    than the declared one means a shorter period; a longer one can be a multiple of the
-    declared one (a formation whose neighbour sits where it was two looks ago fills a plot's
-    nearest neighbours), so it contradicts only when hardly any gap is at the declared
-    period (``min_share`` of the observed one's)."""
+    period they show and its count: it is off by more than ``tolerance`` and hardly any gap
+    lies at the declared period (fewer than ``min_share`` of the observed one's).  A declared
+    period the radar really has always leaves its gaps, whatever crowds elsewhere (a
+    formation's neighbour where an aircraft was two looks ago, clutter of one sector batch),
+    so it stands; so does a whole multiple of the true period (its gaps are real too)."""
     period, count = observed
     if abs(period - declared_s) <= p.tolerance * declared_s:
         return False
-    return period < declared_s or support(g, declared_s, p.peak_width) < p.min_share * count
+    return support(g, declared_s, p.peak_width) < p.min_share * count
 
 
 class RevisitMeter:
@@ -139,16 +148,16 @@ class RevisitMeter:
             while self._count - self._chunks[0][1].shape[0] >= p.max_plots:
                 self._count -= self._chunks.popleft()[1].shape[0]
         if time_s >= self._next_s and self._count >= p.min_samples:
-            self._measure(declared_s)
+            self._measure(declared_s)  # (judges nothing unless the plots span two declared periods)
             self._next_s = time_s + (p.interval_s if self.observed_s is not None else p.interval_s / 10)
 
     def _measure(self, declared_s: float) -> None:
+        got = None
         if self._count:
             xy, t = (np.concatenate([c[i] for c in self._chunks]) for i in (0, 1))
-            g = np.sort(gaps(xy, t, self.params))
-            got = observed_period(g, self.params)
-        else:
-            got = None
+            if float(t.max() - t.min()) >= 2.0 * declared_s:  # else its gaps could not show
+                g = np.sort(gaps(xy, t, self.params))
+                got = observed_period(g, self.params)
         if got is not None:
             self.observed_s = got[0]
             use = got[0] if contradicted(g, got, declared_s, self.params) else None

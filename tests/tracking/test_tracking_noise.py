@@ -66,3 +66,15 @@ def test_off_or_too_few_associations_change_nothing() -> None:
     for t in range(0, 300, 10):
         few.add(rng.chisquare(3, 3) * 25.0, float(t))  # 30 associations in all
     assert few.scale == 1.0
+
+
+def test_innovations_a_growth_does_not_bring_down_undo_it_and_hold() -> None:
+    """Clutter in the gates: the NIS stays high whatever the sigmas (here it does not depend on
+    the scale at all).  One growth, then the next reading shows it did nothing: back to the
+    site's sigmas, and held there."""
+    meter, rng = NoiseMeter(P), np.random.default_rng(4)
+    t = 0.0
+    while t < 600.0:
+        meter.add(rng.chisquare(3, 20) * 4.0, t)
+        t += 1.0
+    assert meter.held and meter.scale == 1.0

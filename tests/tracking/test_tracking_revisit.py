@@ -20,7 +20,8 @@ def reference_period(xy: np.ndarray, t: np.ndarray, p: RevisitParams) -> tuple[f
     """The same measurement plot by plot and gap by gap: the gaps to the ``neighbours + 1``
     plots nearest in space (itself included) within ``radius_m`` and at least ``min_dt_s``
     earlier; the span of ``peak_width`` holding most of them; a span at half of it holding at
-    least half as many instead."""
+    least half as many instead; none unless it holds ``prominence`` times the gaps half a period
+    beyond it, which the gaps reach."""
     found = []
     for i in range(len(t)):
         d = np.hypot(*(xy - xy[i]).T)
@@ -42,6 +43,11 @@ def reference_period(xy: np.ndarray, t: np.ndarray, p: RevisitParams) -> tuple[f
         if len(half) < max(count / 2, p.min_samples):
             break
         period, count = float(np.median(half)), len(half)
+    beyond = [
+        x for x in g if 1.5 * period / (1 + p.peak_width / 2) <= x < 1.5 * period * (1 + p.peak_width / 2)
+    ]
+    if g[-1] < 1.5 * period * (1 + p.peak_width / 2) or p.prominence * len(beyond) > count:
+        return None
     return (period, count) if count >= p.min_samples else None
 
 
@@ -127,10 +133,11 @@ def test_the_meter_keeps_the_declared_period_unless_the_plots_contradict_it() ->
     assert meter.period(1.0) == meter.observed_s  # too short: every track would die
     assert meter.period(4.5) == 4.5  # within a quarter: the site's stands
     assert meter.period(2.0) == meter.observed_s  # no gap at 2 s
+    assert meter.period(12.0) == 12.0  # a whole multiple: its gaps are real, it stands
     assert meter.period(6.0) == meter.observed_s  # longer, but no gap at 6 s
-    assert meter.period(12.0) == meter.observed_s  # too long: a crowd at 4 s says 4 s
     meter.clear()  # (the radar expired) its plots go, the decision for the declared one stays
-    assert meter.period(12.0) == meter.observed_s
+    assert meter.period(6.0) == meter.observed_s
+    assert meter.period(3.0) == 3.0  # a new declaration, and no plots to judge it by
     off = RevisitMeter(RevisitParams(enabled=False))
     off.add(xy, t, float(t[-1]), 1.0)
     assert off.observed_s is None and off.period(1.0) == 1.0
