@@ -21,10 +21,11 @@ samples start again, so each step is judged on innovations of the new scale.  A 
 does not bring the next reading's median below ``min_drop`` of the one that called for it
 shows the sigmas are not what is wrong (clutter plots taken by the gates: growing them would
 take more, three thousand false tracks instead of two hundred with 400 clutter plots a batch):
-the scale goes back and is held there.  The scale is logged once per change and shown in
-``/status`` (``measurement_sigma_scale``).  It only ever grows the sigmas: sigmas declared too
-large cost little (ten times the truth kept every track), and an honest site's tracker is
-exactly what it was.
+the scale goes back and is held there (until the service restarts: like the tracks, the
+scale is not kept across a restart, and is read again).  The scale is logged once per change
+and shown in ``/status`` (``measurement_sigma_scale``).  It only ever grows the sigmas: sigmas
+declared too large cost little (ten times the truth kept every track), and an honest site's
+tracker is exactly what it was.
 """
 
 from __future__ import annotations
