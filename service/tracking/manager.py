@@ -380,7 +380,7 @@ class TrackManager(Tracker):
             initiated_s = self._initiated_s
             next_uid = self._next_uid
             if time_s - initiated_s >= self.params.manager.initiation_interval_scans * scan_s:
-                tracks, next_uid = self._initiate_from_window(tracks, window, joined, big, scan_s)
+                tracks, next_uid = self._initiate_from_window(tracks, window, joined, big, site, scan_s)
                 initiated_s = float(time_s)
         except BaseException:
             if saved is not None:  # back into the very arrays written
@@ -644,11 +644,12 @@ class TrackManager(Tracker):
 
     # -- initiation -------------------------------------------------------------------
     def _initiate_from_window(
-        self, tracks: _Tracks, window: PlotWindow, joined: Joined, big: FloatArray, scan_s: float
+        self, tracks: _Tracks, window: PlotWindow, joined: Joined, big: FloatArray, site: Site, scan_s: float
     ) -> tuple[_Tracks, int]:
         """New tentative tracks from ``window`` (whose used plots it removes), their plots
         appended to ``joined``; returns the tracks and the next free uid.  ``big``: the map of
-        a covariance to ECEF (:func:`_ecef_block`)."""
+        a covariance to ECEF (:func:`_ecef_block`); ``site`` and ``scan_s``: the site (sigmas)
+        and scan period the update measures with."""
         next_uid = self._next_uid
         wplots = window.plots
         if len(wplots) < 3:
@@ -656,7 +657,7 @@ class TrackManager(Tracker):
         p = self.params
         wm = window.measurements
         if wm is None:  # the window's plots all came with theirs (``update``); kept for safety
-            wm = plots_to_measurements(self.noise.site(self.site), wplots, p.measurement)
+            wm = plots_to_measurements(site, wplots, p.measurement)
         groups = self._initiate(wm, p, scan_s)
         if groups.count == 0:
             return tracks, next_uid
