@@ -327,6 +327,9 @@ def _assert_only_the_service(p: browser.Page, svc: RunningService, held: tuple[s
     """Every request the page let out went to the service; those to other hosts (``held``
     only) were blocked by the page's Content-Security-Policy."""
     ours = (svc.base_url + "/", "blob:" + svc.base_url + "/")
+    # (a held request is made while the page renders: under load it may come after the text
+    # the caller waited for, so wait for each to be seen blocked before reading them all)
+    p.wait(lambda: all(any(u == h and why for u, why in p.requests()) for h in held), what=f"{held} seen")
     requests = p.requests()
     assert requests
     assert [(u, why) for u, why in requests if why is None and not u.startswith(ours)] == [], requests
