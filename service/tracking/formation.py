@@ -18,6 +18,10 @@ pointed, and a neighbour's plot falls outside its gate more often.
   go back to the filter's own models (whose manoeuvre model follows the turn) for a while.
   Summing over the members makes the test see a common deviation of a fraction of one plot's
   error: the more members, the sooner a turn shows.
+* :func:`common_velocity`, :func:`velocity_update`: a formation flies one velocity, so each
+  member's velocity is measured by the mean of the others' (docs/architecture.md, "Tracks in
+  formations"): their noise averages out over the members, where each track's own estimate
+  carries its plots' noise alone.
 """
 
 from __future__ import annotations
@@ -88,3 +92,58 @@ def manoeuvring(label: IntArray, y: FloatArray, S: FloatArray, chi2: float, memb
     q, ok = mahalanobis3(total, cov)
     big = np.bincount(inv, minlength=groups.shape[0]) >= members
     return np.asarray(groups[big & ok & (q > chi2)], dtype=np.intp)
+
+
+def common_velocity(
+    label: IntArray, velocity: FloatArray, variance: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Each track's formation velocity without it: the mean of the other members' horizontal
+    ``velocity`` ``(n, 2)`` with the same ``label``, weighted by ``1 / variance`` ``(n,)``, and
+    that mean's variance per axis, ``1 / sum`` of their weights; NaN for a track alone.
+    Without the track's own, so that its velocity is not measured by itself."""
+    labels, inv = np.unique(label, return_inverse=True)
+    w = 1.0 / variance
+    total_w = np.bincount(inv, weights=w, minlength=labels.shape[0])
+    total_v = np.stack(
+        [np.bincount(inv, weights=w * velocity[:, a], minlength=labels.shape[0]) for a in (0, 1)], 1
+    )
+    rest_w = total_w[inv] - w
+    alone = ~(rest_w > 0.0)
+    safe = np.where(alone, 1.0, rest_w)
+    mean = (total_v[inv] - w[:, None] * velocity) / safe[:, None]
+    mean[alone] = np.nan
+    return mean, np.where(alone, np.nan, 1.0 / safe)
+
+
+def _velocity_innovation(
+    x: FloatArray, P: FloatArray, v: FloatArray, r: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Innovation ``y = v - H x`` of a measurement ``v`` ``(k, 2)`` of the horizontal velocity
+    (``H`` picks east and north velocity) and the inverse of its covariance
+    ``S = H P H^T + r I`` (closed form)."""
+    s = P[:, 3:5, 3:5] + r[:, None, None] * np.eye(2)
+    det = s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] * s[:, 1, 0]
+    inv = np.stack([np.stack([s[:, 1, 1], -s[:, 0, 1]], 1), np.stack([-s[:, 1, 0], s[:, 0, 0]], 1)], 1)
+    return v - x[:, 3:5], inv / det[:, None, None]
+
+
+def velocity_gate(x: FloatArray, P: FloatArray, v: FloatArray, r: FloatArray) -> FloatArray:
+    """``y^T S^-1 y`` of the measurement of :func:`velocity_update` (NaN where not finite)."""
+    y, s_inv = _velocity_innovation(x, P, v, r)
+    return np.asarray(np.einsum("ki,kij,kj->k", y, s_inv, y))
+
+
+def velocity_update(
+    x: FloatArray, P: FloatArray, v: FloatArray, r: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Kalman update (Joseph form; Bar-Shalom, Li, Kirubarajan 2001, Section 5.2.3) of states
+    ``x`` ``(k, 6)``, ``P`` ``(k, 6, 6)`` with a measurement ``v`` ``(k, 2)`` of their
+    horizontal velocity of variance ``r`` ``(k,)`` per axis: ``K = P H^T S^-1``,
+    ``x + K y``, ``(I - K H) P (I - K H)^T + r K K^T``."""
+    y, s_inv = _velocity_innovation(x, P, v, r)
+    K = P[:, :, 3:5] @ s_inv  # (k, 6, 2)
+    x_new = x + np.einsum("kij,kj->ki", K, y)
+    ikh = np.broadcast_to(np.eye(6), P.shape).copy()
+    ikh[:, :, 3:5] -= K
+    p_new = ikh @ P @ np.swapaxes(ikh, -1, -2) + r[:, None, None] * (K @ np.swapaxes(K, -1, -2))
+    return x_new, 0.5 * (p_new + np.swapaxes(p_new, -1, -2))

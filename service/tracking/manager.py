@@ -45,7 +45,13 @@ from service.tracking import imm, kalman
 from service.tracking.assignment import assign, clarity
 from service.tracking.base import PlotColumns, Tracker, TrackTable
 from service.tracking.duplicates import duplicate_losers, shared_plot_pairs
-from service.tracking.formation import formation_groups, manoeuvring
+from service.tracking.formation import (
+    common_velocity,
+    formation_groups,
+    manoeuvring,
+    velocity_gate,
+    velocity_update,
+)
 from service.tracking.groups import fit_groups
 from service.tracking.identity import TrackCodes
 from service.tracking.initiators import get_initiator
@@ -367,7 +373,8 @@ class TrackManager(Tracker):
                     tracks.x[r], tracks.P[r], tracks.t[r] = x_new, p_new, meas.time_s[c]
                     tracks.xm[r], tracks.Pm[r], tracks.mu[r] = xm_new, pm_new, mu_new
                     tracks.nplots[r] += 1
-                    tracks.cov_ecef[r] = big @ p_new @ big.T
+                    self._hold_velocity(tracks, r, float(time_s))
+                    tracks.cov_ecef[r] = big @ tracks.P[r] @ big.T
                     hit[r] = True
                     used[c] = True
                     joined.append((tracks.uid[r], plots.take(c)))
@@ -522,6 +529,36 @@ class TrackManager(Tracker):
         )
 
     # -- formations --------------------------------------------------------------------
+    def _hold_velocity(self, tracks: _Tracks, rows: IntArray, time_s: float) -> None:
+        """The tracks ``rows`` (just updated) that fly in a formation not manoeuvring: their
+        quiet model takes the formation's velocity without them
+        (:func:`.formation.common_velocity`) as a measurement of its own, of that mean's
+        variance plus ``formation_velocity_sigma_mps^2`` per axis, when within
+        ``formation_velocity_chi2`` of it.  The manoeuvre model keeps the track's own, so a
+        member that flies otherwise shows in its plots' likelihoods and the filter follows
+        that model.  Written in place (the caller saved the rows)."""
+        fm = self.params.formation
+        if self._formation_models is None or fm.formation_velocity_sigma_mps <= 0.0:
+            return
+        members = np.flatnonzero((tracks.formation >= 0) & (tracks.free_until < time_s))
+        if members.shape[0] < 2:
+            return
+        # (a member its plots put on the manoeuvre model flies otherwise: it counts little)
+        var = 0.5 * (tracks.P[members, 3, 3] + tracks.P[members, 4, 4]) / tracks.mu[members, 0]
+        mean, mean_var = common_velocity(tracks.formation[members], tracks.x[members, 3:5], var)
+        local = np.full(len(tracks), -1, dtype=np.intp)
+        local[members] = np.arange(members.shape[0])
+        at = local[rows]
+        rows, at = rows[at >= 0], at[at >= 0]
+        v, r = mean[at], mean_var[at] + fm.formation_velocity_sigma_mps**2
+        quiet_x, quiet_p = tracks.xm[rows, 0], tracks.Pm[rows, 0]
+        ok = velocity_gate(quiet_x, quiet_p, v, r) <= fm.formation_velocity_chi2
+        rows, v, r = rows[ok], v[ok], r[ok]
+        if rows.shape[0] == 0:
+            return
+        tracks.xm[rows, 0], tracks.Pm[rows, 0] = velocity_update(quiet_x[ok], quiet_p[ok], v, r)
+        tracks.x[rows], tracks.P[rows] = imm.combine(tracks.mu[rows], tracks.xm[rows], tracks.Pm[rows])
+
     def _formations(self, tracks: _Tracks, time_s: float) -> IntArray:
         """Each track's formation at ``time_s`` (:func:`.formation.formation_groups` on the
         states brought to it; -1 for a track with a state not finite)."""

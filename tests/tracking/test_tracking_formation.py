@@ -18,7 +18,13 @@ from service.tracking import make_tracker
 from service.tracking.assignment import assign, clarity
 from service.tracking.base import PlotColumns
 from service.tracking.duplicates import duplicate_losers, shared_plot_pairs
-from service.tracking.formation import formation_groups, manoeuvring
+from service.tracking.formation import (
+    common_velocity,
+    formation_groups,
+    manoeuvring,
+    velocity_gate,
+    velocity_update,
+)
 from service.tracking.manager import TrackManager
 from service.tracking.params import FormationParams, TrackerParams
 from topofusion_lab.evaluation.initiation_monostatic import SITE
@@ -317,3 +323,92 @@ def test_tracks_in_formation_predict_with_the_formation_quiet_model() -> None:
     assert np.all(vel_var_on[pair] < 0.7 * vel_var_off[pair])
     np.testing.assert_array_equal(a.covariance[~pair], b.covariance[~pair])
     np.testing.assert_array_equal(a.position_ecef_m[~pair], b.position_ecef_m[~pair])
+
+
+# -- the formation's common velocity ------------------------------------------------------------
+def test_common_velocity_against_a_plain_loop() -> None:
+    rng = np.random.default_rng(11)
+    n = 40
+    label = rng.integers(0, 6, n)
+    label[-1] = 99  # alone in its formation
+    vel = rng.normal(size=(n, 2)) * 30.0 + np.array([200.0, -40.0])
+    var = rng.uniform(4.0, 400.0, n)
+    mean, mean_var = common_velocity(label, vel, var)
+    for i in range(n):
+        others = [j for j in range(n) if j != i and label[j] == label[i]]
+        if not others:
+            assert np.all(np.isnan(mean[i])) and np.isnan(mean_var[i])
+            continue
+        w = sum(1.0 / var[j] for j in others)
+        want = sum(vel[j] / var[j] for j in others) / w
+        np.testing.assert_allclose(mean[i], want, rtol=1e-12)
+        assert math.isclose(mean_var[i], 1.0 / w, rel_tol=1e-12)
+
+
+def test_velocity_update_against_the_plain_kalman_form() -> None:
+    rng = np.random.default_rng(12)
+    k = 25
+    a = rng.normal(size=(k, 6, 6))
+    P = a @ np.swapaxes(a, 1, 2) + np.eye(6)
+    x = rng.normal(size=(k, 6)) * 100.0
+    v = rng.normal(size=(k, 2)) * 100.0
+    r = rng.uniform(1.0, 50.0, k)
+    got_x, got_p = velocity_update(x, P, v, r)
+    gate = velocity_gate(x, P, v, r)
+    H = np.zeros((2, 6))
+    H[0, 3] = H[1, 4] = 1.0
+    for i in range(k):
+        R = r[i] * np.eye(2)
+        S = H @ P[i] @ H.T + R
+        K = P[i] @ H.T @ np.linalg.inv(S)
+        y = v[i] - H @ x[i]
+        np.testing.assert_allclose(got_x[i], x[i] + K @ y, rtol=1e-9, atol=1e-9)
+        ikh = np.eye(6) - K @ H
+        np.testing.assert_allclose(got_p[i], ikh @ P[i] @ ikh.T + K @ R @ K.T, rtol=1e-9, atol=1e-9)
+        assert math.isclose(gate[i], float(y @ np.linalg.solve(S, y)), rel_tol=1e-9)
+
+
+def _abreast_apart(m: TrackManager, scans: int, faster: float) -> np.ndarray:
+    """Three aircraft flying outwards abreast 1 km apart (the middle one ``faster`` m/s
+    faster), plots exactly where they are, and the four isolated aircraft around; returns
+    the aircraft's radial speeds."""
+    speed = np.array([150.0, 150.0 + faster, 150.0])
+    for k in range(scans):
+        t = 1_000.0 + k * SCAN_S
+        rg = 60_000.0 + speed * (t - 1_000.0)
+        az = [44.0, 45.0, 46.0, *ANCHORS_DEG]
+        others = [80_000.0 - 100.0 * (t - 1_000.0)] * len(ANCHORS_DEG)
+        m.update(_plots(t, az, [*rg, *others], ["X", "Y", "Z"] + ["A"] * len(ANCHORS_DEG)), t)
+    return speed
+
+
+def _radial_speeds(m: TrackManager) -> np.ndarray:
+    """The confirmed tracks' speeds near azimuth 45 deg, by azimuth."""
+    tab = m.tracks()
+    enu = (tab.position_ecef_m - SITE.origin_ecef) @ SITE.rotation
+    az = np.degrees(np.arctan2(enu[:, 0], enu[:, 1]))
+    near = tab.confirmed & (np.abs(az - 45.0) < 3.0)
+    speed = np.linalg.norm((tab.velocity_ecef_mps @ SITE.rotation)[near, :2], axis=1)
+    return speed[np.argsort(az[near])]
+
+
+_NO_COMMON_VELOCITY = replace(
+    TrackerParams(), formation=replace(FormationParams(), formation_velocity_sigma_mps=0.0)
+)
+
+
+def test_a_member_flying_otherwise_comes_back_to_its_own_velocity() -> None:
+    """Abreast with two others (a formation: within ``formation_speed_mps``), an aircraft
+    flying 40 m/s faster: only the formation's quiet model takes the others' mean, so its
+    plots put its track on the manoeuvre model, which kept its own velocity, and the mean is
+    kept out of its quiet model once its velocity lies beyond the gate.  After 40 scans every
+    track's speed is within 1 m/s of the tracker's without the rule; the other two fly one
+    velocity and are alike either way."""
+    got = {}
+    for on in (True, False):
+        m = make_tracker(SITE, params=None if on else _NO_COMMON_VELOCITY)
+        _abreast_apart(m, 40, 40.0)
+        got[on] = _radial_speeds(m)
+    assert got[True].shape == (3,) and got[False].shape == (3,)
+    assert got[False][1] - got[False][0] > 35.0  # the plots do say 40 m/s faster
+    np.testing.assert_allclose(got[True], got[False], atol=1.0)
