@@ -544,7 +544,8 @@ class TrackManager(Tracker):
         if members.shape[0] < 2:
             return
         # (a member its plots put on the manoeuvre model flies otherwise: it counts little)
-        var = 0.5 * (tracks.P[members, 3, 3] + tracks.P[members, 4, 4]) / tracks.mu[members, 0]
+        quiet = np.maximum(tracks.mu[members, 0], np.finfo(float).tiny)
+        var = 0.5 * (tracks.P[members, 3, 3] + tracks.P[members, 4, 4]) / quiet
         mean, mean_var = common_velocity(tracks.formation[members], tracks.x[members, 3:5], var)
         local = np.full(len(tracks), -1, dtype=np.intp)
         local[members] = np.arange(members.shape[0])
