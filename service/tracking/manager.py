@@ -373,7 +373,7 @@ class TrackManager(Tracker):
                     tracks.x[r], tracks.P[r], tracks.t[r] = x_new, p_new, meas.time_s[c]
                     tracks.xm[r], tracks.Pm[r], tracks.mu[r] = xm_new, pm_new, mu_new
                     tracks.nplots[r] += 1
-                    self._hold_velocity(tracks, r, float(time_s))
+                    self._hold_velocity(tracks, r)
                     tracks.cov_ecef[r] = big @ tracks.P[r] @ big.T
                     hit[r] = True
                     used[c] = True
@@ -529,18 +529,20 @@ class TrackManager(Tracker):
         )
 
     # -- formations --------------------------------------------------------------------
-    def _hold_velocity(self, tracks: _Tracks, rows: IntArray, time_s: float) -> None:
-        """The tracks ``rows`` (just updated) that fly in a formation not manoeuvring: their
-        quiet model takes the formation's velocity without them
-        (:func:`.formation.common_velocity`) as a measurement of its own, of that mean's
-        variance plus ``formation_velocity_sigma_mps^2`` per axis, when within
-        ``formation_velocity_chi2`` of it.  The manoeuvre model keeps the track's own, so a
-        member that flies otherwise shows in its plots' likelihoods and the filter follows
-        that model.  Written in place (the caller saved the rows)."""
+    def _hold_velocity(self, tracks: _Tracks, rows: IntArray) -> None:
+        """The tracks ``rows`` (just updated) that fly in a formation: their quiet model takes
+        the formation's velocity without them (:func:`.formation.common_velocity`) as a
+        measurement of its own, of that mean's variance plus
+        ``formation_velocity_sigma_mps^2`` per axis, when within ``formation_velocity_chi2``
+        of it.  The manoeuvre model keeps the track's own, so a member that flies otherwise
+        shows in its plots' likelihoods and the filter follows that model.  Written in place
+        (the caller saved the rows)."""
         fm = self.params.formation
         if self._formation_models is None or fm.formation_velocity_sigma_mps <= 0.0:
             return
-        members = np.flatnonzero((tracks.formation >= 0) & (tracks.free_until < time_s))
+        # (a formation that manoeuvres too: its members turn as one, and the release from
+        # the formation's quiet model fires by chance in straight flight as well)
+        members = np.flatnonzero(tracks.formation >= 0)
         if members.shape[0] < 2:
             return
         # (a member its plots put on the manoeuvre model flies otherwise: it counts little)
