@@ -540,6 +540,8 @@ class TrackManager(Tracker):
         fm = self.params.formation
         if self._formation_models is None or fm.formation_velocity_sigma_mps <= 0.0:
             return
+        if not bool(np.any(tracks.formation[rows] >= 0)):
+            return  # (a batch with no formation member: no mean to take over all the tracks)
         # (a formation that manoeuvres too: its members turn as one, and the release from
         # the formation's quiet model fires by chance in straight flight as well)
         members = np.flatnonzero(tracks.formation >= 0)
