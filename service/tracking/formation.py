@@ -34,6 +34,7 @@ from scipy.spatial import cKDTree
 
 from service.geo import FloatArray
 from service.linalg import mahalanobis3
+from service.tracking import kalman
 
 IntArray = NDArray[np.intp]
 
@@ -136,14 +137,10 @@ def velocity_gate(x: FloatArray, P: FloatArray, v: FloatArray, r: FloatArray) ->
 def velocity_update(
     x: FloatArray, P: FloatArray, v: FloatArray, r: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
-    """Kalman update (Joseph form; Bar-Shalom, Li, Kirubarajan 2001, Section 5.2.3) of states
-    ``x`` ``(k, 6)``, ``P`` ``(k, 6, 6)`` with a measurement ``v`` ``(k, 2)`` of their
-    horizontal velocity of variance ``r`` ``(k,)`` per axis: ``K = P H^T S^-1``,
-    ``x + K y``, ``(I - K H) P (I - K H)^T + r K K^T``."""
+    """Kalman update (Joseph form, :func:`service.tracking.kalman.joseph_update`; Bar-Shalom,
+    Li, Kirubarajan 2001, Section 5.2.3) of states ``x`` ``(k, 6)``, ``P`` ``(k, 6, 6)`` with a
+    measurement ``v`` ``(k, 2)`` of their horizontal velocity of variance ``r`` ``(k,)`` per
+    axis."""
     y, s_inv = _velocity_innovation(x, P, v, r)
-    K = P[:, :, 3:5] @ s_inv  # (k, 6, 2)
-    x_new = x + np.einsum("kij,kj->ki", K, y)
-    ikh = np.broadcast_to(np.eye(6), P.shape).copy()
-    ikh[:, :, 3:5] -= K
-    p_new = ikh @ P @ np.swapaxes(ikh, -1, -2) + r[:, None, None] * (K @ np.swapaxes(K, -1, -2))
-    return x_new, 0.5 * (p_new + np.swapaxes(p_new, -1, -2))
+    R = r[:, None, None] * np.eye(2)
+    return kalman.joseph_update(x, P, R, y, s_inv, slice(3, 5))

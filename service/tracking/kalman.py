@@ -94,10 +94,21 @@ def update_innovation(
     already at hand (:func:`innovation`)."""
     # K = P H^T S^-1 with the closed-form inverse of S (a singular S, which a plot's own
     # covariance R > 0 never gives, leaves the state as it is: K = 0)
-    K = P[..., :, :3] @ inv3(S)[0]  # (n, 6, 3)
+    return joseph_update(x, P, R, y, inv3(S)[0], slice(0, 3))
+
+
+def joseph_update(
+    x: FloatArray, P: FloatArray, R: FloatArray, y: FloatArray, s_inv: FloatArray, measured: slice
+) -> tuple[FloatArray, FloatArray]:
+    """Kalman update in the Joseph form (module docstring) with a measurement of the state's
+    components ``measured`` (``H`` selects them: the position here, the horizontal velocity
+    in :func:`service.tracking.formation.velocity_update`): the innovation ``y``, the inverse
+    of its covariance ``s_inv`` and the measurement's covariance ``R``.  ``K = P H^T S^-1``,
+    ``x + K y``, ``(I - K H) P (I - K H)^T + K R K^T`` made symmetric."""
+    K = P[..., :, measured] @ s_inv  # (n, 6, m)
     x_new = x + np.einsum("nij,nj->ni", K, y)
-    ikh = np.broadcast_to(np.eye(6), P.shape).copy()
-    ikh[..., :, :3] -= K
+    ikh = np.broadcast_to(np.eye(P.shape[-1]), P.shape).copy()
+    ikh[..., :, measured] -= K
     p_new = ikh @ P @ np.swapaxes(ikh, -1, -2) + K @ R @ np.swapaxes(K, -1, -2)
     p_new = 0.5 * (p_new + np.swapaxes(p_new, -1, -2))
     return x_new, p_new
