@@ -466,6 +466,7 @@ class PairCorrelator:
             # decision among a formation's rivals measured as no better than a guess there.
             e = find(ev.keys, self.book.keys)
             self.book.set_probability(np.append(ev.probability(), np.nan)[e])  # -1: none
+            self.book.hold_ambiguous()
         # Registration rows from the confirmed pairs (raw, uncompensated positions).
         conf = self.book.confirmed
         pa_idx, pb_idx = _lookup_pairs(ka, kb, self.book.id_a[conf], self.book.id_b[conf], sorters)
@@ -504,11 +505,13 @@ class PairCorrelator:
                     # residuals carry its error, and would reject right pairs for minutes.
                     ev.clear()
         self.last_decisions = dec
-        #: Nothing left to settle: registered, no tentative pair, no candidate accepted but not
-        #: chosen or left undecided (the stage may then correlate the pair less often,
+        #: Nothing left to settle: registered, no tentative pair but held ones (they wait for
+        #: their evidence, which the pair's usual cadence brings), no candidate accepted but
+        #: not chosen or left undecided (the stage may then correlate the pair less often,
         #: :class:`CadenceParams`).
         open_ = (decided.accepted & ~chosen) | no_decision(decided.reason)
-        self.settled = self.registered and not (~self.book.confirmed).any() and not open_.any()
+        waiting = ~self.book.confirmed & ~self.book.held
+        self.settled = self.registered and not waiting.any() and not open_.any()
         self.time_s = time_s
         self.updates += 1
         self.last_update_ms = (time.perf_counter() - t0) * 1e3

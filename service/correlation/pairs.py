@@ -12,6 +12,11 @@ update's chosen single decisions, a miss otherwise.
 * A tentative pair with no hit in the last ``window`` updates is dropped; a confirmed pair
   is dropped after ``drop_misses`` consecutive misses (it "stops passing"), or at once when
   one of its tracks has vanished from the input.
+* A confirmed pair whose evidence turns against it while one of its tracks is contested is
+  *held* (:meth:`PairBook.hold_ambiguous`): back to tentative, so that neither its fused
+  picture nor the confirmed bonus defends it, and confirmed again only once its published
+  score has recovered to ``release_score`` (hysteresis: not on its hits alone, which a track
+  following two aircraft in turn keeps scoring).
 
 ``hit_fraction = hits in the window / window`` drives the logic above.  ``score`` is the
 pair's probability of being right from its accumulated evidence (:mod:`.evidence`, set by the
@@ -64,6 +69,23 @@ class PairBookParams:
     #: alone: 81 %).  National network: the qualities are about 1, the published scores 0.4 %
     #: below the score alone on average.
     quality_exponent: float = 0.5
+    #: A confirmed pair is held (module docstring) when its published score falls below this
+    #: while its quality (``(q_a q_b) ** quality_exponent`` at its latest hit) is below
+    #: ``hold_quality`` (0: never held).  0.5: the evidence then prefers another hypothesis for
+    #: one of its tracks, and a track contested by a neighbour's plots may have swapped onto
+    #: it.  Without the quality condition a fresh pair, whose evidence starts low, was held
+    #: too: national time to pair median 0.25 -> 0.94 scans (docs/results.md).
+    hold_score: float = 0.5
+    #: ... see ``hold_score``.  0.9: on the national network the qualities are about 1.
+    hold_quality: float = 0.9
+    #: ... and only a pair with at least this many hits: a pair confirmed at its first look
+    #: (:mod:`.prompt`) has too little history for its evidence to judge it (on the national
+    #: network 131 of the 135 pairs held in 120 s had 1-2 hits, and none was false).
+    hold_after_hits: int = 3
+    #: A held pair is confirmed again only once its published score is at least this (and it
+    #: has the hits of a confirmation): a held pair confirmed again on its hits alone flapped
+    #: between the two (306 pairs in 120 s of national data, docs/results.md).
+    release_score: float = 0.65
 
 
 @dataclass
@@ -132,6 +154,8 @@ class PairBook:
         self.hits = np.empty(0, dtype=np.int64)
         self.misses = np.empty(0, dtype=np.int64)
         self.confirmed = np.empty(0, dtype=bool)
+        #: Held pairs (tentative; :meth:`hold_ambiguous`).
+        self.held = np.empty(0, dtype=bool)
         self.neighbors = np.empty(0, dtype=np.int64)
         self.basis = np.empty(0, dtype=np.int8)
         self.cols: dict[str, FloatArray] = {c: np.empty(0) for c in self._float_cols}
@@ -194,6 +218,7 @@ class PairBook:
         self.hits = self.hits[keep]
         self.misses = self.misses[keep]
         self.confirmed = self.confirmed[keep]
+        self.held = self.held[keep]
         self.neighbors = self.neighbors[keep]
         self.basis = self.basis[keep]
         self.cols = {k: v[keep] for k, v in self.cols.items()}
@@ -286,11 +311,34 @@ class PairBook:
         keep = ~(gone | stale_tent | stale_conf)
         self._keep(keep)
         now = now[keep]
-        self._confirm(
-            np.flatnonzero(
-                ~self.confirmed & ((self.hit_fraction * prm.window >= prm.confirm_hits - 1e-9) | now)
-            )
-        )
+        self._confirm(np.flatnonzero(~self.confirmed & ~self.held & (self._hits_to_confirm() | now)))
+
+    def _hits_to_confirm(self) -> NDArray[np.bool_]:
+        """Which pairs have the hits of a confirmation (``confirm_hits`` in the window)."""
+        return np.asarray(self.hit_fraction * self.params.window >= self.params.confirm_hits - 1e-9)
+
+    def hold_ambiguous(self) -> int:
+        """Hold the confirmed pairs the evidence has turned against while a track is contested,
+        and confirm again the held pairs whose published score has recovered (module
+        docstring; called once the pairs' probability is set).  How many pairs changed."""
+        prm = self.params
+        if prm.hold_score <= 0.0 or len(self) == 0:
+            return 0
+        score = self.published_score
+        quality = self.cols["quality"]
+        hold = self.confirmed & (score < prm.hold_score) & (quality < prm.hold_quality)  # (NaN: not)
+        hold &= self.hits >= prm.hold_after_hits
+        if hold.any():
+            self.confirmed[hold] = False
+            self.held |= hold
+        release = np.flatnonzero(self.held & ~hold & (score >= prm.release_score) & self._hits_to_confirm())
+        if release.size:
+            self._confirm(release)
+            self.held &= ~self.confirmed
+        changed = int(np.count_nonzero(hold)) + int(np.count_nonzero(self.confirmed[release]))
+        if changed:
+            self.version += 1
+        return changed
 
     def admit(
         self,
@@ -352,7 +400,8 @@ class PairBook:
             )
         rows = np.concatenate([pos, len(self) - fresh.size + np.arange(fresh.size)]).astype(np.intp)
         before = int(np.count_nonzero(self.confirmed))
-        self._confirm(rows[~self.confirmed[rows]], free=True)  # (none of them is busy: above)
+        # (none of them is busy: above; a held pair waits for its score, :meth:`hold_ambiguous`)
+        self._confirm(rows[~self.confirmed[rows] & ~self.held[rows]], free=True)
         self.version += 1
         return bool(gone.any()) or fresh.size > 0 or int(np.count_nonzero(self.confirmed)) != before
 
@@ -394,6 +443,7 @@ class PairBook:
         self.hits = np.concatenate([self.hits, np.ones(nf, dtype=np.int64)])
         self.misses = np.concatenate([self.misses, np.zeros(nf, dtype=np.int64)])
         self.confirmed = np.concatenate([self.confirmed, np.zeros(nf, dtype=bool)])
+        self.held = np.concatenate([self.held, np.zeros(nf, dtype=bool)])
         self.neighbors = np.concatenate([self.neighbors, neighbors.astype(np.int64)])
         self.basis = np.concatenate([self.basis, basis.astype(np.int8)])
         statistic, rotation_weight, scale, probability, quality = values

@@ -123,3 +123,62 @@ def test_a_pair_confirmed_at_its_first_look_publishes_its_tracks_quality() -> No
     (state,) = book.states()
     assert state.status == "confirmed" and np.isclose(state.score, 0.99 * 0.5)
     assert np.isclose(book.score[0], 0.99)
+
+
+def _look(book: PairBook, t: float, quality: float, probability: float) -> None:
+    """One update choosing (a1, b1) with its tracks' quality, then the evidence's probability."""
+    one = np.ones(1)
+    book.update(
+        t, np.array(["a1", "a2"]), np.array(["b1"]), np.array(["a1"]), np.array(["b1"]), one, one, one,
+        np.array([4]), quality=book.pair_quality(1, np.array([quality]), None),
+    )  # fmt: skip
+    book.set_probability(np.array([probability]))
+    book.hold_ambiguous()
+
+
+def test_a_contested_pair_the_evidence_turned_against_is_held_until_its_score_recovers() -> None:
+    """A confirmed pair whose published score falls below ``hold_score`` while a track is
+    contested goes back to tentative, keeps scoring hits, and is confirmed again only once its
+    published score reaches ``release_score``: its hits alone do not (hysteresis)."""
+    prm = PairBookParams(window=4, confirm_hits=2)
+    book = PairBook(prm)
+    for t in (1.0, 2.0):
+        _look(book, t, 1.0, 0.95)
+    assert _status(book) == {("a1", "b1"): "confirmed"}
+    _look(book, 3.0, 1.0, 0.3)  # the evidence is against it, but no track is contested: kept
+    assert _status(book) == {("a1", "b1"): "confirmed"}
+    _look(book, 4.0, 0.64, 0.6)  # published 0.6 * 0.8 = 0.48 < 0.5, quality 0.8 < 0.9, 4 hits: held
+    assert _status(book) == {("a1", "b1"): "tentative"} and book.held.all()
+    for t in (5.0, 6.0, 7.0):  # every update a hit, the score between the two thresholds
+        _look(book, t, 1.0, (prm.hold_score + prm.release_score) / 2)
+        assert _status(book) == {("a1", "b1"): "tentative"}
+    _look(book, 8.0, 1.0, prm.release_score)
+    assert _status(book) == {("a1", "b1"): "confirmed"} and not book.held.any()
+    young = PairBook(prm)  # confirmed on 2 hits, fewer than ``hold_after_hits``: its evidence is young
+    for t, q, p in ((1.0, 1.0, 0.95), (2.0, 0.64, 0.1)):
+        _look(young, t, q, p)
+    assert _status(young) == {("a1", "b1"): "confirmed"}
+    off = PairBook(PairBookParams(window=4, confirm_hits=2, hold_score=0.0))
+    for t, q, p in ((1.0, 1.0, 0.95), (2.0, 1.0, 0.95), (3.0, 0.64, 0.1)):
+        _look(off, t, q, p)
+    assert _status(off) == {("a1", "b1"): "confirmed"}
+
+
+def test_a_held_pair_frees_its_tracks_for_their_rival() -> None:
+    """While held, neither track is in a confirmed pair: the rival pairing of one of them
+    confirms on its hits, and the held pair is then never confirmed beside it."""
+    book = PairBook(PairBookParams(window=4, confirm_hits=2))
+    for t in (1.0, 2.0):
+        _look(book, t, 1.0, 0.95)
+    _look(book, 3.0, 0.5, 0.4)
+    assert book.held.all()
+    one = np.ones(1)
+    for t in (4.0, 5.0):
+        book.update(
+            t, np.array(["a1", "a2"]), np.array(["b1"]), np.array(["a2"]), np.array(["b1"]), one, one, one,
+            np.array([4]),
+        )  # fmt: skip
+        book.set_probability(np.where(book.track_a == "a2", 0.9, 0.4))
+        book.hold_ambiguous()
+    st = _status(book)
+    assert st[("a2", "b1")] == "confirmed" and st[("a1", "b1")] == "tentative"

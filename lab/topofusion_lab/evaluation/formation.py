@@ -11,7 +11,8 @@ duplicate rule and its formation's quiet model, ``FormationParams.off()``; its t
 filter, ``FilterParams.imm`` off, so one constant-velocity model; its initiator's ranking by velocity support,
 ``LogicParams.support_weight = 0``; correlation's caution with low-quality tracks,
 ``correlation.prompt.min_quality = 0``; its swap rule, ``correlation.swap.enabled = False``;
-the published score's tracks' quality, ``correlation.book.quality_exponent = 0``) and with
+the published score's tracks' quality, ``correlation.book.quality_exponent = 0``; the hold of
+a contested pair, ``correlation.book.hold_score = 0``) and with
 the default configuration (*now*).  Nothing else of the service is changed or tuned.
 
 Scenario grid (:data:`POINTS`), each from the catalog's ``formation`` scenario (three en-route
@@ -189,7 +190,8 @@ def engine_config(variant: str) -> EngineConfig:
     """The engine's configuration of a variant (:data:`VARIANTS`): *before* has every formation
     rule off (the tracker's duplicate rule, formation's quiet model, two-model filter and
     initiator's velocity support, correlation's caution with low-quality tracks and its swap
-    rule, the published score's tracks' quality), *now* is the default."""
+    rule, the published score's tracks' quality, the hold of a contested pair), *now* is the
+    default."""
     cfg = EngineConfig()
     if variant == "before":
         corr = cfg.correlation
@@ -205,7 +207,7 @@ def engine_config(variant: str) -> EngineConfig:
                 corr,
                 prompt=replace(corr.prompt, min_quality=0.0),
                 swap=replace(corr.swap, enabled=False),
-                book=replace(corr.book, quality_exponent=0.0),
+                book=replace(corr.book, quality_exponent=0.0, hold_score=0.0),
             ),
         )
     if variant == "now":
