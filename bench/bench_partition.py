@@ -37,7 +37,7 @@ message by message (:func:`in_process`): the division of the engines' own work, 
 of the machine's speed between runs cannot move.
 
 Run: .venv/bin/python bench/bench_partition.py [--duration 300] [--seed 1] [--scenario national]
-     [--workers 1,2] [--repeat 1] [--one-process | --correlation-process] [--balance] [--pace X]
+     [--workers 1,2] [--repeat 1] [--one-process | --correlation-process] [--balance | --salt S] [--pace X]
      [--traffic] [--in-process]
      [--cache FILE] [--compare] [--logs DIR]
 """
@@ -319,10 +319,19 @@ def balanced(n: int, stream: list[tuple[str, bytes]]) -> int:
     return balanced_salt(n, sorted(positions), candidate_pairs(sorted(positions), positions, PAIR_KM * 1e3))
 
 
+def worker_salt(n: int, stream: list[tuple[str, bytes]], args: argparse.Namespace) -> int:
+    """The salt N > 1 workers are given: ``--salt``, else ``--balance``'s, else 0."""
+    if n == 1:
+        return 0
+    if args.salt is not None:
+        return int(args.salt)
+    return balanced(n, stream) if args.balance else 0
+
+
 def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argparse.Namespace) -> Result:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(ZenohOptions(mode="router", listen=(endpoint,)))
-    salt = balanced(n, stream) if args.balance and n > 1 else 0
+    salt = worker_salt(n, stream, args)
     workers = start_workers(n, endpoint, process_setting(args), args.logs, salt)
     client = open_session(ZenohOptions(mode="client", connect=(endpoint,)))
     last_pairs = [0.0, 0]
@@ -522,7 +531,7 @@ def in_process(
     keys = Keys(PREFIX)
     groups: list[list[tuple[Partition, Engine]]] = []
     for n in counts:
-        salt = balanced(n, stream) if args.balance and n > 1 else 0
+        salt = worker_salt(n, stream, args)
         parts = [Partition(k, n, salt) for k in range(1, n + 1)]
         groups.append([(part, Engine(EngineConfig(prefix=PREFIX, partition=part))) for part in parts])
     cpu = [[0.0] * len(g) for g in groups]
@@ -588,6 +597,12 @@ def main() -> None:
         "--balance",
         action="store_true",
         help="give the workers the salt `topofusion partition --balance` finds for the sites",
+    )
+    p.add_argument(
+        "--salt",
+        type=int,
+        help="give the workers this salt (TOPOFUSION_PARTITION_SALT) instead of --balance's: "
+        "other assignments of the same network, to measure what a radar and a pair cost",
     )
     p.add_argument(
         "--pace",
