@@ -71,11 +71,13 @@ class PairBookParams:
     quality_exponent: float = 0.5
     #: A confirmed pair is held (module docstring) when its published score falls below this
     #: while its quality (``(q_a q_b) ** quality_exponent`` at its latest hit) is below
-    #: ``hold_quality`` (0: never held).  0.5: the evidence then prefers another hypothesis for
-    #: one of its tracks, and a track contested by a neighbour's plots may have swapped onto
-    #: it.  Without the quality condition a fresh pair, whose evidence starts low, was held
-    #: too: national time to pair median 0.25 -> 0.94 scans (docs/results.md).
-    hold_score: float = 0.5
+    #: ``hold_quality`` (0: never held): a track contested by a neighbour's plots may have
+    #: swapped onto it, and the evidence finds a rival hypothesis about as likely.  0.6 of
+    #: 0.5 / 0.6 / 0.7 (formation study, 4 seeds, docs/correlation.md "Held pairs"): false
+    #: pairs at 2x 4.0 / 1.6 / 0.3 %, correct 46.5 / 38.1 / 19.6 %; at 3x false 10.7 / 6.7 /
+    #: 3.8 %, correct 62.3 / 67.3 / 61.5 %.  Without the quality condition a fresh pair, whose
+    #: evidence starts low, was held too: national time to pair median 0.25 -> 0.94 scans.
+    hold_score: float = 0.6
     #: ... see ``hold_score``.  0.9: on the national network the qualities are about 1.
     hold_quality: float = 0.9
     #: ... and only a pair with at least this many hits: a pair confirmed at its first look

@@ -147,7 +147,7 @@ def test_a_contested_pair_the_evidence_turned_against_is_held_until_its_score_re
     assert _status(book) == {("a1", "b1"): "confirmed"}
     _look(book, 3.0, 1.0, 0.3)  # the evidence is against it, but no track is contested: kept
     assert _status(book) == {("a1", "b1"): "confirmed"}
-    _look(book, 4.0, 0.64, 0.6)  # published 0.6 * 0.8 = 0.48 < 0.5, quality 0.8 < 0.9, 4 hits: held
+    _look(book, 4.0, 0.64, 0.6)  # published 0.6 * 0.8 = 0.48 < hold_score, quality 0.8 < 0.9, 4 hits: held
     assert _status(book) == {("a1", "b1"): "tentative"} and book.held.all()
     for t in (5.0, 6.0, 7.0):  # every update a hit, the score between the two thresholds
         _look(book, t, 1.0, (prm.hold_score + prm.release_score) / 2)
