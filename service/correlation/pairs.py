@@ -319,13 +319,13 @@ class PairBook:
         """Which pairs have the hits of a confirmation (``confirm_hits`` in the window)."""
         return np.asarray(self.hit_fraction * self.params.window >= self.params.confirm_hits - 1e-9)
 
-    def hold_ambiguous(self) -> int:
+    def hold_ambiguous(self) -> None:
         """Hold the confirmed pairs the evidence has turned against while a track is contested,
         and confirm again the held pairs whose published score has recovered (module
-        docstring; called once the pairs' probability is set).  How many pairs changed."""
+        docstring; called once the pairs' probability is set)."""
         prm = self.params
         if prm.hold_score <= 0.0 or len(self) == 0:
-            return 0
+            return
         score = self.published_score
         quality = self.cols["quality"]
         hold = self.confirmed & (score < prm.hold_score) & (quality < prm.hold_quality)  # (NaN: not)
@@ -337,10 +337,8 @@ class PairBook:
         if release.size:
             self._confirm(release)
             self.held &= ~self.confirmed
-        changed = int(np.count_nonzero(hold)) + int(np.count_nonzero(self.confirmed[release]))
-        if changed:
+        if hold.any() or release.size:
             self.version += 1
-        return changed
 
     def admit(
         self,
