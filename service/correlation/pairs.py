@@ -16,7 +16,9 @@ update's chosen single decisions, a miss otherwise.
   *held* (:meth:`PairBook.hold_ambiguous`): back to tentative, so that neither its fused
   picture nor the confirmed bonus defends it, and confirmed again only once its published
   score has recovered to ``release_score`` (hysteresis: not on its hits alone, which a track
-  following two aircraft in turn keeps scoring).
+  following two aircraft in turn keeps scoring), or once its evidence alone has stayed at
+  ``release_probability`` for ``release_hits`` hits since the hold (a lasting formation,
+  whose tracks stay contested: its published score cannot recover).
 
 ``hit_fraction = hits in the window / window`` drives the logic above.  ``score`` is the
 pair's probability of being right from its accumulated evidence (:mod:`.evidence`, set by the
@@ -88,6 +90,18 @@ class PairBookParams:
     #: has the hits of a confirmation): a held pair confirmed again on its hits alone flapped
     #: between the two (306 pairs in 120 s of national data, docs/results.md).
     release_score: float = 0.65
+    #: ... or once its evidence alone (the ``probability`` column, before the tracks' quality)
+    #: is at least this and it has scored ``release_hits`` hits since it was held (> 1: never);
+    #: such a pair is not held again while that lasts.  A formation that stays one keeps its
+    #: tracks contested, so the published score of a right pair stays below ``release_score``
+    #: for good.  Formation study (4 seeds, held pairs only on ``release_score`` against these):
+    #: (0.999, 12): correct / false pairs at 2x 38.1 / 1.59 % -> 42.5 / 1.45 %, 2x at Pd 0.95
+    #: 34.5 / 1.76 -> 43.3 / 1.09, at Pd 0.7 13.3 / 24.6 -> 15.4 / 22.7, 3x 67.3 / 6.65 ->
+    #: 67.3 / 6.75; (0.99, 10) gave 45.5 / 2.16 at 2x, (0.999, 8) 44.2 / 1.16 but 65.5 / 7.09
+    #: at 3x, (0.999, 20) 39.6 / 1.52 (docs/correlation.md, "Held pairs").
+    release_probability: float = 0.999
+    #: ... see ``release_probability``.
+    release_hits: int = 12
 
 
 @dataclass
@@ -158,6 +172,8 @@ class PairBook:
         self.confirmed = np.empty(0, dtype=bool)
         #: Held pairs (tentative; :meth:`hold_ambiguous`).
         self.held = np.empty(0, dtype=bool)
+        #: The hits a held pair had when it was held (:meth:`hold_ambiguous`; else unused).
+        self.held_hits = np.empty(0, dtype=np.int64)
         self.neighbors = np.empty(0, dtype=np.int64)
         self.basis = np.empty(0, dtype=np.int8)
         self.cols: dict[str, FloatArray] = {c: np.empty(0) for c in self._float_cols}
@@ -221,6 +237,7 @@ class PairBook:
         self.misses = self.misses[keep]
         self.confirmed = self.confirmed[keep]
         self.held = self.held[keep]
+        self.held_hits = self.held_hits[keep]
         self.neighbors = self.neighbors[keep]
         self.basis = self.basis[keep]
         self.cols = {k: v[keep] for k, v in self.cols.items()}
@@ -321,19 +338,26 @@ class PairBook:
 
     def hold_ambiguous(self) -> None:
         """Hold the confirmed pairs the evidence has turned against while a track is contested,
-        and confirm again the held pairs whose published score has recovered (module
-        docstring; called once the pairs' probability is set)."""
+        and confirm again the held pairs whose published score has recovered or whose evidence
+        vouches for them (module docstring; called once the pairs' probability is set)."""
         prm = self.params
         if prm.hold_score <= 0.0 or len(self) == 0:
             return
         score = self.published_score
         quality = self.cols["quality"]
+        # Evidence that vouches for the pair whatever its tracks' quality: a pair in a formation
+        # that stays one has contested tracks for good, so its published score cannot recover.
+        vouched = (self.cols["probability"] >= prm.release_probability) & (  # (NaN: not)
+            self.hits - self.held_hits >= prm.release_hits
+        )
         hold = self.confirmed & (score < prm.hold_score) & (quality < prm.hold_quality)  # (NaN: not)
-        hold &= self.hits >= prm.hold_after_hits
+        hold &= (self.hits >= prm.hold_after_hits) & ~vouched
         if hold.any():
             self.confirmed[hold] = False
             self.held |= hold
-        release = np.flatnonzero(self.held & ~hold & (score >= prm.release_score) & self._hits_to_confirm())
+            self.held_hits[hold] = self.hits[hold]
+        recovered = (score >= prm.release_score) | vouched
+        release = np.flatnonzero(self.held & ~hold & recovered & self._hits_to_confirm())
         if release.size:
             self._confirm(release)
             self.held &= ~self.confirmed
@@ -444,6 +468,7 @@ class PairBook:
         self.misses = np.concatenate([self.misses, np.zeros(nf, dtype=np.int64)])
         self.confirmed = np.concatenate([self.confirmed, np.zeros(nf, dtype=bool)])
         self.held = np.concatenate([self.held, np.zeros(nf, dtype=bool)])
+        self.held_hits = np.concatenate([self.held_hits, np.zeros(nf, dtype=np.int64)])
         self.neighbors = np.concatenate([self.neighbors, neighbors.astype(np.int64)])
         self.basis = np.concatenate([self.basis, basis.astype(np.int8)])
         statistic, rotation_weight, scale, probability, quality = values

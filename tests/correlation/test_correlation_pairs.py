@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -162,6 +164,38 @@ def test_a_contested_pair_the_evidence_turned_against_is_held_until_its_score_re
     for t, q, p in ((1.0, 1.0, 0.95), (2.0, 1.0, 0.95), (3.0, 0.64, 0.1)):
         _look(off, t, q, p)
     assert _status(off) == {("a1", "b1"): "confirmed"}
+
+
+def test_a_held_pair_in_a_lasting_formation_is_released_by_its_evidence_alone() -> None:
+    """A held pair whose tracks stay contested (published score never back at
+    ``release_score``) is confirmed again once its evidence is at least ``release_probability``
+    and it has scored ``release_hits`` hits since the hold; it is then not held again while
+    that lasts, and is held again once its evidence falls."""
+    prm = PairBookParams(window=4, confirm_hits=2, release_probability=0.999, release_hits=5)
+    book = PairBook(prm)
+    for t in (1.0, 2.0, 3.0):
+        _look(book, t, 1.0, 0.95)
+    _look(book, 4.0, 0.25, 0.9)  # published 0.9 * 0.5 < hold_score, quality 0.5: held
+    assert book.held.all()
+    for k in range(1, prm.release_hits):  # strong evidence, low quality: 4 hits since the hold
+        _look(book, 4.0 + k, 0.25, 0.9999)
+        assert _status(book) == {("a1", "b1"): "tentative"}, k
+    _look(book, 4.0 + prm.release_hits, 0.25, 0.998)  # the 5th, but the evidence below 0.999
+    assert _status(book) == {("a1", "b1"): "tentative"}
+    _look(book, 10.0, 0.25, 0.9995)
+    assert _status(book) == {("a1", "b1"): "confirmed"} and not book.held.any()
+    _look(book, 11.0, 0.25, 0.9999)  # published still below hold_score: not held again
+    assert _status(book) == {("a1", "b1"): "confirmed"}
+    _look(book, 12.0, 0.25, 0.99)  # the evidence falls: held again, its count from now
+    assert _status(book) == {("a1", "b1"): "tentative"} and book.held.all()
+    _look(book, 13.0, 0.25, 0.9999)
+    assert _status(book) == {("a1", "b1"): "tentative"}
+    off = PairBook(replace(prm, release_probability=2.0))  # (> 1: never)
+    for t, q, p in ((1.0, 1.0, 0.95), (2.0, 1.0, 0.95), (3.0, 1.0, 0.95), (4.0, 0.25, 0.9)):
+        _look(off, t, q, p)
+    for t in range(5, 20):
+        _look(off, float(t), 0.25, 0.9999)
+    assert _status(off) == {("a1", "b1"): "tentative"}
 
 
 def test_a_held_pair_frees_its_tracks_for_their_rival() -> None:
