@@ -95,6 +95,7 @@ EXAMPLES: dict[str, Any] = {
                 "hits": 5,
                 "first_time_s": 1763769580.0,
                 "last_time_s": 1763769604.0,
+                "held": False,
             }
         ],
     },
@@ -142,6 +143,7 @@ EXAMPLES: dict[str, Any] = {
         ],
         "pairs_confirmed": 40,
         "pairs_tentative": 5,
+        "pairs_held": 0,
         "correlation": {"updates": 60, "last_ms": 3.2, "p50_ms": 2.9, "p99_ms": 7.5},
         "rejected": {"duplicate_seq": 1},
     },

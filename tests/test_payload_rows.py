@@ -10,6 +10,7 @@ import numpy as np
 from service.pipeline.payload_rows import PairPayloads, TrackPayloads
 from service.pipeline.read_model import PairSetView, track_batch
 from service.tracking.base import TrackTable
+from service.wire.models import PairSet
 from service.wire.outputs import PAIR_BASES, encode
 from tests.support import random_track_table
 
@@ -78,6 +79,7 @@ def _view(rng: np.random.Generator, pairs: list[tuple[str, str]], time_s: float)
         "neighbors": rng.integers(0, 5, n),
         "hits": rng.integers(1, 9, n),
         "basis": rng.integers(-1, 4, n).astype(np.int8),
+        "held": rng.random(n) < 0.1,
         "statistic": nullable,
         "rotation_weight": rng.random(n),
         "scale": np.where(rng.random(n) < 0.5, np.nan, 1.0),
@@ -120,5 +122,14 @@ def test_pair_set_payloads_are_the_plain_encodings_bytes() -> None:
         cols["basis"][k2] = (cols["basis"][k2] + 1) % len(PAIR_BASES)
         cols["statistic"][m] = np.nan if np.isfinite(cols["statistic"][m]) else 1.5
         cols["confirmed"][c] = not cols["confirmed"][c]
+        cols["held"][m] = not cols["held"][m]
         view = replace(fresh, columns=cols)
     assert encoder.pair_set(view) == encode(view.body())
+
+
+def test_a_held_pair_says_so_in_its_pair_set() -> None:
+    """``Pair.held`` is the book's held column, row for row, and the contract's model reads it."""
+    view = _view(np.random.default_rng(5), [(f"A-{i}", f"B-{i}") for i in range(50)], 10.0)
+    body = PairSet.model_validate_json(PairPayloads().pair_set(view))
+    assert [p.held for p in body.pairs] == view.columns["held"].tolist()
+    assert any(p.held for p in body.pairs) and not all(p.held for p in body.pairs)

@@ -820,6 +820,7 @@ def national_snapshot(radars: int = 20, system: int = 2000, seed: int = 7) -> di
         "correlation": {"updates": 1, "last_ms": 1.0, "p50_ms": 1.0, "p99_ms": 1.0},
         "pairs_confirmed": len(links),
         "pairs_tentative": 0,
+        "pairs_held": 0,
         "rejected": {},
         "queue": {},
         "missing_partitions": [],

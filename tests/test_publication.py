@@ -20,9 +20,11 @@ def _pair_view(key: tuple[str, str], ids: dict[str, np.ndarray], rng: np.random.
     ta, tb = rng.choice(ids[key[0]], n), rng.choice(ids[key[1]], n)
     order = np.lexsort((tb, ta))
     confirmed = rng.random(n) < 0.7
+    held = ~confirmed & (rng.random(n) < 0.3)
     cols = {"track_a": ta[order], "track_b": tb[order], "confirmed": confirmed, "score": rng.random(n)}
+    cols["held"] = held
     n_conf = int(confirmed.sum())
-    return PairSetView(key[0], key[1], 10.0, "svd-topology", cols, n_conf, n - n_conf)
+    return PairSetView(key[0], key[1], 10.0, "svd-topology", cols, n_conf, n - n_conf, int(held.sum()))
 
 
 def _system_view(ids: dict[str, np.ndarray], rng: np.random.Generator) -> SystemTrackView:
@@ -78,6 +80,9 @@ def test_a_table_that_lost_tracks_takes_them_out_of_every_view_as_holding_to_it_
                 assert pub.views[key].columns["track_a"].tolist() == expected.columns["track_a"].tolist()
                 assert pub.views[key].columns["track_b"].tolist() == expected.columns["track_b"].tolist()
                 assert _ids_of(pub.views[key], side) <= held
+                view = pub.views[key]  # (its counts those of the pairs it kept)
+                assert view.held_pairs == int(np.count_nonzero(view.columns["held"]))
+                assert view.confirmed == int(np.count_nonzero(view.columns["confirmed"]))
         assert before[1] is not None and pub.system is not None
         expected_system = before[1].held(r, table.track_id)
         assert pub.system.member_track.tolist() == expected_system.member_track.tolist()

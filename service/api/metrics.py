@@ -146,6 +146,9 @@ class NodeCollector(Collector):
         pairs.add_metric(["confirmed"], status["pairs_confirmed"])
         pairs.add_metric(["tentative"], status["pairs_tentative"])
         yield pairs
+        yield GaugeMetricFamily(
+            "topofusion_pairs_held", "Tentative pairs held (Pair.held)", value=status.get("pairs_held", 0)
+        )
         yield from self._identity(status)
         yield from self._correlation(status["correlation"])
         yield from self._biases()

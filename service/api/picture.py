@@ -430,6 +430,7 @@ def picture_health(node: ServiceNode, rates: DataRates | None = None, wall_s: fl
         "correlation": st["correlation"],
         "pairs_confirmed": st["pairs_confirmed"],
         "pairs_tentative": st["pairs_tentative"],
+        "pairs_held": st.get("pairs_held", 0),
         "rejected": st["rejected"],
         "queue": st.get("queue", {}),
         "missing_partitions": (st.get("partition") or {}).get("missing", []),

@@ -120,6 +120,8 @@ class PairState:
     first_time_s: float
     last_time_s: float
     basis: str | None = None
+    #: A tentative pair held (:meth:`PairBook.hold_ambiguous`).
+    held: bool = False
 
 
 def _popcount(x: NDArray[np.uint32]) -> NDArray[np.int64]:
@@ -525,6 +527,7 @@ class PairBook:
                 first_time_s=float(self.cols["first_time_s"][i]),
                 last_time_s=float(self.cols["last_time_s"][i]),
                 basis=BASIS_NAMES[self.basis[i]] if self.basis[i] >= 0 else None,
+                held=bool(self.held[i]),
             )
             for i in order
         ]

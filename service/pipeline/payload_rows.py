@@ -122,7 +122,7 @@ class PairPayloads(PayloadRows):
         numbers = tuple(
             (k, 1) for k in ("score", "statistic", "rotation_weight", "scale", "first_time_s", "last_time_s")
         )
-        super().__init__(numbers, ("confirmed", "neighbors", "hits", "basis"), pair_rows)
+        super().__init__(numbers, ("confirmed", "neighbors", "hits", "basis", "held"), pair_rows)
 
     def pair_set(self, view: PairSetView) -> bytes:
         """``encode(view.body())``, byte for byte."""

@@ -66,6 +66,8 @@ class PairSetView:
     columns: dict[str, np.ndarray]
     confirmed: int
     tentative: int
+    #: Of the tentative pairs, those held (``PairBook.held``).
+    held_pairs: int = 0
     _cache: dict[str, dict[str, Any]] = field(default_factory=dict, compare=False, repr=False)
     #: The identity counts of the confirmed pairs with the Mode S sources they were last
     #: counted against, one entry once counted (:meth:`Snapshot.identity`): a view outlives
@@ -87,10 +89,12 @@ class PairSetView:
             "neighbors": book.neighbors[order],
             "hits": book.hits[order],
             "basis": book.basis[order],
+            "held": book.held[order],
             **{k: v[order] for k, v in book.cols.items()},  # fancy indexing copies
         }
         n_conf = int(np.count_nonzero(cols["confirmed"]))
-        return PairSetView(key[0], key[1], time_s, corr.method, cols, n_conf, len(order) - n_conf)
+        n_held = int(np.count_nonzero(cols["held"]))
+        return PairSetView(key[0], key[1], time_s, corr.method, cols, n_conf, len(order) - n_conf, n_held)
 
     def held(self, side: int, held_ids: np.ndarray) -> PairSetView:
         """The view without the pairs whose track of side ``side`` (0: A, 1: B) is not among
@@ -116,6 +120,7 @@ class PairSetView:
             cols,
             n_conf,
             len(cols["confirmed"]) - n_conf,
+            int(np.count_nonzero(cols["held"])),
         )
 
     def body(self, status: str = "all") -> dict[str, Any]:
@@ -340,6 +345,7 @@ class Snapshot:
             "radars": [r.status.model_dump() for r in self.radar_rows],
             "pairs_confirmed": sum(v.confirmed for v in self.pair_views),
             "pairs_tentative": sum(v.tentative for v in self.pair_views),
+            "pairs_held": sum(v.held_pairs for v in self.pair_views),
             "correlation": self.correlation,
             "outputs_time_s": self.outputs_time_s,
             "rejected": self.rejected,

@@ -75,6 +75,7 @@ def merge_statuses(
                 radars.setdefault(r["radar_id"], r)
             own["pairs_confirmed"] += int(st["pairs_confirmed"])
             own["pairs_tentative"] += int(st["pairs_tentative"])
+            own["pairs_held"] += int(st.get("pairs_held", 0))  # (a peer of an older version: none)
             for reason, count in st["rejected"].items():
                 rejected[reason] = rejected.get(reason, 0) + int(count)
             c = st["correlation"]

@@ -280,6 +280,11 @@ class Pair(OutModel):
         "bias-compensated test of one update once registered, the pair's accumulated history, or a "
         "bias-free reference source; null when the method does not say",
     )
+    held: bool = Field(
+        default=False,
+        description="a tentative pair that was confirmed and is held: its evidence turned against "
+        'it while a track was contested (docs/correlation.md, "Held pairs"); false otherwise',
+    )
 
 
 class PairSet(OutModel):
@@ -646,6 +651,7 @@ class Status(OutModel):
     radars: list[RadarStatus]
     pairs_confirmed: int
     pairs_tentative: int
+    pairs_held: int = Field(default=0, description="of the tentative pairs, those held (Pair.held)")
     correlation: CorrelationTimings
     outputs_time_s: float | None = Field(
         default=None,

@@ -114,7 +114,7 @@ PAIR_NULLABLE = ("statistic", "rotation_weight", "scale")
 def pair_rows(c: dict[str, np.ndarray]) -> list[dict[str, Any]]:
     """``PairSet.pairs`` from a pair book's columns (``track_a``, ``track_b``, ``confirmed``,
     ``score``, the nullable floats, ``neighbors``, ``hits``, ``first_time_s``, ``last_time_s``,
-    ``basis``: the codes of ``PAIR_BASES``, -1 for none)."""
+    ``basis``: the codes of ``PAIR_BASES``, -1 for none; ``held``)."""
     state = np.where(c["confirmed"], "confirmed", "tentative").tolist()
     return [
         {
@@ -130,8 +130,9 @@ def pair_rows(c: dict[str, np.ndarray]) -> list[dict[str, Any]]:
             "first_time_s": t0,
             "last_time_s": t1,
             "basis": PAIR_BASES[bs] if bs >= 0 else None,
+            "held": hd,
         }
-        for a, b, st, sc, stat, rw, scale, nb, h, t0, t1, bs in zip(
+        for a, b, st, sc, stat, rw, scale, nb, h, t0, t1, bs, hd in zip(
             c["track_a"].tolist(),
             c["track_b"].tolist(),
             state,
@@ -142,6 +143,7 @@ def pair_rows(c: dict[str, np.ndarray]) -> list[dict[str, Any]]:
             c["first_time_s"].tolist(),
             c["last_time_s"].tolist(),
             c["basis"].tolist(),
+            c["held"].tolist(),
             strict=True,
         )
     ]

@@ -60,6 +60,7 @@ def test_api_contract() -> None:
         "first_time_s",
         "last_time_s",
         "basis",
+        "held",
     ]
     assert [f.name for f in dataclasses.fields(RadarBias)] == [
         "radar_id",

@@ -871,7 +871,7 @@
       ["latency p50 / p99", `${f(c.p50_ms, 1)} / ${f(c.p99_ms, 1)} ms`],
       ["last update", `${f(c.last_ms, 1)} ms`],
       ["updates", String(c.updates)],
-      ["pairs", `${h.pairs_confirmed} confirmed, ${h.pairs_tentative} tentative`],
+      ["pairs", `${h.pairs_confirmed} confirmed, ${h.pairs_tentative} tentative (${h.pairs_held ?? 0} held)`],
       ["ingest queue", `${q.depth ?? DASH} / ${q.capacity ?? DASH} (dropped ${q.dropped ?? 0})`],
     ];
     if (h.missing_partitions.length) items.push(["missing workers", h.missing_partitions.join(", ")]);
