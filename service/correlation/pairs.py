@@ -92,7 +92,8 @@ class PairBookParams:
     release_score: float = 0.65
     #: ... or once its evidence alone (the ``probability`` column, before the tracks' quality)
     #: is at least this and it has scored ``release_hits`` hits since it was held (> 1: never);
-    #: such a pair is not held again while that lasts.  A formation that stays one keeps its
+    #: a pair so vouched for (``release_hits`` hits since its hold, or in all if never held) is
+    #: not held while its evidence stays there.  A formation that stays one keeps its
     #: tracks contested, so the published score of a right pair stays below ``release_score``
     #: for good.  Formation study (4 seeds, held pairs only on ``release_score`` against these):
     #: (0.999, 12): correct / false pairs at 2x 38.1 / 1.59 % -> 42.5 / 1.45 %, 2x at Pd 0.95

@@ -190,6 +190,11 @@ def test_a_held_pair_in_a_lasting_formation_is_released_by_its_evidence_alone() 
     assert _status(book) == {("a1", "b1"): "tentative"} and book.held.all()
     _look(book, 13.0, 0.25, 0.9999)
     assert _status(book) == {("a1", "b1"): "tentative"}
+    steady = PairBook(prm)  # never held: its hits in all count, strong evidence keeps it
+    for t in range(1, prm.release_hits + 1):
+        _look(steady, float(t), 1.0, 0.9999)
+    _look(steady, 10.0, 0.25, 0.9999)
+    assert _status(steady) == {("a1", "b1"): "confirmed"}
     off = PairBook(replace(prm, release_probability=2.0))  # (> 1: never)
     for t, q, p in ((1.0, 1.0, 0.95), (2.0, 1.0, 0.95), (3.0, 1.0, 0.95), (4.0, 0.25, 0.9)):
         _look(off, t, q, p)
