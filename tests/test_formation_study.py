@@ -15,6 +15,7 @@ import pytest
 
 from service.config import EngineConfig
 from service.geo import Site, ecef_to_geodetic, geodetic_to_ecef
+from service.pipeline.read_model import PairSetView
 from service.tracking.params import FormationParams
 from tests.scenario_helpers import scenario_messages
 from topofusion_lab.commands.evaluate import STUDIES
@@ -67,6 +68,8 @@ def test_siap_counts_match_a_plain_count() -> None:
             "pairs_found": 9,
             "pairs_false": 1,
             "pairs_judged": 10,
+            "pairs_judged_now": 8,
+            "pairs_two_now": 2,
             "score_n": [0, 0, 0, 0, 0, 10],
             "score_right": [0, 0, 0, 0, 0, 9],
             "brier_sum": 1.0,
@@ -84,6 +87,36 @@ def test_siap_counts_match_a_plain_count() -> None:
     assert s["raw_rms_m"] == pytest.approx(100.0)
     assert s["quality"] == pytest.approx(0.75)
     assert (s["correct_pct"], s["false_pct"], s["false_worst_pct"]) == pytest.approx((90.0, 10.0, 10.0))
+    assert (s["two_now_pct"], s["two_now_worst_pct"]) == pytest.approx((25.0, 25.0))
+
+
+def test_pairs_on_two_aircraft_by_the_tracks_nearest_aircraft() -> None:
+    """Confirmed pairs whose two tracks are both placed now, and of them those whose tracks are
+    nearest two different aircraft; tentative pairs and pairs with a track not placed are not
+    judged."""
+    view = PairSetView(
+        "A",
+        "B",
+        0.0,
+        "svd-topology",
+        {
+            "track_a": np.array(["A-1", "A-2", "A-3", "A-4", "A-5"]),
+            "track_b": np.array(["B-1", "B-2", "B-3", "B-4", "B-9"]),
+            "confirmed": np.array([True, True, False, True, True]),
+        },
+        4,
+        1,
+    )
+    nearest = {
+        ("A", "A-1"): "T1", ("B", "B-1"): "T1",  # one aircraft
+        ("A", "A-2"): "T2", ("B", "B-2"): "T3",  # two
+        ("A", "A-3"): "T4", ("B", "B-3"): "T5",  # two, but tentative
+        ("A", "A-4"): "T6", ("B", "B-4"): "T6",  # one
+        ("A", "A-5"): "T7",  # B-9 not placed
+    }  # fmt: skip
+    assert fs.pairs_on_two_aircraft([view], nearest) == (3, 1)
+    swapped = PairSetView("B", "A", 0.0, "svd-topology", {k: v[:2] for k, v in view.columns.items()}, 2, 0)
+    assert fs.pairs_on_two_aircraft([swapped], nearest) == (0, 0)  # (the radars name the keys)
 
 
 def test_id_switches_follow_the_rule() -> None:
@@ -213,6 +246,7 @@ def test_a_tiny_run_reports_both_trackers(tmp_path: Path) -> None:
     )
     assert "| 2x (" in section and "| before |" in section and "| now |" in section
     assert "| goal | before | now |" in section
+    assert "pairs on two aircraft now (worst seed) |" in section
     assert "| 2x (" in section.split("Pair scores through the whole pipeline")[1]
     runs = json.loads((tmp_path / "formation.json").read_text())["runs"]
     assert [r["variant"] for r in runs] == ["before", "now"]
@@ -233,6 +267,7 @@ def test_a_tiny_run_reports_both_trackers(tmp_path: Path) -> None:
         assert math.isnan(s["quality"]) or 0.0 <= s["quality"] <= 1.0
         judged = sum(s[f"score_n_{b}"] for b in range(len(SCORE_BINS) - 1))
         assert judged == r["pairs_judged"]  # every judged pair of the pair samples, in one bin
+        assert 0 <= r["pairs_two_now"] <= r["pairs_judged_now"] <= r["pairs_judged"]
         assert math.isnan(s["brier"]) or 0.0 <= s["brier"] <= 1.0
 
 

@@ -74,6 +74,13 @@ to its ``truth_id`` (:func:`siap_sample`); every sum runs over radars, samples a
   score_snapshot`'s ``found / common`` and ``false / judged`` (all radar pairs together),
   pooled over the samples from :data:`PAIR_WARMUP_S` on (the registration of the biases
   takes the first minutes); the mean over seeds, and for false pairs also the worst seed;
+* **pairs on two aircraft now** (a diagnostic beside the pair rates, not a goal): of the
+  same judged confirmed pairs, those whose two tracks are now nearest two different aircraft
+  (:func:`nearest_aircraft`, each as its radar sees them): pairs that fuse two aircraft at that
+  moment (:func:`pairs_on_two_aircraft`).  The two judges differ on a track that went over to
+  a neighbour: ``truth_id`` (most of its plots) still names its first aircraft, so its pair
+  with the neighbour's track on another radar counts false although both follow one aircraft
+  now, and its pair with its first aircraft's track counts right although it fuses two;
 * **score reliability**: over the same samples, every judged confirmed pair's published score
   in the bins of :data:`~topofusion_lab.evaluation.formation_pipeline.SCORE_BINS`, the share
   of each bin that is right, and the Brier score (the mean of ``(score - right)^2``): whether a
@@ -285,6 +292,24 @@ def horizontal_errors(track_ecef: np.ndarray, truth_ecef: np.ndarray) -> np.ndar
 
 
 # -- the metrics ----------------------------------------------------------------------------------
+def pairs_on_two_aircraft(
+    pair_views: Iterable[Any], nearest: Mapping[tuple[str, str], str]
+) -> tuple[int, int]:
+    """Of the confirmed pairs of ``pair_views`` (``PairSetView``) whose two tracks are both in
+    ``nearest`` ((radar, track id) -> the aircraft nearest the track now), how many there are
+    and how many have two different nearest aircraft."""
+    judged = two = 0
+    for view in pair_views:
+        c = view.columns
+        for ta, tb, ok in zip(c["track_a"], c["track_b"], c["confirmed"], strict=True):
+            a = nearest.get((view.radar_a, str(ta)))
+            b = nearest.get((view.radar_b, str(tb)))
+            if ok and a is not None and b is not None:
+                judged += 1
+                two += a != b
+    return judged, two
+
+
 def siap_sample(labels: Sequence[str | None], detectable: Collection[str]) -> dict[str, int]:
     """SIAP counts of one radar's confirmed tracks at one sample: ``labels`` their ``truth_id``
     (None: clutter), ``detectable`` the aircraft the radar can detect then.
@@ -370,7 +395,7 @@ def run_one(job: Job) -> dict[str, Any]:
     astray = 0
     errors = 0
     quality_sum, quality_n = 0.0, 0
-    pairs = dict.fromkeys(("common", "found", "false", "judged"), 0)
+    pairs = dict.fromkeys(("common", "found", "false", "judged", "judged_now", "two_now"), 0)
     score_n = [0] * (len(SCORE_BINS) - 1)
     score_right = [0] * (len(SCORE_BINS) - 1)
     brier = 0.0
@@ -379,6 +404,8 @@ def run_one(job: Job) -> dict[str, Any]:
         samples += 1
         t_abs = sc.start_time_s + t
         names, ecef = truth.aircraft(t_abs)
+        pair_sample = t >= pair_warmup - 1e-9
+        nearest: dict[tuple[str, str], str] = {}  # (radar, track) -> nearest aircraft now
         for rid, (_, table) in sorted(snap.tracks.items()):
             radar = radars.get(rid)
             if radar is None:
@@ -392,6 +419,13 @@ def run_one(job: Job) -> dict[str, Any]:
             for k, v in siap_sample(labels, detectable).items():
                 siap[k] += v
             ids.update(rid, zip(table.track_id[conf], labels, table.plots[conf], strict=True))
+            near = {
+                int(i): nearest_aircraft(truth, radar, sites[rid], table.position_ecef_m[i], table.time_s[i])
+                for i in np.flatnonzero(conf)
+                if pair_sample or table.truth_id[i] is not None
+            }
+            if pair_sample:
+                nearest.update({(rid, str(table.track_id[i])): a for i, a in near.items()})
             on = [i for i, x in zip(np.flatnonzero(conf), labels, strict=True) if x is not None]
             labels_on = [x for x in labels if x is not None]
             if on:
@@ -404,16 +438,15 @@ def run_one(job: Job) -> dict[str, Any]:
                 err2 += float(np.sum(e**2))
                 raw2 += float(np.sum(raw**2))
                 errors += int(ok.sum())
-                for i, label in zip(on, labels_on, strict=True):
-                    astray += (
-                        nearest_aircraft(truth, radar, sites[rid], table.position_ecef_m[i], table.time_s[i])
-                        != label
-                    )
+                astray += sum(near[int(i)] != label for i, label in zip(on, labels_on, strict=True))
             q = np.asarray(table.quality, dtype=float)[conf]
             q = q[~np.isnan(q)]
             quality_sum += float(q.sum())
             quality_n += int(q.size)
-        if t >= pair_warmup - 1e-9:
+        if pair_sample:
+            judged_now, two_now = pairs_on_two_aircraft(snap.pair_views, nearest)
+            pairs["judged_now"] += judged_now
+            pairs["two_now"] += two_now
             scored = score_snapshot(snap)
             total = scored["total"]
             for b, (n_b, right_b) in enumerate(
@@ -464,6 +497,7 @@ def summarize(runs: Sequence[Mapping[str, Any]]) -> dict[str, float]:
     score_n = np.sum([r["score_n"] for r in runs], axis=0)
     score_right = np.sum([r["score_right"] for r in runs], axis=0)
     per_false = [100.0 * ratio(r["pairs_false"], r["pairs_judged"]) for r in runs]
+    per_two = [100.0 * ratio(r["pairs_two_now"], r["pairs_judged_now"]) for r in runs]
     hours = tot("tracked_samples") * SAMPLE_S / 3600.0
     return {
         "runs": len(runs),
@@ -481,6 +515,8 @@ def summarize(runs: Sequence[Mapping[str, Any]]) -> dict[str, float]:
         "correct_pct": _nanmean(per_correct),
         "false_pct": _nanmean(per_false),
         "false_worst_pct": _nanmax(per_false),
+        "two_now_pct": _nanmean(per_two),
+        "two_now_worst_pct": _nanmax(per_two),
         **{f"score_n_{k}": float(v) for k, v in enumerate(score_n)},
         **{
             f"score_right_{k}": ratio(float(r), float(n))
@@ -527,13 +563,17 @@ def report(
         f"errors (1x = {unit:.0f} m: radar C's 0.20 deg at 115 km); Pd the catalog's (0.95/0.92/0.75) "
         "unless given.  Confirmed radar tracks sampled every "
         f"{SAMPLE_S:.0f} s from {WARMUP_S:.0f} s; pairs from {PAIR_WARMUP_S:.0f} s (shorter runs: "
-        "a quarter and half of the run).  Definitions: the module docstring of "
+        "a quarter and half of the run).  Pairs are judged by the aircraft of most of each "
+        "track's plots (`truth_id`); *on two aircraft now* judges the same pairs by the aircraft "
+        "each track is nearest at the sample: pairs that fuse two aircraft then (a diagnostic, "
+        "not a goal).  Definitions: the module docstring of "
         "`topofusion_lab.evaluation.formation` (after Stone Soup's SIAP metrics).",
         "",
         "| point | tracker | completeness | ambiguity | duplicates | astray | spurious "
         "| ID switches / aircraft-h "
-        "| position error m, mean (RMS) | quality | pairs correct | pairs false (worst seed) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| position error m, mean (RMS) | quality | pairs correct | pairs false (worst seed) "
+        "| pairs on two aircraft now (worst seed) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     summaries: dict[tuple[int, str], dict[str, float]] = {}
     for i, point in enumerate(points):
@@ -550,7 +590,8 @@ def report(
                 f"| {_f(s['switches_per_h'], '.2f')} ({s['switches']:.0f}) "
                 f"| {_f(s['position_mean_m'], '.0f')} ({_f(s['position_rms_m'], '.0f')}) "
                 f"| {_f(s['quality'], '.3f')} | {_f(s['correct_pct'], '.1f')} % "
-                f"| {_f(s['false_pct'], '.2f')} % ({_f(s['false_worst_pct'], '.2f')} %) |"
+                f"| {_f(s['false_pct'], '.2f')} % ({_f(s['false_worst_pct'], '.2f')} %) "
+                f"| {_f(s['two_now_pct'], '.2f')} % ({_f(s['two_now_worst_pct'], '.2f')} %) |"
             )
     if any(r.get("shared") for r in results):
         lines += [
