@@ -16,8 +16,8 @@ update's chosen single decisions, a miss otherwise.
   *held* (:meth:`PairBook.hold_ambiguous`): back to tentative, so that neither its fused
   picture nor the confirmed bonus defends it, and confirmed again only once its published
   score has recovered to ``release_score`` (hysteresis: not on its hits alone, which a track
-  following two aircraft in turn keeps scoring), or once its evidence alone has stayed at
-  ``release_probability`` for ``release_hits`` hits since the hold (a lasting formation,
+  following two aircraft in turn keeps scoring), or once it has scored ``release_hits`` hits
+  since the hold and its evidence alone is at ``release_probability`` (a lasting formation,
   whose tracks stay contested: its published score cannot recover).
 
 ``hit_fraction = hits in the window / window`` drives the logic above.  ``score`` is the
