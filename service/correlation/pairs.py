@@ -427,7 +427,7 @@ class PairBook:
             )
         rows = np.concatenate([pos, len(self) - fresh.size + np.arange(fresh.size)]).astype(np.intp)
         before = int(np.count_nonzero(self.confirmed))
-        # (none of them is busy: above; a held pair waits for its score, :meth:`hold_ambiguous`)
+        # (none of them is busy: above; a held pair waits for :meth:`hold_ambiguous` to release it)
         self._confirm(rows[~self.confirmed[rows] & ~self.held[rows]], free=True)
         self.version += 1
         return bool(gone.any()) or fresh.size > 0 or int(np.count_nonzero(self.confirmed)) != before
