@@ -482,6 +482,14 @@ def test_service_serves_radars_through_the_secured_router(net: Network, count: i
         # the whole network, the others' part as of their last status message).
         wait_for(lambda: counted(_status(reader)) == batches, timeout=30)
         wait_for(lambda: all(counted(n.status()) == batches for n in nodes), timeout=WAIT_S)
+        # Each radar's performance (contract §5.3) is the service's queryable too, asked by the
+        # operator: the rules let it through as they let `get fusion/status` through.
+        heard = [
+            json.loads(r.ok.payload.to_bytes())["radar_id"]
+            for r in reader.get(KEYS.performance_all, timeout=WAIT_S)
+            if r.ok is not None
+        ]
+        assert set(heard) == {"A", "B"}, heard
         # The service puts a TrackBatch per batch, far more than a new publisher puts before
         # it has heard of a subscriber (UNCONDITIONAL_PUTS): hearing more proves the router told
         # the service of the operator's subscriber. (Outputs are put with congestion control
