@@ -6,10 +6,12 @@ from __future__ import annotations
 import json
 import math
 import platform
+import re
 import sys
 import time
 from collections.abc import Callable
 from importlib.metadata import version
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -193,6 +195,17 @@ def test_metrics_of_a_running_service(
                 assert one(samples, metric, radar=b["radar_id"]) == pytest.approx(b[field], rel=1e-12)
             for _, sigma in COMPONENTS:
                 assert b[sigma] > 0
+
+        # every family the service exposes is on the metrics page (a counter by its _total)
+        page = (Path(__file__).resolve().parents[1] / "docs" / "operations" / "metrics.md").read_text()
+        families = re.findall(r"^# TYPE (topofusion_\w+) (\w+)$", text, flags=re.MULTILINE)
+        assert len(families) > 40
+        unlisted = [
+            name
+            for name, kind in families
+            if f"`{name}`" not in page and not (kind == "counter" and f"`{name}_total`" in page)
+        ]
+        assert not unlisted, f"docs/operations/metrics.md lacks {unlisted}"
 
         # a rejection counts up from its 0, the other reasons stay there
         put_json(client, "fusion/radar/A/plots", b"{oops")
