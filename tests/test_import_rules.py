@@ -65,6 +65,8 @@ def test_the_rules_hold(tree: Path) -> None:
         ("assessment/radar.py", "import fastapi", ["numerics never import", "the pipeline needs no"]),
         ("api/metrics.py", "import service.assessment.radar", ["transport and HTTP leave the numerics"]),
         ("api/metrics.py", "import service.correlation.umeyama", ["transport and HTTP leave the numerics"]),
+        ("recording/assess.py", "import service.assessment.radar", ["transport and HTTP leave the numerics"]),
+        ("cli/serve.py", "import service.tracking.base", ["transport and HTTP leave the numerics"]),
         ("wire/keys.py", "import service.geo", ["the wire imports no numerics", LAYERS]),
         ("engine.py", "import matplotlib", ["nothing in the runtime imports the lab"]),
         ("cli/serve.py", "import topofusion_lab.commands", ["nothing in the runtime imports the lab"]),

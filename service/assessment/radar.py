@@ -176,6 +176,30 @@ class RadarAssessment:
         self.bias_series: deque[tuple[float, float, float, float, float]] = deque(maxlen=10_000)
         self.mode_3a_codes: dict[str, list[int]] = {}  # reference code -> [checked, correct], bounded
 
+    def histograms(self) -> dict[str, dict[str, Any]]:
+        """The report's whole-run histograms (``topofusion assess``), each with its bins:
+        detection against range and azimuth (expected and detected looks), and the errors
+        against the references."""
+        return {
+            "detection_vs_range": {
+                "bin_m": REPORT_RANGE_BIN_M,
+                "expected": self.det_range[0].tolist(),
+                "detected": self.det_range[1].tolist(),
+            },
+            "detection_vs_azimuth": {
+                "bin_deg": 360.0 / REPORT_AZIMUTH_BINS,
+                "expected": self.det_azimuth[0].tolist(),
+                "detected": self.det_azimuth[1].tolist(),
+            },
+            "range_error_m": {"edges": RANGE_ERROR_EDGES.tolist(), "counts": self.hist_range.tolist()},
+            "azimuth_error_deg": {"edges": AZIMUTH_ERROR_EDGES.tolist(), "counts": self.hist_azimuth.tolist()},
+            "horizontal_error_compensated_m": {
+                "edges": HORIZONTAL_ERROR_EDGES.tolist(),
+                "counts": self.hist_horizontal.tolist(),
+                "beyond": self.hist_horizontal_over,
+            },
+        }
+
     # -- input ---------------------------------------------------------------------------
     def add_plots(self, cols: tuple[Any, ...]) -> None:
         """``(time_s, range_m, azimuth_deg, mode_3a, flight_level)`` of one batch."""

@@ -115,8 +115,6 @@ def build_report(
 ) -> dict[str, Any]:
     """The report of an :class:`~service.assessment.Assessment` that has seen a whole recording
     (``registration``: each radar's joint bias estimates over it, :func:`_registration`)."""
-    from service.assessment import radar as numerics
-
     p = assessment.params
     radars = []
     for radar_id, radar in sorted(assessment.assessments.items()):
@@ -129,29 +127,7 @@ def build_report(
             {
                 "performance": assessment.whole_run(radar_id, end, max(span, 0.0)),
                 "last_window": assessment.view.of(radar_id),
-                "detection_vs_range": {
-                    "bin_m": numerics.REPORT_RANGE_BIN_M,
-                    "expected": radar.det_range[0].tolist(),
-                    "detected": radar.det_range[1].tolist(),
-                },
-                "detection_vs_azimuth": {
-                    "bin_deg": 360.0 / numerics.REPORT_AZIMUTH_BINS,
-                    "expected": radar.det_azimuth[0].tolist(),
-                    "detected": radar.det_azimuth[1].tolist(),
-                },
-                "range_error_m": {
-                    "edges": numerics.RANGE_ERROR_EDGES.tolist(),
-                    "counts": radar.hist_range.tolist(),
-                },
-                "azimuth_error_deg": {
-                    "edges": numerics.AZIMUTH_ERROR_EDGES.tolist(),
-                    "counts": radar.hist_azimuth.tolist(),
-                },
-                "horizontal_error_compensated_m": {
-                    "edges": numerics.HORIZONTAL_ERROR_EDGES.tolist(),
-                    "counts": radar.hist_horizontal.tolist(),
-                    "beyond": radar.hist_horizontal_over,
-                },
+                **radar.histograms(),
                 "bias_series": [
                     {
                         "time_s": t,
