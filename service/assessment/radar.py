@@ -192,7 +192,10 @@ class RadarAssessment:
                 "detected": self.det_azimuth[1].tolist(),
             },
             "range_error_m": {"edges": RANGE_ERROR_EDGES.tolist(), "counts": self.hist_range.tolist()},
-            "azimuth_error_deg": {"edges": AZIMUTH_ERROR_EDGES.tolist(), "counts": self.hist_azimuth.tolist()},
+            "azimuth_error_deg": {
+                "edges": AZIMUTH_ERROR_EDGES.tolist(),
+                "counts": self.hist_azimuth.tolist(),
+            },
             "horizontal_error_compensated_m": {
                 "edges": HORIZONTAL_ERROR_EDGES.tolist(),
                 "counts": self.hist_horizontal.tolist(),
