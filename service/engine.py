@@ -78,14 +78,16 @@ class Engine:
         )
         #: Every radar's tables and the references, in release order, into correlation.
         self.merger = TableMerger()
-        self.peers = Peers(c, self.keys, self.sequencer, self.tracking, self.merger, self.correlation)
+        #: Each reference source's input kind (``ais`` or ``adsb``): an id is one or the other.
+        self.reference_kinds: dict[str, str] = {}
+        self.peers = Peers(
+            c, self.keys, self.sequencer, self.tracking, self.merger, self.correlation, self.reference_kinds
+        )
         self.publication = Publication(self.keys)
         #: Tables sent to correlation and not answered yet: (radar, data time, table, own).
         self._unpublished: deque[tuple[str, float, TrackTable, bool]] = deque()
         self.rejected: Counter[str] = Counter()
         self.feed = FeedWatch(c.feed)
-        #: Each reference source's input kind (``ais`` or ``adsb``): an id is one or the other.
-        self.reference_kinds: dict[str, str] = {}
         self._snapshot: Snapshot | None = None
         self.assessment = AssessmentFeed(c.assessment)  # each radar against the references (§5.3)
         for site in c.sites:
@@ -164,7 +166,7 @@ class Engine:
             msg = decode_input(what, source_id, payload)
             if isinstance(msg, RadarSite):
                 return self._set_site(msg)
-            return self._admit(what, source_id, msg) + self._process(self.sequencer.release())
+            return self._admit(what, source_id, msg, receive_time_s) + self._process(self.sequencer.release())
         except RejectionError as rej:
             return self._rejected(key, rej, receive_time_s, peer is not None)
         except Exception as exc:  # a bug must cost one message, never the service
@@ -240,7 +242,13 @@ class Engine:
             out += self.publication.forget(sid)
         return out
 
-    def _admit(self, what: str, source_id: str, batch: PlotBatch | AisBatch | AdsbBatch) -> list[Outgoing]:
+    def _admit(
+        self,
+        what: str,
+        source_id: str,
+        batch: PlotBatch | AisBatch | AdsbBatch,
+        received: float | None = None,
+    ) -> list[Outgoing]:
         """A radar's plot batch, or an AIS or ADS-B batch (one reference path for both),
         decoded: checked against the sources, then accepted by the sequencer."""
         item: Any
@@ -256,16 +264,21 @@ class Engine:
             item, n, kind = batch, len(batch.reports.time_s), REFERENCE
         adm = self.sequencer.check(source_id, kind, batch.seq, batch.time_s)
         evicted, refuted = self.sequencer.accept(adm, item, n)  # accepted: from here on it changes state
-        out = self._drop(evicted) + self._refused_held([(source_id, refuted)] if refuted else [], True)
+        # (a held batch refuted by this one: reported at this one's receipt, offline the recorded one)
+        out = self._drop(evicted) + self._refused_held(
+            [(source_id, refuted)] if refuted else [], True, received
+        )
         self.feed.taken(source_id, self.sequencer.newest_s)
         if kind == REFERENCE:
             self.reference_kinds[source_id] = what
         self._snapshot = None
         return out
 
-    def _refused_held(self, held: list[tuple[str, Held]], refuted: bool) -> list[Outgoing]:
+    def _refused_held(
+        self, held: list[tuple[str, Held]], refuted: bool, received: float | None = None
+    ) -> list[Outgoing]:
         """Batches held as a step ahead (``pipeline.sequencer``) and then refuted or unconfirmed."""
-        return [self._reject(self._input_key(sid), h.rejection(sid, refuted), None) for sid, h in held]
+        return [self._reject(self._input_key(sid), h.rejection(sid, refuted), received) for sid, h in held]
 
     def _input_key(self, source_id: str) -> str:
         return self.keys.input(self.reference_kinds.get(source_id) or "plots", source_id)

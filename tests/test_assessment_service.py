@@ -4,10 +4,13 @@ through the running service: real Zenoh (router + client) and real HTTP (contrac
 from __future__ import annotations
 
 import json
+import time
 
 import pytest
 import zenoh
 
+from service.engine import EngineConfig
+from service.pipeline.partition import Partition
 from service.wire.models import RadarPerformance
 from tests.scenario_helpers import scenario_messages
 from tests.support import put_json, running_service, wait_for, wait_subscribed
@@ -49,3 +52,44 @@ def test_the_route_the_queryable_and_the_metrics_answer_each_radar_s_performance
         metrics = svc.http.get("/metrics").text
         assert 'topofusion_performance_pd{radar="A"}' in metrics
         assert 'topofusion_performance_position_rms_m{radar="B"}' in metrics
+
+
+def test_partitioned_workers_answer_each_radar_s_performance_as_its_owner_does(
+    router: str, client: zenoh.Session
+) -> None:
+    """Contract §4.6: N workers give the results of one.  A radar's plots reach its owner only,
+    so only the owner measures it: every worker's route answers the owner's figures (asking
+    it over Zenoh), and `get` of a radar's key is answered once, by the owner."""
+    lab = pytest.importorskip("topofusion_lab.scenarios.simulator")
+    stream = scenario_messages(
+        "two-radar", duration_s=90.0, targets=20, adsb=(lab.AdsbSpec("ads-b", identity=True),)
+    )
+    parts = [Partition(k, 2) for k in (1, 2)]
+    with (
+        running_service(router, EngineConfig(partition=parts[0]), correlation_process=False) as w1,
+        running_service(router, EngineConfig(partition=parts[1]), correlation_process=False) as w2,
+    ):
+        workers = {1: w1, 2: w2}
+        wait_for(lambda: not w1.http.get("/status").json()["partition"]["missing"], timeout=15)
+        for key in ("fusion/radar/A/plots", "fusion/radar/B/plots", "fusion/adsb/ads-b/reports"):
+            wait_subscribed(client, key)
+        for key, payload in stream:
+            put_json(client, key, payload)
+        owner = {rid: next(k for k, p in enumerate(parts, 1) if p.owns(rid)) for rid in "AB"}
+
+        def assessed(rid: str) -> bool:
+            body = workers[owner[rid]].http.get(f"/radars/{rid}/performance").json()
+            return body.get("position", {}).get("plots", 0) > 50
+
+        for rid in "AB":
+            wait_for(lambda rid=rid: assessed(rid), timeout=60)
+        time.sleep(1.0)  # (the last inputs' figures in every snapshot: the window's step moved on)
+        for rid in "AB":
+            mine = workers[owner[rid]].http.get(f"/radars/{rid}/performance").json()
+            for k in (1, 2):
+                got = workers[k].http.get(f"/radars/{rid}/performance").json()
+                assert got["detection"]["pd"] is not None, (rid, k)
+                assert got["radar_id"] == rid and got["detection"] == mine["detection"], (rid, k)
+            replies = [r.ok for r in client.get(f"fusion/radar/{rid}/performance") if r.ok is not None]
+            assert len(replies) == 1, (rid, len(replies))
+            assert json.loads(replies[0].payload.to_bytes())["detection"] == mine["detection"]

@@ -43,6 +43,11 @@ def _plot_batch(**plots: object) -> dict[str, object]:
     [
         (b"{not json", "malformed_json"),
         (b"\xff\xfe\x00", "malformed_json"),
+        # JSON, but not the object the message needs (contract §2.8); a nested one is schema
+        (b"[1, 2, 3]", "malformed_json"),
+        (b"null", "malformed_json"),
+        (b'"plots"', "malformed_json"),
+        (json.dumps({**_plot_batch(), "plots": [1, 2]}).encode(), "schema"),
         (json.dumps({"radar_id": "A"}).encode(), "schema"),
         (json.dumps(_plot_batch(range_m=[1.0])).encode(), "schema"),  # unequal columns
         (json.dumps({**_plot_batch(), "radar_id": "bad id!"}).encode(), "schema"),

@@ -737,3 +737,83 @@ def test_the_merge_says_how_far_it_has_released_when_a_cap_holds_tables_back() -
     merger.progress(1, 40.0)
     merger.push(RADAR, "A", 3, 35.0, "A@35")
     assert merger.through({1}) == np.nextafter(35.0, -np.inf)  # not released yet: held
+
+
+@pytest.mark.parametrize(("n", "seed"), [(2, 7), (3, 8)])
+def test_a_radar_s_pairs_with_a_reference_go_with_the_radar_and_so_does_its_assessment(
+    n: int, seed: int
+) -> None:
+    """A pair of a radar and a reference source (ADS-B) is correlated by the radar's owner, the
+    one worker with the radar's plots; so that worker measures the radar against the
+    reference exactly as one worker does (contract §5.3), and the pair updates of N workers,
+    radar pairs and reference pairs, are one worker's."""
+    lab = pytest.importorskip("topofusion_lab.scenarios.simulator")
+    msgs = scenario_messages(
+        "three-radar", duration_s=120.0, seed=3, adsb=(lab.AdsbSpec("ads-b", identity=True),)
+    )
+    one, single = _run_one(msgs)
+    single.flush()
+    many, publishers, engines = _run_partitioned(msgs, n, seed)
+    for engine in engines:
+        engine.flush()
+    with_reference = [k for k in one if k.endswith("/ads-b")]
+    assert len(with_reference) == 3, sorted(one)
+    assert sorted(many) == sorted(one)
+    for key in one:
+        assert many[key] == one[key][: len(many[key])] and len(many[key]) >= len(one[key]) - 1, key
+    owner = {rid: Partition(1, n).owner(rid) for rid in "ABC"}
+    assert len(set(owner.values())) > 1  # the radars' owners differ: the rule is put to work
+    for key in with_reference:
+        radar = key.split("/")[-2]
+        assert publishers[key] == {owner[radar]}, (key, publishers[key], owner)
+    want = single.snapshot()
+    for rid in "ABC":
+        got = engines[owner[rid] - 1].snapshot().radar_performance(rid)
+        assert got is not None and got["detection"]["pd"] is not None, rid
+        assert got == want.radar_performance(rid), rid
+
+
+def test_the_partition_command_lists_a_radar_s_reference_pairs_with_its_owner(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``topofusion partition --reference ID``: each worker's pairs with the reference sources
+    are those of the radars it owns, as :meth:`Partition.owns_pair` decides them."""
+    import argparse
+
+    from service.cli.admin import partition_main
+
+    refs = ["ads-b", "ais-1"]
+    args = argparse.Namespace(
+        count=3, sites=None, ids=list("ABCDE"), reference=refs, salt=0, balance=False, pair_km=600.0
+    )
+    assert partition_main(args) == 0
+    listed = {}
+    for block in capsys.readouterr().out.split("worker ")[1:]:
+        k = int(block.split("/")[0])
+        line = next((ln for ln in block.splitlines() if "with references:" in ln), "")
+        listed[k] = set(line.split(":", 1)[1].split()) if line else set()
+    want = {
+        k: {
+            f"{min(r, x)}/{max(r, x)}" for r in "ABCDE" for x in refs if Partition(k, 3).owns_pair(r, x, refs)
+        }
+        for k in (1, 2, 3)
+    }
+    assert listed == want
+    assert sum(len(v) for v in want.values()) == 10
+    assert all(Partition(k, 3).owns(p.split("/")[0]) for k, v in want.items() for p in v)
+
+
+@pytest.mark.parametrize("payload", [b"[1, 2]", b"null", b"3", b'"tracks"'])
+def test_a_peer_message_that_is_json_but_not_an_object_is_malformed_json(payload: bytes) -> None:
+    """Contract §2.8: ``malformed_json`` is a payload that is not JSON or not the JSON object a
+    message needs, the other workers' messages as the inputs (``schema`` is a wrong field)."""
+    from service.pipeline.pair_exchange import decode_links, decode_rows
+
+    for decode in (
+        lambda p: decode_states(p, "A"),
+        lambda p: decode_links(p, ("A", "B")),
+        lambda p: decode_rows(p, ("A", "B")),
+    ):
+        with pytest.raises(RejectionError) as err:
+            decode(payload)
+        assert err.value.reason == "malformed_json", (decode, err.value.detail)

@@ -70,6 +70,10 @@ def test_ingest_over_zenoh_reported_by_http_queryables_and_metrics(
 
         pairs = svc.http.get("/pairs", params={"radar_a": "B", "radar_b": "A", "status": "all"}).json()
         assert [(p["radar_a"], p["radar_b"]) for p in pairs] == [("A", "B")]
+        only_a = svc.http.get("/pairs", params={"radar_a": "A", "status": "all"}).json()
+        assert [(p["radar_a"], p["radar_b"]) for p in only_a] == [("A", "B")]
+        # a radar with itself is no pair set, even though each pair set with A names A
+        assert svc.http.get("/pairs", params={"radar_a": "A", "radar_b": "A", "status": "all"}).json() == []
         replies = list(client.get("fusion/pairs/**"))
         assert [str(r.ok.key_expr) for r in replies if r.ok] == ["fusion/pairs/A/B"]
         assert isinstance(svc.http.get("/biases").json(), list)
@@ -86,6 +90,25 @@ def test_ingest_over_zenoh_reported_by_http_queryables_and_metrics(
         assert 'topofusion_rejected_total{reason="malformed_json"} 1.0' in svc.http.get("/metrics").text
     sub_err.undeclare()
     sub_trk.undeclare()
+
+
+def test_a_radar_known_by_its_site_alone_answers_an_empty_track_batch(
+    router: str, client: zenoh.Session
+) -> None:
+    """Contract: ``GET /radars/{id}/tracks`` is 404 for an unknown radar only.  A radar whose
+    site came but no table yet (no batch, or its batches waiting in the sequencer for the
+    other sources' clocks) is known: 200, no tracks."""
+    stream = scenario_messages("two-radar", duration_s=10.0)
+    site_key, site = next((k, p) for k, p in stream if k == "fusion/radar/A/site")
+    with running_service(router) as svc:
+        wait_subscribed(client, site_key)
+        put_json(client, site_key, site)
+        wait_for(lambda: [r["radar_id"] for r in svc.http.get("/radars").json()] == ["A"])
+        for status in ("confirmed", "all"):
+            got = svc.http.get("/radars/A/tracks", params={"status": status})
+            assert got.status_code == 200, got.text
+            assert got.json()["radar_id"] == "A" and got.json()["tracks"] == []
+        assert svc.http.get("/radars/B/tracks").status_code == 404
 
 
 def test_lifespan_opens_and_closes_the_node(router: str) -> None:

@@ -418,7 +418,7 @@ def create_app(
         responses=_example(EXAMPLES["RadarPerformance"], e404="unknown radar"),
     )
     def performance(node: NodeDep, radar_id: str) -> dict[str, Any]:
-        figures = node.snapshot.radar_performance(radar_id)
+        figures = node.radar_performance(radar_id)
         if figures is None:
             raise HTTPException(status_code=404, detail=f"unknown radar {radar_id!r}")
         return figures

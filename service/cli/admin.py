@@ -30,7 +30,15 @@ def register(commands: Commands) -> None:
     )
     part.add_argument("--count", type=int, required=True, metavar="N", help="number of workers")
     part.add_argument("--sites", metavar="FILE", help="the radars of a sites file (a JSON list of RadarSite)")
-    part.add_argument("ids", nargs="*", metavar="ID", help="radar or reference source ids")
+    part.add_argument("ids", nargs="*", metavar="ID", help="radar ids")
+    part.add_argument(
+        "--reference",
+        action="append",
+        default=[],
+        metavar="ID",
+        help="a reference source (AIS, ADS-B): its pairs with the radars go with each radar's "
+        "owner (repeatable)",
+    )
     part.add_argument(
         "--salt", type=int, default=0, metavar="S", help="the salt of the hashing (TOPOFUSION_PARTITION_SALT)"
     )
@@ -58,13 +66,21 @@ def partition_main(args: argparse.Namespace) -> int:
     hashing, contract §6), with each worker's share; ``--balance``: with the salt that shares
     them most evenly."""
     from service.config import load_sites
-    from service.pipeline.partition import MAX_SALT, Partition, balanced_salt, candidate_pairs, shares
+    from service.pipeline.partition import (
+        MAX_SALT,
+        Partition,
+        balanced_salt,
+        candidate_pairs,
+        pair_name,
+        shares,
+    )
 
     if args.count < 1 or not 0 <= args.salt <= MAX_SALT:
         print(f"--count must be at least 1 and --salt in 0..{MAX_SALT}", file=sys.stderr)
         return 2
     sites = {s.radar_id: s for s in load_sites(args.sites)} if args.sites else {}
-    ids = sorted(set(args.ids) | set(sites))
+    references = sorted(set(args.reference))
+    ids = sorted((set(args.ids) | set(sites)) - set(references))
     if not ids:
         print("give radar ids or --sites FILE", file=sys.stderr)
         return 2
@@ -85,6 +101,9 @@ def partition_main(args: argparse.Namespace) -> int:
         )
         print(f"  radars: {' '.join(radars) or '-'}")
         print(f"  pairs:  {' '.join(owned) or '-'}")
+        if references:  # (each radar's owner's, whatever the names hash to)
+            with_references = [pair_name(r, x) for r in radars for x in references]
+            print(f"  with references: {' '.join(with_references)}")
     return 0
 
 

@@ -377,7 +377,7 @@ class CorrelationStage:
         for other in others:
             key = (min(radar.source_id, other.source_id), max(radar.source_id, other.source_id))
             corr = self.pair_correlators.get(key)
-            if corr is None and not self.partition.owns_pair(*key):
+            if corr is None and not self.partition.owns_pair(*key, self._references):
                 continue
             if key in self.views and time_s < self.views[key].time_s:
                 # A table released late (a worker back after the grace, released out of

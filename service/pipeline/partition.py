@@ -26,8 +26,11 @@ the property rendezvous hashing is chosen for.
 
 The owner of a radar tracks it (takes its plots, publishes its tracks and track states) and
 reports the rejections of its messages; the owner of a pair correlates it.  A reference source
-(AIS, ADS-B) is taken by every worker, since every worker may own pairs with it, and its
-rejections are reported by its owner only.  The joint bias estimate is solved by one worker,
+(AIS, ADS-B) is taken by every worker, and its rejections are reported by its owner only.  A
+pair of a radar and a reference source belongs to the radar's owner, not to the hash of its
+name: that worker alone has the radar's plots, which the radar's assessment against the
+reference (contract §5.3) measures with the pair's confirmed tracks, so it then has all that
+one worker has for it.  The joint bias estimate is solved by one worker,
 :data:`BIAS_WORKER`, from the registration rows every pair owner publishes.
 """
 
@@ -36,7 +39,7 @@ from __future__ import annotations
 import hashlib
 import itertools
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Container, Mapping, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -123,9 +126,14 @@ class Partition:
         """This worker owns a source (radar or reference) id."""
         return self.count == 1 or _owner(name, self.count, self.salt) == self.index
 
-    def owns_pair(self, a: str, b: str) -> bool:
-        """This worker correlates the pair of sources ``a``, ``b``."""
-        return self.count == 1 or _owner(pair_name(a, b), self.count, self.salt) == self.index
+    def owns_pair(self, a: str, b: str, references: Container[str] = ()) -> bool:
+        """This worker correlates the pair of sources ``a``, ``b`` (``references``: the ids of
+        the reference sources; a pair of a radar and a reference goes with the radar)."""
+        if self.count == 1:
+            return True
+        if (a in references) != (b in references):
+            return self.owns(b if a in references else a)
+        return _owner(pair_name(a, b), self.count, self.salt) == self.index
 
 
 def candidate_pairs(

@@ -17,6 +17,7 @@ works on the stages it is given and returns what to publish.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Container
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -99,8 +100,12 @@ class Peers:
         tracking: TrackingStage,
         merger: TableMerger,
         correlation: CorrelationRunner,
+        references: Container[str] = (),
     ) -> None:
         self.partition = partition = config.partition
+        #: The reference sources' ids (the engine's, kept up to date by it): a pair of a radar
+        #: and a reference is the radar owner's (:meth:`Partition.owns_pair`).
+        self.references = references
         self.keys = keys
         self.exchange = exchange = config.exchange
         self.cadence = config.cadence
@@ -390,7 +395,7 @@ class Peers:
         return PeerInput()  # worker status: the transport's
 
     def _registration(self, ids: tuple[str, ...], payload: bytes) -> None:
-        if not self.partition.solves_biases or self.partition.owns_pair(ids[0], ids[1]):
+        if not self.partition.solves_biases or self.partition.owns_pair(ids[0], ids[1], self.references):
             return  # (our own pair's rows, e.g. a former session's of this worker: not even parsed)
         rows, data = decode_rows(payload, (ids[0], ids[1]))
         site_a = self._geometry(rows.source_a)
@@ -399,7 +404,7 @@ class Peers:
 
     def _links(self, ids: tuple[str, ...], payload: bytes) -> None:
         wanted = self.partition.solves_biases or self.cycles.enabled
-        if not wanted or self.partition.owns_pair(ids[0], ids[1]):
+        if not wanted or self.partition.owns_pair(ids[0], ids[1], self.references):
             return  # (our own pair's links, e.g. a former session's of this worker: not even parsed)
         self.correlation.mirror_links(decode_links(payload, (ids[0], ids[1])))
 

@@ -26,6 +26,14 @@ _NONE = np.array(None, dtype=object)
 _ADSB = object()
 
 
+def selects(radars: tuple[str | None, str | None], key: tuple[str, str]) -> bool:
+    """Whether ``GET /pairs`` with ``radar_a``, ``radar_b`` (``radars``; None: not given) asks
+    for the pair set of ``key``: with one radar, every pair set with it; with two, the pair set
+    of the two, in either order (none for a radar with itself)."""
+    given = [x for x in radars if x is not None]
+    return sorted(given) == sorted(key) if len(given) == 2 else all(x in key for x in given)
+
+
 def track_batch(radar_id: str, time_s: float, tracks: TrackTable, status: str = "all") -> dict[str, Any]:
     """The contract's ``TrackBatch`` for a radar's tracks (``status``: confirmed, tentative, all)."""
     if status == "confirmed":
@@ -302,11 +310,14 @@ class Snapshot:
     _carries_mode_s: dict[str, bool] = field(default_factory=dict, compare=False, repr=False)
 
     def track_batch(self, radar_id: str, status: str = "confirmed") -> dict[str, Any] | None:
-        if radar_id not in self.tracks:
+        """The radar's ``TrackBatch`` (None: no such radar).  A radar known by its site whose
+        first table is not out yet (no batch, or its batches waiting for the other sources'
+        clocks) has no tracks: an empty batch at data time 0."""
+        if radar_id not in self.tracks and radar_id not in self.sites:
             return None
         got = self._batches.get((radar_id, status))
         if got is None:
-            time_s, table = self.tracks[radar_id]
+            time_s, table = self.tracks.get(radar_id, (0.0, TrackTable.empty()))
             got = self._batches[(radar_id, status)] = track_batch(radar_id, time_s, table, status)
         return got
 
@@ -326,8 +337,9 @@ class Snapshot:
         self, radar_a: str | None = None, radar_b: str | None = None, status: str = "confirmed"
     ) -> list[dict[str, Any]]:
         """Pair sets involving both given radars (either order), pairs filtered by ``status``."""
-        wanted = {x for x in (radar_a, radar_b) if x is not None}
-        return [v.body(status) for v in self.pair_views if wanted <= {v.radar_a, v.radar_b}]
+        return [
+            v.body(status) for v in self.pair_views if selects((radar_a, radar_b), (v.radar_a, v.radar_b))
+        ]
 
     def biases(self) -> list[dict[str, Any]]:
         return list(self.biases_all)

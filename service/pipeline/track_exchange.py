@@ -287,7 +287,9 @@ def decode_states(payload: bytes, radar_id: str) -> StatesMessage:
             body = orjson.loads(payload)
         except orjson.JSONDecodeError as exc:
             raise _fail("malformed_json", str(exc), radar_id) from None
-        if not isinstance(body, dict) or not isinstance(body.get("tracks"), dict):
+        if not isinstance(body, dict):  # (JSON, but not the object a message needs: §2.8)
+            raise _fail("malformed_json", "not a JSON object", radar_id)
+        if not isinstance(body.get("tracks"), dict):
             raise _fail("schema", "not an object with a tracks object", radar_id)
         cols = body["tracks"]
     rid, seq, full = body.get("radar_id"), body.get("seq"), body.get("full")

@@ -19,6 +19,7 @@ import zenoh
 
 from service.engine import Snapshot
 from service.pipeline.partition import BIAS_WORKER, Partition
+from service.pipeline.read_model import selects
 from service.transport.session import json_replies
 from service.wire.keys import Keys, parse_key
 
@@ -228,7 +229,6 @@ def network_pair_sets(
     """``GET /pairs`` of a partitioned worker: its own pair sets (``own``, of ``snapshot``),
     and the other workers' (a Zenoh ``get``) between radars including those of ``radars``."""
     have = {(p["radar_a"], p["radar_b"]) for p in snapshot.pair_sets(radars[0], radars[1], "all")}
-    wanted = {x for x in radars if x is not None}
     out = list(own)
     replies = session.get(keys.pairs_all, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s)
     for body in json_replies(replies):
@@ -236,13 +236,27 @@ def network_pair_sets(
             key = (body["radar_a"], body["radar_b"])
         except KeyError:
             continue
-        if key in have or not wanted <= set(key):
+        if key in have or not selects(radars, key):
             continue
         have.add(key)
         if status != "all":
             body = {**body, "pairs": [p for p in body.get("pairs", []) if p.get("status") == status]}
         out.append(body)
     return sorted(out, key=lambda p: (p["radar_a"], p["radar_b"]))
+
+
+def network_performance(
+    session: zenoh.Session, keys: Keys, radar_id: str, timeout_s: float
+) -> dict[str, Any] | None:
+    """``GET /radars/{id}/performance`` of a partitioned worker that does not own the radar:
+    its owner's (the one worker with its plots; a Zenoh ``get``); None while it does not answer."""
+    replies = session.get(
+        keys.performance(radar_id), consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s
+    )
+    for body in json_replies(replies):
+        if body.get("radar_id") == radar_id:
+            return body
+    return None
 
 
 def network_system_tracks(

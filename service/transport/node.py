@@ -39,6 +39,7 @@ from service.transport.intake import Intake
 from service.transport.network_status import (
     PeerWorkers,
     network_pair_sets,
+    network_performance,
     network_radars,
     network_system_tracks,
 )
@@ -305,6 +306,17 @@ class ServiceNode:
         if self.peers is None or self.partition.solves_biases or session is None:
             return snap.system_tracks(status)
         return network_system_tracks(session, self.keys, status, self.options.peer_query_timeout_s)
+
+    def radar_performance(self, radar_id: str) -> dict[str, Any] | None:
+        """``GET /radars/{id}/performance`` (None: no such radar); partitioned, the radar's
+        owner's, the one worker that measures it (a Zenoh ``get``; this worker's own, every
+        figure null, while the owner does not answer)."""
+        snap, session = self.snapshot, self.connection.session
+        own = snap.radar_performance(radar_id)
+        if own is None or self.peers is None or self.partition.owns(radar_id) or session is None:
+            return own
+        timeout_s = self.options.peer_query_timeout_s
+        return network_performance(session, self.keys, radar_id, timeout_s) or own
 
     def pair_sets(
         self, radar_a: str | None = None, radar_b: str | None = None, status: str = "confirmed"

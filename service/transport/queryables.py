@@ -39,7 +39,8 @@ def declare_queryables(
         query.reply(keys.status, encode(views.status()), encoding=_JSON)
 
     def on_system(query: zenoh.Query) -> None:
-        status = query.parameters.get("status") or "confirmed"
+        status = query.parameters.get("status")
+        status = "confirmed" if status is None else status  # (``status=``: refused, as over HTTP)
         if status not in SYSTEM_STATUSES:
             # (the parameter quoted in part: a selector may be kilobytes long)
             query.reply_err(f"status {status[:40]!r}: expected one of {', '.join(SYSTEM_STATUSES)}")
@@ -47,12 +48,14 @@ def declare_queryables(
         query.reply(keys.system_tracks, encode(views.snapshot.system_tracks(status)), encoding=_JSON)
 
     def on_performance(query: zenoh.Query) -> None:
-        """Each radar whose ``RadarPerformance`` key the query's selector names."""
+        """Each radar whose ``RadarPerformance`` key the query's selector names (partitioned:
+        each radar this worker owns, the one worker with its plots, so one answer a radar)."""
         wanted = query.key_expr
         snap = views.snapshot
         for radar_id in sorted(snap.sites):
             key = keys.performance(radar_id)
-            if wanted.intersects(zenoh.KeyExpr(key)):
+            mine = partition is None or partition.owns(radar_id)
+            if mine and wanted.intersects(zenoh.KeyExpr(key)):
                 body = snap.radar_performance(radar_id)
                 if body is not None:
                     query.reply(key, encode(body), encoding=_JSON)

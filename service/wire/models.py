@@ -327,7 +327,11 @@ class Rejection(OutModel):
     radar_id: str | None = None
     reason: RejectionReason
     detail: str
-    time_s: float | None = Field(default=None, description="batch data time when known, else receipt time")
+    time_s: float | None = Field(
+        default=None,
+        description="when the service received the message (its wall clock; in an offline replay, "
+        "the recorded time of receipt)",
+    )
 
 
 # -- worker-to-worker payloads (partitioned workers, docs/contract.md "Scale-out") -----------
@@ -800,7 +804,14 @@ _PRIORITY: tuple[RejectionReason, ...] = (
 def rejection_reason(error: ValidationError) -> tuple[RejectionReason, str]:
     """The contract reason for a validation error, and a short human detail."""
     errors = error.errors(include_url=False)
-    reasons = [_REASON_BY_ERROR.get(e["type"], "schema") for e in errors]
+    # (a payload that is JSON but not an object, e.g. ``[1, 2]``: the object the message needs
+    # is missing at the root, contract §2.8's ``malformed_json``; a nested one is ``schema``)
+    reasons = [
+        "malformed_json"
+        if e["type"] == "model_type" and not e["loc"]
+        else _REASON_BY_ERROR.get(e["type"], "schema")
+        for e in errors
+    ]
     best = min(reasons, key=_PRIORITY.index) if reasons else "schema"
     first = next(e for e, r in zip(errors, reasons, strict=True) if r == best)
     loc = ".".join(str(p) for p in first["loc"])
