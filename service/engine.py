@@ -80,9 +80,7 @@ class Engine:
         self.merger = TableMerger()
         #: Each reference source's input kind (``ais`` or ``adsb``): an id is one or the other.
         self.reference_kinds: dict[str, str] = {}
-        self.peers = Peers(
-            c, self.keys, self.sequencer, self.tracking, self.merger, self.correlation, self.reference_kinds
-        )
+        self.peers = Peers(c, self.keys, self.sequencer, self.tracking, self.merger, self.correlation)
         self.publication = Publication(self.keys)
         #: Tables sent to correlation and not answered yet: (radar, data time, table, own).
         self._unpublished: deque[tuple[str, float, TrackTable, bool]] = deque()
@@ -263,22 +261,21 @@ class Engine:
                 raise RejectionError("schema", detail, source_id)
             item, n, kind = batch, len(batch.reports.time_s), REFERENCE
         adm = self.sequencer.check(source_id, kind, batch.seq, batch.time_s)
-        evicted, refuted = self.sequencer.accept(adm, item, n)  # accepted: from here on it changes state
-        # (a held batch refuted by this one: reported at this one's receipt, offline the recorded one)
-        out = self._drop(evicted) + self._refused_held(
-            [(source_id, refuted)] if refuted else [], True, received
-        )
+        # accepted: from here on it changes state
+        evicted, refuted = self.sequencer.accept(adm, item, n, received)
+        out = self._drop(evicted) + self._refused_held([(source_id, refuted)] if refuted else [], True)
         self.feed.taken(source_id, self.sequencer.newest_s)
         if kind == REFERENCE:
             self.reference_kinds[source_id] = what
         self._snapshot = None
         return out
 
-    def _refused_held(
-        self, held: list[tuple[str, Held]], refuted: bool, received: float | None = None
-    ) -> list[Outgoing]:
-        """Batches held as a step ahead (``pipeline.sequencer``) and then refuted or unconfirmed."""
-        return [self._reject(self._input_key(sid), h.rejection(sid, refuted), received) for sid, h in held]
+    def _refused_held(self, held: list[tuple[str, Held]], refuted: bool) -> list[Outgoing]:
+        """Batches held as a step ahead (``pipeline.sequencer``) and then refuted or unconfirmed,
+        each reported at its own receipt (offline, the recorded one: never the run's clock)."""
+        return [
+            self._reject(self._input_key(sid), h.rejection(sid, refuted), h.received_s) for sid, h in held
+        ]
 
     def _input_key(self, source_id: str) -> str:
         return self.keys.input(self.reference_kinds.get(source_id) or "plots", source_id)

@@ -4,7 +4,7 @@ through the running service: real Zenoh (router + client) and real HTTP (contrac
 from __future__ import annotations
 
 import json
-import time
+from typing import Any
 
 import pytest
 import zenoh
@@ -83,13 +83,25 @@ def test_partitioned_workers_answer_each_radar_s_performance_as_its_owner_does(
 
         for rid in "AB":
             wait_for(lambda rid=rid: assessed(rid), timeout=60)
-        time.sleep(1.0)  # (the last inputs' figures in every snapshot: the window's step moved on)
-        for rid in "AB":
+
+        def answers(rid: str) -> list[Any]:
+            """The owner's figures, each worker's answer and the Zenoh replies, read in turn."""
             mine = workers[owner[rid]].http.get(f"/radars/{rid}/performance").json()
-            for k in (1, 2):
-                got = workers[k].http.get(f"/radars/{rid}/performance").json()
-                assert got["detection"]["pd"] is not None, (rid, k)
-                assert got["radar_id"] == rid and got["detection"] == mine["detection"], (rid, k)
+            got = [workers[k].http.get(f"/radars/{rid}/performance").json() for k in (1, 2)]
             replies = [r.ok for r in client.get(f"fusion/radar/{rid}/performance") if r.ok is not None]
-            assert len(replies) == 1, (rid, len(replies))
-            assert json.loads(replies[0].payload.to_bytes())["detection"] == mine["detection"]
+            return [mine, got, [json.loads(r.payload.to_bytes()) for r in replies]]
+
+        for rid in "AB":
+            # every read the owner's figures, once the stream's last inputs are in (while they
+            # come, two reads in turn may see two steps of the window)
+            wait_for(
+                lambda rid=rid: all(
+                    body["detection"] == answers(rid)[0]["detection"] for body in answers(rid)[1]
+                ),
+                timeout=30,
+            )
+            mine, got, replies = answers(rid)
+            assert mine["detection"]["pd"] is not None, rid
+            assert [b["radar_id"] for b in got] == [rid, rid]
+            assert all(b["detection"] == mine["detection"] for b in got), rid
+            assert len(replies) == 1 and replies[0]["detection"] == mine["detection"], (rid, len(replies))

@@ -251,3 +251,28 @@ def test_a_rows_frame_is_read_whole_or_rejected(name: str, payload: bytes) -> No
     assert name == "valid", name
     assert got.reference is True
     _same_rows(data, _rows(4))
+
+
+def test_worker_1_takes_a_reference_pair_s_rows_before_it_has_heard_the_reference() -> None:
+    """A pair of a radar and a reference source is its radar owner's, whatever its name hashes
+    to.  Worker 1, which solves the biases, takes the rows that owner sends even before it has
+    taken a batch of the reference itself (started later, say): it must not read the pair as
+    its own by the name's hash and drop them unread."""
+    from service.schema_files import EXAMPLES
+
+    partition = Partition(1, 2)
+    engine = Engine(EngineConfig(partition=partition))
+    radar, ref = next(
+        (f"R{i}", f"ref{j}")
+        for i in range(50)
+        for j in range(50)
+        if not partition.owns(f"R{i}") and partition.owns_pair(f"R{i}", f"ref{j}")
+    )
+    site = {**EXAMPLES["RadarSite"], "radar_id": radar}
+    assert engine.ingest(Keys("fusion").site(radar), json.dumps(site).encode()) == []
+    rows = rows_frame(radar, ref, True, _rows(5))
+    assert engine.ingest(Keys("fusion").registration(radar, ref), rows) == []
+    assert engine.rejected == {}
+    stage = engine.correlation.stage  # type: ignore[attr-defined]
+    assert (radar, ref) in stage.mirrors and len(stage.mirrors[(radar, ref)].memory) > 0
+    engine.close()

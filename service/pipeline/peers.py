@@ -17,7 +17,6 @@ works on the stages it is given and returns what to publish.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Container
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -100,12 +99,8 @@ class Peers:
         tracking: TrackingStage,
         merger: TableMerger,
         correlation: CorrelationRunner,
-        references: Container[str] = (),
     ) -> None:
         self.partition = partition = config.partition
-        #: The reference sources' ids (the engine's, kept up to date by it): a pair of a radar
-        #: and a reference is the radar owner's (:meth:`Partition.owns_pair`).
-        self.references = references
         self.keys = keys
         self.exchange = exchange = config.exchange
         self.cadence = config.cadence
@@ -394,8 +389,20 @@ class Peers:
             self.published_biases = parse(BiasSet, payload, None).model_dump()
         return PeerInput()  # worker status: the transport's
 
+    def _ours(self, a: str, b: str) -> bool:
+        """Whether a pair's links or rows, heard back, are this worker's own (a former session's:
+        the transport takes none of its own session), so left unread.  Only when every reading
+        of the pair says so: its name's owner, and, when one side is no radar this worker knows
+        (a reference source, whose pair is its radar's owner's, :meth:`Partition.owns_pair`; or
+        a radar whose site has not come yet), the other side's owner.  A worker that has not
+        taken a reference's first batch or a radar's site yet must not drop another's rows."""
+        if not self.partition.owns_pair(a, b):
+            return False
+        unknown = [x for x in (a, b) if x not in self.tracking.tracked]
+        return len(unknown) != 1 or self.partition.owns(b if unknown[0] == a else a)
+
     def _registration(self, ids: tuple[str, ...], payload: bytes) -> None:
-        if not self.partition.solves_biases or self.partition.owns_pair(ids[0], ids[1], self.references):
+        if not self.partition.solves_biases or self._ours(ids[0], ids[1]):
             return  # (our own pair's rows, e.g. a former session's of this worker: not even parsed)
         rows, data = decode_rows(payload, (ids[0], ids[1]))
         site_a = self._geometry(rows.source_a)
@@ -404,7 +411,7 @@ class Peers:
 
     def _links(self, ids: tuple[str, ...], payload: bytes) -> None:
         wanted = self.partition.solves_biases or self.cycles.enabled
-        if not wanted or self.partition.owns_pair(ids[0], ids[1], self.references):
+        if not wanted or self._ours(ids[0], ids[1]):
             return  # (our own pair's links, e.g. a former session's of this worker: not even parsed)
         self.correlation.mirror_links(decode_links(payload, (ids[0], ids[1])))
 

@@ -186,6 +186,8 @@ class Held:
     before_s: float
     #: Its plots or reports.
     count: int
+    #: When the service received it (None: not given), the time its rejection reports.
+    received_s: float | None = None
 
     def refuted_by(self, time_s: float) -> bool:
         """A next batch at ``time_s`` nearer the clock of before than the held time."""
@@ -412,10 +414,12 @@ class Sequencer:
                 source_id,
             )
 
-    def accept(self, adm: Admission, item: Any, count: int = 0) -> tuple[list[str], Held | None]:
-        """Apply an admitted batch of ``count`` plots or reports; returns the ids evicted to make
-        room for a new source, and the source's held batch this one refuted (to be reported
-        rejected: nothing of it was applied)."""
+    def accept(
+        self, adm: Admission, item: Any, count: int = 0, received_s: float | None = None
+    ) -> tuple[list[str], Held | None]:
+        """Apply an admitted batch of ``count`` plots or reports (received at ``received_s``);
+        returns the ids evicted to make room for a new source, and the source's held batch this
+        one refuted (to be reported rejected: nothing of it was applied)."""
         evicted = []
         src = self.sources.get(adm.source_id)
         if src is None:
@@ -426,7 +430,7 @@ class Sequencer:
             self._take(src, held.admission, held.item, held.count)
         refuted = held if adm.resolves < 0 else None
         if adm.step_from_s is not None:  # held, not taken: only its seq counts yet
-            src.held = Held(adm, item, adm.step_from_s, count)
+            src.held = Held(adm, item, adm.step_from_s, count, received_s)
             self._count_seq(src, adm)
             return evicted, refuted
         self._take(src, adm, item, count)

@@ -315,6 +315,8 @@ class ServiceNode:
         own = snap.radar_performance(radar_id)
         if own is None or self.peers is None or self.partition.owns(radar_id) or session is None:
             return own
+        if self.partition.owner(radar_id) not in self.peers.alive:
+            return own  # (its owner is gone: no query to wait out)
         timeout_s = self.options.peer_query_timeout_s
         return network_performance(session, self.keys, radar_id, timeout_s) or own
 
