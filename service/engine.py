@@ -78,14 +78,14 @@ class Engine:
         )
         #: Every radar's tables and the references, in release order, into correlation.
         self.merger = TableMerger()
-        #: Each reference source's input kind (``ais`` or ``adsb``): an id is one or the other.
-        self.reference_kinds: dict[str, str] = {}
         self.peers = Peers(c, self.keys, self.sequencer, self.tracking, self.merger, self.correlation)
         self.publication = Publication(self.keys)
         #: Tables sent to correlation and not answered yet: (radar, data time, table, own).
         self._unpublished: deque[tuple[str, float, TrackTable, bool]] = deque()
         self.rejected: Counter[str] = Counter()
         self.feed = FeedWatch(c.feed)
+        #: Each reference source's input kind (``ais`` or ``adsb``): an id is one or the other.
+        self.reference_kinds: dict[str, str] = {}
         self._snapshot: Snapshot | None = None
         self.assessment = AssessmentFeed(c.assessment)  # each radar against the references (§5.3)
         for site in c.sites:

@@ -396,10 +396,8 @@ class Peers:
         (a reference source, whose pair is its radar's owner's, :meth:`Partition.owns_pair`; or
         a radar whose site has not come yet), the other side's owner.  A worker that has not
         taken a reference's first batch or a radar's site yet must not drop another's rows."""
-        if not self.partition.owns_pair(a, b):
-            return False
-        unknown = [x for x in (a, b) if x not in self.tracking.tracked]
-        return len(unknown) != 1 or self.partition.owns(b if unknown[0] == a else a)
+        unknown = {x for x in (a, b) if x not in self.tracking.tracked}  # (read as references)
+        return self.partition.owns_pair(a, b) and self.partition.owns_pair(a, b, unknown)
 
     def _registration(self, ids: tuple[str, ...], payload: bytes) -> None:
         if not self.partition.solves_biases or self._ours(ids[0], ids[1]):
