@@ -4,6 +4,7 @@ SIGINT/SIGTERM.  :func:`serve` also runs the lab's ``demo``, with its simulator 
 from __future__ import annotations
 
 import argparse
+import gc
 import logging
 import signal
 import sys
@@ -130,6 +131,10 @@ def serve(settings: Settings, hooks: Callable[[str], ServeHooks] | None = None) 
     # make those no-ops so that a graceful shutdown ends with exit status 0.
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda signum, frame: None)
+    # Everything allocated so far (modules, schemas, the app) lives for the whole run: out of
+    # the collector's full scans, which would otherwise walk it again and again.
+    gc.collect()
+    gc.freeze()
     try:
         server.run()
     finally:

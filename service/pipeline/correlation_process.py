@@ -18,6 +18,7 @@ next updates.
 from __future__ import annotations
 
 import contextlib
+import gc
 import logging
 import multiprocessing as mp
 import queue
@@ -57,6 +58,8 @@ def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
     after the last answers of a stop."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     stage = CorrelationStage(*stage_args)
+    gc.collect()
+    gc.freeze()  # (the modules and the stage's set-up: out of the collector's full scans)
     while True:
         msg = requests.recv()
         if msg is None:

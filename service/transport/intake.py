@@ -86,10 +86,12 @@ class Intake:
 
     def input_keys(self) -> list[str]:
         """Every radar's inputs (or only those of ``--radars``), and what partitioned workers
-        send each other."""
+        send each other (the registration rows: to the bias worker only)."""
         ids = self.radars or ("*",)
         radar_keys = [k for rid in ids for k in (self.keys.site(rid), self.keys.plots(rid))]
-        peer = list(self.keys.peer_inputs) if not self.partition.whole else []
+        peer = [] if self.partition.whole else list(self.keys.peer_inputs)
+        if not self.partition.solves_biases:  # (the rows are the bias worker's alone: unsent here)
+            peer.remove(self.keys.registration_inputs)
         return [*radar_keys, self.keys.ais_inputs, self.keys.adsb_inputs, *peer]
 
     def on_sample(self, sample: zenoh.Sample) -> None:

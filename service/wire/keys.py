@@ -225,12 +225,17 @@ class Keys:
         return f"{self.prefix}/workers/*/status"
 
     @property
+    def registration_inputs(self) -> str:
+        """Every pair's registration rows (the bias worker alone takes them)."""
+        return f"{self.prefix}/registration/*/*"
+
+    @property
     def peer_inputs(self) -> tuple[str, ...]:
         """What partitioned workers' engines take from each other (in arrival order with the
         inputs; the workers' statuses are the transport's own)."""
         return (
             f"{self.prefix}/radar/*/track-states",
-            f"{self.prefix}/registration/*/*",
+            self.registration_inputs,
             f"{self.prefix}/links/*/*",
             self.biases,
             f"{self.prefix}/workers/*/clock",
