@@ -24,6 +24,8 @@ import zenoh
 
 from service.engine import EngineConfig
 from service.pipeline.partition import Partition
+from service.transport.node import ServiceNode
+from service.transport.session import ZenohOptions
 from tests.doc_commands import PROCESS_S, TOPOFUSION, environment
 from tests.scenario_helpers import scenario_messages
 from tests.support import (
@@ -216,3 +218,16 @@ def test_the_cat062_bridge_works_against_partitioned_workers(router: str, tmp_pa
     assert {rid for rid, k in owners.items() if k == 1} & members
     assert {rid for rid, k in owners.items() if k == 2} & members
     assert_cat062_written(out, bridge.stderr)
+
+
+def test_only_the_bias_worker_subscribes_to_the_registration_rows() -> None:
+    """The rows go to worker 1, which solves the biases: the others never read them, so they do
+    not subscribe (the router sends them nothing), while every other exchange key stays."""
+    for k in (1, 2, 3):
+        config = EngineConfig(prefix="t", partition=Partition(k, 3))
+        node = ServiceNode(config, ZenohOptions())  # (never started: no Zenoh session)
+        subscribed = set(node._input_keys())
+        assert (node.keys.registration_inputs in subscribed) == (k == 1)
+        assert set(node.keys.peer_inputs) - {node.keys.registration_inputs} <= subscribed
+    alone = ServiceNode(EngineConfig(prefix="t"), ZenohOptions())
+    assert not set(alone.keys.peer_inputs) & set(alone._input_keys())
