@@ -34,11 +34,12 @@ limit: the CPU a worker pays at a live rate, where it idles between messages.  W
 ``--repeat R`` it ends with every repeat's busiest-worker and total CPU ratios and their medians.
 ``--in-process`` runs the engines alone instead, every count's side by side in this process,
 message by message (:func:`in_process`): the division of the engines' own work, which a drift
-of the machine's speed between runs cannot move.
+of the machine's speed between runs cannot move; ``--breakdown`` splits each engine's CPU by
+what it was for (:class:`Breakdown`).
 
 Run: .venv/bin/python bench/bench_partition.py [--duration 300] [--seed 1] [--scenario national]
      [--workers 1,2] [--repeat 1] [--one-process | --correlation-process] [--balance | --salt S] [--pace X]
-     [--traffic] [--in-process]
+     [--traffic] [--in-process [--breakdown]]
      [--cache FILE] [--compare] [--logs DIR]
 """
 
@@ -529,6 +530,7 @@ def in_process(
     weighs on every count alike: the division of the engines' own work, without the costs of
     transport, pipes and status, which the process figures add."""
     keys = Keys(PREFIX)
+    split = Breakdown() if args.breakdown else None
     groups: list[list[tuple[Partition, Engine]]] = []
     for n in counts:
         salt = worker_salt(n, stream, args)
@@ -539,13 +541,19 @@ def in_process(
 
     def run(c: int, j: int, items: list[tuple[str, bytes]]) -> None:
         engine = groups[c][j][1]
+        if split is not None:
+            split.engine = (c, j)
         t = time.thread_time()
         out = [o for key, payload in items for o in engine.ingest(key, payload)]
         peer = [(o.key, o.payload) for o in out if keys.classify_peer(o.key) is not None]
+        pairs = time.thread_time()
         for o in out:
             if "/pairs/" in o.key:
                 o.payload  # noqa: B018  (encoded, as for the benchmark's subscriber)
-        cpu[c][j] += time.thread_time() - t
+        end = time.thread_time()
+        cpu[c][j] += end - t
+        if split is not None:
+            split.add("pairs", end - pairs)
         for other in range(len(groups[c])):
             if other != j:
                 waiting[c][other] += peer
@@ -574,8 +582,68 @@ def in_process(
         print(f"  {n} engine(s): CPU s per data s {each}")
         if n != counts[0]:
             print(f"    busiest {max(spent) / one:.2f}x, total {sum(spent) / one:.2f}x one engine's")
+        if split is not None:
+            split.report(counts.index(n), spent, one)
         for _, engine in group:
             engine.close()
+    if split is not None:
+        split.close()
+
+
+class Breakdown:
+    """``--breakdown``: each engine's CPU split by what it was for, as shares of one engine's
+    whole CPU (the first count's): tracking its radars' batches, its pairs' correlation (the
+    pair updates and decisions, and encoding their pair sets), taking what the other workers
+    send (decoding and applying their track states, links, rows and progress), and the rest
+    (each table's bookkeeping in the correlation stage, the merge, the picture and the biases,
+    publication).  It times the
+    engine's own functions from outside (wrapped here, for the run); the rest is what they
+    leave of the engine's thread time."""
+
+    WRAPPED: tuple[tuple[str, str, str, str], ...] = (
+        ("tracking", "service.pipeline.tracking_stage", "TrackingStage", "update"),
+        ("pairs", "service.correlation.correlator", "PairCorrelator", "update"),
+        ("pairs", "service.correlation.correlator", "PairCorrelator", "decide_new"),
+        ("from the others", "service.pipeline.peers", "Peers", "ingest"),
+    )
+    KINDS = ("tracking", "pairs", "from the others")
+
+    def __init__(self) -> None:
+        import importlib
+
+        self.engine = (0, 0)
+        self.spent: dict[tuple[int, int], dict[str, float]] = defaultdict(
+            lambda: dict.fromkeys(self.KINDS, 0.0)
+        )
+        self._restore: list[tuple[Any, str, Any]] = []
+        for kind, module, cls_name, name in self.WRAPPED:
+            cls = getattr(importlib.import_module(module), cls_name)
+            self._restore.append((cls, name, getattr(cls, name)))
+            setattr(cls, name, self._timed(kind, getattr(cls, name)))
+
+    def _timed(self, kind: str, f: Any) -> Any:
+        def timed(*a: Any, **k: Any) -> Any:
+            t = time.thread_time()
+            try:
+                return f(*a, **k)
+            finally:
+                self.add(kind, time.thread_time() - t)
+
+        return timed
+
+    def add(self, kind: str, seconds: float) -> None:
+        self.spent[self.engine][kind] += seconds
+
+    def report(self, c: int, spent: list[float], one: float) -> None:
+        for j, total in enumerate(spent):
+            parts = self.spent[(c, j)]
+            rest = total - sum(parts.values())
+            shares = ", ".join(f"{k} {v / one:.3f}" for k, v in (*parts.items(), ("rest", rest)))
+            print(f"    engine {j + 1}: {shares} of one engine's CPU")
+
+    def close(self) -> None:
+        for cls, name, f in self._restore:
+            setattr(cls, name, f)
 
 
 def main() -> None:
@@ -616,6 +684,12 @@ def main() -> None:
         "--in-process",
         action="store_true",
         help="the engines alone, side by side in this process: their division free of the machine's drift",
+    )
+    p.add_argument(
+        "--breakdown",
+        action="store_true",
+        help="with --in-process: each engine's CPU by what it was for (tracking, its pairs, what "
+        "the other workers send, the rest)",
     )
     p.add_argument("--cache", type=Path, help="keep the generated stream in this file")
     p.add_argument(
