@@ -42,7 +42,8 @@ def publish_scenario(
     every :data:`SITE_REPEAT_BATCHES` plot batches).  A repeated site equals the one the
     service holds, which changes nothing there (docs/contract.md, RadarSite).  ``loop``:
     the scenario over and over without end (:func:`generate_looped`).  ``last_times``, when
-    given, gets each input key's last data time (what a service can be complete through).
+    given, gets each input key's last data time as its batch says it (what a service can be
+    complete through).
 
     Returns ``(batches, plots)`` published.  Publishers block under congestion rather than
     drop, so a slow service slows the simulator instead of losing data.
@@ -75,7 +76,10 @@ def publish_scenario(
         key = keys.input(msg.kind, msg.radar_id)
         session.put(key, payload, encoding=enc, congestion_control=block)
         if last_times is not None:
-            last_times[key] = msg.time_s
+            # the batch's own time_s (what the service reads; a radar's time-stamp bias moves it
+            # off the true time the message is paced by)
+            stamped = msg.body.get("time_s")
+            last_times[key] = float(stamped) if isinstance(stamped, (int, float)) else msg.time_s
         if msg.kind != "plots":
             continue
         batches += 1
