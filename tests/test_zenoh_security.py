@@ -33,7 +33,7 @@ import zenoh
 
 from service.engine import EngineConfig
 from service.pipeline.partition import Partition
-from service.transport.node import UNCONDITIONAL_PUTS, ServiceNode
+from service.transport.node import ServiceNode
 from service.transport.session import ZenohOptions
 from service.wire.keys import Keys
 from tests.scenario_helpers import scenario_messages
@@ -490,12 +490,15 @@ def test_service_serves_radars_through_the_secured_router(net: Network, count: i
             if r.ok is not None
         ]
         assert set(heard) == {"A", "B"}, heard
-        # The service puts a TrackBatch per batch, far more than a new publisher puts before
-        # it has heard of a subscriber (UNCONDITIONAL_PUTS): hearing more proves the router told
-        # the service of the operator's subscriber. (Outputs are put with congestion control
-        # DROP, so a loaded machine may lose a few: the test does not count on every one.)
-        assert min(batches.values()) > UNCONDITIONAL_PUTS
-        wait_for(
-            lambda: all(len(tracks.payloads(KEYS.tracks(rid))) > UNCONDITIONAL_PUTS for rid in "AB"),
-            timeout=WAIT_S,
-        )
+
+        # The router told the service of the operator's subscriber: the publisher of each
+        # radar's TrackBatches matches it (a new publisher puts its first outputs whatever its
+        # matching status says, so the outputs heard alone would not prove it), and the
+        # operator hears them. (Outputs are put with congestion control DROP, so a loaded
+        # machine may lose a few: the test does not count on every one.)
+        def matched(rid: str) -> bool:
+            pubs = [n._publishers.get(KEYS.tracks(rid)) for n in nodes]
+            return any(p is not None and p[0].matching_status.matching for p in pubs)
+
+        wait_for(lambda: all(matched(rid) for rid in "AB"), timeout=WAIT_S)
+        wait_for(lambda: all(tracks.payloads(KEYS.tracks(rid)) for rid in "AB"), timeout=WAIT_S)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+import time
 from typing import Any
 
 import zenoh
@@ -23,6 +24,10 @@ log = logging.getLogger(__name__)
 _STOP = object()
 #: Puts a new publisher makes before trusting its matching status (see :meth:`Publisher._put`).
 UNCONDITIONAL_PUTS = 8
+#: ... and for how long (wall s) after it is declared, however many: a backlog taken at start
+#: puts dozens of outputs on a new key within milliseconds, before its matching status has
+#: heard of the subscribers that were there all along.
+UNCONDITIONAL_S = 2.0
 #: Most output publishers held; the least recently used beyond goes (``_bound_publishers``).
 #: A national network's worker puts on about a hundred keys (tracks, pairs, system tracks).
 MAX_PUBLISHERS = 1_024
@@ -37,7 +42,7 @@ class Publisher:
         self.max_publishers = max_publishers
         self.outbox: queue.Queue[Any] = queue.Queue(maxsize=outbox_size)
         self.session: zenoh.Session | None = None
-        self.publishers: dict[str, list[Any]] = {}  # key -> [publisher, unconditional puts left]
+        self.publishers: dict[str, list[Any]] = {}  # key -> [publisher, unconditional puts left, until]
         self._thread: threading.Thread | None = None
 
     def start(self, session: zenoh.Session) -> None:
@@ -59,7 +64,7 @@ class Publisher:
             except queue.Full:
                 log.error("stop: the publisher is %d outputs behind; not waiting", self.outbox.qsize())
             self._thread.join(timeout_s)
-        for pub, _ in self.publishers.values():
+        for pub, *_ in self.publishers.values():
             try:
                 pub.undeclare()
             except Exception:  # already gone with the session
@@ -77,8 +82,9 @@ class Publisher:
         """Put each output whose key has a subscriber (an output nobody hears is never encoded).
 
         A new publisher learns of the subscribers that already exist a round trip after it is
-        declared, so its first ``UNCONDITIONAL_PUTS`` outputs are put whatever its matching
-        status says; errors are always put.
+        declared, so its first ``UNCONDITIONAL_PUTS`` outputs, and every output of its first
+        ``UNCONDITIONAL_S`` seconds, are put whatever its matching status says; errors are
+        always put.
         """
         session = self.session
         if session is None:
@@ -99,10 +105,10 @@ class Publisher:
                         if peer
                         else zenoh.CongestionControl.DROP,
                     )
-                    entry = [pub, UNCONDITIONAL_PUTS]
+                    entry = [pub, UNCONDITIONAL_PUTS, time.monotonic() + UNCONDITIONAL_S]
                 self.publishers[msg.key] = entry
-                pub, fresh = entry
-                if errors or fresh > 0 or pub.matching_status.matching:
+                pub, fresh, until = entry
+                if errors or fresh > 0 or time.monotonic() < until or pub.matching_status.matching:
                     entry[1] = fresh - 1
                     payload = msg.payload
                     # (a frame is no JSON: its numbers are raw bytes, docs/contract.md "Scale-out")
