@@ -10,7 +10,9 @@ publish:
   datagram does not matter), later ones wait for the next message.  A radar that sends no
   CAT034 at all has its plots cut into batches of ``max_batch_s`` of data time.
 * **CAT021** ADS-B reports become ``AdsbBatch`` messages of one source (``adsb_source_id``),
-  one per ``adsb_batch_s`` of data time.
+  one per ``adsb_batch_s`` of the bridge's clock (below; the data's own: of the reports'
+  times): each holds the reports held up to that clock, a report stamped ahead of it (within
+  the tolerance) waits for the batch of its time, and a batch's time never goes back.
 * Heights: a 3-D radar's measured height (I048/110, above mean sea level) is taken as
   ``altitude_m``: the geoid lies within about 100 m of the WGS-84 ellipsoid, well inside a
   radar's height error at range.  Without it, the flight level (I048/090, barometric) is
@@ -60,7 +62,14 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from service.asterix.decode import Cat021Report, Cat048Report, Decoded
-from service.wire.models import MAX_BATCH_ITEMS, MAX_FLIGHT_LEVEL, MIN_FLIGHT_LEVEL, RadarSite
+from service.wire.models import (
+    MAX_ALTITUDE_M,
+    MAX_BATCH_ITEMS,
+    MAX_FLIGHT_LEVEL,
+    MIN_ALTITUDE_M,
+    MIN_FLIGHT_LEVEL,
+    RadarSite,
+)
 
 #: Seconds in a day (ASTERIX time of day wraps at UTC midnight).
 DAY_S = 86_400.0
@@ -206,6 +215,10 @@ class AsterixBridge:
         self._adsb: dict[str, list[Any]] = {n: [] for n in _ADSB_COLUMNS}
         self._adsb_seq = 0
         self._adsb_start: float | None = None
+        #: The latest ADS-B batch's time (a batch's time never goes back), and the latest
+        #: report time taken (the data's own clock of the batches).
+        self._adsb_last_s = -math.inf
+        self._adsb_seen_s = -math.inf
         self._adsb_lost = False
         #: Plots and ADS-B reports held now (all sources).
         self.held = 0
@@ -242,6 +255,10 @@ class AsterixBridge:
                 self.unusable["cat048_no_position"] += 1
             elif r.tod_s is None:
                 self.unusable["cat048_no_time"] += 1
+            elif not r.tod_s < DAY_S:  # (the 24-bit item holds up to 36 h; a day has 24)
+                self.unusable["cat048_bad_time"] += 1
+            elif r.test_target:  # a radar's own test transponder, not an aircraft
+                self.unusable["cat048_test_target"] += 1
             else:
                 plots.append((radar, r, r.tod_s, r.theta_deg))
         reports: list[tuple[Cat021Report, float]] = []
@@ -252,6 +269,8 @@ class AsterixBridge:
                 self.unusable["cat021_no_position"] += 1
             elif a.tod_s is None:
                 self.unusable["cat021_no_time"] += 1
+            elif not a.tod_s < DAY_S:
+                self.unusable["cat021_bad_time"] += 1
             elif not (-90.0 <= a.latitude_deg <= 90.0 and -180.0 <= a.longitude_deg <= 180.0):
                 self.unusable["cat021_no_position"] += 1
             else:
@@ -265,6 +284,8 @@ class AsterixBridge:
                 self.unusable["cat034_unknown_source"] += 1
             elif msg.tod_s is None:
                 self.unusable["cat034_no_time"] += 1
+            elif not msg.tod_s < DAY_S:
+                self.unusable["cat034_bad_time"] += 1
             else:
                 sectors.append((radar, msg.tod_s))
         cats = ["cat048"] * len(plots) + ["cat021"] * len(reports) + ["cat034"] * len(sectors)
@@ -276,7 +297,7 @@ class AsterixBridge:
                 self._plot(radar, r, theta, t)
         for (a, _), t in zip(reports, times[n:m], strict=True):
             if t is not None:
-                self._adsb_report(a, t, out)
+                self._adsb_report(a, t, reference_s, out)
         for (radar, _), t in zip(sectors, times[m:], strict=True):
             if t is not None:
                 out += self._sector(radar, t)
@@ -374,7 +395,7 @@ class AsterixBridge:
         fl = r.flight_level
         if fl is not None and not (MIN_FLIGHT_LEVEL <= fl <= MAX_FLIGHT_LEVEL):
             fl = None  # outside what I048/090 may validly hold: a garbled code
-        alt = r.height_m
+        alt = self._height(r.height_m, "cat048_bad_height")
         if alt is None and fl is not None and self.params.altitude_from_fl:
             alt = fl * FL_M
         pending = self._pending.get(radar)
@@ -395,6 +416,14 @@ class AsterixBridge:
         self.used["cat048"] += 1
         self.fed.add(radar)
 
+    def _height(self, height_m: float | None, cause: str) -> float | None:
+        """A measured height, or None (counted by ``cause``) beyond the heights the contract
+        takes: the record is used without it, where the value would cost its whole batch."""
+        if height_m is not None and not (MIN_ALTITUDE_M <= height_m <= MAX_ALTITUDE_M):
+            self.unusable[cause] += 1
+            return None
+        return height_m
+
     def _sector(self, radar: str, t: float) -> list[Message]:
         pending = self._pending.get(radar)
         if pending is None:
@@ -403,18 +432,25 @@ class AsterixBridge:
         self.fed.add(radar)
         return self._cut(radar, pending, t)
 
-    def _adsb_report(self, r: Cat021Report, t: float, out: list[Message]) -> None:
+    def _adsb_report(self, r: Cat021Report, t: float, reference_s: float | None, out: list[Message]) -> None:
+        """A report of time ``t``: the batch held goes out once the bridge's clock has moved
+        ``adsb_batch_s`` on since it began.  The clock is the capture's time stamp or the wall
+        clock (``reference_s``), so that one report stamped ahead holds no batch open; without
+        one, the data's own: the latest report time taken."""
+        self._adsb_seen_s = max(self._adsb_seen_s, t)
+        now = reference_s if reference_s is not None else self._adsb_seen_s
+        full = len(self._adsb["time_s"]) >= MAX_BATCH_ITEMS
         if self._adsb_start is None:
-            self._adsb_start = t
-        elif t - self._adsb_start >= self.params.adsb_batch_s or len(self._adsb["time_s"]) >= MAX_BATCH_ITEMS:
-            out += self._send_adsb()
-            self._adsb_start = t
+            self._adsb_start = min(t, now)  # (a batch begins at its first report, if not ahead)
+        elif now - self._adsb_start >= self.params.adsb_batch_s or full:
+            out += self._send_adsb(now)
+            self._adsb_start = min(t, now)
         cols = self._adsb
         cols["time_s"].append(t)
         cols["icao24"].append(r.icao24)
         cols["latitude_deg"].append(r.latitude_deg)
         cols["longitude_deg"].append(r.longitude_deg)
-        cols["altitude_m"].append(r.geometric_height_m)
+        cols["altitude_m"].append(self._height(r.geometric_height_m, "cat021_bad_height"))
         fl = r.flight_level
         if fl is not None and not (MIN_FLIGHT_LEVEL <= fl <= MAX_FLIGHT_LEVEL):
             fl = None  # outside what I021/145 may validly hold: a garbled level
@@ -488,19 +524,29 @@ class AsterixBridge:
             )
         ]
 
-    def _send_adsb(self) -> list[Message]:
-        cols = self._adsb
+    def _send_adsb(self, now: float = math.inf) -> list[Message]:
+        """The ADS-B reports held up to the clock ``now`` as one batch (those stamped after it
+        wait for a later one); its time is the latest report's, and never goes back."""
+        held = self._adsb
+        if not held["time_s"]:
+            return []
+        take = [i for i, x in enumerate(held["time_s"]) if x <= now]
+        if len(take) == len(held["time_s"]):
+            cols, self._adsb = held, {n: [] for n in _ADSB_COLUMNS}
+        else:
+            cols = _only(held, take)
+            self._adsb = _only(held, [i for i, x in enumerate(held["time_s"]) if x > now])
         if not cols["time_s"]:
             return []
-        self._adsb = {n: [] for n in _ADSB_COLUMNS}
         self.held -= len(cols["time_s"])
         self._adsb_seq += 2 if self._adsb_lost else 1
         self._adsb_lost = False
         reports = {n: c for n, c in cols.items() if n not in _ADSB_OPTIONAL or any(x is not None for x in c)}
+        self._adsb_last_s = max(self._adsb_last_s, *cols["time_s"])
         body = {
             "source_id": self.params.adsb_source_id,
             "seq": self._adsb_seq,
-            "time_s": max(cols["time_s"]),
+            "time_s": self._adsb_last_s,
             "reports": reports,
         }
         self.sent["adsb"] += 1

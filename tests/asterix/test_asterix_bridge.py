@@ -147,3 +147,52 @@ def test_adsb_reports_become_batches_of_one_source() -> None:
 def test_two_radars_with_one_sac_sic_are_refused() -> None:
     with pytest.raises(ValueError, match="SAC/SIC 25/11"):
         AsterixBridge([*SITES, RadarSite(radar_id="R9", latitude_deg=1.0, longitude_deg=1.0, sac=25, sic=11)])
+
+
+def test_a_height_beyond_the_contract_costs_its_record_the_height_not_its_batch_the_record() -> None:
+    """I048/110 and I021/140 can hold heights of -62 km: such a height is left out (counted),
+    the record used without it, so that the service takes the batch it is in."""
+    bridge = AsterixBridge(SITES, clock=DayClock(MIDNIGHT))
+    (msg,) = bridge.feed(
+        decoded(plot(100.0, height_m=-62_000.0), plot(100.5, height_m=9_000.0), sector(101.0))
+    )
+    assert PlotBatch.model_validate(msg.body).plots.altitude_m == [None, 9_000.0]
+    a = Cat021Report(25, 1, 100.0, "3c6444", 48.1, 2.1, -62_000.0, 330.0)
+    assert bridge.feed(decoded(a, a._replace(icao24="3c6445", geometric_height_m=10_000.0))) == []
+    (msg,) = bridge.flush()
+    assert AdsbBatch.model_validate(msg.body).reports.altitude_m == [None, 10_000.0]
+    assert bridge.unusable == {"cat048_bad_height": 1, "cat021_bad_height": 1}
+
+
+def test_test_targets_and_times_of_day_past_a_day_are_left_out() -> None:
+    bridge = AsterixBridge(SITES, clock=DayClock(MIDNIGHT))
+    test_target = plot(100.2, test_target=True)  # the radar's own test transponder
+    past = plot(DAY_S + 100.3)  # the 24-bit item holds up to 36 h; a day has 24
+    (msg,) = bridge.feed(decoded(plot(100.0), test_target, past, sector(101.0)))
+    assert msg.body["plots"]["time_s"] == [MIDNIGHT + 100.0]
+    late = Cat021Report(25, 1, DAY_S + 5.0, "3c6444", 48.1, 2.1, None, 330.0)
+    assert bridge.feed(decoded(late, Cat034Message(25, 11, 2, DAY_S + 102.0, 90.0))) == []
+    assert bridge.unusable == {
+        "cat048_test_target": 1,
+        "cat048_bad_time": 1,
+        "cat021_bad_time": 1,
+        "cat034_bad_time": 1,
+    }
+
+
+def test_an_adsb_report_stamped_ahead_holds_no_batch_open() -> None:
+    """One report 25 s ahead of the capture's clock (inside the 30 s tolerance): the batches go
+    on every second, and the report goes out in the batch of its own time."""
+    bridge = AsterixBridge(SITES, BridgeParams(adsb_batch_s=1.0), DayClock(MIDNIGHT))
+    batches = []
+    for k in range(40):
+        now = MIDNIGHT + 100.0 + k
+        reports = [Cat021Report(25, 1, 99.5 + k, "3c6444", 48.1, 2.1, None, 330.0)]
+        if k == 2:
+            reports.append(reports[0]._replace(icao24="3c6445", tod_s=127.0))
+        batches += [AdsbBatch.model_validate(m.body) for m in bridge.feed(decoded(*reports), now)]
+    assert len(batches) == 39  # one a second (the last still held)
+    times = [b.time_s for b in batches]
+    assert times == sorted(times) and times[0] == MIDNIGHT + 99.5
+    ahead = [b for b in batches if "3c6445" in b.reports.icao24]
+    assert len(ahead) == 1 and ahead[0].time_s == MIDNIGHT + 127.0
