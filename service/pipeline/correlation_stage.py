@@ -213,6 +213,9 @@ class CorrelationStage:
         self._track_keys: dict[str, TrackKeys] = {}
         self._references: dict[str, ReferenceTracks] = {}
         self._silent: set[str] = set()
+        #: The latest data time released to the stage (a radar's table or a reference batch):
+        #: the end of the input, where the last picture is drawn.
+        self._clock_s = -np.inf
         #: Other workers' pairs (the bias worker of a partitioned network).
         self.mirrors: dict[tuple[str, str], MirroredPair] = {}
         #: Rows the owned pairs added since :meth:`take_rows` (partitioned, not the bias worker).
@@ -244,6 +247,7 @@ class CorrelationStage:
             refs = self._references[source_id] = ReferenceTracks(self.reference_params, kind)
         refs.add(report_time_s, ids, latitude_deg, longitude_deg, altitude_m, time_s)
         self._silent.discard(source_id)
+        self._clock_s = max(self._clock_s, time_s)
 
     def silent(self, source_id: str) -> None:
         """A reference source expired: it is offered to no radar until it reports again."""
@@ -359,6 +363,7 @@ class CorrelationStage:
         decide its newly confirmed tracks with every other partner at once."""
         before = self._radars.get(radar_id)
         change_radars(self._radars, "radar", (radar_id, geometry, table))
+        self._clock_s = max(self._clock_s, time_s)
         me = Source(radar_id, geometry, lambda t: table, int(np.count_nonzero(table.confirmed)))
         fresh = _newly_confirmed(before[1] if before is not None else None, table, self._keys_of(radar_id))
         return self.update(me, self._partners(radar_id), time_s, fresh)
@@ -500,12 +505,16 @@ class CorrelationStage:
         self.system.through(time_s)
 
     def finish(self) -> None:
-        """End of the input: the joint bias estimate at the last update's data time."""
+        """End of the input: the joint bias estimate at the last update's data time, and the
+        system tracks at the last release's."""
         times = [c.time_s for c in self.pair_correlators.values() if np.isfinite(c.time_s)]
         times += [float(m.memory.time[-1]) for m in self.mirrors.values() if len(m.memory)]
         if times and self._solves:
             self._solve_biases(max(times))
-        self.system.finish(self._picture(max(times), LAST) if times else None)
+        # the last picture at the end of the input, never before the pictures drawn on the way
+        # (none when nothing was released since the start: a restart without input)
+        clock = self._clock_s
+        self.system.finish(self._picture(clock, LAST) if np.isfinite(clock) else None)
 
     def _solve_biases(self, time_s: float) -> None:
         # Warm-started from the previous solve: the rows changed little since, so one or two

@@ -95,8 +95,9 @@ def test_the_fused_state_is_bias_compensated(run: tuple[Engine, Truth]) -> None:
         if len(label) != 1 or None in label:
             continue
         icao = identity_of(label.pop())[1]
-        a, b = truth_pos[(icao, int(np.floor(when)))], truth_pos[(icao, int(np.floor(when)) + 1)]
-        true = a + (b - a) * (when - np.floor(when))
+        k, frac = int(np.floor(when)), when - np.floor(when)
+        a = truth_pos[(icao, k)]  # (the last picture is at the input's end: no second after it)
+        true = a if frac == 0 else a + (truth_pos[(icao, k + 1)] - a) * frac
         fused.append(np.linalg.norm(np.array(s["position_ecef_m"]) - true))
         for m in s["members"]:
             table = snap.tracks[m["radar_id"]][1]
@@ -146,3 +147,14 @@ def test_system_tracks_over_zenoh_and_http(router: str, client: zenoh.Session) -
             SystemTrackBatch.model_validate_json(received[-1])
         finally:
             sub.undeclare()
+
+
+def test_the_picture_at_the_end_of_the_input_never_steps_back_in_data_time() -> None:
+    """The pictures go forward in data time, and the one drawn at the end of the input (a
+    replay's end, a stop) is of the last release: not of the last pair update, before it."""
+    stream, _ = three_radar(61.0)
+    _, out = run_engine(stream)
+    times = [json.loads(o.payload)["time_s"] for o in out if o.key == "fusion/system/tracks"]
+    last_batch = max(json.loads(p)["time_s"] for k, p in stream if k.endswith("/plots"))
+    assert len(times) > 10 and times == sorted(times)
+    assert times[-1] == last_batch
