@@ -52,6 +52,21 @@ def _bad_inputs(tmp_path: Path) -> dict[str, tuple[list[str], list[str]]]:
             [f"the directory {missing} does not exist"],
         ),
         "record into a directory": (["record", "--out", str(tmp_path)], [f"--out {tmp_path} is a directory"]),
+        "replay --offline --out into a missing directory": (
+            ["replay", str(tmp_path / "gone.mcap"), "--offline", "--out", str(missing / "result.json")],
+            [f"--out {missing / 'result.json'}: the directory {missing} does not exist"],
+        ),
+        "run with a port beyond 65535": (
+            ["run", "--http-port", "99999"],
+            [
+                "invalid setting http_port (TOPOFUSION_HTTP_PORT): Input should be less than",
+                "65535, got 99999",
+            ],
+        ),
+        "replay --compare without --offline": (
+            ["replay", str(tmp_path / "gone.mcap"), "--compare"],
+            ["--compare is for --offline"],
+        ),
         "asterix --file missing": (
             ["asterix", "--sites", str(tmp_path / "sites.json"), "--file", str(tmp_path / "gone.pcap")],
             ["gone.pcap: cannot read the file: No such file or directory"],

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import math
-import os
 import sys
 import threading
 import time
@@ -32,6 +31,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from service.output_files import check_writable
 from service.recording.completion import RecordingEnd, service_statuses, wait_for_outputs
 from topofusion_lab.scenarios.simulator import AdsbSpec, Scenario, generate, generate_looped
 
@@ -58,13 +58,7 @@ def say(line: str) -> None:
 
 def _writable_file(path: Path, flag: str) -> None:
     """A file the command will create: refuse now, before any connection, if it cannot be."""
-    if path.is_dir():
-        raise ValueError(f"{flag} {path}: is a directory")
-    parent = path.parent
-    if not parent.is_dir():
-        raise ValueError(f"{flag} {path}: the directory {parent} does not exist")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise ValueError(f"{flag} {path}: the directory {parent} is not writable")
+    check_writable(path, flag)
 
 
 def check_arguments(args: argparse.Namespace) -> None:

@@ -24,7 +24,6 @@ import argparse
 import datetime as dt
 import gc
 import math
-import os
 import sys
 import threading
 import time
@@ -40,6 +39,7 @@ from service.asterix.capture import CaptureError, Datagram, read_datagrams
 from service.asterix.cat062 import Cat062Track, encode_cat062_blocks
 from service.asterix.decode import Decoded, decode_datagram
 from service.asterix.udp import FairQueue, UdpEndpoint, UdpReceiver, parse_endpoint
+from service.output_files import check_writable
 from service.wire.keys import Keys
 from service.wire.models import RadarSite
 
@@ -610,14 +610,7 @@ def _outputs_complete(
 
 def _check_writable(path: Path) -> None:
     """A file the bridge will write: refused now, before any connection, if it cannot be."""
-    if path.is_dir():
-        raise ValueError(f"asterix: --out-file {path}: is a directory")
-    if path.exists() and not os.access(path, os.W_OK):
-        raise ValueError(f"asterix: --out-file {path}: not writable")
-    if not path.parent.is_dir():
-        raise ValueError(f"asterix: --out-file {path}: the directory {path.parent} does not exist")
-    if not path.exists() and not os.access(path.parent, os.W_OK | os.X_OK):
-        raise ValueError(f"asterix: --out-file {path}: the directory {path.parent} is not writable")
+    check_writable(path, "asterix: --out-file")
 
 
 def _lost(c: Counter[str]) -> str:

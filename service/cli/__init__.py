@@ -48,8 +48,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             setup_logging(os.environ.get("TOPOFUSION_LOG_LEVEL", "INFO"))
         return int(args.handler(args))
     except ValidationError as exc:
-        print(f"topofusion: invalid setting: {exc}", file=sys.stderr)
+        print(f"topofusion: {invalid_settings(exc)}", file=sys.stderr)
         return 2
     except (ValueError, OSError, RuntimeError) as exc:  # ConfigError is a ValueError
         print(f"topofusion: {exc}", file=sys.stderr)
         return 2
+
+
+def invalid_settings(exc: ValidationError) -> str:
+    """A settings error on one line: each setting with its variable, what it must be, what it
+    was (pydantic's own text spans several lines and a link)."""
+    parts = []
+    for e in exc.errors(include_url=False):
+        loc = ".".join(str(p) for p in e["loc"])
+        name = f"{loc} (TOPOFUSION_{loc.upper()})" if exc.title == "Settings" and loc else loc or exc.title
+        parts.append(f"{name}: {e['msg']}, got {e.get('input')!r}")
+    return "invalid setting " + "; ".join(parts)

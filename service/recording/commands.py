@@ -10,7 +10,6 @@ import argparse
 import contextlib
 import functools
 import json
-import os
 import signal
 import sys
 import threading
@@ -20,6 +19,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from service.output_files import check_writable
 from service.recording.completion import RecordingEnd, service_statuses, wait_for_outputs
 from service.recording.reader import RecordedMessage, RecordingError
 from service.recording.recorder import DEFAULT_QUEUE_BYTES, DEFAULT_QUEUE_SAMPLES, record
@@ -174,14 +174,7 @@ def record_main(
 
 def _check_output(path: Path) -> None:
     """Raise ValueError (the command's exit status 2) unless ``path`` can be written."""
-    if path.is_dir():
-        raise ValueError(f"record: --out {path} is a directory; give a file name, e.g. {path / 'run.mcap'}")
-    if not path.parent.is_dir():
-        raise ValueError(f"record: --out {path}: the directory {path.parent} does not exist")
-    if path.exists() and not os.access(path, os.W_OK):
-        raise ValueError(f"record: --out {path}: the file exists and is not writable")
-    if not path.exists() and not os.access(path.parent, os.W_OK | os.X_OK):
-        raise ValueError(f"record: --out {path}: the directory {path.parent} is not writable")
+    check_writable(path, "record: --out")
 
 
 def _replay_options(args: argparse.Namespace) -> ReplayOptions:
@@ -226,9 +219,13 @@ def replay_main(
         if args.offline:
             if args.loop or args.all_keys:
                 raise ValueError("--offline feeds the inputs once: --loop and --all-keys do not apply")
+            if args.out is not None:
+                check_writable(Path(args.out), "--out")  # before the replay, not after it
             return _offline_main(args, prefix, options)
         if args.out is not None:
             raise ValueError("--out is for --offline (the result file); a Zenoh replay publishes instead")
+        if args.compare:
+            raise ValueError("--compare is for --offline (it compares an offline replay's result)")
         from service.recording.publisher import ZenohReplayPublisher
 
         preflight(args.file, prefix, options)  # a file that cannot be replayed is refused before connecting
