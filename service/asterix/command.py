@@ -41,7 +41,7 @@ from service.asterix.decode import Decoded, decode_datagram
 from service.asterix.udp import FairQueue, UdpEndpoint, UdpReceiver, parse_endpoint
 from service.output_files import check_writable
 from service.wire.keys import Keys
-from service.wire.models import RadarSite
+from service.wire.models import MAX_ALTITUDE_M, MAX_TIME_S, MIN_ALTITUDE_M, RadarSite
 
 #: The counters line is printed at most this often (wall s) while the bridge runs, and only when
 #: something changed (``--report-every``): often enough to watch a feed, rare enough for a log.
@@ -77,6 +77,9 @@ MAX_ORIGINS = 4096
 #: radar's plots as ``unknown_radar`` only until then); a site equal to the one a service holds
 #: changes nothing there.  A site is a few hundred bytes: a dozen radars cost under 1 kB/s.
 SITE_EVERY_S = 5.0
+#: A system track faster than this (m/s, any ECEF component) is no aircraft: its batch is refused
+#: rather than written (I062/185 holds +-8 192 m/s).
+MAX_SPEED_MPS = 10_000.0
 #: ``--wait`` (s): with a CAT062 output, how long the bridge waits after its inputs' end for the
 #: service to report its outputs complete through them (contract §5.1); a busy service is still
 #: working through its queue when the last message is sent.  As ``replay``'s.
@@ -329,10 +332,10 @@ class Cat062Writer:
         try:
             body = orjson.loads(payload)
             tracks = self.tracks_of(body)
-        except (ValueError, KeyError, TypeError):
-            self.bad += 1  # not a SystemTrackBatch: nothing written
+            blocks = encode_cat062_blocks(tracks, self.sac, self.sic)
+        except (ValueError, KeyError, TypeError, AttributeError, OverflowError):
+            self.bad += 1  # not a SystemTrackBatch the items can hold: nothing written
             return
-        blocks = encode_cat062_blocks(tracks, self.sac, self.sic)
         with self._lock:
             for b in blocks:
                 for addr in self._udp:
@@ -348,13 +351,28 @@ class Cat062Writer:
             self.blocks += len(blocks)
             self.tracks += len(tracks)
 
+    def summary(self) -> str:
+        refused = f"; {self.bad} system-track batches refused (not writable as CAT062)" if self.bad else ""
+        unsent = f"; {self.send_errors} datagrams not sent" if self.send_errors else ""
+        return f"{self.tracks} tracks in {self.blocks} data blocks{refused}{unsent}"
+
     def tracks_of(self, body: dict[str, Any]) -> list[Cat062Track]:
+        """The batch's tracks for CAT062; ValueError for one that is no system track (a
+        position off the globe, a speed or height no aircraft has: anyone may put on the key)."""
         time_s = float(body["time_s"])
+        if not 0.0 <= time_s <= MAX_TIME_S:
+            raise ValueError(f"time_s {time_s}")
         out = []
         seen: dict[str, float] = {}
         for t in body["system_tracks"]:
             tid = t["system_track_id"]
             seen[tid] = self._first.get(tid, time_s)
+            if not (-90.0 <= t["latitude_deg"] <= 90.0 and -180.0 <= t["longitude_deg"] <= 180.0):
+                raise ValueError(f"{tid}: position off the globe")
+            if not all(abs(v) <= MAX_SPEED_MPS for v in t["velocity_ecef_mps"]):
+                raise ValueError(f"{tid}: velocity")
+            if t["altitude_m"] is not None and not MIN_ALTITUDE_M <= t["altitude_m"] <= MAX_ALTITUDE_M:
+                raise ValueError(f"{tid}: altitude")
             lat, lon = math.radians(t["latitude_deg"]), math.radians(t["longitude_deg"])
             vx, vy, vz = t["velocity_ecef_mps"]
             east = -math.sin(lon) * vx + math.cos(lon) * vy
@@ -738,10 +756,7 @@ def asterix_main(
                     _outputs_complete(session, prefix, publisher, writer, args.wait)
                 out_sub.undeclare()
                 writer.close()
-                print(
-                    f"asterix: CAT062 out: {writer.tracks} tracks in {writer.blocks} data blocks",
-                    file=sys.stderr,
-                )
+                print(f"asterix: CAT062 out: {writer.summary()}", file=sys.stderr)
     finally:
         session.close()
     return 0

@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import orjson
 import pytest
 import zenoh
 from asterix import generated as gen
@@ -17,6 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from service.asterix.cat062 import Cat062Track, encode_cat062_blocks, encode_cat062_record
+from service.asterix.command import Cat062Writer
 from tests.asterix.test_asterix_service import bridge, output
 from tests.scenario_helpers import scenario_messages
 from tests.support import free_port, put_json, running_service, wait_for, wait_subscribed
@@ -151,3 +153,42 @@ def test_the_bridge_writes_the_service_s_system_tracks_as_cat062(
         assert pos.get_item("LON").variation.content.as_quantity("°") == pytest.approx(
             t["longitude_deg"], abs=1e-5
         )
+
+
+def test_the_writer_refuses_what_is_no_system_track_and_says_so(tmp_path: Path) -> None:
+    """Anyone may put on the system-track key: a position off the globe, a speed or height no
+    aircraft has, or no batch at all is refused whole and counted, never written nor raised."""
+
+    def batch(**track: Any) -> bytes:
+        t = {
+            "system_track_id": "S-1",
+            "status": "confirmed",
+            "latitude_deg": 48.0,
+            "longitude_deg": 2.0,
+            "altitude_m": 9_000.0,
+            "velocity_ecef_mps": [100.0, -50.0, 0.0],
+            "members": [{"radar_id": "A", "track_id": "A-1"}],
+        }
+        return orjson.dumps({"time_s": 1_763_769_600.0, "system_tracks": [{**t, **track}]})
+
+    out = tmp_path / "tracks.ast"
+    writer = Cat062Writer(0, 1, [], [], out)
+    try:
+        writer.write(batch())
+        good = out.read_bytes()
+        for hostile in (
+            batch(latitude_deg=1e300),
+            batch(velocity_ecef_mps=[1e308, 0.0, 0.0]),
+            batch(altitude_m=-1e9),
+            b"not json",
+            b'{"time_s": "T-x"}',
+        ):
+            writer.write(hostile)
+    finally:
+        writer.close()
+    assert out.read_bytes() == good and len(_decode_062(good)) == 1
+    assert writer.bad == 5
+    assert (
+        writer.summary()
+        == "1 tracks in 1 data blocks; 5 system-track batches refused (not writable as CAT062)"
+    )
