@@ -77,6 +77,8 @@ MAX_ORIGINS = 4096
 #: radar's plots as ``unknown_radar`` only until then); a site equal to the one a service holds
 #: changes nothing there.  A site is a few hundred bytes: a dozen radars cost under 1 kB/s.
 SITE_EVERY_S = 5.0
+#: The oldest track age I062/290 says (s): older tracks are said to be this old.
+MAX_TRACK_AGE_S = 63.75
 #: A system track faster than this (m/s, any ECEF component) is no aircraft: its batch is refused
 #: rather than written (I062/185 holds +-8 192 m/s).
 MAX_SPEED_MPS = 10_000.0
@@ -293,8 +295,9 @@ class Cat062Writer:
     """The service's system tracks (``{prefix}/system/tracks``) as CAT062, to UDP and/or a file.
 
     Each ``SystemTrackBatch`` becomes CAT062 data blocks of at most one datagram each
-    (:mod:`.cat062`).  Track ages count from when this writer first saw a track; member radars
-    with a SAC/SIC in the sites give I062/340's sensor.
+    (:mod:`.cat062`).  Track ages count from when this writer first saw a track (a track absent
+    from a batch or two keeps its age); member radars with a SAC/SIC in the sites give I062/340's
+    sensor.
     """
 
     def __init__(
@@ -309,7 +312,8 @@ class Cat062Writer:
 
         self.sac, self.sic = sac, sic
         self.sensor = {s.radar_id: (s.sac, s.sic) for s in sites if s.sac is not None and s.sic is not None}
-        self._first: dict[str, float] = {}
+        #: Each system track's first and latest time in a batch (its I062/290 age).
+        self._seen: dict[str, tuple[float, float]] = {}
         self._udp = [(e.host, e.port) for e in udp]
         self._sock = (
             socket.socket(
@@ -363,10 +367,10 @@ class Cat062Writer:
         if not 0.0 <= time_s <= MAX_TIME_S:
             raise ValueError(f"time_s {time_s}")
         out = []
-        seen: dict[str, float] = {}
+        seen = dict(self._seen)
         for t in body["system_tracks"]:
             tid = t["system_track_id"]
-            seen[tid] = self._first.get(tid, time_s)
+            seen[tid] = (seen.get(tid, (time_s, time_s))[0], time_s)
             if not (-90.0 <= t["latitude_deg"] <= 90.0 and -180.0 <= t["longitude_deg"] <= 180.0):
                 raise ValueError(f"{tid}: position off the globe")
             if not all(abs(v) <= MAX_SPEED_MPS for v in t["velocity_ecef_mps"]):
@@ -392,12 +396,14 @@ class Cat062Writer:
                     north_mps=north,
                     confirmed=t["status"] == "confirmed",
                     mono=len(t["members"]) == 1,
-                    age_s=min(time_s - seen[tid], 63.75),
+                    age_s=min(time_s - seen[tid][0], MAX_TRACK_AGE_S),
                     altitude_m=t["altitude_m"],
                     sensor=sensor,
                 )
             )
-        self._first = seen  # tracks gone are forgotten: memory bounded by the live tracks
+        # a track missing from a batch or two keeps its age; one gone longer than the age
+        # I062/290 can say is forgotten: memory bounded by the tracks of the last minute
+        self._seen = {k: v for k, v in seen.items() if v[1] >= time_s - MAX_TRACK_AGE_S}
         return out
 
     def close(self) -> None:

@@ -192,3 +192,31 @@ def test_the_writer_refuses_what_is_no_system_track_and_says_so(tmp_path: Path) 
         writer.summary()
         == "1 tracks in 1 data blocks; 5 system-track batches refused (not writable as CAT062)"
     )
+
+
+def test_a_track_missing_from_one_picture_keeps_its_age(tmp_path: Path) -> None:
+    def track(tid: str) -> dict[str, Any]:
+        return {
+            "system_track_id": tid,
+            "status": "confirmed",
+            "latitude_deg": 48.0,
+            "longitude_deg": 2.0,
+            "altitude_m": None,
+            "velocity_ecef_mps": [100.0, 0.0, 0.0],
+            "members": [{"radar_id": "A", "track_id": "A-1"}],
+        }
+
+    writer = Cat062Writer(0, 1, [], [], None)
+    t0 = 1_763_769_600.0
+    writer.tracks_of({"time_s": t0, "system_tracks": [track("S-1"), track("S-2")]})
+    writer.tracks_of({"time_s": t0 + 2, "system_tracks": [track("S-1")]})  # S-2 missing once
+    ages = {
+        t.number: t.age_s
+        for t in writer.tracks_of({"time_s": t0 + 4, "system_tracks": [track("S-1"), track("S-2")]})
+    }
+    assert ages == {1: 4.0, 2: 4.0}
+    writer.tracks_of({"time_s": t0 + 100, "system_tracks": [track("S-1")]})
+    later = writer.tracks_of({"time_s": t0 + 102, "system_tracks": [track("S-1"), track("S-3")]})
+    assert {t.number: t.age_s for t in later} == {1: 63.75, 3: 0.0}  # (the age item's most)
+    assert set(writer._seen) == {"S-1", "S-3"}  # S-2, gone a minute, forgotten
+    writer.close()
