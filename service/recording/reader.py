@@ -350,6 +350,12 @@ class RecordingReader:
 
     # -- messages -------------------------------------------------------------------------
 
+    def _damaged_chunk(self, last_time: int | None) -> int:
+        """Where an indexed read failed after ``last_time``: the start of the chunk it was
+        reading (the reader's own position is wherever its seeks left it, often the end)."""
+        found = _first_chunk_after(self._summary, last_time) if self._summary is not None else None
+        return found if found is not None else self._file.tell()
+
     def messages(
         self, channels: list[ChannelInfo], start_ns: int | None = None, end_ns: int | None = None
     ) -> Iterator[RecordedMessage]:
@@ -381,7 +387,7 @@ class RecordingReader:
             except Exception as exc:  # a damaged chunk: stop here and say where
                 after = f" after log time {last_time} ns" if last_time is not None else ""
                 self.damage = Damage(
-                    offset=self._file.tell(),
+                    offset=self._damaged_chunk(last_time),
                     file_bytes=self.file_bytes,
                     detail=f"unreadable chunk{after} ({type(exc).__name__}: {exc})",
                 )
@@ -395,6 +401,14 @@ class RecordingReader:
                 publish_time_ns=message.publish_time,
                 sequence=message.sequence,
             )
+
+
+def _first_chunk_after(summary: Summary, last_time: int | None) -> int | None:
+    """The start of the first chunk (by its messages' times) holding a message after
+    ``last_time`` (None: the first chunk): where an indexed read that stopped there failed."""
+    chunks = sorted(summary.chunk_indexes, key=lambda c: (c.message_start_time, c.chunk_start_offset))
+    later = [c for c in chunks if last_time is None or c.message_end_time > last_time]
+    return later[0].chunk_start_offset if later else None
 
 
 def select_channels(

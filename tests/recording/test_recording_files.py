@@ -227,3 +227,5 @@ def test_a_corrupt_chunk_in_a_complete_file_stops_there_and_says_so(tmp_path: Pa
     inputs = [p for k, p, _ in sent if k.endswith(("/site", "/plots"))]
     assert 0 < len(got) < len(inputs) and got == inputs[: len(got)]
     assert report.damage is not None and "unreadable chunk after log time" in report.damage
+    # where reading stopped: the damaged chunk's start (not the reader's last seek, the end)
+    assert f"damaged at byte {bad_chunk.chunk_start_offset} of {len(data)}" in report.damage
