@@ -530,12 +530,13 @@ class AsterixBridge:
         held = self._adsb
         if not held["time_s"]:
             return []
-        take = [i for i, x in enumerate(held["time_s"]) if x <= now]
+        take = [i for i, x in enumerate(held["time_s"]) if x <= now][:MAX_BATCH_ITEMS]
         if len(take) == len(held["time_s"]):
             cols, self._adsb = held, {n: [] for n in _ADSB_COLUMNS}
         else:
+            taken = set(take)
             cols = _only(held, take)
-            self._adsb = _only(held, [i for i, x in enumerate(held["time_s"]) if x > now])
+            self._adsb = _only(held, [i for i in range(len(held["time_s"])) if i not in taken])
         if not cols["time_s"]:
             return []
         self.held -= len(cols["time_s"])
@@ -558,6 +559,7 @@ class AsterixBridge:
         for radar, pending in self._pending.items():
             while pending.columns["time_s"]:  # more than one batch holds only past MAX_BATCH_ITEMS
                 out += self._cut(radar, pending, pending.last_s)
-        out += self._send_adsb()
+        while self._adsb["time_s"]:  # (more than one batch only past MAX_BATCH_ITEMS)
+            out += self._send_adsb()
         self._adsb_start = None
         return out

@@ -7,7 +7,7 @@ import pytest
 
 from service.asterix.bridge import DAY_S, FL_M, AsterixBridge, BridgeParams, DayClock
 from service.asterix.decode import Cat021Report, Cat034Message, Cat048Report, Decoded
-from service.wire.models import AdsbBatch, PlotBatch, RadarSite
+from service.wire.models import MAX_BATCH_ITEMS, AdsbBatch, PlotBatch, RadarSite
 
 MIDNIGHT = 1_700_006_400.0  # 2023-11-15T00:00:00Z
 assert MIDNIGHT % DAY_S == 0
@@ -196,3 +196,16 @@ def test_an_adsb_report_stamped_ahead_holds_no_batch_open() -> None:
     assert times == sorted(times) and times[0] == MIDNIGHT + 99.5
     ahead = [b for b in batches if "3c6445" in b.reports.icao24]
     assert len(ahead) == 1 and ahead[0].time_s == MIDNIGHT + 127.0
+
+
+def test_reports_held_past_a_batch_s_bound_go_out_in_batches_the_contract_takes() -> None:
+    bridge = AsterixBridge(SITES, BridgeParams(adsb_batch_s=1.0), DayClock(MIDNIGHT))
+    ahead = [
+        Cat021Report(25, 1, 110.0 + i * 1e-4, f"{i:06x}", 48.1, 2.1, None, 330.0)
+        for i in range(MAX_BATCH_ITEMS + 5)
+    ]
+    # stamped 10 s ahead of the capture's clock: held (none is due), however many
+    assert bridge.feed(decoded(*ahead), MIDNIGHT + 100.0) == []
+    batches = [AdsbBatch.model_validate(m.body) for m in bridge.flush()]
+    assert [len(b.reports.icao24) for b in batches] == [MAX_BATCH_ITEMS, 5]
+    assert batches[0].time_s <= batches[1].time_s
