@@ -15,6 +15,7 @@ of a router on a free loopback port, and raw connections and HTTP requests again
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import statistics
 import subprocess
@@ -28,6 +29,7 @@ import httpx
 import pytest
 
 from service.api.limits import PROBE_ROOM, HttpLimits, http_limits
+from service.api.server import MAX_HEAD_BYTES
 from service.settings import Settings
 from tests.http_service import Served, closed_by_peer, ensure_open_files, open_idle, served
 from tests.support import free_port, wait_for, zenoh_router
@@ -176,6 +178,32 @@ def test_keep_alive_and_trickled_request_heads_time_out(service: Served) -> None
         kept.close()
         if trickle is not None:
             trickle.close()
+
+
+def _answer(service: Served, head: bytes, piece: int) -> bytes:
+    """What the service answers ``head`` sent in writes of ``piece`` bytes (until it closes)."""
+    with socket.create_connection((service.host, service.port)) as conn:
+        conn.settimeout(10)
+        with contextlib.suppress(OSError):  # (a peer that closed early resets the rest)
+            for at in range(0, len(head), piece):
+                conn.sendall(head[at : at + piece])
+        answer = b""
+        with contextlib.suppress(OSError):
+            while chunk := conn.recv(65536):
+                answer += chunk
+    return answer
+
+
+@pytest.mark.parametrize("piece", [1 << 20, 1024], ids=["in one write", "in pieces"])
+def test_a_request_head_over_16_kib_is_refused_however_it_arrives(service: Served, piece: int) -> None:
+    def head(size: int) -> bytes:
+        start, end = b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Big: ", b"\r\nConnection: close\r\n\r\n"
+        return start + b"a" * (size - len(start) - len(end)) + end
+
+    assert _answer(service, head(MAX_HEAD_BYTES - 64), piece).startswith(b"HTTP/1.1 200")
+    for size in (MAX_HEAD_BYTES + 64, 4 * MAX_HEAD_BYTES):
+        answer = _answer(service, head(size), piece)
+        assert answer.startswith(b"HTTP/1.1 400"), (size, answer[:200])
 
 
 def test_requests_past_the_concurrency_limit_are_refused_but_probes_are_not(service: Served) -> None:

@@ -63,6 +63,23 @@ REFUSED = (
 )
 
 
+#: A request head over ``MAX_HEAD_BYTES`` is answered so, and its connection closed.
+_TOO_LARGE_BODY = b'{"detail":"request head larger than %d bytes"}' % MAX_HEAD_BYTES
+HEAD_TOO_LARGE = (
+    b"HTTP/1.1 400 Bad Request\r\ncontent-type: application/json\r\n"
+    + b"content-length: %d\r\nconnection: close\r\n\r\n" % len(_TOO_LARGE_BODY)
+    + _TOO_LARGE_BODY
+)
+
+
+def head_bytes(scope: dict[str, Any]) -> int:
+    """The size of a request head as it came: request line and headers, each line's CRLF."""
+    query = scope.get("query_string", b"")
+    target = len(scope.get("raw_path", b"")) + (len(query) + 1 if query else 0)
+    line = len(scope.get("method", "")) + target + len("  HTTP/1.1\r\n")
+    return line + sum(len(name) + len(value) + 4 for name, value in scope.get("headers", ())) + 2
+
+
 class ConnectionGuard:
     """The open connections of one server, and those waiting for a request head."""
 
@@ -144,6 +161,13 @@ class GuardedH11Protocol(H11Protocol):
         if cycle is not None and cycle is not self._seen_cycle:  # a request head came in whole
             self._seen_cycle = cycle
             self._stop_waiting()
+            if head_bytes(cast(dict[str, Any], self.scope)) > MAX_HEAD_BYTES:
+                # (h11's own bound holds only while a head is incomplete: one that came in
+                # whole in one read is measured here; the request is never answered)
+                cycle.disconnected = True
+                self.transport.write(HEAD_TOO_LARGE)
+                self.close_now()
+                return
             self._closing = asyncio.Event()
             scope = cast(dict[str, Any], self.scope)
             scope.setdefault("extensions", {})[CONNECTION_EXTENSION] = {
