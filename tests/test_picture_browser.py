@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 from html.parser import HTMLParser
 from pathlib import Path
 from typing import Any
-from urllib.parse import urljoin, urlsplit
+from urllib.parse import parse_qs, urljoin, urlsplit
 
 import pytest
 
@@ -685,6 +685,19 @@ def test_coastline_layer_is_drawn_from_the_service(live: Live, page: browser.Pag
     )
     page.wait("document.getElementById('basemap-land').getAttribute('d') === ''", what="land hidden")
     assert search(page)["hide"] == "basemap"
+
+
+@needs_chromium
+def test_a_feed_cap_the_page_cannot_use_is_its_default(live: Live, page: browser.Page) -> None:
+    """``max_items`` in the address goes to the feed only as a whole number the feed takes
+    (above its largest: its largest): a value the feed refuses left the page without a feed."""
+    svc = live.service
+    for query, sent in (("abc", None), ("-1", None), ("2.5", None), ("50000", "20000"), ("5", "5")):
+        open_picture(page, svc, f"?max_items={query}")
+        feeds = [u for u in page.requested_urls() if "/picture/events" in u]
+        got = parse_qs(urlsplit(feeds[-1]).query).get("max_items")
+        assert got == (None if sent is None else [sent]), (query, feeds[-1])
+    assert page.console_errors(but_urls=PERFORMANCE) == []
 
 
 @needs_chromium

@@ -27,6 +27,14 @@
   };
   const RANGE_KM = positive(params.get("range_km"), 250);
   const LEADER_S = positive(params.get("leader_s"), 60);
+  // the feed's cap per kind: a whole number, at most the feed's largest (MAX_ITEMS_LIMIT of
+  // service/api/picture.py); anything else is the feed's default (a value the feed refuses
+  // would leave the page without a feed: a browser does not retry a refused one)
+  const MAX_ITEMS_LIMIT = 20000;
+  const MAX_ITEMS = (() => {
+    const x = Number(params.get("max_items"));
+    return params.has("max_items") && Number.isInteger(x) && x >= 1 ? Math.min(x, MAX_ITEMS_LIMIT) : null;
+  })();
   const EARTH_KM = 6371.0088;
   const RAD = Math.PI / 180;
   const KNOT_MPS = 1852 / 3600;
@@ -1179,7 +1187,7 @@
     if (state.source) state.source.close();
     state.feedStatus = feedStatus();
     const feed = new URLSearchParams({ status: state.feedStatus });
-    if (params.has("max_items")) feed.set("max_items", params.get("max_items"));
+    if (MAX_ITEMS !== null) feed.set("max_items", String(MAX_ITEMS));
     const source = new EventSource("picture/events?" + feed.toString());
     source.addEventListener("snapshot", (e) => take(JSON.parse(e.data)));
     source.onerror = () => connection("state-down", "reconnecting");
