@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -15,6 +16,7 @@ from pathlib import Path
 import httpx
 
 from service.transport.session import ZenohOptions, open_session
+from tests.doc_commands import PROCESS_S, started
 from tests.scenario_helpers import scenario_messages
 from tests.support import free_port, put_json, wait_for, wait_subscribed
 
@@ -167,3 +169,18 @@ def test_python_m_service_is_the_console_script() -> None:
         assert script.returncode == (2 if args == ["nosuch"] else 0), script.stderr
         if args == ["--help"]:
             assert "demo, simulate, evaluate: from topofusion-lab" in " ".join(script.stdout.split())
+
+
+def test_the_start_names_the_http_port_it_bound(tmp_path: Path) -> None:
+    """``--http-port 0`` picks a free port: the service's line says which (it said 0)."""
+    argv = [TOPOFUSION, "run", "--listen", f"tcp/127.0.0.1:{free_port()}", "--http-port", "0"]
+    with started(argv, tmp_path) as svc:
+        said = wait_for(
+            lambda: re.search(r"HTTP side port on http://127\.0\.0\.1:(\d+) ", svc.output()),
+            timeout=PROCESS_S,
+        )
+        port = int(said.group(1))
+        assert port > 0
+        assert httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=10).status_code == 200
+        svc.popen.send_signal(signal.SIGTERM)
+        assert svc.popen.wait(timeout=PROCESS_S) == 0, svc.output()

@@ -4,6 +4,7 @@ environment and flags, validated at start."""
 from __future__ import annotations
 
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -12,6 +13,7 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
+from service.cli.serve import api_token
 from service.config import ConfigError, EngineConfig, as_dict, engine_config_from, from_environment, load_file
 from service.engine import Engine
 from service.pipeline.partition import Partition
@@ -305,3 +307,18 @@ def test_a_partitioned_worker_runs_its_correlation_in_its_own_process_only_when_
     clean_env.delenv("TOPOFUSION_PARTITION")
     clean_env.setenv("TOPOFUSION_CORRELATION_PROCESS", "false")
     assert Settings.load().effective()["correlation_process"] is False
+
+
+def test_the_start_says_whether_the_http_port_asks_for_a_token(
+    clean_env: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO, logger="topofusion")
+    clean_env.setenv("TOPOFUSION_API_TOKEN", "")  # (compose's unset variable)
+    assert api_token(Settings.load()) is None
+    clean_env.setenv("TOPOFUSION_API_TOKEN", "s3cret")
+    assert api_token(Settings.load()) == "s3cret"
+    said = [r.getMessage() for r in caplog.records if r.name == "topofusion"]
+    assert said == [
+        "HTTP side port: no token asked (TOPOFUSION_API_TOKEN unset or empty)",
+        "HTTP side port: a bearer token is asked on every route but /healthz and /readyz",
+    ]

@@ -98,11 +98,18 @@ def serve(settings: Settings, hooks: Callable[[str], ServeHooks] | None = None) 
         node_factory,
         on_started=extras.start if extras else None,
         on_stopping=extras.stop if extras else None,
-        api_token=settings.api_token.get_secret_value() if settings.api_token else None,
+        api_token=api_token(settings),
         limits=limits,
     )
 
     class Server(uvicorn.Server):
+        async def startup(self, sockets: Any = None) -> None:
+            await super().startup(sockets)
+            bound = [s.getsockname() for server in self.servers for s in server.sockets]
+            if bound:  # (the port bound: a port of 0 is a free one, chosen now)
+                host, port = bound[0][:2]
+                log.info("HTTP side port on http://%s:%d (docs at /docs)", host, port)
+
         def handle_exit(self, sig: int, frame: Any) -> None:
             # Take no more input the moment the signal comes: the HTTP server first closes
             # its connections, and only then does the lifespan stop the node.
@@ -126,7 +133,6 @@ def serve(settings: Settings, hooks: Callable[[str], ServeHooks] | None = None) 
             timeout_graceful_shutdown=3,
         )
     )
-    log.info("HTTP side port on http://%s:%d (docs at /docs)", settings.http_host, settings.http_port)
     # uvicorn handles SIGINT/SIGTERM itself, then re-raises the signal to the handlers it found:
     # make those no-ops so that a graceful shutdown ends with exit status 0.
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -145,3 +151,14 @@ def serve(settings: Settings, hooks: Callable[[str], ServeHooks] | None = None) 
     if not server.started:
         return 1  # start-up failed (e.g. port in use or Zenoh refused): uvicorn logged why
     return 0
+
+
+def api_token(settings: Settings) -> str | None:
+    """The HTTP port's token, None for none (an empty one too), said at start either way: a
+    secret that failed to fill in must not open the port unnoticed."""
+    token = settings.api_token.get_secret_value() if settings.api_token is not None else ""
+    if token:
+        log.info("HTTP side port: a bearer token is asked on every route but /healthz and /readyz")
+        return token
+    log.info("HTTP side port: no token asked (TOPOFUSION_API_TOKEN unset or empty)")
+    return None
