@@ -83,6 +83,16 @@ def test_partitioned_workers_answer_each_radar_s_performance_as_its_owner_does(
 
         for rid in "AB":
             wait_for(lambda rid=rid: assessed(rid), timeout=60)
+        # every batch taken and every queue empty: the figures no longer move (two reads in turn
+        # while inputs still come may see two steps of the window)
+        sent = {rid: sum(k == f"fusion/radar/{rid}/plots" for k, _ in stream) for rid in "AB"}
+
+        def settled() -> bool:
+            statuses = [w.http.get("/status").json() for w in (w1, w2)]
+            batches = {r["radar_id"]: r["batches"] for r in statuses[0]["radars"]}
+            return batches == sent and not any(st["queue"]["depth"] for st in statuses)
+
+        wait_for(settled, timeout=60)
 
         def answers(rid: str) -> list[Any]:
             """The owner's figures, each worker's answer and the Zenoh replies, read in turn."""
