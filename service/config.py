@@ -23,6 +23,7 @@ effective settings and tree with every default.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import MISSING, dataclass, field, fields, is_dataclass
 from pathlib import Path
@@ -127,12 +128,29 @@ def engine_config_from(data: Mapping[str, Any]) -> EngineConfig:
     if bad:
         raise ConfigError("; ".join(bad))
     try:
-        return _ADAPTER.validate_python(dict(data))
+        config = _ADAPTER.validate_python(dict(data))
     except ValidationError as exc:
         problems = [
             f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors(include_url=False)
         ]
         raise ConfigError("; ".join(problems)) from None
+    infinite = [f"{key}: must be a finite number, got {value}" for key, value in _non_finite(config)]
+    if infinite:
+        raise ConfigError("; ".join(infinite))
+    return config
+
+
+def _non_finite(config: Any, path: str = "") -> list[tuple[str, float]]:
+    """Every number of the tree that is NaN or infinite (no parameter has such a default: as
+    a threshold or a time it would turn a rule off or stop the clocks unnoticed)."""
+    out = []
+    for f in fields(config):
+        value = getattr(config, f.name)
+        if is_dataclass(value) and not isinstance(value, type):
+            out += _non_finite(value, f"{path}{f.name}.")
+        elif isinstance(value, float) and not math.isfinite(value):
+            out.append((f"{path}{f.name}", value))
+    return out
 
 
 def as_dict(config: EngineConfig) -> dict[str, Any]:

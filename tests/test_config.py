@@ -69,6 +69,17 @@ def test_environment_over_file_and_flags_over_both(tmp_path: Path, monkeypatch: 
         ({"cadence": {"cadence_scans": "often"}}, "cadence.cadence_scans"),
         ({"sequencer": 3}, "sequencer"),
         ({"nonsense": {}}, "nonsense: unknown key"),
+        # values a parameter cannot take: each named, before the engine divides by them
+        ({"cadence": {"bias_interval_s": 0}}, "cadence.bias_interval_s: Input should be greater than 0"),
+        ({"cadence": {"system_interval_s": -2}}, "cadence.system_interval_s"),
+        ({"sequencer": {"max_lag_s": -5}}, "sequencer.max_lag_s"),
+        ({"sequencer": {"max_sources": 0}}, "sequencer.max_sources"),
+        ({"feed": {"stale_s": -1}}, "feed.stale_s"),
+        ({"cadence": {"bias_lag_s": float("nan")}}, "cadence.bias_lag_s: must be a finite number"),
+        (
+            {"tracking": {"manager": {"coast_scans": float("inf")}}},
+            "tracking.manager.coast_scans: must be a finite",
+        ),
     ],
 )
 def test_errors_name_the_key(data: dict[str, object], named: str) -> None:

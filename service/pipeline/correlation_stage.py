@@ -30,9 +30,10 @@ import logging
 from collections import deque
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
+from annotated_types import Ge, Gt
 
 from service.correlation import CorrelationParams, PairCorrelator, joint_solution
 from service.correlation.correlator import positions_at
@@ -121,7 +122,7 @@ class CadenceParams:
     #: confirmed pairs; a national network's solve (66 pairs, a million rows) costs about
     #: 150 ms, so every 30 s it costs 5 ms per data second.  The solves are at multiples of
     #: it (data time since the epoch).
-    bias_interval_s: float = 30.0
+    bias_interval_s: Annotated[float, Gt(0)] = 30.0
     #: The solve for time ``T`` runs once the data clock has passed ``T`` by this much (s), over
     #: the rows up to ``T``: in a partitioned network the bias worker then holds every other
     #: worker's rows up to ``T`` (they lag it by their release and the network, about a scan),
@@ -133,7 +134,7 @@ class CadenceParams:
     #: and confirmed pairs (national network: about 25 ms); the radars' scans are 4-12 s, so a
     #: rebuild every 2 s still refreshes each system track within a scan, and a track that
     #: goes leaves its system track at once (:mod:`.publication`).
-    system_interval_s: float = 2.0
+    system_interval_s: Annotated[float, Ge(0)] = 2.0
 
 
 @dataclass

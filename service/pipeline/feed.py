@@ -25,8 +25,10 @@ import logging
 import time
 from collections.abc import Collection
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
+from annotated_types import Gt
 
 from service.pipeline.sequencer import Sequencer
 
@@ -46,7 +48,7 @@ class FeedParams:
     #: The outputs are stale, and ``/readyz`` 503, once the data clock has not moved for this
     #: long (s, wall clock) after it first moved.  Two minutes is many scans of the slowest
     #: radar (12 s), and far beyond a queue's or a correlation answer's delay.
-    stale_s: float = 120.0
+    stale_s: Annotated[float, Gt(0)] = 120.0
     #: A source with no batch taken for this long (s, wall clock) expires even if the data
     #: clock stands still (a whole feed gone silent).  Twice the data-time ``source_expiry_s``:
     #: live, the data-time expiry always comes first; a replay slower than half speed may meet it.

@@ -68,9 +68,10 @@ import math
 from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
+from annotated_types import Ge
 
 from service.pipeline.errors import RejectionError
 
@@ -90,7 +91,7 @@ class SequencerParams:
 
     #: A source lagging the consensus data clock by more than this no longer holds back the
     #: release of the others (s of data time).
-    max_lag_s: float = 30.0
+    max_lag_s: Annotated[float, Ge(0)] = 30.0
     #: A batch stamped more than this ahead of the other sources' data clock is rejected (s).
     #: Radars and bridges stamp their own data; ten minutes is far beyond any clock error of a
     #: working sensor, and far below the hours a wrong date or time zone would give.
@@ -125,7 +126,7 @@ class SequencerParams:
     outage_quorum: float = 0.5
     #: Most sources held at once (radars and references).  Every held source costs a little
     #: memory and a term of the watermark; beyond this, expired sources make room.
-    max_sources: int = 1_024
+    max_sources: Annotated[int, Ge(1)] = 1_024
 
 
 @dataclass
