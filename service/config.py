@@ -92,6 +92,10 @@ class EngineConfig:
     assessment: AssessmentParams = field(default_factory=AssessmentParams)
 
 
+#: A configuration error names at most this many problems (a file of a million unknown keys
+#: must not make a line of megabytes).
+MAX_NAMED_PROBLEMS = 10
+
 _ADAPTER = TypeAdapter(EngineConfig)
 _SITE_LIST = TypeAdapter(list[RadarSite])
 
@@ -126,14 +130,22 @@ def engine_config_from(data: Mapping[str, Any]) -> EngineConfig:
     """Validate a nested mapping (a config file's content) into an :class:`EngineConfig`."""
     bad = _unknown_keys(EngineConfig, data)
     if bad:
-        raise ConfigError("; ".join(bad))
+        more = (
+            f"; and {len(bad) - MAX_NAMED_PROBLEMS} more unknown keys"
+            if len(bad) > MAX_NAMED_PROBLEMS
+            else ""
+        )
+        raise ConfigError("; ".join(bad[:MAX_NAMED_PROBLEMS]) + more)
     try:
         config = _ADAPTER.validate_python(dict(data))
     except ValidationError as exc:
         problems = [
             f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors(include_url=False)
         ]
-        raise ConfigError("; ".join(problems)) from None
+        more = (
+            f"; and {len(problems) - MAX_NAMED_PROBLEMS} more" if len(problems) > MAX_NAMED_PROBLEMS else ""
+        )
+        raise ConfigError("; ".join(problems[:MAX_NAMED_PROBLEMS]) + more) from None
     infinite = [f"{key}: must be a finite number, got {value}" for key, value in _non_finite(config)]
     if infinite:
         raise ConfigError("; ".join(infinite))

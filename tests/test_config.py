@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
+from service.cli.common import setup_logging
 from service.cli.serve import api_token
 from service.config import ConfigError, EngineConfig, as_dict, engine_config_from, from_environment, load_file
 from service.engine import Engine
@@ -333,3 +334,20 @@ def test_the_start_says_whether_the_http_port_asks_for_a_token(
         "HTTP side port: no token asked (TOPOFUSION_API_TOKEN unset or empty)",
         "HTTP side port: a bearer token is asked on every route but /healthz and /readyz",
     ]
+
+
+def test_config_files_and_levels_that_cannot_be_read_are_named(tmp_path: Path) -> None:
+    """One line naming the file or the setting (they said "[Errno 21] Is a directory", a
+    codec's error or "Unknown level"), and a file of many unknown keys does not make a line of
+    megabytes."""
+    binary = tmp_path / "bad.toml"
+    binary.write_bytes(b"\xff\xfe[x]\n")
+    for path, said in ((binary, "is not UTF-8 text"), (tmp_path, "is a directory")):
+        with pytest.raises(ConfigError, match=f"config file {path} {said}"):
+            load_file(path)
+    many = {"sequencer": {f"k{i}": 1 for i in range(1000)}}
+    with pytest.raises(ConfigError) as err:
+        engine_config_from(many)
+    assert len(str(err.value)) < 5000 and str(err.value).endswith("and 990 more unknown keys")
+    with pytest.raises(ValueError, match="TOPOFUSION_LOG_LEVEL"):
+        setup_logging("LOUD")

@@ -144,6 +144,27 @@ def test_workers_of_other_salts_are_refused() -> None:
     assert engine.rejected == {"schema": 1}  # the same salt: taken
 
 
+@pytest.mark.parametrize(
+    ("key_worker", "partition", "said"),
+    [
+        (1, "1/2", "another worker runs partition 1/2 too"),  # the same K twice
+        (2, "2/3", "worker 2/3 counts 3 workers, this worker 1/2"),  # another N
+    ],
+)
+def test_workers_of_the_same_k_or_another_n_are_refused_and_said_so(
+    key_worker: int, partition: str, said: str
+) -> None:
+    engine = Engine(EngineConfig(partition=Partition(1, 2)))
+    keys = Keys("fusion")
+    body = {"partition": partition, "released_s": 10.0, "correlated_s": 10.0}
+    before = engine.peers.progress()
+    for key in (keys.worker_progress(key_worker), keys.worker_clock(key_worker)):
+        out = engine.ingest(key, json.dumps(body).encode())
+        assert said in json.loads(out[0].payload)["detail"]
+    assert engine.rejected == {"schema": 2}
+    assert engine.peers.progress() == before
+
+
 @pytest.mark.parametrize("kind", ["links", "registration"])
 def test_a_workers_own_pair_messages_heard_back_are_not_parsed_the_others_are(kind: str) -> None:
     """Worker 1 hears its own pairs' links and registration rows back, as it hears its own track

@@ -60,7 +60,15 @@ def zenoh_options(settings: Settings, default_mode: str = "peer") -> ZenohOption
     return ZenohOptions.from_settings(settings, default_mode)
 
 
+#: The levels ``--log-level`` / ``TOPOFUSION_LOG_LEVEL`` take.
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "WARN", "ERROR", "CRITICAL")
+
+
 def setup_logging(level: str) -> None:
+    if level.upper() not in LOG_LEVELS:
+        raise ValueError(
+            f"log level (--log-level, TOPOFUSION_LOG_LEVEL) {level!r}: one of {', '.join(LOG_LEVELS)}"
+        )
     logging.basicConfig(
         level=level.upper(),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",

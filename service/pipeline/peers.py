@@ -360,6 +360,13 @@ class Peers:
             clock: WorkerClock = parse(WorkerClock, payload, None)
             worker = int(ids[0])
             if clock.partition != f"{worker}/{self.partition.count}":
+                theirs = clock.partition.rpartition("/")[2]
+                if theirs != str(self.partition.count):
+                    raise RejectionError(
+                        "schema",
+                        f"worker {clock.partition} counts {theirs} workers, this worker "
+                        f"{self.partition}: every worker needs the same N of --partition K/N",
+                    )
                 raise RejectionError("schema", f"worker {clock.partition} on the key of worker {worker}")
             if (clock.salt or 0) != self.partition.salt:
                 raise RejectionError(
@@ -368,7 +375,13 @@ class Peers:
                     f"{self.partition.salt}: every worker needs the same TOPOFUSION_PARTITION_SALT",
                 )
             if worker == self.partition.index:
-                return PeerInput()
+                # (this session's own are never delivered on these keys: another process runs
+                # the same K, or this worker's previous session is still alive)
+                raise RejectionError(
+                    "schema",
+                    f"another worker runs partition {self.partition} too: every K from 1 to N must "
+                    "run exactly once (two owners of the same radars publish two tracks of each)",
+                )
             if kind == "worker_clock":
                 for rid, c in clock.clocks.items():
                     if not self.partition.owns(rid):
