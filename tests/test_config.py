@@ -351,3 +351,23 @@ def test_config_files_and_levels_that_cannot_be_read_are_named(tmp_path: Path) -
     assert len(str(err.value)) < 5000 and str(err.value).endswith("and 990 more unknown keys")
     with pytest.raises(ValueError, match="TOPOFUSION_LOG_LEVEL"):
         setup_logging("LOUD")
+
+
+def test_config_refuses_what_run_would_refuse_at_start(tmp_path: Path) -> None:
+    """``topofusion config`` checks what ``run`` checks at start (it passed all three)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TOPOFUSION_")}
+    a_file = tmp_path / "state"
+    a_file.write_text("")
+    for bad, said in (
+        ({"TOPOFUSION_INITIATOR": "foo"}, "unknown initiator 'foo'"),
+        ({"TOPOFUSION_ZENOH_CONFIG": str(tmp_path / "none.json5")}, "none.json5: no such file"),
+        ({"TOPOFUSION_STATE_DIR": str(a_file)}, f"TOPOFUSION_STATE_DIR {a_file}: not a directory"),
+    ):
+        run = subprocess.run(
+            [sys.executable, "-m", "service", "config"],
+            capture_output=True,
+            text=True,
+            env={**env, **bad},
+            timeout=60,
+        )
+        assert run.returncode == 2 and said in run.stderr, (bad, run.stderr)

@@ -111,12 +111,31 @@ def config_main(args: argparse.Namespace) -> int:
     """``topofusion config --show``: the effective settings and engine configuration (file,
     environment, flags and defaults; secrets redacted), validated; exit 2 with the key named
     when it is not valid."""
-    text = settings_from(args).render(args.format)
+    settings = settings_from(args)
+    text = settings.render(args.format)
+    check_start(settings)
     if not args.show:
         print("configuration is valid (use --show to print it)", file=sys.stderr)
         return 0
     print(text, end="")
     return 0
+
+
+def check_start(settings: Settings) -> None:
+    """What ``run`` checks at start beyond the settings' own types, checked here too (a
+    ValueError naming the setting): the engine built from them (a name only the engine knows,
+    such as the initiator's), the Zenoh config file readable, the state directory usable."""
+    from service.startup import build_engine
+
+    try:
+        build_engine(settings.engine).close()
+    except ValueError as exc:
+        raise ValueError(f"engine configuration: {exc}") from None
+    if settings.zenoh_config is not None and not settings.zenoh_config.is_file():
+        raise ValueError(f"TOPOFUSION_ZENOH_CONFIG {settings.zenoh_config}: no such file")
+    state = settings.state_dir
+    if state is not None and state.exists() and not state.is_dir():
+        raise ValueError(f"TOPOFUSION_STATE_DIR {state}: not a directory")
 
 
 def schemas_main(args: argparse.Namespace) -> int:
