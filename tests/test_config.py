@@ -286,19 +286,12 @@ def test_an_empty_variable_leaves_the_config_files_value(
 
 def test_healthcheck_says_unhealthy_not_usage_error_on_a_bad_setting(tmp_path: Path) -> None:
     """The contract's healthcheck exits 0 or 1 (a container runtime reserves 2)."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith("TOPOFUSION_")}
     for bad in (
         {"TOPOFUSION_CONFIG": str(tmp_path / "missing.toml")},
         {"TOPOFUSION_ENGINE__METHOD": "bogus"},
         {"TOPOFUSION_HTTP_PORT": "not-a-port"},
     ):
-        run = subprocess.run(
-            [sys.executable, "-m", "service", "healthcheck"],
-            capture_output=True,
-            text=True,
-            env={**env, **bad},
-            timeout=60,
-        )
+        run = _command("healthcheck", bad)
         assert run.returncode == 1, (bad, run.stderr)
         assert "healthcheck:" in run.stderr
 
@@ -355,7 +348,6 @@ def test_config_files_and_levels_that_cannot_be_read_are_named(tmp_path: Path) -
 
 def test_config_refuses_what_run_would_refuse_at_start(tmp_path: Path) -> None:
     """``topofusion config`` checks what ``run`` checks at start (it passed all three)."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith("TOPOFUSION_")}
     a_file = tmp_path / "state"
     a_file.write_text("")
     for bad, said in (
@@ -363,11 +355,17 @@ def test_config_refuses_what_run_would_refuse_at_start(tmp_path: Path) -> None:
         ({"TOPOFUSION_ZENOH_CONFIG": str(tmp_path / "none.json5")}, "none.json5: no such file"),
         ({"TOPOFUSION_STATE_DIR": str(a_file)}, f"TOPOFUSION_STATE_DIR {a_file}: not a directory"),
     ):
-        run = subprocess.run(
-            [sys.executable, "-m", "service", "config"],
-            capture_output=True,
-            text=True,
-            env={**env, **bad},
-            timeout=60,
-        )
+        run = _command("config", bad)
         assert run.returncode == 2 and said in run.stderr, (bad, run.stderr)
+
+
+def _command(name: str, settings: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    """``python -m service NAME`` with ``settings`` and no other ``TOPOFUSION_*`` variable."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TOPOFUSION_")}
+    return subprocess.run(
+        [sys.executable, "-m", "service", name],
+        capture_output=True,
+        text=True,
+        env={**env, **settings},
+        timeout=60,
+    )
