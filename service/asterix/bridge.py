@@ -439,12 +439,14 @@ class AsterixBridge:
         one, the data's own: the latest report time taken."""
         self._adsb_seen_s = max(self._adsb_seen_s, t)
         now = reference_s if reference_s is not None else self._adsb_seen_s
-        full = len(self._adsb["time_s"]) >= MAX_BATCH_ITEMS
+        # full: a cut at most once per clock reading (reports held ahead of the clock would
+        # otherwise be looked over again for every report that comes)
+        full = len(self._adsb["time_s"]) >= MAX_BATCH_ITEMS and now != self._adsb_start
         if self._adsb_start is None:
-            self._adsb_start = min(t, now)  # (a batch begins at its first report, if not ahead)
+            self._adsb_start = now  # (by the clock: a feed that lags it still cuts once a batch)
         elif now - self._adsb_start >= self.params.adsb_batch_s or full:
             out += self._send_adsb(now)
-            self._adsb_start = min(t, now)
+            self._adsb_start = now
         cols = self._adsb
         cols["time_s"].append(t)
         cols["icao24"].append(r.icao24)

@@ -209,3 +209,16 @@ def test_reports_held_past_a_batch_s_bound_go_out_in_batches_the_contract_takes(
     batches = [AdsbBatch.model_validate(m.body) for m in bridge.flush()]
     assert [len(b.reports.icao24) for b in batches] == [MAX_BATCH_ITEMS, 5]
     assert batches[0].time_s <= batches[1].time_s
+
+
+def test_an_adsb_feed_that_lags_the_clock_still_makes_one_batch_a_second() -> None:
+    """Reports arriving 1.5 s behind the capture's clock (a relay's buffer): one batch per
+    --adsb-batch of the clock, not one per report."""
+    bridge = AsterixBridge(SITES, BridgeParams(adsb_batch_s=1.0), DayClock(MIDNIGHT))
+    sent = []
+    for k in range(1000):  # 100 reports a second for 10 s
+        now = MIDNIGHT + 100.0 + k / 100
+        report = Cat021Report(25, 1, now - MIDNIGHT - 1.5, "3c6444", 48.1, 2.1, None, 330.0)
+        sent += bridge.feed(decoded(report), now)
+    assert 9 <= len(sent) <= 10, len(sent)
+    assert sum(len(m.body["reports"]["time_s"]) for m in sent + bridge.flush()) == 1000

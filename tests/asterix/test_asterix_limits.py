@@ -85,7 +85,8 @@ def test_plots_and_adsb_reports_out_of_tolerance_are_dropped_never_held() -> Non
     assert bridge.held == 1  # only the plot in time waits for its sector
     assert bridge.feed(decoded(adsb(NOW - 0.5), adsb(NOW + H3, 1), adsb(NOW - 0.4, 2)), NOW) == []
     assert bridge.held == 3
-    got = bridge.feed(decoded(adsb(NOW + 0.6, 3), sector(NOW)), NOW + 0.7)
+    # a batch a second of the bridge's clock, whatever a report stamped 3 h ahead says
+    got = bridge.feed(decoded(adsb(NOW + 0.6, 3), sector(NOW)), NOW + 1.0)
     assert bodies(got) == [("adsb", 1, NOW - 0.4, 2), ("R1", 1, NOW, 1)]  # not held for 3 h
     assert bridge.unusable == {"cat048_time_ahead": 1000, "cat021_time_ahead": 1}
 
