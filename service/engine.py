@@ -372,16 +372,10 @@ class Engine:
 
     def wait_for(self, workers: set[int]) -> list[Outgoing]:
         """The workers the merger waits for (up, or gone for less than the grace): these only.  Returns
-        what the merge then lets through (a worker that left no longer holds it back), and the
-        radars of a worker that left gone from this worker's tables: their tracks coast out as
-        a silent radar's do (their sites stay; the owner started again sends them afresh)."""
-        left = self.peers.waited - set(workers)
+        what the merge then lets through (a worker that left no longer holds it back)."""
         self.peers.wait_for(workers)
         self._snapshot = None
         out = self._correlate(self.merger.release(self.peers.owners(), self.peers.cap()))
-        orphans = sorted(rid for rid in self.tracking.tracked if self.partition.owner(rid) in left)
-        if orphans:
-            out += self._drop(orphans, keep_site=True)
         return out + self._results()
 
     @property
