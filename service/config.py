@@ -130,26 +130,25 @@ def engine_config_from(data: Mapping[str, Any]) -> EngineConfig:
     """Validate a nested mapping (a config file's content) into an :class:`EngineConfig`."""
     bad = _unknown_keys(EngineConfig, data)
     if bad:
-        more = (
-            f"; and {len(bad) - MAX_NAMED_PROBLEMS} more unknown keys"
-            if len(bad) > MAX_NAMED_PROBLEMS
-            else ""
-        )
-        raise ConfigError("; ".join(bad[:MAX_NAMED_PROBLEMS]) + more)
+        raise _error(bad, "unknown keys")
     try:
         config = _ADAPTER.validate_python(dict(data))
     except ValidationError as exc:
         problems = [
             f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors(include_url=False)
         ]
-        more = (
-            f"; and {len(problems) - MAX_NAMED_PROBLEMS} more" if len(problems) > MAX_NAMED_PROBLEMS else ""
-        )
-        raise ConfigError("; ".join(problems[:MAX_NAMED_PROBLEMS]) + more) from None
+        raise _error(problems) from None
     infinite = [f"{key}: must be a finite number, got {value}" for key, value in _non_finite(config)]
     if infinite:
-        raise ConfigError("; ".join(infinite))
+        raise _error(infinite)
     return config
+
+
+def _error(problems: list[str], what: str = "") -> ConfigError:
+    """One error naming at most ``MAX_NAMED_PROBLEMS`` of ``problems``, and how many more."""
+    more = len(problems) - MAX_NAMED_PROBLEMS
+    rest = f"; and {more} more {what}".rstrip() if more > 0 else ""
+    return ConfigError("; ".join(problems[:MAX_NAMED_PROBLEMS]) + rest)
 
 
 def _non_finite(config: Any, path: str = "") -> list[tuple[str, float]]:

@@ -196,6 +196,19 @@ def _only(columns: dict[str, list[Any]], keep: list[int]) -> dict[str, list[Any]
     return {n: list(get(c)) for n, c in columns.items()}
 
 
+def _split_at(
+    columns: dict[str, list[Any]], time_s: float
+) -> tuple[dict[str, list[Any]], dict[str, list[Any]]]:
+    """The rows of ``columns`` stamped at or before ``time_s`` (at most ``MAX_BATCH_ITEMS``, the
+    first held), and the rest, each in the order held."""
+    t = columns["time_s"]
+    take = [i for i, x in enumerate(t) if x <= time_s][:MAX_BATCH_ITEMS]
+    if len(take) == len(t):
+        return columns, {n: [] for n in columns}
+    taken = set(take)
+    return _only(columns, take), _only(columns, [i for i in range(len(t)) if i not in taken])
+
+
 class AsterixBridge:
     def __init__(
         self, sites: list[RadarSite], params: BridgeParams | None = None, clock: DayClock | None = None
@@ -499,20 +512,10 @@ class AsterixBridge:
     # -- output --------------------------------------------------------------------------------
     def _cut(self, radar: str, pending: _Pending, time_s: float) -> list[Message]:
         """Send the plots of ``radar`` up to ``time_s`` as one batch (also when none)."""
-        cols = pending.columns
-        t = cols["time_s"]
-        take = [i for i, x in enumerate(t) if x <= time_s]
-        if len(take) > MAX_BATCH_ITEMS:
-            take = take[:MAX_BATCH_ITEMS]
         # a batch's time never goes back (a late or reordered sector message)
         batch_s = max(time_s, pending.last_batch_s)
-        if len(take) == len(t):
-            sent, pending.columns = cols, {n: [] for n in _PLOT_COLUMNS}
-        else:
-            taken = set(take)
-            sent = _only(cols, take)
-            pending.columns = _only(cols, [i for i in range(len(t)) if i not in taken])
-        self.held -= len(take)
+        sent, pending.columns = _split_at(pending.columns, time_s)
+        self.held -= len(sent["time_s"])
         pending.seq += 2 if pending.lost else 1  # a lost batch's number stays unused
         pending.lost = False
         pending.last_batch_s = batch_s
@@ -529,23 +532,14 @@ class AsterixBridge:
     def _send_adsb(self, now: float = math.inf) -> list[Message]:
         """The ADS-B reports held up to the clock ``now`` as one batch (those stamped after it
         wait for a later one); its time is the latest report's, and never goes back."""
-        held = self._adsb
-        if not held["time_s"]:
-            return []
-        take = [i for i, x in enumerate(held["time_s"]) if x <= now][:MAX_BATCH_ITEMS]
-        if len(take) == len(held["time_s"]):
-            cols, self._adsb = held, {n: [] for n in _ADSB_COLUMNS}
-        else:
-            taken = set(take)
-            cols = _only(held, take)
-            self._adsb = _only(held, [i for i in range(len(held["time_s"])) if i not in taken])
-        if not cols["time_s"]:
-            return []
+        if not any(x <= now for x in self._adsb["time_s"]):
+            return []  # (nothing due: the held reports stay as they are, uncopied)
+        cols, self._adsb = _split_at(self._adsb, now)
         self.held -= len(cols["time_s"])
         self._adsb_seq += 2 if self._adsb_lost else 1
         self._adsb_lost = False
         reports = {n: c for n, c in cols.items() if n not in _ADSB_OPTIONAL or any(x is not None for x in c)}
-        self._adsb_last_s = max(self._adsb_last_s, *cols["time_s"])
+        self._adsb_last_s = max(self._adsb_last_s, max(cols["time_s"]))
         body = {
             "source_id": self.params.adsb_source_id,
             "seq": self._adsb_seq,
