@@ -717,6 +717,38 @@ def test_a_table_after_the_merge_passed_its_time_is_released_and_counted_as_reor
     assert merger.reordered == 2  # (counted when they came, once each)
 
 
+def test_a_radar_whose_owner_is_gone_expires_in_data_time_unless_it_is_heard_again() -> None:
+    """A radar whose owner is no longer waited for is silent: its armed expiry (an empty table)
+    comes out in data-time order, after that time's tables; called off, or armed again, the
+    earlier one never comes out; and a shutdown does not expire what the input did not reach."""
+    merger = TableMerger()
+    merger.push(RADAR, "B", 1, 10.0, "B@10")
+    merger.expire("B", 40.0, "B expired")  # worker 2 gone: B silent from 10 s
+    merger.push(RADAR, "A", 1, 40.0, "A@40")
+    merger.progress(1, 30.0)
+    assert len(merger) == 2  # (the tables held; an armed expiry is none)
+    assert [r.item for r in merger.release({1})] == ["B@10"]
+    merger.progress(1, 45.0)
+    assert [(r.item, r.time_s) for r in merger.release({1})] == [("A@40", 40.0), ("B expired", 40.0)]
+    assert not merger.expiring("B") and merger.reordered == 0
+    # armed again, then called off (its owner is back): never released, and it holds nothing back
+    merger.expire("B", 60.0, "B expired again")
+    merger.call_off("B")
+    merger.push(RADAR, "A", 2, 70.0, "A@70")
+    merger.progress(1, 65.0)
+    assert [r.item for r in merger.release({1})] == []
+    assert merger.through({1}) == 65.0
+    # armed twice: only the latest counts
+    merger.expire("B", 80.0, "B@80 expiry")
+    merger.expire("B", 90.0, "B@90 expiry")
+    merger.progress(1, 100.0)
+    assert [r.item for r in merger.release({1})] == ["A@70", "B@90 expiry"]
+    # shutdown: the tables held go out, an expiry beyond the last of them does not
+    merger.push(RADAR, "A", 3, 110.0, "A@110")
+    merger.expire("B", 400.0, "B beyond the input")
+    assert [r.item for r in merger.flush()] == ["A@110"]
+
+
 def test_a_late_table_never_takes_a_pair_back_in_data_time() -> None:
     """A table released out of order (a worker back after the grace) is older than the pairs
     it would update: they keep their book and publish nothing older than they have published

@@ -30,8 +30,9 @@ TOPOFUSION = str(Path(sys.executable).parent / "topofusion")
 
 
 @contextmanager
-def worker(k: int, router: str, port: int) -> Iterator[subprocess.Popen[bytes]]:
+def worker(k: int, router: str, port: int, **settings: str) -> Iterator[subprocess.Popen[bytes]]:
     env = {key: v for key, v in os.environ.items() if not key.startswith("TOPOFUSION_")}
+    env.update(settings)
     env.update(
         TOPOFUSION_PARTITION=f"{k}/2",
         TOPOFUSION_ZENOH_MODE="client",
@@ -113,6 +114,8 @@ def test_a_killed_worker_leaves_the_rest_going_and_a_restarted_one_rebuilds(
     # a pair worker 1 owns whose radars it tracks itself (``across``: one across partitions)
     inside = next((a, b) for a, b in itertools.combinations(mine, 2) if one.owns_pair(a, b))
     p1, p2 = free_port(), free_port()
+    # a radar silent this long in data time expires (the stream's thirds are 50 s long)
+    expiry = {"TOPOFUSION_ENGINE__SEQUENCER__SOURCE_EXPIRY_S": "20"}
 
     def put_all(messages: list[tuple[str, bytes]]) -> None:
         for key, payload in messages:
@@ -121,8 +124,8 @@ def test_a_killed_worker_leaves_the_rest_going_and_a_restarted_one_rebuilds(
     def end_time(messages: list[tuple[str, bytes]]) -> float:
         return float(json.loads(messages[-1][1])["time_s"])
 
-    with worker(1, router, p1):
-        with worker(2, router, p2) as w2:
+    with worker(1, router, p1, **expiry):
+        with worker(2, router, p2, **expiry) as w2:
             wait_subscribed(client, "fusion/radar/N01/site")
             wait_for(
                 lambda: (_get(p1, "/status") or {}).get("partition", {}).get("missing") == [], timeout=30
@@ -148,13 +151,19 @@ def test_a_killed_worker_leaves_the_rest_going_and_a_restarted_one_rebuilds(
         wait_for(
             lambda: _latest_pair_time(p1, *inside) >= max(before + 1, end_time(thirds[1]) - 30), timeout=60
         )
-        # The dead worker's radars are missing from the network's status (their last tracks
-        # stay with worker 1 and coast out as a silent radar's do).
+        # The dead worker's radars are missing from the network's status, and their last
+        # tracks coast out as a silent radar's do, in data time: no output of worker 1 names
+        # them any more (it served them, confirmed, for as long as worker 2 stayed away).
         assert sorted(r["radar_id"] for r in _get(p1, "/status")["radars"]) == mine
+        wait_for(lambda: all(not _get(p1, f"/radars/{rid}/tracks", status="all")["tracks"] for rid in theirs))
+        system = _get(p1, "/system-tracks", status="all")["system_tracks"]
+        assert system and not {m["radar_id"] for s in system for m in s["members"]} & set(theirs)
+        sets = _get(p1, "/pairs", radar_a=across[0], radar_b=across[1], status="all")
+        assert sets is not None and not any(s["pairs"] for s in sets)
         stalled = _latest_pair_time(p1, *across)
 
         # Worker 2 comes back: it rebuilds what it owns from the input that follows.
-        with worker(2, router, p2):
+        with worker(2, router, p2, **expiry):
             wait_for(lambda: _get(p1, "/status")["partition"]["missing"] == [], timeout=30)
             put_all(sites)  # (a restarted worker learns sites again; see docs/scale-out.md)
             wait_for(lambda: len(_get(p2, "/radars") or []) == len(radars))

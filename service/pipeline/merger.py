@@ -18,6 +18,12 @@ not waited for; its radars are missing until it is back.  What it published mean
 arrives after the merge has released a later item (a link down for longer than the grace) is
 released at once, out of the one-worker order: each such item is counted (:attr:`reordered`,
 ``/status`` ``partition.progress.reordered``), never hidden.
+
+A radar whose owner is gone is silent to the others, and its tracks coast out as a silent
+radar's do: the others arm an expiry of it (:meth:`TableMerger.expire`, ``Peers``), an empty
+table released in data-time order like any other, which a table of the radar or its owner's
+return calls off.  Nothing else of the radar is dropped: its pairs' books and registration
+memory wait for the owner's return.
 """
 
 from __future__ import annotations
@@ -29,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from service.pipeline.sequencer import EXPIRE, Release
+from service.pipeline.sequencer import EXPIRE, RADAR, Release
 
 
 class TableMerger:
@@ -47,9 +53,14 @@ class TableMerger:
         self.reordered = 0
         #: The order key of the last item released.
         self._last: tuple[float, int, str, int] | None = None
+        #: Each radar's armed expiry (:meth:`expire`): the tie number of its heap entry ...
+        self._expiring: dict[str, int] = {}
+        #: ... and those of every armed expiry still in the heap (called off or not).
+        self._armed: set[int] = set()
 
     def __len__(self) -> int:
-        return len(self._heap)
+        """The tables held (armed expiries are not)."""
+        return len(self._heap) - len(self._armed)
 
     def push(
         self, kind: int, source_id: str, seq: int, time_s: float, item: Any, expiry: bool = False
@@ -60,6 +71,25 @@ class TableMerger:
         if self._last is not None and (time_s, order_kind, source_id, seq) < self._last:
             self.reordered += 1
         heapq.heappush(self._heap, (time_s, order_kind, source_id, seq, next(self._tie), kind, item))
+
+    def expire(self, source_id: str, time_s: float, table: Any) -> None:
+        """Release ``table`` (an empty one) as radar ``source_id``'s expiry at ``time_s``, after
+        every table of that data time, unless :meth:`call_off` comes first; an expiry armed
+        again replaces the one before."""
+        tie = self._expiring[source_id] = next(self._tie)
+        self._armed.add(tie)
+        heapq.heappush(self._heap, (time_s, EXPIRE, source_id, 0, tie, RADAR, table))
+
+    def call_off(self, source_id: str) -> None:
+        """The radar's armed expiry does not happen (its entry is dropped when it comes up)."""
+        self._expiring.pop(source_id, None)
+
+    def expiring(self, source_id: str) -> bool:
+        return source_id in self._expiring
+
+    def _called_off(self, entry: tuple[float, int, str, int, int, int, Any]) -> bool:
+        """A heap entry of an expiry called off, or armed again since."""
+        return entry[4] in self._armed and self._expiring.get(entry[2]) != entry[4]
 
     def progress(self, worker: int, released_s: float) -> None:
         """Worker ``worker`` has published every table up to ``released_s`` (a restarted worker
@@ -76,6 +106,8 @@ class TableMerger:
         just short of the oldest item held back by a cap, where every owner has published:
         everything below has arrived and none of it is held."""
         limit = self.limit(owners)
+        while self._heap and self._called_off(self._heap[0]):
+            self._armed.discard(heapq.heappop(self._heap)[4])
         if self._heap:
             limit = min(limit, float(np.nextafter(self._heap[0][0], -np.inf)))
         return max(self.last_limit, limit)
@@ -86,12 +118,20 @@ class TableMerger:
         yield from self._until(min(self.limit(owners), cap))
 
     def flush(self) -> Iterator[Release]:
-        """Everything held (shutdown)."""
-        yield from self._until(np.inf)
+        """Every table held (shutdown), and the armed expiries due by the last of them (the end
+        of the input is not silence, as the sequencer's ``flush`` has it)."""
+        yield from self._until(max((e[0] for e in self._heap if e[4] not in self._armed), default=-np.inf))
 
     def _until(self, limit: float) -> Iterator[Release]:
         self.last_limit = max(self.last_limit, limit)
         while self._heap and self._heap[0][0] <= limit:
-            time_s, order, source_id, seq, _tie, kind, item = heapq.heappop(self._heap)
+            entry = heapq.heappop(self._heap)
+            time_s, order, source_id, seq, tie, kind, item = entry
+            if tie in self._armed:  # an armed expiry (:meth:`expire`)
+                called_off = self._called_off(entry)
+                self._armed.discard(tie)
+                if called_off:
+                    continue
+                del self._expiring[source_id]
             self._last = (time_s, order, source_id, seq)
             yield Release(kind, source_id, time_s, item)

@@ -205,7 +205,23 @@ class Peers:
 
     def wait_for(self, workers: set[int]) -> None:
         self.waited = set(workers) | {self.partition.index}
+        for radar_id in self.receiver.radars():
+            if self.partition.owner(radar_id) in self.waited or not self.merger.expiring(radar_id):
+                self._silent_owner(radar_id)  # (one armed before stays as it was)
         self._others_through()
+
+    def _silent_owner(self, radar_id: str) -> None:
+        """A radar of another worker, after its owner came or went or a table of it came: while
+        its owner is not waited for, the radar is silent to this worker, and its tracks coast
+        out as a silent radar's do, ``source_expiry_s`` of data time after its last table (not
+        before the merge's clock: an empty table, :meth:`TableMerger.expire`); its owner back
+        calls that off (its next table brings the tracks back)."""
+        if self.partition.owner(radar_id) in self.waited:
+            self.merger.call_off(radar_id)
+            return
+        time_s, _ = self.receiver.latest(radar_id)
+        due = max(time_s + self.sequencer.params.source_expiry_s, self.merger.last_limit)
+        self.merger.expire(radar_id, due, TrackTable.empty())
 
     def _others_through(self) -> None:
         """Worker 1: tell the correlation how far every other live worker has correlated (it
@@ -444,6 +460,8 @@ class Peers:
         table = self.receiver.apply(msg)
         if table is not None:
             self.merger.push(RADAR, radar_id, msg.seq, msg.time_s, table, expiry=msg.expiry)
+            if self.merger.expiring(radar_id) or self.partition.owner(radar_id) not in self.waited:
+                self._silent_owner(radar_id)
 
     def _geometry(self, radar_id: str) -> Any:
         radar = self.tracking.tracked.get(radar_id)
