@@ -30,7 +30,10 @@ TOPOFUSION = str(Path(sys.executable).parent / "topofusion")
 
 
 @contextmanager
-def worker(k: int, router: str, port: int, **settings: str) -> Iterator[subprocess.Popen[bytes]]:
+def worker(
+    k: int, router: str, port: int, ready: str = "/readyz", **settings: str
+) -> Iterator[subprocess.Popen[bytes]]:
+    """Worker ``k`` of 2, given once ``ready`` (a route) answers 200."""
     env = {key: v for key, v in os.environ.items() if not key.startswith("TOPOFUSION_")}
     env.update(settings)
     env.update(
@@ -46,7 +49,7 @@ def worker(k: int, router: str, port: int, **settings: str) -> Iterator[subproce
         [TOPOFUSION, "run"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
     )
     try:
-        wait_for(lambda: _get(port, "/readyz") is not None or proc.poll() is not None, timeout=60)
+        wait_for(lambda: _get(port, ready) is not None or proc.poll() is not None, timeout=60)
         assert proc.poll() is None, f"worker {k} exited with {proc.returncode}"
         yield proc
     finally:
@@ -243,3 +246,18 @@ def test_a_worker_stopped_for_30_s_comes_back_without_disordering_the_picture(
     assert received
     for key, times in received.items():
         assert times == sorted(times), key
+
+
+def test_a_worker_of_another_salt_makes_readyz_say_why_the_merge_stalls(router: str) -> None:
+    """Worker 2 started with another salt hashes the names differently: worker 1 refuses its
+    messages (they would split the radars another way), so its merge cannot go on while worker
+    2 holds K = 2; ``/readyz`` says so and why, instead of ready."""
+    p1, p2 = free_port(), free_port()
+    with worker(1, router, p1):
+        assert _get(p1, "/readyz") == {"status": "ready"}
+        with worker(2, router, p2, ready="/healthz", TOPOFUSION_PARTITION_SALT="5"):
+            wait_for(lambda: _get(p1, "/readyz") is None, timeout=30)
+            r = httpx.get(f"http://127.0.0.1:{p1}/readyz", timeout=5)
+            assert r.status_code == 503
+            reason = r.json()["reason"]
+            assert reason.startswith("partition mismatch: ") and "TOPOFUSION_PARTITION_SALT" in reason

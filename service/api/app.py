@@ -345,7 +345,8 @@ def create_app(
         "/readyz",
         summary="Readiness: Zenoh connected, worker running, outputs live",
         description="200 once the Zenoh session is open and the worker runs; 503 with a `reason`: "
-        "`starting`, `connecting to zenoh`, `no zenoh connection`, `worker stalled`, `worker not "
+        "`starting`, `connecting to zenoh`, `no zenoh connection`, `worker stalled`, `partition mismatch: "
+        "...` (partitioned: a worker of another N or salt), `worker not "
         "running`, `shutting down`, or `outputs stale: the data clock has not moved for N s` (the "
         "feed stopped or every input is refused; /status `feed` says more). Needs no token.",
         responses={

@@ -132,6 +132,11 @@ class Peers:
         #: Each other worker's latest progress: what forms it says it reads (packed_states,
         #: frame_states, frame_links, frame_rows).
         self._progress_of: dict[int, WorkerClock] = {}
+        #: Clock and progress messages refused as another network's (another N or salt, a K
+        #: taken twice): the merge cannot go on while such a worker holds a K it waits for
+        #: (``/readyz`` says so, ``transport.readiness``), and the latest refusal's reason.
+        self.mismatches = 0
+        self.mismatch = ""
 
     @property
     def alone(self) -> bool:
@@ -375,29 +380,11 @@ class Peers:
         if kind in ("worker_clock", "worker_progress"):
             clock: WorkerClock = parse(WorkerClock, payload, None)
             worker = int(ids[0])
-            if clock.partition != f"{worker}/{self.partition.count}":
-                theirs = clock.partition.rpartition("/")[2]
-                if theirs != str(self.partition.count):
-                    raise RejectionError(
-                        "schema",
-                        f"worker {clock.partition} counts {theirs} workers, this worker "
-                        f"{self.partition}: every worker needs the same N of --partition K/N",
-                    )
-                raise RejectionError("schema", f"worker {clock.partition} on the key of worker {worker}")
-            if (clock.salt or 0) != self.partition.salt:
-                raise RejectionError(
-                    "schema",
-                    f"worker {worker} hashes with salt {clock.salt or 0}, this worker with "
-                    f"{self.partition.salt}: every worker needs the same TOPOFUSION_PARTITION_SALT",
-                )
-            if worker == self.partition.index:
-                # (this session's own are never delivered on these keys: another process runs
-                # the same K, or this worker's previous session is still alive)
-                raise RejectionError(
-                    "schema",
-                    f"another worker runs partition {self.partition} too: every K from 1 to N must "
-                    "run exactly once (two owners of the same radars publish two tracks of each)",
-                )
+            mismatch = self._mismatch(worker, clock)
+            if mismatch:
+                self.mismatches += 1
+                self.mismatch = mismatch
+                raise RejectionError("schema", mismatch)
             if kind == "worker_clock":
                 for rid, c in clock.clocks.items():
                     if not self.partition.owns(rid):
@@ -417,6 +404,31 @@ class Peers:
         elif kind == "biases" and not self.partition.solves_biases:
             self.published_biases = parse(BiasSet, payload, None).model_dump()
         return PeerInput()  # worker status: the transport's
+
+    def _mismatch(self, worker: int, clock: WorkerClock) -> str:
+        """Why the worker whose clock or progress this is cannot be one of this network (every
+        K from 1 to N once, the same N and the same salt), or "" (it can)."""
+        if clock.partition != f"{worker}/{self.partition.count}":
+            theirs = clock.partition.rpartition("/")[2]
+            if theirs != str(self.partition.count):
+                return (
+                    f"worker {clock.partition} counts {theirs} workers, this worker "
+                    f"{self.partition}: every worker needs the same N of --partition K/N"
+                )
+            return f"worker {clock.partition} on the key of worker {worker}"
+        if (clock.salt or 0) != self.partition.salt:
+            return (
+                f"worker {worker} hashes with salt {clock.salt or 0}, this worker with "
+                f"{self.partition.salt}: every worker needs the same TOPOFUSION_PARTITION_SALT"
+            )
+        if worker == self.partition.index:
+            # (this session's own are never delivered on these keys: another process runs
+            # the same K, or this worker's previous session is still alive)
+            return (
+                f"another worker runs partition {self.partition} too: every K from 1 to N must "
+                "run exactly once (two owners of the same radars publish two tracks of each)"
+            )
+        return ""
 
     def _ours(self, a: str, b: str) -> bool:
         """Whether a pair's links or rows, heard back, are this worker's own (a former session's:
