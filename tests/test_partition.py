@@ -7,6 +7,7 @@ import functools
 import hashlib
 import itertools
 import json
+import os
 import random
 import subprocess
 import sys
@@ -184,10 +185,35 @@ def test_a_workers_own_pair_messages_heard_back_are_not_parsed_the_others_are(ki
     assert [o.key for o in out] == ["fusion/errors"]
 
 
-@pytest.mark.parametrize("spec", ["0/2", "3/2", "1", "a/b", "1/0"])
+@pytest.mark.parametrize("spec", ["0/2", "3/2", "1", "a/b", "1/0", "1/257", "3/1000000000"])
 def test_bad_partitions_are_refused(spec: str) -> None:
+    """... at once, with a message (N beyond the bound would weigh every name against every
+    worker: a billion made ``topofusion config`` hang)."""
     with pytest.raises(ValueError, match="partition"):
         Partition.parse(spec)
+    Partition.parse("256/256")  # (the bound itself is taken)
+
+
+@pytest.mark.parametrize(
+    ("command", "said"),
+    [
+        (["partition", "--count", "100000000", "N01", "N02"], "--count must be in 1..256"),
+        (["run", "--partition", "1/1000000000"], "at most 256 workers"),
+        (["demo", "--workers", "100000"], "need 1 to 16"),
+    ],
+)
+def test_worker_counts_beyond_the_bounds_are_refused_before_anything_starts(
+    command: list[str], said: str
+) -> None:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TOPOFUSION_")}
+    proc = subprocess.run(
+        [str(Path(sys.executable).parent / "topofusion"), *command],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=env,
+    )
+    assert proc.returncode == 2 and said in proc.stderr, proc.stderr
 
 
 # -- the track-state exchange ---------------------------------------------------------------

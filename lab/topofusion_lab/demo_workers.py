@@ -36,6 +36,9 @@ from typing import Any, TextIO
 
 log = logging.getLogger("topofusion")
 
+#: The most workers ``--workers`` starts: each is a process of its own on this one machine (a
+#: few hundred MB and a core's share each), so more only shows the exchange's overhead.
+MAX_DEMO_WORKERS = 16
 #: How long a worker may take to answer ``/readyz`` 200 (s, wall clock).
 READY_TIMEOUT_S = 60.0
 #: How long, once every worker is ready, until no partition is missing (s).
@@ -390,8 +393,8 @@ def run_workers_demo(args: argparse.Namespace) -> int:
     from topofusion_lab.publisher import publish_scenario
 
     count = int(args.workers)
-    if count < 1:
-        raise ValueError(f"--workers {count}: need at least 1")
+    if not 1 <= count <= MAX_DEMO_WORKERS:
+        raise ValueError(f"--workers {count}: need 1 to {MAX_DEMO_WORKERS} (each worker is a process)")
     _refuse(args)
     settings = settings_from(args)
     setup_logging(settings.log_level)

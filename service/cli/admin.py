@@ -68,6 +68,7 @@ def partition_main(args: argparse.Namespace) -> int:
     from service.config import load_sites
     from service.pipeline.partition import (
         MAX_SALT,
+        MAX_WORKERS,
         Partition,
         balanced_salt,
         candidate_pairs,
@@ -75,8 +76,8 @@ def partition_main(args: argparse.Namespace) -> int:
         shares,
     )
 
-    if args.count < 1 or not 0 <= args.salt <= MAX_SALT:
-        print(f"--count must be at least 1 and --salt in 0..{MAX_SALT}", file=sys.stderr)
+    if not 1 <= args.count <= MAX_WORKERS or not 0 <= args.salt <= MAX_SALT:
+        print(f"--count must be in 1..{MAX_WORKERS} and --salt in 0..{MAX_SALT}", file=sys.stderr)
         return 2
     sites = {s.radar_id: s for s in load_sites(args.sites)} if args.sites else {}
     references = sorted(set(args.reference))

@@ -51,6 +51,10 @@ from service.geo import geodetic_to_ecef
 BIAS_WORKER = 1
 #: The largest salt (``TOPOFUSION_PARTITION_SALT``).
 MAX_SALT = 2**31 - 1
+#: The most workers of one network (N of ``--partition K/N``): every owner lookup weighs every
+#: worker, and the exchange sends every table to every worker, so far beyond the continental
+#: sizing's 4 (docs/scale-out.md) it costs more than it shares out.
+MAX_WORKERS = 256
 #: Salts :func:`balanced_salt` tries: with 1 000, a network of 12 radars and 66 pairs gets
 #: shares within a few per cent of 1/N for N up to 4 (a search of under a second per N).
 BALANCE_TRIES = 1000
@@ -95,6 +99,8 @@ class Partition:
     def __post_init__(self) -> None:
         if not 1 <= self.index <= self.count:
             raise ValueError(f"partition {self.index}/{self.count}: need 1 <= K <= N")
+        if self.count > MAX_WORKERS:
+            raise ValueError(f"partition {self.index}/{self.count}: at most {MAX_WORKERS} workers (N)")
         if not 0 <= self.salt <= MAX_SALT:
             raise ValueError(f"partition salt {self.salt}: need 0 <= salt <= {MAX_SALT}")
 
