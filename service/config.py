@@ -92,6 +92,17 @@ class EngineConfig:
     assessment: AssessmentParams = field(default_factory=AssessmentParams)
 
 
+#: The engine parameters that may be below zero: a calibration's offset and two margins on
+#: log-likelihoods.  Every other number of the tree is a time, distance, rate, count, sigma,
+#: probability or threshold, which no rule means below zero (some failed every batch there).
+SIGNED_PARAMETERS = frozenset(
+    {
+        "correlation.evidence.calibration_offset",
+        "correlation.evidence.keep_margin",
+        "tracking.cluster.min_track_score",
+    }
+)
+
 #: A configuration error names at most this many problems (a file of a million unknown keys
 #: must not make a line of megabytes).
 MAX_NAMED_PROBLEMS = 10
@@ -138,9 +149,14 @@ def engine_config_from(data: Mapping[str, Any]) -> EngineConfig:
             f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors(include_url=False)
         ]
         raise _error(problems) from None
-    infinite = [f"{key}: must be a finite number, got {value}" for key, value in _non_finite(config)]
-    if infinite:
-        raise _error(infinite)
+    problems = [f"{key}: must be a finite number, got {value}" for key, value in _non_finite(config)]
+    problems += [
+        f"{key}: must be >= 0, got {value}"
+        for key, value in _numbers(config)
+        if value < 0 and key not in SIGNED_PARAMETERS
+    ]
+    if problems:
+        raise _error(problems)
     return config
 
 
@@ -151,15 +167,20 @@ def _error(problems: list[str], what: str = "") -> ConfigError:
     return ConfigError("; ".join(problems[:MAX_NAMED_PROBLEMS]) + rest)
 
 
-def _non_finite(config: Any, path: str = "") -> list[tuple[str, float]]:
+def _non_finite(config: Any) -> list[tuple[str, float]]:
     """Every number of the tree that is NaN or infinite (no parameter has such a default: as
     a threshold or a time it would turn a rule off or stop the clocks unnoticed)."""
-    out = []
+    return [(key, value) for key, value in _numbers(config) if not math.isfinite(value)]
+
+
+def _numbers(config: Any, path: str = "") -> list[tuple[str, float]]:
+    """Every number of the tree (not the booleans), by its dotted key."""
+    out: list[tuple[str, float]] = []
     for f in fields(config):
         value = getattr(config, f.name)
         if is_dataclass(value) and not isinstance(value, type):
-            out += _non_finite(value, f"{path}{f.name}.")
-        elif isinstance(value, float) and not math.isfinite(value):
+            out += _numbers(value, f"{path}{f.name}.")
+        elif isinstance(value, (int, float)) and not isinstance(value, bool):
             out.append((f"{path}{f.name}", value))
     return out
 

@@ -8,6 +8,7 @@ import logging
 import os
 import subprocess
 import sys
+from dataclasses import fields, is_dataclass
 from pathlib import Path
 
 import pytest
@@ -15,7 +16,15 @@ from pydantic import ValidationError
 
 from service.cli.common import setup_logging
 from service.cli.serve import api_token
-from service.config import ConfigError, EngineConfig, as_dict, engine_config_from, from_environment, load_file
+from service.config import (
+    SIGNED_PARAMETERS,
+    ConfigError,
+    EngineConfig,
+    as_dict,
+    engine_config_from,
+    from_environment,
+    load_file,
+)
 from service.engine import Engine
 from service.pipeline.partition import Partition
 from service.settings import REDACTED, Settings, engine_config, flag_overrides
@@ -86,6 +95,71 @@ def test_environment_over_file_and_flags_over_both(tmp_path: Path, monkeypatch: 
 def test_errors_name_the_key(data: dict[str, object], named: str) -> None:
     with pytest.raises(ConfigError, match=named.replace(".", r"\.")):
         engine_config_from(data)
+
+
+#: Parameters a value of which made every batch fail in the tracker or the correlation, or the
+#: engine refuse to start without naming them (a probe of every number at 0 and -1 on a
+#: three-radar stream): now refused at start, each named.
+FAILED_AT = [
+    ("tracking.logic.support_radius_m", 0),
+    ("tracking.noise.min_samples", 0),
+    ("tracking.filter.quiet_sojourn_s", 0),
+    ("tracking.manager.confirm_m", 0),
+    ("correlation.book.window", 0),
+    ("correlation.book.window", 33),
+    ("correlation.registration.prior_range_m", 0),
+    ("correlation.registration.prior_range_gain_ppm", 0),
+    ("correlation.registration.prior_time_bias_s", 0),
+    ("correlation.registration.max_rows_per_update", 0),
+    ("correlation.registration.registered_rows_per_update", 0),
+    ("correlation.svd.prior_scale_sigma", 0),
+    ("correlation.group.max_votes", 0),
+    ("sequencer.max_clock_skew_s", -1),
+    ("tracking.revisit.neighbours", -1),
+    ("tracking.noise.max_samples", -1),
+]
+
+
+def _nested(key: str, value: object) -> dict[str, object]:
+    """The whole default tree (a section may need all its fields) with ``key`` set."""
+    data = as_dict(EngineConfig())
+    d = data
+    *path, last = key.split(".")
+    for k in path:
+        d = d[k]
+    d[last] = value
+    return data
+
+
+def _numbers(obj: object, path: str = "") -> list[str]:
+    out = []
+    for f in fields(obj):  # type: ignore[arg-type]
+        value = getattr(obj, f.name)
+        if is_dataclass(value):
+            out += _numbers(value, f"{path}{f.name}.")
+        elif isinstance(value, (int, float)) and not isinstance(value, bool):
+            out.append(f"{path}{f.name}")
+    return out
+
+
+@pytest.mark.parametrize(("key", "value"), FAILED_AT)
+def test_values_that_made_every_batch_fail_are_refused_at_start_naming_the_key(key: str, value: int) -> None:
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        engine_config_from(_nested(key, value))
+
+
+def test_no_engine_number_but_the_signed_ones_may_be_negative() -> None:
+    """Every number of the tree at -1 is refused naming its key, but those documented signed;
+    and each of these is taken below zero."""
+    keys = [k for k in _numbers(EngineConfig()) if not k.startswith("partition.")]
+    assert len(keys) > 200 and set(keys) >= SIGNED_PARAMETERS
+    for key in keys:
+        if key in SIGNED_PARAMETERS:
+            engine_config_from(_nested(key, -1.0))
+        else:
+            # (named by its key, or by its field where its section checks it: ``assessment``)
+            with pytest.raises(ConfigError, match=key.rsplit(".", 1)[-1]):
+                engine_config_from(_nested(key, -1))
 
 
 def test_environment_values_are_json_or_strings() -> None:

@@ -35,8 +35,10 @@ element pairing.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
+from annotated_types import Ge
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
@@ -70,7 +72,7 @@ class GroupOffsetParams:
     max_comparisons: int = 4_000_000
     #: At most this many candidates vote in one neighbourhood (the nearest tracks' first):
     #: bounds the work of a very dense picture.
-    max_votes: int = 4_000
+    max_votes: Annotated[int, Ge(1)] = 4_000
 
 
 def group_residuals(

@@ -39,9 +39,10 @@ as the pairs' names, ``track_a``/``track_b``, which is what it publishes).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
+from annotated_types import Ge, Le
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
@@ -56,7 +57,7 @@ class PairBookParams:
     """M-of-N confirmation logic."""
 
     #: N: number of recent updates the score looks at (<= 32).
-    window: int = 6
+    window: Annotated[int, Ge(1), Le(32)] = 6
     #: M: hits within the window needed to confirm.
     confirm_hits: int = 3
     #: Consecutive misses after which a confirmed pair is dropped.

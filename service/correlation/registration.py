@@ -99,9 +99,10 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
+from annotated_types import Ge, Gt
 from numpy.typing import NDArray
 
 from service.correlation.base import FloatArray, PredictedTracks
@@ -114,7 +115,7 @@ class RegistrationParams:
     """Bias least squares."""
 
     #: Prior 1-sigma of a range bias (m); weak, only regularises unobservable components.
-    prior_range_m: float = 3_000.0
+    prior_range_m: Annotated[float, Gt(0)] = 3_000.0
     #: Prior 1-sigma of an azimuth bias (deg).
     prior_azimuth_deg: float = 3.0
     #: Prior 1-sigma of an elevation bias (deg).
@@ -122,11 +123,11 @@ class RegistrationParams:
     #: Prior 1-sigma of a range gain (ppm).  Weak: a gain of 2 000 ppm is 600 m at 300 km, far
     #: beyond what a maintained radar shows (a few hundred ppm), so where rows spread in range
     #: the data decide and only a gain the geometry cannot see shrinks to zero.
-    prior_range_gain_ppm: float = 2_000.0
+    prior_range_gain_ppm: Annotated[float, Gt(0)] = 2_000.0
     #: Prior 1-sigma of a time-stamp bias (s).  Weak: 3 s is most of a scan; a time bias the
     #: geometry cannot see (one common to every radar of a network without a reference)
     #: stays at zero with this sigma.
-    prior_time_bias_s: float = 3.0
+    prior_time_bias_s: Annotated[float, Gt(0)] = 3.0
     #: Estimate each radar's range gain (False: fixed at zero, the three-term model of old).
     estimate_range_gain: bool = True
     #: A radar's range gain within this many of its sigma of zero is held at zero (not
@@ -154,7 +155,7 @@ class RegistrationParams:
     max_rows: int = 40_000
     #: At most this many confirmed pairs (evenly spread) are remembered per update: rows of
     #: one update share the biases, more add little information but cost time.
-    max_rows_per_update: int = 300
+    max_rows_per_update: Annotated[int, Ge(1)] = 300
     #: ... and at most this many per scan of the slower radar once the pair is registered (its
     #: solution in use; a pair updated every few scans takes that many times more).  Every
     #: solve costs in proportion to the remembered rows (a re-solve of a busy pair with 300
@@ -164,7 +165,7 @@ class RegistrationParams:
     #: A row costs about 1 100 bytes (its cached normal-equation pieces of the five-term
     #: model; 740 with three terms): a national network of 66 radar pairs holds some 370 MB
     #: of rows at 30 per update, 1.2 GB at 100.
-    registered_rows_per_update: int = 30
+    registered_rows_per_update: Annotated[int, Ge(1)] = 30
     #: Minimum confirmed pairs before a correlator uses its registration.
     min_pairs: int = 6
     #: A :class:`~service.correlation.PairCorrelator` re-solves its own two-radar registration

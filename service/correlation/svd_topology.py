@@ -62,8 +62,10 @@ identity.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import numpy as np
+from annotated_types import Gt
 from numpy.typing import NDArray
 
 from service.chi2 import chi2_upper
@@ -139,7 +141,7 @@ class SvdTopologyParams:
     element_gate_chi2: float = 16.3
     #: Yaw model: 1-sigma of the Gaussian prior on the scale ``c`` around 1 in the weighted fit
     #: behind the test (:mod:`.gls`): the physical bound ``max_scale_deviation`` as a soft one.
-    prior_scale_sigma: float = 0.03
+    prior_scale_sigma: Annotated[float, Gt(0)] = 0.03
     #: ... and on the yaw around 0 (deg): the physical bound ``max_bias_rotation_deg``.
     prior_yaw_sigma_deg: float = 5.0
     #: False-rejection probability of the shape test.  Shape and position tests are two

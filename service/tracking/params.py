@@ -8,6 +8,9 @@ radar of the contract's kind (200 m / 0.2 deg, 4 s scan, air targets up to Mach 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Annotated
+
+from annotated_types import Ge, Gt
 
 
 @dataclass(frozen=True)
@@ -45,7 +48,7 @@ class FilterParams:
     hundred metres closer than with the manoeuvre model's q after a missed plot, which is
     what keeps the tracks of aircraft flying in formation on their own aircraft."""
 
-    quiet_sojourn_s: float = 120.0
+    quiet_sojourn_s: Annotated[float, Gt(0)] = 120.0
     """Mean time (s) a target stays in the quiet model (straight legs last minutes): with
     ``manoeuvre_sojourn_s``, the models' switching rates (the two-state chain of
     :meth:`service.tracking.imm.Models.transition`); a new track starts at the long-run
@@ -57,7 +60,7 @@ class FilterParams:
     turns better still and lost the formations' gain; at 25 (the one model's) it lost turns as
     that one does."""
 
-    manoeuvre_sojourn_s: float = 30.0
+    manoeuvre_sojourn_s: Annotated[float, Gt(0)] = 30.0
     """Mean time (s) a target stays in the manoeuvre model (a rate-one turn through 90 degrees
     takes 30 s)."""
 
@@ -73,11 +76,11 @@ class FilterParams:
 class ManagerParams:
     """Track life cycle: M-of-N confirmation, deletion, expected-detection test."""
 
-    confirm_m: int = 4
+    confirm_m: Annotated[int, Ge(1)] = 4
     """M of the M-of-N confirmation: a track is confirmed once it has ``confirm_m`` hits among
     its last ``confirm_n`` looks (a look = a batch in which a detection was expected)."""
 
-    confirm_n: int = 5
+    confirm_n: Annotated[int, Ge(1)] = 5
     """N of the M-of-N confirmation (at most 30)."""
 
     confirmed_max_misses: int = 3
@@ -143,7 +146,7 @@ class LogicParams:
     pairs rose at 6 (4x: 77 to 87 %); a weight of 4 gave less, 16 no more.  0 turns the rule
     off."""
 
-    support_radius_m: float = 10_000.0
+    support_radius_m: Annotated[float, Gt(0)] = 10_000.0
     """Triples support each other when their first plots lie within this distance (m) on each
     horizontal axis: a formation's extent, so that aircraft far apart with the same velocity
     (an airway's traffic) do not rank each other's candidates."""
@@ -409,7 +412,7 @@ class FormationParams:
     """q (m^2/s^3) of the quiet model of a track in formation (the filter's ``quiet_psd`` is
     1): about 0.6 m/s of velocity change per 4 s scan."""
 
-    formation_quiet_sojourn_s: float = 3600.0
+    formation_quiet_sojourn_s: Annotated[float, Gt(0)] = 3600.0
     """Mean time (s) a track in formation stays in its quiet model (the filter's
     ``quiet_sojourn_s`` is 120): the switch to the manoeuvre model needs the plots' evidence,
     not the prior's drift."""
@@ -502,7 +505,7 @@ class NoiseParams:
     tries while too few have come."""
     max_samples: int = 1_000
     """The newest associations' NIS a reading takes."""
-    min_samples: int = 100
+    min_samples: Annotated[int, Ge(1)] = 100
     """Least number of associations for a reading."""
     high_median: float = 4.5
     """Above this median NIS the sigmas grow (consistent: 2.37; honest radars in every lab
