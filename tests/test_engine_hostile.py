@@ -89,6 +89,25 @@ def test_future_source_first_cannot_hold_or_release_the_others(
     assert err["reason"] == "out_of_range"
 
 
+@pytest.mark.parametrize("back_s", [120.0, 3600.0])
+def test_a_batch_stepping_back_in_data_time_is_rejected_and_costs_nothing(
+    stream: Stream, baseline: tuple[Engine, list[Any]], back_s: float
+) -> None:
+    """A batch whose ``seq`` goes on but whose data time is far behind its radar's clock (a
+    stale batch): rejected whole, said, and nothing of it taken (taken, it was counted and its
+    plots, older than the radar's tracks, made nothing, silently)."""
+    i, body = batches(stream, "A")[20]
+    _, nxt = batches(stream, "A")[21]
+    stale = {**body, "seq": nxt["seq"], "time_s": body["time_s"] - back_s}
+    stale["plots"] = {**body["plots"], "time_s": [t - back_s for t in body["plots"]["time_s"]]}
+    engine, out = run_engine(insert_after(stream, i, [("fusion/radar/A/plots", json.dumps(stale).encode())]))
+    (err,) = errors(out)
+    assert err["reason"] == "out_of_range" and "behind this source's data clock" in err["detail"]
+    assert results(engine) == results(baseline[0])
+    a = engine.sequencer.sources["A"]
+    assert a.rejected == 1 and a.batches == baseline[0].sequencer.sources["A"].batches
+
+
 def test_absurd_seq_jump_is_rejected_and_the_radar_goes_on(
     stream: Stream, baseline: tuple[Engine, list[Any]]
 ) -> None:

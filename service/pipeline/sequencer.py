@@ -37,6 +37,9 @@ Valid but hostile input (each policy a named field of :class:`SequencerParams`)
   order, does not change; the held source's batches are one batch later.  A source holds at
   most one such batch; one still held when the input ends (:meth:`Sequencer.drop_held`) is
   rejected, never confirmed.
+* **A step back.**  A batch stamped more than ``max_step_s`` behind its own source's clock
+  (its ``seq`` going on) is rejected (``out_of_range``): taken, its plots would be older than
+  the source's tracks, and the tracker would make nothing of them, silently.
 * **An absurd ``seq`` jump.**  A jump of more than ``max_seq_jump`` batches that is also more
   than ``max_batch_rate_hz`` times the data time since the source's last batch is rejected
   (``out_of_range``): a radar back after a day's outage may legitimately skip many numbers, a
@@ -100,6 +103,8 @@ class SequencerParams:
     #: source's clock is held until the source's next batch confirms it (module docstring).
     #: Ten seconds is a few scans: well past the arrival skew of sources on one network, so an
     #: honest batch is held only after its source's own silence, and then just one batch long.
+    #: A batch stamped more than this behind its own source's clock is rejected (a stale batch:
+    #: a source's data time does not go back, and its tracks are ahead of it).
     max_step_s: float = 10.0
     #: A ``seq`` jump above this many batches may be rejected (see ``max_batch_rate_hz``).
     max_seq_jump: int = 10_000
@@ -353,6 +358,13 @@ class Sequencer:
             resolves = -1 if src.held.refuted_by(time_s) else 1
             if resolves > 0:
                 own = src.held.admission.time_s if own is None else max(own, src.held.admission.time_s)
+        if own is not None and time_s < own - p.max_step_s:
+            raise RejectionError(
+                "out_of_range",
+                f"time_s {time_s:.3f} is {own - time_s:.1f} s behind this source's data clock "
+                f"{own:.3f} (max_step_s {p.max_step_s:g}): a source's data time does not go back",
+                source_id,
+            )
         if others:
             reference = _low_median([*others, time_s])
             if time_s > reference + p.max_clock_skew_s:
