@@ -46,6 +46,7 @@ from service.wire.outputs import encode
 from service.wire.packed import pack_floats
 from tests.scenario_helpers import scenario_messages
 from tests.support import random_track_table
+from topofusion_lab.evaluation.promptness import OutputMonitor
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -427,10 +428,12 @@ def _run_partitioned(
     watch: Callable[[Engine], object] = lambda e: None,
     salt: int = 0,
     lagging: int | None = None,
+    heard: Callable[[int, Outgoing], object] = lambda k, o: None,
 ) -> tuple[dict[str, list[bytes]], dict[str, set[int]], list[Engine]]:
     """N engines, each message delivered to each in its own random batches, the peers'
     messages to the others in the order they were produced, at random later moments;
-    ``lagging``: that worker (1..N) takes its messages seldom, so it falls far behind."""
+    ``lagging``: that worker (1..N) takes its messages seldom, so it falls far behind;
+    ``heard``: every output of worker K (1..N), in the order it puts them."""
     rng = random.Random(seed)
     engines = [Engine(EngineConfig(partition=Partition(k, n, salt))) for k in range(1, n + 1)]
     for engine in engines:
@@ -444,6 +447,7 @@ def _run_partitioned(
         for key, payload in batch:
             out: list[Outgoing] = engines[j].ingest(key, payload)
             for o in out:
+                heard(j + 1, o)
                 if "/pairs/" in o.key:
                     pairs[o.key].append(o.payload)
                     publishers[o.key].add(j + 1)
@@ -566,6 +570,41 @@ def test_worker_1_draws_the_system_tracks_one_worker_draws(n: int, seed: int) ->
         np.testing.assert_allclose(got.position, want.position, rtol=0, atol=1e-6)
         np.testing.assert_allclose(got.velocity, want.velocity, rtol=0, atol=1e-9)
     assert engines[0].correlation.stage.system.forced == 0  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize(("n", "seed"), [(2, 0), (3, 1)])
+def test_worker_1s_pictures_name_only_tracks_its_radars_latest_batches_hold(n: int, seed: int) -> None:
+    """Worker 1 draws a picture once the others have correlated past its data time, so after it
+    published the tables of that time released after the picture's radar: a track one of
+    them dropped must not be named by the picture (as its outputs reach one subscriber)."""
+    msgs = _reference()[0]
+    scans = {
+        json.loads(p)["radar_id"]: json.loads(p)["scan_period_s"] for k, p in msgs if k.endswith("/site")
+    }
+    own = {rid: scan for rid, scan in scans.items() if Partition(1, n).owns(rid)}
+    keys = Keys("fusion")
+    watched = {keys.system_tracks, *(keys.tracks(rid) for rid in own)}
+    monitor = OutputMonitor(own)
+    pictures = dropped = 0
+    last: dict[str, set[str]] = {}
+
+    def heard(k: int, o: Outgoing) -> None:
+        nonlocal pictures, dropped
+        if k != 1 or o.key not in watched:
+            return
+        body = o.body()
+        monitor.feed(o.key, body)
+        if o.key == keys.system_tracks:
+            pictures += 1
+        else:
+            ids = {t["track_id"] for t in body["tracks"]}
+            dropped += len(last.get(body["radar_id"], set()) - ids)
+            last[body["radar_id"]] = ids
+
+    _run_partitioned(msgs, n, seed, heard=heard)
+    assert own and pictures > 50 and dropped >= 5  # worker 1's radars do drop tracks
+    dangling = monitor.report().dangling
+    assert dangling.references == 0, dangling.examples
 
 
 def _states_cases() -> list[tuple[str, object]]:

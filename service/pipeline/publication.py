@@ -12,7 +12,11 @@ the latest system tracks, and
   holds a table and a pair set that disagree);
 * publishes each answer of the correlation right after the table it answered for (the engine
   keeps them in step), so an answer names only tracks of tables already published; as a guard,
-  an answer older than a table that lost tracks loses them too.
+  an answer older than a table that lost tracks loses them too.  System tracks are held to
+  every table that lost tracks at their data time as well: a picture is taken at one radar's
+  release and a partitioned worker 1 draws it only once the other workers have correlated
+  past its time (:mod:`.system_stage`), so the tables of the same data time released after
+  that radar's (the merge's order) are published before it, not after.
 
 A track that a pair names was confirmed before the pair was made, so it is in a table already
 published: additions need no care.  Cost: a table compares its ids with the previous table's
@@ -105,9 +109,11 @@ class Publication:
         return Outgoing(self.keys.pairs(*key), view.body, lambda: self.pair_payloads.pair_set(view))
 
     def system_tracks(self, view: SystemTrackView) -> Outgoing:
-        """System tracks the correlation rebuilt, held to the tables as they are now."""
+        """System tracks the correlation rebuilt, held to the tables as they are now: to every
+        table that lost tracks at or after their data time (one of their own time may have
+        been released after the picture was taken, and published before it was drawn)."""
         for source, lost_s in self._lost_s.items():
-            if lost_s > view.time_s:
+            if lost_s >= view.time_s:
                 view = view.held(source, self._ids[source])
         self.system = view
         return self._system_out(view)
