@@ -155,6 +155,12 @@ def engine_config_from(data: Mapping[str, Any]) -> EngineConfig:
         for key, value in _numbers(config)
         if value < 0 and key not in SIGNED_PARAMETERS
     ]
+    manager = config.tracking.manager
+    if manager.confirm_m > manager.confirm_n:
+        problems.append(
+            f"tracking.manager.confirm_m: {manager.confirm_m} hits of {manager.confirm_n} looks "
+            "(confirm_n) can never be had"
+        )
     if problems:
         raise _error(problems)
     return config

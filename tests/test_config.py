@@ -105,6 +105,8 @@ FAILED_AT = [
     ("tracking.noise.min_samples", 0),
     ("tracking.filter.quiet_sojourn_s", 0),
     ("tracking.manager.confirm_m", 0),
+    ("tracking.manager.confirm_m", 6),  # above confirm_n (5)
+    ("tracking.manager.confirm_n", 31),
     ("correlation.book.window", 0),
     ("correlation.book.window", 33),
     ("correlation.registration.prior_range_m", 0),

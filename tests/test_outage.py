@@ -17,7 +17,7 @@ import zenoh
 
 from service.engine import Engine, EngineConfig
 from service.pipeline.feed import FeedParams, FeedWatch
-from service.pipeline.sequencer import SequencerParams
+from service.pipeline.sequencer import RADAR, Sequencer, SequencerParams
 from tests.scenario_helpers import scenario_messages
 from tests.support import put_json, run_engine, running_service, wait_for, wait_subscribed
 
@@ -250,6 +250,28 @@ def test_a_step_ahead_confirmed_by_the_next_batch_is_taken() -> None:
     # the same outputs, every one of them; those of a held radar come a batch later
     assert sorted(_outputs(out)) == sorted(_outputs(before_out))
     assert _pair_counts(engine) == _pair_counts(before) and len(_pair_counts(engine)) == 3
+
+
+def test_a_held_step_confirmed_by_a_batch_before_it_is_not_a_step_back() -> None:
+    """A radar silent 44 s comes back with a batch 15 s ahead of the others (held, 59 s ahead of
+    its own clock), then one at the others' clock: past the middle, so it confirms the held
+    batch; it is measured for a step back against the clock taken before, not against the held
+    time (else it, and every honest batch after it, would be refused until the data time
+    reached the held one)."""
+    seq = Sequencer(SequencerParams())
+    for t in (0.0, 1.0):
+        for n, sid in enumerate(("A", "B", "C")):
+            seq.accept(seq.check(sid, RADAR, int(t) + 1, 100.0 + t + n / 10), None)
+    for t in range(2, 46):
+        seq.accept(seq.check("A", RADAR, t + 1, 100.0 + t), None)
+        seq.accept(seq.check("C", RADAR, t + 1, 100.0 + t), None)
+    held = seq.check("B", RADAR, 3, 160.0)
+    assert held.step_from_s == 101.1
+    seq.accept(held, None)
+    nxt = seq.check("B", RADAR, 4, 146.0)  # not refused
+    assert nxt.resolves == 1
+    seq.accept(nxt, None)
+    assert seq.sources["B"].last_time_s == 160.0 and seq.sources["B"].held is None
 
 
 def test_a_step_ahead_that_ends_the_input_is_refused() -> None:

@@ -814,6 +814,26 @@ def test_a_radar_whose_owner_is_gone_expires_in_data_time_unless_it_is_heard_aga
     assert [r.item for r in merger.flush()] == ["A@110"]
 
 
+def test_a_gone_worker_s_radars_expire_also_after_a_gap_in_their_track_states() -> None:
+    """A gap in a radar's track states drops its table in the receiver until the next whole
+    one, not its tracks from the merge: if the owner goes then, the radar expires all the
+    same (it was left out, and its last tracks stayed for good); the owner back calls it off."""
+    msgs, *_ = _reference()
+    _, _, engines = _run_partitioned(msgs, 2, 0)
+    one = engines[0]
+    theirs = [r for r in "ABC" if Partition(1, 2).owner(r) == 2]
+    assert theirs and all(r in one.peers.receiver.radars() for r in theirs)
+    gap = theirs[0]
+    assert len(one.publication.tables[gap][1])  # its last tracks
+    one.peers.receiver.forget(gap)  # (what a gap does to it)
+    one.wait_for({1})
+    # its last table's time unknown, it expires at once: its tracks gone from every output
+    assert len(one.publication.tables[gap][1]) == 0 and not one.merger.expiring(gap)
+    assert all(one.merger.expiring(r) for r in theirs[1:])  # the others after source_expiry_s
+    one.wait_for({1, 2})
+    assert not any(one.merger.expiring(r) for r in theirs)
+
+
 def test_a_late_table_never_takes_a_pair_back_in_data_time() -> None:
     """A table released out of order (a worker back after the grace) is older than the pairs
     it would update: they keep their book and publish nothing older than they have published

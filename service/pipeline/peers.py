@@ -137,6 +137,9 @@ class Peers:
         #: (``/readyz`` says so, ``transport.readiness``), and the latest refusal's reason.
         self.mismatches = 0
         self.mismatch = ""
+        #: The other workers' radars whose tables reached the merge (a gap in the receiver since
+        #: drops its table there, not its tracks from the merge: they expire all the same).
+        self._heard: set[str] = set()
 
     @property
     def alone(self) -> bool:
@@ -172,6 +175,8 @@ class Peers:
     def forget(self, source_id: str) -> None:
         self.sender.forget(source_id)
         self.receiver.forget(source_id)
+        self._heard.discard(source_id)
+        self.merger.call_off(source_id)
         self._table_seq.pop(source_id, None)
 
     def site_known(self, radar_id: str) -> None:
@@ -210,7 +215,7 @@ class Peers:
 
     def wait_for(self, workers: set[int]) -> None:
         self.waited = set(workers) | {self.partition.index}
-        for radar_id in self.receiver.radars():
+        for radar_id in sorted(self._heard):
             if self.partition.owner(radar_id) in self.waited or not self.merger.expiring(radar_id):
                 self._silent_owner(radar_id)  # (one armed before stays as it was)
         self._others_through()
@@ -224,7 +229,7 @@ class Peers:
         if self.partition.owner(radar_id) in self.waited:
             self.merger.call_off(radar_id)
             return
-        time_s, _ = self.receiver.latest(radar_id)
+        time_s, _ = self.receiver.latest(radar_id)  # (none after a gap: it expires at once)
         due = max(time_s + self.sequencer.params.source_expiry_s, self.merger.last_limit)
         self.merger.expire(radar_id, due, TrackTable.empty())
 
@@ -472,6 +477,7 @@ class Peers:
         table = self.receiver.apply(msg)
         if table is not None:
             self.merger.push(RADAR, radar_id, msg.seq, msg.time_s, table, expiry=msg.expiry)
+            self._heard.add(radar_id)
             if self.merger.expiring(radar_id) or self.partition.owner(radar_id) not in self.waited:
                 self._silent_owner(radar_id)
 

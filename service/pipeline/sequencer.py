@@ -354,10 +354,8 @@ class Sequencer:
         ]
         outage, step_from, resolves = 0.0, None, 0
         own = src.last_time_s if src is not None else None
-        if src is not None and src.held is not None:  # this batch says what the held one was
-            resolves = -1 if src.held.refuted_by(time_s) else 1
-            if resolves > 0:
-                own = src.held.admission.time_s if own is None else max(own, src.held.admission.time_s)
+        # (measured against the clock taken, not a held batch's: the held rule says what a batch
+        # before that one means)
         if own is not None and time_s < own - p.max_step_s:
             raise RejectionError(
                 "out_of_range",
@@ -365,6 +363,10 @@ class Sequencer:
                 f"{own:.3f} (max_step_s {p.max_step_s:g}): a source's data time does not go back",
                 source_id,
             )
+        if src is not None and src.held is not None:  # this batch says what the held one was
+            resolves = -1 if src.held.refuted_by(time_s) else 1
+            if resolves > 0:
+                own = src.held.admission.time_s if own is None else max(own, src.held.admission.time_s)
         if others:
             reference = _low_median([*others, time_s])
             if time_s > reference + p.max_clock_skew_s:

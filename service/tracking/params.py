@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Annotated
 
-from annotated_types import Ge, Gt
+from annotated_types import Ge, Gt, Le
 
 
 @dataclass(frozen=True)
@@ -76,11 +76,11 @@ class FilterParams:
 class ManagerParams:
     """Track life cycle: M-of-N confirmation, deletion, expected-detection test."""
 
-    confirm_m: Annotated[int, Ge(1)] = 4
+    confirm_m: Annotated[int, Ge(1), Le(30)] = 4
     """M of the M-of-N confirmation: a track is confirmed once it has ``confirm_m`` hits among
     its last ``confirm_n`` looks (a look = a batch in which a detection was expected)."""
 
-    confirm_n: Annotated[int, Ge(1)] = 5
+    confirm_n: Annotated[int, Ge(1), Le(30)] = 5
     """N of the M-of-N confirmation (at most 30)."""
 
     confirmed_max_misses: int = 3
