@@ -95,6 +95,30 @@ def test_whole_feed_outage_is_taken_counted_and_the_picture_renews(stream: Strea
     assert all(a == b for _, _, a, b in pairs)  # and none is false
 
 
+def test_an_outage_every_source_expired_in_is_counted_when_the_feed_returns(
+    stream: Stream, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A live outage longer than ``source_expiry_wall_s``: every source expires on the wall
+    clock first, so no quorum is left to vote on the return; it is an outage all the same, and
+    ``/status`` ``feed`` counts it (it said 0 after a real 15-minute outage)."""
+    now = [1000.0]
+    monkeypatch.setattr("service.pipeline.feed.time.monotonic", lambda: now[0])
+    gapped, _ = with_gap(stream)
+    t0 = min(json.loads(p)["time_s"] for k, p in gapped if k.endswith("/plots"))
+    cut = next(
+        i for i, (k, p) in enumerate(gapped) if k.endswith("/plots") and json.loads(p)["time_s"] > t0 + CUT_S
+    )
+    engine = Engine(EngineConfig(feed=FeedParams(source_expiry_wall_s=2.5)))
+    for key, payload in gapped[:cut]:
+        engine.ingest(key, payload)
+    now[0] += 10.0  # silence on the wall clock: every source expires
+    engine.expire_silent(now[0])
+    assert all(r["expired"] for r in engine.snapshot().status_core()["radars"])
+    out = [o for key, payload in gapped[cut:] for o in engine.ingest(key, payload)]
+    assert errors(out) == []
+    assert engine.sequencer.outages == 1 and abs(engine.sequencer.last_outage_s - GAP_S) < 30.0
+
+
 def test_one_radar_jumping_alone_is_still_refused(stream: Stream) -> None:
     gapped, _ = with_gap(stream, radars={"A"})
     engine, out = run_engine(gapped)

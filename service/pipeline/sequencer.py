@@ -23,7 +23,9 @@ Valid but hostile input (each policy a named field of :class:`SequencerParams`)
   it: a lone source's jump is still refused.  Each source's last refused-as-ahead time is
   remembered for this vote (one number a source); the first batch the vote admits is logged
   and counted (:attr:`Sequencer.outages`), and the silent sources then expire in data time as
-  usual, so the tracks of before the gap leave the picture.
+  usual, so the tracks of before the gap leave the picture.  An outage so long that every
+  source expired on the wall clock leaves no quorum to ask: the first batch back more than
+  ``max_clock_skew_s`` after the newest clock is counted as its end.
 * **A lone step ahead.**  A batch stamped more than ``max_step_s`` ahead of both the other
   sources' data clock and its own source's clock (but within ``max_clock_skew_s``) is *held*,
   not taken, until the source's next batch says what it was: a next batch nearer the source's
@@ -382,6 +384,10 @@ class Sequencer:
                 outage = time_s - reference
             elif time_s > reference + p.max_step_s and (own is None or time_s > own + p.max_step_s):
                 step_from = reference if own is None else own
+        elif np.isfinite(self.newest_s) and time_s > self.newest_s + p.max_clock_skew_s:
+            # every source expired meanwhile (a silence past the wall-clock expiry): no quorum
+            # to ask, yet the feed came back from an outage as long as this
+            outage = time_s - self.newest_s
         if src is None and len(self.sources) >= p.max_sources:
             self._make_room_check(source_id)
         return Admission(source_id, kind, seq, time_s, restart, lost, outage, step_from, resolves)
@@ -413,6 +419,13 @@ class Sequencer:
             agree += any(abs(t - time_s) <= p.max_clock_skew_s for t in near)
         # the candidate is live and agrees with itself
         return agree + 1 >= max(2, math.ceil(p.outage_quorum * (live + 1)))
+
+    def _live_clocks(self, source_id: str) -> bool:
+        """Another source has a live clock."""
+        return any(
+            sid != source_id and s.last_time_s is not None and not s.expired
+            for sid, s in self.sources.items()
+        )
 
     def _make_room_check(self, source_id: str) -> None:
         """Raise as :meth:`_make_room` would, without evicting anything."""
@@ -471,11 +484,14 @@ class Sequencer:
             self.outages += 1
             self.last_outage_s = adm.outage
             log.warning(
-                "whole-feed outage of %.0f s of data time ended: %s is back at %.3f with a quorum "
-                "of the sources; the silent ones expire in data time",
+                "whole-feed outage of %.0f s of data time ended: %s is back at %.3f (%s); the "
+                "silent ones expire in data time",
                 adm.outage,
                 adm.source_id,
                 adm.time_s,
+                "with a quorum of the sources"
+                if self._live_clocks(adm.source_id)
+                else "every source had expired",
             )
         src.ahead_s = None
         src.restored = False
