@@ -154,6 +154,7 @@ def test_over_zenoh_the_outage_is_taken_and_a_silent_feed_is_reported_stale(
         status = wait_for(taken, timeout=60)
         assert sum(r["batches"] for r in status["radars"]) >= n - 2  # ≥ 95 % of `later`, and more
         assert status["feed"]["outages"] == 1 and status["feed"]["stale"] is False
+        assert status["feed"]["behind_s"] >= 0.0
         assert svc.http.get("/readyz").status_code == 200
         # silence: stale, then every radar expires on the wall clock
         ready = wait_for(lambda: (r := svc.http.get("/readyz")).status_code == 503 and r.json(), timeout=10)
@@ -182,6 +183,19 @@ def test_over_zenoh_the_outage_is_taken_and_a_silent_feed_is_reported_stale(
     lines = [r.getMessage() for r in caplog.records]
     assert any("outage" in m and "900 s" in m for m in lines)
     assert any(m.startswith("rejected out_of_range from A") and "ahead" in m for m in lines)
+
+
+def test_the_feed_says_how_far_the_outputs_are_behind_the_newest_batch() -> None:
+    """A source flooding the queue, or lagging, holds the release back up to ``max_lag_s``:
+    ``/status`` ``feed.behind_s`` is the data time between the newest batch taken and the
+    outputs (``outputs_time_s``); null before any output."""
+    seq = Sequencer(SequencerParams())
+    watch = FeedWatch(FeedParams())
+    assert watch.status(0.0, seq, None)["behind_s"] is None
+    for n, t in enumerate((100.0, 130.5)):
+        seq.accept(seq.check("A", RADAR, n + 1, t), None)
+    assert watch.status(0.0, seq, 100.0)["behind_s"] == 30.5
+    assert watch.status(0.0, seq, 130.5)["behind_s"] == 0.0
 
 
 def test_a_source_with_input_queued_is_not_silent_on_the_wall_clock(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -137,9 +137,18 @@ class FeedWatch:
         refused = f", {n} inputs refused since the last one taken" if n else ""
         return f"outputs stale: the data clock has not moved for {idle:.0f} s{refused}"
 
-    def status(self, now_s: float, sequencer: Sequencer) -> dict[str, object]:
-        """``/status`` ``feed`` (with the sequencer's count of outages that ended)."""
+    def status(
+        self, now_s: float, sequencer: Sequencer, outputs_time_s: float | None = None
+    ) -> dict[str, object]:
+        """``/status`` ``feed`` (with the sequencer's count of outages that ended), and how far
+        the outputs (``outputs_time_s``) are behind the newest batch taken, in data time: what
+        a flooding source or a slow correlation costs the others, which ``/readyz`` does not
+        count (the release waits up to ``max_lag_s`` for a lagging source by design)."""
         reason = self.stale_reason(now_s)
+        newest = sequencer.newest_s
+        behind = None
+        if outputs_time_s is not None and np.isfinite(newest):
+            behind = max(0.0, newest - outputs_time_s)
         return {
             "stale": bool(reason),
             "reason": reason,
@@ -148,4 +157,5 @@ class FeedWatch:
             "outages": sequencer.outages,
             "last_outage_s": sequencer.last_outage_s,
             "expired_by_wall_clock": self.expired_by_wall,
+            "behind_s": None if behind is None else round(behind, 3),
         }

@@ -273,7 +273,7 @@ class ServiceNode:
             },
             **snap.status_core(),
             "queue": self.queue_status(),
-            "feed": self.engine.feed.status(time.monotonic(), self.engine.sequencer),
+            "feed": self.engine.feed.status(time.monotonic(), self.engine.sequencer, snap.outputs_time_s),
         }
         if self.state is not None:
             own["state"] = self.state.status()

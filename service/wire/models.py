@@ -640,10 +640,19 @@ class FeedStatus(OutModel):
     reason: str = Field(description="why the outputs are stale; empty when they are not")
     idle_s: float | None = Field(description="wall s since the data clock last moved; null: no data yet")
     refused_since_taken: int = Field(description="inputs refused since the last one taken")
-    outages: int = Field(description="whole-feed outages that ended (the data clock jumped with a quorum)")
+    outages: int = Field(
+        description="whole-feed outages that ended (the data clock jumped with a quorum, or came back "
+        "after every source had expired)"
+    )
     last_outage_s: float = Field(description="data-time length of the last such outage (s)")
     expired_by_wall_clock: int = Field(
         description="sources expired for silence on the wall clock while the data clock stood still"
+    )
+    behind_s: float | None = Field(
+        default=None,
+        description="data s the outputs (outputs_time_s) are behind the newest batch taken: what a "
+        "flooding or lagging source costs the others (bounded by max_lag_s and the correlation's "
+        "backlog); null before any output",
     )
 
 
