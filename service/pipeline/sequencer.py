@@ -349,11 +349,7 @@ class Sequencer:
                         f"max_batch_rate_hz {p.max_batch_rate_hz:g})",
                         source_id,
                     )
-        others = [
-            s.last_time_s
-            for sid, s in self.sources.items()
-            if sid != source_id and s.last_time_s is not None and not s.expired
-        ]
+        others = self._other_clocks(source_id)
         outage, step_from, resolves = 0.0, None, 0
         own = src.last_time_s if src is not None else None
         # (measured against the clock taken, not a held batch's: the held rule says what a batch
@@ -420,12 +416,13 @@ class Sequencer:
         # the candidate is live and agrees with itself
         return agree + 1 >= max(2, math.ceil(p.outage_quorum * (live + 1)))
 
-    def _live_clocks(self, source_id: str) -> bool:
-        """Another source has a live clock."""
-        return any(
-            sid != source_id and s.last_time_s is not None and not s.expired
+    def _other_clocks(self, source_id: str) -> list[float]:
+        """The live data clocks of the sources other than ``source_id``."""
+        return [
+            s.last_time_s
             for sid, s in self.sources.items()
-        )
+            if sid != source_id and s.last_time_s is not None and not s.expired
+        ]
 
     def _make_room_check(self, source_id: str) -> None:
         """Raise as :meth:`_make_room` would, without evicting anything."""
@@ -489,9 +486,7 @@ class Sequencer:
                 adm.outage,
                 adm.source_id,
                 adm.time_s,
-                "with a quorum of the sources"
-                if self._live_clocks(adm.source_id)
-                else "every source had expired",
+                "with a quorum of the sources" if self._other_clocks(adm.source_id) else "none other live",
             )
         src.ahead_s = None
         src.restored = False
