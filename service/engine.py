@@ -37,7 +37,7 @@ from service.pipeline.peers import Peers, finite_or_none
 from service.pipeline.publication import Publication
 from service.pipeline.read_model import Snapshot, build_snapshot
 from service.pipeline.restart import EngineState, own_state, read_state, state_when_answered
-from service.pipeline.sequencer import RADAR, REFERENCE, Held, Release, Sequencer
+from service.pipeline.sequencer import RADAR, REFERENCE, Refused, Release, Sequencer
 from service.pipeline.tracking_stage import (
     SiteChange,
     TrackerFactory,
@@ -197,7 +197,7 @@ class Engine:
 
     def flush(self) -> list[Outgoing]:
         """Release every held batch regardless of the watermark (end of a replay or shutdown)."""
-        out = self._refused_held(self.sequencer.drop_held(), False) + self._process(self.sequencer.flush())
+        out = self._refused_held(self.sequencer.drop_held()) + self._process(self.sequencer.flush())
         out += self._correlate(self.merger.flush())
         self.correlation.finish()
         out += self._results()
@@ -262,20 +262,19 @@ class Engine:
             item, n, kind = batch, len(batch.reports.time_s), REFERENCE
         adm = self.sequencer.check(source_id, kind, batch.seq, batch.time_s)
         # accepted: from here on it changes state
-        evicted, refuted = self.sequencer.accept(adm, item, n, received)
-        out = self._drop(evicted) + self._refused_held([(source_id, refuted)] if refuted else [], True)
+        evicted, refused = self.sequencer.accept(adm, item, n, received)
+        out = self._drop(evicted) + self._refused_held(refused)
         self.feed.taken(source_id, self.sequencer.newest_s)
         if kind == REFERENCE:
             self.reference_kinds[source_id] = what
         self._snapshot = None
         return out
 
-    def _refused_held(self, held: list[tuple[str, Held]], refuted: bool) -> list[Outgoing]:
+    def _refused_held(self, refused: list[Refused]) -> list[Outgoing]:
         """Batches held as a step ahead (``pipeline.sequencer``) and then refuted or unconfirmed,
-        each reported at its own receipt (offline, the recorded one: never the run's clock)."""
-        return [
-            self._reject(self._input_key(sid), h.rejection(sid, refuted), h.received_s) for sid, h in held
-        ]
+        or taken with a lone clock that data refuted, each reported at its own receipt (offline,
+        the recorded one: never the run's clock)."""
+        return [self._reject(self._input_key(sid), rej, received) for sid, rej, received in refused]
 
     def _input_key(self, source_id: str) -> str:
         return self.keys.input(self.reference_kinds.get(source_id) or "plots", source_id)

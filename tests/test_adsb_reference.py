@@ -242,7 +242,7 @@ def test_bad_identity_columns_reject_the_batch_and_change_nothing(
     assert json.loads(o.payload)["reason"] == reason
     assert engine.sequencer.sources["A"].last_seq is None
     ok = {"radar_id": "A", "seq": 1, "time_s": 100.0, "plots": {**plots, "mode_s": ["3c6444", None]}}
-    keys = [x.key for x in engine.ingest("fusion/radar/A/plots", json.dumps(ok).encode())]
+    keys = [x.key for x in [*engine.ingest("fusion/radar/A/plots", json.dumps(ok).encode()), *engine.flush()]]
     assert keys[0] == "fusion/radar/A/tracks" and "fusion/errors" not in keys
 
 

@@ -468,6 +468,7 @@ def engine_output_keys() -> set[str]:
     out = engine.ingest(keys.site(rid), json.dumps(site).encode())
     out += engine.ingest(keys.plots(rid), json.dumps(batch).encode())
     out += engine.ingest(keys.plots(rid), b"{not json")
+    out += engine.flush()  # (a first batch alone is released at the end of the input)
     return {o.key for o in out}
 
 

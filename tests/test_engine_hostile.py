@@ -70,7 +70,9 @@ def test_batch_far_in_the_future_is_rejected_and_costs_nothing(
 def test_future_source_first_cannot_hold_or_release_the_others(
     stream: Stream, baseline: tuple[Engine, list[Any]]
 ) -> None:
-    """A rogue source whose very first batch is 10^9 s ahead is outvoted by the honest ones."""
+    """A rogue source whose very first batch is 10^9 s ahead, before any other clock: its clock
+    is lone, the honest ones refute it, and it is withdrawn (rejected) without holding them back
+    or releasing anything."""
     sites = [m for m in stream if m[0].endswith("/site")]
     rogue_site = json.loads(sites[0][1]) | {"radar_id": "R", "latitude_deg": 10.0}
     _, a0 = batches(stream, "A")[0]
@@ -82,7 +84,8 @@ def test_future_source_first_cannot_hold_or_release_the_others(
     ]
     rest = [m for m in stream if not m[0].endswith("/site")]
     engine, out = run_engine([*sites, *head, *rest])
-    assert errors(out) == []  # first: nothing to measure it against
+    assert [(e["radar_id"], e["reason"]) for e in errors(out)] == [("R", "out_of_range")]
+    assert "no other source had a live data clock" in errors(out)[0]["detail"]
     assert results(engine) == results(baseline[0])
     later = {**rogue, "seq": 2, "time_s": rogue["time_s"] + 4}
     (err,) = errors(engine.ingest("fusion/radar/R/plots", json.dumps(later).encode()))

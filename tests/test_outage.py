@@ -328,3 +328,105 @@ def test_a_step_ahead_that_ends_the_input_is_refused() -> None:
     assert "no next batch came" in refused[0]["detail"]
     status = {r["radar_id"]: r for r in engine.snapshot().status_core()["radars"]}
     assert status["B"]["last_time_s"] < json.loads(glitched[last_b][1])["time_s"]
+
+
+# -- a first clock no other source can check -------------------------------------------------------
+def _first_batch_shifted(stream: Stream, radar: str, by: float) -> tuple[Stream, Stream, int]:
+    """The stream with ``radar``'s first batch stamped ``by`` later, the stream without that
+    batch, and its index."""
+    i = next(n for n, (k, _) in enumerate(stream) if k == f"fusion/radar/{radar}/plots")
+    return (
+        [*stream[:i], (stream[i][0], shifted(stream[i][1], by)), *stream[i + 1 :]],
+        [*stream[:i], *stream[i + 1 :]],
+        i,
+    )
+
+
+@pytest.mark.parametrize("radar", ["A", "B"])
+def test_a_first_clock_an_hour_ahead_is_withdrawn_when_the_others_refute_it(radar: str) -> None:
+    """A fresh service whose first batch of a radar is stamped an hour ahead (a wrong date in
+    the first message, no other clock to check it against): taken at once it set the network's
+    clock, and the radar's honest batches after it were refused as steps back for an hour.  Its
+    clock is lone until data settles it: the other radars' agreeing clocks refute it, it is
+    withdrawn (rejected), and every output is the one of the stream without it."""
+    stream = scenario_messages("three-radar", duration_s=90.0)
+    glitched, without, _ = _first_batch_shifted(stream, radar, 3600.0)
+    engine, out = run_engine(glitched)
+    clean, clean_out = run_engine(without)
+    refused = errors(out)
+    assert [(e["radar_id"], e["reason"]) for e in refused] == [(radar, "out_of_range")]
+    assert "no other source had a live data clock" in refused[0]["detail"]
+    assert _outputs(out) == _outputs(clean_out)
+    assert _pair_counts(engine) == _pair_counts(clean) and all(n >= 10 for n in _pair_counts(engine).values())
+
+
+def test_a_lone_radars_first_clock_is_withdrawn_by_its_own_next_batch() -> None:
+    """One radar alone: its first batch an hour ahead, its next on time.  The next batch refutes
+    the first (more than ``max_step_s`` behind it), which is withdrawn; the radar tracks from
+    its honest batches as if the bad one never came."""
+    stream = [
+        (k, p)
+        for k, p in scenario_messages("three-radar", duration_s=90.0)
+        if not k.startswith("fusion/radar/") or "/A/" in k
+    ]
+    glitched, without, _ = _first_batch_shifted(stream, "A", 3600.0)
+    engine, out = run_engine(glitched)
+    _, clean_out = run_engine(without)
+    refused = errors(out)
+    assert [(e["radar_id"], e["reason"]) for e in refused] == [("A", "out_of_range")]
+    assert "next batch came back" in refused[0]["detail"]
+    assert _outputs(out) == _outputs(clean_out)
+    radar_a = engine.snapshot().status_core()["radars"][0]
+    assert radar_a["tracks_confirmed"] > 0 and radar_a["rejected"] == 1
+    assert radar_a["last_time_s"] < json.loads(glitched[-1][1])["time_s"] + 1
+
+
+def test_a_first_clock_after_every_source_expired_is_checked_too(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A live outage long enough for every source to expire on the wall clock, and the first
+    batch back stamped an hour beyond the others' return: withdrawn when they come, and the
+    outage is counted once, at its true length."""
+    now = [1000.0]
+    monkeypatch.setattr("service.pipeline.feed.time.monotonic", lambda: now[0])
+    stream = scenario_messages("three-radar", duration_s=200.0)
+    gapped, _ = with_gap(stream)
+    t0 = min(json.loads(p)["time_s"] for k, p in gapped if k.endswith("/plots"))
+    cut = next(
+        i for i, (k, p) in enumerate(gapped) if k.endswith("/plots") and json.loads(p)["time_s"] > t0 + CUT_S
+    )
+    engine = Engine(EngineConfig(feed=FeedParams(source_expiry_wall_s=2.5)))
+    for key, payload in gapped[:cut]:
+        engine.ingest(key, payload)
+    now[0] += 10.0
+    engine.expire_silent(now[0])
+    rogue = (gapped[cut][0], shifted(gapped[cut][1], 3600.0))
+    out = [o for key, payload in [rogue, *gapped[cut + 1 :]] for o in engine.ingest(key, payload)]
+    refused = errors(out)
+    assert [(e["radar_id"], e["reason"]) for e in refused] == [(rogue[0].split("/")[2], "out_of_range")]
+    assert engine.sequencer.outages == 1 and abs(engine.sequencer.last_outage_s - GAP_S) < 30.0
+    assert all(
+        not r["expired"] and r["tracks_confirmed"] > 0 for r in engine.snapshot().status_core()["radars"]
+    )
+
+
+def test_the_first_batch_waits_for_the_next_whichever_radar_comes_first() -> None:
+    """An honest start: the first batch's clock is lone until the next batch confirms it, so
+    nothing is released before two batches agree, and the outputs are the same whichever
+    radar's first batch arrives first."""
+    stream = scenario_messages("three-radar", duration_s=60.0)
+    plots = [n for n, (k, _) in enumerate(stream) if k.endswith("/plots")]
+    a, b = plots[0], next(n for n in plots if stream[n][0] != stream[plots[0]][0])
+    swapped = list(stream)
+    swapped[a], swapped[b] = swapped[b], swapped[a]
+    _, out = run_engine(stream)
+    _, swapped_out = run_engine(swapped)
+    assert errors(out) == [] and errors(swapped_out) == []
+    assert _outputs(out) == _outputs(swapped_out)
+    seq = Sequencer(SequencerParams())
+    seq.announce("A", RADAR)
+    seq.accept(seq.check("A", RADAR, 1, 100.0), "a1")
+    assert list(seq.release()) == [] and seq.newest_s == -float("inf")
+    seq.accept(seq.check("B", RADAR, 1, 100.5), "b1")
+    assert [r.item for r in seq.release()] == ["a1"] and seq.newest_s == 100.5
+    one = Sequencer(SequencerParams())  # a replay of one batch still gives it at its end
+    one.accept(one.check("A", RADAR, 1, 100.0), "only")
+    assert [r.item for r in one.flush()] == ["only"]

@@ -354,9 +354,9 @@ class Peers:
             "partition": str(self.partition),
             **salted,
             "clocks": {
-                rid: s.last_time_s
+                rid: s.confirmed_clock()
                 for rid, s in sorted(self.sequencer.sources.items())
-                if s.kind == RADAR and not s.foreign and s.last_time_s is not None
+                if s.kind == RADAR and not s.foreign and s.confirmed_clock() is not None
             },
         }
         out = []

@@ -26,6 +26,20 @@ Valid but hostile input (each policy a named field of :class:`SequencerParams`)
   usual, so the tracks of before the gap leave the picture.  An outage so long that every
   source expired on the wall clock leaves no quorum to ask: the first batch back more than
   ``max_clock_skew_s`` after the newest clock is counted as its end.
+* **A first clock no one can check.**  When no other source has a live clock (a fresh service,
+  or every source expired), nothing can say whether a batch's time is right: one stamped an hour
+  ahead would set the network's clock, and its source's honest batches after it would be steps
+  back for an hour.  Such a batch is taken (counted) but its clock is *lone*: nothing at or
+  beyond it is released, and it moves neither the consensus nor ``newest_s``, until data
+  confirms it: its source's next batch not more than ``max_step_s`` behind it, another source's
+  batch within ``max_clock_skew_s`` of it, or a batch of its source within ``max_clock_skew_s``
+  after that source's clock of before (a restart, a short silence).  Data refutes it: its
+  source's next batch more than ``max_step_s`` behind it (then that batch is judged as the
+  first), or a confirmed clock more than ``max_clock_skew_s`` behind it.  A refuted lone batch is
+  withdrawn whole (rejected ``out_of_range``, its counts and clock undone; nothing of it was
+  released).  An honest stream only ever confirms, and what is released, and in which order,
+  does not depend on which batch arrives first: the first batch waits for the next one.  The
+  end of the input releases a lone batch as it is (nothing refuted it).
 * **A lone step ahead.**  A batch stamped more than ``max_step_s`` ahead of both the other
   sources' data clock and its own source's clock (but within ``max_clock_skew_s``) is *held*,
   not taken, until the source's next batch says what it was: a next batch nearer the source's
@@ -163,7 +177,17 @@ class SourceClock:
     restored: bool = False
     #: A batch held as a lone step ahead, until the next batch confirms or refutes it.
     held: Held | None = None
+    #: The batch that set a clock no other source could check, until data confirms it.
+    lone: Lone | None = None
     pending: deque[tuple[float, int, Any]] = field(default_factory=deque)
+
+    def lone_time(self) -> float:
+        """The data time of its lone batch (inf: none)."""
+        return self.lone.admission.time_s if self.lone is not None else np.inf
+
+    def confirmed_clock(self) -> float | None:
+        """Its data clock but a lone batch's: what it has shown to be right."""
+        return self.lone.before_s if self.lone is not None else self.last_time_s
 
 
 @dataclass(frozen=True)
@@ -182,6 +206,8 @@ class Admission:
     step_from_s: float | None = None
     #: The source's held batch: +1 confirmed by this one (taken first), -1 refuted (rejected).
     resolves: int = 0
+    #: This batch refutes its source's lone clock (module docstring): that batch is withdrawn.
+    withdraws: bool = False
 
 
 @dataclass(frozen=True)
@@ -211,6 +237,35 @@ class Held:
             f"of this source's data clock {self.before_s:.3f} (max_step_s), and {why}",
             source_id,
         )
+
+
+@dataclass(frozen=True)
+class Lone:
+    """A batch taken while no other source had a confirmed clock (module docstring), with what
+    it changed of its source, to be put back if data refutes it."""
+
+    admission: Admission
+    count: int
+    received_s: float | None
+    #: The source's clock, flags and pending events before it.
+    before_s: float | None
+    expired: bool
+    restored: bool
+    expiry_due: float | None
+    forget_due: float | None
+
+    def rejection(self, source_id: str, why: str) -> RejectionError:
+        a = self.admission
+        return RejectionError(
+            "out_of_range",
+            f"batch seq {a.seq} at time_s {a.time_s:.3f} came when no other source had a live data "
+            f"clock, and {why}: withdrawn, nothing of it was released",
+            source_id,
+        )
+
+
+#: A batch refused after it was held or taken: its source, why, and when it was received.
+Refused = tuple[str, RejectionError, "float | None"]
 
 
 @dataclass(frozen=True)
@@ -244,6 +299,8 @@ class Sequencer:
         self._heap: list[tuple[float, int, str, int]] = []
         self._expiry_due: dict[str, float] = {}
         self._forget_due: dict[str, float] = {}
+        #: The sources whose clock is lone (module docstring); none while a clock is confirmed.
+        self._lone: set[str] = set()
         self._first_clock = np.inf
         #: The data time up to which the last :meth:`release` released.
         self.last_limit = -np.inf
@@ -350,8 +407,10 @@ class Sequencer:
                         source_id,
                     )
         others = self._other_clocks(source_id)
-        outage, step_from, resolves = 0.0, None, 0
+        outage, step_from, resolves, withdraws = 0.0, None, 0, False
         own = src.last_time_s if src is not None else None
+        if src is not None and src.lone is not None and own is not None and time_s < own - p.max_step_s:
+            withdraws, own = True, src.lone.before_s  # judged as if the lone batch never came
         # (measured against the clock taken, not a held batch's: the held rule says what a batch
         # before that one means)
         if own is not None and time_s < own - p.max_step_s:
@@ -386,7 +445,7 @@ class Sequencer:
             outage = time_s - self.newest_s
         if src is None and len(self.sources) >= p.max_sources:
             self._make_room_check(source_id)
-        return Admission(source_id, kind, seq, time_s, restart, lost, outage, step_from, resolves)
+        return Admission(source_id, kind, seq, time_s, restart, lost, outage, step_from, resolves, withdraws)
 
     @staticmethod
     def _duplicate(src: SourceClock, seq: int, time_s: float) -> str:
@@ -408,7 +467,7 @@ class Sequencer:
         p = self.params
         live = agree = 0
         for sid, s in self.sources.items():
-            if s.expired or s.last_time_s is None or sid == source_id:
+            if s.expired or s.last_time_s is None or s.lone is not None or sid == source_id:
                 continue
             live += 1
             near = [t for t in (s.last_time_s, s.ahead_s) if t is not None]
@@ -416,12 +475,13 @@ class Sequencer:
         # the candidate is live and agrees with itself
         return agree + 1 >= max(2, math.ceil(p.outage_quorum * (live + 1)))
 
-    def _other_clocks(self, source_id: str) -> list[float]:
-        """The live data clocks of the sources other than ``source_id``."""
+    def _other_clocks(self, source_id: str | None) -> list[float]:
+        """The live, confirmed data clocks of the sources other than ``source_id`` (a lone
+        clock is not one: module docstring)."""
         return [
             s.last_time_s
             for sid, s in self.sources.items()
-            if sid != source_id and s.last_time_s is not None and not s.expired
+            if sid != source_id and s.last_time_s is not None and not s.expired and s.lone is None
         ]
 
     def _make_room_check(self, source_id: str) -> None:
@@ -441,32 +501,38 @@ class Sequencer:
 
     def accept(
         self, adm: Admission, item: Any, count: int = 0, received_s: float | None = None
-    ) -> tuple[list[str], Held | None]:
+    ) -> tuple[list[str], list[Refused]]:
         """Apply an admitted batch of ``count`` plots or reports (received at ``received_s``);
-        returns the ids evicted to make room for a new source, and the source's held batch this
-        one refuted (to be reported rejected: nothing of it was applied)."""
-        evicted = []
+        returns the ids evicted to make room for a new source, and the batches this one refuted
+        (its source's held batch, lone batches withdrawn), each to be reported rejected: nothing
+        of them was released."""
+        evicted: list[str] = []
+        refused: list[Refused] = []
         src = self.sources.get(adm.source_id)
         if src is None:
             evicted = self._make_room(adm.source_id)
             src = self.sources[adm.source_id] = SourceClock(adm.kind, announced_s=self.consensus())
+        if adm.withdraws:
+            why = f"this source's next batch came back to {adm.time_s:.3f}"
+            refused.append(self._withdraw(adm.source_id, why))
         held, src.held = src.held, None
         if held is not None and adm.resolves > 0:
-            self._take(src, held.admission, held.item, held.count)
-        refuted = held if adm.resolves < 0 else None
+            refused += self._take(src, held.admission, held.item, held.count, held.received_s)
+        if held is not None and adm.resolves < 0:
+            refused.append((adm.source_id, held.rejection(adm.source_id, True), held.received_s))
         if adm.step_from_s is not None:  # held, not taken: only its seq counts yet
             src.held = Held(adm, item, adm.step_from_s, count, received_s)
             self._count_seq(src, adm)
-            return evicted, refuted
-        self._take(src, adm, item, count)
-        return evicted, refuted
+            return evicted, refused
+        refused += self._take(src, adm, item, count, received_s)
+        return evicted, refused
 
-    def drop_held(self) -> list[tuple[str, Held]]:
+    def drop_held(self) -> list[Refused]:
         """The end of the input: every held batch is given up (each to be reported rejected)."""
-        out = []
+        out: list[Refused] = []
         for sid, src in self.sources.items():
             if src.held is not None:
-                out.append((sid, src.held))
+                out.append((sid, src.held.rejection(sid, False), src.held.received_s))
                 src.held = None
         return out
 
@@ -476,18 +542,39 @@ class Sequencer:
         src.lost_batches += adm.lost
         src.restarts += adm.restart
 
-    def _take(self, src: SourceClock, adm: Admission, item: Any, count: int) -> None:
-        if adm.outage > 0:
-            self.outages += 1
-            self.last_outage_s = adm.outage
-            log.warning(
-                "whole-feed outage of %.0f s of data time ended: %s is back at %.3f (%s); the "
-                "silent ones expire in data time",
-                adm.outage,
-                adm.source_id,
-                adm.time_s,
-                "with a quorum of the sources" if self._other_clocks(adm.source_id) else "none other live",
+    def _take(
+        self, src: SourceClock, adm: Admission, item: Any, count: int, received_s: float | None = None
+    ) -> list[Refused]:
+        sid = adm.source_id
+        before = src.last_time_s if src.lone is None else src.lone.before_s
+        # confirmed at once: a confirmed clock elsewhere (the checks measured it against it), its
+        # own lone batch not refuted, or its own clock of before not far behind
+        skew = self.params.max_clock_skew_s
+        confirmed = (
+            src.lone is not None
+            or (before is not None and adm.time_s <= before + skew)
+            or any(
+                s.last_time_s is not None
+                and not s.expired
+                and (s.lone is None or abs(s.last_time_s - adm.time_s) <= skew)
+                for o, s in self.sources.items()
+                if o != sid
             )
+        )  # (another lone clock within the skew: the two agree, both are confirmed)
+        if not confirmed:
+            self._lone.add(sid)
+            src.lone = Lone(
+                adm,
+                count,
+                received_s,
+                src.last_time_s,
+                src.expired,
+                src.restored,
+                self._expiry_due.get(sid),
+                self._forget_due.get(sid),
+            )
+        elif src.lone is not None:
+            self._confirm(sid, src)
         src.ahead_s = None
         src.restored = False
         if adm.step_from_s is None:  # (a held batch's seq was counted when it was held)
@@ -496,12 +583,88 @@ class Sequencer:
         src.plots += count
         clock = max(adm.time_s, src.last_time_s if src.last_time_s is not None else -np.inf)
         src.last_time_s = clock
-        self.newest_s = max(self.newest_s, clock)
         src.expired = False
-        self._cancel_events(adm.source_id)
+        self._cancel_events(sid)
         if not src.pending:
-            heapq.heappush(self._heap, (clock, adm.kind, adm.source_id, adm.seq))
+            heapq.heappush(self._heap, (clock, adm.kind, sid, adm.seq))
         src.pending.append((clock, adm.seq, item))
+        if not confirmed:
+            return []
+        self._count_outage(adm)
+        self.newest_s = max(self.newest_s, clock)
+        return self._settle_lone()
+
+    def _count_outage(self, adm: Admission) -> None:
+        if adm.outage <= 0:
+            return
+        self.outages += 1
+        self.last_outage_s = adm.outage
+        log.warning(
+            "whole-feed outage of %.0f s of data time ended: %s is back at %.3f (%s); the "
+            "silent ones expire in data time",
+            adm.outage,
+            adm.source_id,
+            adm.time_s,
+            "with a quorum of the sources" if self._other_clocks(adm.source_id) else "none other live",
+        )
+
+    def _confirm(self, source_id: str, src: SourceClock) -> None:
+        """A lone clock is confirmed: it counts from now on (its outage too, if it ended one)."""
+        lone, src.lone = src.lone, None
+        self._lone.discard(source_id)
+        # (another source back from the same outage may have ended it first)
+        if lone is not None and lone.admission.time_s > self.newest_s + self.params.max_clock_skew_s:
+            self._count_outage(lone.admission)
+        if lone is not None:  # the first data time seen is its, for the radars yet to report
+            self._first_clock = min(self._first_clock, lone.admission.time_s)
+        if src.last_time_s is not None:
+            self.newest_s = max(self.newest_s, src.last_time_s)
+
+    def _settle_lone(self) -> list[Refused]:
+        """With a confirmed clock in the network, every lone clock is settled: confirmed unless
+        it is more than ``max_clock_skew_s`` ahead of the confirmed consensus, then withdrawn."""
+        if not self._lone:
+            return []
+        consensus = self.consensus()
+        if not np.isfinite(consensus):
+            return []
+        out = []
+        for sid in sorted(self._lone):
+            src = self.sources[sid]
+            if src.last_time_s is None:
+                continue
+            if src.last_time_s > consensus + self.params.max_clock_skew_s:
+                ahead = src.last_time_s - consensus
+                out.append(
+                    self._withdraw(
+                        sid,
+                        f"the confirmed data clock {consensus:.3f} is {ahead:.1f} s behind it "
+                        f"(max_clock_skew_s {self.params.max_clock_skew_s:g})",
+                    )
+                )
+            else:
+                self._confirm(sid, src)
+        return out
+
+    def _withdraw(self, source_id: str, why: str) -> Refused:
+        """Undo a source's lone batch (refuted by data): nothing of it was released."""
+        src = self.sources[source_id]
+        lone, src.lone = src.lone, None
+        self._lone.discard(source_id)
+        assert lone is not None
+        src.pending.pop()
+        if not src.pending:  # its heap entry goes with it
+            self._heap = [e for e in self._heap if not (e[2] == source_id and e[1] == src.kind)]
+            heapq.heapify(self._heap)
+        src.last_time_s, src.expired, src.restored = lone.before_s, lone.expired, lone.restored
+        src.batches -= 1
+        src.plots -= lone.count
+        events = ((lone.expiry_due, EXPIRE, self._expiry_due), (lone.forget_due, FORGET, self._forget_due))
+        for due, kind, book in events:
+            if due is not None:
+                book[source_id] = due
+                heapq.heappush(self._heap, (due, kind, source_id, 0))
+        return source_id, lone.rejection(source_id, why), lone.received_s
 
     # -- kept across a restart (service.state) -------------------------------------------------
     def export_state(self) -> list[dict[str, Any]]:
@@ -509,9 +672,9 @@ class Sequencer:
         on (a repeated ``seq`` is a duplicate, a gap counts lost batches) and so does its clock.
         Sources that never sent a batch, and other workers' radars, are left out."""
         return [
-            {"source_id": sid, "kind": s.kind, "seq": s.last_seq, "time_s": s.last_time_s}
+            {"source_id": sid, "kind": s.kind, "seq": s.last_seq, "time_s": s.confirmed_clock()}
             for sid, s in sorted(self.sources.items())
-            if s.last_seq is not None and s.last_time_s is not None and not s.foreign
+            if s.last_seq is not None and s.confirmed_clock() is not None and not s.foreign
         ]
 
     @staticmethod
@@ -555,13 +718,13 @@ class Sequencer:
     # -- data-time release -------------------------------------------------------------------
     def consensus(self) -> float:
         """The sources' common data clock: the low median of the live clocks (-inf: none yet)."""
-        clocks = [s.last_time_s for s in self.sources.values() if s.last_time_s is not None and not s.expired]
+        clocks = self._other_clocks(None)
         return _low_median(clocks) if clocks else -np.inf
 
     def watermark(self) -> float:
         """Data time up to which every live source has reported (see module docstring)."""
         p = self.params
-        clocks = [s.last_time_s for s in self.sources.values() if s.last_time_s is not None and not s.expired]
+        clocks = self._other_clocks(None)  # a lone clock releases nothing (module docstring)
         if not clocks:
             return -np.inf
         self._first_clock = min(self._first_clock, *clocks)
@@ -576,6 +739,8 @@ class Sequencer:
     def release(self, until: float | None = None) -> Iterator[Release]:
         """Release held batches and expiries up to ``until`` (default: the watermark)."""
         limit = self.watermark() if until is None else until
+        if self._lone:  # nothing at or beyond a lone clock (module docstring)
+            limit = min(limit, np.nextafter(min(self.sources[s].lone_time() for s in self._lone), -np.inf))
         self.last_limit = max(self.last_limit, limit)
         while self._heap and self._heap[0][0] <= limit:
             clock, kind, source_id, _ = heapq.heappop(self._heap)
@@ -612,6 +777,8 @@ class Sequencer:
         Expiry events beyond the last batch are left alone: the end of the input is not
         silence.
         """
+        for sid in sorted(self._lone):  # the end of the input refuted none of them
+            self._confirm(sid, self.sources[sid])
         while any(s.pending for s in self.sources.values()):
             last = max(s.pending[-1][0] for s in self.sources.values() if s.pending)
             yield from self.release(until=last)
