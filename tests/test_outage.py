@@ -95,12 +95,9 @@ def test_whole_feed_outage_is_taken_counted_and_the_picture_renews(stream: Strea
     assert all(a == b for _, _, a, b in pairs)  # and none is false
 
 
-def test_an_outage_every_source_expired_in_is_counted_when_the_feed_returns(
-    stream: Stream, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """A live outage longer than ``source_expiry_wall_s``: every source expires on the wall
-    clock first, so no quorum is left to vote on the return; it is an outage all the same, and
-    ``/status`` ``feed`` counts it (it said 0 after a real 15-minute outage)."""
+def expired_on_the_wall_clock(stream: Stream, monkeypatch: pytest.MonkeyPatch) -> tuple[Engine, Stream]:
+    """An engine fed the stream with a ``GAP_S`` outage up to the gap, then silent on the wall
+    clock until every source expired; and the stream after the gap."""
     now = [1000.0]
     monkeypatch.setattr("service.pipeline.feed.time.monotonic", lambda: now[0])
     gapped, _ = with_gap(stream)
@@ -113,8 +110,18 @@ def test_an_outage_every_source_expired_in_is_counted_when_the_feed_returns(
         engine.ingest(key, payload)
     now[0] += 10.0  # silence on the wall clock: every source expires
     engine.expire_silent(now[0])
+    return engine, gapped[cut:]
+
+
+def test_an_outage_every_source_expired_in_is_counted_when_the_feed_returns(
+    stream: Stream, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A live outage longer than ``source_expiry_wall_s``: every source expires on the wall
+    clock first, so no quorum is left to vote on the return; it is an outage all the same, and
+    ``/status`` ``feed`` counts it (it said 0 after a real 15-minute outage)."""
+    engine, rest = expired_on_the_wall_clock(stream, monkeypatch)
     assert all(r["expired"] for r in engine.snapshot().status_core()["radars"])
-    out = [o for key, payload in gapped[cut:] for o in engine.ingest(key, payload)]
+    out = [o for key, payload in rest for o in engine.ingest(key, payload)]
     assert errors(out) == []
     assert engine.sequencer.outages == 1 and abs(engine.sequencer.last_outage_s - GAP_S) < 30.0
 
@@ -381,25 +388,15 @@ def test_a_lone_radars_first_clock_is_withdrawn_by_its_own_next_batch() -> None:
     assert radar_a["last_time_s"] < json.loads(glitched[-1][1])["time_s"] + 1
 
 
-def test_a_first_clock_after_every_source_expired_is_checked_too(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_first_clock_after_every_source_expired_is_checked_too(
+    stream: Stream, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """A live outage long enough for every source to expire on the wall clock, and the first
     batch back stamped an hour beyond the others' return: withdrawn when they come, and the
     outage is counted once, at its true length."""
-    now = [1000.0]
-    monkeypatch.setattr("service.pipeline.feed.time.monotonic", lambda: now[0])
-    stream = scenario_messages("three-radar", duration_s=200.0)
-    gapped, _ = with_gap(stream)
-    t0 = min(json.loads(p)["time_s"] for k, p in gapped if k.endswith("/plots"))
-    cut = next(
-        i for i, (k, p) in enumerate(gapped) if k.endswith("/plots") and json.loads(p)["time_s"] > t0 + CUT_S
-    )
-    engine = Engine(EngineConfig(feed=FeedParams(source_expiry_wall_s=2.5)))
-    for key, payload in gapped[:cut]:
-        engine.ingest(key, payload)
-    now[0] += 10.0
-    engine.expire_silent(now[0])
-    rogue = (gapped[cut][0], shifted(gapped[cut][1], 3600.0))
-    out = [o for key, payload in [rogue, *gapped[cut + 1 :]] for o in engine.ingest(key, payload)]
+    engine, rest = expired_on_the_wall_clock(stream, monkeypatch)
+    rogue = (rest[0][0], shifted(rest[0][1], 3600.0))
+    out = [o for key, payload in [rogue, *rest[1:]] for o in engine.ingest(key, payload)]
     refused = errors(out)
     assert [(e["radar_id"], e["reason"]) for e in refused] == [(rogue[0].split("/")[2], "out_of_range")]
     assert engine.sequencer.outages == 1 and abs(engine.sequencer.last_outage_s - GAP_S) < 30.0
