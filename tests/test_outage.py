@@ -427,3 +427,45 @@ def test_the_first_batch_waits_for_the_next_whichever_radar_comes_first() -> Non
     one = Sequencer(SequencerParams())  # a replay of one batch still gives it at its end
     one.accept(one.check("A", RADAR, 1, 100.0), "only")
     assert [r.item for r in one.flush()] == ["only"]
+
+
+def test_an_outage_ended_by_one_radar_alone_is_counted_once(
+    stream: Stream, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every source expired on the wall clock, and one radar comes back alone: its first batch
+    back is lone, its second confirms it; the outage is counted once (the second batch, judged
+    against the clock of before the outage too, was counted again)."""
+    engine, rest = expired_on_the_wall_clock(stream, monkeypatch)
+    out = [o for key, payload in rest if "/A/" in key for o in engine.ingest(key, payload)]
+    assert errors(out) == []
+    assert engine.sequencer.outages == 1 and abs(engine.sequencer.last_outage_s - GAP_S) < 30.0
+
+
+def test_a_second_radars_first_batch_a_step_ahead_of_a_lone_clock_is_refused_alone() -> None:
+    """A fresh service: radar A's first batch is lone when radar B's first comes stamped 120 s
+    ahead (a corrupted stamp).  The two do not agree, so B's is lone too; B's next batch refutes
+    it.  Only that batch is rejected (taken, it had moved B's clock ahead and every honest batch
+    of B after it was refused as a step back: 219 rejections in 120 s)."""
+    stream = scenario_messages("three-radar", duration_s=90.0)
+    first = next(k for k, _ in stream if k.endswith("/plots"))
+    other = next(k.split("/")[2] for k, _ in stream if k.endswith("/plots") and k != first)
+    glitched, without, _ = _first_batch_shifted(stream, other, 120.0)
+    _, out = run_engine(glitched)
+    _, clean_out = run_engine(without)
+    assert [(e["radar_id"], e["reason"]) for e in errors(out)] == [(other, "out_of_range")]
+    assert _outputs(out) == _outputs(clean_out)
+
+
+def test_a_publisher_restarting_after_a_refuted_first_batch_is_taken() -> None:
+    """A's first batch is seq 200 stamped an hour ahead; its publisher then restarts at seq 1 on
+    time.  The restart refutes the lone batch and is judged as if it never came (not as a
+    duplicate of seq 200): every batch after it is taken."""
+    seq = Sequencer(SequencerParams())
+    seq.accept(seq.check("A", RADAR, 200, 4600.0), "rogue")
+    _, refused = seq.accept(seq.check("A", RADAR, 1, 1000.0), "a1")
+    assert [(sid, rej.reason) for sid, rej, _ in refused] == [("A", "out_of_range")]
+    for n in (2, 3):
+        seq.accept(seq.check("A", RADAR, n, 998.0 + 2 * n), f"a{n}")
+    assert [r.item for r in seq.release()] == ["a1", "a2", "a3"]
+    a = seq.sources["A"]
+    assert (a.batches, a.last_seq, a.lost_batches, a.restarts) == (3, 3, 0, 0)

@@ -32,14 +32,21 @@ Valid but hostile input (each policy a named field of :class:`SequencerParams`)
   back for an hour.  Such a batch is taken (counted) but its clock is *lone*: nothing at or
   beyond it is released, and it moves neither the consensus nor ``newest_s``, until data
   confirms it: its source's next batch not more than ``max_step_s`` behind it, another source's
-  batch within ``max_clock_skew_s`` of it, or a batch of its source within ``max_clock_skew_s``
-  after that source's clock of before (a restart, a short silence).  Data refutes it: its
-  source's next batch more than ``max_step_s`` behind it (then that batch is judged as the
-  first), or a confirmed clock more than ``max_clock_skew_s`` behind it.  A refuted lone batch is
-  withdrawn whole (rejected ``out_of_range``, its counts and clock undone; nothing of it was
-  released).  An honest stream only ever confirms, and what is released, and in which order,
-  does not depend on which batch arrives first: the first batch waits for the next one.  The
-  end of the input releases a lone batch as it is (nothing refuted it).
+  first clock within ``max_step_s`` of it, a confirmed clock elsewhere that it is not more than
+  ``max_step_s`` ahead of, or a time within ``max_clock_skew_s`` after its own source's clock of
+  before (a restart, a short silence).  Data refutes it: its source's next batch more than
+  ``max_step_s`` behind it (that batch is then judged as if the lone one never came: its seq
+  and clock of before), or a confirmed clock more than ``max_clock_skew_s`` behind it.  One
+  between the two (more than ``max_step_s`` ahead of the confirmed clock, within the skew) waits
+  for its source's next batch, as a held step does.  A refuted lone batch is withdrawn whole:
+  rejected ``out_of_range``, its counts, seq and clock put back (a scrape of the counters in
+  between sees them fall back), its pending events restored, nothing of it released.  An honest
+  stream only ever confirms, and the first batch waits for the next one, so the outputs do not
+  depend on which of the first two batches arrives first (a radar whose first batch comes after
+  two others agreed on a later time is released late, as a lagging radar's batch is).  The end
+  of the input withdraws the lone batches the confirmed clocks refute and releases the others
+  as they are.  Partitioned, another worker's confirmed clock settles a lone clock at this
+  worker's next batch.
 * **A lone step ahead.**  A batch stamped more than ``max_step_s`` ahead of both the other
   sources' data clock and its own source's clock (but within ``max_clock_skew_s``) is *held*,
   not taken, until the source's next batch says what it was: a next batch nearer the source's
@@ -189,6 +196,10 @@ class SourceClock:
         """Its data clock but a lone batch's: what it has shown to be right."""
         return self.lone.before_s if self.lone is not None else self.last_time_s
 
+    def confirmed_seq(self) -> int | None:
+        """Its last ``seq`` but a lone batch's."""
+        return self.lone.before_seq if self.lone is not None else self.last_seq
+
 
 @dataclass(frozen=True)
 class Admission:
@@ -247,8 +258,9 @@ class Lone:
     admission: Admission
     count: int
     received_s: float | None
-    #: The source's clock, flags and pending events before it.
+    #: The source's clock, seq, flags and pending events before it.
     before_s: float | None
+    before_seq: int | None
     expired: bool
     restored: bool
     expiry_due: float | None
@@ -389,28 +401,32 @@ class Sequencer:
         if src is not None and src.kind != kind:
             what = "a radar" if src.kind == RADAR else "a reference source"
             raise RejectionError("schema", f"source id {source_id!r} is taken by {what}", source_id)
-        if src is not None and src.last_seq is not None:
-            last_time = src.last_time_s if src.last_time_s is not None else -np.inf
-            if seq <= src.last_seq:
+        # a batch more than max_step_s behind its source's lone clock refutes it: it is judged
+        # as if the lone batch never came (its seq and clock of before)
+        lone = src.lone if src is not None else None
+        withdraws = lone is not None and src is not None and time_s < lone.admission.time_s - p.max_step_s
+        last_seq = (lone.before_seq if withdraws and lone else src.last_seq) if src is not None else None
+        own = (lone.before_s if withdraws and lone else src.last_time_s) if src is not None else None
+        if src is not None and last_seq is not None:
+            last_time = own if own is not None else -np.inf
+            if seq <= last_seq:
                 if not (seq <= p.restart_max_seq and time_s > last_time):
-                    raise RejectionError("duplicate_seq", self._duplicate(src, seq, time_s), source_id)
+                    detail = self._duplicate(last_seq, own, src.restored, seq, time_s)
+                    raise RejectionError("duplicate_seq", detail, source_id)
                 restart = True
             else:
-                lost = seq - src.last_seq - 1
+                lost = seq - last_seq - 1
                 allowed = max(p.max_seq_jump, p.max_batch_rate_hz * max(0.0, time_s - last_time))
                 if lost > allowed:
                     raise RejectionError(
                         "out_of_range",
-                        f"seq {seq} skips {lost} batches after {src.last_seq} in "
+                        f"seq {seq} skips {lost} batches after {last_seq} in "
                         f"{max(0.0, time_s - last_time):.3f} s of data time (max_seq_jump {p.max_seq_jump}, "
                         f"max_batch_rate_hz {p.max_batch_rate_hz:g})",
                         source_id,
                     )
         others = self._other_clocks(source_id)
-        outage, step_from, resolves, withdraws = 0.0, None, 0, False
-        own = src.last_time_s if src is not None else None
-        if src is not None and src.lone is not None and own is not None and time_s < own - p.max_step_s:
-            withdraws, own = True, src.lone.before_s  # judged as if the lone batch never came
+        outage, step_from, resolves = 0.0, None, 0
         # (measured against the clock taken, not a held batch's: the held rule says what a batch
         # before that one means)
         if own is not None and time_s < own - p.max_step_s:
@@ -448,16 +464,15 @@ class Sequencer:
         return Admission(source_id, kind, seq, time_s, restart, lost, outage, step_from, resolves, withdraws)
 
     @staticmethod
-    def _duplicate(src: SourceClock, seq: int, time_s: float) -> str:
+    def _duplicate(last_seq: int, clock: float | None, restored: bool, seq: int, time_s: float) -> str:
         """A duplicate's detail; a restarted publisher behind the source's clock is told why."""
-        detail = f"seq {seq} <= last accepted {src.last_seq}"
-        behind = (src.last_time_s if src.last_time_s is not None else -np.inf) - time_s
-        if behind <= 0:
+        detail = f"seq {seq} <= last accepted {last_seq}"
+        if clock is None or clock - time_s <= 0:
             return detail
-        held = "restored from the state file, " if src.restored else ""
+        held = "restored from the state file, " if restored else ""
         return (
-            f"{detail}, and time_s {time_s:.3f} is {behind:.1f} s behind this source's data clock "
-            f"({held}{src.last_time_s:.3f}): a publisher that restarted its seq must go on after "
+            f"{detail}, and time_s {time_s:.3f} is {clock - time_s:.1f} s behind this source's data clock "
+            f"({held}{clock:.3f}): a publisher that restarted its seq must go on after "
             "that clock (e.g. topofusion simulate --start-time resume)"
         )
 
@@ -528,13 +543,14 @@ class Sequencer:
         return evicted, refused
 
     def drop_held(self) -> list[Refused]:
-        """The end of the input: every held batch is given up (each to be reported rejected)."""
+        """The end of the input: every held batch is given up, and every lone clock the
+        confirmed ones refute withdrawn (each to be reported rejected)."""
         out: list[Refused] = []
         for sid, src in self.sources.items():
             if src.held is not None:
                 out.append((sid, src.held.rejection(sid, False), src.held.received_s))
                 src.held = None
-        return out
+        return out + self._settle_lone()
 
     @staticmethod
     def _count_seq(src: SourceClock, adm: Admission) -> None:
@@ -546,21 +562,21 @@ class Sequencer:
         self, src: SourceClock, adm: Admission, item: Any, count: int, received_s: float | None = None
     ) -> list[Refused]:
         sid = adm.source_id
-        before = src.last_time_s if src.lone is None else src.lone.before_s
-        # confirmed at once: a confirmed clock elsewhere (the checks measured it against it), its
-        # own lone batch not refuted, or its own clock of before not far behind
-        skew = self.params.max_clock_skew_s
+        p = self.params
+        # confirmed at once: its own lone batch (not refuted), its own clock of before not far
+        # behind, a confirmed clock elsewhere (the checks measured it against it), or another
+        # lone clock within max_step_s (the two agree)
         confirmed = (
             src.lone is not None
-            or (before is not None and adm.time_s <= before + skew)
+            or (src.last_time_s is not None and adm.time_s <= src.last_time_s + p.max_clock_skew_s)
             or any(
                 s.last_time_s is not None
                 and not s.expired
-                and (s.lone is None or abs(s.last_time_s - adm.time_s) <= skew)
+                and (s.lone is None or abs(s.last_time_s - adm.time_s) <= p.max_step_s)
                 for o, s in self.sources.items()
                 if o != sid
             )
-        )  # (another lone clock within the skew: the two agree, both are confirmed)
+        )
         if not confirmed:
             self._lone.add(sid)
             src.lone = Lone(
@@ -568,6 +584,7 @@ class Sequencer:
                 count,
                 received_s,
                 src.last_time_s,
+                src.last_seq,
                 src.expired,
                 src.restored,
                 self._expiry_due.get(sid),
@@ -575,12 +592,12 @@ class Sequencer:
             )
         elif src.lone is not None:
             self._confirm(sid, src)
-        src.ahead_s = None
-        src.restored = False
         if adm.step_from_s is None:  # (a held batch's seq was counted when it was held)
             self._count_seq(src, adm)
         src.batches += 1
         src.plots += count
+        src.ahead_s = None
+        src.restored = False
         clock = max(adm.time_s, src.last_time_s if src.last_time_s is not None else -np.inf)
         src.last_time_s = clock
         src.expired = False
@@ -595,7 +612,14 @@ class Sequencer:
         return self._settle_lone()
 
     def _count_outage(self, adm: Admission) -> None:
+        """Count the outage a taken, confirmed batch ended.  One judged with no other clock live
+        (against ``newest_s``) is judged again: a lone batch back from the same outage may
+        have been confirmed, and counted, since."""
         if adm.outage <= 0:
+            return
+        if adm.time_s <= self.newest_s + self.params.max_clock_skew_s and not self._other_clocks(
+            adm.source_id
+        ):
             return
         self.outages += 1
         self.last_outage_s = adm.outage
@@ -609,20 +633,25 @@ class Sequencer:
         )
 
     def _confirm(self, source_id: str, src: SourceClock) -> None:
-        """A lone clock is confirmed: it counts from now on (its outage too, if it ended one)."""
+        """A lone clock is confirmed: it counts in the network's clocks from now on (and its
+        outage, if it ended one no batch counted yet)."""
         lone, src.lone = src.lone, None
         self._lone.discard(source_id)
-        # (another source back from the same outage may have ended it first)
-        if lone is not None and lone.admission.time_s > self.newest_s + self.params.max_clock_skew_s:
-            self._count_outage(lone.admission)
-        if lone is not None:  # the first data time seen is its, for the radars yet to report
-            self._first_clock = min(self._first_clock, lone.admission.time_s)
+        if lone is None:
+            return
+        a = lone.admission
+        if a.outage > 0 and a.time_s > self.newest_s + self.params.max_clock_skew_s:
+            self._count_outage(a)
+        # the first data time seen is its, for the radars yet to report
+        self._first_clock = min(self._first_clock, a.time_s)
         if src.last_time_s is not None:
             self.newest_s = max(self.newest_s, src.last_time_s)
 
     def _settle_lone(self) -> list[Refused]:
-        """With a confirmed clock in the network, every lone clock is settled: confirmed unless
-        it is more than ``max_clock_skew_s`` ahead of the confirmed consensus, then withdrawn."""
+        """With a confirmed clock in the network, the lone clocks are settled against the
+        confirmed consensus: more than ``max_clock_skew_s`` ahead, withdrawn; more than
+        ``max_step_s`` ahead, left to its source's next batch (as a held step is); else
+        confirmed."""
         if not self._lone:
             return []
         consensus = self.consensus()
@@ -631,23 +660,20 @@ class Sequencer:
         out = []
         for sid in sorted(self._lone):
             src = self.sources[sid]
-            if src.last_time_s is None:
-                continue
-            if src.last_time_s > consensus + self.params.max_clock_skew_s:
-                ahead = src.last_time_s - consensus
-                out.append(
-                    self._withdraw(
-                        sid,
-                        f"the confirmed data clock {consensus:.3f} is {ahead:.1f} s behind it "
-                        f"(max_clock_skew_s {self.params.max_clock_skew_s:g})",
-                    )
+            ahead = src.lone_time() - consensus
+            if ahead > self.params.max_clock_skew_s:
+                why = (
+                    f"the confirmed data clock {consensus:.3f} is {ahead:.1f} s behind it "
+                    f"(max_clock_skew_s {self.params.max_clock_skew_s:g})"
                 )
-            else:
+                out.append(self._withdraw(sid, why))
+            elif ahead <= self.params.max_step_s:
                 self._confirm(sid, src)
         return out
 
     def _withdraw(self, source_id: str, why: str) -> Refused:
-        """Undo a source's lone batch (refuted by data): nothing of it was released."""
+        """Undo a source's lone batch (refuted by data): nothing of it was released, and its
+        counts, seq and clock are the source's of before it (rejected whole)."""
         src = self.sources[source_id]
         lone, src.lone = src.lone, None
         self._lone.discard(source_id)
@@ -656,9 +682,12 @@ class Sequencer:
         if not src.pending:  # its heap entry goes with it
             self._heap = [e for e in self._heap if not (e[2] == source_id and e[1] == src.kind)]
             heapq.heapify(self._heap)
-        src.last_time_s, src.expired, src.restored = lone.before_s, lone.expired, lone.restored
+        src.last_time_s, src.last_seq = lone.before_s, lone.before_seq
+        src.expired, src.restored = lone.expired, lone.restored
         src.batches -= 1
         src.plots -= lone.count
+        src.lost_batches -= lone.admission.lost
+        src.restarts -= lone.admission.restart
         events = ((lone.expiry_due, EXPIRE, self._expiry_due), (lone.forget_due, FORGET, self._forget_due))
         for due, kind, book in events:
             if due is not None:
@@ -672,9 +701,9 @@ class Sequencer:
         on (a repeated ``seq`` is a duplicate, a gap counts lost batches) and so does its clock.
         Sources that never sent a batch, and other workers' radars, are left out."""
         return [
-            {"source_id": sid, "kind": s.kind, "seq": s.last_seq, "time_s": s.confirmed_clock()}
+            {"source_id": sid, "kind": s.kind, "seq": s.confirmed_seq(), "time_s": s.confirmed_clock()}
             for sid, s in sorted(self.sources.items())
-            if s.last_seq is not None and s.confirmed_clock() is not None and not s.foreign
+            if s.confirmed_seq() is not None and s.confirmed_clock() is not None and not s.foreign
         ]
 
     @staticmethod
