@@ -403,3 +403,26 @@ def test_heavy_clutter_does_not_set_the_site_checks_off() -> None:
     (tracks, pairs), (blind_tracks, blind_pairs) = _confirmed(engine), _confirmed(blind)
     assert tracks["B"] <= 1.3 * blind_tracks["B"]
     assert set(pairs) == set(blind_pairs) and all(pairs[k] >= 0.9 * blind_pairs[k] for k in pairs)
+
+
+def test_a_site_updated_to_a_longer_scan_period_widens_the_tracker_s_window() -> None:
+    """Every radar's site said 4 s for its first four batches and then the true period (8, 10
+    and 6 s: the formation scene).  The tracker's window was sized once, when its first batch
+    was released, to three looks of 4 s: it held one look of a 10 s radar, and no track ever
+    started on A or B.  The window follows the site: the radars track as in the honest run."""
+    honest = scenario_messages("formation", duration_s=200.0)
+    periods = {k.split("/")[2]: json.loads(p)["scan_period_s"] for k, p in honest if k.endswith("/site")}
+    assert max(periods.values()) >= 8.0
+    wrong = honest
+    for radar in periods:
+        wrong = _declaring(wrong, radar, 4.0, None)
+    for radar in periods:
+        key = f"fusion/radar/{radar}/site"
+        true_site = next(p for k, p in honest if k == key)
+        wrong = insert_after(wrong, batches(wrong, radar)[3][0], [(key, true_site)])
+    clean, _ = run_engine(honest)
+    engine, out = run_engine(wrong)
+    assert errors(out) == []
+    tracks, clean_tracks = _confirmed(engine)[0], _confirmed(clean)[0]
+    assert set(tracks) == set(periods)
+    assert all(tracks[r] >= 0.9 * clean_tracks[r] > 10 for r in periods), (tracks, clean_tracks)

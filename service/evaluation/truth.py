@@ -185,6 +185,9 @@ class TruthLabelledTracker(Tracker):
     def site(self, value: Site) -> None:  # a radar's geometry can be replaced (engine)
         self.inner.site = value
 
+    def follow(self, site: Site) -> None:
+        self.inner.follow(site)
+
     def update(self, plots: PlotColumns, time_s: float) -> None:
         self.inner.update(plots, time_s)
         joined = self.inner.joined

@@ -118,8 +118,8 @@ class TrackingStage:
                 return SiteChange.SAME
             new = to_geometry(site)
         held.site, held.geometry = site, new
-        if held.tracker is not None:  # same tracks, new geometry for new plots
-            held.tracker.site = new
+        if held.tracker is not None:  # same tracks, new geometry (and window) for new plots
+            held.tracker.follow(new)
         return SiteChange.MOVED if moved else SiteChange.UPDATED
 
     def update(self, radar_id: str, plots: PlotColumns, time_s: float) -> TrackTable:

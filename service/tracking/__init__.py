@@ -19,10 +19,7 @@ from service.tracking.base import PlotColumns, Tracker, TrackTable, first_number
 from service.tracking.initiators import INITIATORS, get_initiator
 from service.tracking.manager import TrackManager
 from service.tracking.params import TrackerParams
-
-#: Default sliding window in seconds of data time: three looks of a 4 s radar, what the
-#: ``logic`` initiator needs (three plots, allowing for the plots' spread within a scan).
-DEFAULT_WINDOW_S: float = 12.0
+from service.tracking.window import DEFAULT_WINDOW_S, window_for
 
 __all__ = [
     "DEFAULT_WINDOW_S",
@@ -47,19 +44,19 @@ def make_tracker(
     """A tracker for one radar.
 
     ``window_s`` None: ``max(DEFAULT_WINDOW_S, 3 * site.scan_period_s)`` so that the window
-    always spans three looks.  ``initiator`` is one of :data:`INITIATORS` (``ValueError``
-    naming them otherwise).  Track ids are ``f"{id_prefix}-{n}"``, ``n`` from
-    ``first_number(epoch)`` (1 in epoch 0), never reused: ``epoch`` counts the service's starts
-    with one state directory (``service.state``), so ids are not reused across restarts either.
+    always spans three looks, of the site's scan period as it is updated (``Tracker.follow``).
+    ``initiator`` is one of :data:`INITIATORS` (``ValueError`` naming them otherwise).  Track
+    ids are ``f"{id_prefix}-{n}"``, ``n`` from ``first_number(epoch)`` (1 in epoch 0), never
+    reused: ``epoch`` counts the service's starts with one state directory
+    (``service.state``), so ids are not reused across restarts either.
     """
     get_initiator(initiator)  # fail early with the list of names
-    if window_s is None:
-        window_s = max(DEFAULT_WINDOW_S, 3.0 * site.scan_period_s)
     return TrackManager(
         site,
-        float(window_s),
+        window_for(site, window_s),
         initiator=initiator,
         id_prefix=id_prefix,
         params=params,
         first_number=first_number(epoch),
+        window_follows_site=window_s is None,
     )

@@ -155,6 +155,11 @@ class Tracker(ABC):
         self.site = site
         self.window_s = window_s
 
+    def follow(self, site: Site) -> None:
+        """The radar's site was updated (the same radar: new sigmas, scan period or position):
+        the plots from now on are measured with it."""
+        self.site = site
+
     @abstractmethod
     def update(self, plots: PlotColumns, time_s: float) -> None:
         """Absorb one batch: update tracks, keep unused plots in the window, prune by data time."""

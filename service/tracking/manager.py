@@ -60,7 +60,7 @@ from service.tracking.noise import NoiseMeter
 from service.tracking.pairs import cell_counts
 from service.tracking.params import TrackerParams
 from service.tracking.revisit import RevisitMeter
-from service.tracking.window import PlotWindow
+from service.tracking.window import PlotWindow, window_for
 
 IntArray = NDArray[np.intp]
 _POP16 = np.array([bin(i).count("1") for i in range(1 << 16)], dtype=np.int64)
@@ -240,10 +240,14 @@ class TrackManager(Tracker):
         id_prefix: str = "T",
         params: TrackerParams | None = None,
         first_number: int = 1,
+        window_follows_site: bool = False,
     ) -> None:
         """``first_number``: the number of the first track's id (``f"{id_prefix}-{n}"``); the
-        track uids inside stay 1, 2, ... (service.evaluation packs them into 32 bits)."""
+        track uids inside stay 1, 2, ... (service.evaluation packs them into 32 bits).
+        ``window_follows_site``: the window is the one of the site's scan period
+        (:func:`~service.tracking.window.window_for`) and follows it when the site is updated."""
         super().__init__(site, window_s)
+        self._window_follows_site = window_follows_site
         self.params = params if params is not None else TrackerParams()
         mp = self.params.manager
         if not 1 <= mp.confirm_m <= mp.confirm_n <= 30:
@@ -315,6 +319,13 @@ class TrackManager(Tracker):
     def uids(self) -> NDArray[np.int64]:
         """Numeric ids of the live tracks, in the row order of :meth:`tracks`."""
         return self._tracks.uid.copy()
+
+    def follow(self, site: Site) -> None:
+        """A site updated with a new scan period changes a window sized by it: a window made
+        for a 4 s radar holds one look of a 10 s one, and no track could start."""
+        super().follow(site)
+        if self._window_follows_site:
+            self.window_s = self._window.window_s = window_for(site)
 
     def update(self, plots: PlotColumns, time_s: float) -> None:
         """One batch, all or nothing (module docstring): the steps build new track arrays and

@@ -6,8 +6,19 @@ from collections import deque
 
 import numpy as np
 
+from service.geo import Site
 from service.tracking.base import PlotColumns
 from service.tracking.measurement import Measurements
+
+#: Default sliding window in seconds of data time: three looks of a 4 s radar, what the
+#: ``logic`` initiator needs (three plots, allowing for the plots' spread within a scan).
+DEFAULT_WINDOW_S: float = 12.0
+
+
+def window_for(site: Site, window_s: float | None = None) -> float:
+    """The window a radar's tracker keeps: ``window_s`` if given, else
+    ``max(DEFAULT_WINDOW_S, 3 * site.scan_period_s)``, so that it always spans three looks."""
+    return float(window_s) if window_s is not None else max(DEFAULT_WINDOW_S, 3.0 * site.scan_period_s)
 
 
 class PlotWindow:
