@@ -154,6 +154,25 @@ def test_refused_zenoh_endpoint_is_one_clear_error() -> None:
     assert "cannot open Zenoh session" in res.stderr and "Traceback" not in res.stderr
 
 
+def test_a_taken_http_port_exits_1_as_the_contract_says() -> None:
+    """The HTTP port held by another program: `run` ends with 1 (contract §3), not with
+    uvicorn's own start-up failure status (3), and says why."""
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        res = subprocess.run(
+            [TOPOFUSION, "run", "--listen", f"tcp/127.0.0.1:{free_port()}", "--http-port", str(port)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+    assert res.returncode == 1, res.stderr
+    assert "address already in use" in res.stderr.lower() and "Traceback" not in res.stderr
+
+
 def test_python_m_service_is_the_console_script() -> None:
     """`python -m service` equals `topofusion` (contract §3), the lab's commands included."""
     for args in (["--help"], ["demo", "--help"], ["nosuch"]):

@@ -143,6 +143,9 @@ def serve(settings: Settings, hooks: Callable[[str], ServeHooks] | None = None) 
     gc.freeze()
     try:
         server.run()
+    except SystemExit:  # uvicorn's own exit when it cannot start (status 3 since 0.x): ours is 1
+        if server.started:
+            raise
     finally:
         node.stop()  # idempotent: the lifespan stopped it unless uvicorn failed before it ran
     if node.failure:
