@@ -130,15 +130,28 @@ class DemoSimulator:
 
 def _correct_by_truth(snapshot: Any) -> int:
     """Confirmed pairs whose tracks follow the same simulated target (display only: the demo
-    knows the simulator's truth; no algorithm ever reads it)."""
+    knows the simulator's truth; no algorithm ever reads it).  A reference source's track (an
+    ADS-B or AIS one) is named by what its target transmits, its icao24 or MMSI."""
+    from topofusion_lab.scenarios.simulator import identity_of, mmsi_of  # (not at `--help`)
+
     truth = {
         (rid, str(tid)): t
         for rid, (_, table) in snapshot.tracks.items()
         for tid, t in zip(table.track_id, table.truth_id, strict=True)
     }
+
+    def right(a: tuple[str, str], b: tuple[str, str]) -> bool:
+        """``a`` a radar's track; ``b`` another radar's or a reference source's."""
+        target = truth.get(a)
+        if target is None:
+            return False
+        if b[0] in snapshot.tracks:
+            return bool(truth.get(b) == target)
+        return b[1] in (identity_of(str(target))[1], mmsi_of(str(target)))
+
     return sum(
-        truth.get((ps["radar_a"], p["track_a"])) is not None
-        and truth.get((ps["radar_a"], p["track_a"])) == truth.get((ps["radar_b"], p["track_b"]))
+        right(a, b) if a[0] in snapshot.tracks else right(b, a)
         for ps in snapshot.pair_sets(status="confirmed")
         for p in ps["pairs"]
+        for a, b in [((ps["radar_a"], p["track_a"]), (ps["radar_b"], p["track_b"]))]
     )

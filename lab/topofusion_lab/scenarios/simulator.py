@@ -128,6 +128,11 @@ def identity_of(name: str) -> tuple[str, str]:
     return f"{(number * 37) % 4096:04o}", f"{(0x3C0000 + number * 7919) % 0x1000000:06x}"
 
 
+def mmsi_of(name: str) -> str:
+    """A simulated target's AIS MMSI (a function of its name, as :func:`identity_of`)."""
+    return f"{412000000 + int(name[1:]):09d}"
+
+
 @dataclass(frozen=True)
 class FormationSpec:
     """All of a scenario's targets start as one formation: ``Scenario.targets`` aircraft on a
@@ -628,7 +633,7 @@ def _ais_batch(
         enu = targets.pos[idx] + targets.vel[idx] * (tr - t_now)
         lat, lon, _ = ecef_to_geodetic(_ecef(targets.sc, enu, center, rot))
         rows_t += [round(t0 + float(tr), 3)] * len(idx)
-        rows_id += [f"{412000000 + int(str(targets.ids[i])[1:]):09d}" for i in idx]
+        rows_id += [mmsi_of(str(targets.ids[i])) for i in idx]
         rows_lat += [round(float(x), 7) for x in lat]
         rows_lon += [round(float(x), 7) for x in lon]
     return {
