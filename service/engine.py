@@ -197,7 +197,7 @@ class Engine:
 
     def flush(self) -> list[Outgoing]:
         """Release every held batch regardless of the watermark (end of a replay or shutdown)."""
-        out = self._refused_held(self.sequencer.drop_held()) + self._process(self.sequencer.flush())
+        out = self._report_refused(self.sequencer.drop_held()) + self._process(self.sequencer.flush())
         out += self._correlate(self.merger.flush())
         self.correlation.finish()
         out += self._results()
@@ -263,14 +263,14 @@ class Engine:
         adm = self.sequencer.check(source_id, kind, batch.seq, batch.time_s)
         # accepted: from here on it changes state
         evicted, refused = self.sequencer.accept(adm, item, n, received)
-        out = self._drop(evicted) + self._refused_held(refused)
+        out = self._drop(evicted) + self._report_refused(refused)
         self.feed.taken(source_id, self.sequencer.newest_s)
         if kind == REFERENCE:
             self.reference_kinds[source_id] = what
         self._snapshot = None
         return out
 
-    def _refused_held(self, refused: list[Refused]) -> list[Outgoing]:
+    def _report_refused(self, refused: list[Refused]) -> list[Outgoing]:
         """Batches held as a step ahead (``pipeline.sequencer``) and then refuted or unconfirmed,
         or taken with a lone clock that data refuted, each reported at its own receipt (offline,
         the recorded one: never the run's clock)."""

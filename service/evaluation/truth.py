@@ -187,6 +187,7 @@ class TruthLabelledTracker(Tracker):
 
     def follow(self, site: Site) -> None:
         self.inner.follow(site)
+        self.window_s = self.inner.window_s
 
     def update(self, plots: PlotColumns, time_s: float) -> None:
         self.inner.update(plots, time_s)

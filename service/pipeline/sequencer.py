@@ -403,10 +403,11 @@ class Sequencer:
             raise RejectionError("schema", f"source id {source_id!r} is taken by {what}", source_id)
         # a batch more than max_step_s behind its source's lone clock refutes it: it is judged
         # as if the lone batch never came (its seq and clock of before)
+        last_seq, own = (src.last_seq, src.last_time_s) if src is not None else (None, None)
         lone = src.lone if src is not None else None
-        withdraws = lone is not None and src is not None and time_s < lone.admission.time_s - p.max_step_s
-        last_seq = (lone.before_seq if withdraws and lone else src.last_seq) if src is not None else None
-        own = (lone.before_s if withdraws and lone else src.last_time_s) if src is not None else None
+        withdraws = lone is not None and time_s < lone.admission.time_s - p.max_step_s
+        if lone is not None and withdraws:
+            last_seq, own = lone.before_seq, lone.before_s
         if src is not None and last_seq is not None:
             last_time = own if own is not None else -np.inf
             if seq <= last_seq:
@@ -637,8 +638,7 @@ class Sequencer:
         outage, if it ended one no batch counted yet)."""
         lone, src.lone = src.lone, None
         self._lone.discard(source_id)
-        if lone is None:
-            return
+        assert lone is not None
         a = lone.admission
         if a.outage > 0 and a.time_s > self.newest_s + self.params.max_clock_skew_s:
             self._count_outage(a)
