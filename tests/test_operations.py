@@ -342,7 +342,7 @@ def test_sigterm_under_load_drains_the_queue_and_publishes_the_final_outputs(
     assert int(line.group(1)) > 0, "nothing was queued at SIGTERM: the test did not load the service"
     # One TrackBatch per plot batch processed: the queue's outputs were all published.  (What
     # was still in flight on the network at the signal never reached the service.)
-    assert sum(received.values()) == int(line.group(5)) <= sum(sent.values())
+    assert sum(received.values()) == int(line.group(5)) <= sum(sent.values()), (received, out)
 
 
 def test_sigterm_with_a_short_grace_counts_exactly_what_it_leaves(
@@ -354,7 +354,7 @@ def test_sigterm_with_a_short_grace_counts_exactly_what_it_leaves(
     processed, left, queued = int(line.group(2)), int(line.group(3)), int(line.group(4))
     assert left > 0 and processed + left == queued  # every queued sample: processed or counted
     plots_left = int(re.search(r"\((\d+) plot batches\)", out).group(1))  # type: ignore[union-attr]
-    assert sum(received.values()) == int(line.group(5)) <= sum(sent.values()) - plots_left
+    assert sum(received.values()) == int(line.group(5)) <= sum(sent.values()) - plots_left, (received, out)
 
 
 def test_a_stop_while_connecting_ends_the_connector_and_leaks_no_session(
