@@ -220,6 +220,7 @@ class Engine:
         owns = self.partition.owns(site.radar_id)
         out = self._drop(self.sequencer.announce(site.radar_id, RADAR)) if owns else []
         change = self.tracking.set_site(site)
+        self.sequencer.sites_known = len(self.tracking.tracked)
         if change is SiteChange.MOVED:
             self.correlation.moved(self.tracking.tracked[site.radar_id].geometry)
         if change is not SiteChange.SAME:
@@ -233,6 +234,7 @@ class Engine:
         for sid in source_ids:
             self.reference_kinds.pop(sid, None)
             self.tracking.clear(sid) if keep_site else self.tracking.drop(sid)
+            self.sequencer.sites_known = len(self.tracking.tracked)
             self.correlation.forget(sid)
             self.peers.forget(sid)
             self.feed.forget(sid)

@@ -16,6 +16,7 @@ import pytest
 import zenoh
 
 from service.engine import Engine, EngineConfig
+from service.pipeline.errors import RejectionError
 from service.pipeline.feed import FeedParams, FeedWatch
 from service.pipeline.sequencer import RADAR, Sequencer, SequencerParams
 from tests.scenario_helpers import scenario_messages
@@ -469,3 +470,126 @@ def test_a_publisher_restarting_after_a_refuted_first_batch_is_taken() -> None:
     assert [r.item for r in seq.release()] == ["a1", "a2", "a3"]
     a = seq.sources["A"]
     assert (a.batches, a.last_seq, a.lost_batches, a.restarts) == (3, 3, 0, 0)
+
+
+def test_a_radar_agreeing_with_its_own_rogue_clock_is_not_confirmed_by_itself(
+    stream: Stream, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every source expired on the wall clock; radar A's first five batches back come stamped an
+    hour ahead, before any other radar's.  Agreeing with itself, A had confirmed its clock: its
+    batches were released, the picture's clock went an hour ahead and A's honest batches were
+    refused as steps back (114 in an outside run).  While other sources are known, A's own few
+    batches prove nothing: the others' return refutes all five, each is rejected, and A tracks
+    on."""
+    engine, rest = expired_on_the_wall_clock(stream, monkeypatch)
+    a_batches = [n for n, (k, _) in enumerate(rest) if k == "fusion/radar/A/plots"][:5]
+    rogue = [(rest[n][0], shifted(rest[n][1], 3600.0)) for n in a_batches]
+    honest = [m for n, m in enumerate(rest) if n not in set(a_batches)]
+    out = [o for key, payload in [*rogue, *honest] for o in engine.ingest(key, payload)]
+    assert [(e["radar_id"], e["reason"]) for e in errors(out)] == [("A", "out_of_range")] * 5
+    status = {r["radar_id"]: r for r in engine.snapshot().status_core()["radars"]}
+    assert status["A"]["tracks_confirmed"] > 0 and status["A"]["rejected"] == 5
+    assert engine.snapshot().system_tracks()["time_s"] < json.loads(rest[-1][1])["time_s"] + 1
+
+
+@pytest.mark.parametrize("lead", [2, 5])
+def test_a_radar_whose_clock_is_an_hour_off_from_its_first_batch_is_refused_whole(lead: int) -> None:
+    """A fresh service knowing three radars' sites; radar A's clock is an hour ahead (a wrong
+    time zone) from its first batch on, and its first ``lead`` batches come before any other.
+    Agreeing with itself, A had set the network's clock an hour ahead: the other radars expired
+    against it and the picture emptied (no pairs, two system-track pictures in 200 s).  Now its
+    batches stay lone until the others' first batches refute them; every batch of A is
+    rejected, and every output is the one of the stream without A's batches."""
+    stream = scenario_messages("three-radar", duration_s=120.0)
+    sites = [m for m in stream if m[0].endswith("/site")]
+    a = [(k, shifted(p, 3600.0)) for k, p in stream if k == "fusion/radar/A/plots"]
+    others = [m for m in stream if m[0].endswith("/plots") and m[0] != "fusion/radar/A/plots"]
+    rest = sorted([*a[lead:], *others], key=lambda m: json.loads(m[1])["time_s"] % 3600.0)
+    engine, out = run_engine([*sites, *a[:lead], *rest])
+    clean, clean_out = run_engine([*sites, *others])
+    assert [(e["radar_id"], e["reason"]) for e in errors(out)] == [("A", "out_of_range")] * len(a)
+    assert _outputs(out) == _outputs(clean_out)
+    assert _pair_counts(engine) == _pair_counts(clean) and _pair_counts(engine)[("B", "C")] >= 10
+
+
+def _known(*radars: str) -> Sequencer:
+    seq = Sequencer(SequencerParams())
+    for rid in radars:
+        seq.announce(rid, RADAR)
+    seq.sites_known = len(radars)
+    return seq
+
+
+def test_a_lone_run_confirms_itself_after_max_lag_s_of_continuous_data() -> None:
+    """A radar alone while another is known but silent: its batches stay lone (released
+    nothing) until they have gone on for ``max_lag_s`` of data time, then they are confirmed
+    and released as the silent radar's lag bound allows.  A jump ahead inside the run is held
+    for the next batch (refuted here), and does not count as run time."""
+    lag = SequencerParams().max_lag_s
+    seq = _known("A", "B")
+    times = [100.0 + 4.0 * n for n in range(int(lag // 4.0) + 2)]
+    refused = []
+    for n, t in enumerate(times[:-1]):
+        refused += seq.accept(seq.check("A", RADAR, 2 * n + 1, t), f"a{n}")[1]
+        if n == 1:  # a corrupted stamp inside the run: held, refuted by the next batch
+            seq.accept(seq.check("A", RADAR, 2 * n + 2, t + lag + 1.0), "glitch")
+            assert seq.sources["A"].held is not None
+    assert [(sid, rej.reason) for sid, rej, _ in refused] == [("A", "out_of_range")]
+    assert seq.sources["A"].lone is not None and list(seq.release()) == []
+    seq.accept(seq.check("A", RADAR, 99, times[-1]), "last")
+    assert seq.sources["A"].lone is None and times[-1] - times[0] >= lag
+    released = [r.item for r in seq.release()]
+    assert released and released[0] == "a0" and "glitch" not in released
+
+
+def test_a_jump_inside_a_lone_run_is_held_and_does_not_confirm_the_run() -> None:
+    """A lone run (another radar known, silent) with one batch stamped ``max_lag_s`` ahead and
+    the source going on from there: the jump is held, its next batch confirms it, but the run
+    counts from the jump, so the run is still lone (a single jump of that size had confirmed
+    the whole run at once)."""
+    lag = SequencerParams().max_lag_s
+    seq = _known("A", "B")
+    seq.accept(seq.check("A", RADAR, 1, 100.0), "a1")
+    seq.accept(seq.check("A", RADAR, 2, 104.0), "a2")
+    seq.accept(seq.check("A", RADAR, 3, 104.0 + lag + 5.0), "jump")
+    assert seq.sources["A"].held is not None
+    seq.accept(seq.check("A", RADAR, 4, 108.0 + lag + 5.0), "after")
+    assert seq.sources["A"].held is None and seq.sources["A"].lone is not None
+    assert list(seq.release()) == []
+    # the other radar's first batch agrees with the run's start: the run is confirmed, in order
+    seq.accept(seq.check("B", RADAR, 1, 101.0), "b1")
+    assert seq.sources["A"].lone is None
+    assert [r.item for r in seq.flush()] == ["a1", "b1", "a2", "jump", "after"]
+
+
+def test_a_lone_source_whose_clock_stands_still_is_bounded() -> None:
+    """A lone source whose stamp stands still never makes run time: at most
+    ``max_lone_batches`` of its batches are held, the next are rejected (counted, nothing held),
+    and another source's agreeing clock still confirms what was held."""
+    seq = Sequencer(SequencerParams(max_lone_batches=5))
+    seq.announce("A", RADAR)
+    seq.announce("B", RADAR)
+    seq.sites_known = 2
+    for n in range(1, 6):
+        seq.accept(seq.check("A", RADAR, n, 100.0), f"a{n}")
+    with pytest.raises(RejectionError, match="max_lone_batches"):
+        seq.check("A", RADAR, 6, 100.0)
+    assert len(seq.sources["A"].pending) == 5
+    seq.accept(seq.check("B", RADAR, 1, 100.0), "b1")
+    assert seq.sources["A"].lone is None and len(list(seq.flush())) == 6
+
+
+def test_a_partitioned_worker_owning_one_radar_is_not_the_network_s_only_source() -> None:
+    """Partitioned, a worker's sequencer holds only its own radars, yet every site is known: a
+    worker owning one radar whose first batches come an hour ahead does not confirm them by
+    themselves; another worker's confirmed clock (observed) refutes them all."""
+    seq = Sequencer(SequencerParams())
+    seq.announce("A", RADAR)
+    seq.sites_known = 3  # A's, and the radars of the other workers
+    for n in range(1, 4):
+        seq.accept(seq.check("A", RADAR, n, 4600.0 + 4.0 * n), f"rogue{n}")
+    assert seq.sources["A"].lone is not None and list(seq.release()) == []
+    seq.observe("B", 1000.0)
+    _, refused = seq.accept(seq.check("A", RADAR, 4, 1004.0), "a4")
+    assert [(sid, rej.reason) for sid, rej, _ in refused] == [("A", "out_of_range")] * 3
+    assert seq.sources["A"].last_time_s == 1004.0 and seq.sources["A"].batches == 1

@@ -31,14 +31,23 @@ Valid but hostile input (each policy a named field of :class:`SequencerParams`)
   ahead would set the network's clock, and its source's honest batches after it would be steps
   back for an hour.  Such a batch is taken (counted) but its clock is *lone*: nothing at or
   beyond it is released, and it moves neither the consensus nor ``newest_s``, until data
-  confirms it: its source's next batch not more than ``max_step_s`` behind it, another source's
-  first clock within ``max_step_s`` of it, a confirmed clock elsewhere that it is not more than
-  ``max_step_s`` ahead of, or a time within ``max_clock_skew_s`` after its own source's clock of
-  before (a restart, a short silence).  Data refutes it: its source's next batch more than
-  ``max_step_s`` behind it (that batch is then judged as if the lone one never came: its seq
-  and clock of before), or a confirmed clock more than ``max_clock_skew_s`` behind it.  One
-  between the two (more than ``max_step_s`` ahead of the confirmed clock, within the skew) waits
-  for its source's next batch, as a held step does.  A refuted lone batch is withdrawn whole:
+  confirms it: another source's first clock within ``max_step_s`` of it, a confirmed clock
+  elsewhere that it is not more than ``max_step_s`` ahead of, a time within
+  ``max_clock_skew_s`` after its own source's clock of before (a restart, a short silence), or
+  its source's own next batches: where it is the network's only source (no other source, no
+  other site known), its next batch not more than ``max_step_s`` behind it; else only once they
+  have gone on for ``max_lag_s`` of data time with no step of more than ``max_step_s`` (while
+  others are known, a source agreeing with itself proves nothing: a radar whose clock is an
+  hour off from its first batch on must not set the network's clock; a known radar that has not
+  reported holds the release back as long anyway).  Until then its batches are a *lone run*,
+  withdrawn or confirmed together: at most ``max_lone_batches`` (a clock that stands still
+  makes no run time), and a step of more than ``max_step_s`` inside it is held for the next
+  batch as a lone step ahead is (one corrupted stamp must not carry the run).  Data refutes
+  it: its source's next batch more than ``max_step_s`` behind its first batch (that batch is
+  then judged as if the lone ones never came: its seq and clock of before), or a confirmed
+  clock more than ``max_clock_skew_s`` behind its newest.  One between the two (its first more
+  than ``max_step_s`` ahead of the confirmed clock, within the skew) waits for its source's
+  next batch, as a held step does.  A refuted lone batch is withdrawn whole:
   rejected ``out_of_range``, its counts, seq and clock put back (a scrape of the counters in
   between sees them fall back), its pending events restored, nothing of it released.  An honest
   stream only ever confirms, and the first batch waits for the next one, so the outputs do not
@@ -155,6 +164,11 @@ class SequencerParams:
     #: Most sources held at once (radars and references).  Every held source costs a little
     #: memory and a term of the watermark; beyond this, expired sources make room.
     max_sources: Annotated[int, Ge(1)] = 1_024
+    #: Most batches of one source held lone, waiting for data to confirm or refute its clock
+    #: (module docstring); one more is rejected unless it confirms them.  A run confirms itself
+    #: after ``max_lag_s`` of data: a thousand batches is 33 a second over that run, past any
+    #: sensor's rate, so only a clock that stands still reaches it.
+    max_lone_batches: Annotated[int, Ge(1)] = 1_000
 
 
 @dataclass
@@ -250,15 +264,18 @@ class Held:
         )
 
 
-@dataclass(frozen=True)
+@dataclass
 class Lone:
-    """A batch taken while no other source had a confirmed clock (module docstring), with what
-    it changed of its source, to be put back if data refutes it."""
+    """The batches of a source taken while no other source had a confirmed clock (module
+    docstring), oldest first, with what they changed of the source, to be put back if data
+    refutes them."""
 
-    admission: Admission
-    count: int
-    received_s: float | None
-    #: The source's clock, seq, flags and pending events before it.
+    #: Each batch's admission, plots or reports, and receipt.
+    entries: list[tuple[Admission, int, float | None]]
+    #: Where the source's continuous run began (a step of more than ``max_step_s`` starts it
+    #: again): its own batches confirm it after ``max_lag_s`` of that run.
+    run_from_s: float
+    #: The source's clock, seq, flags and pending events before them.
     before_s: float | None
     before_seq: int | None
     expired: bool
@@ -266,14 +283,25 @@ class Lone:
     expiry_due: float | None
     forget_due: float | None
 
-    def rejection(self, source_id: str, why: str) -> RejectionError:
-        a = self.admission
-        return RejectionError(
-            "out_of_range",
-            f"batch seq {a.seq} at time_s {a.time_s:.3f} came when no other source had a live data "
-            f"clock, and {why}: withdrawn, nothing of it was released",
-            source_id,
-        )
+    @property
+    def admission(self) -> Admission:
+        """The first lone batch's."""
+        return self.entries[0][0]
+
+    def rejections(self, source_id: str, why: str) -> list[Refused]:
+        return [
+            (
+                source_id,
+                RejectionError(
+                    "out_of_range",
+                    f"batch seq {a.seq} at time_s {a.time_s:.3f} came when no other source had a live "
+                    f"data clock, and {why}: withdrawn, nothing of it was released",
+                    source_id,
+                ),
+                received,
+            )
+            for a, _, received in self.entries
+        ]
 
 
 #: A batch refused after it was held or taken: its source, why, and when it was received.
@@ -313,6 +341,9 @@ class Sequencer:
         self._forget_due: dict[str, float] = {}
         #: The sources whose clock is lone (module docstring); none while a clock is confirmed.
         self._lone: set[str] = set()
+        #: Radars whose sites the engine knows, this worker's and (partitioned) the others':
+        #: a lone source is the network's only one when it is the only source and site known.
+        self.sites_known = 0
         self._first_clock = np.inf
         #: The data time up to which the last :meth:`release` released.
         self.last_limit = -np.inf
@@ -441,6 +472,16 @@ class Sequencer:
             resolves = -1 if src.held.refuted_by(time_s) else 1
             if resolves > 0:
                 own = src.held.admission.time_s if own is None else max(own, src.held.admission.time_s)
+        running = lone is not None and not withdraws  # (this batch goes on with a lone run)
+        full = lone is not None and len(lone.entries) >= p.max_lone_batches
+        if running and full and src is not None and not self._confirms_run(source_id, src, time_s):
+            raise RejectionError(
+                "out_of_range",
+                f"{p.max_lone_batches} batches of this source wait for another source to confirm "
+                f"its data clock (max_lone_batches), and time_s {time_s:.3f} does not go on for "
+                f"max_lag_s {p.max_lag_s:g} s",
+                source_id,
+            )
         if others:
             reference = _low_median([*others, time_s])
             if time_s > reference + p.max_clock_skew_s:
@@ -456,6 +497,10 @@ class Sequencer:
                 outage = time_s - reference
             elif time_s > reference + p.max_step_s and (own is None or time_s > own + p.max_step_s):
                 step_from = reference if own is None else own
+        elif running and own is not None and time_s > own + p.max_step_s and not self._alone(source_id):
+            # a step ahead inside a lone run, where no other clock can judge it: held until the
+            # source's next batch says what it was (one corrupted stamp must not carry the run)
+            step_from = own
         elif np.isfinite(self.newest_s) and time_s > self.newest_s + p.max_clock_skew_s:
             # every source expired meanwhile (a silence past the wall-clock expiry): no quorum
             # to ask, yet the feed came back from an outage as long as this
@@ -530,7 +575,7 @@ class Sequencer:
             src = self.sources[adm.source_id] = SourceClock(adm.kind, announced_s=self.consensus())
         if adm.withdraws:
             why = f"this source's next batch came back to {adm.time_s:.3f}"
-            refused.append(self._withdraw(adm.source_id, why))
+            refused += self._withdraw(adm.source_id, why)
         held, src.held = src.held, None
         if held is not None and adm.resolves > 0:
             refused += self._take(src, held.admission, held.item, held.count, held.received_s)
@@ -564,26 +609,36 @@ class Sequencer:
     ) -> list[Refused]:
         sid = adm.source_id
         p = self.params
-        # confirmed at once: its own lone batch (not refuted), its own clock of before not far
-        # behind, a confirmed clock elsewhere (the checks measured it against it), or another
-        # lone clock within max_step_s (the two agree)
+        # confirmed at once: its own clock of before not far behind, a confirmed clock elsewhere
+        # (the checks measured it against it), another lone run it falls within max_step_s of
+        # (the two agree), or its own lone run going on (not refuted) where it is the network's
+        # only source, or for max_lag_s of data time: while other sources are known, a source
+        # agreeing with itself for a batch or two proves nothing (a known radar that has not
+        # reported holds the release back as long, see ``watermark``)
+        before = src.confirmed_clock()
         confirmed = (
-            src.lone is not None
-            or (src.last_time_s is not None and adm.time_s <= src.last_time_s + p.max_clock_skew_s)
+            (src.lone is not None and self._confirms_run(sid, src, adm.time_s))
+            or (before is not None and adm.time_s <= before + p.max_clock_skew_s)
             or any(
                 s.last_time_s is not None
                 and not s.expired
-                and (s.lone is None or abs(s.last_time_s - adm.time_s) <= p.max_step_s)
+                and (
+                    s.lone is None
+                    or s.lone_time() - p.max_step_s <= adm.time_s <= s.last_time_s + p.max_step_s
+                )
                 for o, s in self.sources.items()
                 if o != sid
             )
         )
-        if not confirmed:
+        if not confirmed and src.lone is not None:  # its lone run goes on
+            if src.last_time_s is not None and adm.time_s > src.last_time_s + p.max_step_s:
+                src.lone.run_from_s = adm.time_s
+            src.lone.entries.append((adm, count, received_s))
+        elif not confirmed:
             self._lone.add(sid)
             src.lone = Lone(
-                adm,
-                count,
-                received_s,
+                [(adm, count, received_s)],
+                adm.time_s,
                 src.last_time_s,
                 src.last_seq,
                 src.expired,
@@ -611,6 +666,23 @@ class Sequencer:
         self._count_outage(adm)
         self.newest_s = max(self.newest_s, clock)
         return self._settle_lone()
+
+    def _confirms_run(self, source_id: str, src: SourceClock, time_s: float) -> bool:
+        """Whether the source's next batch at ``time_s`` confirms its lone run by itself: where
+        it is the network's only source (no other source, no other site known: a single radar's
+        network, whose next batch confirms its first as before), or where the run has gone on
+        for ``max_lag_s`` of data time without a step of more than ``max_step_s``."""
+        lone = src.lone
+        assert lone is not None
+        if self._alone(source_id):
+            return True
+        last = src.last_time_s if src.last_time_s is not None else -np.inf
+        run_from = time_s if time_s > last + self.params.max_step_s else lone.run_from_s
+        return time_s - run_from >= self.params.max_lag_s
+
+    def _alone(self, source_id: str) -> bool:
+        """Whether the source is the network's only one: no other source, no other site known."""
+        return self.sites_known <= 1 and all(o == source_id for o in self.sources)
 
     def _count_outage(self, adm: Admission) -> None:
         """Count the outage a taken, confirmed batch ended.  One judged with no other clock live
@@ -648,10 +720,10 @@ class Sequencer:
             self.newest_s = max(self.newest_s, src.last_time_s)
 
     def _settle_lone(self) -> list[Refused]:
-        """With a confirmed clock in the network, the lone clocks are settled against the
-        confirmed consensus: more than ``max_clock_skew_s`` ahead, withdrawn; more than
-        ``max_step_s`` ahead, left to its source's next batch (as a held step is); else
-        confirmed."""
+        """With a confirmed clock in the network, the lone runs are settled against the
+        confirmed consensus: its newest batch more than ``max_clock_skew_s`` ahead, withdrawn
+        whole; its first more than ``max_step_s`` ahead, left to its source's next batch (as a
+        held step is); else confirmed."""
         if not self._lone:
             return []
         consensus = self.consensus()
@@ -660,40 +732,41 @@ class Sequencer:
         out = []
         for sid in sorted(self._lone):
             src = self.sources[sid]
-            ahead = src.lone_time() - consensus
-            if ahead > self.params.max_clock_skew_s:
+            newest = src.last_time_s if src.last_time_s is not None else -np.inf
+            if newest - consensus > self.params.max_clock_skew_s:
                 why = (
-                    f"the confirmed data clock {consensus:.3f} is {ahead:.1f} s behind it "
-                    f"(max_clock_skew_s {self.params.max_clock_skew_s:g})"
+                    f"the confirmed data clock {consensus:.3f} is {newest - consensus:.1f} s behind "
+                    f"its batch at {newest:.3f} (max_clock_skew_s {self.params.max_clock_skew_s:g})"
                 )
-                out.append(self._withdraw(sid, why))
-            elif ahead <= self.params.max_step_s:
+                out += self._withdraw(sid, why)
+            elif src.lone_time() - consensus <= self.params.max_step_s:
                 self._confirm(sid, src)
         return out
 
-    def _withdraw(self, source_id: str, why: str) -> Refused:
-        """Undo a source's lone batch (refuted by data): nothing of it was released, and its
-        counts, seq and clock are the source's of before it (rejected whole)."""
+    def _withdraw(self, source_id: str, why: str) -> list[Refused]:
+        """Undo a source's lone batches (refuted by data): nothing of them was released, and its
+        counts, seq and clock are the source's of before them (each rejected whole)."""
         src = self.sources[source_id]
         lone, src.lone = src.lone, None
         self._lone.discard(source_id)
         assert lone is not None
-        src.pending.pop()
-        if not src.pending:  # its heap entry goes with it
+        for a, count, _ in lone.entries:  # (the newest pending batches are the lone ones)
+            src.pending.pop()
+            src.batches -= 1
+            src.plots -= count
+            src.lost_batches -= a.lost
+            src.restarts -= a.restart
+        if not src.pending:  # its heap entry goes with them
             self._heap = [e for e in self._heap if not (e[2] == source_id and e[1] == src.kind)]
             heapq.heapify(self._heap)
         src.last_time_s, src.last_seq = lone.before_s, lone.before_seq
         src.expired, src.restored = lone.expired, lone.restored
-        src.batches -= 1
-        src.plots -= lone.count
-        src.lost_batches -= lone.admission.lost
-        src.restarts -= lone.admission.restart
         events = ((lone.expiry_due, EXPIRE, self._expiry_due), (lone.forget_due, FORGET, self._forget_due))
         for due, kind, book in events:
             if due is not None:
                 book[source_id] = due
                 heapq.heappush(self._heap, (due, kind, source_id, 0))
-        return source_id, lone.rejection(source_id, why), lone.received_s
+        return lone.rejections(source_id, why)
 
     # -- kept across a restart (service.state) -------------------------------------------------
     def export_state(self) -> list[dict[str, Any]]:
