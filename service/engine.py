@@ -155,7 +155,15 @@ class Engine:
                 got = self.peers.ingest(peer[0], peer[1], payload)
                 self._snapshot = None
                 out = [self._reject(k, rej, None) for k, rej in got.given_up]
-                return out + (self._process(self.sequencer.release()) if got.moved else [])
+                if not got.moved:
+                    return out
+                # (another worker's clocks may settle this worker's lone ones, with no batch of
+                # its own to come: the end of a stream, a radar of a long scan)
+                return (
+                    out
+                    + self._report_refused(self.sequencer.settle())
+                    + self._process(self.sequencer.release())
+                )
             if kind is None:
                 raise RejectionError("schema", f"not an input key of prefix {self.config.prefix!r}: {key}")
             what, source_id = kind

@@ -512,8 +512,9 @@ def test_a_radar_whose_clock_is_an_hour_off_from_its_first_batch_is_refused_whol
     assert _pair_counts(engine) == _pair_counts(clean) and _pair_counts(engine)[("B", "C")] >= 10
 
 
-def _known(*radars: str) -> Sequencer:
-    seq = Sequencer(SequencerParams())
+def _known(*radars: str, params: SequencerParams | None = None) -> Sequencer:
+    """A sequencer that knows the sites of ``radars``."""
+    seq = Sequencer(params or SequencerParams())
     for rid in radars:
         seq.announce(rid, RADAR)
     seq.sites_known = len(radars)
@@ -593,3 +594,50 @@ def test_a_partitioned_worker_owning_one_radar_is_not_the_network_s_only_source(
     _, refused = seq.accept(seq.check("A", RADAR, 4, 1004.0), "a4")
     assert [(sid, rej.reason) for sid, rej, _ in refused] == [("A", "out_of_range")] * 3
     assert seq.sources["A"].last_time_s == 1004.0 and seq.sources["A"].batches == 1
+
+
+def test_a_radar_of_a_long_scan_alone_among_known_sites_is_confirmed_after_max_lag_s() -> None:
+    """A radar of a 12 s scan (steps over ``max_step_s``), the only one reporting while another
+    radar is known: its gaps are no jump, so its run confirms itself after ``max_lag_s`` and is
+    released (each of its steps was held and restarted the run: never released, then
+    refused once ``max_lone_batches`` were held)."""
+    lag = SequencerParams().max_lag_s
+    seq = _known("A", "B")
+    released = []
+    for n in range(1, 60):
+        seq.accept(seq.check("A", RADAR, n, 100.0 + 12.0 * n), n)
+        released += [r.item for r in seq.release()]
+        assert (seq.sources["A"].lone is None) == (12.0 * (n - 1) >= lag), n
+    assert released == list(range(1, len(released) + 1)) and len(released) > 50
+
+
+def test_a_step_held_inside_a_lone_run_goes_with_the_run_when_it_is_withdrawn() -> None:
+    """A's lone run an hour ahead holds a jump inside it when the other radars' agreeing clocks
+    refute the run: the held batch is rejected with it, and A's counters are those of before
+    (the held batch had stayed, its lost batches counted after the withdrawal)."""
+    seq = _known("A", "B", "C")
+    seq.accept(seq.check("A", RADAR, 10, 4600.0), "r10")
+    seq.accept(seq.check("A", RADAR, 11, 4604.0), "r11")
+    seq.accept(seq.check("A", RADAR, 15, 4700.0), "jump")  # held: 3 seqs lost before it
+    assert seq.sources["A"].held is not None
+    seq.accept(seq.check("B", RADAR, 1, 1000.0), "b1")
+    _, refused = seq.accept(seq.check("C", RADAR, 1, 1000.5), "c1")  # B and C agree
+    assert [(sid, rej.reason) for sid, rej, _ in refused] == [("A", "out_of_range")] * 3
+    a = seq.sources["A"]
+    assert (a.held, a.lone, a.last_seq, a.batches, a.lost_batches) == (None, None, None, 0, 0)
+    seq.accept(seq.check("A", RADAR, 16, 1001.0), "a16")
+    assert (a.batches, a.lost_batches, a.last_seq) == (1, 0, 16)
+
+
+def test_a_full_lone_run_is_still_confirmed_by_a_clock_elsewhere() -> None:
+    """A's stamp stood still until ``max_lone_batches`` were held, then B's and C's confirmed
+    clock came 15 s behind (more than ``max_step_s``: A's run waits for its next batch).  That
+    batch is confirmed by their clock, so it is taken, not refused as one more lone batch."""
+    seq = _known("A", "B", "C", params=SequencerParams(max_lone_batches=3))
+    for n in range(1, 4):
+        seq.accept(seq.check("A", RADAR, n, 100.0), f"a{n}")
+    seq.accept(seq.check("B", RADAR, 1, 85.0), "b1")
+    seq.accept(seq.check("C", RADAR, 1, 85.5), "c1")  # B and C agree: a confirmed clock
+    assert seq.sources["A"].lone is not None and seq.sources["B"].lone is None
+    seq.accept(seq.check("A", RADAR, 4, 104.0), "a4")
+    assert seq.sources["A"].lone is None and seq.sources["A"].batches == 4

@@ -955,3 +955,27 @@ def test_a_peer_message_that_is_json_but_not_an_object_is_malformed_json(payload
         with pytest.raises(RejectionError) as err:
             decode(payload)
         assert err.value.reason == "malformed_json", (decode, err.value.detail)
+
+
+def test_workers_owning_one_radar_each_confirm_each_others_first_clocks() -> None:
+    """Two workers, one radar each, on a fresh start: each radar's first clock is lone (no other
+    source of its worker can check it), and a worker's radar alone proves nothing while other
+    sites are known.  The workers tell each other their lone clocks, which agree: both are
+    confirmed within a scan or two, and every TrackBatch one worker publishes is published
+    (the two had waited for ``max_lag_s`` of data each, nothing released in a shorter run)."""
+    msgs = scenario_messages("two-radar", duration_s=25.0)
+    salt = next(s for s in range(100) if Partition(1, 2, s).owner("A") != Partition(1, 2, s).owner("B"))
+    single = Engine(EngineConfig())
+    want = [o.key for m in msgs for o in single.ingest(*m) if o.key.endswith("/tracks")]
+    got: list[str] = []
+
+    def heard(worker: int, o: Outgoing) -> None:
+        if o.key.endswith("/tracks"):
+            got.append(o.key)
+
+    _, _, engines = _run_partitioned(msgs, 2, seed=7, salt=salt, heard=heard)
+    assert all(not e.sequencer._lone for e in engines)
+    for rid in "AB":
+        mine = [k for k in want if f"/{rid}/" in k]
+        theirs = [k for k in got if f"/{rid}/" in k]
+        assert len(mine) - 2 <= len(theirs) <= len(mine) and len(mine) > 5, rid

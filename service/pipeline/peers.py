@@ -330,6 +330,14 @@ class Peers:
             for f in fields
         ) or set(now) != set(old)
 
+    def _lone_moved(self, lone: dict[str, list[float]]) -> bool:
+        """Whether this worker's lone clocks changed since the last clock message: one came or
+        went, or one's newest time moved ``exchange.step_s`` (rare: a start, an outage)."""
+        sent = (self._clock_sent or {}).get("lone_clocks", {})
+        if set(lone) != set(sent):
+            return True
+        return any(lone[rid][1] - sent[rid][1] >= self.exchange.step_s for rid in lone)
+
     def _clock(self, idle: bool) -> list[Outgoing]:
         """This worker's state for the others, when it changed: its progress (how far it has
         released and correlated) and its radars' data clocks (the network watermark,
@@ -350,20 +358,25 @@ class Peers:
                 else {}
             ),
         }
+        owned = [
+            (rid, s) for rid, s in sorted(self.sequencer.sources.items()) if s.kind == RADAR and not s.foreign
+        ]
+        lone = {
+            rid: [s.lone_time(), s.last_time_s]
+            for rid, s in owned
+            if s.lone is not None and s.last_time_s is not None
+        }
         clocks: dict[str, Any] = {
             "partition": str(self.partition),
             **salted,
-            "clocks": {
-                rid: s.confirmed_clock()
-                for rid, s in sorted(self.sequencer.sources.items())
-                if s.kind == RADAR and not s.foreign and s.confirmed_clock() is not None
-            },
+            "clocks": {rid: s.confirmed_clock() for rid, s in owned if s.confirmed_clock() is not None},
+            **({"lone_clocks": lone} if lone else {}),
         }
         out = []
         if self._due(progress, self._progress_sent, ("released_s", "correlated_s"), idle):
             self._progress_sent = progress
             out.append(Outgoing(self.keys.worker_progress(self.partition.index), lambda: progress))
-        if self._due(clocks, self._clock_sent, tuple(clocks["clocks"]), idle):
+        if self._due(clocks, self._clock_sent, tuple(clocks["clocks"]), idle) or self._lone_moved(lone):
             self._clock_sent = clocks
             out.append(Outgoing(self.keys.worker_clock(self.partition.index), lambda: clocks))
         return out
@@ -394,6 +407,12 @@ class Peers:
                 for rid, c in clock.clocks.items():
                     if not self.partition.owns(rid):
                         self.sequencer.observe(rid, c)
+                for rid, s in self.sequencer.sources.items():  # its radars' lone clocks, or none
+                    if s.foreign and self.partition.owner(rid) == worker:
+                        self.sequencer.observe_lone(rid, clock.lone_clocks.get(rid))
+                for rid, span in clock.lone_clocks.items():
+                    if not self.partition.owns(rid):
+                        self.sequencer.observe_lone(rid, span)
             else:
                 self._progress_of[worker] = clock
                 self.merger.progress(worker, clock.released_s if clock.released_s is not None else -np.inf)

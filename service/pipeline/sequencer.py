@@ -36,13 +36,16 @@ Valid but hostile input (each policy a named field of :class:`SequencerParams`)
   ``max_clock_skew_s`` after its own source's clock of before (a restart, a short silence), or
   its source's own next batches: where it is the network's only source (no other source, no
   other site known), its next batch not more than ``max_step_s`` behind it; else only once they
-  have gone on for ``max_lag_s`` of data time with no step of more than ``max_step_s`` (while
+  have gone on for ``max_lag_s`` of data time with no jump of more than ``max_lag_s`` (while
   others are known, a source agreeing with itself proves nothing: a radar whose clock is an
   hour off from its first batch on must not set the network's clock; a known radar that has not
   reported holds the release back as long anyway).  Until then its batches are a *lone run*,
   withdrawn or confirmed together: at most ``max_lone_batches`` (a clock that stands still
-  makes no run time), and a step of more than ``max_step_s`` inside it is held for the next
-  batch as a lone step ahead is (one corrupted stamp must not carry the run).  Data refutes
+  makes no run time), and a jump of more than ``max_lag_s`` inside it is held for the next
+  batch as a lone step ahead is (one corrupted stamp must not carry the run; a long scan or a
+  few missed batches are no jump), withdrawn with the run if data refutes it.  Partitioned,
+  workers tell each other their radars' lone clocks (:meth:`Sequencer.observe_lone`), which
+  agree with this worker's as two lone radars of one worker do.  Data refutes
   it: its source's next batch more than ``max_step_s`` behind its first batch (that batch is
   then judged as if the lone ones never came: its seq and clock of before), or a confirmed
   clock more than ``max_clock_skew_s`` behind its newest.  One between the two (its first more
@@ -192,6 +195,9 @@ class SourceClock:
     announced_s: float = -np.inf
     #: Another worker's radar (partitioned): only its clock is known here (:meth:`observe`).
     foreign: bool = False
+    #: Another worker's radar whose clock is lone there: its first and newest data time
+    #: (:meth:`observe_lone`), which this worker's lone clocks may agree with.
+    foreign_lone: tuple[float, float] | None = None
     #: The data time of this source's last batch refused as too far ahead (the outage vote).
     ahead_s: float | None = None
     #: The clock came from the state file (a restart), not from a batch of this run.
@@ -235,6 +241,11 @@ class Admission:
     withdraws: bool = False
 
 
+#: Why a held batch is rejected: its source's next batch refuted it, or none came to confirm it.
+REFUTED = "the next batch came back to that clock"
+UNCONFIRMED = "no next batch came to confirm it"
+
+
 @dataclass(frozen=True)
 class Held:
     """A batch stamped a lone step ahead (module docstring): not taken yet."""
@@ -252,10 +263,10 @@ class Held:
         """A next batch at ``time_s`` nearer the clock of before than the held time."""
         return time_s < (self.before_s + self.admission.time_s) / 2
 
-    def rejection(self, source_id: str, refuted: bool) -> RejectionError:
-        """Its rejection: ``refuted`` by the next batch, or none came before the input ended."""
+    def rejection(self, source_id: str, why: str) -> RejectionError:
+        """Its rejection, saying ``why`` (:data:`REFUTED`, :data:`UNCONFIRMED`, or the lone run
+        it stepped from withdrawn)."""
         a = self.admission
-        why = "the next batch came back to that clock" if refuted else "no next batch came to confirm it"
         return RejectionError(
             "out_of_range",
             f"batch seq {a.seq} at time_s {a.time_s:.3f} was held, {a.time_s - self.before_s:.1f} s ahead "
@@ -397,6 +408,17 @@ class Sequencer:
             src = self.sources[source_id] = SourceClock(RADAR, announced_s=self.consensus(), foreign=True)
         if src.foreign:
             src.last_time_s = max(clock_s, src.last_time_s if src.last_time_s is not None else -np.inf)
+            src.foreign_lone = None
+
+    def observe_lone(self, source_id: str, span: tuple[float, float] | None) -> None:
+        """Another worker's radar has a lone clock (``span``: its first and newest data time),
+        or no longer has one (None): a lone clock of this worker's within ``max_step_s`` of it
+        agrees with it, as two lone radars of one worker do.  It holds nothing back here."""
+        src = self.sources.get(source_id)
+        if src is None and span is not None and len(self.sources) < self.params.max_sources:
+            src = self.sources[source_id] = SourceClock(RADAR, announced_s=self.consensus(), foreign=True)
+        if src is not None and src.foreign:
+            src.foreign_lone = span
 
     def _cancel_events(self, source_id: str) -> None:
         """The source's pending expiry and forget events no longer apply (their heap entries
@@ -468,13 +490,14 @@ class Sequencer:
                 f"{own:.3f} (max_step_s {p.max_step_s:g}): a source's data time does not go back",
                 source_id,
             )
-        if src is not None and src.held is not None:  # this batch says what the held one was
+        if src is not None and src.held is not None and not withdraws:  # it says what the held one was
+            # (one held inside a lone run this batch refutes goes with the run)
             resolves = -1 if src.held.refuted_by(time_s) else 1
             if resolves > 0:
                 own = src.held.admission.time_s if own is None else max(own, src.held.admission.time_s)
         running = lone is not None and not withdraws  # (this batch goes on with a lone run)
         full = lone is not None and len(lone.entries) >= p.max_lone_batches
-        if running and full and src is not None and not self._confirms_run(source_id, src, time_s):
+        if running and full and src is not None and not self._confirmed(source_id, src, time_s):
             raise RejectionError(
                 "out_of_range",
                 f"{p.max_lone_batches} batches of this source wait for another source to confirm "
@@ -497,8 +520,8 @@ class Sequencer:
                 outage = time_s - reference
             elif time_s > reference + p.max_step_s and (own is None or time_s > own + p.max_step_s):
                 step_from = reference if own is None else own
-        elif running and own is not None and time_s > own + p.max_step_s and not self._alone(source_id):
-            # a step ahead inside a lone run, where no other clock can judge it: held until the
+        elif running and own is not None and time_s > own + p.max_lag_s and not self._alone(source_id):
+            # a jump inside a lone run, where no other clock can judge it: held until the
             # source's next batch says what it was (one corrupted stamp must not carry the run)
             step_from = own
         elif np.isfinite(self.newest_s) and time_s > self.newest_s + p.max_clock_skew_s:
@@ -580,7 +603,7 @@ class Sequencer:
         if held is not None and adm.resolves > 0:
             refused += self._take(src, held.admission, held.item, held.count, held.received_s)
         if held is not None and adm.resolves < 0:
-            refused.append((adm.source_id, held.rejection(adm.source_id, True), held.received_s))
+            refused.append((adm.source_id, held.rejection(adm.source_id, REFUTED), held.received_s))
         if adm.step_from_s is not None:  # held, not taken: only its seq counts yet
             src.held = Held(adm, item, adm.step_from_s, count, received_s)
             self._count_seq(src, adm)
@@ -594,7 +617,7 @@ class Sequencer:
         out: list[Refused] = []
         for sid, src in self.sources.items():
             if src.held is not None:
-                out.append((sid, src.held.rejection(sid, False), src.held.received_s))
+                out.append((sid, src.held.rejection(sid, UNCONFIRMED), src.held.received_s))
                 src.held = None
         return out + self._settle_lone()
 
@@ -609,29 +632,9 @@ class Sequencer:
     ) -> list[Refused]:
         sid = adm.source_id
         p = self.params
-        # confirmed at once: its own clock of before not far behind, a confirmed clock elsewhere
-        # (the checks measured it against it), another lone run it falls within max_step_s of
-        # (the two agree), or its own lone run going on (not refuted) where it is the network's
-        # only source, or for max_lag_s of data time: while other sources are known, a source
-        # agreeing with itself for a batch or two proves nothing (a known radar that has not
-        # reported holds the release back as long, see ``watermark``)
-        before = src.confirmed_clock()
-        confirmed = (
-            (src.lone is not None and self._confirms_run(sid, src, adm.time_s))
-            or (before is not None and adm.time_s <= before + p.max_clock_skew_s)
-            or any(
-                s.last_time_s is not None
-                and not s.expired
-                and (
-                    s.lone is None
-                    or s.lone_time() - p.max_step_s <= adm.time_s <= s.last_time_s + p.max_step_s
-                )
-                for o, s in self.sources.items()
-                if o != sid
-            )
-        )
+        confirmed = self._confirmed(sid, src, adm.time_s)
         if not confirmed and src.lone is not None:  # its lone run goes on
-            if src.last_time_s is not None and adm.time_s > src.last_time_s + p.max_step_s:
+            if src.last_time_s is not None and adm.time_s > src.last_time_s + p.max_lag_s:
                 src.lone.run_from_s = adm.time_s
             src.lone.entries.append((adm, count, received_s))
         elif not confirmed:
@@ -667,17 +670,46 @@ class Sequencer:
         self.newest_s = max(self.newest_s, clock)
         return self._settle_lone()
 
+    def _confirmed(self, source_id: str, src: SourceClock, time_s: float) -> bool:
+        """Whether a batch of the source at ``time_s``, taken, has a confirmed clock (or confirms
+        its source's lone run): its own clock of before not far behind, a confirmed clock
+        elsewhere (the checks measured it against it), another lone run it falls within
+        ``max_step_s`` of (the two agree), or its own lone run going on (not refuted) where it
+        is the network's only source, or for ``max_lag_s`` of data time.  While other sources
+        are known, a source agreeing with itself for a batch or two proves nothing (a known
+        radar that has not reported holds the release back as long, see ``watermark``)."""
+        p = self.params
+        before = src.confirmed_clock()
+        return (
+            (src.lone is not None and self._confirms_run(source_id, src, time_s))
+            or (before is not None and time_s <= before + p.max_clock_skew_s)
+            or any(self._agrees(s, time_s) for o, s in self.sources.items() if o != source_id)
+        )
+
+    def _agrees(self, other: SourceClock, time_s: float) -> bool:
+        """Whether another source's clock confirms a batch at ``time_s``: a confirmed live clock
+        (the checks measured the batch against it), or a lone run (this worker's or, partitioned,
+        another's) it falls within ``max_step_s`` of: the two agree."""
+        step = self.params.max_step_s
+        span = other.foreign_lone
+        if span is not None and span[0] - step <= time_s <= span[1] + step:
+            return True
+        if other.last_time_s is None or other.expired:
+            return False
+        return other.lone is None or other.lone_time() - step <= time_s <= other.last_time_s + step
+
     def _confirms_run(self, source_id: str, src: SourceClock, time_s: float) -> bool:
         """Whether the source's next batch at ``time_s`` confirms its lone run by itself: where
         it is the network's only source (no other source, no other site known: a single radar's
         network, whose next batch confirms its first as before), or where the run has gone on
-        for ``max_lag_s`` of data time without a step of more than ``max_step_s``."""
+        for ``max_lag_s`` of data time without a jump of more than ``max_lag_s`` (gaps of a
+        scan or a few missed batches are no jump; a wrong stamp an hour off is)."""
         lone = src.lone
         assert lone is not None
         if self._alone(source_id):
             return True
         last = src.last_time_s if src.last_time_s is not None else -np.inf
-        run_from = time_s if time_s > last + self.params.max_step_s else lone.run_from_s
+        run_from = time_s if time_s > last + self.params.max_lag_s else lone.run_from_s
         return time_s - run_from >= self.params.max_lag_s
 
     def _alone(self, source_id: str) -> bool:
@@ -719,6 +751,24 @@ class Sequencer:
         if src.last_time_s is not None:
             self.newest_s = max(self.newest_s, src.last_time_s)
 
+    def settle(self) -> list[Refused]:
+        """Settle the lone runs after other workers' clocks came (partitioned), as one of this
+        worker's batches would: a run agreeing with another worker's lone run (within
+        ``max_step_s``) is confirmed, and the confirmed clocks settle the rest.  Returns the
+        batches withdrawn, to be reported rejected."""
+        step = self.params.max_step_s
+        spans = (
+            [s.foreign_lone for s in self.sources.values() if s.foreign_lone is not None]
+            if self._lone
+            else []
+        )
+        for sid in sorted(self._lone):
+            src = self.sources[sid]
+            first, newest = src.lone_time(), src.last_time_s if src.last_time_s is not None else -np.inf
+            if any(a - step <= newest and first <= b + step for a, b in spans):
+                self._confirm(sid, src)
+        return self._settle_lone()
+
     def _settle_lone(self) -> list[Refused]:
         """With a confirmed clock in the network, the lone runs are settled against the
         confirmed consensus: its newest batch more than ``max_clock_skew_s`` ahead, withdrawn
@@ -756,6 +806,18 @@ class Sequencer:
             src.plots -= count
             src.lost_batches -= a.lost
             src.restarts -= a.restart
+        refused = lone.rejections(source_id, why)
+        held, src.held = src.held, None
+        if held is not None:  # a jump inside the run, held after it began: its seq counted
+            src.lost_batches -= held.admission.lost
+            src.restarts -= held.admission.restart
+            refused.append(
+                (
+                    source_id,
+                    held.rejection(source_id, f"the lone run it stepped from was withdrawn ({why})"),
+                    held.received_s,
+                )
+            )
         if not src.pending:  # its heap entry goes with them
             self._heap = [e for e in self._heap if not (e[2] == source_id and e[1] == src.kind)]
             heapq.heapify(self._heap)
@@ -766,7 +828,7 @@ class Sequencer:
             if due is not None:
                 book[source_id] = due
                 heapq.heappush(self._heap, (due, kind, source_id, 0))
-        return lone.rejections(source_id, why)
+        return refused
 
     # -- kept across a restart (service.state) -------------------------------------------------
     def export_state(self) -> list[dict[str, Any]]:
@@ -834,7 +896,7 @@ class Sequencer:
         newest = max(c for c in clocks if c <= consensus + p.max_clock_skew_s)
         # A radar whose site is known but which has not reported yet holds the others back
         # from the first data time seen, within the same lag bound.
-        if any(s.last_time_s is None and s.kind == RADAR for s in self.sources.values()):
+        if any(s.last_time_s is None and s.kind == RADAR and not s.foreign for s in self.sources.values()):
             clocks.append(self._first_clock)
         return min(c for c in clocks if newest - p.max_lag_s <= c <= newest)
 

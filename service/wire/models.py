@@ -437,6 +437,12 @@ class WorkerClock(WireModel):
         description="every correlation update up to this data time is done and its rows are published",
     )
     clocks: Annotated[dict[SourceId, TimeS], Field(max_length=MAX_TRACKS)] = Field(default_factory=dict)
+    lone_clocks: Annotated[dict[SourceId, tuple[TimeS, TimeS]], Field(max_length=MAX_TRACKS)] = Field(
+        default_factory=dict,
+        description="(clock) the first and newest data time of each radar of this worker's whose clock "
+        "is lone (no other source has confirmed it yet, docs/contract.md 7.1): another worker's radar "
+        "agreeing with it confirms its own",
+    )
     salt: int | None = Field(
         default=None,
         ge=0,
