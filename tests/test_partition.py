@@ -979,3 +979,37 @@ def test_workers_owning_one_radar_each_confirm_each_others_first_clocks() -> Non
         mine = [k for k in want if f"/{rid}/" in k]
         theirs = [k for k in got if f"/{rid}/" in k]
         assert len(mine) - 2 <= len(theirs) <= len(mine) and len(mine) > 5, rid
+
+
+def test_a_worker_tells_the_others_its_radars_lone_clock_again_when_it_starts_again() -> None:
+    """The worker owning radar B, B's first stamp an hour ahead: its clock message names B's
+    lone clock there; B's next batch withdraws it and B is lone again at the true time.  The
+    worker says so at once (it had waited for B's newest time to move ``exchange.step_s`` on,
+    which going back never does, and the others kept the withdrawn span: a corrupted stamp of
+    theirs near it was confirmed by it)."""
+    msgs = scenario_messages("two-radar", duration_s=20.0)
+    salt = next(s for s in range(100) if Partition(1, 2, s).owner("A") != Partition(1, 2, s).owner("B"))
+    engine = Engine(EngineConfig(partition=Partition(Partition(1, 2, salt).owner("B"), 2, salt)))
+    spans = []
+    first = True
+    for key, payload in msgs:
+        if key.endswith("/B/plots") and first:
+            body = json.loads(payload)
+            body["time_s"] += 3600.0
+            payload, first = json.dumps(body).encode(), False
+        for o in engine.ingest(key, payload):
+            if o.key.endswith("/clock"):
+                spans.append(json.loads(o.payload))
+    told = [s["lone_clocks"]["B"][0] for s in spans if "B" in s.get("lone_clocks", {})]
+    t0 = min(json.loads(p)["time_s"] for k, p in msgs if k.endswith("/B/plots"))
+    assert told[0] > t0 + 3000.0 and told[-1] < t0 + 10.0, told
+
+
+def test_a_lone_clock_span_back_to_front_is_refused_and_changes_nothing() -> None:
+    """Another worker's clock message whose lone clock ends before it begins is no clock:
+    rejected whole (schema), counted, and no source of it is held."""
+    engine = Engine(EngineConfig(partition=Partition(1, 2)))
+    body = {"partition": "2/2", "clocks": {}, "lone_clocks": {"B": [500.0, 100.0]}}
+    out = engine.ingest(Keys("fusion").worker_clock(2), json.dumps(body).encode())
+    assert "first data time 500.0 is after the newest 100.0" in json.loads(out[0].payload)["detail"]
+    assert engine.rejected == {"schema": 1} and "B" not in engine.sequencer.sources

@@ -332,11 +332,16 @@ class Peers:
 
     def _lone_moved(self, lone: dict[str, list[float]]) -> bool:
         """Whether this worker's lone clocks changed since the last clock message: one came or
-        went, or one's newest time moved ``exchange.step_s`` (rare: a start, an outage)."""
+        went, one started again (a withdrawn run, then a new one: its first time moved, its
+        newest may go back), or one's newest time moved ``exchange.step_s`` on (rare: a start,
+        an outage)."""
         sent = (self._clock_sent or {}).get("lone_clocks", {})
         if set(lone) != set(sent):
             return True
-        return any(lone[rid][1] - sent[rid][1] >= self.exchange.step_s for rid in lone)
+        return any(
+            lone[rid][0] != sent[rid][0] or not 0 <= lone[rid][1] - sent[rid][1] < self.exchange.step_s
+            for rid in lone
+        )
 
     def _clock(self, idle: bool) -> list[Outgoing]:
         """This worker's state for the others, when it changed: its progress (how far it has

@@ -443,6 +443,17 @@ class WorkerClock(WireModel):
         "is lone (no other source has confirmed it yet, docs/contract.md 7.1): another worker's radar "
         "agreeing with it confirms its own",
     )
+
+    @model_validator(mode="after")
+    def _check_lone_spans(self) -> WorkerClock:
+        """A lone clock's first data time is not after its newest."""
+        for rid, (first, newest) in self.lone_clocks.items():
+            if first > newest:
+                raise ValueError(
+                    f"lone_clocks[{rid!r}]: first data time {first} is after the newest {newest}"
+                )
+        return self
+
     salt: int | None = Field(
         default=None,
         ge=0,
