@@ -13,6 +13,7 @@ import signal
 import threading
 import time
 from collections import Counter
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -282,15 +283,35 @@ STOP_LINE = re.compile(
 )
 
 
+#: Outputs are put with congestion control DROP, which gives up on a sample after Zenoh's
+#: ``wait_before_drop`` (1 ms) without room in the link's queue: a loaded machine may lose
+#: one.  The stop tests count every TrackBatch, so their service waits up to 5 s instead.
+PATIENT_ZENOH = (
+    "{transport: {link: {tx: {queue: {congestion_control: {drop: {wait_before_drop: 5000000}}}}}}}"
+)
+
+
 def _stop_under_load(
-    stream: list[tuple[str, bytes]], grace_s: float
+    stream: list[tuple[str, bytes]], grace_s: float, tmp_path: Path
 ) -> tuple[str, Counter[str], Counter[str]]:
     """`topofusion run` takes ``stream`` faster than it can process it and gets SIGTERM with
     half of it queued: its output, the plot batches sent by radar and the `TrackBatch`es received by radar."""
     zport, hport = free_port(), free_port()
     listen = f"tcp/127.0.0.1:{zport}"
     url = f"http://127.0.0.1:{hport}"
-    args = ["run", "--mode", "peer", "--listen", listen, "--http-port", str(hport)]
+    config = tmp_path / "zenoh.json5"
+    config.write_text(PATIENT_ZENOH)
+    args = [
+        "run",
+        "--mode",
+        "peer",
+        "--listen",
+        listen,
+        "--http-port",
+        str(hport),
+        "--zenoh-config",
+        str(config),
+    ]
     env = {"TOPOFUSION_STOP_GRACE_S": str(grace_s)}
     received = Counter[str]()
     sent = Counter(json.loads(p)["radar_id"] for k, p in stream if k.endswith("/plots"))
@@ -334,9 +355,9 @@ def heavy_stream() -> list[tuple[str, bytes]]:
 
 
 def test_sigterm_under_load_drains_the_queue_and_publishes_the_final_outputs(
-    heavy_stream: list[tuple[str, bytes]],
+    heavy_stream: list[tuple[str, bytes]], tmp_path: Path
 ) -> None:
-    out, sent, received = _stop_under_load(heavy_stream, grace_s=60.0)
+    out, sent, received = _stop_under_load(heavy_stream, grace_s=60.0, tmp_path=tmp_path)
     line = STOP_LINE.search(out)
     assert line is not None and line.group(1) is not None, out
     assert int(line.group(1)) > 0, "nothing was queued at SIGTERM: the test did not load the service"
@@ -346,9 +367,9 @@ def test_sigterm_under_load_drains_the_queue_and_publishes_the_final_outputs(
 
 
 def test_sigterm_with_a_short_grace_counts_exactly_what_it_leaves(
-    heavy_stream: list[tuple[str, bytes]],
+    heavy_stream: list[tuple[str, bytes]], tmp_path: Path
 ) -> None:
-    out, sent, received = _stop_under_load(heavy_stream, grace_s=0.5)
+    out, sent, received = _stop_under_load(heavy_stream, grace_s=0.5, tmp_path=tmp_path)
     line = STOP_LINE.search(out)
     assert line is not None and line.group(2) is not None, out
     processed, left, queued = int(line.group(2)), int(line.group(3)), int(line.group(4))
