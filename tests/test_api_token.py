@@ -224,6 +224,16 @@ def test_every_route_but_the_probes_refuses_without_the_token(services: Services
         assert _refused(http.get("/static/no-such-file.js"))
 
 
+def test_the_probes_answer_head_as_get_without_a_body(services: Services) -> None:
+    """A load balancer or ``curl -I`` asks the probes with HEAD: the status of GET, no body
+    (it was 405), and no token needed."""
+    with services.guarded.client() as http:
+        for url in OPEN:
+            got, head = http.get(url), http.head(url)
+            assert (head.status_code, head.content) == (got.status_code, b""), url
+            assert head.headers["content-type"] == got.headers["content-type"]
+
+
 @pytest.mark.parametrize(
     "authorization",
     [

@@ -108,7 +108,10 @@ def rows_of(text: str, *header: str) -> list[tuple[list[str], str]]:
 def app_routes() -> dict[str, set[str]]:
     """Path -> methods of the FastAPI app (routes exist without starting the node)."""
     app = create_app(lambda: None)  # type: ignore[arg-type, return-value]
-    return {r.path: set(getattr(r, "methods", None) or ()) for r in app.routes}  # type: ignore[attr-defined]
+    routes: dict[str, set[str]] = {}
+    for r in app.routes:  # (a path may have a route per method: the probes' HEAD)
+        routes.setdefault(r.path, set()).update(getattr(r, "methods", None) or ())  # type: ignore[attr-defined]
+    return routes
 
 
 def api_paths() -> set[str]:

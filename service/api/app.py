@@ -335,7 +335,8 @@ def create_app(
         "/healthz",
         summary="Liveness: the process answers",
         description="200 while the process runs; needs no token and answers under connection floods "
-        "(the probes run on the event loop). Use it for a liveness probe.",
+        "(the probes run on the event loop). Use it for a liveness probe. HEAD answers as GET, "
+        "without the body.",
         responses=_example({"status": "ok"}),
     )
     async def healthz() -> dict[str, str]:
@@ -365,6 +366,11 @@ def create_app(
             reason = "starting" if node is None else (node.not_ready_reason or "worker not running")
             return JSONResponse({"status": "not ready", "reason": reason}, status_code=503)
         return JSONResponse({"status": "ready"})
+
+    # HEAD answers as GET without the body (a load balancer's probe, `curl -I`), the same
+    # endpoints, kept out of the OpenAPI document (one operation a path and method there)
+    for path, probe in (("/healthz", healthz), ("/readyz", readyz)):
+        app.add_api_route(path, probe, methods=["HEAD"], include_in_schema=False)
 
     @app.get(
         "/status",
