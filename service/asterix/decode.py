@@ -25,11 +25,12 @@ snippets (one source of truth for both paths).
 block, an FRN that is spare or beyond the UAP, an item past the block's LEN, an inconsistent
 repetitive/compound/explicit length, or the mandatory data source identifier missing), none of
 its records is kept and ``errors["undecodable"]`` counts the block.  A header that cannot be
-read or a LEN < 3 or beyond the bytes left counts as ``"truncated"`` and ends the walk (nothing
-after it can be trusted to start a block); another category is skipped whole by its LEN and
-counted as ``"unsupported_category"``.  Every block is decoded from its own slice of the input,
-so a record overrunning its block raises IndexError (caught) instead of reading the next block.
-No input raises and every loop advances by at least one octet: the cost is linear in the input.
+read (an empty datagram too) or a LEN < 3 or beyond the bytes left counts as ``"truncated"``
+and ends the walk (nothing after it can be trusted to start a block); another category is
+skipped whole by its LEN and counted as ``"unsupported_category"``.  Every block is decoded
+from its own slice of the input, so a record overrunning its block raises IndexError (caught)
+instead of reading the next block.  No input raises and every loop advances by at least one
+octet: the cost is linear in the input.
 
 **Cost per datagram.**  ``decode_datagram(..., max_records=N)`` stops at N records: the block
 that would go past them is dropped whole (atomic, as above), and the blocks after it are not
@@ -445,6 +446,10 @@ def decode_datagram(data: bytes, out: Decoded, max_records: int | None = None) -
     pos = 0
     errors = out.errors
     left = max_records
+    if n == 0:  # an empty datagram: a data block cut before its header (counted, not silent)
+        out.blocks += 1
+        errors["truncated"] += 1
+        return
     while pos < n:
         out.blocks += 1
         if n - pos < 3:

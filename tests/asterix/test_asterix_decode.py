@@ -405,6 +405,14 @@ def test_a_truncated_block_stops_the_walk(tail: bytes) -> None:
     assert len(d.cat034) == 1 and not d.cat048
 
 
+def test_an_empty_datagram_is_counted_as_a_truncated_block() -> None:
+    """An empty UDP datagram holds no block: counted (the bridge reports it under
+    ``blocks_truncated``), not passed over in silence."""
+    d = Decoded()
+    decode_datagram(b"", d)
+    assert d.errors == Counter(truncated=1) and d.blocks == 1 and not d.cat048
+
+
 def test_a_len_cutting_a_record_drops_that_block_only() -> None:
     short = bytes((48,)) + (len(GOOD048) - 4).to_bytes(2, "big") + GOOD048[3:-4]
     d = Decoded()
