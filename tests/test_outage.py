@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections import Counter
 from typing import Any
 
 import pytest
@@ -18,7 +19,7 @@ import zenoh
 from service.engine import Engine, EngineConfig
 from service.pipeline.errors import RejectionError
 from service.pipeline.feed import FeedParams, FeedWatch
-from service.pipeline.sequencer import RADAR, Sequencer, SequencerParams
+from service.pipeline.sequencer import RADAR, Sequencer, SequencerParams, SourceClock
 from tests.scenario_helpers import scenario_messages
 from tests.support import put_json, run_engine, running_service, wait_for, wait_subscribed
 
@@ -641,3 +642,52 @@ def test_a_full_lone_run_is_still_confirmed_by_a_clock_elsewhere() -> None:
     assert seq.sources["A"].lone is not None and seq.sources["B"].lone is None
     seq.accept(seq.check("A", RADAR, 4, 104.0), "a4")
     assert seq.sources["A"].lone is None and seq.sources["A"].batches == 4
+
+
+def test_a_radar_two_minutes_fast_does_not_set_the_pace_of_the_picture() -> None:
+    """Radar A's clock runs 120 s fast (within ``max_clock_skew_s``, so taken).  Leading alone,
+    it set the release's pace: B and C, lagging it by more than ``max_lag_s``, stopped holding
+    the release back, the picture went on at A's clock and held A's tracks alone (three-radar,
+    at 100 s of data: outputs at 220 s, 78 system tracks, every one of A only).  A clock no
+    other comes within ``max_lag_s`` of does not lead while three or more clocks can outvote
+    it: the picture follows B and C and holds their tracks, paired."""
+    stream = scenario_messages("three-radar", duration_s=120.0)
+    sites = [m for m in stream if m[0].endswith("/site")]
+    plots = [
+        (k, shifted(p, 120.0) if k == "fusion/radar/A/plots" else p)
+        for k, p in stream
+        if k.endswith("/plots")
+    ]
+    t0 = min(json.loads(p)["time_s"] for _, p in stream if not _.endswith("/site"))
+    engine = Engine(EngineConfig())
+    for key, payload in sites:
+        engine.ingest(key, payload)
+    for key, payload in sorted(plots, key=lambda m: json.loads(m[1])["time_s"] - 120.0 * ("/A/" in m[0])):
+        engine.ingest(key, payload)
+        if json.loads(payload)["time_s"] >= t0 + 100.0 and "/A/" not in key:
+            break
+    snap = engine.snapshot()
+    assert snap.outputs_time_s is not None and snap.outputs_time_s <= t0 + 100.0
+    members = Counter(m["radar_id"] for t in snap.system_tracks()["system_tracks"] for m in t["members"])
+    assert members["B"] >= 60 and members["C"] >= 60, members
+    assert _pair_counts(engine)[("B", "C")] >= 60
+
+
+@pytest.mark.parametrize(
+    ("clocks", "pace"),
+    [
+        ((100.0, 101.0, 220.0), 101.0),  # one clock ahead alone: outvoted
+        ((100.0, 220.0), 220.0),  # two: no majority, the newest leads (an outage must not freeze)
+        ((50.0, 200.0, 201.0), 201.0),  # one stuck behind (an outage): the others lead
+        ((100.0, 101.0, 220.0, 221.0), 221.0),  # two ahead together: they lead
+        ((100.0, 200.0, 300.0), 300.0),  # no clock with a neighbour: the newest leads
+    ],
+)
+def test_the_release_follows_the_newest_clock_another_comes_within_max_lag_s_of(
+    clocks: tuple[float, ...], pace: float
+) -> None:
+    seq = Sequencer(SequencerParams())
+    for n, t in enumerate(clocks):
+        seq.sources[f"R{n}"] = SourceClock(RADAR, last_seq=1, last_time_s=t)
+    lag = seq.params.max_lag_s
+    assert seq.watermark() == min(c for c in clocks if pace - lag <= c <= pace)

@@ -93,9 +93,11 @@ Valid but hostile input (each policy a named field of :class:`SequencerParams`)
   (or one that announced itself and never reported) makes room; otherwise the newcomer is
   rejected (``out_of_range``).
 
-A radar whose data clock lags the consensus by more than ``max_lag_s`` stops holding the others
-back (an outage must not freeze the picture); its late batches are still released when they
-come.
+A radar whose data clock lags the newest live clock by more than ``max_lag_s`` stops holding the
+others back (an outage must not freeze the picture); its late batches are still released when
+they come.  With three or more clocks the newest that leads is one another clock comes within
+``max_lag_s`` of (:meth:`Sequencer._pace`): a clock running ahead of every other alone does
+not set the pace.
 """
 
 from __future__ import annotations
@@ -892,13 +894,30 @@ class Sequencer:
         if not clocks:
             return -np.inf
         self._first_clock = min(self._first_clock, *clocks)
-        consensus = _low_median(list(clocks))
-        newest = max(c for c in clocks if c <= consensus + p.max_clock_skew_s)
+        newest = self._pace(sorted(clocks))
         # A radar whose site is known but which has not reported yet holds the others back
         # from the first data time seen, within the same lag bound.
         if any(s.last_time_s is None and s.kind == RADAR and not s.foreign for s in self.sources.values()):
             clocks.append(self._first_clock)
         return min(c for c in clocks if newest - p.max_lag_s <= c <= newest)
+
+    def _pace(self, ordered: list[float]) -> float:
+        """The newest live clock the release follows (``ordered``: the live clocks, sorted):
+        the newest within ``max_clock_skew_s`` of the consensus that another clock comes within
+        ``max_lag_s`` of.  A radar whose clock runs ahead of every other alone (a clock two
+        minutes fast: within the skew, so taken) would otherwise set the pace, and every honest
+        radar, lagging it, would stop holding the release back: the picture would follow the
+        wrong clock and leave them out.  With fewer than three clocks no majority can tell a
+        clock ahead from the others stuck behind it (an outage must not freeze the picture), so
+        the newest leads, as it does when no clock has such a neighbour."""
+        p = self.params
+        consensus = ordered[(len(ordered) - 1) // 2]  # (the low median)
+        within = [c for c in ordered if c <= consensus + p.max_clock_skew_s]
+        if len(within) >= 3:
+            for upper, lower in zip(reversed(within[1:]), reversed(within[:-1]), strict=True):
+                if upper - lower <= p.max_lag_s:
+                    return upper
+        return within[-1]
 
     def release(self, until: float | None = None) -> Iterator[Release]:
         """Release held batches and expiries up to ``until`` (default: the watermark)."""
