@@ -675,19 +675,40 @@ def test_a_radar_two_minutes_fast_does_not_set_the_pace_of_the_picture() -> None
 
 @pytest.mark.parametrize(
     ("clocks", "pace"),
-    [
-        ((100.0, 101.0, 220.0), 101.0),  # one clock ahead alone: outvoted
-        ((100.0, 220.0), 220.0),  # two: no majority, the newest leads (an outage must not freeze)
-        ((50.0, 200.0, 201.0), 201.0),  # one stuck behind (an outage): the others lead
-        ((100.0, 101.0, 220.0, 221.0), 221.0),  # two ahead together: they lead
-        ((100.0, 200.0, 300.0), 300.0),  # no clock with a neighbour: the newest leads
+    [  # (clock, the newest clock of all when it was last heard)
+        (((100.0, 219.0), (101.0, 219.0), (220.0, 220.0)), 101.0),  # one ahead alone: outvoted
+        (((100.0, 100.0), (101.0, 101.0), (220.0, 220.0)), 220.0),  # the others stopped: it leads
+        (((100.0, 219.0), (220.0, 220.0)), 220.0),  # two: no majority, the newest leads
+        (((50.0, 50.0), (200.0, 201.0), (201.0, 201.0)), 201.0),  # one stuck behind (an outage)
+        (((100.0, 221.0), (101.0, 221.0), (220.0, 221.0), (221.0, 221.0)), 221.0),  # two ahead together
+        (((100.0, 300.0), (200.0, 300.0), (300.0, 300.0)), 300.0),  # no clock with a neighbour
     ],
 )
-def test_the_release_follows_the_newest_clock_another_comes_within_max_lag_s_of(
-    clocks: tuple[float, ...], pace: float
+def test_the_release_follows_the_newest_clock_unless_it_runs_ahead_alone(
+    clocks: tuple[tuple[float, float], ...], pace: float
 ) -> None:
     seq = Sequencer(SequencerParams())
-    for n, t in enumerate(clocks):
-        seq.sources[f"R{n}"] = SourceClock(RADAR, last_seq=1, last_time_s=t)
+    for n, (t, heard) in enumerate(clocks):
+        seq.sources[f"R{n}"] = SourceClock(RADAR, last_seq=1, last_time_s=t, heard_at_s=heard)
     lag = seq.params.max_lag_s
-    assert seq.watermark() == min(c for c in clocks if pace - lag <= c <= pace)
+    assert seq.watermark() == min(c for c, _ in clocks if pace - lag <= c <= pace)
+
+
+def test_two_radars_of_three_stopping_do_not_freeze_the_picture() -> None:
+    """B and C stop reporting after 40 s (their feed is down), A goes on: once A is ``max_lag_s``
+    ahead of them they no longer hold the release back, and the picture follows A (the rule
+    against a clock running ahead alone asks that the others are still reporting)."""
+    stream = scenario_messages("three-radar", duration_s=120.0)
+    t0 = min(json.loads(p)["time_s"] for k, p in stream if k.endswith("/plots"))
+    cut = [
+        (k, p)
+        for k, p in stream
+        if not k.endswith("/plots") or "/A/" in k or json.loads(p)["time_s"] <= t0 + 40.0
+    ]
+    engine = Engine(EngineConfig())
+    for key, payload in cut:
+        engine.ingest(key, payload)
+    snap = engine.snapshot()
+    assert snap.outputs_time_s is not None and snap.outputs_time_s >= t0 + 110.0
+    status = {r["radar_id"]: r for r in snap.status_core()["radars"]}
+    assert status["A"]["tracks_confirmed"] > 0

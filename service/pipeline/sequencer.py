@@ -95,9 +95,8 @@ Valid but hostile input (each policy a named field of :class:`SequencerParams`)
 
 A radar whose data clock lags the newest live clock by more than ``max_lag_s`` stops holding the
 others back (an outage must not freeze the picture); its late batches are still released when
-they come.  With three or more clocks the newest that leads is one another clock comes within
-``max_lag_s`` of (:meth:`Sequencer._pace`): a clock running ahead of every other alone does
-not set the pace.
+they come.  A clock running more than ``max_lag_s`` ahead of every other alone does not set
+that pace while at least two others are still reporting (:meth:`Sequencer._pace`).
 """
 
 from __future__ import annotations
@@ -204,6 +203,9 @@ class SourceClock:
     ahead_s: float | None = None
     #: The clock came from the state file (a restart), not from a batch of this run.
     restored: bool = False
+    #: The newest clock any source had (:attr:`Sequencer.top_s`) when this one last moved:
+    #: a source still reporting while another runs ahead of every clock alone (``_pace``).
+    heard_at_s: float = -np.inf
     #: A batch held as a lone step ahead, until the next batch confirms or refutes it.
     held: Held | None = None
     #: The batch that set a clock no other source could check, until data confirms it.
@@ -362,6 +364,9 @@ class Sequencer:
         self.last_limit = -np.inf
         #: The newest data clock of an accepted batch (-inf: none yet); never goes back.
         self.newest_s = -np.inf
+        #: The newest confirmed clock of any source, this worker's or (partitioned) another's
+        #: (-inf: none yet); never goes back (``_pace``).
+        self.top_s = -np.inf
         #: Whole-feed outages that ended (jumps a quorum of the sources agreed on).
         self.outages = 0
         #: The data-time length of the last such outage (s).
@@ -411,6 +416,7 @@ class Sequencer:
         if src.foreign:
             src.last_time_s = max(clock_s, src.last_time_s if src.last_time_s is not None else -np.inf)
             src.foreign_lone = None
+            self._heard(src)
 
     def observe_lone(self, source_id: str, span: tuple[float, float] | None) -> None:
         """Another worker's radar has a lone clock (``span``: its first and newest data time),
@@ -670,7 +676,20 @@ class Sequencer:
             return []
         self._count_outage(adm)
         self.newest_s = max(self.newest_s, clock)
+        self._heard(src)
         return self._settle_lone()
+
+    def _heard(self, src: SourceClock) -> None:
+        """A source's confirmed clock moved: the newest clock of all, and when it was heard.  A
+        jump of the newest clock by more than ``max_lag_s`` (a source joining ahead, the end of
+        an outage) is no progress the others missed: every source counts as heard at it."""
+        clock = src.last_time_s
+        if clock is not None and clock > self.top_s + self.params.max_lag_s:
+            for other in self.sources.values():
+                other.heard_at_s = clock
+        if clock is not None:
+            self.top_s = max(self.top_s, clock)
+        src.heard_at_s = self.top_s
 
     def _confirmed(self, source_id: str, src: SourceClock, time_s: float) -> bool:
         """Whether a batch of the source at ``time_s``, taken, has a confirmed clock (or confirms
@@ -752,6 +771,7 @@ class Sequencer:
         self._first_clock = min(self._first_clock, a.time_s)
         if src.last_time_s is not None:
             self.newest_s = max(self.newest_s, src.last_time_s)
+        self._heard(src)
 
     def settle(self) -> list[Refused]:
         """Settle the lone runs after other workers' clocks came (partitioned), as one of this
@@ -890,34 +910,50 @@ class Sequencer:
     def watermark(self) -> float:
         """Data time up to which every live source has reported (see module docstring)."""
         p = self.params
-        clocks = self._other_clocks(None)  # a lone clock releases nothing (module docstring)
-        if not clocks:
+        live = self._live()  # a lone clock releases nothing (module docstring)
+        if not live:
             return -np.inf
+        clocks = [c for c, _ in live]
         self._first_clock = min(self._first_clock, *clocks)
-        newest = self._pace(sorted(clocks))
+        newest = self._pace(live)
         # A radar whose site is known but which has not reported yet holds the others back
         # from the first data time seen, within the same lag bound.
         if any(s.last_time_s is None and s.kind == RADAR and not s.foreign for s in self.sources.values()):
             clocks.append(self._first_clock)
         return min(c for c in clocks if newest - p.max_lag_s <= c <= newest)
 
-    def _pace(self, ordered: list[float]) -> float:
-        """The newest live clock the release follows (``ordered``: the live clocks, sorted):
-        the newest within ``max_clock_skew_s`` of the consensus that another clock comes within
-        ``max_lag_s`` of.  A radar whose clock runs ahead of every other alone (a clock two
+    def _live(self) -> list[tuple[float, float]]:
+        """The live, confirmed clocks with when each was heard (``heard_at_s``), oldest first."""
+        return sorted(
+            (s.last_time_s, s.heard_at_s)
+            for s in self.sources.values()
+            if s.last_time_s is not None and not s.expired and s.lone is None
+        )
+
+    def _pace(self, live: list[tuple[float, float]]) -> float:
+        """The newest live clock the release follows (``live``: the clocks, oldest first, with
+        when each was heard): the newest within ``max_clock_skew_s`` of the consensus, unless
+        it runs more than ``max_lag_s`` ahead of every other while at least two others are still
+        reporting (heard since it was ``max_lag_s`` behind where it is): then the newest that
+        another clock comes within ``max_lag_s`` of.  A radar whose clock runs ahead alone (two
         minutes fast: within the skew, so taken) would otherwise set the pace, and every honest
         radar, lagging it, would stop holding the release back: the picture would follow the
-        wrong clock and leave them out.  With fewer than three clocks no majority can tell a
-        clock ahead from the others stuck behind it (an outage must not freeze the picture), so
-        the newest leads, as it does when no clock has such a neighbour."""
-        p = self.params
-        consensus = ordered[(len(ordered) - 1) // 2]  # (the low median)
-        within = [c for c in ordered if c <= consensus + p.max_clock_skew_s]
-        if len(within) >= 3:
-            for upper, lower in zip(reversed(within[1:]), reversed(within[:-1]), strict=True):
-                if upper - lower <= p.max_lag_s:
-                    return upper
-        return within[-1]
+        wrong clock and leave them out.  Others that stopped reporting (an outage) do not hold
+        a live radar back longer than ``max_lag_s``, as before; with fewer than three clocks no
+        majority can tell a clock ahead from the other stuck behind it, and the newest leads."""
+        lag = self.params.max_lag_s
+        consensus = live[(len(live) - 1) // 2][0]  # (the low median)
+        within = [(c, heard) for c, heard in live if c <= consensus + self.params.max_clock_skew_s]
+        top = within[-1][0]
+        if len(within) < 3 or top - within[-2][0] <= lag:
+            return top
+        if sum(heard >= top - lag for _, heard in within[:-1]) < 2:
+            return top
+        clocks = [c for c, _ in within]
+        for upper, lower in zip(reversed(clocks[1:]), reversed(clocks[:-1]), strict=True):
+            if upper - lower <= lag:
+                return upper
+        return top
 
     def release(self, until: float | None = None) -> Iterator[Release]:
         """Release held batches and expiries up to ``until`` (default: the watermark)."""
