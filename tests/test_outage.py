@@ -712,3 +712,35 @@ def test_two_radars_of_three_stopping_do_not_freeze_the_picture() -> None:
     assert snap.outputs_time_s is not None and snap.outputs_time_s >= t0 + 110.0
     status = {r["radar_id"]: r for r in snap.status_core()["radars"]}
     assert status["A"]["tracks_confirmed"] > 0
+
+
+def test_radars_whose_stamps_stand_still_are_not_still_reporting() -> None:
+    """B and C keep sending batches stamped 40 s (their clocks stuck) while A goes on: batches
+    at a stamp that stands still are no sign of life, so A leads once it is ``max_lag_s``
+    ahead, as before the rule against a clock running ahead alone (they had counted as still
+    reporting: the release stayed at 40 s)."""
+    seq = _known("A", "B", "C")
+    for n in range(1, 100):
+        t = 2.0 * n
+        seq.accept(seq.check("A", RADAR, n, t), f"a{n}")
+        for rid in "BC":
+            seq.accept(seq.check(rid, RADAR, n, min(t, 40.0)), f"{rid}{n}")
+        list(seq.release())
+    assert seq.watermark() >= 198.0 - seq.params.max_lag_s
+
+
+def test_a_worker_saying_the_same_clocks_again_is_no_sign_of_life() -> None:
+    """Partitioned: another worker's radars A, B and C stopped at 40 s, and its clock message
+    names their clocks again each time (unchanged); this worker's D goes on.  D leads once it
+    is ``max_lag_s`` ahead, as one worker would release (the repeated clocks had counted as
+    heard: the release stayed at 40 s)."""
+    seq = Sequencer(SequencerParams())
+    seq.announce("D", RADAR)
+    seq.sites_known = 4
+    for n in range(1, 100):
+        t = 2.0 * n
+        for rid in "ABC":
+            seq.observe(rid, min(t, 40.0))
+        seq.accept(seq.check("D", RADAR, n, t), f"d{n}")
+        list(seq.release())
+    assert seq.watermark() >= 198.0 - seq.params.max_lag_s

@@ -414,9 +414,11 @@ class Sequencer:
                 return  # bounded like every source; this one then simply holds nothing back
             src = self.sources[source_id] = SourceClock(RADAR, announced_s=self.consensus(), foreign=True)
         if src.foreign:
-            src.last_time_s = max(clock_s, src.last_time_s if src.last_time_s is not None else -np.inf)
+            before = src.last_time_s
+            src.last_time_s = max(clock_s, before if before is not None else -np.inf)
             src.foreign_lone = None
-            self._heard(src)
+            if before is None or src.last_time_s > before:  # (its owner says every clock again)
+                self._heard(src)
 
     def observe_lone(self, source_id: str, span: tuple[float, float] | None) -> None:
         """Another worker's radar has a lone clock (``span``: its first and newest data time),
@@ -665,6 +667,7 @@ class Sequencer:
         src.plots += count
         src.ahead_s = None
         src.restored = False
+        moved_from = None if src.expired else src.last_time_s  # (back from expiry: it moved)
         clock = max(adm.time_s, src.last_time_s if src.last_time_s is not None else -np.inf)
         src.last_time_s = clock
         src.expired = False
@@ -676,13 +679,16 @@ class Sequencer:
             return []
         self._count_outage(adm)
         self.newest_s = max(self.newest_s, clock)
-        self._heard(src)
+        if moved_from is None or clock > moved_from:  # (a stamp that stands still is not heard)
+            self._heard(src)
         return self._settle_lone()
 
     def _heard(self, src: SourceClock) -> None:
-        """A source's confirmed clock moved: the newest clock of all, and when it was heard.  A
-        jump of the newest clock by more than ``max_lag_s`` (a source joining ahead, the end of
-        an outage) is no progress the others missed: every source counts as heard at it."""
+        """A source's confirmed clock moved on (a batch at the same stamp, or the same clock said
+        again, is no sign of life): the newest clock of all, and when it was heard.  A jump of
+        the newest clock by more than ``max_lag_s`` (a source joining ahead, the end of an
+        outage) is no progress the others missed: every source counts as heard at it, so they
+        get ``max_lag_s`` of its data to report before it leads alone."""
         clock = src.last_time_s
         if clock is not None and clock > self.top_s + self.params.max_lag_s:
             for other in self.sources.values():
