@@ -242,12 +242,12 @@ class Engine:
         for sid in source_ids:
             self.reference_kinds.pop(sid, None)
             self.tracking.clear(sid) if keep_site else self.tracking.drop(sid)
-            self.sequencer.sites_known = len(self.tracking.tracked)
             self.correlation.forget(sid)
             self.peers.forget(sid)
             self.feed.forget(sid)
             self.assessment.forget(sid)
             out += self.publication.forget(sid)
+        self.sequencer.sites_known = len(self.tracking.tracked)
         return out
 
     def _admit(

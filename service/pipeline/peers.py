@@ -412,9 +412,10 @@ class Peers:
                 for rid, c in clock.clocks.items():
                     if not self.partition.owns(rid):
                         self.sequencer.observe(rid, c)
-                for rid, s in self.sequencer.sources.items():  # its radars' lone clocks, or none
-                    if s.foreign and self.partition.owner(rid) == worker:
-                        self.sequencer.observe_lone(rid, clock.lone_clocks.get(rid))
+                for rid, s in self.sequencer.sources.items():  # its radars no longer lone
+                    stale = s.foreign_lone is not None and rid not in clock.lone_clocks
+                    if stale and self.partition.owner(rid) == worker:
+                        self.sequencer.observe_lone(rid, None)
                 for rid, span in clock.lone_clocks.items():
                     if not self.partition.owns(rid):
                         self.sequencer.observe_lone(rid, span)

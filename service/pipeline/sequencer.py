@@ -784,12 +784,10 @@ class Sequencer:
         worker's batches would: a run agreeing with another worker's lone run (within
         ``max_step_s``) is confirmed, and the confirmed clocks settle the rest.  Returns the
         batches withdrawn, to be reported rejected."""
+        if not self._lone:
+            return []
         step = self.params.max_step_s
-        spans = (
-            [s.foreign_lone for s in self.sources.values() if s.foreign_lone is not None]
-            if self._lone
-            else []
-        )
+        spans = [s.foreign_lone for s in self.sources.values() if s.foreign_lone is not None]
         for sid in sorted(self._lone):
             src = self.sources[sid]
             first, newest = src.lone_time(), src.last_time_s if src.last_time_s is not None else -np.inf
