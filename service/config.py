@@ -118,8 +118,12 @@ def load_sites(path: str | Path) -> tuple[RadarSite, ...]:
         return tuple(_SITE_LIST.validate_json(p.read_bytes()))
     except FileNotFoundError:
         raise ValueError(f"sites file not found: {p}") from None
+    except OSError as exc:
+        raise ValueError(f"sites file {p} cannot be read: {exc.strerror or exc}") from None
     except ValidationError as exc:
-        raise ValueError(f"sites file {p} is not a JSON list of RadarSite: {exc}") from None
+        raise ValueError(
+            f"sites file {p} is not a JSON list of RadarSite: {_error(validation_problems(exc))}"
+        ) from None
 
 
 def _unknown_keys(cls: type, data: Mapping[str, Any], path: str = "") -> list[str]:
@@ -145,10 +149,7 @@ def engine_config_from(data: Mapping[str, Any]) -> EngineConfig:
     try:
         config = _ADAPTER.validate_python(dict(data))
     except ValidationError as exc:
-        problems = [
-            f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors(include_url=False)
-        ]
-        raise _error(problems) from None
+        raise _error(validation_problems(exc)) from None
     problems = [f"{key}: must be a finite number, got {value}" for key, value in _non_finite(config)]
     problems += [
         f"{key}: must be >= 0, got {value}"
@@ -164,6 +165,15 @@ def engine_config_from(data: Mapping[str, Any]) -> EngineConfig:
     if problems:
         raise _error(problems)
     return config
+
+
+def validation_problems(exc: ValidationError) -> list[str]:
+    """Each problem pydantic found, on one line: where, and what is wrong."""
+    out = []
+    for e in exc.errors(include_url=False):
+        where, what = ".".join(str(p) for p in e["loc"]), " ".join(e["msg"].split())
+        out.append(f"{where}: {what}" if where else what)
+    return out
 
 
 def _error(problems: list[str], what: str = "") -> ConfigError:

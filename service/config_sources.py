@@ -56,8 +56,8 @@ def load_file(path: str | Path) -> dict[str, Any]:
             raise ConfigError(f"config file {p}: use a .toml, .yaml, .yml or .json file")
     except ConfigError:
         raise
-    except Exception as exc:  # the parsers' own errors say where
-        raise ConfigError(f"config file {p} cannot be read: {exc}") from None
+    except Exception as exc:  # the parsers' own errors say where (on several lines: one here)
+        raise ConfigError(f"config file {p} cannot be read: {' '.join(str(exc).split())}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"config file {p}: the top level must be a table of sections")
     return data

@@ -58,6 +58,10 @@ EMPTY_IS_UNSET = ("zenoh_config", "sites", "config", "state_dir", "api_token")
 #: when the cap is reached, so that a probe always finds room (docs/operations/http.md;
 #: service/api/limits.py checks the limits against it).
 PROBE_ROOM = 16
+#: The longest duration (s) a setting of one takes: a day (a timer far beyond overflows).
+MAX_DURATION_S = 86_400.0
+#: The levels ``--log-level`` / ``TOPOFUSION_LOG_LEVEL`` take (any case; WARN is WARNING).
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "WARN", "ERROR", "CRITICAL")
 
 #: How :meth:`Settings.effective` shows a secret (in a config file: not given).
 REDACTED = "**********"
@@ -79,9 +83,11 @@ def _partition_to_engine(value: str) -> dict[str, int]:
 
 def _partition_from_engine(value: Any) -> Any:
     """The engine's form (``{index, count, salt}``) as the setting's ``K/N`` (the salt is its
-    own setting); a ``K/N`` as it is."""
+    own setting: the salt alone gives none); a ``K/N`` as it is."""
     if isinstance(value, Mapping) and {"index", "count"} <= set(value) <= {"index", "count", "salt"}:
         return f"{value['index']}/{value['count']}"
+    if isinstance(value, Mapping) and set(value) <= {"salt"}:
+        return None
     return value
 
 
@@ -144,7 +150,8 @@ class Settings(BaseSettings):
     reads the environment (and ``TOPOFUSION_CONFIG``'s file) alone.
     """
 
-    model_config = SettingsConfigDict(env_prefix="TOPOFUSION_", extra="ignore")
+    # (no setting takes an infinite or NaN number: a timer of inf seconds overflows)
+    model_config = SettingsConfigDict(env_prefix="TOPOFUSION_", extra="ignore", allow_inf_nan=False)
 
     #: ``None``: the Zenoh config file's mode, else the command's default (peer for the service).
     zenoh_mode: Literal["peer", "client", "router"] | None = None
@@ -189,14 +196,14 @@ class Settings(BaseSettings):
     #: On SIGTERM/SIGINT: how long (s, wall clock) the worker may take to finish the queued
     #: input and publish its last outputs; what is left then is counted and logged.  Keep it
     #: under the container's stop timeout (the deploy files give 30 s for 20 s).
-    stop_grace_s: float = Field(default=20.0, ge=0)
+    stop_grace_s: float = Field(default=20.0, ge=0, le=MAX_DURATION_S)
     #: ``/readyz`` is 503 while input has waited in the queue this long (s, wall clock) with
     #: the worker taking none of it.
-    stall_s: float = Field(default=30.0, gt=0)
+    stall_s: float = Field(default=30.0, gt=0, le=MAX_DURATION_S)
     #: Where what takes minutes to learn survives a restart (``service.state``); ``None``: nothing.
     state_dir: Path | None = None
     #: Data time (s) between two periodic state writes.
-    state_interval_s: float = Field(default=30.0, gt=0)
+    state_interval_s: float = Field(default=30.0, gt=0, le=MAX_DURATION_S)
     #: When set, every HTTP endpoint but ``/healthz`` and ``/readyz`` needs
     #: ``Authorization: Bearer <token>``.
     api_token: SecretStr | None = None
@@ -211,13 +218,13 @@ class Settings(BaseSettings):
     #: Partitioned: a worker whose Zenoh liveliness token left is still waited for this long
     #: (s, wall clock) before the others correlate without its radars: a session that loses
     #: its router for a moment (a lease missed under load) must not reorder anything.
-    peer_grace_s: float = Field(default=15.0, ge=0)
+    peer_grace_s: float = Field(default=15.0, ge=0, le=MAX_DURATION_S)
     # The HTTP side port's limits (service/api/limits.py, docs/operations/http.md).
     #: A connection must deliver a whole request head within this many seconds of opening,
     #: and of its previous response ending; else it is closed (uvicorn has no such timeout).
-    http_header_timeout_s: float = Field(default=10.0, gt=0)
+    http_header_timeout_s: float = Field(default=10.0, gt=0, le=MAX_DURATION_S)
     #: A kept-alive connection with nothing arriving for this many seconds is closed.
-    http_keep_alive_s: float = Field(default=5.0, gt=0)
+    http_keep_alive_s: float = Field(default=5.0, gt=0, le=MAX_DURATION_S)
     #: Open HTTP connections at most: at the cap a new connection closes the one that has
     #: waited longest for a request head, or is refused (503) when none is waiting.  At least
     #: ``http_max_requests + http_picture_max_clients + 16`` (so that probes always get in).
@@ -308,6 +315,29 @@ class Settings(BaseSettings):
         # the working directory, not a token of length zero.
         return None if isinstance(value, str) and not value.strip() else value
 
+    @field_validator("http_host", mode="before")
+    @classmethod
+    def _empty_host_is_default(cls, value: object) -> object:
+        # An empty variable means "not set" here too: the loopback default, never every
+        # interface (which an empty host means to the server).
+        empty = isinstance(value, str) and not value.strip()
+        return cls.model_fields["http_host"].default if empty else value
+
+    @field_validator("api_token", mode="before")
+    @classmethod
+    def _token_without_blanks(cls, value: object) -> object:
+        # A token read from a file (a Kubernetes or Docker secret) ends with a newline that no
+        # client sends: whitespace around it is never part of it.
+        return value.strip() if isinstance(value, str) else value
+
+    @field_validator("log_level")
+    @classmethod
+    def _log_level(cls, value: str) -> str:
+        level = value.strip().upper()
+        if level not in LOG_LEVELS:
+            raise ValueError(f"one of {', '.join(LOG_LEVELS)}")
+        return "WARNING" if level == "WARN" else level  # (logging's and uvicorn's name of it)
+
     @field_validator("partition")
     @classmethod
     def _partition(cls, value: str) -> str:
@@ -394,7 +424,8 @@ _SHARED = frozenset(
 )
 #: Settings that are no top-level engine parameter: a config file's keys of them are settings only.
 _SETTINGS_ONLY = frozenset(Settings.model_fields) - _SHARED
-_SECRETS = frozenset(
+#: Settings whose values are secrets: never printed (``config --show`` and errors redact them).
+SECRET_SETTINGS = frozenset(
     name
     for name, info in Settings.model_fields.items()
     if info.annotation is SecretStr or SecretStr in get_args(info.annotation)
@@ -482,7 +513,7 @@ class _ConfigFile(PydanticBaseSettingsSource):
             )
         # A secret as `config --show` prints it is no value: the secret comes from elsewhere
         # (the environment), never the redaction itself.
-        data = {k: v for k, v in data.items() if not (k in _SECRETS and v == REDACTED)}
+        data = {k: v for k, v in data.items() if not (k in SECRET_SETTINGS and v == REDACTED)}
         direct = {k: v for k, v in data.items() if k in _SETTINGS_ONLY}
         return {**_settings_of_tree(data), **direct}
 

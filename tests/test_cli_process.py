@@ -203,3 +203,73 @@ def test_the_start_names_the_http_port_it_bound(tmp_path: Path) -> None:
         assert httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=10).status_code == 200
         svc.popen.send_signal(signal.SIGTERM)
         assert svc.popen.wait(timeout=PROCESS_S) == 0, svc.output()
+
+
+def test_bad_settings_are_one_line_that_never_shows_a_secret(tmp_path: Path) -> None:
+    """A settings error, whether ``config`` or ``run`` finds it: status 2, one line, no
+    traceback, and the API token never in it (a rule over several settings used to quote every
+    setting given, the token among them, into the container's log)."""
+    secret = "s3cr3t-prod-token"
+    bad_json5 = tmp_path / "bad.json5"
+    bad_json5.write_text('{mode: "peer",, ')
+    cases = {
+        "a connection cap below the requests": (
+            {"TOPOFUSION_HTTP_MAX_REQUESTS": "400"},
+            "TOPOFUSION_HTTP_MAX_CONNECTIONS (512) must be at least",
+        ),
+        "a stop grace of inf": (
+            {"TOPOFUSION_STOP_GRACE_S": "inf"},
+            "stop_grace_s (TOPOFUSION_STOP_GRACE_S): Input should be a finite number",
+        ),
+        "a stop grace beyond a day": ({"TOPOFUSION_STOP_GRACE_S": "1e10"}, "less than or equal to 86400"),
+        "a connect endpoint Zenoh cannot read": (
+            {"TOPOFUSION_ZENOH_CONNECT": "garbage"},
+            "invalid Zenoh configuration",
+        ),
+        "a Zenoh config file that is not JSON5": (
+            {"TOPOFUSION_ZENOH_CONFIG": str(bad_json5)},
+            "invalid Zenoh configuration",
+        ),
+        "an unknown log level": ({"TOPOFUSION_LOG_LEVEL": "loud"}, "one of DEBUG, INFO, WARNING"),
+    }
+    for name, (settings, needle) in cases.items():
+        for command in (["config"], ["run", "--http-port", "0", "--listen", f"tcp/127.0.0.1:{free_port()}"]):
+            with process(command, {"TOPOFUSION_API_TOKEN": secret, **settings}) as proc:
+                out, _ = proc.communicate(timeout=60)
+            what = f"{name}, {command[0]}"
+            assert proc.returncode == 2, f"{what}: exit {proc.returncode}\n{out}"
+            assert needle in out and "Traceback" not in out, f"{what}:\n{out}"
+            assert len(out.strip().splitlines()) == 1, f"{what}: not one line\n{out}"
+            assert secret not in out, f"{what}: the token is shown\n{out}"
+
+
+def _listening_addresses(port: int) -> set[str]:
+    """The local addresses of the TCP sockets listening on ``port`` (``/proc/net/tcp*``, hex)."""
+    found = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with open(table) as f:
+            for line in f.readlines()[1:]:
+                local, state = line.split()[1], line.split()[3]
+                address, hex_port = local.split(":")
+                if state == "0A" and int(hex_port, 16) == port:  # 0A: LISTEN
+                    found.add(address)
+    return found
+
+
+def test_warn_level_a_token_from_a_file_and_an_empty_host_start_as_meant() -> None:
+    """``TOPOFUSION_LOG_LEVEL=WARN`` (one of the levels taken) runs, where uvicorn knew no
+    "warn"; a token that ends with a newline (read from a secret's file) is the token without
+    it; an empty ``TOPOFUSION_HTTP_HOST`` is the loopback default, not every interface."""
+    hport = free_port()
+    url = f"http://127.0.0.1:{hport}"
+    settings = {"TOPOFUSION_LOG_LEVEL": "WARN", "TOPOFUSION_API_TOKEN": "tok\n", "TOPOFUSION_HTTP_HOST": ""}
+    args = ["run", "--listen", f"tcp/127.0.0.1:{free_port()}", "--http-port", str(hport)]
+    with process(args, settings) as proc:
+        wait_for(lambda: _http_ready(url) or proc.poll() is not None, timeout=30)
+        assert proc.poll() is None, proc.stdout.read() if proc.stdout else ""
+        assert httpx.get(url + "/status", timeout=2).status_code == 401
+        token = {"Authorization": "Bearer tok"}
+        assert httpx.get(url + "/status", headers=token, timeout=2).status_code == 200
+        assert _listening_addresses(hport) == {"0100007F"}  # 127.0.0.1 only
+        code, _, out = _stop(proc, signal.SIGTERM)
+    assert code == 0 and "Traceback" not in out, out

@@ -269,6 +269,12 @@ def test_the_engine_form_of_a_shared_setting_is_taken_everywhere(
     clean_env.setenv("TOPOFUSION_PARTITION_SALT", "7")
     assert Settings.load(path).engine.partition == Partition(2, 3, 7)
     assert Settings.load(path).effective()["partition_salt"] == 7
+    # the salt alone, as the contract allows for any engine parameter: the one worker's salt
+    clean_env.delenv("TOPOFUSION_PARTITION_SALT")
+    path.write_text("partition: {salt: 5}\n")
+    assert Settings.load(path).engine.partition == Partition(1, 1, 5)
+    clean_env.setenv("TOPOFUSION_ENGINE__PARTITION__SALT", "9")
+    assert Settings.load().engine.partition == Partition(1, 1, 9)
 
 
 def test_a_file_key_neither_setting_nor_engine_section_is_refused(

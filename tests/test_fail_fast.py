@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from tests.doc_commands import TOPOFUSION, started
-from tests.support import free_port
+from tests.support import free_port, wait_for
 
 #: Each refusal comes within this long (s): the interpreter's start and the imports, no
 #: connection attempt (which would take the tools' 30 s wait for their router).
@@ -32,6 +32,12 @@ def _bad_inputs(tmp_path: Path) -> dict[str, tuple[list[str], list[str]]]:
         '[{"radar_id": "A", "latitude_deg": 1, "longitude_deg": 2, "sac": 0, "sic": 1}]'
     )
     missing = tmp_path / "no-such-dir"
+    bad_json5 = tmp_path / "bad.json5"
+    bad_json5.write_text('{mode: "peer",, ')
+    unknown_key = tmp_path / "unknown.json5"
+    unknown_key.write_text("{bogus_key: 1}")
+    tls = tmp_path / "tls.json5"
+    tls.write_text('{transport: {link: {tls: {root_ca_certificate: "%s"}}}}' % (missing / "ca.pem"))
     return {
         "replay a pcap": (
             ["replay", str(capture)],
@@ -83,6 +89,56 @@ def _bad_inputs(tmp_path: Path) -> dict[str, tuple[list[str], list[str]]]:
             ["simulate", "--scenario", "two-radar", "--write-sites", str(missing / "sites.json")],
             [f"the directory {missing} does not exist"],
         ),
+        "run with a listen endpoint Zenoh cannot read": (
+            ["run", "--http-port", "0", "--listen", "garbage"],
+            ["invalid Zenoh configuration", "Endpoints must be of the form", "garbage"],
+        ),
+        "record with a connect endpoint Zenoh cannot read": (
+            ["record", "--out", str(tmp_path / "run.mcap"), "--connect", "garbage"],
+            ["invalid Zenoh configuration", "garbage"],
+        ),
+        "run with a Zenoh config file that is not JSON5": (
+            ["run", "--http-port", "0", "--zenoh-config", str(bad_json5)],
+            ["invalid Zenoh configuration", "expected identifier or string"],
+        ),
+        "run with an unknown key in its Zenoh config": (
+            ["run", "--http-port", "0", "--zenoh-config", str(unknown_key)],
+            ["invalid Zenoh configuration", "unknown field `bogus_key`"],
+        ),
+        "run with a TLS file of its Zenoh config missing": (
+            ["run", "--http-port", "0", "--zenoh-config", str(tls)],
+            [f"zenoh config transport/link/tls/root_ca_certificate: no such file {missing / 'ca.pem'}"],
+        ),
+        "record with a key expression Zenoh refuses": (
+            ["record", "--out", str(tmp_path / "run.mcap"), "--key", "a//b"],
+            ["invalid key expression 'a//b'", "empty chunks are forbidden"],
+        ),
+        "run with a sites file that is not JSON": (
+            ["run", "--http-port", "0", "--sites", str(tmp_path / "notes.json")],
+            ["is not a JSON list of RadarSite: Input should be a valid array"],
+        ),
+        "demo at a negative speed": (["demo", "--http-port", "0", "--speed", "-1"], ["--speed: '-1'"]),
+        "demo with a negative seed": (["demo", "--http-port", "0", "--seed", "-1"], ["--seed: '-1'"]),
+        "simulate at a speed of nan": (
+            ["simulate", "--scenario", "demo", "--speed", "nan"],
+            ["--speed: 'nan'"],
+        ),
+        "asterix with an ADS-B id no source may have": (
+            ["asterix", "--out-file", str(tmp_path / "t.ast"), "--adsb-id", "a b"],
+            ["--adsb-id 'a b' must match"],
+        ),
+        "asterix for a duration of nan": (
+            ["asterix", "--out-file", str(tmp_path / "t.ast"), "--duration", "nan"],
+            ["--duration must be a finite number > 0"],
+        ),
+        "asterix with ADS-B batches of nan": (
+            ["asterix", "--out-file", str(tmp_path / "t.ast"), "--adsb-batch", "nan"],
+            ["--adsb-batch and --max-batch must be finite numbers > 0"],
+        ),
+        "asterix writing CAT062 to port 0": (
+            ["asterix", "--out-udp", "127.0.0.1:0"],
+            ["--out-udp needs a destination port (1-65535), not 0"],
+        ),
     }
 
 
@@ -129,3 +185,23 @@ def test_an_unreadable_file_is_refused_before_connecting(tmp_path: Path) -> None
         with started([TOPOFUSION, *argv, "--connect", nobody], tmp_path) as proc:
             assert proc.popen.wait(timeout=FAIL_FAST_S) == 2, name
             assert needle in proc.output(), proc.output()
+
+
+def test_a_tool_waiting_for_its_router_stops_cleanly_on_a_signal(tmp_path: Path) -> None:
+    """``record`` and ``replay`` still waiting for their router (none there) end on SIGINT or
+    SIGTERM with status 0 and a line saying nothing was done, not a traceback or the signal's
+    own status."""
+    import signal
+
+    recording = tmp_path / "run.mcap"
+    nobody = f"tcp/127.0.0.1:{free_port()}"
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with started([TOPOFUSION, "record", "--out", str(recording), "--connect", nobody], tmp_path) as proc:
+            wait_for(lambda: "waiting for the Zenoh router" in proc.output(), timeout=FAIL_FAST_S)
+            proc.popen.send_signal(sig)
+            code = proc.popen.wait(timeout=FAIL_FAST_S)
+            out = proc.output()
+        assert code == 0, f"{sig.name}: exit {code}\n{out}"
+        assert "stopped while waiting for the Zenoh router; nothing recorded" in out, out
+        assert "Traceback" not in out, out
+        assert not recording.exists()

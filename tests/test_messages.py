@@ -64,6 +64,8 @@ def _plot_batch(**plots: object) -> dict[str, object]:
         (json.dumps(_plot_batch()).replace("152031.5", "NaN").encode(), "non_finite"),
         (json.dumps(_plot_batch()).replace("152031.5", "Infinity").encode(), "non_finite"),
         (json.dumps(_plot_batch()).replace("152031.5", "1e999").encode(), "non_finite"),
+        # a NaN where an integer belongs is as non-finite as one in a float column
+        (json.dumps(_plot_batch()).replace('"seq": 42', '"seq": NaN').encode(), "non_finite"),
         (
             json.dumps(
                 _plot_batch(

@@ -138,7 +138,12 @@ def run_simulation(
         say(f"wrote the sites ({', '.join(r.radar_id for r in sc.radars)}) to {args.write_sites}")
     resume = args.start_time == "resume"
     wait_s = args.wait_service if args.wait_service is not None else (RESUME_WAIT_S if resume else 0.0)
-    session = open_session() if not asterix or resume or wait_s > 0 else None
+    from service.transport.session import OpenCancelledError
+
+    try:
+        session = open_session() if not asterix or resume or wait_s > 0 else None
+    except OpenCancelledError:  # (a signal while waiting for the router)
+        return 0
     try:
         if session is not None and (resume or wait_s > 0):
             say(f"asking the service for {prefix}/status (up to {wait_s:g} s)")

@@ -267,7 +267,7 @@ def fit_file_limit(limits: HttpLimits) -> HttpLimits:
     room = soft - ACCEPT_BATCHES * limits.backlog - FD_RESERVE
     if room < limits.busy_at_most + PROBE_ROOM:
         raise RuntimeError(
-            f"the open-file limit ({soft}, hard {hard}) leaves room for {room} HTTP connections, "
+            f"the open-file limit ({soft}, hard {hard}) leaves room for {max(room, 0)} HTTP connections, "
             f"fewer than the {limits.busy_at_most + PROBE_ROOM} the other TOPOFUSION_HTTP_* "
             "limits need: raise it (ulimit -n) or lower TOPOFUSION_HTTP_MAX_REQUESTS, "
             "TOPOFUSION_HTTP_PICTURE_MAX_CLIENTS or TOPOFUSION_HTTP_BACKLOG"

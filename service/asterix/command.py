@@ -42,6 +42,7 @@ from service.asterix.udp import FairQueue, UdpEndpoint, UdpReceiver, parse_endpo
 from service.output_files import check_writable
 from service.wire.keys import Keys
 from service.wire.models import MAX_ALTITUDE_M, MAX_TIME_S, MIN_ALTITUDE_M, RadarSite
+from service.wire.vocabulary import is_source_id
 
 #: The counters line is printed at most this often (wall s) while the bridge runs, and only when
 #: something changed (``--report-every``): often enough to watch a feed, rare enough for a log.
@@ -662,8 +663,14 @@ def asterix_main(
     for name in ("system_sac", "system_sic"):
         if not 0 <= getattr(args, name) <= 255:
             raise ValueError(f"asterix: --{name.replace('_', '-')} must be in 0..255")
-    if args.speed < 0:
-        raise ValueError("asterix: --speed must be >= 0")
+    if not (math.isfinite(args.speed) and args.speed >= 0):
+        raise ValueError("asterix: --speed must be a finite number >= 0")
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise ValueError("asterix: --duration must be a finite number > 0")
+    if not is_source_id(args.adsb_id):
+        raise ValueError(f"asterix: --adsb-id {args.adsb_id!r} must match [A-Za-z0-9_-]{{1,64}}")
+    if any(e.port == 0 for e in args.out_udp):
+        raise ValueError("asterix: --out-udp needs a destination port (1-65535), not 0")
     if sites_path is None and (args.file or args.udp):
         raise ValueError("asterix: --sites FILE (or TOPOFUSION_SITES) is needed to map SAC/SIC to radars")
     sites = load_sites(sites_path) if sites_path is not None else ()
@@ -686,8 +693,8 @@ def asterix_main(
         dt.datetime.combine(args.date, dt.time(), tzinfo=dt.timezone.utc).timestamp() if args.date else None
     )
     clock = DayClock(start if start is not None else today_midnight_s())
-    if args.adsb_batch <= 0 or args.max_batch <= 0:
-        raise ValueError("asterix: --adsb-batch and --max-batch must be > 0")
+    if not all(math.isfinite(x) and x > 0 for x in (args.adsb_batch, args.max_batch)):
+        raise ValueError("asterix: --adsb-batch and --max-batch must be finite numbers > 0")
     if not (args.max_time_ahead > 0 and args.max_time_behind > 0):
         raise ValueError("asterix: --max-time-ahead and --max-time-behind must be > 0")
     if not args.report_every >= 0:

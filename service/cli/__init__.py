@@ -17,9 +17,9 @@ from collections.abc import Sequence
 from pydantic import ValidationError
 
 from service.cli import admin, groups, serve, tools
-from service.cli.common import settings_from, setup_logging, zenoh_options
+from service.cli.common import invalid_settings, settings_from, setup_logging, zenoh_options
 
-__all__ = ["build_parser", "main", "settings_from", "zenoh_options"]
+__all__ = ["build_parser", "invalid_settings", "main", "settings_from", "zenoh_options"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -53,14 +53,3 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, OSError, RuntimeError) as exc:  # ConfigError is a ValueError
         print(f"topofusion: {exc}", file=sys.stderr)
         return 2
-
-
-def invalid_settings(exc: ValidationError) -> str:
-    """A settings error on one line: each setting with its variable, what it must be, what it
-    was (pydantic's own text spans several lines and a link)."""
-    parts = []
-    for e in exc.errors(include_url=False):
-        loc = ".".join(str(p) for p in e["loc"])
-        name = f"{loc} (TOPOFUSION_{loc.upper()})" if exc.title == "Settings" and loc else loc or exc.title
-        parts.append(f"{name}: {e['msg']}, got {e.get('input')!r}")
-    return "invalid setting " + "; ".join(parts)

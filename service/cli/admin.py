@@ -7,7 +7,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from service.cli.common import Commands, add_command, settings_from
+from pydantic import ValidationError
+
+from service.cli.common import Commands, add_command, invalid_settings, settings_from
 from service.pipeline.partition import PAIR_KM
 from service.settings import Settings
 
@@ -125,15 +127,18 @@ def config_main(args: argparse.Namespace) -> int:
 def check_start(settings: Settings) -> None:
     """What ``run`` checks at start beyond the settings' own types, checked here too (a
     ValueError naming the setting): the engine built from them (a name only the engine knows,
-    such as the initiator's), the Zenoh config file readable, the state directory usable."""
+    such as the initiator's), the Zenoh configuration taken by Zenoh (the file, the endpoints,
+    its TLS files there), the state directory usable."""
     from service.startup import build_engine
+    from service.transport.session import ZenohOptions
 
     try:
         build_engine(settings.engine).close()
     except ValueError as exc:
         raise ValueError(f"engine configuration: {exc}") from None
     if settings.zenoh_config is not None and not settings.zenoh_config.is_file():
-        raise ValueError(f"TOPOFUSION_ZENOH_CONFIG {settings.zenoh_config}: no such file")
+        raise ValueError(f"TOPOFUSION_ZENOH_CONFIG {settings.zenoh_config}: no such file (or not a file)")
+    ZenohOptions.from_settings(settings)  # (what Zenoh refuses of the file, endpoints, TLS files)
     state = settings.state_dir
     if state is not None and state.exists() and not state.is_dir():
         raise ValueError(f"TOPOFUSION_STATE_DIR {state}: not a directory")
@@ -152,7 +157,10 @@ def healthcheck_main(args: argparse.Namespace) -> int:
 
     try:  # (the contract's exit status is 0 or 1: a setting it cannot read is "not healthy")
         settings = Settings()
-    except (ValueError, OSError) as exc:  # (pydantic's ValidationError and ConfigError are ValueErrors)
+    except ValidationError as exc:
+        print(f"healthcheck: {invalid_settings(exc)}", file=sys.stderr)
+        return 1
+    except (ValueError, OSError) as exc:  # (ConfigError is a ValueError)
         print(f"healthcheck: {exc}", file=sys.stderr)
         return 1
     host = "127.0.0.1" if settings.http_host in ("0.0.0.0", "::", "") else settings.http_host

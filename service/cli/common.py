@@ -16,7 +16,9 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-from service.settings import Settings, flag_overrides
+from pydantic import ValidationError
+
+from service.settings import LOG_LEVELS, REDACTED, SECRET_SETTINGS, Settings, flag_overrides
 from service.transport.session import MODES, ZenohOptions
 
 #: A subcommand's handler: the parsed arguments in, the exit status out.
@@ -60,10 +62,6 @@ def zenoh_options(settings: Settings, default_mode: str = "peer") -> ZenohOption
     return ZenohOptions.from_settings(settings, default_mode)
 
 
-#: The levels ``--log-level`` / ``TOPOFUSION_LOG_LEVEL`` take.
-LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "WARN", "ERROR", "CRITICAL")
-
-
 def setup_logging(level: str) -> None:
     if level.upper() not in LOG_LEVELS:
         raise ValueError(
@@ -86,3 +84,18 @@ def stop_on_signals() -> threading.Event:
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
     return stop
+
+
+def invalid_settings(exc: ValidationError) -> str:
+    """A settings error on one line: each setting with its variable, what it must be, what it
+    was (pydantic's own text spans several lines and a link)."""
+    parts = []
+    for e in exc.errors(include_url=False):
+        loc = ".".join(str(p) for p in e["loc"])
+        name = f"{loc} (TOPOFUSION_{loc.upper()})" if exc.title == "Settings" and loc else loc or exc.title
+        # A rule over several settings names them itself, and its input is every setting
+        # given, secrets among them: only one setting's own value is quoted, never a secret's.
+        value = REDACTED if loc in SECRET_SETTINGS else repr(e.get("input"))
+        got = f", got {value}" if loc else ""
+        parts.append(f"{name}: {' '.join(e['msg'].split())}{got}")
+    return "invalid setting " + "; ".join(parts)

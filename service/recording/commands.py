@@ -21,10 +21,11 @@ from typing import Any
 
 from service.output_files import check_writable
 from service.recording.completion import RecordingEnd, service_statuses, wait_for_outputs
+from service.recording.keys import KeyFilter
 from service.recording.reader import RecordedMessage, RecordingError
 from service.recording.recorder import DEFAULT_QUEUE_BYTES, DEFAULT_QUEUE_SAMPLES, record
 from service.recording.replay import ReplayOptions, preflight, replay
-from service.transport.session import ZenohOptions, open_tool_session
+from service.transport.session import OpenCancelledError, ZenohOptions, open_tool_session
 from service.wire.vocabulary import METHODS
 
 
@@ -151,7 +152,13 @@ def record_main(
     key_expr = args.key or f"{prefix}/**"
     stop = stop or threading.Event()
     _check_output(Path(args.out))  # before connecting: a typo in --out must not cost a run
-    session = open_tool_session(zenoh_options, "record")
+    KeyFilter(key_expr)  # (a ValueError naming a --key Zenoh would refuse)
+    try:
+        with _stop_on_signals(stop):
+            session = open_tool_session(zenoh_options, "record", stop)
+    except OpenCancelledError:
+        print("record: stopped while waiting for the Zenoh router; nothing recorded", file=sys.stderr)
+        return 0
     try:
         print(f"recording {key_expr} to {args.out} (Ctrl-C to stop)", file=sys.stderr, flush=True)
         with _stop_on_signals(stop):
@@ -229,7 +236,12 @@ def replay_main(
         from service.recording.publisher import ZenohReplayPublisher
 
         preflight(args.file, prefix, options)  # a file that cannot be replayed is refused before connecting
-        session = open_tool_session(zenoh_options, "replay")
+        try:
+            with _stop_on_signals(stop):
+                session = open_tool_session(zenoh_options, "replay", stop)
+        except OpenCancelledError:
+            print("replay: stopped while waiting for the Zenoh router; nothing replayed", file=sys.stderr)
+            return 0
         rejections = RejectionWatch(session, prefix)
         end = RecordingEnd()
         try:

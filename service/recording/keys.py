@@ -11,6 +11,7 @@ from functools import lru_cache
 
 import zenoh
 
+from service.transport.session import zenoh_error_text
 from service.wire.keys import MODEL_BY_KIND, KeyKind
 
 #: MCAP schema encoding of a JSON Schema (MCAP well-known schema encodings).
@@ -49,7 +50,7 @@ class KeyFilter:
             try:
                 self._key_expr = zenoh.KeyExpr(expr)
             except Exception as exc:
-                raise ValueError(f"invalid key expression {expr!r}: {exc}") from exc
+                raise ValueError(f"invalid key expression {expr!r}: {zenoh_error_text(exc)}") from None
 
     def matches(self, key: str) -> bool:
         if self._key_expr is None:

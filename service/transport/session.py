@@ -57,21 +57,28 @@ class ZenohOptions:
 
     @classmethod
     def from_settings(cls, settings: Settings, default_mode: str = "peer") -> ZenohOptions:
-        """The Zenoh options of the settings; ``default_mode`` where neither a flag, a setting
-        nor the config file gives one (peer for the service, client for the tools)."""
+        """The Zenoh options of the settings, checked (:meth:`checked`); ``default_mode`` where
+        neither a flag, a setting nor the config file gives one (peer for the service, client
+        for the tools)."""
         return cls(
             mode=settings.zenoh_mode,
             listen=tuple(settings.zenoh_listen) if settings.zenoh_listen is not None else None,
             connect=tuple(settings.zenoh_connect),
             config_file=settings.zenoh_config,
             default_mode=default_mode,
-        )
+        ).checked()
+
+    def checked(self) -> ZenohOptions:
+        """These options, once Zenoh has taken their configuration (:func:`zenoh_config`:
+        ``ValueError`` or ``FileNotFoundError`` saying what it refused)."""
+        zenoh_config(self)
+        return self
 
     def _file_config(self) -> zenoh.Config | None:
         if self.config_file is None:
             return None
         if not Path(self.config_file).is_file():
-            raise FileNotFoundError(f"zenoh config file not found: {self.config_file}")
+            raise FileNotFoundError(f"zenoh config file not found (or not a file): {self.config_file}")
         return zenoh.Config.from_file(str(self.config_file))
 
     @cached_property
@@ -108,18 +115,49 @@ class ZenohOptions:
         return list(self.resolved.connect)
 
 
+#: The keys of a Zenoh config's TLS files (``transport/link/tls/...``), paths on this machine.
+TLS_FILE_KEYS = (
+    "root_ca_certificate",
+    "listen_private_key",
+    "listen_certificate",
+    "connect_private_key",
+    "connect_certificate",
+)
+
+#: Where Zenoh's messages name its own sources: `` at /path/to/file.rs:123.``
+_RUST_LOCATION = re.compile(r"\s+at \S+\.rs:\d+\.?")
+
+
+def zenoh_error_text(exc: Exception) -> str:
+    """Zenoh's error on one line, without the places in its own sources it names."""
+    return " ".join(_RUST_LOCATION.sub("", str(exc)).split())[:500]
+
+
 def zenoh_config(options: ZenohOptions) -> zenoh.Config:
     """A ``zenoh.Config``: the JSON5 file (optional) with the resolved endpoints.
 
-    Multicast scouting is off unless the config file sets it (contract §3).
+    Multicast scouting is off unless the config file sets it (contract §3).  Raises
+    ``ValueError`` naming what Zenoh refused (a file it cannot parse, an unknown key, an
+    endpoint of the wrong form) and ``FileNotFoundError`` naming a TLS file of the config that
+    is not there, before any session is tried: a client would otherwise retry for ever, and
+    the router be blamed for refusing it.
     """
-    r = options.resolved
-    conf = options._file_config() or zenoh.Config()
-    conf.insert_json5("mode", json.dumps(r.mode))
-    conf.insert_json5("listen/endpoints", json.dumps(list(r.listen)))
-    conf.insert_json5("connect/endpoints", json.dumps(list(r.connect)))
-    if not r.multicast_from_file:
-        conf.insert_json5("scouting/multicast/enabled", "false")
+    try:
+        r = options.resolved
+        conf = options._file_config() or zenoh.Config()
+        conf.insert_json5("mode", json.dumps(r.mode))
+        conf.insert_json5("listen/endpoints", json.dumps(list(r.listen)))
+        conf.insert_json5("connect/endpoints", json.dumps(list(r.connect)))
+        if not r.multicast_from_file:
+            conf.insert_json5("scouting/multicast/enabled", "false")
+        tls = {key: json.loads(conf.get_json(f"transport/link/tls/{key}")) for key in TLS_FILE_KEYS}
+    except (ValueError, OSError):
+        raise
+    except Exception as exc:  # zenoh raises ZError, a plain Exception subclass
+        raise ValueError(f"invalid Zenoh configuration: {zenoh_error_text(exc)}") from None
+    for key, path in tls.items():
+        if isinstance(path, str) and not Path(path).is_file():
+            raise FileNotFoundError(f"zenoh config transport/link/tls/{key}: no such file {path}")
     return conf
 
 
@@ -206,11 +244,12 @@ def open_session(
             if left <= 0 or not retry_if(exc):
                 raise RuntimeError(
                     f"cannot open Zenoh session (mode={options.effective_mode}, "
-                    f"listen={options.effective_listen()}, connect={options.effective_connect()}): {exc}"
+                    f"listen={options.effective_listen()}, connect={options.effective_connect()}): "
+                    f"{zenoh_error_text(exc)}"
                 ) from exc
             wait = min(wait, left)
             if on_retry is not None:
-                on_retry(str(exc).split("  at ")[0], wait)
+                on_retry(zenoh_error_text(exc), wait)
             if stop is None:
                 time.sleep(wait)
             elif stop.wait(wait):
@@ -219,16 +258,17 @@ def open_session(
             wait = min(2 * wait, RETRY_MAX_S)
 
 
-def open_tool_session(options: ZenohOptions, name: str) -> zenoh.Session:
+def open_tool_session(options: ZenohOptions, name: str, stop: threading.Event | None = None) -> zenoh.Session:
     """A tool's session (record, replay, simulate): a client waits for its router up to
-    ``TOOL_CONNECT_RETRY_S``, saying so on stderr; other modes fail at once."""
+    ``TOOL_CONNECT_RETRY_S``, saying so on stderr; other modes fail at once.  ``stop`` set (a
+    signal) ends the waiting with :class:`OpenCancelledError`."""
     import sys
 
     def say(reason: str, wait_s: float) -> None:
         print(f"{name}: waiting for the Zenoh router ({reason}); retrying in {wait_s:.1f} s", file=sys.stderr)
 
     retry = TOOL_CONNECT_RETRY_S if options.effective_mode == "client" else 0.0
-    return open_session(options, retry_for_s=retry, on_retry=say)
+    return open_session(options, retry_for_s=retry, on_retry=say, stop=stop)
 
 
 #: How often (s) the watcher looks at the Zenoh connection: a lost router shows within this.

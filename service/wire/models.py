@@ -7,6 +7,7 @@ validation rules; :func:`rejection_reason` maps a pydantic error onto the contra
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Annotated, Any, Literal, TypeVar
 
@@ -835,6 +836,9 @@ def rejection_reason(error: ValidationError) -> tuple[RejectionReason, str]:
     reasons = [
         "malformed_json"
         if e["type"] == "model_type" and not e["loc"]
+        # a NaN or infinity where an integer belongs (``seq``) is as non-finite as in a float column
+        else "non_finite"
+        if isinstance(e.get("input"), float) and not math.isfinite(e["input"])
         else _REASON_BY_ERROR.get(e["type"], "schema")
         for e in errors
     ]

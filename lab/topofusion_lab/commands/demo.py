@@ -12,7 +12,7 @@ from typing import Any
 
 from service.cli.common import Commands, add_command, settings_from, setup_logging
 from service.cli.serve import serve, service_flags
-from topofusion_lab.commands.simulate import SITE_EVERY_S, scenario_for
+from topofusion_lab.commands.simulate import SITE_EVERY_S, scenario_for, seed, speed
 
 log = logging.getLogger("topofusion")
 
@@ -27,8 +27,10 @@ def register(commands: Commands) -> None:
     )
     service_flags(demo)
     demo.add_argument("--scenario", default="demo", help="simulated scenario (default demo)")
-    demo.add_argument("--speed", type=float, default=1.0, help="simulation speed (x real time)")
-    demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument(
+        "--speed", type=speed, default=1.0, help="simulation speed (x real time; 0: as fast as possible)"
+    )
+    demo.add_argument("--seed", type=seed, default=0)
     demo.add_argument("--start-time", type=float, help="data time of the first scan (default: now)")
     demo.add_argument(
         "--workers",
@@ -46,7 +48,14 @@ def demo_main(args: argparse.Namespace) -> int:
         return run_workers_demo(args)
     settings = settings_from(args)
     setup_logging(settings.log_level)
-    return serve(settings, hooks=lambda prefix: DemoSimulator(args, prefix))
+    made: list[DemoSimulator] = []
+
+    def hooks(prefix: str) -> DemoSimulator:
+        made.append(DemoSimulator(args, prefix))
+        return made[-1]
+
+    status = serve(settings, hooks=hooks)
+    return 1 if status == 0 and made and made[0].failed else status
 
 
 class DemoSimulator:
@@ -63,6 +72,8 @@ class DemoSimulator:
         self.prefix = prefix
         self.stop_event = threading.Event()
         self.threads: list[threading.Thread] = []
+        #: The simulator ended with an error (the demo then stops, exit status 1).
+        self.failed = False
 
     def start(self, node: Any) -> None:
         publish_scenario = self.publish_scenario
@@ -80,7 +91,11 @@ class DemoSimulator:
                 )
             except Exception:
                 if not self.stop_event.is_set():
-                    log.exception("simulator failed")
+                    # a demo without its data is no demo: it ends, exit status 1
+                    log.exception("simulator failed; the demo stops")
+                    self.failed = True
+                    if node.on_fatal is not None:
+                        node.on_fatal("simulator failed")
 
         self.threads = [
             threading.Thread(target=simulate, name="demo-simulator", daemon=True),

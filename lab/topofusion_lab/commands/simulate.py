@@ -5,6 +5,7 @@ that a mistake ends the command at once."""
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -59,6 +60,28 @@ def _start_time(text: str) -> float | str:
         ) from None
 
 
+def speed(text: str) -> float:
+    """``--speed``: x real time, a finite number >= 0 (0: as fast as possible)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: a finite number >= 0 (0: as fast as possible)")
+    return value
+
+
+def seed(text: str) -> int:
+    """``--seed``: the random generator's seed, an integer >= 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: an integer >= 0")
+    return value
+
+
 def _udp_endpoint(text: str) -> Any:
     from service.asterix.udp import parse_endpoint
 
@@ -77,8 +100,8 @@ def register(commands: Commands) -> None:
     sim.add_argument(
         "--list", action=_ListScenarios, help="list the scenarios with their descriptions and exit"
     )
-    sim.add_argument("--speed", type=float, default=1.0, help="x real time; 0 = as fast as possible")
-    sim.add_argument("--seed", type=int, default=0)
+    sim.add_argument("--speed", type=speed, default=1.0, help="x real time; 0 = as fast as possible")
+    sim.add_argument("--seed", type=seed, default=0)
     sim.add_argument("--duration", type=float, help="data seconds to simulate (default: the scenario's)")
     sim.add_argument(
         "--start-time",
@@ -168,5 +191,5 @@ def simulate_main(args: argparse.Namespace) -> int:
     options = zenoh_options(settings, default_mode="client")
     stop = stop_on_signals()
     return run_simulation(
-        args, scenario, settings.prefix, lambda: open_tool_session(options, "simulate"), stop
+        args, scenario, settings.prefix, lambda: open_tool_session(options, "simulate", stop), stop
     )
