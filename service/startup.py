@@ -7,6 +7,7 @@ from service.config import EngineConfig
 from service.engine import Engine
 from service.settings import Settings
 from service.state import StateKeeper
+from service.state.lock import lock_directory
 
 
 def build_engine(
@@ -42,6 +43,7 @@ def start_engine(settings: Settings) -> tuple[Engine, StateKeeper | None]:
     try:
         if state is not None:
             state.prepare()  # before the engine (and its correlation process) starts
+            lock_directory(state.directory)  # one process to a directory (its epoch, its file)
         return build_engine(settings.engine, settings.two_processes, state), state
     except OSError as exc:  # the state directory (the only file the engine's start opens)
         if settings.state_dir is None:

@@ -435,7 +435,10 @@ def test_config_refuses_what_run_would_refuse_at_start(tmp_path: Path) -> None:
     for bad, said in (
         ({"TOPOFUSION_INITIATOR": "foo"}, "unknown initiator 'foo'"),
         ({"TOPOFUSION_ZENOH_CONFIG": str(tmp_path / "none.json5")}, "none.json5: no such file"),
-        ({"TOPOFUSION_STATE_DIR": str(a_file)}, f"TOPOFUSION_STATE_DIR {a_file}: not a directory"),
+        (
+            {"TOPOFUSION_STATE_DIR": str(a_file)},
+            f"TOPOFUSION_STATE_DIR {a_file} cannot be used: {a_file} is not a directory",
+        ),
     ):
         run = _command("config", bad)
         assert run.returncode == 2 and said in run.stderr, (bad, run.stderr)

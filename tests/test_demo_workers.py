@@ -30,7 +30,7 @@ from tests.doc_commands import (
     started,
     with_ports,
 )
-from tests.support import wait_for
+from tests.support import alive, wait_for
 from topofusion_lab.demo_workers import descendants
 
 #: ``demo: worker K/N  URL  picture URL  status URL  (pid P)``
@@ -39,15 +39,6 @@ WORKER_LINE = re.compile(
 )
 #: The command as a user types it (``topofusion demo --workers N``).
 DEMO = [TOPOFUSION, "demo"]
-
-
-def _alive(pid: int) -> bool:
-    """The process exists and is no zombie (Linux /proc)."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] != "Z"
 
 
 def _status(url: str) -> dict[str, Any]:
@@ -155,15 +146,15 @@ def test_demo_with_two_workers_serves_the_whole_network_and_stops_cleanly() -> N
             output.append(lines.get())
         assert code == 0, "\n".join(output)
         assert any(line.startswith("demo: stopped 2 worker(s)") for line in output), "\n".join(output)
-        assert not _alive(proc.pid)
-        left = [pid for pid in worker_pids if _alive(pid)]
+        assert not alive(proc.pid)
+        left = [pid for pid in worker_pids if alive(pid)]
         assert not left, f"processes left behind: {left}"
     finally:
         if proc.poll() is None:  # only when the test failed before the demo stopped
             proc.kill()
             proc.wait(timeout=10)
         for pid in worker_pids:
-            if _alive(pid):
+            if alive(pid):
                 os.kill(pid, signal.SIGKILL)
         if proc.stdout is not None:
             proc.stdout.close()
@@ -178,7 +169,7 @@ def _with_environment(marker: str) -> list[int]:
                 environ = Path(f"/proc/{entry}/environ").read_bytes()
             except OSError:
                 continue
-            if marker.encode() in environ and _alive(int(entry)):
+            if marker.encode() in environ and alive(int(entry)):
                 found.append(int(entry))
     return found
 
@@ -205,8 +196,25 @@ def test_demo_exits_2_naming_a_worker_that_does_not_start(tmp_path: Path) -> Non
     m = re.search(r"demo: worker ([12])/2 \(pid (\d+)\) exited with status \d+ before it was ready", err)
     assert m, err
     assert f"worker-{m.group(1)}-of-2 cannot be used" in err, "the end of its log is shown"
-    assert not _alive(int(m.group(2)))
+    assert not alive(int(m.group(2)))
     assert not _with_environment(str(blocker)), "a worker was left behind"
+
+
+def test_demo_refuses_a_state_directory_of_another_worker_count(tmp_path: Path) -> None:
+    """A ``--state-dir`` that holds the state of another count of workers: each worker would
+    start at epoch 0 without state, and give track ids a run before gave (it did, silently)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TOPOFUSION_")}
+    one, two = tmp_path / "one", tmp_path / "two"
+    one.mkdir()
+    (one / "state.bin").write_bytes(b"")  # a one-process demo's (or run's) state
+    (two / "worker-1-of-2").mkdir(parents=True)  # a demo of two workers'
+    for state, workers, held in ((one, "3", 1), (two, "1", 2), (two, "3", 2)):
+        args = ["--scenario", "two-radar", "--http-port", "0", "--workers", workers]
+        args += ["--state-dir", str(state)]
+        res = subprocess.run([*DEMO, *args], capture_output=True, text=True, env=env, timeout=90)
+        said = f"--state-dir {state} holds the state of {held} worker(s): with --workers {workers}"
+        assert res.returncode == 2 and said in res.stderr, (args, res.stderr)
+        assert "Traceback" not in res.stderr
 
 
 def _run_line(line: str) -> tuple[list[str], dict[str, str]]:
@@ -265,3 +273,36 @@ def test_the_two_workers_by_hand_of_the_docs(tmp_path: Path) -> None:
             w.popen.send_signal(signal.SIGTERM)
         for w in (worker1, worker2):
             assert w.popen.wait(timeout=30) == 0, w.output()
+
+
+def test_a_killed_demo_takes_its_workers_with_it() -> None:
+    """SIGKILL of ``demo --workers 2`` (no handler runs): its workers are told by the kernel
+    (Linux) and stop, rather than serve on for ever without their router (they did)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TOPOFUSION_")}
+    env["PYTHONUNBUFFERED"] = "1"
+    args = ["--scenario", "two-radar", "--speed", "10", "--workers", "2", "--log-level", "WARNING"]
+    proc = subprocess.Popen(
+        [*DEMO, *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
+    )
+    pids: list[int] = []
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            m = WORKER_LINE.match(line.rstrip("\n"))
+            if m:
+                pids.append(int(m.group(6)))
+            if len(pids) == 2:
+                break
+        assert len(pids) == 2, "no worker lines"
+        proc.kill()
+        proc.wait(timeout=10)
+        wait_for(lambda: not any(alive(pid) for pid in pids), timeout=40, interval=0.5)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
+        for pid in pids:
+            if alive(pid):
+                os.kill(pid, signal.SIGKILL)
+        if proc.stdout is not None:
+            proc.stdout.close()

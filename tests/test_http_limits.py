@@ -16,6 +16,7 @@ of a router on a free loopback port, and raw connections and HTTP requests again
 from __future__ import annotations
 
 import contextlib
+import logging
 import socket
 import statistics
 import subprocess
@@ -285,3 +286,24 @@ def test_the_limits_are_settings_checked_at_start() -> None:
     )
     assert run.returncode == 2, run.stderr
     assert "TOPOFUSION_HTTP_MAX_CONNECTIONS" in run.stderr and "probes" in run.stderr, run.stderr
+
+
+def test_an_idle_connection_closed_by_the_head_timeout_is_no_alarm(caplog: pytest.LogCaptureFixture) -> None:
+    """A connection closed by the request-head timeout alone (an idle one: a browser's spare
+    connection) is said at INFO; only the cap reached is a warning (one idle connection was
+    logged as 'at the cap of 512')."""
+    from service.api.limits import HttpLimits
+    from service.api.server import LOG_EVERY_S, ConnectionGuard
+
+    guard = ConnectionGuard(HttpLimits())
+    with caplog.at_level(logging.INFO, logger="topofusion.http"):
+        guard.timed_out += 1
+        guard.report()
+        assert [r.levelno for r in caplog.records] == [logging.INFO]
+        assert "at the cap" not in caplog.text and "request-head timeout" in caplog.text
+        caplog.clear()
+        guard._logged_at -= LOG_EVERY_S  # (the next report's turn)
+        guard.refused += 1
+        guard.report()
+        assert [r.levelno for r in caplog.records] == [logging.WARNING]
+        assert "at the cap of 512" in caplog.text

@@ -261,3 +261,21 @@ def test_a_worker_of_another_salt_makes_readyz_say_why_the_merge_stalls(router: 
             assert r.status_code == 503
             reason = r.json()["reason"]
             assert reason.startswith("partition mismatch: ") and "TOPOFUSION_PARTITION_SALT" in reason
+
+
+def test_without_worker_1_another_worker_says_the_picture_is_unavailable(router: str) -> None:
+    """Worker 1 draws the picture; while it does not answer, worker 2's ``/system-tracks`` is
+    503 saying why, not an empty sky served as if it were the picture (it was 200 with no
+    system tracks)."""
+    p1, p2 = free_port(), free_port()
+    with worker(2, router, p2):
+        with worker(1, router, p1) as w1:
+            whole = lambda: (_get(p2, "/status") or {}).get("partition", {}).get("missing") == []  # noqa: E731
+            wait_for(whole, timeout=30)
+            assert httpx.get(f"http://127.0.0.1:{p2}/system-tracks", timeout=10).status_code == 200
+            w1.kill()  # SIGKILL: no goodbye
+            w1.wait(timeout=10)
+        r = httpx.get(f"http://127.0.0.1:{p2}/system-tracks", timeout=10)
+        assert r.status_code == 503, r.text
+        assert r.json() == {"detail": "the picture is drawn by worker 1, which does not answer"}
+        assert r.headers["retry-after"] == "2"

@@ -407,3 +407,16 @@ def test_the_state_file_is_bounded_by_the_memories(written: Path) -> None:
     n = sum(len(r["time"]) for r in rows)
     per_row = 128 + max(r["pair"].dtype.itemsize for r in rows)
     assert n > 0 and os.path.getsize(written) < n * per_row + 20_000
+
+
+def test_the_restore_line_counts_the_bias_set_a_later_worker_keeps() -> None:
+    """A partitioned worker other than 1 keeps the bias set worker 1 published, not a joint
+    solution of its own: its restore line counts those (it said "biases of 0 radars" while
+    ``/biases`` answered with them at once)."""
+    from service.pipeline.restart import EngineState
+
+    published = {"time_s": 1.0, "partition": "1/2", "biases": [{"radar_id": "A"}, {"radar_id": "B"}]}
+    state = EngineState([], [], {}, published, {"memories": [], "joint": None}, None)
+    assert state.summary().endswith("biases of 2 radars (as published)")
+    alone = EngineState([], [], {}, None, {"memories": [], "joint": None}, None)
+    assert alone.summary().endswith("biases of 0 radars")

@@ -663,6 +663,50 @@ def test_a_fifo_for_a_state_file_does_not_hang_the_service(router: str, tmp_path
     assert decode(read_file(directory / STATE), "fusion", "1/1")[0].epoch == 0
 
 
+def test_a_second_process_on_one_state_directory_is_refused(router: str, tmp_path: Path) -> None:
+    """Two processes on one directory (shared by mistake, or an old one still running beside
+    its replacement) would take the same track-id epoch and give the same ids: the second is
+    refused at start, naming the first; once the first has stopped, a start takes it."""
+    directory = tmp_path / "state"
+    first_port, second_port = free_port(), free_port()
+    with _service([TOPOFUSION, *_run_args(router, first_port, directory)]) as first:
+        _ready(first, f"http://127.0.0.1:{first_port}")
+        with _service([TOPOFUSION, *_run_args(router, second_port, directory)]) as second:
+            out, _ = second.communicate(timeout=60)
+        assert second.returncode == 2, out
+        said = f"state directory {directory} cannot be used: in use by another process (pid {first.pid})"
+        assert said in out, out
+        _stop(first)
+    with _service([TOPOFUSION, *_run_args(router, second_port, directory)]) as again:
+        _ready(again, f"http://127.0.0.1:{second_port}")
+        assert httpx.get(f"http://127.0.0.1:{second_port}/status", timeout=5).json()["state"]["epoch"] == 1
+        _stop(again)
+
+
+def test_config_refuses_a_state_directory_run_would_refuse(written: Path, tmp_path: Path) -> None:
+    """``topofusion config`` says what a start would: a path through a file, a file at the
+    last epoch (it said "configuration is valid" to both)."""
+    a_file = tmp_path / "a-file"
+    a_file.write_text("")
+    last = tmp_path / "last"
+    last.mkdir()
+    (last / STATE).write_bytes(_crafted(written, lambda h, t: replace(h, epoch=MAX_EPOCH - 1)))
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TOPOFUSION_")}
+    for directory, said in (
+        (a_file / "sub", f"{a_file} is not a directory"),
+        (last, "track-id epochs exhausted"),
+    ):
+        res = subprocess.run(
+            [TOPOFUSION, "config"],
+            capture_output=True,
+            text=True,
+            env={**env, "TOPOFUSION_STATE_DIR": str(directory)},
+            timeout=60,
+        )
+        assert res.returncode == 2, res.stderr
+        assert f"TOPOFUSION_STATE_DIR {directory} cannot be used: " in res.stderr and said in res.stderr
+
+
 #: Inside a mount namespace of its own (``unshare``): a 128 kB tmpfs over the state directory,
 #: the state file copied in and the rest filled, then the service (``exec``: the same pid).
 FULL_DISK = (

@@ -19,6 +19,7 @@ import contextlib
 import json
 import logging
 import os
+import re
 import shutil
 import signal
 import socket
@@ -29,7 +30,7 @@ import threading
 import time
 import urllib.error
 import urllib.request
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
@@ -175,6 +176,27 @@ def _run_flags(args: argparse.Namespace) -> list[str]:
     return flags
 
 
+def check_state_dir(state_dir: Path | None, count: int) -> None:
+    """A ``--state-dir`` that holds the state of another count of workers is refused (one
+    worker keeps ``DIR/state.bin``, N > 1 each ``DIR/worker-K-of-N``): with another count every
+    worker would start without state at epoch 0, and give track ids given before."""
+    from service.state.keeper import STATE_FILE
+
+    if state_dir is None or not Path(state_dir).is_dir():
+        return
+    root = Path(state_dir)
+    counts = {int(m.group(1)) for p in root.iterdir() if (m := re.fullmatch(r"worker-\d+-of-(\d+)", p.name))}
+    if (root / STATE_FILE).exists():
+        counts.add(1)
+    found = sorted(counts - {count})
+    if found:
+        raise ValueError(
+            f"--state-dir {root} holds the state of {found[0]} worker(s): with --workers {count} "
+            f"track ids given before could come again; run with --workers {found[0]}, or give "
+            "another --state-dir"
+        )
+
+
 # -- the workers ---------------------------------------------------------------------------------
 
 
@@ -219,8 +241,29 @@ def start_workers(
                 stdin=subprocess.DEVNULL,
                 stdout=log_file,
                 stderr=subprocess.STDOUT,
+                preexec_fn=_term_with_parent(),
             )
         workers.append(Worker(k, count, _url_host(host), port, log_path, proc, token))
+
+
+#: ``prctl``'s option that gives a process a signal when its parent dies (Linux).
+PR_SET_PDEATHSIG = 1
+
+
+def _term_with_parent() -> Callable[[], None] | None:
+    """What a worker runs before ``topofusion run`` (Linux): SIGTERM when the demo dies, even
+    killed (SIGKILL, out of memory), so that no worker outlives it serving a network whose
+    router is gone.  Made before the fork (the child only calls C); None elsewhere."""
+    if not sys.platform.startswith("linux"):
+        return None
+    import ctypes
+
+    prctl = ctypes.CDLL(None, use_errno=True).prctl
+
+    def term_with_parent() -> None:
+        prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+
+    return term_with_parent
 
 
 def wait_ready(workers: list[Worker], stop: threading.Event) -> bool:
@@ -398,6 +441,7 @@ def run_workers_demo(args: argparse.Namespace) -> int:
     _refuse(args)
     settings = settings_from(args)
     setup_logging(settings.log_level)
+    check_state_dir(settings.state_dir, count)
     scenario = scenario_for(args)  # an unknown scenario fails here, before anything starts
     if args.speed < 0:
         raise ValueError("--speed must be >= 0")

@@ -454,11 +454,21 @@ def create_app(
         summary="The fused picture: one system track per aircraft",
         description="Radar tracks that correlate (directly or through other radars) form one system "
         "track, bias-compensated and fused from its members; its id stays with the aircraft while "
-        "any member lives. `status`: `confirmed` (default), `tentative`, `all`.",
-        responses=_example(EXAMPLES["SystemTrackBatch"]),
+        "any member lives. `status`: `confirmed` (default), `tentative`, `all`. Partitioned, worker 1 "
+        "draws it: another worker answers 503 while worker 1 does not answer.",
+        responses=_example(
+            EXAMPLES["SystemTrackBatch"], e503="partitioned: worker 1, which draws it, does not answer"
+        ),
     )
     def system_tracks(node: NodeDep, status: StatusFilter = "confirmed") -> dict[str, Any]:
-        return node.system_tracks(status)
+        picture = node.system_tracks(status)
+        if picture is None:  # partitioned: worker 1 draws it, and it does not answer now
+            raise HTTPException(
+                status_code=503,
+                detail="the picture is drawn by worker 1, which does not answer",
+                headers={"Retry-After": "2"},
+            )
+        return picture
 
     @app.get(
         "/biases",

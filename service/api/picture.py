@@ -203,7 +203,9 @@ def picture_data(node: ServiceNode) -> dict[str, Any]:
     status's rows from it."""
     snap = node.snapshot
     sites = node.radars()
-    system = node.system_tracks("all")
+    # (partitioned, while worker 1 does not answer: no system tracks; the health panel's
+    # missing workers say why)
+    system = node.system_tracks("all") or {"time_s": None, "system_tracks": []}
     times = [t for t, _ in snap.tracks.values()]
     now_s = system["time_s"] if system["time_s"] is not None else max(times, default=None)
 

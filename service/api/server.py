@@ -116,15 +116,22 @@ class ConnectionGuard:
         if now - self._logged_at < LOG_EVERY_S or counts == self._logged:
             return
         evicted, refused, timed_out = (a - b for a, b in zip(counts, self._logged, strict=True))
-        log.warning(
-            "HTTP connections at the cap of %d (TOPOFUSION_HTTP_MAX_CONNECTIONS): since the last "
-            "report %d waiting for a request head closed for newer ones, %d refused; %d closed "
-            "by the request-head timeout",
-            self.limits.max_connections,
-            evicted,
-            refused,
-            timed_out,
-        )
+        if evicted or refused:
+            log.warning(
+                "HTTP connections at the cap of %d (TOPOFUSION_HTTP_MAX_CONNECTIONS): since the last "
+                "report %d waiting for a request head closed for newer ones, %d refused; %d closed "
+                "by the request-head timeout",
+                self.limits.max_connections,
+                evicted,
+                refused,
+                timed_out,
+            )
+        else:  # (not at the cap: an idle connection, a browser's spare one, is no alarm)
+            log.info(
+                "HTTP connections closed by the request-head timeout (TOPOFUSION_HTTP_HEADER_TIMEOUT_S) "
+                "since the last report: %d",
+                timed_out,
+            )
         self._logged, self._logged_at = counts, now
 
 

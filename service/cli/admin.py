@@ -129,7 +129,7 @@ def check_start(settings: Settings) -> None:
     ValueError naming the setting): the engine built from them (a name only the engine knows,
     such as the initiator's), the Zenoh configuration taken by Zenoh (the file, the endpoints,
     its TLS files there), the state directory usable."""
-    from service.startup import build_engine
+    from service.startup import build_engine, state_keeper
     from service.transport.session import ZenohOptions
 
     try:
@@ -139,9 +139,13 @@ def check_start(settings: Settings) -> None:
     if settings.zenoh_config is not None and not settings.zenoh_config.is_file():
         raise ValueError(f"TOPOFUSION_ZENOH_CONFIG {settings.zenoh_config}: no such file (or not a file)")
     ZenohOptions.from_settings(settings)  # (what Zenoh refuses of the file, endpoints, TLS files)
-    state = settings.state_dir
-    if state is not None and state.exists() and not state.is_dir():
-        raise ValueError(f"TOPOFUSION_STATE_DIR {state}: not a directory")
+    keeper = state_keeper(settings)
+    if keeper is not None:
+        try:
+            keeper.check()
+        except OSError as exc:
+            why = exc.strerror or exc
+            raise ValueError(f"TOPOFUSION_STATE_DIR {settings.state_dir} cannot be used: {why}") from None
 
 
 def schemas_main(args: argparse.Namespace) -> int:

@@ -61,7 +61,10 @@ def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
     gc.collect()
     gc.freeze()  # (the modules and the stage's set-up: out of the collector's full scans)
     while True:
-        msg = requests.recv()
+        try:
+            msg = requests.recv()
+        except EOFError:  # the parent died without a word (SIGKILL): the child ends quietly
+            return
         if msg is None:
             break
         op, args = msg
@@ -70,7 +73,10 @@ def _serve(requests: Connection, answers: Connection, *stage_args: Any) -> None:
         # A picture taken by this call is of the tables the parent sent: it has them (and fills
         # them in, :meth:`ChildProcessRunner._answered_radars`), they are not sent back.
         drawings = [replace(d, radars=None) if d.taken_now else d for d in got.drawings]
-        answers.send(replace(got, timings=timings, drawings=drawings))
+        try:
+            answers.send(replace(got, timings=timings, drawings=drawings))
+        except (BrokenPipeError, ConnectionResetError):  # (the same, while it answered)
+            return
     answers.close()
 
 

@@ -43,10 +43,14 @@ class EngineState:
         memories = self.correlation["memories"]
         rows = sum(len(m["rows"]["time"]) for m in memories)
         joint = self.correlation["joint"]
+        if joint:
+            biases = f"biases of {len(joint['radar_ids'])} radars"
+        else:  # (a partitioned worker but the first keeps the bias set the first published)
+            kept = (self.published_biases or {}).get("biases") or []
+            biases = f"biases of {len(kept)} radars (as published)" if kept else "biases of 0 radars"
         return (
             f"{len(self.sites)} radar sites, {len(self.sources)} source clocks, "
-            f"{len(memories)} registration memories ({rows} rows), "
-            f"biases of {len(joint['radar_ids']) if joint else 0} radars"
+            f"{len(memories)} registration memories ({rows} rows), {biases}"
         )
 
 

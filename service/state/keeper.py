@@ -150,6 +150,23 @@ class StateKeeper:
         builds its engine, so a bad ``--state-dir`` fails at once, not after the engine's start."""
         self.directory.mkdir(parents=True, exist_ok=True)
 
+    def check(self) -> None:
+        """What a start with this directory would refuse, found without making or writing
+        anything (``topofusion config``): ``OSError`` for a path that is or runs through
+        something else than a directory, or a file that cannot be read, and
+        :class:`EpochsExhaustedError` for a file at the last epoch."""
+        existing = next(p for p in (self.directory, *self.directory.parents) if p.exists())
+        if not existing.is_dir():
+            raise NotADirectoryError(errno.ENOTDIR, f"{existing} is not a directory")
+        if existing != self.directory:
+            return  # (made at the start)
+        try:
+            loaded = self._load()
+            written_by = loaded[0].epoch if loaded is not None else None
+        except RefusedError as exc:  # (a refused file is put aside; its epoch still counts)
+            written_by = exc.epoch
+        self._next_epoch(written_by)
+
     def restore(self, engine: Engine) -> None:
         """Restore ``engine`` from the directory's file, before any input (module docstring),
         log one line saying what, and write the state with this start's epoch at once.

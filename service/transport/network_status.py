@@ -261,12 +261,13 @@ def network_performance(
 
 def network_system_tracks(
     session: zenoh.Session, keys: Keys, status: str, timeout_s: float
-) -> dict[str, Any]:
+) -> dict[str, Any] | None:
     """``GET /system-tracks`` of a partitioned worker other than 1: worker 1's, the one that
-    draws them (a Zenoh ``get``); none while it does not answer."""
+    draws them (a Zenoh ``get``); None while it does not answer (no picture is not an empty
+    sky)."""
     selector = f"{keys.system_tracks}?status={status}"
     replies = session.get(selector, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s)
     for body in json_replies(replies):
         if isinstance(body.get("system_tracks"), list):
             return body
-    return {"time_s": None, "system_tracks": []}
+    return None

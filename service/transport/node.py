@@ -300,11 +300,14 @@ class ServiceNode:
         counters = {r["radar_id"]: r for r in self.status()["radars"]}
         return network_radars(own, self.snapshot.sites, counters)
 
-    def system_tracks(self, status: str = "confirmed") -> dict[str, Any]:
-        """``GET /system-tracks``; partitioned, worker 1's (it draws them; a Zenoh ``get``)."""
+    def system_tracks(self, status: str = "confirmed") -> dict[str, Any] | None:
+        """``GET /system-tracks``; partitioned, worker 1's (it draws them; a Zenoh ``get``),
+        None while worker 1 does not answer."""
         snap, session = self.snapshot, self.connection.session
-        if self.peers is None or self.partition.solves_biases or session is None:
+        if self.peers is None or self.partition.solves_biases:
             return snap.system_tracks(status)
+        if session is None:
+            return None
         return network_system_tracks(session, self.keys, status, self.options.peer_query_timeout_s)
 
     def radar_performance(self, radar_id: str) -> dict[str, Any] | None:

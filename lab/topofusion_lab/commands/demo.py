@@ -46,8 +46,11 @@ def demo_main(args: argparse.Namespace) -> int:
         from topofusion_lab.demo_workers import run_workers_demo
 
         return run_workers_demo(args)
+    from topofusion_lab.demo_workers import check_state_dir
+
     settings = settings_from(args)
     setup_logging(settings.log_level)
+    check_state_dir(settings.state_dir, 1)
     made: list[DemoSimulator] = []
 
     def hooks(prefix: str) -> DemoSimulator:
