@@ -18,6 +18,7 @@ fails is rolled back by its stage and reported as ``internal``.  What a restart 
 
 from __future__ import annotations
 
+import math
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Collection, Iterable
@@ -78,6 +79,9 @@ class Engine:
         )
         #: Every radar's tables and the references, in release order, into correlation.
         self.merger = TableMerger()
+        #: The data time through which the outputs are complete, as last reported (it never
+        #: goes back: :attr:`outputs_time_s`).
+        self._outputs_through = -math.inf
         self.peers = Peers(c, self.keys, self.sequencer, self.tracking, self.merger, self.correlation)
         self.publication = Publication(self.keys)
         #: Tables sent to correlation and not answered yet: (radar, data time, table, own).
@@ -392,7 +396,12 @@ class Engine:
         """The data time up to which every published output reflects every input processed
         (contract §5.1): what was released, as far as the correlation has answered it."""
         released = min(self.sequencer.last_limit, self.merger.last_limit)
-        return finite_or_none(self.correlation.correlated_through(released))
+        # A watermark never goes back: a lagging source's batch released late (the release did
+        # not wait for it) does not pull it back while the correlation answers that batch.
+        through = self.correlation.correlated_through(released)
+        if through > self._outputs_through:
+            self._outputs_through = through
+        return finite_or_none(self._outputs_through)
 
     # -- read model ----------------------------------------------------------------------
     def snapshot(self) -> Snapshot:

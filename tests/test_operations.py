@@ -74,6 +74,7 @@ def test_bounded_queue_bounds_count_and_bytes_and_counts_drops_by_key() -> None:
     assert q.put("a", 60, "k/a") and not q.put("b", 60, "k/b")  # 120 bytes > 100
     assert q.put("c", 40, "k/c") and q.put("d", 0, "k/d") and not q.put("e", 0, "k/e")  # 3 items
     assert q.dropped == {"k/b": 1, "k/e": 1} and q.nbytes() == 100
+    assert q.last_drop == "no room for 0.00 s"  # (the drop's log line says why)
     assert [q.get_nowait() for _ in range(3)] == ["a", "c", "d"] and q.nbytes() == 0
     assert q.put("big", 10_000, "k/big")  # one sample always fits an empty queue
     assert not q.put("x", 1, "k/x")
@@ -103,6 +104,7 @@ def test_fair_queue_takes_sources_in_turn_and_drops_a_flooders_excess_at_once() 
     share = 128 // 2  # F alone holds more than a few samples; and room for one more
     assert sum(flood) == share and q.dropped == {"fusion/F/plots": 500 - share}
     assert all(flood[:share]) and not any(flood[share:])  # the excess dropped, each at once
+    assert q.last_drop == "its source holds its fair share of the queue already (dropped at once)"
     assert q.put("a1", 1, "fusion/A/plots") and q.put("b1", 1, "fusion/B/plots")  # others lose nothing
     taken = [q.get_nowait() for _ in range(7)]
     # in arrival order, but after one of the flooder's the oldest of another source comes next

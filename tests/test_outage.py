@@ -207,6 +207,30 @@ def test_the_feed_says_how_far_the_outputs_are_behind_the_newest_batch() -> None
     assert watch.status(0.0, seq, 130.5)["behind_s"] == 0.0
 
 
+def test_how_far_behind_counts_from_the_clock_the_release_follows() -> None:
+    """A radar whose clock runs two minutes ahead of the others alone (within the skew, so its
+    batches are taken) does not lead the release (the pace, :meth:`Sequencer._pace`), and the
+    outputs are not behind it: ``behind_s`` counts from the honest clocks (it said 120 s, and
+    up to 600 s with a clock running away, while the outputs were on time)."""
+    seq = Sequencer(SequencerParams())
+    watch = FeedWatch(FeedParams())
+    n = 0
+    for t in (100.0, 110.0, 120.0, 130.0):
+        for rid in ("A", "B", "C"):
+            n += 1
+            seq.accept(seq.check(rid, RADAR, n, t), None)
+    for k, t in enumerate((250.0, 254.0)):  # C two minutes ahead from now on (a step held, then taken)
+        seq.accept(seq.check("C", RADAR, n + 1 + k, t), None)
+    n += 2
+    for t in (140.0, 150.0):
+        for rid in ("A", "B"):
+            n += 1
+            seq.accept(seq.check(rid, RADAR, n, t), None)
+    assert seq.newest_s == 254.0 and seq.pace_s() == 150.0
+    assert watch.status(0.0, seq, 150.0)["behind_s"] == 0.0
+    assert watch.status(0.0, seq, 140.0)["behind_s"] == 10.0
+
+
 def test_a_source_with_input_queued_is_not_silent_on_the_wall_clock(monkeypatch: pytest.MonkeyPatch) -> None:
     """A worker that stalls longer than ``source_expiry_wall_s`` with a source's batches still
     queued is behind, not facing a silent feed: only the source with nothing queued expires."""
@@ -671,6 +695,29 @@ def test_a_radar_two_minutes_fast_does_not_set_the_pace_of_the_picture() -> None
     members = Counter(m["radar_id"] for t in snap.system_tracks()["system_tracks"] for m in t["members"])
     assert members["B"] >= 60 and members["C"] >= 60, members
     assert _pair_counts(engine)[("B", "C")] >= 60
+
+
+def test_outputs_complete_through_never_go_back_for_a_radar_running_slow() -> None:
+    """Radar C's clock runs 60 s slow: it lags the others by more than ``max_lag_s``, so the
+    release does not wait for it and each of its batches is released as it comes, a minute
+    behind.  With the correlation in its own process, such a batch waiting for its answer
+    pulled ``outputs_time_s`` back by a minute (a client waiting on it, or an alert on it, saw
+    the outputs go back and forth under a lagging or flooding radar); it never goes back."""
+    stream = scenario_messages("three-radar", duration_s=90.0)
+    arriving = [(k, shifted(p, -60.0) if k == "fusion/radar/C/plots" else p) for k, p in stream]
+    engine = Engine(EngineConfig(), correlation_process=True)
+    try:
+        seen = []
+        for key, payload in arriving:  # in the order of true time: C's stamps a minute behind
+            engine.ingest(key, payload)
+            if (t := engine.outputs_time_s) is not None:
+                seen.append(t)
+        engine.flush()
+        c = next(r for r in engine.snapshot().status()["radars"] if r["radar_id"] == "C")
+        assert c["batches"] > 0 and c["tracks_confirmed"] > 0  # (C is taken, and tracked)
+    finally:
+        engine.close()
+    assert len(seen) > 100 and seen == sorted(seen)
 
 
 @pytest.mark.parametrize(

@@ -141,11 +141,12 @@ class FeedWatch:
         self, now_s: float, sequencer: Sequencer, outputs_time_s: float | None = None
     ) -> dict[str, object]:
         """``/status`` ``feed`` (with the sequencer's count of outages that ended), and how far
-        the outputs (``outputs_time_s``) are behind the newest batch taken, in data time: what
-        a flooding source or a slow correlation costs the others, which ``/readyz`` does not
-        count (the release waits up to ``max_lag_s`` for a lagging source by design)."""
+        the outputs (``outputs_time_s``) are behind the clock the release follows (the newest
+        live one, but a clock running ahead alone: :meth:`Sequencer.pace_s`), in data time:
+        what a flooding source or a slow correlation costs the others, which ``/readyz`` does
+        not count (the release waits up to ``max_lag_s`` for a lagging source by design)."""
         reason = self.stale_reason(now_s)
-        newest = sequencer.newest_s
+        newest = sequencer.pace_s()
         behind = None
         if outputs_time_s is not None and np.isfinite(newest):
             behind = max(0.0, newest - outputs_time_s)

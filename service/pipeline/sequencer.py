@@ -926,6 +926,12 @@ class Sequencer:
             clocks.append(self._first_clock)
         return min(c for c in clocks if newest - p.max_lag_s <= c <= newest)
 
+    def pace_s(self) -> float:
+        """The clock the release follows now (:meth:`_pace`; -inf: no live clock): how far
+        the outputs are behind counts from it, not from a clock running ahead alone."""
+        live = self._live()
+        return self._pace(live) if live else -np.inf
+
     def _live(self) -> list[tuple[float, float]]:
         """The live, confirmed clocks with when each was heard (``heard_at_s``), oldest first."""
         return sorted(

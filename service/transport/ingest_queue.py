@@ -68,6 +68,8 @@ class BoundedQueue:
         self._n = 0
         self._bytes = 0
         self._closed = False
+        #: Why the latest drop was (for the log line; with several callers, one of theirs).
+        self.last_drop = ""
         self._cond = threading.Condition()
         #: Samples dropped (queue full, or closed), by key.
         self.dropped: dict[str, int] = {}
@@ -106,6 +108,7 @@ class BoundedQueue:
             cls = self.fair_by(key) if self.fair_by is not None else ""
             if self.fair_by is not None and self._over_share(cls):
                 self._count_drop(key)
+                self.last_drop = "its source holds its fair share of the queue already (dropped at once)"
                 return False
             if self._full_for(size) and not self._closed:
                 deadline = time.monotonic() + timeout_s
@@ -116,6 +119,7 @@ class BoundedQueue:
                     self._cond.wait(left)
             if self._closed or self._full_for(size):
                 self._count_drop(key)
+                self.last_drop = "closed" if self._closed else f"no room for {timeout_s:.2f} s"
                 return False
             self._append(cls, item, size)
             return True

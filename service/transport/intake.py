@@ -109,7 +109,7 @@ class Intake:
         if into.put(item, size if size <= MAX_PAYLOAD_BYTES else 0, key, self.queue_wait_s):
             self._items.release()
         elif not self._stopping.is_set():
-            self._drop_log.warn(key, f"no room for {self.queue_wait_s:.2f} s")
+            self._drop_log.warn(key, into.last_drop)
 
     def source_of(self, key: str) -> str:
         """The ingest queue's class of a key: its source (a radar's site and plots together)."""
