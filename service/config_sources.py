@@ -57,7 +57,7 @@ def load_file(path: str | Path) -> dict[str, Any]:
     except ConfigError:
         raise
     except Exception as exc:  # the parsers' own errors say where (on several lines: one here)
-        raise ConfigError(f"config file {p} cannot be read: {' '.join(str(exc).split())}") from None
+        raise ConfigError(f"config file {p} cannot be read: {_parse_error(exc)}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"config file {p}: the top level must be a table of sections")
     return data
@@ -96,3 +96,13 @@ def merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
         else:
             out[key] = value
     return out
+
+
+def _parse_error(exc: Exception) -> str:
+    """A parser's error on one line, saying where but never quoting the file: the line it
+    shows may hold a secret (an API token)."""
+    mark = getattr(exc, "problem_mark", None)  # YAML's: it quotes the line, with a caret
+    if mark is not None:
+        problem = getattr(exc, "problem", None) or "invalid YAML"
+        return f"{problem} at line {mark.line + 1}, column {mark.column + 1}"
+    return " ".join(str(exc).split())  # (TOML's and JSON's say the line and column, not the text)

@@ -212,7 +212,19 @@ def test_bad_settings_are_one_line_that_never_shows_a_secret(tmp_path: Path) -> 
     secret = "s3cr3t-prod-token"
     bad_json5 = tmp_path / "bad.json5"
     bad_json5.write_text('{mode: "peer",, ')
+    bad_yaml = tmp_path / "bad.yaml"  # (a parser's error quotes the line: the token in it)
+    bad_yaml.write_text(f'api_token: "{secret}\nhttp_port: 8000\n')
+    password = tmp_path / "password.json5"
+    password.write_text(f'{{transport: {{auth: {{usrpwd: {{user: "u", password: "{secret}",, }}}}}}}}')
     cases = {
+        "a YAML config file that does not parse": (
+            {"TOPOFUSION_CONFIG": str(bad_yaml)},
+            "cannot be read: found unexpected end of stream at line 3, column 1",
+        ),
+        "a Zenoh config file with a password that does not parse": (
+            {"TOPOFUSION_ZENOH_CONFIG": str(password)},
+            "invalid Zenoh configuration: --> 1:",
+        ),
         "a connection cap below the requests": (
             {"TOPOFUSION_HTTP_MAX_REQUESTS": "400"},
             "TOPOFUSION_HTTP_MAX_CONNECTIONS (512) must be at least",
@@ -300,3 +312,36 @@ def test_a_killed_service_leaves_no_traceback_and_no_correlation_process(tmp_pat
             proc.wait(timeout=10)
     out = log_path.read_text()
     assert "Traceback" not in out and "EOFError" not in out, out
+
+
+def test_a_demo_started_before_its_router_waits_for_it_then_runs() -> None:
+    """``demo --mode client`` with its router not up yet: the node retries (contract 3.2) and
+    the simulator waits for the session, then publishes (it failed at once: "node not
+    started", and the demo ended)."""
+    hport, zport = free_port(), free_port()
+    url = f"http://127.0.0.1:{hport}"
+    endpoint = f"tcp/127.0.0.1:{zport}"
+    args = ["demo", "--mode", "client", "--connect", endpoint, "--http-port", str(hport), "--speed", "8"]
+    with process(args) as proc:
+        wait_for(lambda: _http_ok(url + "/healthz") or proc.poll() is not None, timeout=30)
+        time.sleep(1.0)  # (the simulator's thread has started by now, without a session)
+        assert proc.poll() is None, proc.stdout.read() if proc.stdout else ""
+        assert httpx.get(url + "/readyz", timeout=2).json()["reason"] == "connecting to zenoh"
+        router = open_session(ZenohOptions(mode="router", listen=(endpoint,)))
+        try:
+            wait_for(
+                lambda: sum(r["batches"] for r in httpx.get(url + "/status", timeout=2).json()["radars"]) > 0,
+                timeout=60,
+                interval=0.5,
+            )
+            code, _, out = _stop(proc, signal.SIGINT)
+        finally:
+            router.close()
+    assert code == 0 and "simulator failed" not in out and "Traceback" not in out, out
+
+
+def _http_ok(url: str) -> bool:
+    try:
+        return httpx.get(url, timeout=1).status_code == 200
+    except httpx.HTTPError:
+        return False

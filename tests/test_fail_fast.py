@@ -188,20 +188,32 @@ def test_an_unreadable_file_is_refused_before_connecting(tmp_path: Path) -> None
 
 
 def test_a_tool_waiting_for_its_router_stops_cleanly_on_a_signal(tmp_path: Path) -> None:
-    """``record`` and ``replay`` still waiting for their router (none there) end on SIGINT or
-    SIGTERM with status 0 and a line saying nothing was done, not a traceback or the signal's
-    own status."""
+    """``record``, ``replay`` and ``simulate`` still waiting for their router (none there) end
+    on SIGINT or SIGTERM with status 0 and a line saying nothing was done, not a traceback or
+    the signal's own status."""
     import signal
 
-    recording = tmp_path / "run.mcap"
+    from service.recording.writer import RecordingWriter
+    from tests.scenario_helpers import scenario_messages
+
+    recording, replayed = tmp_path / "run.mcap", tmp_path / "in.mcap"
+    with RecordingWriter(replayed, "fusion") as w:
+        for n, (key, payload) in enumerate(scenario_messages("two-radar", duration_s=10.0)):
+            w.write(key, payload, log_time_ns=n)
     nobody = f"tcp/127.0.0.1:{free_port()}"
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        with started([TOPOFUSION, "record", "--out", str(recording), "--connect", nobody], tmp_path) as proc:
+    tools = {
+        "record": (["record", "--out", str(recording)], "nothing recorded"),
+        "replay": (["replay", str(replayed)], "nothing replayed"),
+        "simulate": (["simulate", "--scenario", "two-radar"], "nothing published"),
+    }
+    signals = (signal.SIGINT, signal.SIGTERM, signal.SIGTERM)
+    for (name, (argv, said)), sig in zip(tools.items(), signals, strict=True):
+        with started([TOPOFUSION, *argv, "--connect", nobody], tmp_path) as proc:
             wait_for(lambda: "waiting for the Zenoh router" in proc.output(), timeout=FAIL_FAST_S)
             proc.popen.send_signal(sig)
             code = proc.popen.wait(timeout=FAIL_FAST_S)
             out = proc.output()
-        assert code == 0, f"{sig.name}: exit {code}\n{out}"
-        assert "stopped while waiting for the Zenoh router; nothing recorded" in out, out
+        assert code == 0, f"{name}, {sig.name}: exit {code}\n{out}"
+        assert f"stopped while waiting for the Zenoh router; {said}" in out, out
         assert "Traceback" not in out, out
-        assert not recording.exists()
+    assert not recording.exists()

@@ -683,18 +683,40 @@ def test_a_second_process_on_one_state_directory_is_refused(router: str, tmp_pat
         _stop(again)
 
 
+def test_the_lock_never_writes_through_a_link(tmp_path: Path) -> None:
+    """A ``state.lock`` that is a link (a hostile or botched directory): the lock is the
+    directory's own, and the pid is never written through the link (its target was truncated
+    and overwritten, a dangling one created outside the directory)."""
+    from service.state.lock import LOCK_FILE, lock_directory, release_directory
+
+    victim, elsewhere = tmp_path / "victim.txt", tmp_path / "created-elsewhere"
+    victim.write_text("precious data")
+    for name, target in (("one", victim), ("two", elsewhere)):
+        directory = tmp_path / name
+        directory.mkdir()
+        (directory / LOCK_FILE).symlink_to(target)
+        lock_directory(directory)
+        release_directory(directory)
+    assert victim.read_text() == "precious data" and not elsewhere.exists()
+
+
 def test_config_refuses_a_state_directory_run_would_refuse(written: Path, tmp_path: Path) -> None:
     """``topofusion config`` says what a start would: a path through a file, a file at the
-    last epoch (it said "configuration is valid" to both)."""
+    last epoch, a link to nothing (it said "configuration is valid" to all)."""
     a_file = tmp_path / "a-file"
     a_file.write_text("")
     last = tmp_path / "last"
     last.mkdir()
     (last / STATE).write_bytes(_crafted(written, lambda h, t: replace(h, epoch=MAX_EPOCH - 1)))
     env = {k: v for k, v in os.environ.items() if not k.startswith("TOPOFUSION_")}
+    dangling, loop = tmp_path / "dangling", tmp_path / "loop"
+    dangling.symlink_to(tmp_path / "nowhere")
+    loop.symlink_to(loop)
     for directory, said in (
         (a_file / "sub", f"{a_file} is not a directory"),
         (last, "track-id epochs exhausted"),
+        (dangling, f"{dangling} is a link to nothing"),
+        (loop / "sub", f"{loop} is a link to nothing"),
     ):
         res = subprocess.run(
             [TOPOFUSION, "config"],
@@ -712,6 +734,12 @@ def test_config_refuses_a_state_directory_run_would_refuse(written: Path, tmp_pa
 FULL_DISK = (
     'mount -t tmpfs -o size=128k tmpfs "$1" && cp "$2" "$1/state.bin" && '
     '{ cat /dev/zero > "$1/filler" 2>/dev/null || true; } && shift 2 && exec "$@"'
+)
+#: Inside a mount namespace of its own: the state file copied in, then the state directory
+#: bound over itself read-only, then the service (``exec``: the same pid).
+READ_ONLY = (
+    'cp "$2" "$1/state.bin" && mount --bind "$1" "$1" && mount -o remount,bind,ro "$1" && '
+    'shift 2 && exec "$@"'
 )
 #: The service under a file-size limit (``RLIMIT_FSIZE``) below the state file's size: every
 #: write of it fails (``EFBIG``; Python ignores the signal that comes with it).
@@ -734,7 +762,7 @@ def _namespaces() -> bool:
     return res.returncode == 0
 
 
-@pytest.mark.parametrize("how", ["disk-full", "file-size-limit"])
+@pytest.mark.parametrize("how", ["disk-full", "read-only-mount", "file-size-limit"])
 def test_a_restart_that_cannot_write_goes_on_read_only(
     router: str, written: Path, tmp_path: Path, how: str
 ) -> None:
@@ -745,12 +773,17 @@ def test_a_restart_that_cannot_write_goes_on_read_only(
     port = free_port()
     url = f"http://127.0.0.1:{port}"
     service = [TOPOFUSION, *_run_args(router, port, directory)]
-    if how == "disk-full":
+    if how in ("disk-full", "read-only-mount"):
         if not _namespaces():
             pytest.skip("no user and mount namespaces here: the file-size limit case stands in")
-        command = ["unshare", "--user", "--map-root-user", "--mount", "sh", "-c", FULL_DISK, "sh"]
+        script = FULL_DISK if how == "disk-full" else READ_ONLY
+        command = ["unshare", "--user", "--map-root-user", "--mount", "sh", "-c", script, "sh"]
         command += [str(directory), str(written), *service]
-        error = "OSError: [Errno 28] No space left on device"
+        error = (
+            "OSError: [Errno 28] No space left on device"
+            if how == "disk-full"
+            else "OSError: [Errno 30] Read-only file system"  # (the lock is taken all the same)
+        )
     else:
         shutil.copy(written, directory / STATE)
         limit = 16 << 10
@@ -766,13 +799,15 @@ def test_a_restart_that_cannot_write_goes_on_read_only(
         assert state["epoch"] == 1 and state["writes"] == 0 and state["failures"] == 1
         out = _stop(proc)
     assert "restored 2 radar sites" in out, out
-    assert f"track-id epoch 1; the directory cannot be written ({error}): going on read-only" in out, out
+    assert f"track-id epoch 1; the directory cannot be written ({error}" in out, out
+    assert "going on read-only with the restored state" in out, out
     assert f"state {directory / STATE} not written: OSError" in out  # the final write, at the stop
     if how == "disk-full":
         assert "epoch 1 written into the old file in place, so no track id repeats" in out, out
     else:
-        # the file's end is beyond the limit too: not even the epoch, and the file is as it was
-        assert f"epoch 1 could not be kept ({error}): until a write succeeds" in out, out
+        # the file's end is beyond the limit too (or the mount read-only): not even the epoch,
+        # and the file is as it was
+        assert f"epoch 1 could not be kept ({error}" in out and "until a write succeeds" in out, out
         assert (directory / STATE).read_bytes() == written.read_bytes()
 
 

@@ -30,7 +30,7 @@ import threading
 import time
 import urllib.error
 import urllib.request
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
@@ -236,34 +236,31 @@ def start_workers(
         log_path = log_dir / f"worker-{k}-of-{count}.log"
         with log_path.open("wb") as log_file:
             proc = subprocess.Popen(
-                [*_topofusion(), "run", *_run_flags(args)],
+                _term_with_parent([*_topofusion(), "run", *_run_flags(args)]),
                 env=env,
                 stdin=subprocess.DEVNULL,
                 stdout=log_file,
                 stderr=subprocess.STDOUT,
-                preexec_fn=_term_with_parent(),
             )
         workers.append(Worker(k, count, _url_host(host), port, log_path, proc, token))
 
 
-#: ``prctl``'s option that gives a process a signal when its parent dies (Linux).
-PR_SET_PDEATHSIG = 1
+#: Run in each worker's process before ``topofusion run`` (Linux), which it then becomes
+#: (``execv``: the same pid): SIGTERM when the demo dies, even killed (SIGKILL, out of memory),
+#: so that no worker outlives it serving a network whose router is gone (``prctl``'s
+#: PR_SET_PDEATHSIG, 1, which ``execv`` keeps); a demo already gone by then ends it at once.
+TERM_WITH_PARENT = (
+    "import ctypes, os, signal, sys; ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM); "
+    "os.getppid() == int(sys.argv[1]) or sys.exit(0); os.execv(sys.argv[2], sys.argv[2:])"
+)
 
 
-def _term_with_parent() -> Callable[[], None] | None:
-    """What a worker runs before ``topofusion run`` (Linux): SIGTERM when the demo dies, even
-    killed (SIGKILL, out of memory), so that no worker outlives it serving a network whose
-    router is gone.  Made before the fork (the child only calls C); None elsewhere."""
+def _term_with_parent(command: list[str]) -> list[str]:
+    """``command`` started so that it ends with the demo (:data:`TERM_WITH_PARENT`; as it is
+    elsewhere than on Linux)."""
     if not sys.platform.startswith("linux"):
-        return None
-    import ctypes
-
-    prctl = ctypes.CDLL(None, use_errno=True).prctl
-
-    def term_with_parent() -> None:
-        prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
-
-    return term_with_parent
+        return command
+    return [sys.executable, "-c", TERM_WITH_PARENT, str(os.getpid()), *command]
 
 
 def wait_ready(workers: list[Worker], stop: threading.Event) -> bool:
@@ -443,8 +440,6 @@ def run_workers_demo(args: argparse.Namespace) -> int:
     setup_logging(settings.log_level)
     check_state_dir(settings.state_dir, count)
     scenario = scenario_for(args)  # an unknown scenario fails here, before anything starts
-    if args.speed < 0:
-        raise ValueError("--speed must be >= 0")
 
     stop = threading.Event()
 

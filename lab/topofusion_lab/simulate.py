@@ -143,6 +143,7 @@ def run_simulation(
     try:
         session = open_session() if not asterix or resume or wait_s > 0 else None
     except OpenCancelledError:  # (a signal while waiting for the router)
+        say("stopped while waiting for the Zenoh router; nothing published")
         return 0
     try:
         if session is not None and (resume or wait_s > 0):

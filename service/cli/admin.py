@@ -136,8 +136,6 @@ def check_start(settings: Settings) -> None:
         build_engine(settings.engine).close()
     except ValueError as exc:
         raise ValueError(f"engine configuration: {exc}") from None
-    if settings.zenoh_config is not None and not settings.zenoh_config.is_file():
-        raise ValueError(f"TOPOFUSION_ZENOH_CONFIG {settings.zenoh_config}: no such file (or not a file)")
     ZenohOptions.from_settings(settings)  # (what Zenoh refuses of the file, endpoints, TLS files)
     keeper = state_keeper(settings)
     if keeper is not None:

@@ -63,6 +63,7 @@ def zenoh_options(settings: Settings, default_mode: str = "peer") -> ZenohOption
 
 
 def setup_logging(level: str) -> None:
+    level = level.strip()  # (as the setting takes it)
     if level.upper() not in LOG_LEVELS:
         raise ValueError(
             f"log level (--log-level, TOPOFUSION_LOG_LEVEL) {level!r}: one of {', '.join(LOG_LEVELS)}"

@@ -155,7 +155,9 @@ class StateKeeper:
         anything (``topofusion config``): ``OSError`` for a path that is or runs through
         something else than a directory, or a file that cannot be read, and
         :class:`EpochsExhaustedError` for a file at the last epoch."""
-        existing = next(p for p in (self.directory, *self.directory.parents) if p.exists())
+        existing = next(p for p in (self.directory, *self.directory.parents) if p.exists() or p.is_symlink())
+        if not existing.exists():
+            raise NotADirectoryError(errno.ENOTDIR, f"{existing} is a link to nothing (or a loop of links)")
         if not existing.is_dir():
             raise NotADirectoryError(errno.ENOTDIR, f"{existing} is not a directory")
         if existing != self.directory:

@@ -35,6 +35,7 @@ from service.engine import Engine, Snapshot
 from service.settings import Settings
 from service.startup import build_engine, start_engine
 from service.state import StateKeeper
+from service.state.lock import release_directory
 from service.transport.intake import Intake
 from service.transport.network_status import (
     PeerWorkers,
@@ -251,6 +252,9 @@ class ServiceNode:
             self.engine.close()  # (not under a busy worker: the correlation child is a daemon)
         self.publisher.session = None
         self.connection.close()
+        if done and self.state is not None:  # (a busy worker may write it yet: kept till exit)
+            self.state.wait()
+            release_directory(self.state.directory)
 
     # -- views -------------------------------------------------------------------------------------
     @property

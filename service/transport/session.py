@@ -78,7 +78,7 @@ class ZenohOptions:
         if self.config_file is None:
             return None
         if not Path(self.config_file).is_file():
-            raise FileNotFoundError(f"zenoh config file not found (or not a file): {self.config_file}")
+            raise FileNotFoundError(f"zenoh config file {self.config_file}: no such file (or not a file)")
         return zenoh.Config.from_file(str(self.config_file))
 
     @cached_property
@@ -128,9 +128,15 @@ TLS_FILE_KEYS = (
 _RUST_LOCATION = re.compile(r"\s+at \S+\.rs:\d+\.?")
 
 
+#: A line of a config file a JSON5 error quotes (``1 | {...}``, `` | ^---``): it may hold a
+#: password, so it is left out.
+_QUOTED_LINE = re.compile(r"^\s*\d*\s*\|.*$", re.MULTILINE)
+
+
 def zenoh_error_text(exc: Exception) -> str:
-    """Zenoh's error on one line, without the places in its own sources it names."""
-    return " ".join(_RUST_LOCATION.sub("", str(exc)).split())[:500]
+    """Zenoh's error on one line, without the places in its own sources it names or the lines
+    of the config file it quotes."""
+    return " ".join(_QUOTED_LINE.sub("", _RUST_LOCATION.sub("", str(exc))).split())[:500]
 
 
 def zenoh_config(options: ZenohOptions) -> zenoh.Config:

@@ -82,6 +82,10 @@ class DemoSimulator:
         publish_scenario = self.publish_scenario
 
         def simulate() -> None:
+            # a client whose router is not up yet connects later (the node retries): wait for it
+            while node.connection.session is None:
+                if self.stop_event.wait(0.2):
+                    return
             try:
                 publish_scenario(
                     node.session,
