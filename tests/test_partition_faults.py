@@ -31,9 +31,9 @@ TOPOFUSION = str(Path(sys.executable).parent / "topofusion")
 
 @contextmanager
 def worker(
-    k: int, router: str, port: int, ready: str = "/readyz", **settings: str
+    k: int, router: str, port: int, ready: str = "/readyz", log: Path | None = None, **settings: str
 ) -> Iterator[subprocess.Popen[bytes]]:
-    """Worker ``k`` of 2, given once ``ready`` (a route) answers 200."""
+    """Worker ``k`` of 2, given once ``ready`` (a route) answers 200 (``log``: its output there)."""
     env = {key: v for key, v in os.environ.items() if not key.startswith("TOPOFUSION_")}
     env.update(settings)
     env.update(
@@ -45,9 +45,10 @@ def worker(
         TOPOFUSION_PEER_GRACE_S="2",
         TOPOFUSION_LOG_LEVEL="WARNING",
     )
-    proc = subprocess.Popen(
-        [TOPOFUSION, "run"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-    )
+    out = log.open("ab") if log is not None else subprocess.DEVNULL
+    proc = subprocess.Popen([TOPOFUSION, "run"], env=env, stdout=out, stderr=subprocess.STDOUT)
+    if log is not None:
+        out.close()  # type: ignore[union-attr]  # (the worker holds its own copy)
     try:
         wait_for(lambda: _get(port, ready) is not None or proc.poll() is not None, timeout=60)
         assert proc.poll() is None, f"worker {k} exited with {proc.returncode}"
@@ -68,6 +69,11 @@ def _get(port: int, path: str, **params: Any) -> Any:
     except httpx.HTTPError:
         return None
     return r.json() if r.status_code == 200 else None
+
+
+def _whole(port: int) -> bool:
+    """The worker on ``port`` misses no partition."""
+    return bool((_get(port, "/status") or {}).get("partition", {}).get("missing") == [])
 
 
 def _batches(port: int, radars: list[str]) -> int:
@@ -130,9 +136,7 @@ def test_a_killed_worker_leaves_the_rest_going_and_a_restarted_one_rebuilds(
     with worker(1, router, p1, **expiry):
         with worker(2, router, p2, **expiry) as w2:
             wait_subscribed(client, "fusion/radar/N01/site")
-            wait_for(
-                lambda: (_get(p1, "/status") or {}).get("partition", {}).get("missing") == [], timeout=30
-            )
+            wait_for(lambda: _whole(p1), timeout=30)
             put_all(sites)
             wait_for(lambda: len(_get(p1, "/radars") or []) == len(radars) == len(_get(p2, "/radars") or []))
             put_all(thirds[0])
@@ -205,9 +209,7 @@ def test_a_worker_stopped_for_30_s_comes_back_without_disordering_the_picture(
     sub = client.declare_subscriber("fusion/pairs/**", on_pairs)
     try:
         with worker(1, router, p1), worker(2, router, p2) as w2:
-            wait_for(
-                lambda: (_get(p1, "/status") or {}).get("partition", {}).get("missing") == [], timeout=30
-            )
+            wait_for(lambda: _whole(p1), timeout=30)
             put_all(sites)
             wait_for(lambda: len(_get(p1, "/radars") or []) == len(radars) == len(_get(p2, "/radars") or []))
             put_all(thirds[0])
@@ -270,8 +272,7 @@ def test_without_worker_1_another_worker_says_the_picture_is_unavailable(router:
     p1, p2 = free_port(), free_port()
     with worker(2, router, p2):
         with worker(1, router, p1) as w1:
-            whole = lambda: (_get(p2, "/status") or {}).get("partition", {}).get("missing") == []  # noqa: E731
-            wait_for(whole, timeout=30)
+            wait_for(lambda: _whole(p2), timeout=30)
             assert httpx.get(f"http://127.0.0.1:{p2}/system-tracks", timeout=10).status_code == 200
             w1.kill()  # SIGKILL: no goodbye
             w1.wait(timeout=10)
@@ -279,3 +280,18 @@ def test_without_worker_1_another_worker_says_the_picture_is_unavailable(router:
         assert r.status_code == 503, r.text
         assert r.json() == {"detail": "the picture is drawn by worker 1, which does not answer"}
         assert r.headers["retry-after"] == "2"
+
+
+def test_a_worker_that_leaves_and_comes_back_is_said_both_ways(router: str, tmp_path: Path) -> None:
+    """The log says "worker 2/2 left" and then "worker 2/2 is back" (it said only the first,
+    and an operator could not tell from it that the network was whole again)."""
+    p1, p2 = free_port(), free_port()
+    log = tmp_path / "worker-1.log"
+    with worker(1, router, p1, log=log, TOPOFUSION_LOG_LEVEL="WARNING"):
+        with worker(2, router, p2):
+            wait_for(lambda: _whole(p1), timeout=30)
+        wait_for(lambda: "worker 2/2 left" in log.read_text(), timeout=30)
+        with worker(2, router, p2):
+            wait_for(lambda: "worker 2/2 is back" in log.read_text(), timeout=30)
+    text = log.read_text()
+    assert text.index("worker 2/2 left") < text.index("worker 2/2 is back"), text

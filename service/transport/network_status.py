@@ -121,6 +121,8 @@ class PeerWorkers:
         self.alive: set[int] = set()
         #: Workers whose token left, and when (monotonic): waited for until ``grace_s``.
         self.gone_at: dict[int, float] = {}
+        #: Workers whose leaving was logged: their token's return is logged too.
+        self._said_left: dict[int, bool] = {}
         self._waited: set[int] | None = None
         # Zenoh's threads change the tokens while the worker and HTTP threads read them: a set
         # or dict changed during an iteration raises, and the worker thread must not die of it.
@@ -150,14 +152,21 @@ class PeerWorkers:
         if not index.isdigit():
             return
         with self._lock:
+            back = False
             if sample.kind == zenoh.SampleKind.PUT:
+                back = int(index) not in self.alive and self._said_left.pop(int(index), False)
                 self.alive.add(int(index))
                 self.gone_at.pop(int(index), None)
             else:
                 self.alive.discard(int(index))
                 self.gone_at[int(index)] = time.monotonic()
-        if sample.kind != zenoh.SampleKind.PUT and int(index) != self.partition.index:
+                self._said_left[int(index)] = True
+        if int(index) == self.partition.index:
+            return
+        if sample.kind != zenoh.SampleKind.PUT:
             log.warning("worker %s/%d left (its radars and pairs are missing)", index, self.partition.count)
+        elif back:  # (the line that ends the one above: an operator reading the log sees both)
+            log.warning("worker %s/%d is back", index, self.partition.count)
 
     def waited_changed(self) -> set[int] | None:
         """The workers the merger waits for, when they changed (else None): those alive, and
