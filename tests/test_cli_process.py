@@ -18,7 +18,7 @@ import httpx
 from service.transport.session import ZenohOptions, open_session
 from tests.doc_commands import PROCESS_S, started
 from tests.scenario_helpers import scenario_messages
-from tests.support import alive, free_port, put_json, wait_for, wait_subscribed
+from tests.support import free_port, put_json, wait_for, wait_subscribed
 
 TOPOFUSION = str(Path(sys.executable).parent / "topofusion")
 
@@ -290,7 +290,7 @@ def test_warn_level_a_token_from_a_file_and_an_empty_host_start_as_meant() -> No
 def test_a_killed_service_leaves_no_traceback_and_no_correlation_process(tmp_path: Path) -> None:
     """SIGKILL of ``run`` (an out-of-memory kill, a node lost): its correlation process sees its
     pipe close and ends quietly (it printed an EOFError traceback into the service's log)."""
-    from topofusion_lab.demo_workers import descendants
+    from topofusion_lab.demo_workers import descendants, running
 
     hport = free_port()
     url = f"http://127.0.0.1:{hport}"
@@ -305,7 +305,7 @@ def test_a_killed_service_leaves_no_traceback_and_no_correlation_process(tmp_pat
         assert proc.poll() is None and children, log_path.read_text()
         proc.kill()
         proc.wait(timeout=10)
-        wait_for(lambda: not any(alive(c) for c in children), timeout=15)
+        wait_for(lambda: not any(running(c) for c in children), timeout=15)
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -30,8 +30,8 @@ from tests.doc_commands import (
     started,
     with_ports,
 )
-from tests.support import alive, wait_for
-from topofusion_lab.demo_workers import descendants
+from tests.support import wait_for
+from topofusion_lab.demo_workers import descendants, running
 
 #: ``demo: worker K/N  URL  picture URL  status URL  (pid P)``
 WORKER_LINE = re.compile(
@@ -146,18 +146,11 @@ def test_demo_with_two_workers_serves_the_whole_network_and_stops_cleanly() -> N
             output.append(lines.get())
         assert code == 0, "\n".join(output)
         assert any(line.startswith("demo: stopped 2 worker(s)") for line in output), "\n".join(output)
-        assert not alive(proc.pid)
-        left = [pid for pid in worker_pids if alive(pid)]
+        assert not running(proc.pid)
+        left = [pid for pid in worker_pids if running(pid)]
         assert not left, f"processes left behind: {left}"
     finally:
-        if proc.poll() is None:  # only when the test failed before the demo stopped
-            proc.kill()
-            proc.wait(timeout=10)
-        for pid in worker_pids:
-            if alive(pid):
-                os.kill(pid, signal.SIGKILL)
-        if proc.stdout is not None:
-            proc.stdout.close()
+        _end(proc, worker_pids)  # (only when the test failed before the demo stopped)
 
 
 def _with_environment(marker: str) -> list[int]:
@@ -169,7 +162,7 @@ def _with_environment(marker: str) -> list[int]:
                 environ = Path(f"/proc/{entry}/environ").read_bytes()
             except OSError:
                 continue
-            if marker.encode() in environ and alive(int(entry)):
+            if marker.encode() in environ and running(int(entry)):
                 found.append(int(entry))
     return found
 
@@ -196,7 +189,7 @@ def test_demo_exits_2_naming_a_worker_that_does_not_start(tmp_path: Path) -> Non
     m = re.search(r"demo: worker ([12])/2 \(pid (\d+)\) exited with status \d+ before it was ready", err)
     assert m, err
     assert f"worker-{m.group(1)}-of-2 cannot be used" in err, "the end of its log is shown"
-    assert not alive(int(m.group(2)))
+    assert not running(int(m.group(2)))
     assert not _with_environment(str(blocker)), "a worker was left behind"
 
 
@@ -296,13 +289,18 @@ def test_a_killed_demo_takes_its_workers_with_it() -> None:
         assert len(pids) == 2, "no worker lines"
         proc.kill()
         proc.wait(timeout=10)
-        wait_for(lambda: not any(alive(pid) for pid in pids), timeout=40, interval=0.5)
+        wait_for(lambda: not any(running(pid) for pid in pids), timeout=40, interval=0.5)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(timeout=10)
-        for pid in pids:
-            if alive(pid):
-                os.kill(pid, signal.SIGKILL)
-        if proc.stdout is not None:
-            proc.stdout.close()
+        _end(proc, pids)
+
+
+def _end(proc: subprocess.Popen[str], pids: list[int]) -> None:
+    """The demo and the processes ``pids`` killed by their pids where they still run."""
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait(timeout=10)
+    for pid in pids:
+        if running(pid):
+            os.kill(pid, signal.SIGKILL)
+    if proc.stdout is not None:
+        proc.stdout.close()

@@ -336,7 +336,7 @@ def descendants(pid: int) -> list[int]:
     return found
 
 
-def _running(pid: int) -> bool:
+def running(pid: int) -> bool:
     """The process exists and is no zombie (Linux /proc)."""
     try:
         stat = Path(f"/proc/{pid}/stat").read_text()
@@ -364,9 +364,9 @@ def stop_workers(workers: list[Worker], timeout_s: float) -> None:
             print(f"demo: {w.name} (pid {w.proc.pid}) did not stop in time: killed", file=sys.stderr)
             w.proc.kill()
             w.proc.wait()
-    while any(map(_running, below)) and time.monotonic() < deadline:
+    while any(map(running, below)) and time.monotonic() < deadline:
         time.sleep(0.05)
-    for pid in filter(_running, below):
+    for pid in filter(running, below):
         with contextlib.suppress(OSError):
             os.kill(pid, signal.SIGKILL)
 

@@ -19,6 +19,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import zenoh
+
 from service.output_files import check_writable
 from service.recording.completion import RecordingEnd, service_statuses, wait_for_outputs
 from service.recording.keys import KeyFilter
@@ -137,6 +139,19 @@ def _stop_on_signals(stop: threading.Event) -> Iterator[None]:
             signal.signal(sig, old)
 
 
+def _session_or_stop(
+    options: ZenohOptions, tool: str, stop: threading.Event, nothing: str
+) -> zenoh.Session | None:
+    """The tool's session, or None (said on stderr) when SIGINT/SIGTERM came while it waited
+    for its router: the tool then ends with status 0, having done ``nothing``."""
+    try:
+        with _stop_on_signals(stop):
+            return open_tool_session(options, tool, stop)
+    except OpenCancelledError:
+        print(f"{tool}: stopped while waiting for the Zenoh router; {nothing}", file=sys.stderr)
+        return None
+
+
 def _prefix(args: argparse.Namespace) -> str:
     return str(getattr(args, "prefix", None) or "fusion")
 
@@ -153,11 +168,8 @@ def record_main(
     stop = stop or threading.Event()
     _check_output(Path(args.out))  # before connecting: a typo in --out must not cost a run
     KeyFilter(key_expr)  # (a ValueError naming a --key Zenoh would refuse)
-    try:
-        with _stop_on_signals(stop):
-            session = open_tool_session(zenoh_options, "record", stop)
-    except OpenCancelledError:
-        print("record: stopped while waiting for the Zenoh router; nothing recorded", file=sys.stderr)
+    session = _session_or_stop(zenoh_options, "record", stop, "nothing recorded")
+    if session is None:
         return 0
     try:
         print(f"recording {key_expr} to {args.out} (Ctrl-C to stop)", file=sys.stderr, flush=True)
@@ -236,11 +248,8 @@ def replay_main(
         from service.recording.publisher import ZenohReplayPublisher
 
         preflight(args.file, prefix, options)  # a file that cannot be replayed is refused before connecting
-        try:
-            with _stop_on_signals(stop):
-                session = open_tool_session(zenoh_options, "replay", stop)
-        except OpenCancelledError:
-            print("replay: stopped while waiting for the Zenoh router; nothing replayed", file=sys.stderr)
+        session = _session_or_stop(zenoh_options, "replay", stop, "nothing replayed")
+        if session is None:
             return 0
         rejections = RejectionWatch(session, prefix)
         end = RecordingEnd()
