@@ -794,12 +794,20 @@ def solve_biases(
     # pairs_used: confirmed pairs of the latest remembered update that survived the outlier
     # test (the LS itself uses every remembered update's rows).
     used: dict[str, int] = dict.fromkeys(ids, 0)
+    kept: dict[str, int] = dict.fromkeys(ids, 0)
     for (m, r, _), kp in zip(data, keep, strict=True):
         t = m.time[r]
         n_latest = int((kp & (t == t.max())).sum()) if t.size else 0
-        used[m.site_a.site_id] += n_latest
-        if m.site_b is not None:
-            used[m.site_b.site_id] += n_latest
+        for site in (m.site_a, m.site_b):
+            if site is not None:
+                used[site.site_id] += n_latest
+                kept[site.site_id] += int(kp.sum())
+    if initial is not None and not all(kept.values()):
+        # A radar with rows in the window none of which the outlier test keeps at the warm
+        # start's estimate: that estimate was wrong for it (a solve on few rows, with large
+        # biases), and selecting its rows by it would lock them out for good, the estimate
+        # standing where no row supports it.  Solved cold instead: every row is a candidate.
+        return solve_biases(memories, time_s, prm)
     return BiasSolution.of_terms(tuple(ids), bias.reshape(-1, nt), robust, used, cov, clusters, relative)
 
 

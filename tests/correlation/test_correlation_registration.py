@@ -232,3 +232,47 @@ def test_memory_buffer_holds_exactly_the_remembered_updates() -> None:
         np.testing.assert_array_equal(mem.time, np.concatenate([np.full(len(c[1]), c[0]) for c in chunks]))
         np.testing.assert_array_equal(mem.p_a, np.concatenate([c[1] for c in chunks]))
         assert mem.pair.tolist() == np.concatenate([c[2] for c in chunks]).tolist()
+
+
+def test_a_wrong_warm_start_does_not_lock_a_radars_rows_out() -> None:
+    """A warm start whose estimate of radar B is far off (a first solve on few rows, with
+    biases of kilometres and degrees) rejected every row of B by the outlier test at it, and
+    every later solve warm-started from the result did the same: B's estimate stood where no
+    row supported it (pairs_used 0, 740 m / -0.77 deg against -1500 m / -1.5 deg, the picture
+    split in two).  A radar none of whose rows survive is solved cold: the rows decide."""
+    import service.correlation.registration as reg
+
+    rng = np.random.default_rng(7)
+    a, b = make_sites()
+    truth = sample_references(rng, a, b, 40)
+    biases = {
+        "A": np.array([2000.0, np.radians(2.0), np.radians(0.1)]),
+        "B": np.array([-1500.0, np.radians(-1.5), 0.0]),
+    }
+    prm = RegistrationParams(max_rows_per_update=40)
+    idx = np.arange(40)
+    pair, reference = RegistrationMemory(a, b), RegistrationMemory(b, None)
+    for t in range(4):
+        sa, sb = (snapshot_of(s, truth, biases[s.site_id], rng, 30.0) for s in (a, b))
+        ref = snapshot_of(b, truth, np.zeros(3), rng, 10.0)
+        ref = PredictedTracks(
+            ref.track_id,
+            ref.position,
+            ref.velocity,
+            ref.pos_cov,
+            ref.vel_cov,
+            None,
+            ref.position,
+            ref.velocity,
+        )
+        pair.add(float(t), sa, sb, idx, idx, prm)
+        reference.add(float(t), sb, ref, idx, idx, prm)
+    cold = solve_biases([pair, reference], 3.0, prm)
+    assert cold is not None and cold.pairs_used["B"] > 0
+    wrong = cold.bias.copy()
+    wrong[cold.radar_ids.index("B")] = [740.0, np.radians(-0.77), np.radians(0.54)]
+    start = reg.BiasSolution(cold.radar_ids, wrong, cold.covariance, cold.pairs_used)
+    warm = solve_biases([pair, reference], 3.0, prm, initial=start)
+    assert warm is not None and warm.pairs_used["B"] > 0
+    est, _ = warm.of("B")
+    assert abs(est[0] - biases["B"][0]) < 50.0 and abs(np.degrees(est[1] - biases["B"][1])) < 0.05
