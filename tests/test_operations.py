@@ -228,8 +228,10 @@ def test_readyz_says_a_stalled_worker_and_recovers(router: str, client: zenoh.Se
             put_json(client, "fusion/radar/A/site", site("A"))
             for n in range(1, 4):
                 put_json(client, "fusion/radar/A/plots", plot_batch(n))
-            wait_for(lambda: svc.http.get("/readyz").status_code == 503, timeout=10)
-            assert svc.http.get("/readyz").json()["reason"] == "worker stalled"
+            # (503 for that reason: under load another one, a link's watcher not seeing the
+            # router for a moment, can come first, and pass)
+            wait_for(lambda: svc.http.get("/readyz").json().get("reason") == "worker stalled", timeout=10)
+            assert svc.http.get("/readyz").status_code == 503
         finally:
             gate.set()
         wait_for(lambda: svc.http.get("/readyz").status_code == 200, timeout=10)
