@@ -63,6 +63,21 @@ MAX_DURATION_S = 86_400.0
 #: The levels ``--log-level`` / ``TOPOFUSION_LOG_LEVEL`` take (any case; WARN is WARNING).
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "WARN", "ERROR", "CRITICAL")
 
+
+def normal_log_level(text: str) -> str:
+    """A log level as logging and uvicorn name it (any case, blanks around it, WARN for
+    WARNING); ``ValueError`` for one not in :data:`LOG_LEVELS`."""
+    level = text.strip().upper()
+    if level not in LOG_LEVELS:
+        raise ValueError(f"one of {', '.join(LOG_LEVELS)}")
+    return "WARNING" if level == "WARN" else level
+
+
+def _blank(value: object) -> bool:
+    """An empty (or all-blank) variable: it means "not set"."""
+    return isinstance(value, str) and not value.strip()
+
+
 #: How :meth:`Settings.effective` shows a secret (in a config file: not given).
 REDACTED = "**********"
 
@@ -313,15 +328,14 @@ class Settings(BaseSettings):
     def _empty_is_none(cls, value: object) -> object:
         # An empty variable (e.g. compose's ``${TOPOFUSION_API_TOKEN:-}``) means "not set": not
         # the working directory, not a token of length zero.
-        return None if isinstance(value, str) and not value.strip() else value
+        return None if _blank(value) else value
 
     @field_validator("http_host", mode="before")
     @classmethod
     def _empty_host_is_default(cls, value: object) -> object:
         # An empty variable means "not set" here too: the loopback default, never every
         # interface (which an empty host means to the server).
-        empty = isinstance(value, str) and not value.strip()
-        return cls.model_fields["http_host"].default if empty else value
+        return cls.model_fields["http_host"].default if _blank(value) else value
 
     @field_validator("api_token", mode="before")
     @classmethod
@@ -333,10 +347,7 @@ class Settings(BaseSettings):
     @field_validator("log_level")
     @classmethod
     def _log_level(cls, value: str) -> str:
-        level = value.strip().upper()
-        if level not in LOG_LEVELS:
-            raise ValueError(f"one of {', '.join(LOG_LEVELS)}")
-        return "WARNING" if level == "WARN" else level  # (logging's and uvicorn's name of it)
+        return normal_log_level(value)
 
     @field_validator("partition")
     @classmethod

@@ -165,7 +165,7 @@ def healthcheck_main(args: argparse.Namespace) -> int:
     except (ValueError, OSError) as exc:  # (ConfigError is a ValueError)
         print(f"healthcheck: {exc}", file=sys.stderr)
         return 1
-    host = "127.0.0.1" if settings.http_host in ("0.0.0.0", "::", "") else settings.http_host
+    host = "127.0.0.1" if settings.http_host in ("0.0.0.0", "::") else settings.http_host
     try:
         with urllib.request.urlopen(f"http://{host}:{settings.http_port}/healthz", timeout=2) as resp:
             return 0 if resp.status == 200 else 1

@@ -18,7 +18,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from service.settings import LOG_LEVELS, REDACTED, SECRET_SETTINGS, Settings, flag_overrides
+from service.settings import REDACTED, SECRET_SETTINGS, Settings, flag_overrides, normal_log_level
 from service.transport.session import MODES, ZenohOptions
 
 #: A subcommand's handler: the parsed arguments in, the exit status out.
@@ -63,13 +63,12 @@ def zenoh_options(settings: Settings, default_mode: str = "peer") -> ZenohOption
 
 
 def setup_logging(level: str) -> None:
-    level = level.strip()  # (as the setting takes it)
-    if level.upper() not in LOG_LEVELS:
-        raise ValueError(
-            f"log level (--log-level, TOPOFUSION_LOG_LEVEL) {level!r}: one of {', '.join(LOG_LEVELS)}"
-        )
+    try:
+        name = normal_log_level(level)  # (as the setting takes it)
+    except ValueError as exc:
+        raise ValueError(f"log level (--log-level, TOPOFUSION_LOG_LEVEL) {level.strip()!r}: {exc}") from None
     logging.basicConfig(
-        level=level.upper(),
+        level=name,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )

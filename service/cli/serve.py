@@ -116,7 +116,10 @@ def serve(settings: Settings, hooks: Callable[[str], ServeHooks] | None = None) 
             node.stop_input()
             super().handle_exit(sig, frame)
 
+    fatal_reasons: list[str] = []
+
     def fatal(reason: str) -> None:
+        fatal_reasons.append(reason)
         server.should_exit = True  # (uvicorn's main loop looks at it every 0.1 s)
 
     node.on_fatal = fatal
@@ -151,8 +154,8 @@ def serve(settings: Settings, hooks: Callable[[str], ServeHooks] | None = None) 
     if node.failure:
         print(f"topofusion: {node.failure}", file=sys.stderr)
         return 2  # Zenoh refused the configuration once the router answered (contract §3)
-    if not server.started:
-        return 1  # start-up failed (e.g. port in use or Zenoh refused): uvicorn logged why
+    if not server.started or fatal_reasons:
+        return 1  # start-up failed (e.g. port in use), or a part it needs failed (a hook's)
     return 0
 
 

@@ -122,7 +122,7 @@ class PeerWorkers:
         #: Workers whose token left, and when (monotonic): waited for until ``grace_s``.
         self.gone_at: dict[int, float] = {}
         #: Workers whose leaving was logged: their token's return is logged too.
-        self._said_left: dict[int, bool] = {}
+        self._said_left: set[int] = set()
         self._waited: set[int] | None = None
         # Zenoh's threads change the tokens while the worker and HTTP threads read them: a set
         # or dict changed during an iteration raises, and the worker thread must not die of it.
@@ -151,17 +151,18 @@ class PeerWorkers:
         index = str(sample.key_expr).rsplit("/", 1)[-1]
         if not index.isdigit():
             return
+        k = int(index)
         with self._lock:
-            back = False
+            back = k in self._said_left
             if sample.kind == zenoh.SampleKind.PUT:
-                back = int(index) not in self.alive and self._said_left.pop(int(index), False)
-                self.alive.add(int(index))
-                self.gone_at.pop(int(index), None)
+                self._said_left.discard(k)
+                self.alive.add(k)
+                self.gone_at.pop(k, None)
             else:
-                self.alive.discard(int(index))
-                self.gone_at[int(index)] = time.monotonic()
-                self._said_left[int(index)] = True
-        if int(index) == self.partition.index:
+                self.alive.discard(k)
+                self.gone_at[k] = time.monotonic()
+                self._said_left.add(k)
+        if k == self.partition.index:
             return
         if sample.kind != zenoh.SampleKind.PUT:
             log.warning("worker %s/%d left (its radars and pairs are missing)", index, self.partition.count)

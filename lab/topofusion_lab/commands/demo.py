@@ -51,14 +51,7 @@ def demo_main(args: argparse.Namespace) -> int:
     settings = settings_from(args)
     setup_logging(settings.log_level)
     check_state_dir(settings.state_dir, 1)
-    made: list[DemoSimulator] = []
-
-    def hooks(prefix: str) -> DemoSimulator:
-        made.append(DemoSimulator(args, prefix))
-        return made[-1]
-
-    status = serve(settings, hooks=hooks)
-    return 1 if status == 0 and made and made[0].failed else status
+    return serve(settings, hooks=lambda prefix: DemoSimulator(args, prefix))
 
 
 class DemoSimulator:
@@ -75,8 +68,6 @@ class DemoSimulator:
         self.prefix = prefix
         self.stop_event = threading.Event()
         self.threads: list[threading.Thread] = []
-        #: The simulator ended with an error (the demo then stops, exit status 1).
-        self.failed = False
 
     def start(self, node: Any) -> None:
         publish_scenario = self.publish_scenario
@@ -98,9 +89,8 @@ class DemoSimulator:
                 )
             except Exception:
                 if not self.stop_event.is_set():
-                    # a demo without its data is no demo: it ends, exit status 1
+                    # a demo without its data is no demo: it ends (exit status 1)
                     log.exception("simulator failed; the demo stops")
-                    self.failed = True
                     if node.on_fatal is not None:
                         node.on_fatal("simulator failed")
 
