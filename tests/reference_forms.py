@@ -491,3 +491,22 @@ def track_keys_reference(tables: list[list[str]], limit: int) -> list[list[int]]
         last = now
         out.append(keys)
     return out
+
+
+def lone_reference(
+    pos_a: FloatArray, pos_b: FloatArray, pairs: list[tuple[int, int]], gate_m: float, radius_m: float
+) -> list[bool]:
+    """The geometry of :func:`service.correlation.svd_topology.lone_candidates` by a loop (its
+    velocity gate left out): each track the other's only candidate within ``gate_m``, and no
+    other track of its own radar within ``radius_m`` (3-D distances)."""
+
+    def near(points: FloatArray, p: FloatArray, r: float) -> int:
+        return sum(float(np.sqrt(np.sum((q - p) ** 2))) <= r for q in points)
+
+    return [
+        near(pos_b, pos_a[i], gate_m) == 1
+        and near(pos_a, pos_b[j], gate_m) == 1
+        and near(pos_a, pos_a[i], radius_m) == 1
+        and near(pos_b, pos_b[j], radius_m) == 1
+        for i, j in pairs
+    ]

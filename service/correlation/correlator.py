@@ -93,7 +93,13 @@ from service.correlation.registration import (
     solve_biases,
     to_estimates,
 )
-from service.correlation.svd_topology import CHI2, DOF, SvdTopologyCorrelator, SvdTopologyParams
+from service.correlation.svd_topology import (
+    CHI2,
+    DOF,
+    LONE_STAGE,
+    SvdTopologyCorrelator,
+    SvdTopologyParams,
+)
 from service.correlation.swap import SwapParams, jumped, rivals, with_rival
 from service.geo import Site
 from service.linalg import mahalanobis3
@@ -317,6 +323,8 @@ class PairCorrelator:
         self.last_swaps = 0
         self.swaps = 0
         self.time_s: float = float("nan")
+        #: Data time of the first update (the lone rule waits ``svd.lone_after_scans`` from it).
+        self.first_s: float = float("nan")
         self.updates = 0
         self.settled = False
 
@@ -336,6 +344,8 @@ class PairCorrelator:
         through third radars imply (:mod:`.cycles`; None: no cycle step)."""
         t0 = time.perf_counter()
         prm = self.params
+        if np.isnan(self.first_s):
+            self.first_s = float(time_s)
         keys_a, keys_b = self._keys(tracks_a, tracks_b)
         raw_a, raw_b, a, b, ctx_kw = self._predicted(tracks_a, tracks_b, time_s, keys_a, keys_b)
         ka, kb = a.keys, b.keys  # (raw_a, raw_b: the same rows)
@@ -410,6 +420,7 @@ class PairCorrelator:
             )
         self.last_reverified = len(kept) if kept is not None else 0
         decided = self.correlator.decide(a, b, ctx)
+        decided = self._lone_apart(decided, a, b, (tracks_a, keys_a), (tracks_b, keys_b), time_s)
         clear = self._clear(decided, a, b, (tracks_a, keys_a), (tracks_b, keys_b), time_s)
         decided = self._with_history(decided, a, b, time_s, registered, clear)
         if prm.identity_veto:
@@ -581,6 +592,45 @@ class PairCorrelator:
             return np.ones(len(dec), dtype=bool)
         return quality_clear(*_qualities(dec, a, b), m)
 
+    def _lone_apart(
+        self,
+        dec: Decisions,
+        a: PredictedTracks,
+        b: PredictedTracks,
+        tracks_a: tuple[TrackTable, NDArray[np.int64]],
+        tracks_b: tuple[TrackTable, NDArray[np.int64]],
+        time_s: float,
+    ) -> Decisions:
+        """``dec`` with its lone decisions (``SvdTopologyParams.lone_pairs``) left undecided
+        within ``svd.lone_after_scans`` scans (of the slower radar) of the pair's first update,
+        and where a tentative track of either radar lies within the candidate gate of that
+        radar's track (:func:`.prompt.isolated`): the method sees confirmed tracks only, and
+        while the radars' tables fill, or a second aircraft is being confirmed, a track may
+        look alone before its neighbours do (``tracks_*``: each table with its track keys)."""
+        stage = dec.extras.get("stage")
+        if stage is None:
+            return dec
+        rows = np.flatnonzero(stage == LONE_STAGE)
+        if rows.size == 0:
+            return dec
+        svd = self.params.svd
+        scan = max(self.site_a.scan_period_s, self.site_b.scan_period_s if self.site_b else 0.0)
+        if time_s < self.first_s + svd.lone_after_scans * scan:
+            out = rows
+        else:
+            (table_a, keys_a), (table_b, keys_b) = tracks_a, tracks_b
+            gate = svd.candidates.gate_m
+            alone = isolated(table_a, self.site_a, time_s, a.keys[dec.index_a[rows]], gate, 0.0, keys_a)
+            alone &= isolated(table_b, self.site_b, time_s, b.keys[dec.index_b[rows]], gate, 0.0, keys_b)
+            out = rows[~alone]
+        if out.size == 0:
+            return dec
+        accepted, reason, extras = dec.accepted.copy(), dec.reason.copy(), dict(dec.extras)
+        accepted[out] = False
+        reason[out] = Reason.TOO_FEW_NEIGHBOURS
+        extras["stage"] = np.where(np.isin(np.arange(len(dec)), out), 0.0, stage)
+        return replace(dec, accepted=accepted, reason=reason, extras=extras)
+
     def _clear(
         self,
         dec: Decisions,
@@ -597,6 +647,9 @@ class PairCorrelator:
         if not prm.enabled or self.method != "svd-topology" or len(dec) == 0:
             return np.zeros(len(dec), dtype=bool)
         clear = clear_of_rivals(dec.index_a, dec.index_b, dec.cost, dec.accepted, prm.clear_margin)
+        stage = dec.extras.get("stage")
+        if stage is not None:  # a lone decision waits for the book (``SvdTopologyParams.lone_pairs``)
+            clear &= stage != LONE_STAGE
         clear &= self._quality_ok(dec, a, b)
         rows = np.flatnonzero(clear)
         if rows.size:

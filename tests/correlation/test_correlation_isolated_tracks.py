@@ -1,29 +1,44 @@
 """Tracks without any neighbour in one radar's picture (sparse traffic, the first scans of a
 stream, a neighbour only one radar sees) are a normal case for every method: an update gives
-"no decision" values, never an exception."""
+"no decision" values, never an exception; and aircraft alone in both pictures are paired
+before any registration (the lone rule, ``SvdTopologyParams.lone_pairs``)."""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from service.correlation import METHODS, PairCorrelator
+from service.correlation.candidates import candidate_pairs
+from service.correlation.correlator import CorrelationParams
+from service.correlation.prediction import predict_tracks
+from service.correlation.svd_topology import SvdTopologyParams, lone_candidates
 from service.geo import Site
 from service.tracking.base import TrackTable
+from tests.reference_forms import lone_reference
 from topofusion_lab.evaluation.correlation_scenario import make_sites, sample_references
 
 
-def _table(site: Site, truth: np.ndarray, prefix: str) -> TrackTable:
+def _table(
+    site: Site,
+    truth: np.ndarray,
+    prefix: str,
+    velocity: np.ndarray | None = None,
+    bias: float = 0.1,
+    time_s: float = 0.0,
+) -> TrackTable:
     n = len(truth)
     r, az, el = site.ecef_to_polar(truth)
-    pos = site.polar_to_ecef(r + 100.0, az + 0.1, el)  # a small bias, no noise
+    pos = site.polar_to_ecef(r + 100.0, az + bias, el)  # a bias, no noise
     cov = np.broadcast_to(np.diag([200.0**2] * 3 + [10.0**2] * 3), (n, 6, 6)).copy()
     return TrackTable(
         np.array([f"{prefix}{i}" for i in range(n)]),
         np.ones(n, dtype=bool),
-        np.zeros(n),
+        np.full(n, time_s),
         pos,
-        np.zeros((n, 3)),
+        np.zeros((n, 3)) if velocity is None else np.broadcast_to(velocity, (n, 3)).copy(),
         cov,
         np.full(n, 10, dtype=np.int64),
         np.full(n, None, dtype=object),
@@ -45,3 +60,82 @@ def test_isolated_common_tracks_do_not_raise(method: str, count: int) -> None:
         corr.update(_table(a, seen_by_a, "a"), _table(b, truth, "b"), 1.0 + k)
     for p in corr.pairs():  # whatever was decided is one-to-one and well formed
         assert p.track_a.startswith("a") and p.track_b.startswith("b")
+
+
+def _lone_scene(count: int) -> tuple[Site, Site, np.ndarray, np.ndarray, np.ndarray]:
+    """``count`` aircraft far apart (no neighbour within the topology's reach) in the overlap
+    of two radars, flying east at 220 m/s; radar A also sees a second aircraft 4 km east of the
+    first that B misses."""
+    a, b = make_sites()
+    rng = np.random.default_rng(7)
+    refs = sample_references(rng, a, b, 400)
+    truth = [refs[0]]
+    for p in refs[1:]:  # greedy: every aircraft at least 70 km from the others
+        if len(truth) < count and all(np.linalg.norm(p - q) > 70_000.0 for q in truth):
+            truth.append(p)
+    truth_arr = np.array(truth)
+    assert len(truth_arr) == count
+    east = a.rotation[:, 0]
+    seen_by_a = np.concatenate([truth_arr, truth_arr[:1] + 4_000.0 * east])
+    return a, b, truth_arr, seen_by_a, 220.0 * east
+
+
+@pytest.mark.parametrize("lone", [True, False])
+def test_lone_aircraft_are_paired_before_any_registration(lone: bool) -> None:
+    """Aircraft tens of km apart have no neighbourhood for the topology match, and before a
+    registration nothing else decides them: the lone rule pairs each aircraft that is the only
+    candidate of its two tracks with no other track of either radar near it, not in the pair's
+    first ``lone_after_scans`` scans (the tables may still be filling), then after the book's M
+    of N (never at the first look), and not the one next to a track only radar A sees.  Off,
+    none is paired."""
+    a, b, truth, seen_by_a, vel = _lone_scene(4)
+    params = CorrelationParams(svd=replace(SvdTopologyParams(), lone_pairs=lone))
+    wait_s = params.svd.lone_after_scans * max(a.scan_period_s, b.scan_period_s)
+    corr = PairCorrelator("svd-topology", a, b, params)
+    confirmed: dict[float, set[tuple[str, str]]] = {}
+    for k in range(12):
+        t = 100.0 + 0.5 * a.scan_period_s * k
+        ta = _table(a, seen_by_a + vel * t, "a", vel, time_s=t)
+        corr.update(ta, _table(b, truth + vel * t, "b", vel, bias=-0.15, time_s=t), t)
+        confirmed[t - 100.0] = {(p.track_a, p.track_b) for p in corr.pairs() if p.status == "confirmed"}
+    assert not corr.registered
+    if lone:
+        assert confirmed[max(confirmed)] == {(f"a{i}", f"b{i}") for i in range(1, len(truth))}
+        waited = [t for t in confirmed if t >= wait_s]
+        assert waited and not any(confirmed[t] for t in confirmed if t <= waited[0])
+    else:
+        assert all(c == set() for c in confirmed.values())
+
+
+def test_lone_rule_needs_agreeing_velocities() -> None:
+    """An aircraft alone in both pictures whose two tracks fly different headings is not one
+    aircraft: not paired."""
+    a, b, truth, _, vel = _lone_scene(3)
+    north = a.rotation[:, 1]
+    corr = PairCorrelator("svd-topology", a, b)
+    for k in range(12):
+        t = 100.0 + 0.5 * a.scan_period_s * k
+        ta = _table(a, truth + vel * t, "a", vel, time_s=t)
+        corr.update(ta, _table(b, truth + vel * t, "b", 220.0 * north, time_s=t), t)
+    assert [p for p in corr.pairs() if p.status == "confirmed"] == []
+
+
+def test_lone_candidates_match_the_plain_form() -> None:
+    """The vectorised geometry of the lone rule against a loop, in a scene with lone aircraft,
+    pairs and crowds; with few tracks (all distances) and with many (a k-d tree)."""
+    a, b = make_sites()
+    rng = np.random.default_rng(11)
+    for n in (12, 400):
+        base = sample_references(rng, a, b, n)
+        pos_a = base + rng.normal(0.0, 3_000.0, base.shape)
+        pos_b = base + rng.normal(0.0, 3_000.0, base.shape)
+        ta, tb = _table(a, pos_a, "a"), _table(b, pos_b, "b")
+        pa = predict_tracks(ta, a, 0.0)
+        pb = predict_tracks(tb, b, 0.0)
+        gate, radius = 10_000.0, 20_000.0
+        prm = replace(SvdTopologyParams(), lone_radius_m=radius)
+        ia, ib, _ = candidate_pairs(pa.position, pb.position, gate)
+        got = lone_candidates(pa, pb, ia, ib, b.rotation.T @ a.rotation, prm)
+        want = lone_reference(pa.position, pb.position, list(zip(ia, ib, strict=True)), gate, radius)
+        assert got.tolist() == want  # (no velocities: the velocity gate passes every one)
+        assert any(want) and not all(want)

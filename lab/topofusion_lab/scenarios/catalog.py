@@ -185,6 +185,16 @@ SCENARIOS: dict[str, Scenario] = {
         targets=40,
         duration_s=600.0,
     ),
+    "thin-traffic": Scenario(
+        name="thin-traffic",
+        description="2 radars 200 km apart (4 s and 12 s scans), 10 aircraft tens of km apart over 320 km",
+        radars=(_A, replace(_B, scan_period_s=12.0)),
+        center_lat_deg=_LAT,
+        center_lon_deg=119.55,
+        half_width_m=160_000.0,
+        targets=10,
+        duration_s=900.0,
+    ),
     "three-radar": Scenario(
         name="three-radar",
         description="3 radars, 80 aircraft, light clutter, one radar with a 5 s scan",
