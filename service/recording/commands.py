@@ -265,19 +265,23 @@ def replay_main(
                 report = replay(
                     args.file, publish_and_note, prefix, options, stop=stop, progress=args.progress
                 )
-            rejections.settle()
-            for line in report.lines() + rejections.lines():
+            for line in report.lines():
                 print(line, file=sys.stderr, flush=True)
             complete = True
             if args.wait > 0 and not stop.is_set() and not options.loop:
                 complete = wait_for_outputs(session, prefix, end, args.wait)
+            # After the wait: a service still working through its queue (a replay at --speed 0)
+            # rejects the last messages after the replay has sent them; done, it has said all.
+            rejections.settle()
+            for line in rejections.lines(end.duplicates):
+                print(line, file=sys.stderr, flush=True)
         finally:
             rejections.close()
             session.close()
     except (RecordingError, FileNotFoundError, IsADirectoryError, PermissionError, ValueError) as exc:
         print(f"topofusion replay: {exc}", file=sys.stderr, flush=True)
         return 2
-    return 1 if rejections.by_reason.get("duplicate_seq") or not complete else 0
+    return 1 if rejections.taken_before(end.duplicates) or not complete else 0
 
 
 def _wait_for_service(session: Any, prefix: str, wait_s: float, stop: threading.Event) -> None:
@@ -337,12 +341,20 @@ class RejectionWatch:
         with contextlib.suppress(Exception):
             self._sub.undeclare()
 
-    def lines(self) -> list[str]:
+    def taken_before(self, own_duplicates: int = 0) -> bool:
+        """Whether the service had taken these messages before: more ``duplicate_seq``
+        rejections than the messages' own duplicates (``own_duplicates``: a recording of a
+        source that sent a batch twice holds it twice, and a fresh service rejects it too)."""
+        return self.by_reason.get("duplicate_seq", 0) > own_duplicates
+
+    def lines(self, own_duplicates: int = 0) -> list[str]:
         if not self.by_reason:
             return []
         counts = ", ".join(f"{n} {r}" for r, n in sorted(self.by_reason.items()))
         out = [f"the service rejected messages of {self.what}: {counts}"]
-        if self.by_reason.get("duplicate_seq"):
+        if own_duplicates and self.by_reason.get("duplicate_seq"):
+            out.append(f"({own_duplicates} of the messages repeat an earlier seq of their key)")
+        if self.taken_before(own_duplicates):
             out.append(f"WARNING: duplicate seq numbers: {self.duplicates}")
         return out
 

@@ -68,16 +68,28 @@ class RecordingEnd:
     """Each input source's last data time in what was replayed (fed message by message)."""
 
     last: dict[str, float] = field(default_factory=dict)
+    #: Each key's highest ``seq`` so far, and the messages whose ``seq`` was not above it: the
+    #: recording's own duplicates, which a service rejects (``duplicate_seq``) however fresh.
+    seq: dict[str, int] = field(default_factory=dict)
+    duplicates: int = 0
 
     def add(self, message: RecordedMessage) -> None:
         if message.kind not in ("plots", "ais", "adsb"):
             return
         try:
-            time_s = float(orjson.loads(message.payload)["time_s"])
+            body = orjson.loads(message.payload)
+            time_s = float(body["time_s"])
         except (orjson.JSONDecodeError, KeyError, TypeError, ValueError):
             return  # the service rejects it: it moves no clock
         key = message.key
         self.last[key] = max(time_s, self.last.get(key, time_s))
+        seq = body.get("seq") if isinstance(body, dict) else None
+        if isinstance(seq, int) and not isinstance(seq, bool):
+            before = self.seq.get(key)
+            if before is not None and seq <= before:
+                self.duplicates += 1
+            else:
+                self.seq[key] = seq
 
     def target_s(self, lag_s: float = LAG_S) -> float | None:
         """The data time through which the service can be complete (module docstring)."""

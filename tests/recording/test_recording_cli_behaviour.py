@@ -76,3 +76,34 @@ def test_a_second_replay_into_the_same_service_says_it_was_rejected(
         assert replay_main(args, options) == 1
         err = capsys.readouterr().err
         assert "5 duplicate_seq" in err and "already took this recording" in err
+
+
+def test_a_recording_s_own_duplicates_are_not_blamed_on_the_service(
+    tmp_path: Path, router: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A source that sent a batch twice is recorded twice, and a fresh service rejects the
+    second copy as the live one did: the replay says so, succeeds, and does not tell the user
+    the service already took the recording.  At --speed 0 the summary comes after the wait,
+    once the service has worked through its queue, so it counts every rejection."""
+    recording = tmp_path / "twice.mcap"
+    msgs = [(f"{PREFIX}/radar/A/site", site("A"), 1)]
+    msgs += [(f"{PREFIX}/radar/A/plots", plots("A", i, 1e9 + i), 10 + i) for i in range(1, 6)]
+    msgs += [(f"{PREFIX}/radar/A/plots", plots("A", 3, 1e9 + 3), 20)]  # the third again
+    msgs += [(f"{PREFIX}/radar/A/plots", plots("A", i, 1e9 + i), 20 + i) for i in range(6, 9)]
+    foreign_mcap(recording, msgs)
+    options = ZenohOptions(mode="client", connect=(router,))
+    args = _parser(add_replay_arguments).parse_args([str(recording), "--speed", "0", "--wait", "30"])
+    with running_service(router):
+        probe = open_session(options)
+        try:
+            wait_subscribed(probe, f"{PREFIX}/radar/A/plots")
+        finally:
+            probe.close()
+        assert replay_main(args, options) == 0
+        err = capsys.readouterr().err
+        assert "the service rejected messages of this replay: 1 duplicate_seq" in err, err
+        assert "1 of the messages repeat an earlier seq of their key" in err
+        assert "already took this recording" not in err
+        capsys.readouterr()
+        assert replay_main(args, options) == 1  # a second replay: every batch taken before
+        assert "already took this recording" in capsys.readouterr().err
