@@ -171,6 +171,28 @@ def test_a_taken_http_port_exits_1_as_the_contract_says() -> None:
         )
     assert res.returncode == 1, res.stderr
     assert "address already in use" in res.stderr.lower() and "Traceback" not in res.stderr
+    # ... and which setting to change
+    assert f"HTTP side port did not open on 127.0.0.1:{port}: another port with --http-port" in res.stderr
+
+
+def test_a_taken_zenoh_port_exits_2_naming_the_setting() -> None:
+    """The listen endpoint's port held by another program: one line that says which flag or
+    setting picks another, exit 2 (a configuration error, contract §3)."""
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        res = subprocess.run(
+            [TOPOFUSION, "run", "--listen", f"tcp/127.0.0.1:{port}", "--http-port", str(free_port())],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+    assert res.returncode == 2, res.stderr
+    assert "cannot open Zenoh session" in res.stderr and "Traceback" not in res.stderr
+    assert "(another endpoint with --listen or TOPOFUSION_ZENOH_LISTEN)" in res.stderr
 
 
 def test_python_m_service_is_the_console_script() -> None:

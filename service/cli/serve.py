@@ -154,6 +154,14 @@ def serve(settings: Settings, hooks: Callable[[str], ServeHooks] | None = None) 
     if node.failure:
         print(f"topofusion: {node.failure}", file=sys.stderr)
         return 2  # Zenoh refused the configuration once the router answered (contract §3)
+    if not server.started and not fatal_reasons:
+        # (uvicorn logged why, e.g. the port in use, without saying which setting to change)
+        print(
+            f"topofusion: the HTTP side port did not open on {settings.http_host}:{settings.http_port}: "
+            "another port with --http-port (TOPOFUSION_HTTP_PORT), another address with "
+            "TOPOFUSION_HTTP_HOST",
+            file=sys.stderr,
+        )
     if not server.started or fatal_reasons:
         return 1  # start-up failed (e.g. port in use), or a part it needs failed (a hook's)
     return 0

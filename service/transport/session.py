@@ -248,10 +248,16 @@ def open_session(
         except Exception as exc:  # zenoh raises ZError, a plain Exception subclass
             left = deadline - time.monotonic()
             if left <= 0 or not retry_if(exc):
+                text = zenoh_error_text(exc)
+                hint = (
+                    " (another endpoint with --listen or TOPOFUSION_ZENOH_LISTEN)"
+                    if "address already in use" in text.lower()
+                    else ""
+                )
                 raise RuntimeError(
                     f"cannot open Zenoh session (mode={options.effective_mode}, "
                     f"listen={options.effective_listen()}, connect={options.effective_connect()}): "
-                    f"{zenoh_error_text(exc)}"
+                    f"{text}{hint}"
                 ) from exc
             wait = min(wait, left)
             if on_retry is not None:
