@@ -252,7 +252,7 @@ def replay_main(
         if session is None:
             return 0
         rejections = RejectionWatch(session, prefix)
-        end = RecordingEnd()
+        end = RecordingEnd(prefix=prefix)
         try:
             if args.wait_service > 0:
                 _wait_for_service(session, prefix, args.wait_service, stop)

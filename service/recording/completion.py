@@ -9,7 +9,10 @@ own process.  The service says how far its outputs go (contract §5.1: ``Status.
 The end a service can reach is the watermark the recording allows: every source's last batch
 time, the lowest of them (a source that fell silent more than ``lag_s`` before the newest
 one does not hold the others back, as in the service's sequencer).  Batches above it wait
-for data that never comes (they are released at the service's stop).
+for data that never comes (they are released at the service's stop).  A replay counts only
+the batches the service takes: each goes through a sequencer of the service's own
+(:class:`~service.pipeline.sequencer.Sequencer`, default parameters) as the engine's does,
+so a batch it refuses (a time stamp an hour ahead, a repeated ``seq``) moves no end.
 """
 
 from __future__ import annotations
@@ -23,8 +26,11 @@ from typing import Any
 
 import orjson
 
+from service.pipeline.errors import RejectionError
+from service.pipeline.sequencer import RADAR, REFERENCE, Sequencer
 from service.recording.reader import RecordedMessage
 from service.transport.session import json_replies
+from service.wire.keys import parse_key
 
 #: Sources more than this far behind the newest source's last batch do not hold back the end
 #: (the service's ``sequencer.max_lag_s`` default).
@@ -68,12 +74,19 @@ class RecordingEnd:
     """Each input source's last data time in what was replayed (fed message by message)."""
 
     last: dict[str, float] = field(default_factory=dict)
-    #: Each key's highest ``seq`` so far, and the messages whose ``seq`` was not above it: the
-    #: recording's own duplicates, which a service rejects (``duplicate_seq``) however fresh.
-    seq: dict[str, int] = field(default_factory=dict)
+    #: The prefix of the recorded keys; with it (:meth:`add`), only the batches a service's
+    #: sequencer takes count (module docstring).  None: every batch with a time counts.
+    prefix: str | None = None
+    #: The batches the sequencer refused as a repeated ``seq``: the recording's own duplicates
+    #: (a source that sent a batch twice), which a fresh service rejects too.
     duplicates: int = 0
+    _sequencer: Sequencer = field(default_factory=Sequencer, repr=False)
+    _radars: set[str] = field(default_factory=set, repr=False)
 
     def add(self, message: RecordedMessage) -> None:
+        if message.kind == "site" and self.prefix is not None:
+            self._site(message)
+            return
         if message.kind not in ("plots", "ais", "adsb"):
             return
         try:
@@ -81,22 +94,63 @@ class RecordingEnd:
             time_s = float(body["time_s"])
         except (orjson.JSONDecodeError, KeyError, TypeError, ValueError):
             return  # the service rejects it: it moves no clock
+        if self.prefix is not None:
+            self._sequence(message, body, time_s)
+            return
         key = message.key
         self.last[key] = max(time_s, self.last.get(key, time_s))
+
+    def _site(self, message: RecordedMessage) -> None:
+        """A radar's site: its plots are taken from now on, and it counts as known (the
+        sequencer's ``sites_known``, as the engine keeps it)."""
+        assert self.prefix is not None
+        try:
+            radar_id = parse_key(message.key, self.prefix)[1][0]
+        except (ValueError, IndexError):
+            return
+        if radar_id not in self._radars:
+            self._radars.add(radar_id)
+            self._sequencer.announce(radar_id, RADAR)
+            self._sequencer.sites_known = len(self._radars)
+
+    def _sequence(self, message: RecordedMessage, body: object, time_s: float) -> None:
+        """The batch through the sequencer, as the engine takes it (module docstring): a batch
+        refused, held a step ahead or lone (not confirmed) moves no source's confirmed clock."""
+        assert self.prefix is not None
+        try:
+            source_id = parse_key(message.key, self.prefix)[1][0]
+        except (ValueError, IndexError):
+            return
         seq = body.get("seq") if isinstance(body, dict) else None
-        if isinstance(seq, int) and not isinstance(seq, bool):
-            before = self.seq.get(key)
-            if before is not None and seq <= before:
-                self.duplicates += 1
-            else:
-                self.seq[key] = seq
+        if not isinstance(seq, int) or isinstance(seq, bool) or not 0 <= seq < 2**63:
+            return  # (a schema or range error: rejected whole)
+        if message.kind == "plots" and source_id not in self._radars:
+            return  # (unknown_radar)
+        sequencer = self._sequencer
+        try:
+            adm = sequencer.check(source_id, RADAR if message.kind == "plots" else REFERENCE, seq, time_s)
+        except RejectionError as exc:
+            self.duplicates += exc.reason == "duplicate_seq"
+            return
+        sequencer.accept(adm, None)
+        for _ in sequencer.release():  # (nothing is kept: the items are None)
+            pass
+
+    def _clocks(self) -> list[float]:
+        """Each source's last batch time: its confirmed clock in the sequencer (with a prefix),
+        else the newest time :meth:`add` saw."""
+        if self.prefix is None:
+            return list(self.last.values())
+        clocks = (s.confirmed_clock() for s in self._sequencer.sources.values())
+        return [c for c in clocks if c is not None]
 
     def target_s(self, lag_s: float = LAG_S) -> float | None:
         """The data time through which the service can be complete (module docstring)."""
-        if not self.last:
+        clocks = self._clocks()
+        if not clocks:
             return None
-        newest = max(self.last.values())
-        return min(t for t in self.last.values() if t >= newest - lag_s)
+        newest = max(clocks)
+        return min(t for t in clocks if t >= newest - lag_s)
 
 
 def wait_complete(

@@ -107,3 +107,34 @@ def test_a_recording_s_own_duplicates_are_not_blamed_on_the_service(
         capsys.readouterr()
         assert replay_main(args, options) == 1  # a second replay: every batch taken before
         assert "already took this recording" in capsys.readouterr().err
+
+
+def test_a_batch_the_service_refuses_moves_no_end_of_the_replay(
+    tmp_path: Path, router: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One batch stamped far in the future (a radar's clock fault, refused out_of_range by the
+    service) must not become the end the replay waits for: the replay ends when the service is
+    complete through the honest batches, with exit 0, instead of waiting out --wait."""
+    recording = tmp_path / "future.mcap"
+    t0 = 1e9
+    msgs = [(f"{PREFIX}/radar/A/site", site("A"), 1), (f"{PREFIX}/radar/B/site", site("B", lon=121.5), 2)]
+    for i in range(1, 9):
+        msgs += [
+            (f"{PREFIX}/radar/{r}/plots", plots(r, i, t0 + 2.0 * i), 10 + 2 * i + k)
+            for k, r in enumerate("AB")
+        ]
+        if i == 4:
+            msgs += [(f"{PREFIX}/radar/A/plots", plots("A", 100, 1e11), 19)]  # the fault
+    foreign_mcap(recording, msgs)
+    options = ZenohOptions(mode="client", connect=(router,))
+    args = _parser(add_replay_arguments).parse_args([str(recording), "--speed", "0", "--wait", "20"])
+    with running_service(router):
+        probe = open_session(options)
+        try:
+            wait_subscribed(probe, f"{PREFIX}/radar/A/plots")
+        finally:
+            probe.close()
+        assert replay_main(args, options) == 0
+    err = capsys.readouterr().err
+    assert "1 out_of_range" in err, err
+    assert "the service's outputs are complete through data time" in err
