@@ -487,7 +487,7 @@ class PairCorrelator:
             if self.registered:
                 # the cap is per scan: an update after several scans (a settled pair) takes as
                 # many rows as one per scan would have taken, so registration learns as fast
-                scan = max(self.site_a.scan_period_s, self.site_b.scan_period_s if self.site_b else 0.0)
+                scan = self._slower_scan_s()
                 scans = (time_s - self.time_s) / scan if np.isfinite(self.time_s) and scan > 0 else 1.0
                 cap = round(prm.registration.registered_rows_per_update * max(1.0, scans))
             self.last_rows = self.memory.add(
@@ -592,6 +592,10 @@ class PairCorrelator:
             return np.ones(len(dec), dtype=bool)
         return quality_clear(*_qualities(dec, a, b), m)
 
+    def _slower_scan_s(self) -> float:
+        """The scan period of the slower of the pair's radars (a reference source has none)."""
+        return max(self.site_a.scan_period_s, self.site_b.scan_period_s if self.site_b else 0.0)
+
     def _lone_apart(
         self,
         dec: Decisions,
@@ -614,8 +618,7 @@ class PairCorrelator:
         if rows.size == 0:
             return dec
         svd = self.params.svd
-        scan = max(self.site_a.scan_period_s, self.site_b.scan_period_s if self.site_b else 0.0)
-        if time_s < self.first_s + svd.lone_after_scans * scan:
+        if time_s < self.first_s + svd.lone_after_scans * self._slower_scan_s():
             out = rows
         else:
             (table_a, keys_a), (table_b, keys_b) = tracks_a, tracks_b
@@ -625,11 +628,12 @@ class PairCorrelator:
             out = rows[~alone]
         if out.size == 0:
             return dec
-        accepted, reason, extras = dec.accepted.copy(), dec.reason.copy(), dict(dec.extras)
+        accepted, reason, cost = dec.accepted.copy(), dec.reason.copy(), dec.cost.copy()
         accepted[out] = False
         reason[out] = Reason.TOO_FEW_NEIGHBOURS
-        extras["stage"] = np.where(np.isin(np.arange(len(dec)), out), 0.0, stage)
-        return replace(dec, accepted=accepted, reason=reason, extras=extras)
+        cost[out] = np.inf  # (undecided, as the method leaves such a candidate)
+        extras = {**dec.extras, "stage": np.where(np.isin(np.arange(len(dec)), out), 0.0, stage)}
+        return replace(dec, accepted=accepted, reason=reason, cost=cost, extras=extras)
 
     def _clear(
         self,

@@ -190,11 +190,13 @@ class SvdTopologyParams:
     #: Before registration, a candidate the topology cannot decide (too few neighbours) whose
     #: two tracks fly *alone* is accepted (:func:`lone_candidates`): it is the only candidate
     #: of each of its tracks within the candidate gate, no other track of either radar lies
-    #: within ``lone_radius_m`` of its own, and their velocities agree (the velocity gate
-    #: above).  Under the gate's own assumption (the biases displace a target by less than
-    #: ``candidates.gate_m``) such an aircraft has no other possible counterpart; without the
-    #: rule, aircraft further apart than the neighbourhood's ``max_radius_m`` (thin traffic,
-    #: the ends of an overlap) are never paired, and no registration can start from them.
+    #: within ``lone_radius_m`` of its own, its velocities passed the velocity gate above, and
+    #: the topology is no evidence against it (two neighbourhoods of ``min_matched`` or more
+    #: with not one neighbour in common are).  Under the gate's own assumption (the biases
+    #: displace a target by less than ``candidates.gate_m``) such an aircraft has no other
+    #: possible counterpart; without the rule, aircraft further apart than the
+    #: neighbourhood's ``max_radius_m`` (thin traffic, the ends of an overlap) are never
+    #: paired, and no registration can start from them.
     #: A lone decision is never confirmed at its first look (:mod:`.prompt`): it enters the
     #: book's M of N like any other.  False: such candidates stay undecided.
     lone_pairs: bool = True
@@ -215,7 +217,8 @@ class SvdTopologyParams:
 
 
 #: ``Decisions.extras["stage"]`` of a lone decision (:func:`lone_candidates`): before the
-#: topology's 1 (its basis on the wire is the topology: a neighbourhood empty on both sides).
+#: topology's 1 (its basis on the wire is the topology: too few neighbours to fit, and the
+#: candidate the only one of its two tracks).
 LONE_STAGE = 0.5
 
 
@@ -648,19 +651,30 @@ def lone_candidates(
     b: PredictedTracks,
     ia: NDArray[np.intp],
     ib: NDArray[np.intp],
-    m0: FloatArray,
+    matched: NDArray[np.int64],
     prm: SvdTopologyParams,
 ) -> BoolArray:
     """Which candidates ``(ia[k], ib[k])`` fly alone (``SvdTopologyParams.lone_pairs``): each
     track the other's only candidate within ``candidates.gate_m`` (among every track of the
     other radar, not only the update's references), no other track of its own radar within
-    ``lone_radius_m``, and velocities that pass the rotation-tolerant velocity gate.  Each
-    count includes the track itself (its own radar) or its candidate (the other's)."""
+    ``lone_radius_m``, and a topology that is no evidence against them: ``matched[k]`` (the
+    neighbours its fit paired) at least one, or fewer than ``min_matched`` neighbours on one
+    side (nothing to compare).  Two sequences of ``min_matched`` or more with not one
+    neighbour in common are two different neighbourhoods: two aircraft, each seen by one
+    radar.  Each count includes the track itself (its own radar) or its candidate (the
+    other's).  The velocities passed the velocity gate before (``velocity_prefilter_alpha``)."""
     gate, radius = prm.candidates.gate_m, prm.lone_radius_m
     pa, pb = a.position[ia], b.position[ib]
     ok = (count_within(b.position, pa, gate) == 1) & (count_within(a.position, pb, gate) == 1)
     ok &= (count_within(a.position, pa, radius) == 1) & (count_within(b.position, pb, radius) == 1)
-    return np.asarray(ok & _velocity_compatible(a, b, ia, ib, m0, prm))
+    rows = np.flatnonzero(ok & (matched == 0))
+    if rows.size:  # (few: the neighbourhoods of these tracks only)
+        ua, ra = np.unique(ia[rows], return_inverse=True)
+        ub, rb = np.unique(ib[rows], return_inverse=True)
+        na = (neighbourhoods(a.enu, prm.topology, rows=ua)[ua] >= 0).sum(axis=1)[ra]
+        nb = (neighbourhoods(b.enu, prm.topology, rows=ub)[ub] >= 0).sum(axis=1)[rb]
+        ok[rows] = np.minimum(na, nb) < prm.min_matched
+    return ok
 
 
 def _velocity_compatible(
@@ -758,14 +772,19 @@ class SvdTopologyCorrelator(CorrelationMethod):
             cost = np.where(passed, q - dof, cost)
             statistic = np.where(passed, q / dof, statistic)
             stage = np.where(passed, 2.0, stage)
-        if prm.lone_pairs:
+        matched = full(res.matched, 0)
+        if prm.lone_pairs and not context.registered:
             open_ = np.flatnonzero(~accepted & (reason == Reason.TOO_FEW_NEIGHBOURS))
             if open_.size:
-                hit = open_[lone_candidates(a, b, ia[open_], ib[open_], m0, prm)]
+                hit = open_[lone_candidates(a, b, ia[open_], ib[open_], matched[open_], prm)]
                 accepted[hit] = True
                 reason[hit] = Reason.ACCEPTED
-                cost[hit] = 0.0  # (no statistic: nothing was fitted or tested but the velocities)
+                # (no test statistic: the decision rests on the candidate's being the only one)
+                cost[hit] = 0.0
                 stage[hit] = LONE_STAGE
+        # A stage 2 decision used no topology fit, a lone one no accepted fit: no rotation
+        # weight or scale to report; ``neighbors`` stays what the fit matched (0 in stage 2).
+        no_fit = (stage >= 2) | (stage == LONE_STAGE)
         dec = Decisions.build(
             ia,
             ib,
@@ -773,10 +792,9 @@ class SvdTopologyCorrelator(CorrelationMethod):
             reason=reason.astype(np.int8),
             cost=cost,
             statistic=statistic,
-            # A stage 2 decision used no topology fit: no rotation weight or scale to report.
-            rotation_weight=np.where(stage >= 2, np.nan, full(res.rotation_weight, np.nan)),
-            scale=np.where(stage >= 2, np.nan, full(res.scale, np.nan)),
-            neighbors=np.where(stage >= 2, 0, full(res.matched, 0)),
+            rotation_weight=np.where(no_fit, np.nan, full(res.rotation_weight, np.nan)),
+            scale=np.where(no_fit, np.nan, full(res.scale, np.nan)),
+            neighbors=np.where(stage >= 2, 0, matched),
         )
         dec.extras["stage"] = stage
         dec.extras["yaw_rad"] = full(res.yaw_rad, np.nan)

@@ -253,6 +253,7 @@ def replay_main(
             return 0
         rejections = RejectionWatch(session, prefix)
         end = RecordingEnd(prefix=prefix)
+        own = 0  # the recording's own repeated seq (--loop sends it again: its repeats are ours)
         try:
             if args.wait_service > 0:
                 _wait_for_service(session, prefix, args.wait_service, stop)
@@ -273,7 +274,8 @@ def replay_main(
             # After the wait: a service still working through its queue (a replay at --speed 0)
             # rejects the last messages after the replay has sent them; done, it has said all.
             rejections.settle()
-            for line in rejections.lines(end.duplicates):
+            own = 0 if options.loop else end.duplicates
+            for line in rejections.lines(own):
                 print(line, file=sys.stderr, flush=True)
         finally:
             rejections.close()
@@ -281,7 +283,7 @@ def replay_main(
     except (RecordingError, FileNotFoundError, IsADirectoryError, PermissionError, ValueError) as exc:
         print(f"topofusion replay: {exc}", file=sys.stderr, flush=True)
         return 2
-    return 1 if rejections.taken_before(end.duplicates) or not complete else 0
+    return 1 if rejections.taken_before(own) or not complete else 0
 
 
 def _wait_for_service(session: Any, prefix: str, wait_s: float, stop: threading.Event) -> None:

@@ -103,13 +103,16 @@ def test_lone_aircraft_are_paired_before_any_registration(lone: bool) -> None:
         assert confirmed[max(confirmed)] == {(f"a{i}", f"b{i}") for i in range(1, len(truth))}
         waited = [t for t in confirmed if t >= wait_s]
         assert waited and not any(confirmed[t] for t in confirmed if t <= waited[0])
+        for p in corr.pairs():  # as published: the topology's basis, no fit to report
+            assert p.basis == "topology" and p.neighbors == 0, p
+            assert np.isnan(p.rotation_weight) and np.isnan(p.scale), p
     else:
         assert all(c == set() for c in confirmed.values())
 
 
 def test_lone_rule_needs_agreeing_velocities() -> None:
     """An aircraft alone in both pictures whose two tracks fly different headings is not one
-    aircraft: not paired."""
+    aircraft: not paired (the velocity gate, before any decision)."""
     a, b, truth, _, vel = _lone_scene(3)
     north = a.rotation[:, 1]
     corr = PairCorrelator("svd-topology", a, b)
@@ -135,7 +138,59 @@ def test_lone_candidates_match_the_plain_form() -> None:
         gate, radius = 10_000.0, 20_000.0
         prm = replace(SvdTopologyParams(), lone_radius_m=radius)
         ia, ib, _ = candidate_pairs(pa.position, pb.position, gate)
-        got = lone_candidates(pa, pb, ia, ib, b.rotation.T @ a.rotation, prm)
+        # (each with a neighbour its topology fit paired: the geometry alone decides)
+        got = lone_candidates(pa, pb, ia, ib, np.ones(len(ia), dtype=np.int64), prm)
         want = lone_reference(pa.position, pb.position, list(zip(ia, ib, strict=True)), gate, radius)
-        assert got.tolist() == want  # (no velocities: the velocity gate passes every one)
+        assert got.tolist() == want
         assert any(want) and not all(want)
+
+
+def _run_pair(seen_a: np.ndarray, seen_b: np.ndarray, vel: np.ndarray, tentative_a: int | None = None) -> set:
+    """The confirmed pairs after 14 updates a scan apart (past the lone rule's wait) of radar A
+    seeing ``seen_a`` and B ``seen_b`` (row ``tentative_a`` of A tentative), not registered."""
+    a, b = make_sites()
+    corr = PairCorrelator("svd-topology", a, b)
+    for k in range(14):
+        t = 100.0 + a.scan_period_s * k
+        ta = _table(a, seen_a + vel * t, "a", vel, time_s=t)
+        if tentative_a is not None:
+            confirmed = np.ones(len(seen_a), dtype=bool)
+            confirmed[tentative_a] = False
+            ta = replace(ta, confirmed=confirmed)
+        corr.update(ta, _table(b, seen_b + vel * t, "b", vel, bias=-0.15, time_s=t), t)
+    assert not corr.registered
+    return {(p.track_a, p.track_b) for p in corr.pairs() if p.status == "confirmed"}
+
+
+def test_two_neighbourhoods_with_nothing_in_common_are_not_one_lone_aircraft() -> None:
+    """Aircraft X seen by A only and Y, 6 km from it at its velocity, by B only: each is the
+    other's only candidate, but each radar also sees two aircraft 25-45 km away that the other
+    does not, so the topology compares two neighbourhoods and finds not one neighbour in
+    common: evidence against the pair, which the lone rule must not override (nor can it
+    tell X seen by both radars there: the rule's price).  With one aircraft 20 km away that
+    both radars see, X seen by both is paired (the fit pairs that neighbour, too few to
+    decide) and X against Y is not (6 km off, the neighbour does not pair)."""
+    a, b = make_sites()
+    r0 = sample_references(np.random.default_rng(7), a, b, 400)[0]
+    east, north = a.rotation[:, 0], a.rotation[:, 1]
+    only_a = [r0 - 25_000 * north, r0 - 40_000 * north + 5_000 * east]
+    only_b = [r0 + 30_000 * north, r0 + 45_000 * north - 5_000 * east]
+    vel = 220.0 * east
+    x, y = r0, r0 + 6_000 * north
+    assert ("a0", "b0") not in _run_pair(np.array([x, *only_a]), np.array([y, *only_b]), vel)
+    assert ("a0", "b0") not in _run_pair(np.array([x, *only_a]), np.array([x, *only_b]), vel)
+    both = r0 + 20_000 * east
+    assert ("a0", "b0") not in _run_pair(np.array([x, both, *only_a]), np.array([y, both, *only_b]), vel)
+    assert ("a0", "b0") in _run_pair(np.array([x, both, *only_a]), np.array([x, both, *only_b]), vel)
+
+
+def test_a_tentative_track_near_a_lone_one_holds_its_pair_back() -> None:
+    """The method sees confirmed tracks only: a tentative track of radar A 6 km from a lone
+    aircraft's A track (a second aircraft being confirmed) keeps the pair undecided; the other
+    lone aircraft are paired."""
+    _, _, truth, _, vel = _lone_scene(3)
+    a, _ = make_sites()
+    seen_a = np.concatenate([truth, truth[:1] + 6_000.0 * a.rotation[:, 1]])
+    held = _run_pair(seen_a, truth, vel, tentative_a=len(truth))
+    assert held == {(f"a{i}", f"b{i}") for i in range(1, len(truth))}
+    assert ("a0", "b0") in _run_pair(truth, truth, vel)  # without it, paired
