@@ -20,6 +20,16 @@ def _parser(add: object) -> argparse.ArgumentParser:
     return p
 
 
+def _wait_listening(options: ZenohOptions) -> None:
+    """Until the service (started) subscribes to radar A's plots: a replay sent before it
+    would be lost on nobody."""
+    probe = open_session(options)
+    try:
+        wait_subscribed(probe, f"{PREFIX}/radar/A/plots")
+    finally:
+        probe.close()
+
+
 def test_recorder_started_before_its_router_waits_for_it(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -65,11 +75,7 @@ def test_a_second_replay_into_the_same_service_says_it_was_rejected(
     options = ZenohOptions(mode="client", connect=(router,))
     args = _parser(add_replay_arguments).parse_args([str(recording), "--speed", "0"])
     with running_service(router) as svc:
-        probe = open_session(options)
-        try:
-            wait_subscribed(probe, f"{PREFIX}/radar/A/plots")
-        finally:
-            probe.close()
+        _wait_listening(options)
         assert replay_main(args, options) == 0
         wait_for(lambda: svc.http.get("/status").json()["radars"][0]["batches"] == 5)
         capsys.readouterr()
@@ -94,11 +100,7 @@ def test_a_recording_s_own_duplicates_are_not_blamed_on_the_service(
     options = ZenohOptions(mode="client", connect=(router,))
     args = _parser(add_replay_arguments).parse_args([str(recording), "--speed", "0", "--wait", "30"])
     with running_service(router):
-        probe = open_session(options)
-        try:
-            wait_subscribed(probe, f"{PREFIX}/radar/A/plots")
-        finally:
-            probe.close()
+        _wait_listening(options)
         assert replay_main(args, options) == 0
         err = capsys.readouterr().err
         assert "the service rejected messages of this replay: 1 duplicate_seq" in err, err
@@ -129,11 +131,7 @@ def test_a_batch_the_service_refuses_moves_no_end_of_the_replay(
     options = ZenohOptions(mode="client", connect=(router,))
     args = _parser(add_replay_arguments).parse_args([str(recording), "--speed", "0", "--wait", "20"])
     with running_service(router):
-        probe = open_session(options)
-        try:
-            wait_subscribed(probe, f"{PREFIX}/radar/A/plots")
-        finally:
-            probe.close()
+        _wait_listening(options)
         assert replay_main(args, options) == 0
     err = capsys.readouterr().err
     assert "1 out_of_range" in err, err
