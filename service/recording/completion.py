@@ -31,6 +31,7 @@ from service.pipeline.sequencer import RADAR, REFERENCE, Sequencer
 from service.recording.reader import RecordedMessage
 from service.transport.session import json_replies
 from service.wire.keys import parse_key
+from service.wire.models import MAX_TIME_S
 
 #: Sources more than this far behind the newest source's last batch do not hold back the end
 #: (the service's ``sequencer.max_lag_s`` default).
@@ -124,6 +125,8 @@ class RecordingEnd:
         seq = body.get("seq") if isinstance(body, dict) else None
         if not isinstance(seq, int) or isinstance(seq, bool) or not 0 <= seq < 2**63:
             return  # (a schema or range error: rejected whole)
+        if not 0.0 <= time_s <= MAX_TIME_S:  # (NaN too)
+            return
         if message.kind == "plots" and source_id not in self._radars:
             return  # (unknown_radar)
         sequencer = self._sequencer

@@ -9,9 +9,29 @@ from service.recording.completion import RecordingEnd, merged_status, wait_compl
 from service.recording.reader import RecordedMessage
 
 
-def _message(key: str, kind: str, time_s: float) -> RecordedMessage:
-    body = json.dumps({"time_s": time_s}).encode()
+def _message(key: str, kind: str, time_s: float, seq: int = 0) -> RecordedMessage:
+    body = json.dumps({"time_s": time_s, "seq": seq}).encode()
     return RecordedMessage(key, kind, body, 0, 0, 0)  # type: ignore[arg-type]
+
+
+def test_with_a_prefix_only_the_batches_the_service_takes_count() -> None:
+    """A replay's end follows the service's sequencer: a batch an hour ahead of the others'
+    clock, one beyond the contract's time range, a repeated seq, plots of a radar whose site
+    was not sent: none moves the end; the repeated seq is counted as the recording's own."""
+    end = RecordingEnd(prefix="f")
+    for r in "AB":
+        end.add(RecordedMessage(f"f/radar/{r}/site", "site", b"{}", 0, 0, 0))
+    t0 = 1.7e9
+    for seq, t in enumerate((0.0, 4.0, 8.0), start=1):
+        for r in "AB":
+            end.add(_message(f"f/radar/{r}/plots", "plots", t0 + t, seq))
+        if seq == 2:
+            end.add(_message("f/radar/A/plots", "plots", t0 + 3_600.0, 9))  # an hour ahead
+            end.add(_message("f/radar/A/plots", "plots", 1e11, 10))  # beyond the time range
+            end.add(_message("f/radar/B/plots", "plots", t0 + 4.0, 2))  # sent twice
+            end.add(_message("f/radar/C/plots", "plots", t0 + 900.0, 1))  # no site
+    assert end.target_s() == t0 + 8.0
+    assert end.duplicates == 1
 
 
 def test_the_end_is_the_lowest_last_time_of_the_sources_still_reporting() -> None:
