@@ -620,20 +620,41 @@ class PairCorrelator:
         svd = self.params.svd
         if time_s < self.first_s + svd.lone_after_scans * self._slower_scan_s():
             out = rows
-        else:
-            (table_a, keys_a), (table_b, keys_b) = tracks_a, tracks_b
-            gate = svd.candidates.gate_m
-            alone = isolated(table_a, self.site_a, time_s, a.keys[dec.index_a[rows]], gate, 0.0, keys_a)
-            alone &= isolated(table_b, self.site_b, time_s, b.keys[dec.index_b[rows]], gate, 0.0, keys_b)
+        else:  # (velocity 0: only a tentative track counts as a neighbour)
+            alone = self._isolated(dec, rows, a, b, tracks_a, tracks_b, time_s, svd.candidates.gate_m, 0.0)
             out = rows[~alone]
         if out.size == 0:
             return dec
         accepted, reason, cost = dec.accepted.copy(), dec.reason.copy(), dec.cost.copy()
+        stage = stage.copy()
         accepted[out] = False
         reason[out] = Reason.TOO_FEW_NEIGHBOURS
         cost[out] = np.inf  # (undecided, as the method leaves such a candidate)
-        extras = {**dec.extras, "stage": np.where(np.isin(np.arange(len(dec)), out), 0.0, stage)}
+        stage[out] = 0.0
+        extras = {**dec.extras, "stage": stage}
         return replace(dec, accepted=accepted, reason=reason, cost=cost, extras=extras)
+
+    def _isolated(
+        self,
+        dec: Decisions,
+        rows: NDArray[np.intp],
+        a: PredictedTracks,
+        b: PredictedTracks,
+        tracks_a: tuple[TrackTable, NDArray[np.int64]],
+        tracks_b: tuple[TrackTable, NDArray[np.int64]],
+        time_s: float,
+        radius_m: float,
+        velocity_mps: float,
+    ) -> np.ndarray:
+        """Per candidate ``rows`` of ``dec``: are both its tracks isolated within their own
+        radar's table (:func:`.prompt.isolated`; ``tracks_*``: each table and its track keys)?
+        Each track is looked at once however many candidates it is in."""
+        ua, inv_a = np.unique(dec.index_a[rows], return_inverse=True)
+        ub, inv_b = np.unique(dec.index_b[rows], return_inverse=True)
+        (table_a, keys_a), (table_b, keys_b) = tracks_a, tracks_b
+        iso_a = isolated(table_a, self.site_a, time_s, a.keys[ua], radius_m, velocity_mps, keys_a)
+        iso_b = isolated(table_b, self.site_b, time_s, b.keys[ub], radius_m, velocity_mps, keys_b)
+        return np.asarray(iso_a[inv_a] & iso_b[inv_b])
 
     def _clear(
         self,
@@ -657,16 +678,9 @@ class PairCorrelator:
         clear &= self._quality_ok(dec, a, b)
         rows = np.flatnonzero(clear)
         if rows.size:
-            ua, inv_a = np.unique(dec.index_a[rows], return_inverse=True)
-            ub, inv_b = np.unique(dec.index_b[rows], return_inverse=True)
-            (table_a, keys_a), (table_b, keys_b) = tracks_a, tracks_b
-            iso_a = isolated(
-                table_a, self.site_a, time_s, a.keys[ua], prm.isolation_m, prm.isolation_velocity_mps, keys_a
+            clear[rows] = self._isolated(
+                dec, rows, a, b, tracks_a, tracks_b, time_s, prm.isolation_m, prm.isolation_velocity_mps
             )
-            iso_b = isolated(
-                table_b, self.site_b, time_s, b.keys[ub], prm.isolation_m, prm.isolation_velocity_mps, keys_b
-            )
-            clear[rows] = iso_a[inv_a] & iso_b[inv_b]
         return clear
 
     def decide_new(

@@ -104,12 +104,8 @@ class RecordingEnd:
     def _site(self, message: RecordedMessage) -> None:
         """A radar's site: its plots are taken from now on, and it counts as known (the
         sequencer's ``sites_known``, as the engine keeps it)."""
-        assert self.prefix is not None
-        try:
-            radar_id = parse_key(message.key, self.prefix)[1][0]
-        except (ValueError, IndexError):
-            return
-        if radar_id not in self._radars:
+        radar_id = self._source_id(message)
+        if radar_id is not None and radar_id not in self._radars:
             self._radars.add(radar_id)
             self._sequencer.announce(radar_id, RADAR)
             self._sequencer.sites_known = len(self._radars)
@@ -117,10 +113,8 @@ class RecordingEnd:
     def _sequence(self, message: RecordedMessage, body: object, time_s: float) -> None:
         """The batch through the sequencer, as the engine takes it (module docstring): a batch
         refused, held a step ahead or lone (not confirmed) moves no source's confirmed clock."""
-        assert self.prefix is not None
-        try:
-            source_id = parse_key(message.key, self.prefix)[1][0]
-        except (ValueError, IndexError):
+        source_id = self._source_id(message)
+        if source_id is None:
             return
         seq = body.get("seq") if isinstance(body, dict) else None
         if not isinstance(seq, int) or isinstance(seq, bool) or not 0 <= seq < 2**63:
@@ -138,6 +132,12 @@ class RecordingEnd:
         sequencer.accept(adm, None)
         for _ in sequencer.release():  # (nothing is kept: the items are None)
             pass
+
+    def _source_id(self, message: RecordedMessage) -> str | None:
+        """The radar or source id in the message's key (None: a key of no source)."""
+        assert self.prefix is not None
+        ids = parse_key(message.key, self.prefix)[1]
+        return ids[0] if ids else None
 
     def _clocks(self) -> list[float]:
         """Each source's last batch time: its confirmed clock in the sequencer (with a prefix),
