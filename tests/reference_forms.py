@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
 from service.correlation.assignment import _FORBIDDEN
-from service.correlation.base import BoolArray, FloatArray
+from service.correlation.base import BoolArray, FloatArray, PredictedTracks
 from service.correlation.gls import N_PARAMS
 from service.correlation.topology import TopologyParams
 from service.correlation.umeyama import yaw_matrix
@@ -494,19 +494,46 @@ def track_keys_reference(tables: list[list[str]], limit: int) -> list[list[int]]
 
 
 def lone_reference(
-    pos_a: FloatArray, pos_b: FloatArray, pairs: list[tuple[int, int]], gate_m: float, radius_m: float
+    a: PredictedTracks,
+    b: PredictedTracks,
+    pairs: list[tuple[int, int]],
+    gate_m: float,
+    radius_m: float,
+    max_rotation_deg: float,
+    alpha: float,
 ) -> list[bool]:
-    """The geometry of :func:`service.correlation.svd_topology.lone_candidates` by a loop (its
-    velocity gate left out): each track the other's only candidate within ``gate_m``, and no
-    other track of its own radar within ``radius_m`` (3-D distances)."""
+    """The geometry of :func:`service.correlation.svd_topology.lone_candidates` by a loop:
+    each track the other's only candidate within ``gate_m``, and no other track of its own
+    radar within ``radius_m`` (3-D distances), counting only tracks whose velocity could be
+    the track's own (each velocity in the site's ENU frame, A's turned into B's orientation:
+    the speeds' difference and the heading difference beyond ``max_rotation_deg``, against the
+    two velocity covariances' mean horizontal variance, chi-square with 2 dof at ``alpha``)."""
+    assert a.site is not None and b.site is not None
+    m0 = b.site.rotation.T @ a.site.rotation
+    limit = float(scipy.stats.chi2.isf(alpha, 2))
 
-    def near(points: FloatArray, p: FloatArray, r: float) -> int:
-        return sum(float(np.sqrt(np.sum((q - p) ** 2))) <= r for q in points)
+    def enu_velocity(t: PredictedTracks, i: int) -> FloatArray:
+        v = t.enu_velocity[i]
+        return m0 @ v if t is a else v
+
+    def same(s: PredictedTracks, i: int, t: PredictedTracks, j: int) -> bool:
+        u, w = enu_velocity(s, i), enu_velocity(t, j)
+        su, sw = float(np.hypot(u[0], u[1])), float(np.hypot(w[0], w[1]))
+        turn = abs(np.arctan2(u[0] * w[1] - u[1] * w[0], u[0] * w[0] + u[1] * w[1]))
+        excess = max(turn - np.radians(max_rotation_deg), 0.0) * 0.5 * (su + sw)
+        var = (np.trace(s.vel_cov[i]) + np.trace(t.vel_cov[j])) / 3.0
+        return bool((su - sw) ** 2 + excess**2 <= limit * var)
+
+    def rivals(s: PredictedTracks, i: int, t: PredictedTracks, r: float) -> int:
+        return sum(
+            float(np.sqrt(np.sum((t.position[j] - s.position[i]) ** 2))) <= r and same(s, i, t, j)
+            for j in range(len(t))
+        )
 
     return [
-        near(pos_b, pos_a[i], gate_m) == 1
-        and near(pos_a, pos_b[j], gate_m) == 1
-        and near(pos_a, pos_a[i], radius_m) == 1
-        and near(pos_b, pos_b[j], radius_m) == 1
+        rivals(a, i, b, gate_m) == 1
+        and rivals(b, j, a, gate_m) == 1
+        and rivals(a, i, a, radius_m) == 1
+        and rivals(b, j, b, radius_m) == 1
         for i, j in pairs
     ]

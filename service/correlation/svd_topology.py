@@ -190,7 +190,8 @@ class SvdTopologyParams:
     #: Before registration, a candidate the topology cannot decide (too few neighbours) whose
     #: two tracks fly *alone* is accepted (:func:`lone_candidates`): it is the only candidate
     #: of each of its tracks within the candidate gate, no other track of either radar lies
-    #: within ``lone_radius_m`` of its own, its velocities passed the velocity gate above, and
+    #: within ``lone_radius_m`` of its own (counting only tracks the velocity gate above lets
+    #: be the same aircraft: one flying across is no rival), its velocities passed that gate, and
     #: the topology is no evidence against it (two neighbourhoods of ``min_matched`` or more
     #: with not one neighbour in common are).  Under the gate's own assumption (the biases
     #: displace a target by less than ``candidates.gate_m``) such an aircraft has no other
@@ -657,16 +658,19 @@ def lone_candidates(
     """Which candidates ``(ia[k], ib[k])`` fly alone (``SvdTopologyParams.lone_pairs``): each
     track the other's only candidate within ``candidates.gate_m`` (among every track of the
     other radar, not only the update's references), no other track of its own radar within
-    ``lone_radius_m``, and a topology that is no evidence against them: ``matched[k]`` (the
+    ``lone_radius_m``, each counting only tracks of a velocity that could be the track's own
+    (:func:`_rivals`), and a topology that is no evidence against them: ``matched[k]`` (the
     neighbours its fit paired) at least one, or fewer than ``min_matched`` neighbours on one
     side (nothing to compare).  Two sequences of ``min_matched`` or more with not one
     neighbour in common are two different neighbourhoods: two aircraft, each seen by one
     radar.  Each count includes the track itself (its own radar) or its candidate (the
     other's).  The velocities passed the velocity gate before (``velocity_prefilter_alpha``)."""
     gate, radius = prm.candidates.gate_m, prm.lone_radius_m
-    pa, pb = a.position[ia], b.position[ib]
-    ok = (count_within(b.position, pa, gate) == 1) & (count_within(a.position, pb, gate) == 1)
-    ok &= (count_within(a.position, pa, radius) == 1) & (count_within(b.position, pb, radius) == 1)
+    assert a.site is not None and b.site is not None
+    m0 = b.site.rotation.T @ a.site.rotation  # Eq. (3): A's orientation into B's
+    eye = np.eye(3)
+    ok = (_rivals(b, a, ia, gate, m0, prm) == 1) & (_rivals(a, b, ib, gate, m0.T, prm) == 1)
+    ok &= (_rivals(a, a, ia, radius, eye, prm) == 1) & (_rivals(b, b, ib, radius, eye, prm) == 1)
     rows = np.flatnonzero(ok & (matched == 0))
     if rows.size:  # (few: the neighbourhoods of these tracks only)
         ua, ra = np.unique(ia[rows], return_inverse=True)
@@ -675,6 +679,28 @@ def lone_candidates(
         nb = (neighbourhoods(b.enu, prm.topology, rows=ub)[ub] >= 0).sum(axis=1)[rb]
         ok[rows] = np.minimum(na, nb) < prm.min_matched
     return ok
+
+
+def _rivals(
+    points: PredictedTracks,
+    query: PredictedTracks,
+    rows: NDArray[np.intp],
+    radius_m: float,
+    m0: FloatArray,
+    prm: SvdTopologyParams,
+) -> NDArray[np.intp]:
+    """Per track ``rows`` of ``query``: the tracks of ``points`` within ``radius_m`` (3-D) of it
+    that could be the same aircraft, by the rotation-tolerant velocity gate
+    (``velocity_prefilter_alpha``; ``m0`` turns ``query``'s ENU orientation into ``points``').
+    A track flying another velocity is no rival: the gate already keeps it out of every
+    candidate of the track, so two aircraft crossing, or passing, a few kilometres apart are
+    each still alone.  A track whose velocity is uncertain (young) passes the gate easily,
+    and so is counted."""
+    if prm.velocity_prefilter_alpha <= 0:
+        return count_within(points.position, query.position[rows], radius_m)
+    qi, pj, _ = candidate_pairs(query.position[rows], points.position, radius_m)
+    same = _velocity_compatible(query, points, rows[qi], pj, m0, prm)
+    return np.bincount(qi[same], minlength=len(rows)).astype(np.intp)
 
 
 def _velocity_compatible(

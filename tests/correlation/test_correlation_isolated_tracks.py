@@ -125,14 +125,19 @@ def test_lone_rule_needs_agreeing_velocities() -> None:
 
 def test_lone_candidates_match_the_plain_form() -> None:
     """The vectorised geometry of the lone rule against a loop, in a scene with lone aircraft,
-    pairs and crowds; with few tracks (all distances) and with many (a k-d tree)."""
+    pairs and crowds, half of them flying north and half east (a track of another velocity is
+    no rival); with few tracks (all distances) and with many (a k-d tree)."""
     a, b = make_sites()
     rng = np.random.default_rng(11)
+    east, north = a.rotation[:, 0], a.rotation[:, 1]
+    wants, ones = [], []
     for n in (12, 400):
         base = sample_references(rng, a, b, n)
         pos_a = base + rng.normal(0.0, 3_000.0, base.shape)
         pos_b = base + rng.normal(0.0, 3_000.0, base.shape)
-        ta, tb = _table(a, pos_a, "a"), _table(b, pos_b, "b")
+        heading = rng.integers(0, 2, n)[:, None]
+        vel = 220.0 * np.where(heading == 1, east, north)
+        ta, tb = _table(a, pos_a, "a", vel), _table(b, pos_b, "b", vel)
         pa = predict_tracks(ta, a, 0.0)
         pb = predict_tracks(tb, b, 0.0)
         gate, radius = 10_000.0, 20_000.0
@@ -140,9 +145,16 @@ def test_lone_candidates_match_the_plain_form() -> None:
         ia, ib, _ = candidate_pairs(pa.position, pb.position, gate)
         # (each with a neighbour its topology fit paired: the geometry alone decides)
         got = lone_candidates(pa, pb, ia, ib, np.ones(len(ia), dtype=np.int64), prm)
-        want = lone_reference(pa.position, pb.position, list(zip(ia, ib, strict=True)), gate, radius)
+        pairs = list(zip(ia.tolist(), ib.tolist(), strict=True))
+        want = lone_reference(
+            pa, pb, pairs, gate, radius, prm.max_bias_rotation_deg, prm.velocity_prefilter_alpha
+        )
         assert got.tolist() == want
-        assert any(want) and not all(want)
+        wants += want
+        # the same geometry if every velocity could be every other's
+        ones += lone_reference(pa, pb, pairs, gate, radius, 180.0, 1e-300)
+    assert any(wants) and not all(wants)
+    assert wants != ones  # (the velocities decided some)
 
 
 def _run_pair(seen_a: np.ndarray, seen_b: np.ndarray, vel: np.ndarray, tentative_a: int | None = None) -> set:
@@ -182,6 +194,25 @@ def test_two_neighbourhoods_with_nothing_in_common_are_not_one_lone_aircraft() -
     both = r0 + 20_000 * east
     assert ("a0", "b0") not in _run_pair(np.array([x, both, *only_a]), np.array([y, both, *only_b]), vel)
     assert ("a0", "b0") in _run_pair(np.array([x, both, *only_a]), np.array([x, both, *only_b]), vel)
+
+
+@pytest.mark.parametrize("crossing", [True, False])
+def test_two_aircraft_a_few_km_apart_are_each_alone_when_their_velocities_differ(crossing: bool) -> None:
+    """Two aircraft 5 km apart (2-8 km through the run), both seen by both radars, no third
+    within the topology's reach (one neighbour: too few for a fit).  Flying headings 30 deg
+    apart, each track's only velocity-compatible candidate is its aircraft's other track and
+    no track of its own radar flies with it: both are paired by the lone rule.  Flying one
+    velocity, either track of one radar could be either aircraft's before a registration:
+    neither pair."""
+    a, b = make_sites()
+    r0 = sample_references(np.random.default_rng(7), a, b, 400)[0]
+    east, north = a.rotation[:, 0], a.rotation[:, 1]
+    turned = np.cos(np.radians(30.0)) * east + np.sin(np.radians(30.0)) * north
+    vel = np.array([220.0 * east, 220.0 * (turned if crossing else east)])
+    mid_s = 100.0 + 6.5 * a.scan_period_s  # (the middle of _run_pair's updates)
+    seen = np.array([r0, r0 + 5_000.0 * north]) - vel * mid_s
+    pairs = _run_pair(seen, seen, vel)
+    assert pairs == ({("a0", "b0"), ("a1", "b1")} if crossing else set())
 
 
 def test_a_tentative_track_near_a_lone_one_holds_its_pair_back() -> None:
