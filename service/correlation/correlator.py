@@ -334,7 +334,10 @@ class PairCorrelator:
             self.params.use_registration
             and self.method == "svd-topology"
             and self.solution is not None
-            and min(self.solution.pairs_used.values()) >= self.params.registration.min_pairs
+            and (
+                min(self.solution.pairs_used.values()) >= self.params.registration.min_pairs
+                or 0 < self.params.registration.min_track_pairs <= self.solution.clusters
+            )
         )
 
     def update(

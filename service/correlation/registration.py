@@ -168,6 +168,13 @@ class RegistrationParams:
     registered_rows_per_update: Annotated[int, Ge(1)] = 30
     #: Minimum confirmed pairs before a correlator uses its registration.
     min_pairs: int = 6
+    #: ... or at least this many distinct track pairs among the rows its solve kept (its
+    #: ``clusters``, over the whole ``memory_s``): in thin traffic, or at the far ends of an
+    #: overlap, a radar pair may never hold ``min_pairs`` confirmed pairs at once, yet its
+    #: memory gathers many aircraft's rows over minutes (the biases drift over hours), and from
+    #: ``min_clusters`` of them on the solve's covariance is the cluster-robust one, which
+    #: the compensated test (stage 2) takes into its gates.  0: ``min_pairs`` alone.
+    min_track_pairs: int = 10
     #: A :class:`~service.correlation.PairCorrelator` re-solves its own two-radar registration
     #: at most once per this much *data* time once it is registered (before that, on every
     #: update).  Radar biases drift over hours; the memory holds ``memory_s`` of rows, so a

@@ -225,3 +225,47 @@ def test_a_tentative_track_near_a_lone_one_holds_its_pair_back() -> None:
     held = _run_pair(seen_a, truth, vel, tentative_a=len(truth))
     assert held == {(f"a{i}", f"b{i}") for i in range(1, len(truth))}
     assert ("a0", "b0") in _run_pair(truth, truth, vel)  # without it, paired
+
+
+@pytest.mark.parametrize("min_track_pairs", [10, 0])
+def test_thin_traffic_registers_from_aircraft_seen_one_after_another(min_track_pairs: int) -> None:
+    """Aircraft far apart, at most three in both pictures at once, a new one every 40 s for
+    eight minutes: the radar pair never holds ``registration.min_pairs`` (6) confirmed pairs at
+    once, yet its memory gathers the rows of a dozen aircraft.  With
+    ``registration.min_track_pairs`` (10 distinct track pairs among the rows its solve kept) it
+    registers, and the aircraft after that are decided by the compensated test (published
+    ``basis`` ``registered`` or ``history``, no longer ``topology``); with 0 it never does."""
+    a, b = make_sites()
+    refs = sample_references(np.random.default_rng(3), a, b, 600)
+    spots: list[np.ndarray] = []
+    for p in refs:  # greedy: every aircraft at least 70 km from the others
+        if len(spots) < 14 and all(np.linalg.norm(p - q) > 70_000.0 for q in spots):
+            spots.append(p)
+    assert len(spots) == 14
+    vel = 220.0 * a.rotation[:, 0]
+    params = CorrelationParams()
+    params = replace(params, registration=replace(params.registration, min_track_pairs=min_track_pairs))
+    corr = PairCorrelator("svd-topology", a, b, params)
+    seen_registered = None
+    for k in range(130):
+        t = 100.0 + a.scan_period_s * k
+        live = [i for i in range(len(spots)) if 40.0 * i <= t - 100.0 < 40.0 * i + 120.0]
+        truth = np.array([spots[i] for i in live]) + vel * (t - 100.0)
+        ids_a = np.array([f"a{i}" for i in live])
+        ids_b = np.array([f"b{i}" for i in live])
+        ta = replace(_table(a, truth, "a", vel, time_s=t), track_id=ids_a)
+        tb = replace(_table(b, truth, "b", vel, bias=-0.15, time_s=t), track_id=ids_b)
+        corr.update(ta, tb, t)
+        confirmed = [p for p in corr.pairs() if p.status == "confirmed"]
+        assert len(confirmed) <= 3
+        assert all(p.track_a[1:] == p.track_b[1:] for p in confirmed)  # never a false pair
+        if corr.registered and seen_registered is None:
+            seen_registered = t
+    last = [p for p in corr.pairs() if p.status == "confirmed"]
+    assert last
+    if min_track_pairs:
+        assert seen_registered is not None and seen_registered < 100.0 + 40.0 * 11
+        assert all(p.basis in ("registered", "history") for p in last)
+    else:
+        assert seen_registered is None
+        assert all(p.basis == "topology" for p in last)
