@@ -57,7 +57,13 @@ def read_topology(tarball: Path | None) -> dict[str, Any]:
             (packed,) = Path(tmp).glob("world-atlas-*.tgz")
             data = packed.read_bytes()
     else:
-        data = tarball.read_bytes()
+        try:
+            data = tarball.read_bytes()
+        except OSError as exc:
+            raise SystemExit(
+                f"--tarball {tarball}: {exc.strerror} (make it with `npm pack {PACKAGE}`, or leave "
+                "--tarball out to have npm fetch the package)"
+            ) from None
     digest = hashlib.sha256(data).hexdigest()
     if digest != TARBALL_SHA256:
         raise SystemExit(f"{PACKAGE}: sha256 {digest}, expected {TARBALL_SHA256}")

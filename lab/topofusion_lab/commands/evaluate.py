@@ -21,7 +21,12 @@ def register(commands: Commands) -> None:
         commands, "evaluate", evaluate_main, help="Monte Carlo evaluation: tables and PNG figures"
     )
     ev.add_argument("--out", default="evaluation", help="output folder (default ./evaluation)")
-    ev.add_argument("--runs", type=int, help="Monte Carlo runs per point (default: each study's full count)")
+    ev.add_argument(
+        "--runs",
+        type=int,
+        help="Monte Carlo runs per point (default: each study's full count; the correlation "
+        "study takes at least 10)",
+    )
     ev.add_argument("--seed", type=int, default=0)
     ev.add_argument("--only", choices=STUDIES, help="run one study only")
 
