@@ -173,8 +173,11 @@ class RegistrationParams:
     #: overlap, a radar pair may never hold ``min_pairs`` confirmed pairs at once, yet its
     #: memory gathers many aircraft's rows over minutes (the biases drift over hours), and from
     #: ``min_clusters`` of them on the solve's covariance is the cluster-robust one, which
-    #: the compensated test (stage 2) takes into its gates.  0: ``min_pairs`` alone.
-    min_track_pairs: int = 10
+    #: the compensated test (stage 2) takes into its gates.  0 (the default): ``min_pairs``
+    #: alone.  At 10 it paired more in thin traffic and at the ends of overlaps, and fewer
+    #: right and more false in the formation study (a formation's pairs held, its solve kept
+    #: in use on rows of tracks gone astray): docs/correlation.md, "A registration over time".
+    min_track_pairs: int = 0
     #: A :class:`~service.correlation.PairCorrelator` re-solves its own two-radar registration
     #: at most once per this much *data* time once it is registered (before that, on every
     #: update).  Radar biases drift over hours; the memory holds ``memory_s`` of rows, so a
