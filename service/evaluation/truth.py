@@ -218,6 +218,10 @@ class TruthLabelledTracker(Tracker):
         return self.inner.window_evicted
 
     @property
+    def plots_coincident(self) -> int:
+        return self.inner.plots_coincident
+
+    @property
     def scan_period_observed_s(self) -> float | None:
         return self.inner.scan_period_observed_s
 

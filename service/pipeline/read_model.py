@@ -490,6 +490,7 @@ def build_snapshot(
             last_time_s=clock.last_time_s if clock else None,
             restarts=clock.restarts if clock else 0,
             window_evicted=tracking.window_evicted(rid),
+            plots_coincident=tracking.plots_coincident(rid),
             scan_period_observed_s=tracking.scan_period_observed(rid),
             measurement_sigma_scale=tracking.sigma_scale(rid),
             expired=clock.expired if clock else False,

@@ -165,6 +165,10 @@ class TrackingStage:
         tracker = self.tracked[radar_id].tracker
         return int(getattr(tracker, "window_evicted", 0)) if tracker is not None else 0
 
+    def plots_coincident(self, radar_id: str) -> int:
+        tracker = self.tracked[radar_id].tracker
+        return int(getattr(tracker, "plots_coincident", 0)) if tracker is not None else 0
+
     def scan_period_observed(self, radar_id: str) -> float | None:
         tracker = self.tracked[radar_id].tracker
         return tracker.scan_period_observed_s if tracker is not None else None

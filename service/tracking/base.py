@@ -185,6 +185,12 @@ class Tracker(ABC):
         return 0
 
     @property
+    def plots_coincident(self) -> int:
+        """Plots dropped so far as repeats of another plot of their batch (0 for a tracker
+        without the rule)."""
+        return 0
+
+    @property
     def measurement_sigma_scale(self) -> float:
         """What the tracker multiplies the site's sigmas by (1: the site's own)."""
         return 1.0

@@ -44,6 +44,7 @@ from service.geo import FloatArray, Site
 from service.tracking import imm, kalman
 from service.tracking.assignment import assign, clarity
 from service.tracking.base import PlotColumns, Tracker, TrackTable
+from service.tracking.coincident import first_in_cell
 from service.tracking.duplicates import duplicate_losers, shared_plot_pairs
 from service.tracking.formation import (
     common_velocity,
@@ -258,6 +259,7 @@ class TrackManager(Tracker):
         #: A track's id number is its uid plus this (:func:`~service.tracking.base.first_number`).
         self._id_offset = first_number - 1
         self._window = PlotWindow(window_s, self.params.bounds.max_window_plots)
+        self._coincident = 0
         self._next_uid = 1
         self.last_time_s = -np.inf
         #: Data time of the last search of the window by the initiators (``update``).
@@ -308,6 +310,12 @@ class TrackManager(Tracker):
         return self._window.evicted
 
     @property
+    def plots_coincident(self) -> int:
+        """Plots dropped so far as repeats of another plot of their batch
+        (``measurement.coincident_sigma``)."""
+        return self._coincident
+
+    @property
     def scan_period_observed_s(self) -> float | None:
         return self.revisit.observed_s
 
@@ -339,6 +347,10 @@ class TrackManager(Tracker):
         plots (made when their batch arrives).  When the engine has replaced the site since,
         both are made anew here, so results are those of converting everything every time."""
         fp = self.params.filter
+        keep = first_in_cell(plots, self.site, self.params.measurement.coincident_sigma)
+        coincident = len(plots) - int(np.count_nonzero(keep))
+        if coincident:
+            plots = plots.take(keep)
         site = self.noise.site(self.site)  # (the site's sigmas, grown if the innovations say so)
         scan_s = self.scan_period_s
         joined: Joined = []
@@ -410,6 +422,7 @@ class TrackManager(Tracker):
         self._tracks, self._window, self.joined, self._next_uid = tracks, window, joined, next_uid
         self._initiated_s = initiated_s
         self._formations_s = formations_s
+        self._coincident += coincident
         self._ecef_rotation, self._window_site = rotation, site
         self.last_time_s = max(self.last_time_s, float(time_s))
         self.identity.add(joined)

@@ -21,6 +21,12 @@ class MeasurementParams:
     """1-sigma error of a given (or assumed 0) altitude for 2-D radars; it is mapped into an
     elevation sigma ``altitude_sigma_m / (r cos el)`` in place of the site's elevation sigma."""
 
+    coincident_sigma: float = 0.05
+    """Plots of one batch in one cell of this many of the site's sigmas on range, azimuth and
+    elevation, with the same Mode S address, are one detection: the first is kept, the others
+    dropped and counted (``/status`` ``radars[].plots_coincident``;
+    :mod:`service.tracking.coincident`).  0: every plot is kept."""
+
 
 @dataclass(frozen=True)
 class FilterParams:
@@ -316,18 +322,23 @@ class BoundParams:
     initiator about 0.4 s per update on 2 cores (measurements of all its plots, the grid count
     of the pair search, ``max_pairs`` candidates) and the window itself some 25 MB."""
 
-    max_pairs: int = 4_000_000
+    max_pairs: int = 1_000_000
     """Work bound of the initiators' pair searches: candidate pairs (a plot and a later one in
     the 3x3 grid cells of the search radius around it, inside its time gate;
     :mod:`service.tracking.pairs`) examined per update.  Beyond it whole grid cells are
     searched, the least crowded first, up to this many candidates; the crowded cells wait for
     a later update.  The benchmark's windows have at most about 30 000 candidates; 4 million
-    take about half a second on a 300 000-plot window."""
+    take about half a second on a 300 000-plot window.  It was 4 million: one radar sending
+    200 plots 15 m apart every half second (valid plots, a hostile or broken feed) then cost
+    the logic initiator about 0.5 s an update, as long in CPU as the data it carried, and held
+    every other radar's outputs back; at 1 million, 1.1 s for those 20 s of data."""
 
-    max_triples: int = 1_000_000
+    max_triples: int = 200_000
     """Work bound of the logic initiator's triples: pairs ``(i, j)`` are joined with the pairs
     ``(j, k)``, the pairs with the fewest continuations first, stopping before the pair whose
-    triples would pass this.  The benchmark's windows form at most about 600 triples."""
+    triples would pass this.  The benchmark's windows form at most about 600 triples, the
+    formation study's tightest point (30 aircraft 403 m apart) 23 548; it was 1 million, whose
+    conflict resolution and velocity support took seconds an update on a flood of plots."""
 
     block: int = 250_000
     """Candidate pairs or triples held in memory at once (the searches run in blocks of this

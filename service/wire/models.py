@@ -548,6 +548,11 @@ class RadarStatus(OutModel):
     window_evicted: int = Field(
         default=0, description="plots evicted from the window by its plot bound (oldest first)"
     )
+    plots_coincident: int = Field(
+        default=0,
+        description="plots dropped as repeats of another plot of their batch: the same resolution "
+        "cell (a small fraction of the site's sigmas) and Mode S address",
+    )
     expired: bool = Field(default=False, description="no batch for the source expiry time of data")
     scan_period_observed_s: float | None = Field(
         default=None,
