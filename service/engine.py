@@ -175,6 +175,13 @@ class Engine:
                 return []  # another worker's radar: not even parsed
             msg = decode_input(what, source_id, payload)
             if isinstance(msg, RadarSite):
+                if source_id in self.reference_kinds:  # (one kind of source an id: contract §2)
+                    raise RejectionError(
+                        "schema",
+                        f"source id {source_id!r} is taken by a reference source "
+                        f"({self.reference_kinds[source_id]})",
+                        source_id,
+                    )
                 return self._set_site(msg)
             return self._admit(what, source_id, msg, receive_time_s) + self._process(self.sequencer.release())
         except RejectionError as rej:

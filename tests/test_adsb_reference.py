@@ -163,6 +163,13 @@ def test_bad_adsb_batches_are_rejected_whole() -> None:
     (o,) = engine.ingest("fusion/ais/adsb-1/reports", json.dumps(ais).encode(), receive_time_s=0.0)
     assert json.loads(o.payload)["reason"] == "schema"
     assert engine.reference_kinds == {"adsb-1": "adsb"}
+    # ... and as a radar: its site is refused too, and no radar of that id appears
+    site = {"radar_id": "adsb-1", "latitude_deg": 48.0, "longitude_deg": 2.0}
+    (o,) = engine.ingest("fusion/radar/adsb-1/site", json.dumps(site).encode(), receive_time_s=0.0)
+    body = json.loads(o.payload)
+    assert body["reason"] == "schema" and "reference source" in body["detail"], body
+    assert "adsb-1" not in engine.tracking.tracked
+    assert all(r["radar_id"] != "adsb-1" for r in engine.snapshot().status_core()["radars"])
 
 
 def test_reports_without_height_take_their_aircraft_s_last_one() -> None:

@@ -39,6 +39,10 @@ REJECTION_LOG_INTERVAL_S = 10.0
 #: Most (source, reason) keys the log remembers: made-up source ids must not grow it without
 #: end; beyond it, the oldest key is forgotten (its next refusal is logged again at once).
 REJECTION_LOG_KEYS = 1_024
+#: ... and at most this many lines of every source together in one such interval: a sender that
+#: makes up a new id for each message must not flood the log line by line; what is left out is
+#: counted in one line when the next interval starts.
+REJECTION_LOG_LINES = 20
 
 
 @dataclass(frozen=True)
@@ -59,10 +63,18 @@ class RejectionLog:
     """One line per source and reason at most every ``interval_s``, with the count since."""
 
     def __init__(
-        self, interval_s: float = REJECTION_LOG_INTERVAL_S, max_keys: int = REJECTION_LOG_KEYS
+        self,
+        interval_s: float = REJECTION_LOG_INTERVAL_S,
+        max_keys: int = REJECTION_LOG_KEYS,
+        max_lines: int = REJECTION_LOG_LINES,
     ) -> None:
         self.interval_s = interval_s
         self.max_keys = max_keys
+        self.max_lines = max_lines
+        #: The interval of the line budget: its start (wall s), lines logged and refusals left out.
+        self._budget_s = -np.inf
+        self._lines = 0
+        self._skipped = 0
         #: (source, reason) -> (wall time of the last line, refusals not logged since)
         self._seen: dict[tuple[str, str], tuple[float, int]] = {}
 
@@ -73,6 +85,22 @@ class RejectionLog:
         if now - last < self.interval_s:
             self._seen[k] = (last, quiet + 1)  # (re-inserted: the newest keys stay)
             return
+        if now - self._budget_s >= self.interval_s:
+            if self._skipped:
+                log.warning(
+                    "rejected %d more inputs in the last %.0f s, not logged one by one "
+                    "(at most %d lines an interval; /status counts every rejection)",
+                    self._skipped,
+                    now - self._budget_s,
+                    self.max_lines,
+                )
+            self._budget_s, self._lines, self._skipped = now, 0, 0
+        if self._lines >= self.max_lines:
+            self._skipped += 1
+            if np.isfinite(last):
+                self._seen[k] = (last, quiet + 1)
+            return
+        self._lines += 1
         while len(self._seen) >= self.max_keys:
             del self._seen[next(iter(self._seen))]
         self._seen[k] = (now, 0)

@@ -149,6 +149,13 @@ def pair_rows(c: dict[str, np.ndarray]) -> list[dict[str, Any]]:
     ]
 
 
+#: The longest ``Rejection.detail`` (characters): the contract's "a few hundred"; a detail that
+#: quotes a hostile input (a 10 000-character id) is cut there and ends with an ellipsis.
+MAX_DETAIL_CHARS = 300
+
+
 def rejection(key: str, source_id: str | None, reason: str, detail: str, time_s: float) -> dict[str, Any]:
-    """The contract's ``Rejection``."""
+    """The contract's ``Rejection`` (``detail`` at most :data:`MAX_DETAIL_CHARS`)."""
+    if len(detail) > MAX_DETAIL_CHARS:
+        detail = detail[: MAX_DETAIL_CHARS - 1] + "\u2026"
     return {"key": key, "radar_id": source_id, "reason": reason, "detail": detail, "time_s": time_s}
