@@ -46,3 +46,22 @@ def test_made_up_source_ids_do_not_flood_the_log(
     assert len(lines) == REJECTION_LOG_LINES + 2
     assert f"rejected {5_000 - REJECTION_LOG_LINES} more inputs" in lines[-2]
     assert "fake-x" in lines[-1]
+
+
+def test_a_truth_id_longer_than_64_characters_is_refused() -> None:
+    """``plots.truth_id`` is a simulator's aircraft name: a batch carrying 300 000-character
+    ones held hundreds of MB in the plot window; past 64 characters it is ``schema``."""
+    engine = Engine(EngineConfig())
+    site = {"radar_id": "A", "latitude_deg": 31.0, "longitude_deg": 119.0}
+    engine.ingest("fusion/radar/A/site", json.dumps(site).encode())
+
+    def batch(seq: int, name: str) -> bytes:
+        plots = {"time_s": [99.5], "range_m": [5e4], "azimuth_deg": [10.0], "truth_id": [name]}
+        return json.dumps({"radar_id": "A", "seq": seq, "time_s": 100.0 + seq, "plots": plots}).encode()
+
+    (o,) = engine.ingest("fusion/radar/A/plots", batch(1, "x" * 65), receive_time_s=0.0)
+    assert json.loads(o.payload)["reason"] == "schema"
+    assert not any(
+        o.key.endswith("/errors") for o in engine.ingest("fusion/radar/A/plots", batch(2, "x" * 64))
+    )
+    engine.close()

@@ -79,6 +79,10 @@ SourceOctet = Annotated[StrictInt, Field(ge=0, le=255)]
 Mode3A = Annotated[str, Field(pattern=r"^[0-7]{4}$")]
 #: ICAO 24-bit aircraft address: 6 lower-case hex digits (Mode S, ADS-B ``icao24``).
 Icao24 = Annotated[str, Field(pattern=r"^[0-9a-f]{6}$")]
+#: The longest ``plots.truth_id`` (characters): a simulator's aircraft name; without a bound a
+#: batch of 300 000-character names held hundreds of MB in the plot window.
+MAX_TRUTH_ID_CHARS = 64
+TruthId = Annotated[str, Field(max_length=MAX_TRUTH_ID_CHARS)]
 #: Barometric flight level (FL = 100 ft): the valid ranges of ASTERIX I048/090 (-12 to 1270)
 #: and I021/145 (-15 to 1500), with a little room below.
 MIN_FLIGHT_LEVEL, MAX_FLIGHT_LEVEL = -20.0, 1500.0
@@ -138,9 +142,10 @@ class PlotColumnsModel(ColumnsModel):
     altitude_m: Annotated[list[Altitude | None], Field(max_length=MAX_BATCH_ITEMS)] | None = Field(
         default=None, description="height above the WGS-84 ellipsoid per plot (null: not known)"
     )
-    truth_id: Annotated[list[str | None], Field(max_length=MAX_BATCH_ITEMS)] | None = Field(
+    truth_id: Annotated[list[TruthId | None], Field(max_length=MAX_BATCH_ITEMS)] | None = Field(
         default=None,
-        description="simulation only: carried to tracks for evaluation, never read by algorithms",
+        description="simulation only: carried to tracks for evaluation, never read by algorithms "
+        "(at most 64 characters each)",
     )
     mode_3a: Annotated[list[Mode3A | None], Field(max_length=MAX_BATCH_ITEMS)] | None = Field(
         default=None, description="Mode 3/A code per plot, 4 octal digits (null: none)"
