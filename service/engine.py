@@ -50,7 +50,7 @@ from service.tracking.base import TrackTable
 from service.wire.keys import Keys
 from service.wire.models import MAX_PAYLOAD_BYTES, AdsbBatch, AisBatch, PlotBatch, RadarSite
 from service.wire.outgoing import Outgoing
-from service.wire.outputs import rejection
+from service.wire.outputs import bounded, rejection
 
 __all__ = ["Engine", "EngineConfig", "EngineState", "Outgoing", "RejectionError", "Snapshot"]
 
@@ -207,7 +207,9 @@ class Engine:
 
     def _reject(self, key: str, rej: RejectionError, receive_time_s: float | None) -> Outgoing:
         self.rejected[rej.reason] += 1
-        self.feed.refused(rej.source_id, rej.reason, key, rej.detail)
+        # (the log line quotes no more of a hostile key, id or detail than the Rejection does)
+        source = None if rej.source_id is None else bounded(rej.source_id, 80)
+        self.feed.refused(source, rej.reason, bounded(key), bounded(rej.detail))
         self.sequencer.count_rejected(rej.source_id)
         self._snapshot = None
         when = receive_time_s if receive_time_s is not None else time.time()

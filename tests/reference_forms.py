@@ -512,16 +512,16 @@ def lone_reference(
     m0 = b.site.rotation.T @ a.site.rotation
     limit = float(scipy.stats.chi2.isf(alpha, 2))
 
-    def enu_velocity(t: PredictedTracks, i: int) -> FloatArray:
-        v = t.enu_velocity[i]
-        return m0 @ v if t is a else v
-
     def same(s: PredictedTracks, i: int, t: PredictedTracks, j: int) -> bool:
-        u, w = enu_velocity(s, i), enu_velocity(t, j)
+        u, w = s.enu_velocity[i], t.enu_velocity[j]
+        if s is not t:  # into the other radar's orientation (Eq. 3); within one radar as it is
+            u = m0 @ u if s is a else m0.T @ u
         su, sw = float(np.hypot(u[0], u[1])), float(np.hypot(w[0], w[1]))
         turn = abs(np.arctan2(u[0] * w[1] - u[1] * w[0], u[0] * w[0] + u[1] * w[1]))
         excess = max(turn - np.radians(max_rotation_deg), 0.0) * 0.5 * (su + sw)
         var = (np.trace(s.vel_cov[i]) + np.trace(t.vel_cov[j])) / 3.0
+        if not (np.isfinite(var) and var > 0):
+            return True  # (no velocity error known: no test)
         return bool((su - sw) ** 2 + excess**2 <= limit * var)
 
     def rivals(s: PredictedTracks, i: int, t: PredictedTracks, r: float) -> int:
@@ -531,7 +531,9 @@ def lone_reference(
         )
 
     return [
-        rivals(a, i, b, gate_m) == 1
+        same(a, i, b, j)
+        and same(b, j, a, i)
+        and rivals(a, i, b, gate_m) == 1
         and rivals(b, j, a, gate_m) == 1
         and rivals(a, i, a, radius_m) == 1
         and rivals(b, j, b, radius_m) == 1

@@ -671,6 +671,8 @@ def lone_candidates(
     eye = np.eye(3)
     ok = (_rivals(b, a, ia, gate, m0, prm) == 1) & (_rivals(a, b, ib, gate, m0.T, prm) == 1)
     ok &= (_rivals(a, a, ia, radius, eye, prm) == 1) & (_rivals(b, b, ib, radius, eye, prm) == 1)
+    if _by_velocity(prm):  # each count of 1 must be the candidate itself: its tracks agree both ways
+        ok &= _velocity_compatible(a, b, ia, ib, m0, prm) & _velocity_compatible(b, a, ib, ia, m0.T, prm)
     rows = np.flatnonzero(ok & (matched == 0))
     if rows.size:  # (few: the neighbourhoods of these tracks only)
         ua, ra = np.unique(ia[rows], return_inverse=True)
@@ -696,11 +698,16 @@ def _rivals(
     candidate of the track, so two aircraft crossing, or passing, a few kilometres apart are
     each still alone.  A track whose velocity is uncertain (young) passes the gate easily,
     and so is counted."""
-    if prm.velocity_prefilter_alpha <= 0:
+    if not _by_velocity(prm):
         return count_within(points.position, query.position[rows], radius_m)
     qi, pj, _ = candidate_pairs(query.position[rows], points.position, radius_m)
     same = _velocity_compatible(query, points, rows[qi], pj, m0, prm)
     return np.bincount(qi[same], minlength=len(rows)).astype(np.intp)
+
+
+def _by_velocity(prm: SvdTopologyParams) -> bool:
+    """The method's velocity gate is on (the prefilter of :meth:`SvdTopologyCorrelator.decide`)."""
+    return prm.use_velocity and prm.velocity_prefilter_alpha > 0
 
 
 def _velocity_compatible(
@@ -771,7 +778,7 @@ class SvdTopologyCorrelator(CorrelationMethod):
                 settled |= np.isin(ia, ia[settled]) | np.isin(ib, ib[settled])
                 run &= ~settled
         m0 = b.site.rotation.T @ a.site.rotation  # Eq. (3)
-        if prm.use_velocity and prm.velocity_prefilter_alpha > 0:
+        if _by_velocity(prm):
             run &= _velocity_compatible(a, b, ia, ib, m0, prm)
         sub = np.flatnonzero(run)
         res = self._topology(a, b, ia[sub], ib[sub], m0) if sub.size else _NO_MATCH

@@ -16,7 +16,8 @@ module watches the feed on the wall clock, for operations only:
   anything above half speed never meets it.
 
 Each refusal is also logged with its source and reason (:class:`RejectionLog`), at most once
-per ``REJECTION_LOG_INTERVAL_S`` for each source and reason, with the count of the others.
+per ``REJECTION_LOG_INTERVAL_S`` for each source and reason, with the count of the others, and
+at most ``REJECTION_LOG_LINES`` lines of every source together in one such interval.
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ REJECTION_LOG_INTERVAL_S = 10.0
 REJECTION_LOG_KEYS = 1_024
 #: ... and at most this many lines of every source together in one such interval: a sender that
 #: makes up a new id for each message must not flood the log line by line; what is left out is
-#: counted in one line when the next interval starts.
+#: counted in one line, written with the first refusal logged after the interval.
 REJECTION_LOG_LINES = 20
 
 
@@ -96,9 +97,9 @@ class RejectionLog:
                 )
             self._budget_s, self._lines, self._skipped = now, 0, 0
         if self._lines >= self.max_lines:
-            self._skipped += 1
+            self._skipped += 1  # (counted here only: its source's own line comes when one may)
             if np.isfinite(last):
-                self._seen[k] = (last, quiet + 1)
+                self._seen[k] = (last, quiet)
             return
         self._lines += 1
         while len(self._seen) >= self.max_keys:

@@ -2,7 +2,8 @@
 
 A radar's plot extractor reports one plot per target and resolution cell in a scan, so two
 plots of one batch that agree in range, azimuth and elevation to a small fraction of the
-radar's own errors (and carry the same Mode S address) are one detection reported twice: a
+radar's own errors (and carry the same Mode S address, Mode 3/A code and altitude) are one
+detection reported twice: a
 bridge or a recorder repeating a plot, or a hostile feed.  Kept as they are, N such plots
 start N tracks on one point, and the initiator's candidate triples grow with the cube of N
 (200 identical plots a batch slowed a whole service below real time).  The first of them (in
@@ -25,22 +26,32 @@ from service.geo import Site
 from service.tracking.base import PlotColumns
 
 
-def first_in_cell(plots: PlotColumns, site: Site, fraction: float) -> NDArray[np.bool_]:
+def first_in_cell(
+    plots: PlotColumns, site: Site, fraction: float, altitude_sigma_m: float = 100.0
+) -> NDArray[np.bool_]:
     """Which plots to keep: the first of each cell (module docstring); all of them when
-    ``fraction`` is 0 or there is at most one plot."""
+    ``fraction`` is 0 or there is at most one plot.  A given altitude (Mode C, a 2-D radar's)
+    is a coordinate too, in cells of ``fraction`` times ``altitude_sigma_m``."""
     n = len(plots)
     if fraction <= 0.0 or n < 2:
         return np.ones(n, dtype=bool)
     has_el = np.isfinite(plots.elevation_deg)
     el = np.where(has_el, plots.elevation_deg, 0.0)
-    code = np.unique(np.asarray([x or "" for x in plots.mode_s], dtype=str), return_inverse=True)[1]
+    codes = [
+        np.unique(np.asarray([x or "" for x in labels], dtype=str), return_inverse=True)[1].reshape(-1)
+        for labels in (plots.mode_s, plots.mode_3a)
+    ]
+    has_alt = np.isfinite(plots.altitude_m)
+    alt = np.where(has_alt, plots.altitude_m, 0.0)
     cells = np.stack(
         [
             np.floor(plots.range_m / (fraction * site.range_sigma_m)),
             np.floor(plots.azimuth_deg / (fraction * site.azimuth_sigma_deg)),
             np.floor(el / (fraction * site.elevation_sigma_deg)),
             has_el.astype(float),
-            code.reshape(-1).astype(float),
+            np.floor(alt / (fraction * altitude_sigma_m)),
+            has_alt.astype(float),
+            *(c.astype(float) for c in codes),
         ],
         axis=1,
     )

@@ -347,7 +347,8 @@ class TrackManager(Tracker):
         plots (made when their batch arrives).  When the engine has replaced the site since,
         both are made anew here, so results are those of converting everything every time."""
         fp = self.params.filter
-        keep = first_in_cell(plots, self.site, self.params.measurement.coincident_sigma)
+        mp = self.params.measurement
+        keep = first_in_cell(plots, self.site, mp.coincident_sigma, mp.altitude_sigma_m)
         coincident = len(plots) - int(np.count_nonzero(keep))
         if coincident:
             plots = plots.take(keep)

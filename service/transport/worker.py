@@ -173,9 +173,10 @@ class Worker:
         done = queue.taken - self._taken_at_stop - marker_taken
         plots = sum(1 for key, _, _ in left if key.endswith("/plots"))
         also = f"; {peers} messages of other workers left" if peers else ""
-        rejected = self.engine.rejected.total()
+        # (only once the worker thread has ended: a busy worker's engine is not to be read)
+        rejected = 0 if busy else self.engine.rejected.total()
         if rejected:  # (processed all the same: checked, refused whole, reported on the errors key)
-            also = f" ({rejected} input messages rejected in all){also}"
+            also = f" ({rejected} messages rejected in all){also}"
         if busy:
             log.error("stop: the worker is still busy %.0f s after the grace; not waiting", FINISH_S)
         if left or busy:

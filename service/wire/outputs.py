@@ -154,8 +154,12 @@ def pair_rows(c: dict[str, np.ndarray]) -> list[dict[str, Any]]:
 MAX_DETAIL_CHARS = 300
 
 
+def bounded(text: str, most: int = MAX_DETAIL_CHARS) -> str:
+    """``text`` cut to ``most`` characters, the last an ellipsis where it was cut."""
+    return text if len(text) <= most else text[: most - 1] + "\u2026"
+
+
 def rejection(key: str, source_id: str | None, reason: str, detail: str, time_s: float) -> dict[str, Any]:
     """The contract's ``Rejection`` (``detail`` at most :data:`MAX_DETAIL_CHARS`)."""
-    if len(detail) > MAX_DETAIL_CHARS:
-        detail = detail[: MAX_DETAIL_CHARS - 1] + "\u2026"
+    detail = bounded(detail)
     return {"key": key, "radar_id": source_id, "reason": reason, "detail": detail, "time_s": time_s}

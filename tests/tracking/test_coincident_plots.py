@@ -46,6 +46,19 @@ def test_the_first_of_each_cell_is_kept() -> None:
     keep = first_in_cell(plots, SITE, 0.05)
     assert keep.tolist() == [True, False, False, True, True, True, False]
     assert first_in_cell(plots, SITE, 0.0).all()  # (the rule off)
+    # a 2-D radar's plots of one cell: another Mode 3/A code, or another Mode C altitude
+    # (a holding stack), is another aircraft
+    f = np.asarray
+    flat = PlotColumns(
+        f(np.zeros(4)),
+        f([r] * 4),
+        f([a] * 4),
+        np.full(4, np.nan),
+        f([3050.0, 3050.0, 3050.0, 3650.0]),
+        np.full(4, None, dtype=object),
+        mode_3a=np.array(["1234", "1234", "4321", "1234"], dtype=object),
+    )
+    assert first_in_cell(flat, SITE, 0.05).tolist() == [True, False, True, True]
 
 
 def test_a_batch_of_one_point_repeated_makes_one_track_and_counts_the_repeats() -> None:
