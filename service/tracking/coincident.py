@@ -33,20 +33,29 @@ def first_in_cell(
     ``fraction`` is 0 or there is at most one plot.  A given altitude (Mode C, a 2-D radar's)
     is a coordinate too, in cells of ``fraction`` times ``altitude_sigma_m``."""
     n = len(plots)
+    keep = np.ones(n, dtype=bool)
     if fraction <= 0.0 or n < 2:
-        return np.ones(n, dtype=bool)
-    has_el = np.isfinite(plots.elevation_deg)
-    el = np.where(has_el, plots.elevation_deg, 0.0)
+        return keep
+    # Plots in two range cells share no cell: the whole key is made only for those sharing one
+    # (in a radar's batch, hardly ever any).
+    ranges = np.floor(plots.range_m / (fraction * site.range_sigma_m))
+    _, at, count = np.unique(ranges, return_inverse=True, return_counts=True)
+    rows = np.flatnonzero(count[at.reshape(-1)] > 1)
+    if rows.size == 0:
+        return keep
+    sub = plots.take(rows)
+    has_el = np.isfinite(sub.elevation_deg)
+    el = np.where(has_el, sub.elevation_deg, 0.0)
     codes = [
         np.unique(np.asarray([x or "" for x in labels], dtype=str), return_inverse=True)[1].reshape(-1)
-        for labels in (plots.mode_s, plots.mode_3a)
+        for labels in (sub.mode_s, sub.mode_3a)
     ]
-    has_alt = np.isfinite(plots.altitude_m)
-    alt = np.where(has_alt, plots.altitude_m, 0.0)
+    has_alt = np.isfinite(sub.altitude_m)
+    alt = np.where(has_alt, sub.altitude_m, 0.0)
     cells = np.stack(
         [
-            np.floor(plots.range_m / (fraction * site.range_sigma_m)),
-            np.floor(plots.azimuth_deg / (fraction * site.azimuth_sigma_deg)),
+            ranges[rows],
+            np.floor(sub.azimuth_deg / (fraction * site.azimuth_sigma_deg)),
             np.floor(el / (fraction * site.elevation_sigma_deg)),
             has_el.astype(float),
             np.floor(alt / (fraction * altitude_sigma_m)),
@@ -55,7 +64,7 @@ def first_in_cell(
         ],
         axis=1,
     )
-    _, first = np.unique(cells, axis=0, return_index=True)
-    keep = np.zeros(n, dtype=bool)
-    keep[first] = True
+    _, first = np.unique(cells, axis=0, return_index=True)  # (the first of each, in batch order)
+    keep[rows] = False
+    keep[rows[first]] = True
     return keep
