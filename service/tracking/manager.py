@@ -12,8 +12,9 @@ One :meth:`TrackManager.update` per accepted batch, all in data time:
    arc covered by the batch's plots (sector batches of a scanning radar), less a margin.  A hit
    or an expected miss is one look of its M-of-N history (a bit mask);
 5. confirmation (M of the last N looks), deletion (a tentative track that can no longer reach M,
-   a confirmed track after ``confirmed_max_misses`` expected misses in a row, any track not
-   updated for ``coast_scans`` scan periods);
+   a confirmed track after ``confirmed_max_misses`` expected misses in a row, more on a radar
+   of lower detection probability (:mod:`.detection`), any track not updated for
+   ``coast_scans`` scan periods);
 6. unused plots join the radar's :class:`PlotWindow` (at most ``bounds.max_window_plots``, the
    oldest evicted beyond); the initiator turns window plots into candidate groups, a CV fit
    checks each (mean NIS), and accepted groups become tentative tracks (their plots count as
@@ -45,6 +46,7 @@ from service.tracking import imm, kalman
 from service.tracking.assignment import assign, clarity
 from service.tracking.base import PlotColumns, Tracker, TrackTable
 from service.tracking.coincident import first_in_cell
+from service.tracking.detection import DetectionMeter
 from service.tracking.duplicates import duplicate_losers, shared_plot_pairs
 from service.tracking.formation import (
     common_velocity,
@@ -284,6 +286,8 @@ class TrackManager(Tracker):
         self.revisit = RevisitMeter(self.params.revisit, id_prefix)
         #: The measurement errors the innovations show, against the site's (:mod:`.noise`).
         self.noise = NoiseMeter(self.params.noise, id_prefix)
+        #: The detection probability its confirmed tracks show, for deletion (:mod:`.detection`).
+        self.detection = DetectionMeter(self.params.manager)
 
     @property
     def scan_period_s(self) -> float:
@@ -297,6 +301,7 @@ class TrackManager(Tracker):
         self._window.clear()
         self.revisit.clear()
         self.noise.clear()
+        self.detection = DetectionMeter(self.params.manager)
         self.joined = []
         self.identity.keep(self._tracks.uid)
 
@@ -405,7 +410,11 @@ class TrackManager(Tracker):
                     tracks = self._release_manoeuvring(
                         tracks, r, xp[chosen], pp[chosen], cw[chosen], z, cov_z, float(time_s)
                     )
-            tracks = self._life_cycle(tracks, hit, plots.azimuth_deg, float(time_s), scan_s)
+            was = tracks.confirmed
+            hits = int(np.count_nonzero(hit & was))
+            detection = self.detection.added(hits, int(np.count_nonzero(was)), float(time_s), scan_s)
+            misses = detection.max_misses()
+            tracks = self._life_cycle(tracks, hit, plots.azimuth_deg, float(time_s), scan_s, misses)
             tracks = self._drop_duplicates(tracks, twins, float(time_s))
             window.extend(plots.take(~used), float(time_s), meas.take(~used))
             initiated_s = self._initiated_s
@@ -423,6 +432,7 @@ class TrackManager(Tracker):
         self._tracks, self._window, self.joined, self._next_uid = tracks, window, joined, next_uid
         self._initiated_s = initiated_s
         self._formations_s = formations_s
+        self.detection = detection
         self._coincident += coincident
         self._ecef_rotation, self._window_site = rotation, site
         self.last_time_s = max(self.last_time_s, float(time_s))
@@ -689,8 +699,16 @@ class TrackManager(Tracker):
         return np.asarray((off >= m) & (off <= width - m))
 
     def _life_cycle(
-        self, tracks: _Tracks, hit: NDArray[np.bool_], azimuth_deg: FloatArray, time_s: float, scan_s: float
+        self,
+        tracks: _Tracks,
+        hit: NDArray[np.bool_],
+        azimuth_deg: FloatArray,
+        time_s: float,
+        scan_s: float,
+        max_misses: int,
     ) -> _Tracks:
+        """Looks, confirmation and deletion (module docstring, step 5); ``max_misses``: the
+        expected misses in a row that delete a confirmed track (:mod:`.detection`)."""
         mp = self.params.manager
         n_bits = mp.confirm_n
         mask = (1 << n_bits) - 1
@@ -703,10 +721,9 @@ class TrackManager(Tracker):
         confirmed = tracks.confirmed | (hits >= mp.confirm_m)
         tracks = replace(tracks, hist=hist, looks=looks, miss_run=miss_run, confirmed=confirmed)
         misses = np.minimum(looks, n_bits) - hits
-        dead = (~confirmed & (misses > mp.confirm_n - mp.confirm_m)) | (
-            confirmed & (miss_run >= mp.confirmed_max_misses)
-        )
-        dead |= time_s - tracks.t > mp.coast_scans * scan_s
+        dead = (~confirmed & (misses > mp.confirm_n - mp.confirm_m)) | (confirmed & (miss_run >= max_misses))
+        coast = np.where(confirmed, max(mp.coast_scans, max_misses + 0.5), mp.coast_scans)
+        dead |= time_s - tracks.t > coast * scan_s
         return tracks.take(~dead) if dead.any() else tracks
 
     # -- initiation -------------------------------------------------------------------

@@ -90,11 +90,37 @@ class ManagerParams:
     """N of the M-of-N confirmation (at most 30)."""
 
     confirmed_max_misses: int = 3
-    """A confirmed track is deleted after this many consecutive expected-but-missed looks."""
+    """A confirmed track is deleted after this many consecutive expected-but-missed looks, or
+    more on a radar that misses more often (``deletion_miss_probability``)."""
+
+    deletion_miss_probability: Annotated[float, Le(1)] = 2e-3
+    """Deletion by the radar's detection probability: a confirmed track is deleted after the
+    shortest run of expected misses in a row that an aircraft still there would give with at
+    most this probability, ``(1 - Pd)^k <= p``, never fewer than ``confirmed_max_misses`` nor
+    more than ``confirmed_misses_cap`` (:mod:`service.tracking.detection`).  ``Pd`` is the
+    share of the looks due from the radar's confirmed tracks (one a scan each) in which they
+    took a plot.  With 2e-3 a radar of Pd 0.88 or more keeps 3; Pd 0.75 gives 5, 0.7 gives 6.
+    0: always ``confirmed_max_misses``."""
+
+    confirmed_misses_cap: Annotated[int, Ge(1), Le(60)] = 8
+    """The most expected misses in a row a confirmed track survives, whatever the radar's Pd
+    (a track that coasts longer is too far off to take its aircraft's plots back)."""
+
+    detection_memory_scans: Annotated[float, Gt(0)] = 20.0
+    """The memory of the measured Pd, in scans (an exponential weight of data time)."""
+
+    detection_min_looks: Annotated[float, Gt(0)] = 100.0
+    """Fewer looks than this (weighted) behind the measured Pd: ``confirmed_max_misses``."""
+
+    detection_min_scans: Annotated[float, Ge(0)] = 5.0
+    """Nor before this many scans (weighted) of the radar: at the start its tracks are
+    confirmed by the hundred in one scan, each due a look before its sector has come round."""
 
     coast_scans: float = 3.5
     """Any track not updated for ``coast_scans * scan_period_s`` of data time is deleted
-    (catches tracks that left the coverage, where no look is counted)."""
+    (catches tracks that left the coverage, where no look is counted); for a confirmed track at
+    least its expected misses to deletion plus a half (``deletion_miss_probability``), so that
+    the looks decide while the radar still looks."""
 
     sector_margin_deg: float = 1.0
     """A track only counts a miss when its predicted azimuth lies inside the azimuth arc the

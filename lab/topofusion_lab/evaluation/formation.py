@@ -9,7 +9,9 @@ exactly as :mod:`topofusion_lab.evaluation.formation_pipeline` does (``topofusio
 twice per seed on the same messages: with every formation rule off (*before*: the tracker's
 duplicate rule and its formation's quiet model, ``FormationParams.off()``; its two-model
 filter, ``FilterParams.imm`` off, so one constant-velocity model; its initiator's ranking by velocity support,
-``LogicParams.support_weight = 0``; correlation's caution with low-quality tracks,
+``LogicParams.support_weight = 0``; its deletion by the radar's detection probability,
+``ManagerParams.deletion_miss_probability = 0``, so three misses whatever the radar;
+correlation's caution with low-quality tracks,
 ``correlation.prompt.min_quality = 0``; its swap rule, ``correlation.swap.enabled = False``;
 the published score's tracks' quality, ``correlation.book.quality_exponent = 0``; the hold of
 a contested pair, ``correlation.book.hold_score = 0``) and with
@@ -196,9 +198,9 @@ def scenario(point: Point, duration_s: float | None = None, targets: int | None 
 def engine_config(variant: str) -> EngineConfig:
     """The engine's configuration of a variant (:data:`VARIANTS`): *before* has every formation
     rule off (the tracker's duplicate rule, formation's quiet model, two-model filter and
-    initiator's velocity support, correlation's caution with low-quality tracks and its swap
-    rule, the published score's tracks' quality, the hold of a contested pair), *now* is the
-    default."""
+    initiator's velocity support, deletion by the radar's detection probability, correlation's
+    caution with low-quality tracks and its swap rule, the published score's tracks' quality,
+    the hold of a contested pair), *now* is the default."""
     cfg = EngineConfig()
     if variant == "before":
         corr = cfg.correlation
@@ -209,6 +211,7 @@ def engine_config(variant: str) -> EngineConfig:
                 formation=FormationParams.off(),
                 filter=replace(cfg.tracking.filter, imm=False),
                 logic=replace(cfg.tracking.logic, support_weight=0.0),
+                manager=replace(cfg.tracking.manager, deletion_miss_probability=0.0),
             ),
             correlation=replace(
                 corr,
@@ -555,8 +558,9 @@ def report(
         f"The catalog's `formation` scenario (3 radars, {first['targets']} aircraft, "
         f"{first['duration_s']:.0f} s) through the engine, per point {n} seed(s), each run twice on "
         "the same messages: *before*, every formation rule off (the tracker's duplicate rule, "
-        "formation's quiet model, two-model filter and initiator's velocity support, "
-        "correlation's caution with low-quality tracks and its swap rule, the published "
+        "formation's quiet model, two-model filter and initiator's velocity support, its "
+        "deletion by the radar's detection probability, correlation's caution with "
+        "low-quality tracks and its swap rule, the published "
         "score's tracks' quality), and "
         "*now*, the default "
         "configuration.  Spacing in cross-range "

@@ -1,0 +1,91 @@
+"""A radar's detection probability as its confirmed tracks show it, and the misses in a row
+that delete a confirmed track on it (``ManagerParams.deletion_miss_probability``).
+
+A confirmed track is deleted after a run of expected misses; three, on a radar that detects an
+aircraft 95 times in 100, is a run such an aircraft gives once in 8 000 looks.  On a radar of
+Pd 0.7 it comes about every 50 looks, so a fixed count deleted and re-initiated each of its
+tracks every 5-8 minutes (at a 6-10 s scan), each time under a new track number, and every pair
+and system track on it started again.  The count is therefore the shortest run that an
+aircraft still there gives with at most the named probability (:func:`misses_to_delete`).
+
+The Pd is measured in data time over the radar's confirmed tracks (:class:`DetectionMeter`):
+the hits they take against the looks they are due, one a scan each (a batch ``dt`` after the
+previous one is due ``dt / scan`` of a look from each confirmed track, a sector batch its share
+of the scan), both summed with an exponential memory of ``detection_memory_scans``.  The
+looks of the M-of-N history cannot give it: a miss counts there only where the batch's plots
+cover the track's azimuth, and a sector's plots around a formation end where its edge aircraft
+was missed, so most misses of a formation's edge tracks are never counted (a radar of Pd 0.75
+measured so showed 0.94).  Counting looks by time has the opposite, smaller bias: a confirmed
+track whose aircraft has left the coverage is due looks it cannot have until it is deleted (a
+few scans of a track's life), so the measured Pd is at most a few percent low, which keeps a
+track a look longer, not shorter.  Cost: two sums a batch.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+from service.tracking.params import ManagerParams
+
+
+def misses_to_delete(pd: float, probability: float, fewest: int, most: int) -> int:
+    """Expected misses in a row that delete a confirmed track on a radar of detection
+    probability ``pd``: the smallest ``k`` with ``(1 - pd)^k <= probability``, within
+    ``[fewest, most]``; ``fewest`` when ``probability`` is 0 (the rule off)."""
+    most = max(most, fewest)
+    q = 1.0 - pd
+    if probability <= 0.0 or q <= probability:  # off, or one miss is already that unlikely
+        return fewest
+    if q >= 1.0:  # no hit at all
+        return most
+    # (the tolerance: (1 - 0.9)^3 is 1.0000000000000002e-3 in floats, not above 1e-3)
+    return min(max(math.ceil(math.log(probability) / math.log(q) - 1e-9), fewest), most)
+
+
+@dataclass(frozen=True)
+class DetectionMeter:
+    """The share of due looks that the radar's confirmed tracks took a plot in (module
+    docstring), in data time.  Immutable: an update makes the next one
+    (:meth:`added`), which the tracker keeps only once its whole batch has succeeded."""
+
+    params: ManagerParams
+    hits: float = 0.0
+    looks: float = 0.0
+    scans: float = 0.0
+    last_time_s: float | None = None
+
+    def added(self, hits: int, confirmed: int, time_s: float, scan_s: float) -> DetectionMeter:
+        """After one batch at ``time_s`` in which ``hits`` of the ``confirmed`` tracks
+        (confirmed before it) took a plot."""
+        last = self.last_time_s
+        now = time_s if last is None else max(last, time_s)
+        if last is None or scan_s <= 0.0:
+            return replace(self, last_time_s=now)
+        # a batch after a gap of more than a scan is due one look (the radar was silent)
+        due = min(max(time_s - last, 0.0), scan_s) / scan_s
+        keep = math.exp(-due / self.params.detection_memory_scans)
+        return replace(
+            self,
+            hits=keep * self.hits + hits,
+            looks=keep * self.looks + due * confirmed,
+            scans=keep * self.scans + due,
+            last_time_s=now,
+        )
+
+    @property
+    def pd(self) -> float | None:
+        """The measured detection probability; None before ``detection_min_looks`` looks over
+        ``detection_min_scans`` scans (weighted as the sums are)."""
+        if self.looks < self.params.detection_min_looks or self.scans < self.params.detection_min_scans:
+            return None
+        return min(self.hits / self.looks, 1.0)
+
+    def max_misses(self) -> int:
+        """Expected misses in a row that delete a confirmed track of this radar now."""
+        p = self.params
+        pd = self.pd
+        if pd is None:
+            return p.confirmed_max_misses
+        fewest, most = p.confirmed_max_misses, p.confirmed_misses_cap
+        return misses_to_delete(pd, p.deletion_miss_probability, fewest, most)

@@ -1,0 +1,110 @@
+"""Deletion of confirmed tracks by the radar's detection probability
+(``ManagerParams.deletion_miss_probability``): the count of misses against a plain loop, and
+the tracker on hand-made scans of a radar that misses often and one that seldom does."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from service.tracking import make_tracker
+from service.tracking.base import PlotColumns
+from service.tracking.detection import misses_to_delete
+from service.tracking.manager import TrackManager
+from service.tracking.params import ManagerParams, TrackerParams
+from topofusion_lab.evaluation.initiation_monostatic import SITE
+
+SCAN_S = SITE.scan_period_s
+#: The aircraft's azimuths (degrees): spread round the radar, so that every scan's plots cover
+#: the whole circle and every track is looked at in every scan.  The first is the one whose
+#: plots stop for a while.
+AZIMUTHS_DEG = tuple(float(a) for a in np.arange(5.0, 360.0, 360.0 / 16))
+#: Scans before the gap (the tracks confirm and the estimate has its looks), the gap's misses.
+BEFORE, GAP = 20, 4
+
+
+def _plain(pd: float, probability: float, fewest: int, most: int) -> int:
+    if probability <= 0.0:
+        return fewest
+    k = 1
+    while (1.0 - pd) ** k > probability * (1.0 + 1e-9) and k < 1_000:
+        k += 1
+    return min(max(k, fewest), max(most, fewest))
+
+
+def test_misses_to_delete_against_a_plain_loop() -> None:
+    rng = np.random.default_rng(3)
+    cases = [
+        (pd, p, 3, 8) for pd in (0.0, 0.3, 0.5, 0.7, 0.75, 0.87, 0.9, 0.95, 1.0) for p in (0.0, 1e-3, 2e-3)
+    ]
+    cases += [
+        (
+            float(rng.uniform()),
+            float(rng.choice([0.0, 1e-4, 1e-2, 0.3, 1.0])),
+            int(rng.integers(1, 5)),
+            int(rng.integers(1, 12)),
+        )
+        for _ in range(300)
+    ]
+    for pd, p, fewest, most in cases:
+        assert misses_to_delete(pd, p, fewest, most) == _plain(pd, p, fewest, most), (pd, p, fewest, most)
+    # the documented figures of the default 2e-3
+    assert [misses_to_delete(pd, 2e-3, 3, 8) for pd in (0.95, 0.88, 0.87, 0.75, 0.7, 0.3)] == [
+        3,
+        3,
+        4,
+        5,
+        6,
+        8,
+    ]
+
+
+def _scans(m: TrackManager, pd: float, seed: int) -> list[set[str]]:
+    """Aircraft flying outwards at ``AZIMUTHS_DEG``, each detected with probability ``pd`` a
+    scan; the first always, but for ``GAP`` scans in a row after ``BEFORE``, then always
+    again.  Returns the ids of the confirmed tracks within 1 deg of the first aircraft after
+    each scan."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(BEFORE + GAP + 6):
+        t = 1_000.0 + k * SCAN_S
+        seen = rng.random(len(AZIMUTHS_DEG)) < pd
+        seen[0] = not BEFORE <= k < BEFORE + GAP
+        az = np.array(AZIMUTHS_DEG)[seen]
+        n = len(az)
+        m.update(
+            PlotColumns(
+                np.full(n, t),
+                np.full(n, 60_000.0 + 150.0 * (t - 1_000.0)),
+                az,
+                np.full(n, np.nan),
+                np.full(n, 9_000.0),
+                np.array(["X"] * n, dtype=object),
+            ),
+            t,
+        )
+        tab = m.tracks()
+        enu = (tab.position_ecef_m - SITE.origin_ecef) @ SITE.rotation
+        near = tab.confirmed & (np.abs(np.degrees(np.arctan2(enu[:, 0], enu[:, 1])) - AZIMUTHS_DEG[0]) < 1.0)
+        out.append({str(x) for x in tab.track_id[near]})
+    return out
+
+
+def _kept(seen: list[set[str]]) -> bool:
+    """Whether the first aircraft's confirmed track before the gap is still its track after."""
+    before, after = seen[BEFORE - 1], seen[-1]
+    assert len(before) == 1 and len(after) == 1  # a track before, and a track again after
+    return before == after
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_radar_that_misses_often_keeps_its_tracks_through_a_longer_gap(seed: int) -> None:
+    """At Pd 0.7 four misses in a row are no evidence that the aircraft is gone (they come
+    about every 175 looks): the track lives through them.  At Pd 0.97, or with the rule off,
+    the third miss deletes it and the aircraft comes back under a new track number."""
+    assert _kept(_scans(make_tracker(SITE), 0.7, seed))
+    assert not _kept(_scans(make_tracker(SITE), 0.97, seed))
+    off = replace(TrackerParams(), manager=replace(ManagerParams(), deletion_miss_probability=0.0))
+    assert not _kept(_scans(make_tracker(SITE, params=off), 0.7, seed))
