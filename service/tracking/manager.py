@@ -12,7 +12,8 @@ One :meth:`TrackManager.update` per accepted batch, all in data time:
    arc covered by the batch's plots (sector batches of a scanning radar), less a margin.  A hit
    or an expected miss is one look of its M-of-N history (a bit mask);
 5. confirmation (M of the last N looks), deletion (a tentative track that can no longer reach M,
-   a confirmed track after ``confirmed_max_misses`` expected misses in a row, more on a radar
+   a confirmed track after ``confirmed_max_misses`` expected misses in a row, an established one
+   more on a radar
    of lower detection probability (:mod:`.detection`), any track not updated for
    ``coast_scans`` scan periods);
 6. unused plots join the radar's :class:`PlotWindow` (at most ``bounds.max_window_plots``, the
@@ -410,7 +411,7 @@ class TrackManager(Tracker):
                     tracks = self._release_manoeuvring(
                         tracks, r, xp[chosen], pp[chosen], cw[chosen], z, cov_z, float(time_s)
                     )
-            was = tracks.confirmed
+            was = tracks.confirmed & (tracks.nplots >= self.params.manager.established_plots)
             hits = int(np.count_nonzero(hit & was))
             detection = self.detection.added(hits, int(np.count_nonzero(was)), float(time_s), scan_s)
             misses = detection.max_misses()
@@ -708,7 +709,8 @@ class TrackManager(Tracker):
         max_misses: int,
     ) -> _Tracks:
         """Looks, confirmation and deletion (module docstring, step 5); ``max_misses``: the
-        expected misses in a row that delete a confirmed track (:mod:`.detection`)."""
+        expected misses in a row that delete an established confirmed track (:mod:`.detection`;
+        any other confirmed track: ``confirmed_max_misses``)."""
         mp = self.params.manager
         n_bits = mp.confirm_n
         mask = (1 << n_bits) - 1
@@ -721,8 +723,10 @@ class TrackManager(Tracker):
         confirmed = tracks.confirmed | (hits >= mp.confirm_m)
         tracks = replace(tracks, hist=hist, looks=looks, miss_run=miss_run, confirmed=confirmed)
         misses = np.minimum(looks, n_bits) - hits
-        dead = (~confirmed & (misses > mp.confirm_n - mp.confirm_m)) | (confirmed & (miss_run >= max_misses))
-        coast = np.where(confirmed, max(mp.coast_scans, max_misses + 0.5), mp.coast_scans)
+        established = confirmed & (tracks.nplots >= mp.established_plots)
+        limit = np.where(established, max_misses, mp.confirmed_max_misses)
+        dead = (~confirmed & (misses > mp.confirm_n - mp.confirm_m)) | (confirmed & (miss_run >= limit))
+        coast = np.where(established, max(mp.coast_scans, max_misses + 0.5), mp.coast_scans)
         dead |= time_s - tracks.t > coast * scan_s
         return tracks.take(~dead) if dead.any() else tracks
 

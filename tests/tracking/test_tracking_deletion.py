@@ -5,6 +5,7 @@ the tracker on hand-made scans of a radar that misses often and one that seldom 
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -108,3 +109,50 @@ def test_a_radar_that_misses_often_keeps_its_tracks_through_a_longer_gap(seed: i
     assert not _kept(_scans(make_tracker(SITE), 0.97, seed))
     off = replace(TrackerParams(), manager=replace(ManagerParams(), deletion_miss_probability=0.0))
     assert not _kept(_scans(make_tracker(SITE, params=off), 0.7, seed))
+
+
+def _clutter_tracks(params: TrackerParams, seed: int, clutter: int = 500, scans: int = 60) -> float:
+    """Confirmed tracks on clutter, the mean over the last 20 scans: the aircraft of
+    ``AZIMUTHS_DEG`` at Pd 0.8 and ``clutter`` plots a scan spread over 20-100 km."""
+    rng = np.random.default_rng(seed)
+    m = make_tracker(SITE, params=params)
+    on_clutter = []
+    aircraft = np.array(AZIMUTHS_DEG)
+    for k in range(scans):
+        t = 1_000.0 + k * SCAN_S
+        r_air = 60_000.0 + 150.0 * (t - 1_000.0)
+        seen = rng.random(len(aircraft)) < 0.8
+        az = np.concatenate([aircraft[seen], rng.uniform(0.0, 360.0, clutter)])
+        rg = np.concatenate([np.full(int(seen.sum()), r_air), rng.uniform(20_000.0, 100_000.0, clutter)])
+        n = len(az)
+        plots = PlotColumns(
+            np.full(n, t), rg, az, np.full(n, np.nan), np.full(n, 9_000.0), np.array(["X"] * n, dtype=object)
+        )
+        m.update(plots, t)
+        if k < scans - 20:
+            continue
+        tab = m.tracks()
+        enu = (tab.position_ecef_m - SITE.origin_ecef) @ SITE.rotation
+        az_deg = np.degrees(np.arctan2(enu[:, 0], enu[:, 1]))
+        off_deg = np.abs((az_deg[:, None] - aircraft + 180.0) % 360.0 - 180.0)
+        near = (off_deg.min(axis=1) < 1.0) & (np.abs(np.hypot(enu[:, 0], enu[:, 1]) - r_air) < 2_000.0)
+        on_clutter.append(np.count_nonzero(tab.confirmed & ~near))
+    return float(np.mean(on_clutter))
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_clutter_tracks_do_not_lower_the_pd_that_keeps_them(seed: int) -> None:
+    """In 500 clutter plots a scan, young confirmed tracks on clutter soon miss.  Were they
+    counted, the radar's measured Pd would fall, let them live longer and fall further (with
+    every confirmed track counted, ``established_plots = 0``: about six times the clutter
+    tracks of a fixed three); counting established tracks only keeps it at a fixed three's."""
+
+    def with_manager(**change: Any) -> TrackerParams:
+        return replace(TrackerParams(), manager=replace(ManagerParams(), **change))
+
+    fixed = _clutter_tracks(with_manager(deletion_miss_probability=0.0), seed)
+    now = _clutter_tracks(TrackerParams(), seed)
+    every = _clutter_tracks(with_manager(established_plots=0), seed)
+    assert fixed > 20  # the clutter makes tracks: the scene tests something
+    assert now <= 1.1 * fixed
+    assert every > 3 * fixed
