@@ -187,6 +187,13 @@ def test_metrics_of_a_running_service(
             rate = one(samples, "topofusion_radar_update_rate_hz", radar=rid)
             more = batches[rid] - taken(stream[:half])[rid]
             assert more / (t2_after - t1_before) <= rate <= more / (t2_before - t1_after)
+            # the tracker's own figures are the status's
+            coincident = one(samples, "topofusion_plots_coincident_total", radar=rid)
+            assert coincident == rows[rid]["plots_coincident"]
+            pd_true = next(r.pd for r in get_scenario(SCENARIO).radars if r.radar_id == rid)
+            pd = one(samples, "topofusion_radar_pd_measured", radar=rid)
+            assert pd == rows[rid]["pd_measured"] and abs(pd - pd_true) < 0.05
+            assert rows[rid]["misses_to_delete"] == 3  # a radar of Pd 0.88 or more keeps three
 
         # the bias gauges are GET /biases, and the sigma is there and positive
         assert {b["radar_id"] for b in biases} == {"A", "B"}

@@ -218,6 +218,16 @@ class NodeCollector(Collector):
             "Plots evicted from the window by its plot bound (oldest first)",
             labels=["radar"],
         )
+        coincident = CounterMetricFamily(
+            "topofusion_plots_coincident",
+            "Plots dropped as repeats of another plot of their batch (one cell and Mode S address)",
+            labels=["radar"],
+        )
+        pd = GaugeMetricFamily(
+            "topofusion_radar_pd_measured",
+            "The detection probability the radar's established tracks show (absent until measured)",
+            labels=["radar"],
+        )
         restarts = CounterMetricFamily(
             "topofusion_source_restarts", "Publisher restarts recognised (seq back near 1)", labels=["radar"]
         )
@@ -249,12 +259,16 @@ class NodeCollector(Collector):
             tracks.add_metric([rid, "confirmed"], r["tracks_confirmed"])
             tracks.add_metric([rid, "tentative"], r["tracks_tentative"])
             evicted.add_metric([rid], r["window_evicted"])
+            coincident.add_metric([rid], r.get("plots_coincident", 0))
+            if r.get("pd_measured") is not None:
+                pd.add_metric([rid], float(r["pd_measured"]))
             restarts.add_metric([rid], r["restarts"])
             expired.add_metric([rid], float(r["expired"]))
             if r["last_time_s"] is not None:  # before its first batch a radar has no data to lag
                 lag.add_metric([rid], now - float(r["last_time_s"]))
             rate.add_metric([rid], rates[rid])
-        yield from (batches, plots, lost, window, tracks, evicted, restarts, expired, lag, rate)
+        yield from (batches, plots, lost, window, tracks, evicted, coincident, pd)
+        yield from (restarts, expired, lag, rate)
 
     def _identity(self, status: dict[str, Any]) -> Iterator[Metric]:
         ident = status.get("identity") or {"by_pair": []}

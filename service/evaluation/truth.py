@@ -222,6 +222,14 @@ class TruthLabelledTracker(Tracker):
         return self.inner.plots_coincident
 
     @property
+    def pd_measured(self) -> float | None:
+        return self.inner.pd_measured
+
+    @property
+    def misses_to_delete(self) -> int | None:
+        return self.inner.misses_to_delete
+
+    @property
     def scan_period_observed_s(self) -> float | None:
         return self.inner.scan_period_observed_s
 

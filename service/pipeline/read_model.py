@@ -478,6 +478,7 @@ def build_snapshot(
             continue
         clock = sources.get(rid)
         confirmed = r.confirmed
+        pd_measured, misses_to_delete = tracking.detection(rid)
         status = RadarStatus(
             radar_id=rid,
             batches=clock.batches if clock else 0,
@@ -493,6 +494,8 @@ def build_snapshot(
             plots_coincident=tracking.plots_coincident(rid),
             scan_period_observed_s=tracking.scan_period_observed(rid),
             measurement_sigma_scale=tracking.sigma_scale(rid),
+            pd_measured=None if pd_measured is None else round(pd_measured, 4),
+            misses_to_delete=misses_to_delete,
             expired=clock.expired if clock else False,
         )
         rows.append(RadarRow(r.site, status))

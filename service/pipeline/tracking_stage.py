@@ -176,3 +176,8 @@ class TrackingStage:
     def sigma_scale(self, radar_id: str) -> float:
         tracker = self.tracked[radar_id].tracker
         return tracker.measurement_sigma_scale if tracker is not None else 1.0
+
+    def detection(self, radar_id: str) -> tuple[float | None, int | None]:
+        """The radar's measured Pd and the misses that delete an established track."""
+        tracker = self.tracked[radar_id].tracker
+        return (tracker.pd_measured, tracker.misses_to_delete) if tracker is not None else (None, None)

@@ -200,3 +200,15 @@ class Tracker(ABC):
         """The revisit period the radar's plots show (None: not measured, or not by this
         tracker); the tracker counts in it where it departs from the site's."""
         return None
+
+    @property
+    def pd_measured(self) -> float | None:
+        """The detection probability the radar's established tracks show (None: not measured,
+        or not by this tracker)."""
+        return None
+
+    @property
+    def misses_to_delete(self) -> int | None:
+        """Expected misses in a row that now delete an established confirmed track (None: a
+        tracker without the rule)."""
+        return None

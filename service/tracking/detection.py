@@ -52,7 +52,7 @@ def misses_to_delete(pd: float, probability: float, fewest: int, most: int) -> i
 
 @dataclass(frozen=True)
 class DetectionMeter:
-    """The share of due looks that the radar's confirmed tracks took a plot in (module
+    """The share of due looks that the radar's established tracks took a plot in (module
     docstring), in data time.  Immutable: an update makes the next one
     (:meth:`added`), which the tracker keeps only once its whole batch has succeeded."""
 
@@ -63,8 +63,8 @@ class DetectionMeter:
     last_time_s: float | None = None
 
     def added(self, hits: int, confirmed: int, time_s: float, scan_s: float) -> DetectionMeter:
-        """After one batch at ``time_s`` in which ``hits`` of the ``confirmed`` tracks
-        (confirmed before it) took a plot."""
+        """After one batch at ``time_s`` in which ``hits`` of the ``confirmed`` established
+        tracks (established before it) took a plot."""
         last = self.last_time_s
         now = time_s if last is None else max(last, time_s)
         if last is None or scan_s <= 0.0:
@@ -89,7 +89,7 @@ class DetectionMeter:
         return min(self.hits / self.looks, 1.0)
 
     def max_misses(self) -> int:
-        """Expected misses in a row that delete a confirmed track of this radar now."""
+        """Expected misses in a row that delete an established track of this radar now."""
         p = self.params
         pd = self.pd
         if pd is None:

@@ -13,9 +13,8 @@ One :meth:`TrackManager.update` per accepted batch, all in data time:
    or an expected miss is one look of its M-of-N history (a bit mask);
 5. confirmation (M of the last N looks), deletion (a tentative track that can no longer reach M,
    a confirmed track after ``confirmed_max_misses`` expected misses in a row, an established one
-   more on a radar
-   of lower detection probability (:mod:`.detection`), any track not updated for
-   ``coast_scans`` scan periods);
+   after more on a radar of lower detection probability (:mod:`.detection`), any track not
+   updated for ``coast_scans`` scan periods, an established one for its misses and a half);
 6. unused plots join the radar's :class:`PlotWindow` (at most ``bounds.max_window_plots``, the
    oldest evicted beyond); the initiator turns window plots into candidate groups, a CV fit
    checks each (mean NIS), and accepted groups become tentative tracks (their plots count as
@@ -287,7 +286,7 @@ class TrackManager(Tracker):
         self.revisit = RevisitMeter(self.params.revisit, id_prefix)
         #: The measurement errors the innovations show, against the site's (:mod:`.noise`).
         self.noise = NoiseMeter(self.params.noise, id_prefix)
-        #: The detection probability its confirmed tracks show, for deletion (:mod:`.detection`).
+        #: The detection probability its established tracks show, for deletion (:mod:`.detection`).
         self.detection = DetectionMeter(self.params.manager)
 
     @property
@@ -328,6 +327,14 @@ class TrackManager(Tracker):
     @property
     def measurement_sigma_scale(self) -> float:
         return self.noise.scale
+
+    @property
+    def pd_measured(self) -> float | None:
+        return self.detection.pd
+
+    @property
+    def misses_to_delete(self) -> int | None:
+        return self.detection.max_misses()
 
     @property
     def uids(self) -> NDArray[np.int64]:

@@ -569,6 +569,16 @@ class RadarStatus(OutModel):
         description="what the tracker multiplies the site's sigmas by: above 1 where the tracks' "
         "innovations show the radar's errors larger than declared",
     )
+    pd_measured: float | None = Field(
+        default=None,
+        description="the detection probability the radar's established tracks show: the share of "
+        "the looks due from them, one a scan each, in which they took a plot (null: not measured yet)",
+    )
+    misses_to_delete: int | None = Field(
+        default=None,
+        description="expected misses in a row that now delete an established confirmed track: 3, "
+        "more on a radar whose measured Pd makes three misses in a row likely for an aircraft still there",
+    )
 
 
 class CorrelationTimings(OutModel):
