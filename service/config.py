@@ -162,6 +162,11 @@ def engine_config_from(data: Mapping[str, Any]) -> EngineConfig:
             f"tracking.manager.confirm_m: {manager.confirm_m} hits of {manager.confirm_n} looks "
             "(confirm_n) can never be had"
         )
+    if manager.confirmed_misses_cap < manager.confirmed_max_misses:
+        problems.append(
+            f"tracking.manager.confirmed_misses_cap: {manager.confirmed_misses_cap} is below "
+            f"confirmed_max_misses ({manager.confirmed_max_misses}), the fewest misses that delete"
+        )
     if problems:
         raise _error(problems)
     return config

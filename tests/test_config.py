@@ -106,6 +106,8 @@ FAILED_AT = [
     ("tracking.filter.quiet_sojourn_s", 0),
     ("tracking.manager.confirm_m", 0),
     ("tracking.manager.confirm_m", 6),  # above confirm_n (5)
+    ("tracking.manager.confirmed_misses_cap", 2),  # below confirmed_max_misses (3)
+    ("tracking.manager.detection_memory_scans", 0),
     ("tracking.manager.confirm_n", 31),
     ("correlation.book.window", 0),
     ("correlation.book.window", 33),

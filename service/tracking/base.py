@@ -210,5 +210,5 @@ class Tracker(ABC):
     @property
     def misses_to_delete(self) -> int | None:
         """Expected misses in a row that now delete an established confirmed track (None: a
-        tracker without the rule)."""
+        tracker that does not count them)."""
         return None

@@ -334,7 +334,7 @@ class TrackManager(Tracker):
 
     @property
     def misses_to_delete(self) -> int | None:
-        return self.detection.max_misses()
+        return self.detection.misses_to_delete()
 
     @property
     def uids(self) -> NDArray[np.int64]:
@@ -418,10 +418,11 @@ class TrackManager(Tracker):
                     tracks = self._release_manoeuvring(
                         tracks, r, xp[chosen], pp[chosen], cw[chosen], z, cov_z, float(time_s)
                     )
-            was = tracks.confirmed & (tracks.nplots >= self.params.manager.established_plots)
+            # (established before this batch: its plot is already in ``nplots``)
+            was = tracks.confirmed & (tracks.nplots - hit >= self.params.manager.established_plots)
             hits = int(np.count_nonzero(hit & was))
             detection = self.detection.added(hits, int(np.count_nonzero(was)), float(time_s), scan_s)
-            misses = detection.max_misses()
+            misses = detection.misses_to_delete()
             tracks = self._life_cycle(tracks, hit, plots.azimuth_deg, float(time_s), scan_s, misses)
             tracks = self._drop_duplicates(tracks, twins, float(time_s))
             window.extend(plots.take(~used), float(time_s), meas.take(~used))
@@ -713,9 +714,9 @@ class TrackManager(Tracker):
         azimuth_deg: FloatArray,
         time_s: float,
         scan_s: float,
-        max_misses: int,
+        misses_to_delete: int,
     ) -> _Tracks:
-        """Looks, confirmation and deletion (module docstring, step 5); ``max_misses``: the
+        """Looks, confirmation and deletion (module docstring, step 5); ``misses_to_delete``: the
         expected misses in a row that delete an established confirmed track (:mod:`.detection`;
         any other confirmed track: ``confirmed_max_misses``)."""
         mp = self.params.manager
@@ -731,9 +732,9 @@ class TrackManager(Tracker):
         tracks = replace(tracks, hist=hist, looks=looks, miss_run=miss_run, confirmed=confirmed)
         misses = np.minimum(looks, n_bits) - hits
         established = confirmed & (tracks.nplots >= mp.established_plots)
-        limit = np.where(established, max_misses, mp.confirmed_max_misses)
+        limit = np.where(established, misses_to_delete, mp.confirmed_max_misses)
         dead = (~confirmed & (misses > mp.confirm_n - mp.confirm_m)) | (confirmed & (miss_run >= limit))
-        coast = np.where(established, max(mp.coast_scans, max_misses + 0.5), mp.coast_scans)
+        coast = np.where(established, max(mp.coast_scans, misses_to_delete + 0.5), mp.coast_scans)
         dead |= time_s - tracks.t > coast * scan_s
         return tracks.take(~dead) if dead.any() else tracks
 

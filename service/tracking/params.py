@@ -108,11 +108,12 @@ class ManagerParams:
     Pd and survives more than ``confirmed_max_misses``.  Clutter makes young confirmed tracks
     that soon miss; counted, they lowered the Pd, which let them live longer, which lowered it
     more (two radars in 3 000 clutter plots a scan: 87 % of the confirmed tracks on clutter
-    against 51 % with a fixed three)."""
+    against 51 % with a fixed three).  0 counts every confirmed track: that loop."""
 
     confirmed_misses_cap: Annotated[int, Ge(1), Le(60)] = 8
-    """The most expected misses in a row a confirmed track survives, whatever the radar's Pd
-    (a track that coasts longer is too far off to take its aircraft's plots back)."""
+    """The most expected misses in a row an established track survives, whatever the radar's
+    Pd (a track that coasts longer is too far off to take its aircraft's plots back); not below
+    ``confirmed_max_misses`` (checked at start)."""
 
     detection_memory_scans: Annotated[float, Gt(0)] = 20.0
     """The memory of the measured Pd, in scans (an exponential weight of data time)."""
@@ -126,9 +127,9 @@ class ManagerParams:
 
     coast_scans: float = 3.5
     """Any track not updated for ``coast_scans * scan_period_s`` of data time is deleted
-    (catches tracks that left the coverage, where no look is counted); for a confirmed track at
-    least its expected misses to deletion plus a half (``deletion_miss_probability``), so that
-    the looks decide while the radar still looks."""
+    (catches tracks that left the coverage, where no look is counted); for an established track
+    at least its expected misses to deletion plus a half (``deletion_miss_probability``), so
+    that the looks decide while the radar still looks."""
 
     sector_margin_deg: float = 1.0
     """A track only counts a miss when its predicted azimuth lies inside the azimuth arc the

@@ -576,8 +576,9 @@ class RadarStatus(OutModel):
     )
     misses_to_delete: int | None = Field(
         default=None,
-        description="expected misses in a row that now delete an established confirmed track: 3, "
-        "more on a radar whose measured Pd makes three misses in a row likely for an aircraft still there",
+        description="expected misses in a row that now delete an established confirmed track: "
+        "tracking.manager.confirmed_max_misses (3), more on a radar whose measured Pd makes that "
+        "run likely for an aircraft still there",
     )
 
 

@@ -12,18 +12,25 @@ import pytest
 
 from service.tracking import make_tracker
 from service.tracking.base import PlotColumns
-from service.tracking.detection import misses_to_delete
+from service.tracking.detection import DetectionMeter, misses_to_delete
 from service.tracking.manager import TrackManager
 from service.tracking.params import ManagerParams, TrackerParams
 from topofusion_lab.evaluation.initiation_monostatic import SITE
 
 SCAN_S = SITE.scan_period_s
 #: The aircraft's azimuths (degrees): spread round the radar, so that every scan's plots cover
-#: the whole circle and every track is looked at in every scan.  The first is the one whose
-#: plots stop for a while.
+#: the whole circle.  The first is the one whose plots stop for a while; three aircraft
+#: nearer the radar (``NEAR_DEG``) are always seen, so that each scan's plots cover its
+#: azimuth with more than the margin on both sides and each missing plot counts as a miss (a
+#: batch's plots bound the looks it counts: the smallest arc holding them, less a degree).
 AZIMUTHS_DEG = tuple(float(a) for a in np.arange(5.0, 360.0, 360.0 / 16))
+NEAR_DEG = (0.0, 5.0, 10.0)
 #: Scans before the gap (the tracks confirm and the estimate has its looks), the gap's misses.
-BEFORE, GAP = 20, 4
+BEFORE, GAP = 30, 4
+
+
+def _range_m(t: float, start_m: float = 60_000.0) -> float:
+    return start_m + 150.0 * (t - 1_000.0)
 
 
 def _plain(pd: float, probability: float, fewest: int, most: int) -> int:
@@ -73,30 +80,28 @@ def _scans(m: TrackManager, pd: float, seed: int) -> list[set[str]]:
         t = 1_000.0 + k * SCAN_S
         seen = rng.random(len(AZIMUTHS_DEG)) < pd
         seen[0] = not BEFORE <= k < BEFORE + GAP
-        az = np.array(AZIMUTHS_DEG)[seen]
+        az = np.append(np.array(AZIMUTHS_DEG)[seen], NEAR_DEG)
+        rg = np.append(np.full(int(seen.sum()), _range_m(t)), np.full(len(NEAR_DEG), _range_m(t, 30_000.0)))
         n = len(az)
-        m.update(
-            PlotColumns(
-                np.full(n, t),
-                np.full(n, 60_000.0 + 150.0 * (t - 1_000.0)),
-                az,
-                np.full(n, np.nan),
-                np.full(n, 9_000.0),
-                np.array(["X"] * n, dtype=object),
-            ),
-            t,
-        )
+        names = np.array(["X"] * n, dtype=object)
+        m.update(PlotColumns(np.full(n, t), rg, az, np.full(n, np.nan), np.full(n, 9_000.0), names), t)
         tab = m.tracks()
         enu = (tab.position_ecef_m - SITE.origin_ecef) @ SITE.rotation
-        near = tab.confirmed & (np.abs(np.degrees(np.arctan2(enu[:, 0], enu[:, 1])) - AZIMUTHS_DEG[0]) < 1.0)
+        off_deg = np.abs(np.degrees(np.arctan2(enu[:, 0], enu[:, 1])) - AZIMUTHS_DEG[0])
+        off_m = np.abs(np.hypot(enu[:, 0], enu[:, 1]) - _range_m(t))
+        near = tab.confirmed & (off_deg < 1.0) & (off_m < 3_000.0)
         out.append({str(x) for x in tab.track_id[near]})
     return out
 
 
 def _kept(seen: list[set[str]]) -> bool:
-    """Whether the first aircraft's confirmed track before the gap is still its track after."""
+    """Whether the first aircraft's confirmed track before the gap is still its track after;
+    one that is not was deleted by its third miss (a miss rule, not the coast limit's 3.5
+    scans, which would come a scan later)."""
     before, after = seen[BEFORE - 1], seen[-1]
     assert len(before) == 1 and len(after) == 1  # a track before, and a track again after
+    if before != after:
+        assert seen[BEFORE + 1] == before and not seen[BEFORE + 2]
     return before == after
 
 
@@ -156,3 +161,22 @@ def test_clutter_tracks_do_not_lower_the_pd_that_keeps_them(seed: int) -> None:
     assert fixed > 20  # the clutter makes tracks: the scene tests something
     assert now <= 1.1 * fixed
     assert every > 3 * fixed
+
+
+def test_lost_batches_and_silence_do_not_read_as_misses() -> None:
+    """A radar of 8 sector batches a scan whose established tracks take a plot at 9 looks of
+    10: the measured Pd is 0.9 with every batch, with every fifth batch lost (counted by time,
+    each loss would have read as a sector of misses: 0.72) and after a minute of silence."""
+    scan_s, sectors, tracks = 4.0, 8, 160
+    hits = round(0.9 * tracks / sectors)  # each batch: its sector's share of the tracks
+    meter = DetectionMeter(ManagerParams())
+    t = 0.0
+    for k in range(400):
+        t += scan_s / sectors
+        if k >= 200 and k % 5 == 0:
+            continue  # lost
+        if k == 300:
+            t += 60.0  # silent
+        meter = meter.added(hits, tracks, t, scan_s)
+        if k in (199, 299, 399):
+            assert meter.pd == pytest.approx(0.9, abs=0.01), k

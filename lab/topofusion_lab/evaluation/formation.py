@@ -671,7 +671,7 @@ def goals(
         + " |"
     )
     rows.append(
-        f"| duplicate tracks <= {100 * GOAL_DUPLICATES:.0f} % (every point) | "
+        f"| duplicate tracks <= {100 * GOAL_DUPLICATES:.0f} % (pooled over every point) | "
         + " | ".join(f"{_f(100 * x, '.2f')} % {mark(x <= GOAL_DUPLICATES)}" for x in dups)
         + " |"
     )
@@ -679,7 +679,7 @@ def goals(
     now = pooled.get("now", {}).get("switches_per_h", math.nan)
     halved = now <= GOAL_SWITCH_RATIO * before if before > 0 else now == 0
     rows.append(
-        "| ID switches at least halved against before (every point, per aircraft-h) | "
+        "| ID switches at least halved against before (pooled over every point, per aircraft-h) | "
         f"{_f(before, '.2f')} | {_f(now, '.2f')} {mark(halved)} |"
     )
     return rows
