@@ -18,11 +18,11 @@ The Pd is measured in data time over the radar's established tracks (:class:`Det
 the hits they take against the looks they are due, one a scan each (a batch ``dt`` after the
 previous one is due ``dt / scan`` of a look from each, a sector batch its share of the scan),
 both summed with an exponential memory of ``detection_memory_scans``; a batch late after the
-one before (``LATE_GAP_FACTOR``: lost batches, a silent radar) counts neither.  The looks of the M-of-N
-history cannot give it: a miss counts there only where the batch's plots cover the track's
-azimuth, and a sector's plots around a formation end where its edge aircraft was missed, so
-most misses of a formation's edge tracks are never counted (a radar of Pd 0.75 measured so
-showed 0.94).  Counting looks by time has the opposite, smaller bias: a track whose aircraft
+one before (``LATE_GAP_FACTOR``: lost batches, a silent radar) counts neither.  The looks of
+the M-of-N history cannot give it: a miss counts there only where the batch's plots cover the
+track's azimuth, and a sector's plots around a formation end where its edge aircraft was
+missed, so most misses of a formation's edge tracks are never counted (a radar of Pd 0.75
+measured so showed 0.94).  Counting looks by time has the opposite, smaller bias: a track whose aircraft
 has left the coverage is due looks it cannot have until it is deleted (a few scans of a
 track's life), so the measured Pd is a few percent low where aircraft are apart (the national
 scenario's radars of Pd 0.90-0.95 measure 0.87-0.93), which keeps a track a look longer, not
@@ -30,9 +30,9 @@ shorter.  Where they are not, it reads high: a hit is any plot a track took, and
 formation a track whose aircraft was missed often takes a neighbour's (the formation study's
 radar C, Pd 0.75 and the largest gates, measures a median 0.91 in the 2x lattice and 0.95 in the
 1x one, so it mostly keeps 3; with every radar at Pd 0.7 the three measure 0.70, 0.82 and 0.86).
-It is what the tracks show, and so what the rule weighs.  A radar with fewer than about five established
-tracks never gathers ``detection_min_looks`` in its memory and keeps ``confirmed_max_misses``.
-Cost: a few sums a batch.
+It is what the tracks show, and so what the rule weighs.  A radar with fewer than about five
+established tracks never gathers ``detection_min_looks`` in its memory and keeps
+``confirmed_max_misses``.  Cost: a few sums a batch.
 """
 
 from __future__ import annotations

@@ -418,12 +418,7 @@ class TrackManager(Tracker):
                     tracks = self._release_manoeuvring(
                         tracks, r, xp[chosen], pp[chosen], cw[chosen], z, cov_z, float(time_s)
                     )
-            # (established before this batch: its plot is already in ``nplots``)
-            was = tracks.confirmed & (tracks.nplots - hit >= self.params.manager.established_plots)
-            hits = int(np.count_nonzero(hit & was))
-            detection = self.detection.added(hits, int(np.count_nonzero(was)), float(time_s), scan_s)
-            misses = detection.misses_to_delete()
-            tracks = self._life_cycle(tracks, hit, plots.azimuth_deg, float(time_s), scan_s, misses)
+            tracks, detection = self._life_cycle(tracks, hit, plots.azimuth_deg, float(time_s), scan_s)
             tracks = self._drop_duplicates(tracks, twins, float(time_s))
             window.extend(plots.take(~used), float(time_s), meas.take(~used))
             initiated_s = self._initiated_s
@@ -714,12 +709,17 @@ class TrackManager(Tracker):
         azimuth_deg: FloatArray,
         time_s: float,
         scan_s: float,
-        misses_to_delete: int,
-    ) -> _Tracks:
-        """Looks, confirmation and deletion (module docstring, step 5); ``misses_to_delete``: the
-        expected misses in a row that delete an established confirmed track (:mod:`.detection`;
-        any other confirmed track: ``confirmed_max_misses``)."""
+    ) -> tuple[_Tracks, DetectionMeter]:
+        """Looks, confirmation and deletion (module docstring, step 5), and the detection meter
+        after the batch (kept by the caller once the whole batch has succeeded): an established
+        confirmed track is deleted after the meter's ``misses_to_delete`` expected misses in a
+        row (:mod:`.detection`), any other confirmed track after ``confirmed_max_misses``."""
         mp = self.params.manager
+        # (established before this batch: its plot is already in ``nplots``)
+        was = tracks.confirmed & (tracks.nplots - hit >= mp.established_plots)
+        hits_established = int(np.count_nonzero(hit & was))
+        detection = self.detection.added(hits_established, int(np.count_nonzero(was)), time_s, scan_s)
+        misses_to_delete = detection.misses_to_delete()
         n_bits = mp.confirm_n
         mask = (1 << n_bits) - 1
         expected = self._expected(tracks, azimuth_deg, time_s) & ~hit
@@ -736,7 +736,7 @@ class TrackManager(Tracker):
         dead = (~confirmed & (misses > mp.confirm_n - mp.confirm_m)) | (confirmed & (miss_run >= limit))
         coast = np.where(established, max(mp.coast_scans, misses_to_delete + 0.5), mp.coast_scans)
         dead |= time_s - tracks.t > coast * scan_s
-        return tracks.take(~dead) if dead.any() else tracks
+        return (tracks.take(~dead) if dead.any() else tracks), detection
 
     # -- initiation -------------------------------------------------------------------
     def _initiate_from_window(
