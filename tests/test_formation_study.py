@@ -57,6 +57,9 @@ def test_siap_counts_match_a_plain_count() -> None:
             **totals,
             "switches": 2,
             "astray": 1,
+            "joined_led": 40,
+            "joined_other": 6,
+            "joined_other_seen": 4,
             "tracked_samples": 7,
             "errors": 2,
             "err1": 30.0 + 40.0,
@@ -81,6 +84,7 @@ def test_siap_counts_match_a_plain_count() -> None:
     assert s["duplicates"] == pytest.approx(1 / 12)
     assert s["spuriousness"] == pytest.approx(4 / 12)
     assert s["astray"] == pytest.approx(1 / 8)
+    assert (s["plots_other"], s["plots_other_seen"]) == pytest.approx((6 / 40, 4 / 6))
     assert s["switches_per_h"] == pytest.approx(2 / (7 * fs.SAMPLE_S / 3600.0))
     assert s["position_mean_m"] == pytest.approx(35.0)
     assert s["position_rms_m"] == pytest.approx(math.sqrt((900 + 1600) / 2))
@@ -247,6 +251,7 @@ def test_a_tiny_run_reports_both_trackers(tmp_path: Path) -> None:
     assert "| 2x (" in section and "| before |" in section and "| now |" in section
     assert "| goal | before | now |" in section
     assert "pairs on two aircraft now (worst seed) |" in section
+    assert "| plots to another aircraft (its own there) |" in section
     assert "| 2x (" in section.split("Pair scores through the whole pipeline")[1]
     runs = json.loads((tmp_path / "formation.json").read_text())["runs"]
     assert [r["variant"] for r in runs] == ["before", "now"]
@@ -262,6 +267,9 @@ def test_a_tiny_run_reports_both_trackers(tmp_path: Path) -> None:
         assert 1.0 <= s["ambiguity"] <= 2.0
         assert 0.0 <= s["duplicates"] <= 0.5 and 0.0 <= s["spuriousness"] <= 0.5
         assert 0.0 <= s["astray"] <= 0.5
+        # (6 aircraft, three radars, 150 s: a few hundred plots after the tracks start)
+        assert r["joined_led"] > 100 and 0 <= r["joined_other"] <= 0.5 * r["joined_led"]
+        assert 0 <= r["joined_other_seen"] <= r["joined_other"]
         assert s["switches_per_h"] >= 0.0
         assert 0.0 < s["position_mean_m"] < 2_000.0
         assert math.isnan(s["quality"]) or 0.0 <= s["quality"] <= 1.0

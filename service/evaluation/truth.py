@@ -26,6 +26,9 @@ _NONE = np.array(None, dtype=object)
 #: sort and two searches at every update cost more than the rest of the tally's work, and
 #: the memory stays within a few times that of the live tracks.
 _DEAD_PER_LIVE = 2
+#: A track counts as on an aircraft for :attr:`TruthTally.joined_led` once that aircraft leads
+#: its plots with at least this many (a track's first plots name its aircraft by chance).
+LED_PLOTS = 3
 
 
 def _find(sorted_values: NDArray[Any], values: NDArray[Any]) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
@@ -43,6 +46,12 @@ class TruthTally:
     of its chunks, sorted by name within a chunk), and ties between equally common names go to
     the lowest code.  Counts only grow while a track lives, so each track's leader is kept up
     to date from the pairs a batch adds: :meth:`of` is a lookup, not a sort of the tally.
+
+    It also counts how the plots it is given fall (evaluation: the study of formations): of the
+    plots that joined a track already on an aircraft (its leader with ``LED_PLOTS`` plots or
+    more), :attr:`joined_led`, those of another aircraft, :attr:`joined_other`, and of these,
+    those whose track's own aircraft had a plot in the same batch, :attr:`joined_other_seen`
+    (the batch's labels given to :meth:`add_chunks`).
     """
 
     def __init__(self) -> None:
@@ -56,6 +65,10 @@ class TruthTally:
         self._lead_uid = np.empty(0, dtype=np.int64)
         self._lead_code = np.empty(0, dtype=np.int64)
         self._lead_count = np.empty(0, dtype=np.int64)
+        #: Plots with a truth that joined a track on an aircraft, and those of another aircraft.
+        self.joined_led = 0
+        self.joined_other = 0
+        self.joined_other_seen = 0
 
     def __len__(self) -> int:
         """Tracks with a truth (0: no plot carried one yet)."""
@@ -90,8 +103,14 @@ class TruthTally:
         """Count plots with labels ``truth`` for tracks ``uid`` (one entry per plot)."""
         self.add_chunks([(uid, truth)])
 
-    def add_chunks(self, chunks: list[tuple[NDArray[np.int64], NDArray[np.object_]]]) -> None:
-        """:meth:`add` of each ``(uid, truth)`` chunk in turn, encoded and counted at once."""
+    def add_chunks(
+        self,
+        chunks: list[tuple[NDArray[np.int64], NDArray[np.object_]]],
+        batch: NDArray[np.object_] | None = None,
+    ) -> None:
+        """:meth:`add` of each ``(uid, truth)`` chunk in turn, encoded and counted at once;
+        ``batch``: the labels of every plot of the batch they came in (for
+        :attr:`joined_other_seen`)."""
         if not chunks:
             return
         uid = np.concatenate([np.asarray(u, dtype=np.int64) for u, _ in chunks])
@@ -101,6 +120,17 @@ class TruthTally:
         have = code >= 0
         if not have.any():
             return
+        at, held = _find(self._lead_uid, uid[have])
+        led = held.copy()
+        led[held] = self._lead_count[at[held]] >= LED_PLOTS
+        self.joined_led += int(np.count_nonzero(led))
+        own = self._lead_code[at[led]]
+        own = own[own != code[have][led]]
+        self.joined_other += int(own.shape[0])
+        if own.shape[0] and batch is not None:
+            labels = batch[np.not_equal(batch, _NONE, dtype=bool)].astype(str)
+            where, known = _find(self._sorted_names, np.unique(labels))
+            self.joined_other_seen += int(np.count_nonzero(np.isin(own, self._sorted_codes[where[known]])))
         key, plots = np.unique(uid[have] * (1 << 32) + code[have], return_counts=True)
         at, seen = _find(self._key, key)
         count = self._count.copy()
@@ -193,7 +223,7 @@ class TruthLabelledTracker(Tracker):
         self.inner.update(plots, time_s)
         joined = self.inner.joined
         if np.not_equal(plots.truth_id, _NONE, dtype=bool).any():  # (real radar data: never)
-            self.tally.add_chunks([(uid, p.truth_id) for uid, p in joined])
+            self.tally.add_chunks([(uid, p.truth_id) for uid, p in joined], plots.truth_id)
         if self.tally:
             self.tally.keep(self.inner.uids)
 

@@ -56,6 +56,14 @@ to its ``truth_id`` (:func:`siap_sample`); every sum runs over radars, samples a
   the aircraft of most of a track's plots, so a swapped track still counts on its first
   aircraft: that aircraft then shows as duplicated (and the neighbour's own track as its
   second) although no two tracks follow one aircraft;
+* **plots to another aircraft** (a diagnostic, not SIAP's): of the plots that joined a track
+  (tentative or confirmed) already on an aircraft (the aircraft of most of its plots, with at
+  least :data:`~service.evaluation.truth.LED_PLOTS` of them), the share of another aircraft's
+  (:class:`~service.evaluation.truth.TruthTally`'s ``joined_other / joined_led``, over the
+  whole run): the association errors themselves, the cause of tracks astray, ID switches and
+  duplicates; in brackets the share of those whose track's own aircraft had a plot in the same
+  batch (``joined_other_seen``: the one assignment chose the neighbour's; the rest, own
+  aircraft not detected in that batch, is a track that took a plot while its aircraft was missed);
 * **ID switches** per aircraft-hour (:class:`IdSwitches`): per radar and aircraft, the track
   *followed* is kept while it is among the aircraft's confirmed tracks; when it is not (or at
   the first sample with one), the confirmed track with the most plots (then the smallest id)
@@ -111,6 +119,7 @@ from typing import Any
 import numpy as np
 
 from service.config import EngineConfig
+from service.evaluation.truth import TruthLabelledTracker
 from service.geo import Site, ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from service.tracking.params import FormationParams
 from topofusion_lab.evaluation.formation_pipeline import (
@@ -403,7 +412,16 @@ def run_one(job: Job) -> dict[str, Any]:
     score_right = [0] * (len(SCORE_BINS) - 1)
     brier = 0.0
     samples = 0
-    for t, snap, _ in run_pipeline(sc, job.seed, config=engine_config(job.variant), at_s=at, observe=truth):
+    joined = {"led": 0, "other": 0, "other_seen": 0}
+    for t, snap, engine in run_pipeline(
+        sc, job.seed, config=engine_config(job.variant), at_s=at, observe=truth
+    ):
+        if t >= sc.duration_s:  # (the last snapshot: the whole run's association counts)
+            for tracked in engine.tracking.tracked.values():
+                if isinstance(tracked.tracker, TruthLabelledTracker):
+                    joined["led"] += tracked.tracker.tally.joined_led
+                    joined["other"] += tracked.tracker.tally.joined_other
+                    joined["other_seen"] += tracked.tracker.tally.joined_other_seen
         samples += 1
         t_abs = sc.start_time_s + t
         names, ecef = truth.aircraft(t_abs)
@@ -473,6 +491,9 @@ def run_one(job: Job) -> dict[str, Any]:
         "samples": samples,
         **siap,
         "astray": astray,
+        "joined_led": joined["led"],
+        "joined_other": joined["other"],
+        "joined_other_seen": joined["other_seen"],
         "switches": ids.switches,
         "tracked_samples": ids.tracked,
         "errors": errors,
@@ -509,6 +530,8 @@ def summarize(runs: Sequence[Mapping[str, Any]]) -> dict[str, float]:
         "duplicates": ratio(tot("duplicates"), tot("tracks")),
         "spuriousness": ratio(tot("spurious"), tot("tracks")),
         "astray": ratio(tot("astray"), tot("assigned")),
+        "plots_other": ratio(tot("joined_other"), tot("joined_led")),
+        "plots_other_seen": ratio(tot("joined_other_seen"), tot("joined_other")),
         "switches_per_h": ratio(tot("switches"), hours),
         "switches": tot("switches"),
         "position_mean_m": ratio(tot("err1"), tot("errors")),
@@ -574,10 +597,10 @@ def report(
         "`topofusion_lab.evaluation.formation` (after Stone Soup's SIAP metrics).",
         "",
         "| point | tracker | completeness | ambiguity | duplicates | astray | spurious "
-        "| ID switches / aircraft-h "
+        "| plots to another aircraft (its own there) | ID switches / aircraft-h "
         "| position error m, mean (RMS) | quality | pairs correct | pairs false (worst seed) "
         "| pairs on two aircraft now (worst seed) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     summaries: dict[tuple[int, str], dict[str, float]] = {}
     for i, point in enumerate(points):
@@ -590,7 +613,8 @@ def report(
                 f"| {point.label} ({point.spacing_x * unit:.0f} m) | {variant} "
                 f"| {_f(100 * s['completeness'], '.1f')} % | {_f(s['ambiguity'], '.3f')} "
                 f"| {_f(100 * s['duplicates'], '.2f')} % | {_f(100 * s['astray'], '.1f')} % "
-                f"| {_f(100 * s['spuriousness'], '.2f')} % "
+                f"| {_f(100 * s['spuriousness'], '.2f')} % | {_f(100 * s['plots_other'], '.1f')} % "
+                f"({_f(100 * s['plots_other_seen'], '.0f')} %) "
                 f"| {_f(s['switches_per_h'], '.2f')} ({s['switches']:.0f}) "
                 f"| {_f(s['position_mean_m'], '.0f')} ({_f(s['position_rms_m'], '.0f')}) "
                 f"| {_f(s['quality'], '.3f')} | {_f(s['correct_pct'], '.1f')} % "
