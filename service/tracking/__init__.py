@@ -40,6 +40,7 @@ def make_tracker(
     id_prefix: str = "T",
     params: TrackerParams | None = None,
     epoch: int = 0,
+    kind: type[TrackManager] = TrackManager,
 ) -> TrackManager:
     """A tracker for one radar.
 
@@ -48,10 +49,11 @@ def make_tracker(
     ``initiator`` is one of :data:`INITIATORS` (``ValueError`` naming them otherwise).  Track
     ids are ``f"{id_prefix}-{n}"``, ``n`` from ``first_number(epoch)`` (1 in epoch 0), never
     reused: ``epoch`` counts the service's starts with one state directory
-    (``service.state``), so ids are not reused across restarts either.
+    (``service.state``), so ids are not reused across restarts either.  ``kind``: the class
+    made (a subclass of :class:`TrackManager`; the lab's bounds on association).
     """
     get_initiator(initiator)  # fail early with the list of names
-    return TrackManager(
+    return kind(
         site,
         window_for(site, window_s),
         initiator=initiator,

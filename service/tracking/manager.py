@@ -359,7 +359,6 @@ class TrackManager(Tracker):
         when its covariance changes, for :meth:`tracks`) and the measurements of the window's
         plots (made when their batch arrives).  When the engine has replaced the site since,
         both are made anew here, so results are those of converting everything every time."""
-        fp = self.params.filter
         mp = self.params.measurement
         keep = first_in_cell(plots, self.site, mp.coincident_sigma, mp.altitude_sigma_m)
         coincident = len(plots) - int(np.count_nonzero(keep))
@@ -393,7 +392,7 @@ class TrackManager(Tracker):
                 formations_s = float(time_s)
             if len(tracks) and len(meas):
                 rows, cols, d2, xp, pp, cw = self._gate(tracks, meas)
-                chosen = assign(rows, cols, d2, fp.gate_chi2)
+                chosen = self._assign(tracks, meas, rows, cols, d2)
                 r, c = rows[chosen], cols[chosen]
                 clear = clarity(rows, cols, d2, chosen)
                 nis = d2[chosen][clear >= 1.0]  # (unambiguous ones: clutter in a gate would inflate it)
@@ -566,6 +565,15 @@ class TrackManager(Tracker):
             np.concatenate(p_),
             np.concatenate(w_),
         )
+
+    def _assign(
+        self, tracks: _Tracks, meas: Measurements, rows: IntArray, cols: IntArray, d2: FloatArray
+    ) -> IntArray:
+        """The chosen candidates among the gated ones (:func:`.assignment.assign`, a miss
+        costing the gate).  One method, so that the lab's bounds on association
+        (``topofusion_lab.evaluation.formation_bounds``) can change the costs it solves and
+        nothing else."""
+        return assign(rows, cols, d2, self.params.filter.gate_chi2)
 
     # -- formations --------------------------------------------------------------------
     def _hold_velocity(self, tracks: _Tracks, rows: IntArray) -> None:

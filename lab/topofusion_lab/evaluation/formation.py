@@ -122,6 +122,7 @@ from service.config import EngineConfig
 from service.evaluation.truth import TruthLabelledTracker
 from service.geo import Site, ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from service.tracking.params import FormationParams
+from topofusion_lab.evaluation.formation_bounds import BOUNDS, Reference, bounded_factory, no_hold
 from topofusion_lab.evaluation.formation_pipeline import (
     SCORE_BINS,
     formation_scenario,
@@ -283,6 +284,25 @@ def apparent(radar: RadarSpec, site: Site, ecef: np.ndarray) -> np.ndarray:
     return site.polar_to_ecef(r, az + radar.azimuth_bias_deg, el + radar.elevation_bias_deg)
 
 
+def _reference_for(sc: Scenario, truth: TruthLog) -> Callable[[str, Site], Reference]:
+    """The association bounds' truth (:mod:`.formation_bounds`): each radar's true positions
+    of aircraft as it sees them (:func:`apparent`)."""
+    radars = {r.radar_id: r for r in sc.radars}
+
+    def reference_for(radar_id: str, site: Site) -> Reference:
+        radar = radars[radar_id]
+
+        def reference(names: Sequence[str], t_abs: np.ndarray) -> np.ndarray:
+            ecef = truth.ecef(names, t_abs)
+            ok = ~np.isnan(ecef[:, 0])
+            ecef[ok] = apparent(radar, site, ecef[ok])
+            return ecef
+
+        return reference
+
+    return reference_for
+
+
 def nearest_aircraft(truth: TruthLog, radar: RadarSpec, site: Site, ecef: np.ndarray, t_abs: float) -> str:
     """The aircraft horizontally nearest to a track's position ``ecef`` at its time, every
     aircraft as radar ``radar`` sees it (:func:`apparent`)."""
@@ -383,6 +403,10 @@ class Job:
     seed: int
     duration_s: float | None
     targets: int | None
+    #: A bound's tracks' reference error (m; :mod:`.formation_bounds`, ``true-position``).
+    offset_m: float = 0.0
+    #: The correlation's hold of contested pairs on (the default) or off.
+    hold: bool = True
 
 
 def _zero() -> dict[str, float]:
@@ -399,6 +423,12 @@ def run_one(job: Job) -> dict[str, Any]:
     pair_warmup = min(PAIR_WARMUP_S, 0.5 * sc.duration_s)
     at = list(np.arange(warmup, sc.duration_s - 1e-9, SAMPLE_S))
     truth = TruthLog(sc)
+    config = engine_config("now" if job.variant in BOUNDS else job.variant)
+    if not job.hold:
+        config = no_hold(config)
+    factory = None
+    if job.variant in BOUNDS:
+        factory = bounded_factory(config, job.variant, _reference_for(sc, truth), job.offset_m, job.seed)
     radars = {r.radar_id: r for r in sc.radars}
     sites = {r.radar_id: r.site() for r in sc.radars}
     siap = _zero()
@@ -414,7 +444,7 @@ def run_one(job: Job) -> dict[str, Any]:
     samples = 0
     joined = {"led": 0, "other": 0, "other_seen": 0}
     for t, snap, engine in run_pipeline(
-        sc, job.seed, config=engine_config(job.variant), at_s=at, observe=truth
+        sc, job.seed, config=config, at_s=at, observe=truth, tracker_factory=factory
     ):
         if t >= sc.duration_s:  # (the last snapshot: the whole run's association counts)
             for tracked in engine.tracking.tracked.values():

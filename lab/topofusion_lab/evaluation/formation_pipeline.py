@@ -50,6 +50,7 @@ from typing import Any
 import numpy as np
 
 from service.engine import Engine, EngineConfig, Snapshot
+from service.pipeline.tracking_stage import TrackerFactory
 from service.wire.keys import Keys
 from service.wire.vocabulary import METHODS
 from topofusion_lab.scenarios.catalog import get_scenario
@@ -163,12 +164,14 @@ def run_pipeline(
     at_s: Sequence[float] = (),
     config: EngineConfig | None = None,
     observe: Observer | None = None,
+    tracker_factory: TrackerFactory | None = None,
 ) -> Iterator[tuple[float, Snapshot, Engine]]:
     """Feed ``sc``'s messages (seed ``seed``) into a fresh engine; yields ``(data seconds since
     the start, snapshot, engine)`` once the stream has passed each of ``at_s`` and, last, after
     the whole stream and ``flush`` (at the scenario's duration).  ``observe`` is the
-    simulator's truth observer (:func:`~topofusion_lab.scenarios.simulator.generate`)."""
-    engine = Engine(replace(config or EngineConfig(), method=method))
+    simulator's truth observer (:func:`~topofusion_lab.scenarios.simulator.generate`);
+    ``tracker_factory`` the engine's (None: the configuration's trackers)."""
+    engine = Engine(replace(config or EngineConfig(), method=method), tracker_factory)
     keys = Keys(engine.config.prefix)
     pending = sorted(at_s)
     try:
