@@ -13,7 +13,7 @@ from service.tracking.base import PlotColumns
 from service.tracking.measurement import plots_to_measurements
 from service.tracking.params import TrackerParams
 from topofusion_lab.evaluation import formation as fs
-from topofusion_lab.evaluation.formation_bounds import BoundedTracker, bounded_factory, main
+from topofusion_lab.evaluation.formation_bounds import BoundedTracker, RadarTruth, bounded_factory, main
 from topofusion_lab.evaluation.initiation_monostatic import SITE, MonostaticScenario, simulate
 
 POINT = fs.Point("2x", "lattice", 2.0)
@@ -25,11 +25,14 @@ def _run(variant: str) -> dict[str, float]:
 
 def test_the_truth_bound_takes_no_plot_of_another_aircraft_and_the_tracker_does() -> None:
     """10 aircraft 806 m apart, 180 s: the default tracker gives some of its tracks' plots to
-    the wrong track; told the truth, none; told the true positions, fewer than the tracker."""
-    now, truth, position = _run("now"), _run("truth"), _run("true-position")
+    the wrong track; told the truth, none; told the true positions, or aided by the other
+    radars' tracks, fewer than the tracker."""
+    now, truth = _run("now"), _run("truth")
     assert now["joined_led"] > 100 and now["joined_other"] > 0
     assert truth["joined_led"] > 100 and truth["joined_other"] == 0
-    assert position["joined_led"] > 100 and position["joined_other"] < now["joined_other"]
+    for bound in ("true-position", "other-radar"):
+        got = _run(bound)
+        assert got["joined_led"] > 100 and got["joined_other"] < now["joined_other"], (bound, got, now)
 
 
 def test_the_true_position_cost_is_a_plain_mahalanobis_distance_from_the_reference() -> None:
@@ -53,7 +56,8 @@ def test_the_true_position_cost_is_a_plain_mahalanobis_distance_from_the_referen
     for offset_m in (0.0, 150.0):
         tracker = make_tracker(SITE, None, "logic", "M", params, kind=BoundedTracker)
         assert isinstance(tracker, BoundedTracker)
-        tracker.reference, tracker.offset_m, tracker.seed = reference, offset_m, 7
+        tracker.truth = RadarTruth(reference, lambda ecef: ecef, lambda ecef: ecef)
+        tracker.offset_m, tracker.seed = offset_m, 7
         got = tracker.reference_d2(uids, names, meas, cols)
         for i in range(40):
             if names[i] == "A4":
@@ -70,8 +74,9 @@ def test_the_true_position_cost_is_a_plain_mahalanobis_distance_from_the_referen
 def test_a_bound_is_one_of_the_named_ones_and_the_command_prints_its_rows(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
-    with pytest.raises(ValueError, match="unknown bound 'oracle': one of truth, true-position"):
-        bounded_factory(EngineConfig(), "oracle", lambda radar, site: lambda names, t: np.empty((0, 3)))
+    nowhere = RadarTruth(lambda names, t: np.empty((0, 3)), lambda ecef: ecef, lambda ecef: ecef)
+    with pytest.raises(ValueError, match="unknown bound 'oracle': one of truth, true-position, other-radar"):
+        bounded_factory(EngineConfig(), "oracle", lambda radar, site: nowhere)
     args = ["--point", "2x", "--runs", "1", "--duration", "150", "--targets", "6", "--workers", "1"]
     assert main([*args, "--bound", "truth", "--no-hold"]) == 0
     out = capsys.readouterr().out

@@ -122,7 +122,7 @@ from service.config import EngineConfig
 from service.evaluation.truth import TruthLabelledTracker
 from service.geo import Site, ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from service.tracking.params import FormationParams
-from topofusion_lab.evaluation.formation_bounds import BOUNDS, Reference, bounded_factory, no_hold
+from topofusion_lab.evaluation.formation_bounds import BOUNDS, RadarTruth, bounded_factory, no_hold
 from topofusion_lab.evaluation.formation_pipeline import (
     SCORE_BINS,
     formation_scenario,
@@ -284,23 +284,33 @@ def apparent(radar: RadarSpec, site: Site, ecef: np.ndarray) -> np.ndarray:
     return site.polar_to_ecef(r, az + radar.azimuth_bias_deg, el + radar.elevation_bias_deg)
 
 
-def _reference_for(sc: Scenario, truth: TruthLog) -> Callable[[str, Site], Reference]:
+def _truth_for(sc: Scenario, truth: TruthLog) -> Callable[[str, Site], RadarTruth]:
     """The association bounds' truth (:mod:`.formation_bounds`): each radar's true positions
-    of aircraft as it sees them (:func:`apparent`)."""
+    of the aircraft as it sees them (:func:`apparent`), and its biases."""
     radars = {r.radar_id: r for r in sc.radars}
 
-    def reference_for(radar_id: str, site: Site) -> Reference:
+    def truth_for(radar_id: str, site: Site) -> RadarTruth:
         radar = radars[radar_id]
 
-        def reference(names: Sequence[str], t_abs: np.ndarray) -> np.ndarray:
+        def positions(names: Sequence[str], t_abs: np.ndarray) -> np.ndarray:
             ecef = truth.ecef(names, t_abs)
             ok = ~np.isnan(ecef[:, 0])
             ecef[ok] = apparent(radar, site, ecef[ok])
             return ecef
 
-        return reference
+        return RadarTruth(
+            positions, lambda ecef: unbiased(radar, site, ecef), lambda ecef: apparent(radar, site, ecef)
+        )
 
-    return reference_for
+    return truth_for
+
+
+def unbiased(radar: RadarSpec, site: Site, ecef: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`apparent`: positions ``ecef`` radar ``radar`` reports, its biases
+    taken out."""
+    r, az, el = site.ecef_to_polar(ecef)
+    r = (r - radar.range_bias_m) / (1.0 + radar.range_gain_ppm * 1e-6)
+    return site.polar_to_ecef(r, az - radar.azimuth_bias_deg, el - radar.elevation_bias_deg)
 
 
 def nearest_aircraft(truth: TruthLog, radar: RadarSpec, site: Site, ecef: np.ndarray, t_abs: float) -> str:
@@ -428,7 +438,7 @@ def run_one(job: Job) -> dict[str, Any]:
         config = no_hold(config)
     factory = None
     if job.variant in BOUNDS:
-        factory = bounded_factory(config, job.variant, _reference_for(sc, truth), job.offset_m, job.seed)
+        factory = bounded_factory(config, job.variant, _truth_for(sc, truth), job.offset_m, job.seed)
     radars = {r.radar_id: r for r in sc.radars}
     sites = {r.radar_id: r.site() for r in sc.radars}
     siap = _zero()

@@ -16,6 +16,12 @@ candidates of a batch).  The gate, the filter, the tracks' quality (the clarity 
   plots' noise alone makes.  With ``offset_m`` > 0 each track's reference is off by an error
   drawn once per track (normal, ``offset_m`` per horizontal axis): a prediction about as good
   as another radar's track of the aircraft, but free of this track's own mistakes.
+* ``other-radar``: a candidate's cost is the plot's ``d^2`` from the other radars' track of
+  the track's aircraft (the confirmed one of the smallest horizontal covariance, when smaller
+  than the track's own), brought to the plot's time on its velocity and into this radar's
+  view with every radar's true biases (registration without error); without such a track,
+  the tracker's own ``d^2``.  An association aided by the more precise radars' tracks, the
+  pairing (which track is of which aircraft) and the registration done right.
 
 ``python -m topofusion_lab.evaluation.formation_bounds`` prints, per point, the default
 tracker's row and each bound's (the formation study's columns, the same messages);
@@ -29,7 +35,7 @@ import argparse
 import os
 import sys
 from collections.abc import Callable, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -47,12 +53,24 @@ from service.tracking.manager import TrackManager
 from service.tracking.measurement import Measurements
 
 #: The bounds, as ``--bound`` names and the study's variants.
-BOUNDS = ("truth", "true-position")
+BOUNDS = ("truth", "true-position", "other-radar")
 
 #: True ECEF positions, as one radar sees them, of aircraft ``names`` at data times (NaN rows:
 #: unknown).
 Reference = Callable[[Sequence[str], FloatArray], FloatArray]
 IntArray = NDArray[np.intp]
+
+
+@dataclass(frozen=True)
+class RadarTruth:
+    """What the truth says of one radar (evaluation only)."""
+
+    #: The aircraft's true positions as the radar sees them.
+    positions: Reference
+    #: ECEF positions the radar reports -> where they are (its biases taken out) ...
+    unbiased: Callable[[FloatArray], FloatArray]
+    #: ... and back: true ECEF positions -> as the radar sees them.
+    apparent: Callable[[FloatArray], FloatArray]
 
 
 class BoundedTracker(TrackManager):
@@ -61,7 +79,9 @@ class BoundedTracker(TrackManager):
     each track uid's aircraft), ``offset_m`` and ``seed``."""
 
     bound: str = "truth"
-    reference: Reference | None = None
+    truth: RadarTruth | None = None
+    #: The run's trackers (``other-radar``: the other radars').
+    peers: Sequence[BoundedTracker] = ()
     labels: Callable[[NDArray[np.int64]], NDArray[np.object_]] | None = None
     offset_m: float = 0.0
     seed: int = 0
@@ -88,6 +108,10 @@ class BoundedTracker(TrackManager):
         cost = np.array(d2, dtype=float, copy=True)
         if self.bound == "truth":
             cost[known & (own != plot)] = np.inf
+        elif self.bound == "other-radar":
+            k = np.flatnonzero(known)
+            aided = self.other_radar_d2(tracks, rows[k], own[k], meas, cols[k])
+            cost[k] = np.where(np.isnan(aided), cost[k], aided)
         else:
             k = np.flatnonzero(known)
             cost[k] = self.reference_d2(tracks.uid[rows[k]], own[k], meas, cols[k])
@@ -100,8 +124,8 @@ class BoundedTracker(TrackManager):
         """Each candidate's ``d^2`` from its track's reference: the true position of aircraft
         ``names`` as this radar sees it at the plot's time (plus the track's drawn error), against
         the plot's covariance; inf where the truth does not know the aircraft then."""
-        assert self.reference is not None
-        ecef = self.reference([str(n) for n in names], meas.time_s[cols])
+        assert self.truth is not None
+        ecef = self.truth.positions([str(n) for n in names], meas.time_s[cols])
         out = np.full(cols.shape[0], np.inf)
         ok = ~np.isnan(ecef[:, 0])
         ref = self.site.ecef_to_enu(ecef[ok])
@@ -109,6 +133,37 @@ class BoundedTracker(TrackManager):
             ref[:, :2] += np.array([self._offset(int(u)) for u in uids[ok]]).reshape(-1, 2)
         y = meas.enu_m[cols[ok]] - ref
         out[ok] = np.einsum("ni,nij,nj->n", y, np.linalg.inv(meas.covariance[cols[ok]]), y)
+        return out
+
+    def other_radar_d2(
+        self, tracks: Any, rows: IntArray, names: NDArray[np.object_], meas: Measurements, cols: IntArray
+    ) -> FloatArray:
+        """Each candidate's ``d^2`` from the other radars' most precise confirmed track of
+        aircraft ``names`` (module docstring), NaN where none is more precise than the track."""
+        assert self.truth is not None
+        best: dict[str, tuple[float, BoundedTracker, RadarTruth, int]] = {}
+        for peer in self.peers:
+            if peer is self or peer.labels is None or peer.truth is None or len(peer._tracks) == 0:
+                continue
+            frame = peer.truth
+            pt = peer._tracks
+            spread = np.trace(pt.P[:, :2, :2], axis1=1, axis2=2)
+            for i, name in enumerate(peer.labels(pt.uid)):
+                if name is not None and pt.confirmed[i] and spread[i] < best.get(name, (np.inf,))[0]:
+                    best[name] = (float(spread[i]), peer, frame, i)
+        own = np.trace(tracks.P[rows, :2, :2], axis1=1, axis2=2)
+        out = np.full(cols.shape[0], np.nan)
+        for k, name in enumerate(names):
+            found = best.get(name)
+            if found is None or found[0] >= own[k]:
+                continue
+            _, peer, frame, i = found
+            pt = peer._tracks
+            t = meas.time_s[cols[k]]
+            ecef = peer.site.enu_to_ecef(pt.x[i, :3] + pt.x[i, 3:] * (t - pt.t[i]))
+            seen = self.truth.apparent(frame.unbiased(np.atleast_2d(ecef)))
+            y = meas.enu_m[cols[k]] - self.site.ecef_to_enu(seen)[0]
+            out[k] = float(y @ np.linalg.solve(meas.covariance[cols[k]], y))
         return out
 
     def _offset(self, uid: int) -> FloatArray:
@@ -123,14 +178,16 @@ class BoundedTracker(TrackManager):
 def bounded_factory(
     config: EngineConfig,
     bound: str,
-    reference_for: Callable[[str, Site], Reference],
+    truth_for: Callable[[str, Site], RadarTruth],
     offset_m: float = 0.0,
     seed: int = 0,
 ) -> TrackerFactory:
-    """The engine's tracker factory (``Engine(tracker_factory=...)``) for a bound:
-    ``reference_for(radar_id, site)`` gives the radar's :data:`Reference`."""
+    """The engine's tracker factory (``Engine(tracker_factory=...)``) for a bound (one engine:
+    its trackers see each other, ``other-radar``): ``truth_for(radar_id, site)`` gives what
+    the truth says of the radar."""
     if bound not in BOUNDS:
         raise ValueError(f"unknown bound {bound!r}: one of {', '.join(BOUNDS)}")
+    peers: list[BoundedTracker] = []
 
     def factory(site: Site, radar_id: str) -> Tracker:
         inner = make_tracker(
@@ -139,7 +196,9 @@ def bounded_factory(
         assert isinstance(inner, BoundedTracker)
         outer = TruthLabelledTracker(inner)
         inner.bound, inner.labels = bound, outer.tally.of
-        inner.reference, inner.offset_m, inner.seed = reference_for(radar_id, site), offset_m, seed
+        inner.peers = peers
+        inner.truth, inner.offset_m, inner.seed = truth_for(radar_id, site), offset_m, seed
+        peers.append(inner)
         return outer
 
     return factory
