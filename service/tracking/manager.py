@@ -570,9 +570,8 @@ class TrackManager(Tracker):
         self, tracks: _Tracks, meas: Measurements, rows: IntArray, cols: IntArray, d2: FloatArray
     ) -> IntArray:
         """The chosen candidates among the gated ones (:func:`.assignment.assign`, a miss
-        costing the gate).  One method, so that the lab's bounds on association
-        (``topofusion_lab.evaluation.formation_bounds``) can change the costs it solves and
-        nothing else."""
+        costing the gate).  One method, so that an evaluation can change the costs it solves
+        and nothing else (the lab's bounds on association in formations, docs/results.md)."""
         return assign(rows, cols, d2, self.params.filter.gate_chi2)
 
     # -- formations --------------------------------------------------------------------
