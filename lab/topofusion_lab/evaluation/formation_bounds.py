@@ -75,8 +75,8 @@ class RadarTruth:
 
 class BoundedTracker(TrackManager):
     """The default tracker whose assignment costs come from the truth (module docstring).  Set
-    up by :func:`bounded_factory`: ``bound``, ``reference``, ``labels`` (the wrapper's tally:
-    each track uid's aircraft), ``offset_m`` and ``seed``."""
+    up by :func:`bounded_factory`: ``bound``, ``truth``, ``peers``, ``labels`` (the wrapper's
+    tally: each track uid's aircraft), ``offset_m`` and ``seed``."""
 
     bound: str = "truth"
     truth: RadarTruth | None = None
@@ -86,9 +86,8 @@ class BoundedTracker(TrackManager):
     offset_m: float = 0.0
     seed: int = 0
     #: The aircraft of each of the batch's plots, in the rows the tracker measures (after its
-    #: repeats are dropped), and each track's drawn reference error.
+    #: repeats are dropped).
     _plot_truth: NDArray[np.object_] = np.empty(0, dtype=object)
-    _offsets: dict[int, FloatArray]
 
     def update(self, plots: PlotColumns, time_s: float) -> None:
         mp = self.params.measurement
@@ -129,8 +128,10 @@ class BoundedTracker(TrackManager):
         out = np.full(cols.shape[0], np.inf)
         ok = ~np.isnan(ecef[:, 0])
         ref = self.site.ecef_to_enu(ecef[ok])
-        if self.offset_m > 0.0:
-            ref[:, :2] += np.array([self._offset(int(u)) for u in uids[ok]]).reshape(-1, 2)
+        if self.offset_m > 0.0:  # (drawn once per track: the same draw at every batch)
+            ref[:, :2] += [
+                np.random.default_rng([self.seed, int(u)]).normal(0.0, self.offset_m, 2) for u in uids[ok]
+            ]
         y = meas.enu_m[cols[ok]] - ref
         out[ok] = np.einsum("ni,nij,nj->n", y, np.linalg.inv(meas.covariance[cols[ok]]), y)
         return out
@@ -165,14 +166,6 @@ class BoundedTracker(TrackManager):
             y = meas.enu_m[cols[k]] - self.site.ecef_to_enu(seen)[0]
             out[k] = float(y @ np.linalg.solve(meas.covariance[cols[k]], y))
         return out
-
-    def _offset(self, uid: int) -> FloatArray:
-        if not hasattr(self, "_offsets"):
-            self._offsets = {}
-        if uid not in self._offsets:
-            rng = np.random.default_rng([self.seed, uid])
-            self._offsets[uid] = rng.normal(0.0, self.offset_m, 2)
-        return self._offsets[uid]
 
 
 def bounded_factory(
