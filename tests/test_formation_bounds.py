@@ -8,13 +8,21 @@ import numpy as np
 import pytest
 
 from service.config import EngineConfig
+from service.correlation.registration import remove_bias
 from service.tracking import make_tracker
 from service.tracking.base import PlotColumns
 from service.tracking.measurement import plots_to_measurements
 from service.tracking.params import TrackerParams
 from topofusion_lab.evaluation import formation as fs
-from topofusion_lab.evaluation.formation_bounds import BoundedTracker, RadarTruth, bounded_factory, main
+from topofusion_lab.evaluation.formation_bounds import (
+    BoundedTracker,
+    RadarTruth,
+    bounded_factory,
+    main,
+    registered_terms,
+)
 from topofusion_lab.evaluation.initiation_monostatic import SITE, MonostaticScenario, simulate
+from topofusion_lab.scenarios.simulator import generate
 
 POINT = fs.Point("2x", "lattice", 2.0)
 
@@ -78,8 +86,65 @@ def test_a_bound_is_one_of_the_named_ones_and_the_command_prints_its_rows(
     with pytest.raises(ValueError, match="unknown bound 'oracle': one of truth, true-position, other-radar"):
         bounded_factory(EngineConfig(), "oracle", lambda radar, site: nowhere)
     args = ["--point", "2x", "--runs", "1", "--duration", "150", "--targets", "6", "--workers", "1"]
-    assert main([*args, "--bound", "truth", "--no-hold"]) == 0
+    assert main([*args, "--bound", "truth", "--bound", "paired-covariance", "--no-hold"]) == 0
     out = capsys.readouterr().out
     assert "| 2x | tracker |" in out and "| 2x | truth |" in out and "true-position" not in out
+    assert "| 2x | paired-covariance |" in out
     with pytest.raises(SystemExit):
         main([*args, "--offset-m", "-1"])
+
+
+def test_the_paired_bound_brings_a_partner_into_view_with_the_registered_terms() -> None:
+    """Another radar's view of an aircraft, its registered terms taken out and this radar's put
+    in (``paired``'s transform: the model's exact inverse, then its inverse with the terms'
+    signs turned, right to first order), lands within a metre of where this radar sees the
+    aircraft, for the formation's radars and biases; with no terms, hundreds of metres off."""
+    sc = fs.scenario(POINT, 60.0)
+    radars = {r.radar_id: r for r in sc.radars}
+    sites = {rid: r.site() for rid, r in radars.items()}
+    rng = np.random.default_rng(3)
+    centre = sites["A"].enu_to_ecef(np.zeros(3))
+    x = np.array([sites["A"].ecef_to_enu(centre)]) + rng.uniform(-60_000, 60_000, (50, 3)) * [1, 1, 0]
+    x[:, 2] = 9_000.0
+    ecef = sites["A"].enu_to_ecef(x)
+    v = np.zeros_like(ecef)
+
+    def terms(rid: str) -> np.ndarray:
+        r = radars[rid]
+        return registered_terms(
+            {
+                "range_bias_m": r.range_bias_m,
+                "azimuth_bias_deg": r.azimuth_bias_deg,
+                "elevation_bias_deg": r.elevation_bias_deg,
+                "range_gain_ppm": r.range_gain_ppm,
+                "time_bias_s": None,
+            }
+        )
+
+    for own, peer in (("A", "C"), ("C", "B"), ("B", "A")):
+        seen_by_peer = fs.apparent(radars[peer], sites[peer], ecef)
+        want = fs.apparent(radars[own], sites[own], ecef)
+        got = remove_bias(sites[own], remove_bias(sites[peer], seen_by_peer, terms(peer), v), -terms(own), v)
+        assert np.max(np.linalg.norm(got - want, axis=1)) < 1.0
+        assert np.median(np.linalg.norm(seen_by_peer - want, axis=1)) > 200.0
+
+
+def test_the_formation_in_traffic_keeps_its_aircraft_and_only_they_are_scored() -> None:
+    """The lattice in traffic: the same formation (ids, start) among other aircraft; a run of it
+    counts the formation's aircraft-samples exactly as the run without traffic does."""
+    traffic = fs.Point("2x in traffic", "lattice", 2.0, traffic=8)
+    plain_sc, busy_sc = fs.scenario(POINT, 150.0, 10), fs.scenario(traffic, 150.0, 10)
+    assert busy_sc.targets == 18 and fs.focus_of(traffic, busy_sc) == {f"T{k}" for k in range(1, 11)}
+    assert fs.focus_of(POINT, plain_sc) is None
+    plain, busy = fs.TruthLog(plain_sc), fs.TruthLog(busy_sc)
+    for log, sc in ((plain, plain_sc), (busy, busy_sc)):
+        for m in generate(sc, 1, log):
+            if m.kind == "plots":  # (the targets' first step is observed)
+                break
+    names, start = plain.aircraft(plain_sc.start_time_s)
+    busy_names, _ = busy.aircraft(busy_sc.start_time_s)
+    assert len(busy_names) == 18
+    assert np.allclose(busy.ecef(names, np.full(len(names), busy_sc.start_time_s)), start)
+    runs = [fs.run_one(fs.Job(0, p, "now", 0, 1, 150.0, 10)) for p in (POINT, traffic)]
+    assert runs[0]["truths"] == runs[1]["truths"] > 0
+    assert runs[1]["pairs_common"] <= runs[0]["pairs_common"] + 3 * 10

@@ -122,7 +122,13 @@ from service.config import EngineConfig
 from service.evaluation.truth import TruthLabelledTracker
 from service.geo import Site, ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from service.tracking.params import FormationParams
-from topofusion_lab.evaluation.formation_bounds import BOUNDS, RadarTruth, bounded_factory, no_hold
+from topofusion_lab.evaluation.formation_bounds import (
+    BOUNDS,
+    EngineRef,
+    RadarTruth,
+    bounded_factory,
+    no_hold,
+)
 from topofusion_lab.evaluation.formation_pipeline import (
     SCORE_BINS,
     formation_scenario,
@@ -131,7 +137,7 @@ from topofusion_lab.evaluation.formation_pipeline import (
 )
 from topofusion_lab.evaluation.jobs import ratio, run_jobs
 from topofusion_lab.scenarios.catalog import formation_crossing, formation_merging, get_scenario
-from topofusion_lab.scenarios.simulator import RadarSpec, Scenario, in_coverage
+from topofusion_lab.scenarios.simulator import FormationSpec, RadarSpec, Scenario, in_coverage
 
 #: Seeds per point by default.
 DEFAULT_RUNS = 3
@@ -156,12 +162,14 @@ GOAL_SWITCH_RATIO = 0.5
 class Point:
     """A point of the grid: ``shape`` ``lattice`` (the catalog's formation), ``crossing`` or
     ``merging``; the lattice spacing in cross-range errors; every radar's Pd (None: the
-    catalog's)."""
+    catalog's); ``traffic``: aircraft of background traffic around the formation
+    (:func:`with_traffic`; only the formation's aircraft are scored)."""
 
     label: str
     shape: str
     spacing_x: float
     pd: float | None = None
+    traffic: int = 0
 
 
 POINTS: tuple[Point, ...] = (
@@ -174,6 +182,15 @@ POINTS: tuple[Point, ...] = (
     Point("crossing, 2x", "crossing", 2.0),
     Point("merging, 2x", "merging", 2.0),
 )
+#: The lattice in traffic (not in the default grid; ``--point``): a formation within a sky
+#: of other aircraft, whose spread lets the registration find the biases (a formation alone
+#: flies one place on one heading, and the biases' combinations it shows are few).
+TRAFFIC_POINTS: tuple[Point, ...] = (
+    Point("2x in traffic", "lattice", 2.0, traffic=32),
+    Point("3x in traffic", "lattice", 3.0, traffic=32),
+)
+#: Background traffic: two wide groups, this far apart (m), each its own heading and speed.
+TRAFFIC_SPACING_M = 20_000.0
 
 
 def cross_range_m(sc: Scenario) -> float:
@@ -202,7 +219,40 @@ def scenario(point: Point, duration_s: float | None = None, targets: int | None 
         sc = replace(sc, radars=tuple(replace(r, pd=point.pd) for r in sc.radars))
     if duration_s is not None:
         sc = replace(sc, duration_s=duration_s)
-    return sc
+    return with_traffic(sc, point.traffic) if point.traffic else sc
+
+
+def with_traffic(sc: Scenario, n: int) -> Scenario:
+    """``sc`` (one formation) with ``n`` more aircraft around it: two groups of half each,
+    :data:`TRAFFIC_SPACING_M` apart with a jitter of 0.3 spacing, one heading 160 at 210 m/s
+    from 50 km north, one 300 at 180 m/s from 50 km east (both through the radars' common
+    coverage).  The formation's aircraft keep their ids (``T1`` .. ``Tk``, spawned first)."""
+    assert sc.formation is not None
+    groups = (
+        replace(sc.formation, count=sc.targets),
+        _group(160.0, 210.0, -20_000.0, 50_000.0, n // 2),
+        _group(300.0, 180.0, 50_000.0, -30_000.0, n - n // 2),
+    )
+    return replace(sc, formation=None, formations=groups, targets=sc.targets + n)
+
+
+def _group(heading_deg: float, speed_mps: float, east_m: float, north_m: float, n: int) -> FormationSpec:
+    return FormationSpec(
+        spacing_m=TRAFFIC_SPACING_M,
+        jitter=0.3,
+        heading_deg=heading_deg,
+        speed_mps=speed_mps,
+        start_east_m=east_m,
+        start_north_m=north_m,
+        count=n,
+    )
+
+
+def focus_of(point: Point, sc: Scenario) -> frozenset[str] | None:
+    """The aircraft a point scores: with background traffic the formation's (None: all)."""
+    if not point.traffic:
+        return None
+    return frozenset(f"T{k}" for k in range(1, sc.targets - point.traffic + 1))
 
 
 def engine_config(variant: str) -> EngineConfig:
@@ -433,12 +483,14 @@ def run_one(job: Job) -> dict[str, Any]:
     pair_warmup = min(PAIR_WARMUP_S, 0.5 * sc.duration_s)
     at = list(np.arange(warmup, sc.duration_s - 1e-9, SAMPLE_S))
     truth = TruthLog(sc)
+    focus = focus_of(job.point, sc)
     config = engine_config("now" if job.variant in BOUNDS else job.variant)
     if not job.hold:
         config = no_hold(config)
     factory = None
+    ref = EngineRef()
     if job.variant in BOUNDS:
-        factory = bounded_factory(config, job.variant, _truth_for(sc, truth), job.offset_m, job.seed)
+        factory = bounded_factory(config, job.variant, _truth_for(sc, truth), job.offset_m, job.seed, ref)
     radars = {r.radar_id: r for r in sc.radars}
     sites = {r.radar_id: r.site() for r in sc.radars}
     siap = _zero()
@@ -454,7 +506,7 @@ def run_one(job: Job) -> dict[str, Any]:
     samples = 0
     joined = {"led": 0, "other": 0, "other_seen": 0}
     for t, snap, engine in run_pipeline(
-        sc, job.seed, config=config, at_s=at, observe=truth, tracker_factory=factory
+        sc, job.seed, config=config, at_s=at, observe=truth, tracker_factory=factory, on_engine=ref.set
     ):
         if t >= sc.duration_s:  # (the last snapshot: the whole run's association counts)
             for tracked in engine.tracking.tracked.values():
@@ -465,6 +517,9 @@ def run_one(job: Job) -> dict[str, Any]:
         samples += 1
         t_abs = sc.start_time_s + t
         names, ecef = truth.aircraft(t_abs)
+        if focus is not None:  # (the background's aircraft and their tracks are not scored)
+            keep = [i for i, n in enumerate(names) if n in focus]
+            names, ecef = [names[i] for i in keep], ecef[keep]
         pair_sample = t >= pair_warmup - 1e-9
         nearest: dict[tuple[str, str], str] = {}  # (radar, track) -> nearest aircraft now
         for rid, (_, table) in sorted(snap.tracks.items()):
@@ -472,6 +527,8 @@ def run_one(job: Job) -> dict[str, Any]:
             if radar is None:
                 continue
             conf = np.asarray(table.confirmed, dtype=bool)
+            if focus is not None:
+                conf &= np.array([x is None or str(x) in focus for x in table.truth_id], dtype=bool)
             labels = [None if x is None else str(x) for x in table.truth_id[conf]]
             rng_m = sites[rid].ecef_to_polar(ecef)[0] if names else np.empty(0)
             alt = np.atleast_1d(ecef_to_geodetic(ecef)[2]) if names else np.empty(0)
@@ -508,7 +565,7 @@ def run_one(job: Job) -> dict[str, Any]:
             judged_now, two_now = pairs_on_two_aircraft(snap.pair_views, nearest)
             pairs["judged_now"] += judged_now
             pairs["two_now"] += two_now
-            scored = score_snapshot(snap)
+            scored = score_snapshot(snap, focus)
             total = scored["total"]
             for b, (n_b, right_b) in enumerate(
                 zip(scored["scores"]["score_n"], scored["scores"]["score_right"], strict=True)

@@ -22,6 +22,20 @@ candidates of a batch).  The gate, the filter, the tracks' quality (the clarity 
   view with every radar's true biases (registration without error); without such a track,
   the tracker's own ``d^2``.  An association aided by the more precise radars' tracks, the
   pairing (which track is of which aircraft) and the registration done right.
+* ``paired``: no truth at all, what the service itself could do: a candidate's cost is the
+  plot's ``d^2`` from the most precise track the engine's correlation pairs with the track
+  (its confirmed pairs, the partner more precise than the track), brought to the plot's time
+  on its velocity and into this radar's view with the engine's registration (each radar's
+  five terms of ``/biases``); without such a partner, the tracker's own ``d^2``.
+  ``paired-true-biases``: the same pairs with the true biases (a registration without error).
+  ``paired-covariance``: the pairs as ``paired``, each pair of radars' own registration (its
+  pair correlator's), and the partner taken only when its covariance in this radar's view
+  (its track's plus the registration's, the relative covariance through the transform) is
+  smaller than the track's own; the cost then against the plot's covariance plus that one.
+
+``--point`` also takes the lattice *in traffic* (:data:`~topofusion_lab.evaluation.formation.
+TRAFFIC_POINTS`, not in the default grid): the formation among 32 other aircraft, which give
+the registration the spread a formation alone lacks; only the formation's aircraft are scored.
 
 ``python -m topofusion_lab.evaluation.formation_bounds`` prints, per point, the default
 tracker's row and each bound's (the formation study's columns, the same messages);
@@ -42,6 +56,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.config import EngineConfig
+from service.correlation.registration import remove_bias
 from service.evaluation.truth import TruthLabelledTracker
 from service.geo import FloatArray, Site
 from service.pipeline.tracking_stage import TrackerFactory
@@ -53,7 +68,7 @@ from service.tracking.manager import TrackManager
 from service.tracking.measurement import Measurements
 
 #: The bounds, as ``--bound`` names and the study's variants.
-BOUNDS = ("truth", "true-position", "other-radar")
+BOUNDS = ("truth", "true-position", "other-radar", "paired", "paired-true-biases", "paired-covariance")
 
 #: True ECEF positions, as one radar sees them, of aircraft ``names`` at data times (NaN rows:
 #: unknown).
@@ -88,6 +103,10 @@ class BoundedTracker(TrackManager):
     #: The aircraft of each of the batch's plots, in the rows the tracker measures (after its
     #: repeats are dropped).
     _plot_truth: NDArray[np.object_] = np.empty(0, dtype=object)
+    #: ``paired``: the run's engine (its confirmed pairs and registered biases) and this
+    #: tracker's radar.
+    engine: EngineRef | None = None
+    radar_id: str = ""
 
     def update(self, plots: PlotColumns, time_s: float) -> None:
         mp = self.params.measurement
@@ -99,9 +118,9 @@ class BoundedTracker(TrackManager):
         self, tracks: Any, meas: Measurements, rows: IntArray, cols: IntArray, d2: FloatArray
     ) -> IntArray:
         gate = self.params.filter.gate_chi2
-        if self.labels is None or rows.shape[0] == 0:
+        if (self.labels is None and not self.bound.startswith("paired")) or rows.shape[0] == 0:
             return super()._assign(tracks, meas, rows, cols, d2)
-        own = self.labels(tracks.uid[rows])
+        own = self.labels(tracks.uid[rows]) if self.labels else np.full(rows.shape[0], None, object)
         plot = self._plot_truth[cols]
         known = np.array([o is not None and p is not None for o, p in zip(own, plot, strict=True)], bool)
         cost = np.array(d2, dtype=float, copy=True)
@@ -111,6 +130,9 @@ class BoundedTracker(TrackManager):
             k = np.flatnonzero(known)
             aided = self.other_radar_d2(tracks, rows[k], own[k], meas, cols[k])
             cost[k] = np.where(np.isnan(aided), cost[k], aided)
+        elif self.bound.startswith("paired"):
+            aided = self.paired_d2(tracks, rows, meas, cols)
+            cost = np.where(np.isnan(aided), cost, aided)
         else:
             k = np.flatnonzero(known)
             cost[k] = self.reference_d2(tracks.uid[rows[k]], own[k], meas, cols[k])
@@ -167,6 +189,143 @@ class BoundedTracker(TrackManager):
             out[k] = float(y @ np.linalg.solve(meas.covariance[cols[k]], y))
         return out
 
+    def paired_d2(self, tracks: Any, rows: IntArray, meas: Measurements, cols: IntArray) -> FloatArray:
+        """Each candidate's ``d^2`` (module docstring, ``paired``) from the most precise track
+        the engine pairs with the candidate's track (its confirmed pairs; only a track more
+        precise than this one), brought to the plot's time on its velocity and into this
+        radar's view by the registration: the engine's five terms of each radar (``/biases``),
+        or (``paired-true-biases``) the radars' true biases.  NaN where there is none."""
+        out = np.full(cols.shape[0], np.nan)
+        if self.engine is None or self.engine.engine is None:
+            return out
+        snap = self.engine.engine.snapshot()
+        partners: dict[str, list[tuple[str, str]]] = {}
+        for v in snap.pair_views:
+            if self.radar_id not in (v.radar_a, v.radar_b):
+                continue
+            flip = v.radar_a != self.radar_id
+            sides = ("track_b", "track_a") if flip else ("track_a", "track_b")
+            mine, theirs = v.columns[sides[0]], v.columns[sides[1]]
+            other = v.radar_a if flip else v.radar_b
+            on = np.asarray(v.columns["confirmed"], bool)
+            for a, b in zip(mine[on], theirs[on], strict=True):
+                partners.setdefault(str(a), []).append((other, str(b)))
+        terms = {b["radar_id"]: registered_terms(b) for b in snap.biases()}
+        by_radar = {p.radar_id: p for p in self.peers}
+        own_spread = np.trace(tracks.P[rows, :2, :2], axis1=1, axis2=2)
+        for k, track_id in enumerate(tracks.ids[rows]):
+            t = meas.time_s[cols[k]]
+            best: tuple[float, BoundedTracker, int, FloatArray, FloatArray] | None = None
+            for other, tid in partners.get(str(track_id), ()):
+                peer = by_radar.get(other)
+                if peer is None:
+                    continue
+                at = np.flatnonzero(peer._tracks.ids == tid)
+                if at.shape[0] == 0:
+                    continue
+                i = int(at[0])
+                ref, ref_cov = np.zeros(3), np.zeros((3, 3))
+                if self.bound == "paired-covariance":
+                    got = self._reference(peer, i, t)
+                    if got is None:
+                        continue
+                    ref, ref_cov = got
+                    spread = float(np.trace(ref_cov[:2, :2]))
+                else:
+                    spread = float(np.trace(peer._tracks.P[i, :2, :2]))
+                if spread < own_spread[k] and (best is None or spread < best[0]):
+                    best = (spread, peer, i, ref, ref_cov)
+            if best is None:
+                continue
+            _, peer, i, ref, ref_cov = best
+            if self.bound == "paired-covariance":
+                y = meas.enu_m[cols[k]] - ref
+                out[k] = float(y @ np.linalg.solve(meas.covariance[cols[k]] + ref_cov, y))
+                continue
+            pt = peer._tracks
+            ecef = np.atleast_2d(peer.site.enu_to_ecef(pt.x[i, :3] + pt.x[i, 3:] * (t - pt.t[i])))
+            if self.bound == "paired-true-biases" and self.truth is not None and peer.truth is not None:
+                seen = self.truth.apparent(peer.truth.unbiased(ecef))
+            else:
+                vel = np.atleast_2d(peer.site.enu_to_ecef(pt.x[i, 3:]) - peer.site.enu_to_ecef(np.zeros(3)))
+                where = remove_bias(peer.site, ecef, terms.get(peer.radar_id, np.zeros(5)), vel)
+                # (the model's inverse to first order: the terms' sizes are small)
+                seen = remove_bias(self.site, where, -terms.get(self.radar_id, np.zeros(5)), vel)
+            y = meas.enu_m[cols[k]] - self.site.ecef_to_enu(seen)[0]
+            out[k] = float(y @ np.linalg.solve(meas.covariance[cols[k]], y))
+        return out
+
+    def _reference(self, peer: BoundedTracker, i: int, t: float) -> tuple[FloatArray, FloatArray] | None:
+        """``paired-covariance``: ``peer``'s track ``i`` at time ``t`` in this radar's view (ENU)
+        by the two radars' pair correlator's own registration, and its covariance: the track's
+        and the registration's (its relative covariance through the transform's Jacobian, by
+        finite differences); None while the pair is not registered."""
+        reg = self._registration(peer.radar_id)
+        if reg is None:
+            return None
+        own, theirs, cov = reg
+        pt = peer._tracks
+        ecef = np.atleast_2d(peer.site.enu_to_ecef(pt.x[i, :3] + pt.x[i, 3:] * (t - pt.t[i])))
+        vel = np.atleast_2d(peer.site.enu_to_ecef(pt.x[i, 3:]) - peer.site.enu_to_ecef(np.zeros(3)))
+
+        def seen(a: FloatArray, b: FloatArray) -> FloatArray:
+            where = remove_bias(peer.site, ecef, b, vel)
+            return np.asarray(self.site.ecef_to_enu(remove_bias(self.site, where, -a, vel))[0])
+
+        base = seen(own, theirs)
+        steps = np.array([1.0, 1e-6, 1e-6, 1.0, 0.01])
+        jac = np.empty((3, 10))
+        for j in range(10):
+            d = np.zeros(10)
+            d[j] = steps[j % 5]
+            jac[:, j] = (seen(own + d[:5], theirs + d[5:]) - base) / d[j]
+        turn = self.site.rotation.T @ peer.site.rotation
+        return base, turn @ pt.P[i, :3, :3] @ turn.T + jac @ cov @ jac.T
+
+    def _registration(self, other: str) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        """The pair correlator of this radar and ``other``: its own registration's terms of this
+        radar and of ``other`` and their joint relative covariance (10 x 10); None: not
+        registered."""
+        assert self.engine is not None and self.engine.engine is not None
+        for corr in self.engine.engine.pair_correlators():
+            ids = {corr.site_a.site_id, corr.site_b.site_id if corr.site_b is not None else None}
+            sol = corr.solution
+            if ids != {self.radar_id, other} or sol is None or not corr.registered:
+                continue
+            if sol.terms is None or sol.relative_covariance is None:
+                return None
+            at = [list(sol.radar_ids).index(r) for r in (self.radar_id, other)]
+            cols = np.concatenate([np.arange(5 * j, 5 * j + 5) for j in at])
+            cov = np.array(sol.relative_covariance[np.ix_(cols, cols)])
+            held = np.flatnonzero(np.concatenate([sol.terms[at[0]], sol.terms[at[1]]]) == 0.0)
+            cov[held, :] = 0.0  # (a term held at zero, a range gain the data do not show: no error)
+            cov[:, held] = 0.0
+            return sol.terms[at[0]], sol.terms[at[1]], cov
+        return None
+
+
+def registered_terms(b: dict[str, Any]) -> FloatArray:
+    """A ``BiasEstimate``'s five terms in :func:`~service.correlation.registration.remove_bias`'s
+    units (m, rad, rad, ppm, s)."""
+    return np.array(
+        [
+            b["range_bias_m"],
+            np.radians(b["azimuth_bias_deg"]),
+            np.radians(b["elevation_bias_deg"]),
+            b.get("range_gain_ppm") or 0.0,
+            b.get("time_bias_s") or 0.0,
+        ]
+    )
+
+
+class EngineRef:
+    """The engine a ``paired`` bound's trackers read (set once the engine is made)."""
+
+    engine: Any = None
+
+    def set(self, engine: Any) -> None:
+        self.engine = engine
+
 
 def bounded_factory(
     config: EngineConfig,
@@ -174,6 +333,7 @@ def bounded_factory(
     truth_for: Callable[[str, Site], RadarTruth],
     offset_m: float = 0.0,
     seed: int = 0,
+    engine: EngineRef | None = None,
 ) -> TrackerFactory:
     """The engine's tracker factory (``Engine(tracker_factory=...)``) for a bound (one engine:
     its trackers see each other, ``other-radar``): ``truth_for(radar_id, site)`` gives what
@@ -191,6 +351,7 @@ def bounded_factory(
         inner.bound, inner.labels = bound, outer.tally.of
         inner.peers = peers
         inner.truth, inner.offset_m, inner.seed = truth_for(radar_id, site), offset_m, seed
+        inner.engine, inner.radar_id = engine, radar_id
         peers.append(inner)
         return outer
 
@@ -225,7 +386,10 @@ def main(argv: list[str] | None = None) -> int:
     from topofusion_lab.evaluation.jobs import run_jobs
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--point", action="append", choices=[x.label for x in formation.POINTS])
+    every = (*formation.POINTS, *formation.TRAFFIC_POINTS)
+    p.add_argument(
+        "--point", action="append", choices=[x.label for x in every], help="only these (default the study's)"
+    )
     p.add_argument("--runs", type=int, default=formation.DEFAULT_RUNS, help="seeds per point")
     p.add_argument("--seed", type=int, default=0, help="seeds are seed+1 .. seed+runs (default 0)")
     p.add_argument("--bound", action="append", choices=BOUNDS, help="only these bounds (default both)")
@@ -237,7 +401,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.offset_m < 0:
         p.error("--offset-m must be >= 0")
-    points = [x for x in formation.POINTS if not args.point or x.label in args.point]
+    points = [x for x in every if x.label in args.point] if args.point else list(formation.POINTS)
     variants = ("now", *(args.bound or BOUNDS))
     jobs = [
         replace(j, offset_m=args.offset_m, hold=not args.no_hold)

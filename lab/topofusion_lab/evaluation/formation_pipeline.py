@@ -42,7 +42,7 @@ import sys
 import time
 from bisect import bisect_right
 from collections import Counter
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -81,8 +81,10 @@ def formation_scenario(
 
 
 # -- scoring (evaluation only: truth_id) ----------------------------------------------------------
-def score_snapshot(snap: Snapshot) -> dict[str, Any]:
-    """Pairs and tracks of one engine snapshot against the simulator's truth (see the module)."""
+def score_snapshot(snap: Snapshot, focus: Collection[str] | None = None) -> dict[str, Any]:
+    """Pairs and tracks of one engine snapshot against the simulator's truth (see the module).
+    ``focus``: only these aircraft are scored (a pair counts when either track is on one of
+    them; None: every aircraft)."""
     truth_of: dict[str, dict[str, str | None]] = {}
     confirmed_truths: dict[str, set[str]] = {}
     radars: dict[str, dict[str, int]] = {}
@@ -91,6 +93,8 @@ def score_snapshot(snap: Snapshot) -> dict[str, Any]:
         truths = [None if x is None else str(x) for x in table.truth_id]
         truth_of[rid] = dict(zip(ids, truths, strict=True))
         conf = [t for t, c in zip(truths, table.confirmed, strict=True) if c]
+        if focus is not None:
+            conf = [t for t in conf if t is None or t in focus]
         per_aircraft = Counter(t for t in conf if t is not None)
         confirmed_truths[rid] = set(per_aircraft)
         radars[rid] = {
@@ -120,6 +124,9 @@ def score_snapshot(snap: Snapshot) -> dict[str, Any]:
                 gone += 1
                 continue
             wa, wb = ka[str(ta)], kb[str(tb)]
+            if focus is not None and wa not in focus and wb not in focus:
+                confirmed -= 1
+                continue
             right = wa is not None and wa == wb
             if right:
                 correct += 1
@@ -165,13 +172,17 @@ def run_pipeline(
     config: EngineConfig | None = None,
     observe: Observer | None = None,
     tracker_factory: TrackerFactory | None = None,
+    on_engine: Callable[[Engine], None] | None = None,
 ) -> Iterator[tuple[float, Snapshot, Engine]]:
     """Feed ``sc``'s messages (seed ``seed``) into a fresh engine; yields ``(data seconds since
     the start, snapshot, engine)`` once the stream has passed each of ``at_s`` and, last, after
     the whole stream and ``flush`` (at the scenario's duration).  ``observe`` is the
     simulator's truth observer (:func:`~topofusion_lab.scenarios.simulator.generate`);
-    ``tracker_factory`` the engine's (None: the configuration's trackers)."""
+    ``tracker_factory`` the engine's (None: the configuration's trackers); ``on_engine`` is
+    given the engine before the first message."""
     engine = Engine(replace(config or EngineConfig(), method=method), tracker_factory)
+    if on_engine is not None:
+        on_engine(engine)
     keys = Keys(engine.config.prefix)
     pending = sorted(at_s)
     try:
