@@ -226,7 +226,18 @@ def test_grid_and_variants() -> None:
     unit = fs.cross_range_m(get_scenario("formation"))
     assert 380.0 < unit < 420.0  # radar C: 0.20 deg at about 115 km
     labels = [p.label for p in fs.POINTS]
-    assert {"1x", "2x", "3x", "4x", "2x, Pd 0.7", "2x, Pd 0.95", "crossing, 2x", "merging, 2x"} == set(labels)
+    assert {
+        "1x",
+        "2x",
+        "3x",
+        "4x",
+        "2x, Pd 0.7",
+        "2x, Pd 0.95",
+        "crossing, 2x",
+        "merging, 2x",
+        "2x in traffic",
+        "3x in traffic",
+    } == set(labels)
     sc = fs.scenario(fs.Point("x", "lattice", 3.0, 0.7))
     assert sc.formation is not None and sc.formation.spacing_m == pytest.approx(3 * unit)
     assert {r.pd for r in sc.radars} == {0.7}

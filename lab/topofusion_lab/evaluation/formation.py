@@ -25,7 +25,10 @@ formation is at 300 s), 403 m (radar C: 0.20 deg at 115 km).  Detection probabil
 catalog's (0.95, 0.92, 0.75) and, at 2x, every radar at 0.7 and every radar at 0.95.  Two more
 shapes at 2x (``topofusion_lab.scenarios.catalog``): two groups of 15 *crossing* at 40 deg at
 the centre at 300 s, and two groups *merging* (converging at 15 deg each side, each turning at
-240 s onto the formation's heading where together they make one lattice).  :data:`DEFAULT_RUNS`
+240 s onto the formation's heading where together they make one lattice).  And the lattice at
+2x and 3x *in traffic* (:func:`with_traffic`): 32 more aircraft in two wide groups around it,
+of which only the formation's aircraft, their tracks and pairs are scored; a formation alone is
+the registration's worst case, and in a real sky it flies among others.  :data:`DEFAULT_RUNS`
 seeds each; the same seeds for every point and both trackers.
 
 Sampling: the engine's snapshot every :data:`SAMPLE_S` of data time (a scan of the slowest
@@ -158,6 +161,10 @@ GOAL_DUPLICATES = 0.02
 GOAL_SWITCH_RATIO = 0.5
 
 
+#: Aircraft of background traffic at the points *in traffic* (:func:`with_traffic`).
+TRAFFIC_AIRCRAFT = 32
+
+
 @dataclass(frozen=True)
 class Point:
     """A point of the grid: ``shape`` ``lattice`` (the catalog's formation), ``crossing`` or
@@ -181,13 +188,11 @@ POINTS: tuple[Point, ...] = (
     Point("2x, Pd 0.95", "lattice", 2.0, 0.95),
     Point("crossing, 2x", "crossing", 2.0),
     Point("merging, 2x", "merging", 2.0),
-)
-#: The lattice in traffic (not in the default grid; ``--point``): a formation within a sky
-#: of other aircraft, whose spread lets the registration find the biases (a formation alone
-#: flies one place on one heading, and the biases' combinations it shows are few).
-TRAFFIC_POINTS: tuple[Point, ...] = (
-    Point("2x in traffic", "lattice", 2.0, traffic=32),
-    Point("3x in traffic", "lattice", 3.0, traffic=32),
+    # The lattice in traffic: a formation within a sky of other aircraft, whose spread lets
+    # the registration find the biases (a formation alone flies one place on one heading, and
+    # the biases' combinations it shows are few).
+    Point("2x in traffic", "lattice", 2.0, traffic=TRAFFIC_AIRCRAFT),
+    Point("3x in traffic", "lattice", 3.0, traffic=TRAFFIC_AIRCRAFT),
 )
 #: Background traffic: two wide groups, this far apart (m), each its own heading and speed.
 TRAFFIC_SPACING_M = 20_000.0
@@ -685,7 +690,10 @@ def report(
         "*now*, the default "
         "configuration.  Spacing in cross-range "
         f"errors (1x = {unit:.0f} m: radar C's 0.20 deg at 115 km); Pd the catalog's (0.95/0.92/0.75) "
-        "unless given.  Confirmed radar tracks sampled every "
+        "unless given; *in traffic*: the lattice among "
+        f"{TRAFFIC_AIRCRAFT} more aircraft in two wide groups, of which only the formation's "
+        "aircraft, their tracks and pairs are scored (plots to another aircraft: every track's).  "
+        "Confirmed radar tracks sampled every "
         f"{SAMPLE_S:.0f} s from {WARMUP_S:.0f} s; pairs from {PAIR_WARMUP_S:.0f} s (shorter runs: "
         "a quarter and half of the run).  Pairs are judged by the aircraft of most of each "
         "track's plots (`truth_id`); *on two aircraft now* judges the same pairs by the aircraft "

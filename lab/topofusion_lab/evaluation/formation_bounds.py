@@ -33,9 +33,9 @@ candidates of a batch).  The gate, the filter, the tracks' quality (the clarity 
   (its track's plus the registration's, the relative covariance through the transform) is
   smaller than the track's own; the cost then against the plot's covariance plus that one.
 
-``--point`` also takes the lattice *in traffic* (:data:`~topofusion_lab.evaluation.formation.
-TRAFFIC_POINTS`, not in the default grid): the formation among 32 other aircraft, which give
-the registration the spread a formation alone lacks; only the formation's aircraft are scored.
+The study's points include the lattice *in traffic* (:func:`~topofusion_lab.evaluation.
+formation.with_traffic`): the formation among 32 other aircraft, which give the registration the
+spread a formation alone lacks; only the formation's aircraft are scored.
 
 ``python -m topofusion_lab.evaluation.formation_bounds`` prints, per point, the default
 tracker's row and each bound's (the formation study's columns, the same messages);
@@ -386,10 +386,7 @@ def main(argv: list[str] | None = None) -> int:
     from topofusion_lab.evaluation.jobs import run_jobs
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    every = (*formation.POINTS, *formation.TRAFFIC_POINTS)
-    p.add_argument(
-        "--point", action="append", choices=[x.label for x in every], help="only these (default the study's)"
-    )
+    p.add_argument("--point", action="append", choices=[x.label for x in formation.POINTS])
     p.add_argument("--runs", type=int, default=formation.DEFAULT_RUNS, help="seeds per point")
     p.add_argument("--seed", type=int, default=0, help="seeds are seed+1 .. seed+runs (default 0)")
     p.add_argument("--bound", action="append", choices=BOUNDS, help="only these bounds (default both)")
@@ -401,7 +398,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.offset_m < 0:
         p.error("--offset-m must be >= 0")
-    points = [x for x in every if x.label in args.point] if args.point else list(formation.POINTS)
+    points = [x for x in formation.POINTS if not args.point or x.label in args.point]
     variants = ("now", *(args.bound or BOUNDS))
     jobs = [
         replace(j, offset_m=args.offset_m, hold=not args.no_hold)
