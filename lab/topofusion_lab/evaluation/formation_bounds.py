@@ -31,7 +31,8 @@ candidates of a batch).  The gate, the filter, the tracks' quality (the clarity 
   ``paired-covariance``: the pairs as ``paired``, each pair of radars' own registration (its
   pair correlator's), and the partner taken only when its covariance in this radar's view
   (its track's plus the registration's, the relative covariance through the transform) is
-  smaller than the track's own; the cost then against the plot's covariance plus that one.
+  smaller than the track's own and the registration's part of it at most
+  :data:`REGISTRATION_SIGMA_M`; the cost then against the plot's covariance plus that one.
 
 The study's points include the lattice *in traffic* (:func:`~topofusion_lab.evaluation.
 formation.with_traffic`): the formation among 32 other aircraft, which give the registration the
@@ -74,6 +75,10 @@ BOUNDS = ("truth", "true-position", "other-radar", "paired", "paired-true-biases
 #: unknown).
 Reference = Callable[[Sequence[str], FloatArray], FloatArray]
 IntArray = NDArray[np.intp]
+#: ``paired-covariance``: a partner is taken only where the registration brings it into this
+#: radar's view with at most this horizontal 1-sigma (m; the registration's own relative
+#: covariance through the transform): a formation's spacing is some 800 m at 2x.
+REGISTRATION_SIGMA_M = 50.0
 
 
 @dataclass(frozen=True)
@@ -280,7 +285,10 @@ class BoundedTracker(TrackManager):
             d[j] = steps[j % 5]
             jac[:, j] = (seen(own + d[:5], theirs + d[5:]) - base) / d[j]
         turn = self.site.rotation.T @ peer.site.rotation
-        return base, turn @ pt.P[i, :3, :3] @ turn.T + jac @ cov @ jac.T
+        registration = jac @ cov @ jac.T
+        if np.sqrt(max(float(np.trace(registration[:2, :2])), 0.0)) > REGISTRATION_SIGMA_M:
+            return None
+        return base, turn @ pt.P[i, :3, :3] @ turn.T + registration
 
     def _registration(self, other: str) -> tuple[FloatArray, FloatArray, FloatArray] | None:
         """The pair correlator of this radar and ``other``: its own registration's terms of this
