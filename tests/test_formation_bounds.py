@@ -148,3 +148,20 @@ def test_the_formation_in_traffic_keeps_its_aircraft_and_only_they_are_scored() 
     runs = [fs.run_one(fs.Job(0, p, "now", 0, 1, 150.0, 10)) for p in (POINT, traffic)]
     assert runs[0]["truths"] == runs[1]["truths"] > 0
     assert runs[1]["pairs_common"] <= runs[0]["pairs_common"] + 3 * 10
+
+
+def test_an_aid_from_further_back_than_the_run_is_no_aid() -> None:
+    """``paired-covariance`` in traffic (10 aircraft in formation among 32 others, 240 s) with
+    the correlation's answers as they come changes the association; taken an hour back
+    (``aid_lag_s``) it has nothing to go by, and its tracks, plots and pairs are the default
+    tracker's, to the count."""
+    point = fs.Point("2x in traffic", "lattice", 2.0, traffic=32)
+    keys = ("joined_led", "joined_other", "switches", "tracked", "pairs_found", "pairs_false", "err2")
+
+    def run(variant: str, lag_s: float) -> list[float]:
+        got = fs.run_one(fs.Job(0, point, variant, 0, 1, 240.0, 10, aid_lag_s=lag_s))
+        return [got[k] for k in keys]
+
+    now = run("now", 0.0)
+    assert run("paired-covariance", 0.0) != now
+    assert run("paired-covariance", 3600.0) == now

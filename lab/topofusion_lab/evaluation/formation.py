@@ -472,6 +472,8 @@ class Job:
     offset_m: float = 0.0
     #: The correlation's hold of contested pairs on (the default) or off.
     hold: bool = True
+    #: ``paired*`` bounds: the correlation's pairs and biases this far back (data s).
+    aid_lag_s: float = 0.0
 
 
 def _zero() -> dict[str, float]:
@@ -493,7 +495,7 @@ def run_one(job: Job) -> dict[str, Any]:
     if not job.hold:
         config = no_hold(config)
     factory = None
-    ref = EngineRef()
+    ref = EngineRef(job.aid_lag_s)
     if job.variant in BOUNDS:
         factory = bounded_factory(config, job.variant, _truth_for(sc, truth), job.offset_m, job.seed, ref)
     radars = {r.radar_id: r for r in sc.radars}

@@ -33,6 +33,9 @@ candidates of a batch).  The gate, the filter, the tracks' quality (the clarity 
   (its track's plus the registration's, the relative covariance through the transform) is
   smaller than the track's own and the registration's part of it at most
   :data:`REGISTRATION_SIGMA_M`; the cost then against the plot's covariance plus that one.
+  ``--aid-lag-s S``: the correlation's pairs and registrations as they were ``S`` of data time
+  before the batch (:class:`EngineRef`), what a tracker gets deterministically when the
+  correlation runs in another process.
 
 The study's points include the lattice *in traffic* (:func:`~topofusion_lab.evaluation.
 formation.with_traffic`): the formation among 32 other aircraft, which give the registration the
@@ -49,6 +52,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
@@ -201,21 +205,13 @@ class BoundedTracker(TrackManager):
         radar's view by the registration: the engine's five terms of each radar (``/biases``),
         or (``paired-true-biases``) the radars' true biases.  NaN where there is none."""
         out = np.full(cols.shape[0], np.nan)
-        if self.engine is None or self.engine.engine is None:
+        if self.engine is None or self.engine.engine is None or cols.shape[0] == 0:
             return out
-        snap = self.engine.engine.snapshot()
-        partners: dict[str, list[tuple[str, str]]] = {}
-        for v in snap.pair_views:
-            if self.radar_id not in (v.radar_a, v.radar_b):
-                continue
-            flip = v.radar_a != self.radar_id
-            sides = ("track_b", "track_a") if flip else ("track_a", "track_b")
-            mine, theirs = v.columns[sides[0]], v.columns[sides[1]]
-            other = v.radar_a if flip else v.radar_b
-            on = np.asarray(v.columns["confirmed"], bool)
-            for a, b in zip(mine[on], theirs[on], strict=True):
-                partners.setdefault(str(a), []).append((other, str(b)))
-        terms = {b["radar_id"]: registered_terms(b) for b in snap.biases()}
+        state = self.engine.state(float(np.min(meas.time_s[cols])))
+        if state is None:
+            return out
+        partners = state.partners.get(self.radar_id, {})
+        terms = state.terms
         by_radar = {p.radar_id: p for p in self.peers}
         own_spread = np.trace(tracks.P[rows, :2, :2], axis1=1, axis2=2)
         for k, track_id in enumerate(tracks.ids[rows]):
@@ -231,7 +227,7 @@ class BoundedTracker(TrackManager):
                 i = int(at[0])
                 ref, ref_cov = np.zeros(3), np.zeros((3, 3))
                 if self.bound == "paired-covariance":
-                    got = self._reference(peer, i, t)
+                    got = self._reference(peer, i, t, state)
                     if got is None:
                         continue
                     ref, ref_cov = got
@@ -260,12 +256,14 @@ class BoundedTracker(TrackManager):
             out[k] = float(y @ np.linalg.solve(meas.covariance[cols[k]], y))
         return out
 
-    def _reference(self, peer: BoundedTracker, i: int, t: float) -> tuple[FloatArray, FloatArray] | None:
+    def _reference(
+        self, peer: BoundedTracker, i: int, t: float, state: AidState
+    ) -> tuple[FloatArray, FloatArray] | None:
         """``paired-covariance``: ``peer``'s track ``i`` at time ``t`` in this radar's view (ENU)
         by the two radars' pair correlator's own registration, and its covariance: the track's
         and the registration's (its relative covariance through the transform's Jacobian, by
         finite differences); None while the pair is not registered."""
-        reg = self._registration(peer.radar_id)
+        reg = self._registration(peer.radar_id, state)
         if reg is None:
             return None
         own, theirs, cov = reg
@@ -290,26 +288,21 @@ class BoundedTracker(TrackManager):
             return None
         return base, turn @ pt.P[i, :3, :3] @ turn.T + registration
 
-    def _registration(self, other: str) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+    def _registration(self, other: str, state: AidState) -> tuple[FloatArray, FloatArray, FloatArray] | None:
         """The pair correlator of this radar and ``other``: its own registration's terms of this
         radar and of ``other`` and their joint relative covariance (10 x 10); None: not
         registered."""
-        assert self.engine is not None and self.engine.engine is not None
-        for corr in self.engine.engine.pair_correlators():
-            ids = {corr.site_a.site_id, corr.site_b.site_id if corr.site_b is not None else None}
-            sol = corr.solution
-            if ids != {self.radar_id, other} or sol is None or not corr.registered:
-                continue
-            if sol.terms is None or sol.relative_covariance is None:
-                return None
-            at = [list(sol.radar_ids).index(r) for r in (self.radar_id, other)]
-            cols = np.concatenate([np.arange(5 * j, 5 * j + 5) for j in at])
-            cov = np.array(sol.relative_covariance[np.ix_(cols, cols)])
-            held = np.flatnonzero(np.concatenate([sol.terms[at[0]], sol.terms[at[1]]]) == 0.0)
-            cov[held, :] = 0.0  # (a term held at zero, a range gain the data do not show: no error)
-            cov[:, held] = 0.0
-            return sol.terms[at[0]], sol.terms[at[1]], cov
-        return None
+        got = state.registrations.get(frozenset((self.radar_id, other)))
+        if got is None:
+            return None
+        ids, terms, relative = got
+        at = [ids.index(r) for r in (self.radar_id, other)]
+        cols = np.concatenate([np.arange(5 * j, 5 * j + 5) for j in at])
+        cov = np.array(relative[np.ix_(cols, cols)])
+        held = np.flatnonzero(np.concatenate([terms[at[0]], terms[at[1]]]) == 0.0)
+        cov[held, :] = 0.0  # (a term held at zero, a range gain the data do not show: no error)
+        cov[:, held] = 0.0
+        return terms[at[0]], terms[at[1]], cov
 
 
 def registered_terms(b: dict[str, Any]) -> FloatArray:
@@ -327,12 +320,68 @@ def registered_terms(b: dict[str, Any]) -> FloatArray:
 
 
 class EngineRef:
-    """The engine a ``paired`` bound's trackers read (set once the engine is made)."""
+    """The engine a ``paired`` bound's trackers read (set once the engine is made), and what
+    its correlation said (:class:`AidState`) as its outputs grew complete through each data
+    time, ``lag_s`` back: the aid a tracker in another process than the correlation could have
+    had deterministically, by waiting for the correlation's answers up to ``lag_s`` before its
+    batch."""
 
-    engine: Any = None
+    def __init__(self, lag_s: float = 0.0) -> None:
+        self.engine: Any = None
+        self.lag_s = lag_s
+        self._states: deque[tuple[float, AidState]] = deque()
 
     def set(self, engine: Any) -> None:
         self.engine = engine
+
+    def state(self, time_s: float) -> AidState | None:
+        """The correlation's pairs and registrations as of data time ``time_s - lag_s`` (the
+        newest captured with outputs complete through at most that; None: none yet)."""
+        through = self.engine.snapshot().outputs_time_s  # (the correlation's answers so far)
+        if through is not None and (not self._states or self._states[-1][0] < through):
+            self._states.append((float(through), AidState.of(self.engine)))
+        if not self._states:
+            return None
+        while len(self._states) > 1 and self._states[1][0] <= time_s - self.lag_s:
+            self._states.popleft()
+        first_s, first = self._states[0]
+        return first if first_s <= time_s - self.lag_s else None
+
+
+@dataclass(frozen=True)
+class AidState:
+    """What the correlation says at one moment: each radar's confirmed partners (track id ->
+    ``(other radar, its track id)``), each radar's five registered terms (``/biases``), and each
+    registered pair correlator's own registration (``{radar, other}`` -> radar ids, their
+    terms, the relative covariance)."""
+
+    partners: dict[str, dict[str, list[tuple[str, str]]]]
+    terms: dict[str, FloatArray]
+    registrations: dict[frozenset[str], tuple[tuple[str, ...], FloatArray, FloatArray]]
+
+    @staticmethod
+    def of(engine: Any) -> AidState:
+        snap = engine.snapshot()
+        partners: dict[str, dict[str, list[tuple[str, str]]]] = {}
+        for v in snap.pair_views:
+            on = np.asarray(v.columns["confirmed"], bool)
+            for a, b in zip(v.columns["track_a"][on], v.columns["track_b"][on], strict=True):
+                partners.setdefault(v.radar_a, {}).setdefault(str(a), []).append((v.radar_b, str(b)))
+                partners.setdefault(v.radar_b, {}).setdefault(str(b), []).append((v.radar_a, str(a)))
+        registrations = {}
+        for corr in engine.pair_correlators():
+            sol = corr.solution
+            if corr.site_b is None or sol is None or not corr.registered:
+                continue
+            if sol.terms is None or sol.relative_covariance is None:
+                continue
+            key = frozenset((corr.site_a.site_id, corr.site_b.site_id))
+            registrations[key] = (
+                tuple(sol.radar_ids),
+                np.array(sol.terms),
+                np.array(sol.relative_covariance),
+            )
+        return AidState(partners, {b["radar_id"]: registered_terms(b) for b in snap.biases()}, registrations)
 
 
 def bounded_factory(
@@ -400,16 +449,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--bound", action="append", choices=BOUNDS, help="only these bounds (default both)")
     p.add_argument("--offset-m", type=float, default=0.0, help="true-position: each track's reference error")
     p.add_argument("--no-hold", action="store_true", help="the correlation's hold of contested pairs off")
+    p.add_argument(
+        "--aid-lag-s", type=float, default=0.0, help="paired*: the correlation's answers this far back (s)"
+    )
     p.add_argument("--duration", type=float, help="data seconds per run (default the study's)")
     p.add_argument("--targets", type=int, help="aircraft (default the scenario's 30)")
     p.add_argument("--workers", type=int, help="processes (default up to 2)")
     args = p.parse_args(argv)
-    if args.offset_m < 0:
-        p.error("--offset-m must be >= 0")
+    if args.offset_m < 0 or args.aid_lag_s < 0:
+        p.error("--offset-m and --aid-lag-s must be >= 0")
     points = [x for x in formation.POINTS if not args.point or x.label in args.point]
     variants = ("now", *(args.bound or BOUNDS))
     jobs = [
-        replace(j, offset_m=args.offset_m, hold=not args.no_hold)
+        replace(j, offset_m=args.offset_m, hold=not args.no_hold, aid_lag_s=args.aid_lag_s)
         for j in formation.make_jobs(args.runs, args.seed, points, args.duration, args.targets, variants)
     ]
     workers = min(2, os.cpu_count() or 1) if args.workers is None else args.workers
