@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from service.config import EngineConfig
-from service.correlation.registration import remove_bias
 from service.tracking import make_tracker
 from service.tracking.base import PlotColumns
 from service.tracking.measurement import plots_to_measurements
@@ -18,6 +17,7 @@ from topofusion_lab.evaluation.formation_bounds import (
     BoundedTracker,
     RadarTruth,
     bounded_factory,
+    into_view,
     main,
     registered_terms,
 )
@@ -124,7 +124,7 @@ def test_the_paired_bound_brings_a_partner_into_view_with_the_registered_terms()
     for own, peer in (("A", "C"), ("C", "B"), ("B", "A")):
         seen_by_peer = fs.apparent(radars[peer], sites[peer], ecef)
         want = fs.apparent(radars[own], sites[own], ecef)
-        got = remove_bias(sites[own], remove_bias(sites[peer], seen_by_peer, terms(peer), v), -terms(own), v)
+        got = into_view(sites[peer], sites[own], seen_by_peer, v, terms(peer), terms(own))
         assert np.max(np.linalg.norm(got - want, axis=1)) < 1.0
         assert np.median(np.linalg.norm(seen_by_peer - want, axis=1)) > 200.0
 

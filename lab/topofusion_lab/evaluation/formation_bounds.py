@@ -127,24 +127,26 @@ class BoundedTracker(TrackManager):
         self, tracks: Any, meas: Measurements, rows: IntArray, cols: IntArray, d2: FloatArray
     ) -> IntArray:
         gate = self.params.filter.gate_chi2
-        if (self.labels is None and not self.bound.startswith("paired")) or rows.shape[0] == 0:
+        paired = self.bound.startswith("paired")  # (no truth: these need no labels)
+        if rows.shape[0] == 0 or (self.labels is None and not paired):
             return super()._assign(tracks, meas, rows, cols, d2)
-        own = self.labels(tracks.uid[rows]) if self.labels else np.full(rows.shape[0], None, object)
-        plot = self._plot_truth[cols]
-        known = np.array([o is not None and p is not None for o, p in zip(own, plot, strict=True)], bool)
         cost = np.array(d2, dtype=float, copy=True)
-        if self.bound == "truth":
-            cost[known & (own != plot)] = np.inf
-        elif self.bound == "other-radar":
-            k = np.flatnonzero(known)
-            aided = self.other_radar_d2(tracks, rows[k], own[k], meas, cols[k])
-            cost[k] = np.where(np.isnan(aided), cost[k], aided)
-        elif self.bound.startswith("paired"):
+        if paired:
             aided = self.paired_d2(tracks, rows, meas, cols)
             cost = np.where(np.isnan(aided), cost, aided)
         else:
+            assert self.labels is not None
+            own = self.labels(tracks.uid[rows])
+            plot = self._plot_truth[cols]
+            known = np.array([o is not None and p is not None for o, p in zip(own, plot, strict=True)], bool)
             k = np.flatnonzero(known)
-            cost[k] = self.reference_d2(tracks.uid[rows[k]], own[k], meas, cols[k])
+            if self.bound == "truth":
+                cost[known & (own != plot)] = np.inf
+            elif self.bound == "other-radar":
+                aided = self.other_radar_d2(tracks, rows[k], own[k], meas, cols[k])
+                cost[k] = np.where(np.isnan(aided), cost[k], aided)
+            else:
+                cost[k] = self.reference_d2(tracks.uid[rows[k]], own[k], meas, cols[k])
         ok = np.flatnonzero(cost <= gate)  # (the rest: never this track's plot)
         return np.sort(ok[assign(rows[ok], cols[ok], cost[ok], gate)])
 
@@ -190,13 +192,19 @@ class BoundedTracker(TrackManager):
             if found is None or found[0] >= own[k]:
                 continue
             _, peer, frame, i = found
-            pt = peer._tracks
-            t = meas.time_s[cols[k]]
-            ecef = peer.site.enu_to_ecef(pt.x[i, :3] + pt.x[i, 3:] * (t - pt.t[i]))
-            seen = self.truth.apparent(frame.unbiased(np.atleast_2d(ecef)))
+            ecef, _ = peer.track_at(i, meas.time_s[cols[k]])
+            seen = self.truth.apparent(frame.unbiased(ecef))
             y = meas.enu_m[cols[k]] - self.site.ecef_to_enu(seen)[0]
             out[k] = float(y @ np.linalg.solve(meas.covariance[cols[k]], y))
         return out
+
+    def track_at(self, i: int, t: float) -> tuple[FloatArray, FloatArray]:
+        """This tracker's track ``i`` moved to data time ``t`` on its velocity: its ECEF position
+        and ECEF velocity, ``(1, 3)`` each."""
+        pt = self._tracks
+        ecef = np.atleast_2d(self.site.enu_to_ecef(pt.x[i, :3] + pt.x[i, 3:] * (t - pt.t[i])))
+        vel = np.atleast_2d(self.site.enu_to_ecef(pt.x[i, 3:]) - self.site.enu_to_ecef(np.zeros(3)))
+        return ecef, vel
 
     def paired_d2(self, tracks: Any, rows: IntArray, meas: Measurements, cols: IntArray) -> FloatArray:
         """Each candidate's ``d^2`` (module docstring, ``paired``) from the most precise track
@@ -243,15 +251,12 @@ class BoundedTracker(TrackManager):
                 y = meas.enu_m[cols[k]] - ref
                 out[k] = float(y @ np.linalg.solve(meas.covariance[cols[k]] + ref_cov, y))
                 continue
-            pt = peer._tracks
-            ecef = np.atleast_2d(peer.site.enu_to_ecef(pt.x[i, :3] + pt.x[i, 3:] * (t - pt.t[i])))
+            ecef, vel = peer.track_at(i, t)
             if self.bound == "paired-true-biases" and self.truth is not None and peer.truth is not None:
                 seen = self.truth.apparent(peer.truth.unbiased(ecef))
             else:
-                vel = np.atleast_2d(peer.site.enu_to_ecef(pt.x[i, 3:]) - peer.site.enu_to_ecef(np.zeros(3)))
-                where = remove_bias(peer.site, ecef, terms.get(peer.radar_id, np.zeros(5)), vel)
-                # (the model's inverse to first order: the terms' sizes are small)
-                seen = remove_bias(self.site, where, -terms.get(self.radar_id, np.zeros(5)), vel)
+                theirs, own = (terms.get(r, np.zeros(5)) for r in (peer.radar_id, self.radar_id))
+                seen = into_view(peer.site, self.site, ecef, vel, theirs, own)
             y = meas.enu_m[cols[k]] - self.site.ecef_to_enu(seen)[0]
             out[k] = float(y @ np.linalg.solve(meas.covariance[cols[k]], y))
         return out
@@ -267,13 +272,10 @@ class BoundedTracker(TrackManager):
         if reg is None:
             return None
         own, theirs, cov = reg
-        pt = peer._tracks
-        ecef = np.atleast_2d(peer.site.enu_to_ecef(pt.x[i, :3] + pt.x[i, 3:] * (t - pt.t[i])))
-        vel = np.atleast_2d(peer.site.enu_to_ecef(pt.x[i, 3:]) - peer.site.enu_to_ecef(np.zeros(3)))
+        ecef, vel = peer.track_at(i, t)
 
         def seen(a: FloatArray, b: FloatArray) -> FloatArray:
-            where = remove_bias(peer.site, ecef, b, vel)
-            return np.asarray(self.site.ecef_to_enu(remove_bias(self.site, where, -a, vel))[0])
+            return np.asarray(self.site.ecef_to_enu(into_view(peer.site, self.site, ecef, vel, b, a))[0])
 
         base = seen(own, theirs)
         steps = np.array([1.0, 1e-6, 1e-6, 1.0, 0.01])
@@ -286,7 +288,7 @@ class BoundedTracker(TrackManager):
         registration = jac @ cov @ jac.T
         if np.sqrt(max(float(np.trace(registration[:2, :2])), 0.0)) > REGISTRATION_SIGMA_M:
             return None
-        return base, turn @ pt.P[i, :3, :3] @ turn.T + registration
+        return base, turn @ peer._tracks.P[i, :3, :3] @ turn.T + registration
 
     def _registration(self, other: str, state: AidState) -> tuple[FloatArray, FloatArray, FloatArray] | None:
         """The pair correlator of this radar and ``other``: its own registration's terms of this
@@ -303,6 +305,21 @@ class BoundedTracker(TrackManager):
         cov[held, :] = 0.0  # (a term held at zero, a range gain the data do not show: no error)
         cov[:, held] = 0.0
         return terms[at[0]], terms[at[1]], cov
+
+
+def into_view(
+    source: Site,
+    target: Site,
+    ecef: FloatArray,
+    velocity: FloatArray,
+    source_terms: FloatArray,
+    target_terms: FloatArray,
+) -> FloatArray:
+    """ECEF positions as radar ``source`` reports them, as radar ``target`` would: ``source``'s
+    registered terms taken out exactly (:func:`~service.correlation.registration.remove_bias`),
+    ``target``'s put in by the same with the terms' signs turned (the model's inverse to first
+    order: the terms are small).  ``velocity``: ECEF, for the time biases."""
+    return remove_bias(target, remove_bias(source, ecef, source_terms, velocity), -target_terms, velocity)
 
 
 def registered_terms(b: dict[str, Any]) -> FloatArray:

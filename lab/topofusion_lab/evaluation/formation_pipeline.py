@@ -118,15 +118,15 @@ def score_snapshot(snap: Snapshot, focus: Collection[str] | None = None) -> dict
         ):
             if not ok:
                 continue
-            confirmed += 1
             ka, kb = truth_of.get(a, {}), truth_of.get(b, {})
-            if str(ta) not in ka or str(tb) not in kb:
+            there = str(ta) in ka and str(tb) in kb
+            if there and focus is not None and ka[str(ta)] not in focus and kb[str(tb)] not in focus:
+                continue
+            confirmed += 1
+            if not there:
                 gone += 1
                 continue
             wa, wb = ka[str(ta)], kb[str(tb)]
-            if focus is not None and wa not in focus and wb not in focus:
-                confirmed -= 1
-                continue
             right = wa is not None and wa == wb
             if right:
                 correct += 1
