@@ -434,17 +434,31 @@ def no_history_config() -> EngineConfig:
     return replace(cfg, correlation=corr)
 
 
-def variants(full_only: bool, history_ab: bool = False) -> list[Variant]:
-    """The runs compared side by side; ``history_ab``: B against H, the same without the
-    history evidence (what the evidence costs and gives)."""
-    out = [
+def aided_config() -> EngineConfig:
+    """The full pipeline with the aid of association on (``tracking.aid``)."""
+    cfg = EngineConfig()
+    return replace(cfg, tracking=replace(cfg.tracking, aid=replace(cfg.tracking.aid, enabled=True)))
+
+
+def all_variants() -> list[Variant]:
+    return [
         Variant("A", "tracking alone", tracking_alone_config(), False),
         Variant("B", "full, one process", EngineConfig(), False),
         Variant("C", "full, correlation process", EngineConfig(), True),
         Variant("H", "full, one process, no history evidence", no_history_config(), False),
+        Variant("E", "full, correlation process, aid of association", aided_config(), True),
     ]
+
+
+def variants(full_only: bool, history_ab: bool = False, aid_ab: bool = False) -> list[Variant]:
+    """The runs compared side by side; ``history_ab``: B against H, the same without the
+    history evidence (what the evidence costs and gives); ``aid_ab``: C against E, the same
+    with the aid of association (what the aid costs and gives)."""
+    out = all_variants()
     if history_ab:
         return [out[1], out[3]]
+    if aid_ab:
+        return [out[2], out[4]]
     return out[1:3] if full_only else out[:3]
 
 
@@ -1011,7 +1025,7 @@ def one_run(args: argparse.Namespace) -> None:
     Each run gets a process of its own so that its peak RSS is its own (a process keeps much
     of the memory a previous engine freed) and no run works on another's leftover heap.
     """
-    v = next(x for x in variants(False) + variants(False, True) if x.key == args.one_run)
+    v = next(x for x in all_variants() if x.key == args.one_run)
     sc = scenario(args.duration)
     stream = make_stream(sc, args.seed, args.cache)
     truth = survey(stream)
@@ -1074,7 +1088,7 @@ def run_inprocess(args: argparse.Namespace) -> None:
             cache = Path(stack.enter_context(tempfile.TemporaryDirectory())) / "stream.pickle"
         stream = make_stream(sc, args.seed, cache)
         truth = survey(stream)
-        chosen = variants(args.full_only, args.history_ab)
+        chosen = variants(args.full_only, args.history_ab, args.aid_ab)
         data_s = header(
             sc,
             stream,
@@ -2035,6 +2049,11 @@ def main() -> None:
         action="store_true",
         help="compare the full pipeline with and without the pairs' history evidence (B against H)",
     )
+    parser.add_argument(
+        "--aid-ab",
+        action="store_true",
+        help="compare the full pipeline, correlation process, with and without the aid of association (C, E)",
+    )
     parser.add_argument("--snapshot-every", type=int, default=64, help="messages between snapshots (0: none)")
     parser.add_argument(
         "--explain-false",
@@ -2055,7 +2074,7 @@ def main() -> None:
         "--soak-minutes", type=float, help="feed a never-ending stream for this many wall minutes"
     )
     # a run of the in-process mode, in a process of its own (see one_run)
-    parser.add_argument("--one-run", choices=("A", "B", "C", "H"), help=argparse.SUPPRESS)
+    parser.add_argument("--one-run", choices=("A", "B", "C", "H", "E"), help=argparse.SUPPRESS)
     parser.add_argument("--round", type=int, default=1, help=argparse.SUPPRESS)
     parser.add_argument("--accuracy", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--top", type=int, default=25, help="functions listed per profile order")

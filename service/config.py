@@ -48,6 +48,7 @@ __all__ = [
     "ENV_PREFIX",
     "ConfigError",
     "EngineConfig",
+    "aid_problems",
     "as_dict",
     "engine_config_from",
     "from_environment",
@@ -167,9 +168,30 @@ def engine_config_from(data: Mapping[str, Any]) -> EngineConfig:
             f"tracking.manager.confirmed_misses_cap: {manager.confirmed_misses_cap} is below "
             f"confirmed_max_misses ({manager.confirmed_max_misses}), the fewest misses that delete"
         )
+    problems += aid_problems(config)
     if problems:
         raise _error(problems)
     return config
+
+
+def aid_problems(config: EngineConfig) -> list[str]:
+    """What makes ``tracking.aid`` impossible in ``config`` (none while it is off): the aid is
+    the correlation's answers a lag back, which one worker holds whole."""
+    aid = config.tracking.aid
+    if not aid.enabled:
+        return []
+    problems = []
+    if not aid.lag_s > 0.0:
+        problems.append(
+            f"tracking.aid.lag_s: {aid.lag_s} s; the aid needs a lag above zero "
+            "(a batch cannot wait for the answer to its own table)"
+        )
+    if not config.partition.whole:
+        problems.append(
+            f"tracking.aid.enabled: needs one worker, not partition {config.partition} (a "
+            "partitioned worker's tracks would be aided by other workers' answers as they arrive)"
+        )
+    return problems
 
 
 def validation_problems(exc: ValidationError) -> list[str]:

@@ -25,7 +25,7 @@ from collections.abc import Callable, Collection, Iterable
 from itertools import chain
 from typing import Any
 
-from service.config import EngineConfig
+from service.config import EngineConfig, aid_problems
 from service.correlation import PairCorrelator
 from service.pipeline.assessment_feed import AssessmentFeed
 from service.pipeline.correlation_process import ChildProcessRunner
@@ -34,6 +34,7 @@ from service.pipeline.decode import decode_input, plot_columns, reference_column
 from service.pipeline.errors import RejectionError, unknown_radar
 from service.pipeline.feed import FeedWatch
 from service.pipeline.merger import TableMerger
+from service.pipeline.partner_aid import PartnerAid
 from service.pipeline.peers import Peers, finite_or_none
 from service.pipeline.publication import Publication
 from service.pipeline.read_model import Snapshot, build_snapshot
@@ -92,6 +93,14 @@ class Engine:
         self.reference_kinds: dict[str, str] = {}
         self._snapshot: Snapshot | None = None
         self.assessment = AssessmentFeed(c.assessment)  # each radar against the references (§5.3)
+        #: The aid of association (``tracking.aid``; None: off): the correlation's answers by
+        #: data time, fed back to the trackers (:mod:`.pipeline.partner_aid`).
+        self.aid: PartnerAid | None = None
+        if c.tracking.aid.enabled:
+            problems = aid_problems(c)
+            if problems:
+                raise ValueError("; ".join(problems))
+            self.aid = PartnerAid(c.tracking.aid, self.tracking)
         for site in c.sites:
             self._set_site(site)
 
@@ -321,6 +330,8 @@ class Engine:
                     seq = 0 if rel.expiry else rel.item.seq
                     self.merger.push(REFERENCE, rel.source_id, seq, rel.time_s, rel.item, expiry=rel.expiry)
                 else:
+                    if self.aid is not None and rel.item is not None:
+                        out += self._answers_through(self.aid.due_s(rel.time_s))
                     out += self._track(rel.source_id, rel.item, rel.time_s)
             except Exception as exc:  # a bug costs this batch's outputs, never the service
                 out.append(self._internal(rel.source_id, f"processing failed: {type(exc).__name__}: {exc}"))
@@ -335,9 +346,21 @@ class Engine:
                 return []
             table = self.tracking.tracked[radar_id].table
         else:
-            table = self.tracking.update(radar_id, plots, clock)
+            aid = self.aid.references(radar_id, clock) if self.aid is not None else None
+            table = self.tracking.update(radar_id, plots, clock, aid)
             self.assessment.plots(radar_id, self.tracking.tracked[radar_id].geometry, plots, clock)
         return self.peers.own_table(radar_id, table.by_id(), clock, plots is None)
+
+    def _answers_through(self, time_s: float) -> list[Outgoing]:
+        """Every table up to data time ``time_s`` correlated and its answer taken (the aid of
+        association: a batch's aid is the answers a fixed data time before it, whichever way
+        the correlation runs; one worker, whose released tables are all its own)."""
+        index = self.partition.index
+        if time_s > self.merger.released.get(index, -math.inf):
+            self.merger.progress(index, time_s)
+        out = self._correlate(self.merger.release(self.peers.owners(), self.peers.cap()))
+        self.correlation.wait_through(time_s)
+        return out + self._results()
 
     def _correlate(self, released: Iterable[Release]) -> list[Outgoing]:
         """The merger's releases (every radar's tables and the references in data-time order)
@@ -370,7 +393,10 @@ class Engine:
         out: list[Outgoing] = []
         for answer in self.correlation.take_answers():
             if answer.op == "radar":  # the table it answered for, then what the table changed
-                out += self.publication.tracks(*self._unpublished.popleft())
+                radar = self._unpublished.popleft()
+                if self.aid is not None:
+                    self.aid.answered(radar[1], answer.updated)
+                out += self.publication.tracks(*radar)
             out += [self.publication.pairs(key, view) for key, view in answer.updated]
             self.assessment.pairs(answer.updated, self.reference_kinds)
             if answer.system is not None:

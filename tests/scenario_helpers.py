@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import random
 from dataclasses import replace
 
 from topofusion_lab.scenarios.catalog import get_scenario
@@ -18,3 +19,19 @@ def scenario_messages(
     """``(key, payload)`` of a scenario's sites and batches, in data-time order."""
     sc = replace(get_scenario(name), duration_s=duration_s, **changes)  # type: ignore[arg-type]
     return list(wire_messages(sc, seed, prefix))
+
+
+def interleaved(stream: list[tuple[str, bytes]], seed: int) -> list[tuple[str, bytes]]:
+    """Another arrival order: sites first, each radar's batches in order, radars interleaved at random."""
+    rng = random.Random(seed)
+    queues: dict[str, list[tuple[str, bytes]]] = {}
+    out = [m for m in stream if m[0].endswith("/site")]
+    for key, payload in stream:
+        if key.endswith("/plots"):
+            queues.setdefault(key.split("/")[2], []).append((key, payload))
+    while queues:
+        rid = rng.choice(sorted(queues))
+        out.append(queues[rid].pop(0))
+        if not queues[rid]:
+            del queues[rid]
+    return out

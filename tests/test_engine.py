@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import random
 from typing import Any
 
 import numpy as np
@@ -18,7 +17,7 @@ from service.tracking.window import PlotWindow
 from service.wire import models
 from service.wire.models import RadarSite
 from service.wire.vocabulary import REJECTION_REASONS
-from tests.scenario_helpers import scenario_messages
+from tests.scenario_helpers import interleaved, scenario_messages
 
 CONFIG = EngineConfig()
 
@@ -323,27 +322,11 @@ def test_a_real_message_changed_anywhere_is_taken_or_rejected_whole(
         assert [o for o in out if o.key != "fusion/errors"] == base_out, (key, path, how, value)
 
 
-def _interleave(stream: list[tuple[str, bytes]], seed: int) -> list[tuple[str, bytes]]:
-    """Another arrival order: sites first, each radar's batches in order, radars interleaved at random."""
-    rng = random.Random(seed)
-    queues: dict[str, list[tuple[str, bytes]]] = {}
-    out = [m for m in stream if m[0].endswith("/site")]
-    for key, payload in stream:
-        if key.endswith("/plots"):
-            queues.setdefault(key.split("/")[2], []).append((key, payload))
-    while queues:
-        rid = rng.choice(sorted(queues))
-        out.append(queues[rid].pop(0))
-        if not queues[rid]:
-            del queues[rid]
-    return out
-
-
 @pytest.mark.parametrize("seed", [1, 2])
 def test_results_do_not_depend_on_arrival_interleaving(
     stream: list[tuple[str, bytes]], baseline: tuple[Engine, list[Any]], seed: int
 ) -> None:
-    shuffled = _interleave(stream, seed)
+    shuffled = interleaved(stream, seed)
     assert shuffled != stream
     engine, out = run(shuffled)
     assert results(engine) == results(baseline[0])

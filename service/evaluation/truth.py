@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.geo import Site
+from service.tracking.aid import PartnerReferences
 from service.tracking.base import PlotColumns, Tracker, TrackTable
 from service.tracking.manager import TrackManager
 
@@ -226,6 +227,9 @@ class TruthLabelledTracker(Tracker):
             self.tally.add_chunks([(uid, p.truth_id) for uid, p in joined], plots.truth_id)
         if self.tally:
             self.tally.keep(self.inner.uids)
+
+    def take_aid(self, partners: PartnerReferences | None) -> None:
+        self.inner.take_aid(partners)
 
     def drop_tracks(self) -> None:
         self.inner.drop_tracks()

@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import logging
+import math
 import multiprocessing as mp
 import queue
 import signal
@@ -187,9 +188,10 @@ class ChildProcessRunner(Answers):
         self._pending += 1
         self._apply(block=False)
 
-    def _apply(self, block: bool) -> None:
-        """Apply the answers received (``block``: wait until every message is answered)."""
-        while self._pending:
+    def _apply(self, block: bool, through_s: float = math.inf) -> None:
+        """Apply the answers received (``block``: wait until every message is answered, or,
+        with ``through_s``, every radar table up to that data time)."""
+        while self._pending and (through_s == math.inf or self._oldest_unanswered() <= through_s):
             try:
                 got = self._inbox.get(block=block, timeout=LIVENESS_CHECK_S if block else None)
             except queue.Empty:
@@ -256,6 +258,15 @@ class ChildProcessRunner(Answers):
     def _answered_radars(self, drawing: Drawing) -> Drawing:
         """``drawing`` with the radars' tables filled in where the child left them out."""
         return drawing if drawing.radars is not None else replace(drawing, radars=dict(self._radars))
+
+    def _oldest_unanswered(self) -> float:
+        """The data time of the oldest radar table not answered yet (inf: none)."""
+        return next((t for t, _ in self._unanswered if t is not None), math.inf)
+
+    def wait_through(self, time_s: float) -> None:
+        """Wait until every radar table up to data time ``time_s`` sent is answered (the aid of
+        association, :mod:`.partner_aid`); the later ones go on in the child meanwhile."""
+        self._apply(block=True, through_s=time_s)
 
     def correlated_through(self, released_s: float) -> float:
         """Data time up to which every update has been answered, given that everything up to

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from service.geo import Site
+from service.tracking.aid import PartnerReferences
 from service.tracking.base import PlotColumns, Tracker, TrackTable
 from service.wire.models import RadarSite
 
@@ -122,11 +123,15 @@ class TrackingStage:
             held.tracker.follow(new)
         return SiteChange.MOVED if moved else SiteChange.UPDATED
 
-    def update(self, radar_id: str, plots: PlotColumns, time_s: float) -> TrackTable:
-        """One batch of a radar, applied whole (the tracker's update is all or nothing)."""
+    def update(
+        self, radar_id: str, plots: PlotColumns, time_s: float, aid: PartnerReferences | None = None
+    ) -> TrackTable:
+        """One batch of a radar, applied whole (the tracker's update is all or nothing);
+        ``aid``: the references of its tracks' partners (:mod:`~service.tracking.aid`)."""
         radar = self.tracked[radar_id]
         if radar.tracker is None:
             radar.tracker = self.factory(radar.geometry, radar_id)
+        radar.tracker.take_aid(aid)
         radar.tracker.update(plots, time_s)
         radar.table = radar.tracker.tracks()
         radar.time_s = time_s

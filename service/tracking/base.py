@@ -9,12 +9,16 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from service.columns import concat_rows, take_rows
 from service.geo import Site
+
+if TYPE_CHECKING:
+    from service.tracking.aid import PartnerReferences
 
 FloatArray = NDArray[np.float64]
 
@@ -163,6 +167,11 @@ class Tracker(ABC):
     @abstractmethod
     def update(self, plots: PlotColumns, time_s: float) -> None:
         """Absorb one batch: update tracks, keep unused plots in the window, prune by data time."""
+
+    def take_aid(self, partners: PartnerReferences | None) -> None:
+        """The references of the tracks' confirmed partners for the next batch
+        (:mod:`.aid`; None: no aid).  A tracker that takes no aid ignores them."""
+        return None
 
     @abstractmethod
     def tracks(self) -> TrackTable:

@@ -43,6 +43,7 @@ from scipy.spatial import cKDTree
 
 from service.geo import FloatArray, Site
 from service.tracking import imm, kalman
+from service.tracking.aid import PartnerReferences, aided_d2, horizontal_spread
 from service.tracking.assignment import assign, clarity
 from service.tracking.base import PlotColumns, Tracker, TrackTable
 from service.tracking.coincident import first_in_cell
@@ -272,6 +273,8 @@ class TrackManager(Tracker):
         #: time of the last search for formations (``update``).
         self._formation_models = imm.formation_models_of(self.params.filter, self.params.formation)
         self._formations_s = -np.inf
+        #: The references of the next batch (:meth:`take_aid`; None: no aid).
+        self._aid: PartnerReferences | None = None
         self._tracks = _Tracks.empty(self._models.count)
         #: The site rotation that ``_tracks.cov_ecef`` was made with, and the site that the
         #: window's measurements were made with (a site can be replaced, see ``update``).
@@ -566,13 +569,25 @@ class TrackManager(Tracker):
             np.concatenate(w_),
         )
 
+    def take_aid(self, partners: PartnerReferences | None) -> None:
+        self._aid = partners
+
     def _assign(
         self, tracks: _Tracks, meas: Measurements, rows: IntArray, cols: IntArray, d2: FloatArray
     ) -> IntArray:
         """The chosen candidates among the gated ones (:func:`.assignment.assign`, a miss
-        costing the gate).  One method, so that an evaluation can change the costs it solves
-        and nothing else (the lab's bounds on association in formations, docs/results.md)."""
-        return assign(rows, cols, d2, self.params.filter.gate_chi2)
+        costing the gate).  A candidate of a track with a reference (:mod:`.aid`) costs its
+        distance from the reference instead, and is none if that is beyond the gate.  One
+        method, so that an evaluation can change the costs it solves and nothing else (the
+        lab's bounds on association in formations, docs/results.md)."""
+        gate = self.params.filter.gate_chi2
+        if self._aid is None or not rows.shape[0]:
+            return assign(rows, cols, d2, gate)
+        ref, ref_cov = self._aid(tracks.ids[rows], meas.time_s[cols], horizontal_spread(tracks.P[rows]))
+        aided = aided_d2(meas.enu_m[cols], meas.covariance[cols], ref, ref_cov)
+        cost = np.where(np.isnan(aided), d2, aided)
+        ok = np.flatnonzero(cost <= gate)
+        return np.sort(ok[assign(rows[ok], cols[ok], cost[ok], gate)])
 
     # -- formations --------------------------------------------------------------------
     def _hold_velocity(self, tracks: _Tracks, rows: IntArray) -> None:

@@ -265,7 +265,8 @@ def engine_config(variant: str) -> EngineConfig:
     rule off (the tracker's duplicate rule, formation's quiet model, two-model filter and
     initiator's velocity support, deletion by the radar's detection probability, correlation's
     caution with low-quality tracks and its swap rule, the published score's tracks' quality,
-    the hold of a contested pair), *now* is the default."""
+    the hold of a contested pair), *now* is the default, *aided* the default with the aid of
+    association on (``tracking.aid``, :mod:`service.tracking.aid`; the bounds' study)."""
     cfg = EngineConfig()
     if variant == "before":
         corr = cfg.correlation
@@ -287,6 +288,8 @@ def engine_config(variant: str) -> EngineConfig:
         )
     if variant == "now":
         return cfg
+    if variant == "aided":
+        return replace(cfg, tracking=replace(cfg.tracking, aid=replace(cfg.tracking.aid, enabled=True)))
     raise ValueError(f"unknown variant {variant!r}")
 
 
@@ -494,6 +497,9 @@ def run_one(job: Job) -> dict[str, Any]:
     config = engine_config("now" if job.variant in BOUNDS else job.variant)
     if not job.hold:
         config = no_hold(config)
+    if job.variant == "aided" and job.aid_lag_s > 0:
+        aid = replace(config.tracking.aid, lag_s=job.aid_lag_s)
+        config = replace(config, tracking=replace(config.tracking, aid=aid))
     factory = None
     ref = EngineRef(job.aid_lag_s)
     if job.variant in BOUNDS:

@@ -463,11 +463,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--point", action="append", choices=[x.label for x in formation.POINTS])
     p.add_argument("--runs", type=int, default=formation.DEFAULT_RUNS, help="seeds per point")
     p.add_argument("--seed", type=int, default=0, help="seeds are seed+1 .. seed+runs (default 0)")
-    p.add_argument("--bound", action="append", choices=BOUNDS, help="only these bounds (default both)")
+    p.add_argument(
+        "--bound",
+        action="append",
+        choices=(*BOUNDS, "aided"),
+        help="only these bounds (default every one); aided: the service's own aid (tracking.aid)",
+    )
     p.add_argument("--offset-m", type=float, default=0.0, help="true-position: each track's reference error")
     p.add_argument("--no-hold", action="store_true", help="the correlation's hold of contested pairs off")
     p.add_argument(
-        "--aid-lag-s", type=float, default=0.0, help="paired*: the correlation's answers this far back (s)"
+        "--aid-lag-s",
+        type=float,
+        default=0.0,
+        help="paired* and aided: the correlation's answers this far back (s; aided: 0 is its default)",
     )
     p.add_argument("--duration", type=float, help="data seconds per run (default the study's)")
     p.add_argument("--targets", type=int, help="aircraft (default the scenario's 30)")

@@ -1,0 +1,64 @@
+"""Association aided by another radar's track of the same aircraft.
+
+In a formation a radar whose cross-range error is half the spacing cannot tell neighbours apart
+by one scan's plots: its tracks take a neighbour's plot and swap (docs/results.md, formations).
+Another radar may see the same aircraft far more precisely, and the correlation already says
+which of its tracks that is (a *confirmed pair*).  With the aid on, the engine hands each
+tracker, before its batch, the :class:`PartnerReferences` of the correlation's confirmed pairs
+(:mod:`service.pipeline.partner_aid`): for a track with a confirmed partner whose registration
+is known to within ``AidParams.registration_sigma_m`` and whose position, brought into this
+radar's view, is more precise than the track's own, a *reference*: that position at the plot's
+time in this radar's ENU frame, with its covariance (the partner's and the registration's).
+
+A candidate plot ``z`` (covariance ``R``) of such a track then costs, in the one-to-one
+assignment only, its squared Mahalanobis distance from the reference,
+
+    d^2 = (z - r)^T (R + C)^-1 (z - r),
+
+the same chi-square form as the track's own gate (the innovation against the sum of the two
+covariances, :mod:`.kalman`); a candidate whose aided cost exceeds the gate is no candidate.
+The gate itself, the filter update and every other step stay the track's own: the aid decides
+which plot, never where the track goes.  Measured in the lab's bounds on association in
+formations (docs/evaluation/formation-bounds.md, "Aided by the service's own pairs").
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from service.geo import FloatArray
+
+
+class PartnerReferences(Protocol):
+    """The references of a radar's tracks for one batch (module docstring)."""
+
+    def __call__(
+        self, track_ids: NDArray[np.str_], times_s: FloatArray, own_spread_m2: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """For candidate ``k`` (its track ``track_ids[k]``, its plot's time ``times_s[k]``, the
+        track's horizontal spread ``own_spread_m2[k]``, the trace of its ENU position
+        covariance's horizontal block): the reference ``(n, 3)`` in this radar's ENU frame and
+        its covariance ``(n, 3, 3)``; NaN rows where the track has none more precise."""
+        ...
+
+
+def horizontal_spread(cov: FloatArray) -> FloatArray:
+    """The trace of the horizontal 2 x 2 block of each ``(n, >= 2, >= 2)`` covariance (m^2):
+    the one figure by which a track and a reference are compared for precision."""
+    return np.asarray(np.trace(cov[:, :2, :2], axis1=1, axis2=2), dtype=float)
+
+
+def aided_d2(z: FloatArray, cov_z: FloatArray, ref: FloatArray, ref_cov: FloatArray) -> FloatArray:
+    """Each candidate's cost from its reference (module docstring), vectorised over the
+    candidates: ``z`` ``(n, 3)`` plots, ``cov_z`` ``(n, 3, 3)`` their covariances, ``ref`` and
+    ``ref_cov`` from :class:`PartnerReferences`.  NaN where the reference is NaN."""
+    out = np.full(z.shape[0], np.nan)
+    ok = ~np.isnan(ref[:, 0])
+    if ok.any():
+        y = z[ok] - ref[ok]
+        s = cov_z[ok] + ref_cov[ok]
+        out[ok] = np.einsum("ni,ni->n", y, np.linalg.solve(s, y[:, :, None])[:, :, 0])
+    return out

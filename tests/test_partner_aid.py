@@ -1,0 +1,334 @@
+"""The aid of association by the correlation's confirmed partners (service/tracking/aid.py,
+service/correlation/partner_view.py, service/pipeline/partner_aid.py): each vectorised form
+against a plain one, and the aid's determinism through the engine."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+import pytest
+
+from service.correlation.partner_view import into_view, view_with_covariance
+from service.engine import Engine, EngineConfig
+from service.geo import Site
+from service.pipeline.partition import Partition
+from service.pipeline.partner_aid import PartnerAid
+from service.pipeline.read_model import PairRegistration, PairSetView
+from service.pipeline.tracking_stage import TrackedRadar, TrackingStage
+from service.tracking.aid import aided_d2
+from service.tracking.base import TrackTable
+from service.tracking.params import AidParams
+from service.wire.models import RadarSite
+from tests.scenario_helpers import interleaved
+
+A = Site("A", 50.0, 5.0, 100.0)
+B = Site("B", 51.0, 6.5, 200.0)
+#: Realistic terms (m, rad, rad, ppm, s): A's five, then B's.
+TERMS = np.array(
+    [30.0, np.radians(0.3), np.radians(0.05), 20.0, 1.5, -50.0, np.radians(-0.2), 0.0, 0.0, -2.0]
+)
+SIGMAS = np.array([20.0, 1e-4, 1e-4, 5.0, 0.3] * 2)
+
+
+def _positions(site: Site, n: int, seed: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    enu = np.column_stack(
+        [rng.uniform(-150e3, 150e3, n), rng.uniform(-150e3, 150e3, n), rng.uniform(3e3, 11e3, n)]
+    )
+    ecef = site.enu_to_ecef(enu)
+    vel = site.enu_to_ecef(rng.normal(0.0, 150.0, (n, 3)) * [1, 1, 0]) - site.enu_to_ecef(np.zeros((n, 3)))
+    cov = np.array([np.diag(rng.uniform(50.0, 300.0, 3) ** 2) for _ in range(n)])
+    return ecef, vel, cov
+
+
+def _plain_view(
+    source: Site, target: Site, p: np.ndarray, v: np.ndarray, pc: np.ndarray, terms: np.ndarray, c: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """One position at a time, the Jacobian by central finite differences of the transform."""
+    c = c.copy()
+    held = terms == 0.0
+    c[held, :] = 0.0
+    c[:, held] = 0.0
+
+    def at(t: np.ndarray) -> np.ndarray:
+        return target.ecef_to_enu(into_view(source, target, p[None], v[None], t[5:], t[:5]))[0]
+
+    jac = np.zeros((3, 10))
+    for j, step in enumerate([1.0, 1e-6, 1e-6, 1.0, 0.01] * 2):
+        d = np.zeros(10)
+        d[j] = step
+        jac[:, j] = (at(terms + d) - at(terms - d)) / (2 * step)
+    r = target.rotation.T
+    return at(terms), r @ pc @ r.T + jac @ c @ jac.T
+
+
+def test_the_vectorised_view_matches_a_plain_one_position_at_a_time() -> None:
+    ecef, vel, cov = _positions(B, 25)
+    c = np.diag(SIGMAS**2)
+    pos, total, reg = view_with_covariance(B, A, ecef, vel, cov, TERMS, c)
+    for k in range(ecef.shape[0]):
+        want_pos, want_cov = _plain_view(B, A, ecef[k], vel[k], cov[k], TERMS, c)
+        np.testing.assert_allclose(pos[k], want_pos, rtol=0, atol=1e-6)
+        # first order in the terms (0.3 deg, 20 ppm): within half a percent of the exact form
+        np.testing.assert_allclose(total[k], want_cov, rtol=0, atol=5e-3 * np.abs(want_cov).max())
+    assert np.all(np.sqrt(np.trace(reg[:, :2, :2], axis1=1, axis2=2)) > 10.0)  # (it counts)
+
+
+def test_a_term_held_at_zero_adds_no_error() -> None:
+    ecef, vel, cov = _positions(B, 5)
+    terms = TERMS.copy()
+    terms[[3, 4, 8, 9]] = 0.0  # (no gain, no time bias: held by the solution)
+    c = np.diag(SIGMAS**2)
+    _, _, reg = view_with_covariance(B, A, ecef, vel, cov, terms, c)
+    c[[3, 4, 8, 9], [3, 4, 8, 9]] = 0.0
+    _, _, want = view_with_covariance(B, A, ecef, vel, cov, terms, c)
+    np.testing.assert_allclose(reg, want)
+
+
+def test_aided_d2_matches_a_plain_loop() -> None:
+    rng = np.random.default_rng(3)
+    n = 12
+    z, ref = rng.normal(0, 500, (n, 3)), rng.normal(0, 500, (n, 3))
+    ref[[2, 7]] = np.nan
+
+    def spd() -> np.ndarray:
+        m = rng.normal(size=(n, 3, 3))
+        return m @ np.swapaxes(m, 1, 2) * 1e4 + np.eye(3) * 100.0
+
+    cz, cr = spd(), spd()
+    got = aided_d2(z, cz, ref, cr)
+    for k in range(n):
+        if np.isnan(ref[k, 0]):
+            assert np.isnan(got[k])
+        else:
+            y = z[k] - ref[k]
+            assert got[k] == pytest.approx(float(y @ np.linalg.inv(cz[k] + cr[k]) @ y), rel=1e-9)
+
+
+def _table(site: Site, ids: list[str], seed: int, spread_m: float) -> TrackTable:
+    ecef, vel, _ = _positions(site, len(ids), seed)
+    cov = np.zeros((len(ids), 6, 6))
+    cov[:, :3, :3] = np.eye(3) * spread_m**2
+    return TrackTable(
+        np.array(ids),
+        np.ones(len(ids), bool),
+        np.full(len(ids), 100.0),
+        ecef,
+        vel,
+        cov,
+        np.full(len(ids), 5, dtype=np.int64),
+    )
+
+
+def _view(a: str, b: str, pairs: list[tuple[str, str]], reg: PairRegistration | None) -> PairSetView:
+    ta = np.array([p[0] for p in pairs])
+    tb = np.array([p[1] for p in pairs])
+    cols = {
+        "track_a": ta,
+        "track_b": tb,
+        "confirmed": np.ones(len(pairs), bool),
+        "held": np.zeros(len(pairs), bool),
+    }
+    return PairSetView(a, b, 100.0, "svd-topology", cols, len(pairs), 0, 0, reg)
+
+
+def test_references_take_the_most_precise_registered_partner_as_a_plain_loop_does() -> None:
+    sites = {"A": A, "B": B, "C": Site("C", 50.5, 7.0, 50.0)}
+    stage = TrackingStage(lambda site, rid: None)  # type: ignore[arg-type,return-value]
+    spreads = {"A": 400.0, "B": 60.0, "C": 90.0}
+    ids = {r: [f"{r}-{k}" for k in range(1, 9)] for r in sites}
+    for r, site in sites.items():
+        radar = TrackedRadar(
+            RadarSite(radar_id=r, latitude_deg=site.latitude_deg, longitude_deg=site.longitude_deg), site
+        )
+        radar.table = _table(site, ids[r], seed=ord(r), spread_m=spreads[r])
+        stage.tracked[r] = radar
+    tight = np.diag((SIGMAS / 4) ** 2)  # (within 50 m at every track)
+    views = {
+        ("A", "B"): _view(
+            "A",
+            "B",
+            [(f"A-{k}", f"B-{k}") for k in (1, 2, 3, 5)],
+            PairRegistration(("A", "B"), TERMS.reshape(2, 5), tight),
+        ),
+        ("C", "A"): _view(
+            "C",
+            "A",
+            [(f"C-{k}", f"A-{k}") for k in (2, 4, 6)],
+            PairRegistration(("A", "C"), TERMS.reshape(2, 5), tight),
+        ),
+    }
+    params = AidParams(enabled=True, lag_s=10.0, registration_sigma_m=50.0)
+    aid = PartnerAid(params, stage)
+    aid.answered(90.0, list(views.items()))
+    assert aid.references("A", 95.0) is None  # (answers up to 85 s: none yet)
+    refs = aid.references("A", 100.0)
+    assert refs is not None
+    cand = np.array(["A-1", "A-2", "A-2", "A-4", "A-6", "A-7", "A-5"])
+    times = np.linspace(100.0, 102.0, cand.shape[0])
+    own = np.full(cand.shape[0], 2 * spreads["A"] ** 2)
+    own[-1] = 1.0  # (A-5 is more precise than any partner: no aid)
+    ref, cov = refs(cand, times, own)
+    # the plain form: each candidate, each partner, the most precise within the registration limit
+    for k, tid in enumerate(cand):
+        best = (own[k], None)
+        for (ra, rb), view in views.items():
+            mine = "track_a" if ra == "A" else "track_b"
+            other = rb if ra == "A" else ra
+            hit = np.flatnonzero(view.columns[mine] == tid)
+            if not hit.shape[0]:
+                continue
+            pid = view.columns["track_b" if mine == "track_a" else "track_a"][hit[0]]
+            reg = view.registration
+            assert reg is not None
+            order = [reg.radar_ids.index(x) for x in ("A", other)]
+            terms = np.concatenate([reg.terms[i] for i in order])
+            idx = np.concatenate([np.arange(5 * i, 5 * i + 5) for i in order])
+            t = stage.tracked[other].table
+            i = int(np.flatnonzero(t.track_id == pid)[0])
+            p = t.position_ecef_m[i] + t.velocity_ecef_mps[i] * (times[k] - t.time_s[i])
+            pos, c, r = view_with_covariance(
+                sites[other],
+                A,
+                p[None],
+                t.velocity_ecef_mps[i][None],
+                t.covariance[i, :3, :3][None],
+                terms,
+                reg.covariance[np.ix_(idx, idx)],
+            )
+            spread = float(np.trace(c[0, :2, :2]))
+            if np.sqrt(np.trace(r[0, :2, :2])) <= 50.0 and spread < best[0]:
+                best = (spread, (pos[0], c[0]))
+        if best[1] is None:
+            assert np.isnan(ref[k]).all(), tid
+        else:
+            np.testing.assert_allclose(ref[k], best[1][0])
+            np.testing.assert_allclose(cov[k], best[1][1])
+    aided = ~np.isnan(ref[:, 0])
+    assert aided.tolist() == [True, True, True, True, True, False, False]  # (A-7: no pair; A-5: own)
+    # A-2 has partners on B (60 m) and C (90 m): B's, the more precise
+    assert np.trace(cov[1, :2, :2]) < np.trace(cov[3, :2, :2])
+    # a registration looser than the limit aids nothing
+    strict = PartnerAid(replace(params, registration_sigma_m=5.0), stage)
+    strict.answered(90.0, list(views.items()))
+    got = strict.references("A", 100.0)
+    assert got is not None and np.isnan(got(cand, times, own)[0]).all()
+
+
+def _aided(config: EngineConfig, **changes: Any) -> EngineConfig:
+    aid = replace(config.tracking.aid, enabled=True, **changes)
+    return replace(config, tracking=replace(config.tracking, aid=aid))
+
+
+def test_the_aid_needs_one_worker_and_a_lag() -> None:
+    with pytest.raises(ValueError, match="needs one worker"):
+        Engine(replace(_aided(EngineConfig()), partition=Partition(1, 2)))
+    with pytest.raises(ValueError, match="lag above zero"):
+        Engine(_aided(EngineConfig(), lag_s=0.0))
+
+
+def _run(config: EngineConfig, messages: list[tuple[str, bytes]], process: bool = False) -> tuple[Any, Any]:
+    engine = Engine(config, correlation_process=process)
+    try:
+        out = []
+        for key, payload in messages:
+            out.extend(engine.ingest(key, payload, receive_time_s=0.0))
+        out.extend(engine.flush())
+        snap = engine.snapshot()
+        results = {"tracks": snap.track_batches("all"), "pairs": snap.pair_sets(status="all")}
+        return results, [(o.key, o.payload) for o in out]
+    finally:
+        engine.close()
+
+
+@pytest.fixture(scope="module")
+def formation_in_traffic() -> list[tuple[str, bytes]]:
+    """A formation of 12 at twice the cross-range error among 32 other aircraft, 180 s: the
+    registration is known within the aid's limit before the end."""
+    from topofusion_lab.evaluation import formation
+    from topofusion_lab.scenarios.simulator import wire_messages
+
+    point = next(p for p in formation.POINTS if p.label == "2x in traffic")
+    return list(wire_messages(formation.scenario(point, 180.0, 12), 1))
+
+
+def test_the_aid_is_the_same_in_a_child_process_and_in_any_arrival_order(
+    formation_in_traffic: list[tuple[str, bytes]],
+) -> None:
+    # a lag of one second: shorter than the batches of a burst of releases and than the child
+    # process takes to answer, so without the engine's wait the aid would differ at every turn
+    aided = _aided(EngineConfig(), lag_s=1.0)
+    here, out_here = _run(aided, formation_in_traffic)
+    plain, out_plain = _run(EngineConfig(), formation_in_traffic)
+    # the aid does something here: some plots went to other tracks, so other tracks and pairs
+    assert here["tracks"] != plain["tracks"] and out_here != out_plain
+    assert any(ps["pairs"] for ps in here["pairs"])
+    # radars' batches interleaved otherwise on arrival, in bursts of some 20 s of data (within
+    # the lag the release waits for, ``sequencer.max_lag_s``; longer than the aid's lag): the
+    # engine correlates and waits for the answers through each batch's lag inside a burst, so
+    # tracks and every output are the same, in the same order, here and with the correlation
+    # in its own process (which answers later)
+    sites = [m for m in formation_in_traffic if m[0].endswith("/site")]
+    plots = [m for m in formation_in_traffic if m[0].endswith("/plots")]
+    assert len(sites) + len(plots) == len(formation_in_traffic)
+    shuffled = sites + [m for i in range(0, len(plots), 60) for m in interleaved(plots[i : i + 60], 3)]
+    assert shuffled != formation_in_traffic
+    again, out_again = _run(aided, shuffled)
+    assert again == here and out_again == out_here
+    child, out_child = _run(aided, shuffled, process=True)
+    assert child == here and out_child == out_here
+
+
+@pytest.mark.parametrize("process", [False, True])
+def test_every_aided_batch_waits_for_the_answers_through_its_lag(
+    formation_in_traffic: list[tuple[str, bytes]], process: bool
+) -> None:
+    # radar C silent for 20 s: the release holds the others until C's next batch, then lets
+    # 20 s of them through at once, longer than the lag
+    start = json.loads(formation_in_traffic[-1][1])["time_s"] - 180.0
+    gap = [
+        m
+        for m in formation_in_traffic
+        if not (m[0].endswith("C/plots") and 100.0 <= json.loads(m[1])["time_s"] - start < 120.0)
+    ]
+    assert len(gap) < len(formation_in_traffic)
+    engine = Engine(_aided(EngineConfig()), correlation_process=process)
+    try:
+        aid = engine.aid
+        assert aid is not None
+        answered = aid.references
+        seen: list[float] = []
+
+        def checked(radar_id: str, time_s: float) -> Any:
+            # every table up to the batch's lag is correlated and its answer taken
+            through = engine.outputs_time_s
+            assert through is not None and through >= aid.due_s(time_s), (radar_id, time_s)
+            seen.append(time_s)
+            return answered(radar_id, time_s)
+
+        aid.references = checked  # type: ignore[method-assign]
+        for key, payload in gap:
+            engine.ingest(key, payload, receive_time_s=0.0)
+        engine.flush()
+        assert len(seen) > 100
+    finally:
+        engine.close()
+
+
+def test_the_command_line_refuses_the_aid_with_partitioned_workers() -> None:
+    env = {
+        **os.environ,
+        "TOPOFUSION_ENGINE__TRACKING__AID__ENABLED": "true",
+        "TOPOFUSION_PARTITION": "1/2",
+    }
+    got = subprocess.run(
+        [sys.executable, "-m", "service", "config"], capture_output=True, text=True, env=env, timeout=60
+    )
+    assert got.returncode == 2
+    assert "tracking.aid.enabled: needs one worker, not partition 1/2" in got.stderr
