@@ -11,18 +11,21 @@ correlation runs in this process or in its own, however the batches arrive and g
 A partner is looked up in its radar's table as the tracking stage holds it at the batch (the
 merge's data-time order decides that, not arrival), moved to each plot's time on its velocity
 and into the aided radar's view by the pair's registration
-(:func:`~service.correlation.partner_view.view_with_covariance`).  Cost per batch: for each
-other radar with confirmed pairs with this one, a search of the candidates' tracks among its
-confirmed pairs (one sort) and of their partners in its table, then the transform of the
-candidates that have a partner (eleven vectorised transforms); no loop over tracks or pairs.
-Memory: the pair sets of the last ``lag_s`` of answers (references to the views the engine
-holds anyway, a dictionary per answered table that changed pairs).
+(:func:`~service.correlation.partner_view.view_with_covariance`).  Cost: nothing unless the
+tracker asks, which it does for the candidates of its tracks in a formation; then, for each
+other radar with confirmed pairs with this one, a search of those tracks among its confirmed
+pairs and of their partners in its table (each sorted once per pair set and table), and one
+vectorised transform of the candidates with a partner; no loop over tracks or pairs.
+Memory: the pair sets of the last ``lag_s`` of answers (a dictionary of references to the
+views per answered table that changed pairs, which keeps those views alive: on the national
+network 26 MB more at the peak).
 """
 
 from __future__ import annotations
 
 from collections import deque
 from collections.abc import Iterable
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -34,6 +37,7 @@ from service.geo import FloatArray
 from service.pipeline.read_model import PairRegistration, PairSetView
 from service.pipeline.tracking_stage import TrackingStage
 from service.tracking.aid import PartnerReferences, horizontal_spread
+from service.tracking.base import TrackTable
 from service.tracking.params import AidParams
 
 Key = tuple[str, str]
@@ -49,6 +53,10 @@ class PartnerAid:
         self._views: dict[Key, PairSetView] = {}
         #: ... and as it stood after each answered table that changed one (data time, views).
         self._history: deque[tuple[float, dict[Key, PairSetView]]] = deque()
+        #: What each pair set gives each of its radars (:meth:`_partner`), and each radar's
+        #: table with its ids sorted (:meth:`table`): made once per pair set and table.
+        self._partners: dict[tuple[Key, str], tuple[PairSetView, _Partner | None]] = {}
+        self._tables: dict[str, tuple[TrackTable, NDArray[np.str_], NDArray[np.intp]]] = {}
 
     def answered(self, time_s: float, updated: Iterable[tuple[Key, PairSetView]]) -> None:
         """The correlation's answer to a radar table of data time ``time_s`` (answers come in
@@ -57,11 +65,6 @@ class PartnerAid:
         if changed:
             self._views = {**self._views, **changed}
             self._history.append((time_s, self._views))
-
-    def clear(self) -> None:
-        """Forget every answer (a restart: the answers come again from the restored state)."""
-        self._views = {}
-        self._history.clear()
 
     def due_s(self, time_s: float) -> float:
         """The data time through which a batch at ``time_s`` needs the correlation's answers."""
@@ -78,28 +81,62 @@ class PartnerAid:
         return self._history[0][1]
 
     def references(self, radar_id: str, time_s: float) -> PartnerReferences | None:
-        """The references of radar ``radar_id``'s tracks for its batch at ``time_s`` (None:
-        none of its pairs is registered with a confirmed pair)."""
-        partners = []
-        for view in self._state(time_s).values():
-            if radar_id not in (view.radar_a, view.radar_b) or not view.confirmed:
+        """The references of radar ``radar_id``'s tracks for its batch at ``time_s`` (None: no
+        answer that old yet).  Its pairs are looked at only if the tracker asks (a track of it
+        in a formation has candidates)."""
+        state = self._state(time_s)
+        return _References(self, radar_id, state) if state else None
+
+    def partners(self, radar_id: str, state: dict[Key, PairSetView]) -> list[_Partner]:
+        """What the pair sets of ``state`` give radar ``radar_id``: each registered one with
+        confirmed pairs and its other radar's table not empty."""
+        out = []
+        for key, view in state.items():
+            if radar_id not in key or not view.confirmed or view.registration is None:
                 continue
-            if view.registration is None or view.radar_a == view.radar_b:
-                continue
-            mine = 0 if view.radar_a == radar_id else 1
-            other = (view.radar_a, view.radar_b)[1 - mine]
-            held = self.tracking.tracked.get(other)
-            if held is None or not len(held.table):
-                continue
+            partner = self._partner(key, view, radar_id)
+            if partner is not None and len(self.tracking.tracked[partner.other].table):
+                out.append(partner)
+        return out
+
+    def _partner(self, key: Key, view: PairSetView, radar_id: str) -> _Partner | None:
+        """What a pair set gives radar ``radar_id`` (made once per pair set; None: nothing)."""
+        held = self._partners.get((key, radar_id))
+        if held is not None and held[0] is view:
+            return held[1]
+        mine = 0 if view.radar_a == radar_id else 1
+        other = (view.radar_a, view.radar_b)[1 - mine]
+        terms = None if view.registration is None else _pair_terms(view.registration, radar_id, other)
+        partner = None
+        if terms is not None and other != radar_id and other in self.tracking.tracked:
             on = np.asarray(view.columns["confirmed"], bool)
-            own_ids = view.columns["track_a" if mine == 0 else "track_b"][on]
-            their_ids = view.columns["track_b" if mine == 0 else "track_a"][on]
-            terms = _pair_terms(view.registration, radar_id, other)
-            if terms is not None:
-                partners.append((other, own_ids, their_ids, *terms))
-        if not partners:
-            return None
-        return _References(self, radar_id, partners)
+            own = view.columns["track_a" if mine == 0 else "track_b"][on]
+            order = np.argsort(own, kind="stable")
+            theirs = view.columns["track_b" if mine == 0 else "track_a"][on][order]
+            partner = _Partner(other, own[order], theirs, *terms)
+        self._partners[(key, radar_id)] = (view, partner)
+        return partner
+
+    def table(self, radar_id: str) -> tuple[TrackTable, NDArray[np.str_], NDArray[np.intp]]:
+        """Radar ``radar_id``'s table as the tracking stage holds it, its ids sorted and their
+        rows (sorted once per table)."""
+        table = self.tracking.tracked[radar_id].table
+        held = self._tables.get(radar_id)
+        if held is None or held[0] is not table:
+            order = np.argsort(table.track_id, kind="stable")
+            held = self._tables[radar_id] = (table, table.track_id[order], order)
+        return held
+
+
+@dataclass(frozen=True)
+class _Partner:
+    """Another radar's confirmed partners of one radar's tracks, by one pair set."""
+
+    other: str
+    own_ids: NDArray[np.str_]  # this radar's tracks of the confirmed pairs, sorted
+    their_ids: NDArray[np.str_]  # ... and their partners, in the same order
+    terms: FloatArray  # (10,): this radar's five terms, then the other's
+    terms_cov: FloatArray  # (10, 10)
 
 
 def _pair_terms(reg: PairRegistration, own: str, other: str) -> tuple[FloatArray, FloatArray] | None:
@@ -115,15 +152,10 @@ def _pair_terms(reg: PairRegistration, own: str, other: str) -> tuple[FloatArray
 class _References:
     """:class:`~service.tracking.aid.PartnerReferences` of one radar for one batch."""
 
-    def __init__(
-        self,
-        aid: PartnerAid,
-        radar_id: str,
-        partners: list[tuple[str, NDArray[np.str_], NDArray[np.str_], FloatArray, FloatArray]],
-    ) -> None:
+    def __init__(self, aid: PartnerAid, radar_id: str, state: dict[Key, PairSetView]) -> None:
         self.aid = aid
         self.radar_id = radar_id
-        self.partners = partners
+        self.state = state
 
     def __call__(
         self, track_ids: NDArray[np.str_], times_s: FloatArray, own_spread_m2: FloatArray
@@ -134,27 +166,25 @@ class _References:
         tracked = self.aid.tracking.tracked
         target = tracked[self.radar_id].geometry
         limit = self.aid.params.registration_sigma_m**2
-        ids = np.asarray(track_ids)
-        for other, own_ids, their_ids, terms, terms_cov in self.partners:
-            at = find(own_ids, ids)
+        for p in self.aid.partners(self.radar_id, self.state):
+            at = find(p.own_ids, track_ids)
             has = np.flatnonzero(at >= 0)
             if not has.shape[0]:
                 continue
-            table = tracked[other].table
-            rows = find(table.track_id, their_ids[at[has]])
-            sel, r = has[rows >= 0], rows[rows >= 0]
+            table, ids, order = self.aid.table(p.other)
+            j = find(ids, p.their_ids[at[has]])
+            sel, r = has[j >= 0], order[j[j >= 0]]
             if not sel.shape[0]:
                 continue
-            dt = times_s[sel] - table.time_s[r]
             vel = table.velocity_ecef_mps[r]
             pos, cov, reg = view_with_covariance(
-                tracked[other].geometry,
+                tracked[p.other].geometry,
                 target,
-                table.position_ecef_m[r] + vel * dt[:, None],
+                table.position_ecef_m[r] + vel * (times_s[sel] - table.time_s[r])[:, None],
                 vel,
                 table.covariance[r, :3, :3],
-                terms,
-                terms_cov,
+                p.terms,
+                p.terms_cov,
             )
             spread = horizontal_spread(cov)
             take = (horizontal_spread(reg) <= limit) & (spread < best[sel])

@@ -5,7 +5,10 @@ by one scan's plots: its tracks take a neighbour's plot and swap (docs/results.m
 Another radar may see the same aircraft far more precisely, and the correlation already says
 which of its tracks that is (a *confirmed pair*).  With the aid on, the engine hands each
 tracker, before its batch, the :class:`PartnerReferences` of the correlation's confirmed pairs
-(:mod:`service.pipeline.partner_aid`): for a track with a confirmed partner whose registration
+(:mod:`service.pipeline.partner_aid`): for a track flying in a formation (``_Tracks.formation``,
+the quiet model's search of :mod:`.formation`: where one scan's plots are ambiguous, and
+nowhere else, so a network of lone aircraft pays nothing) with a confirmed partner whose
+registration
 is known to within ``AidParams.registration_sigma_m`` and whose position, brought into this
 radar's view, is more precise than the track's own, a *reference*: that position at the plot's
 time in this radar's ENU frame, with its covariance (the partner's and the registration's).

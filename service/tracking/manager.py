@@ -576,16 +576,21 @@ class TrackManager(Tracker):
         self, tracks: _Tracks, meas: Measurements, rows: IntArray, cols: IntArray, d2: FloatArray
     ) -> IntArray:
         """The chosen candidates among the gated ones (:func:`.assignment.assign`, a miss
-        costing the gate).  A candidate of a track with a reference (:mod:`.aid`) costs its
-        distance from the reference instead, and is none if that is beyond the gate.  One
+        costing the gate).  A candidate of a track in a formation with a reference
+        (:mod:`.aid`) costs its distance from the reference instead, and is none if that is
+        beyond the gate.  One
         method, so that an evaluation can change the costs it solves and nothing else (the
         lab's bounds on association in formations, docs/results.md)."""
         gate = self.params.filter.gate_chi2
-        if self._aid is None or not rows.shape[0]:
+        aid = self._aid
+        near = np.flatnonzero(tracks.formation[rows] >= 0) if aid is not None else rows[:0]
+        if aid is None or not near.shape[0]:
             return assign(rows, cols, d2, gate)
-        ref, ref_cov = self._aid(tracks.ids[rows], meas.time_s[cols], horizontal_spread(tracks.P[rows]))
-        aided = aided_d2(meas.enu_m[cols], meas.covariance[cols], ref, ref_cov)
-        cost = np.where(np.isnan(aided), d2, aided)
+        r, c = rows[near], cols[near]
+        ref, ref_cov = aid(tracks.ids[r], meas.time_s[c], horizontal_spread(tracks.P[r]))
+        aided = aided_d2(meas.enu_m[c], meas.covariance[c], ref, ref_cov)
+        cost = d2.copy()
+        cost[near] = np.where(np.isnan(aided), d2[near], aided)
         ok = np.flatnonzero(cost <= gate)
         return np.sort(ok[assign(rows[ok], cols[ok], cost[ok], gate)])
 

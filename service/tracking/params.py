@@ -567,16 +567,15 @@ class NoiseParams:
 
 @dataclass(frozen=True)
 class AidParams:
-    """Association aided by another radar's track of the same aircraft (:mod:`.aid`): in a
-    formation among other traffic, measured in the lab's bounds on association (the
-    ``paired-covariance`` bound with the correlation's answers ``--aid-lag-s`` back,
-    docs/evaluation/formation-bounds.md): false pairs at 2x and 3x spacing cut from about 4 %
-    to 1-2 %."""
+    """Association aided by another radar's track of the same aircraft (:mod:`.aid`).
+    Measured in a formation among other traffic (the lab's formation bounds, ``--bound aided``,
+    docs/evaluation/formation-bounds.md): false pairs at 2x and 3x spacing cut from 4.3 and
+    3.4 % to 1.3 %; a formation alone about as it was."""
 
     enabled: bool = False
-    """Whether a track with a confirmed partner is aided.  Off by default: the aid is the
-    correlation's answers fed back into tracking, so the engine waits for them (``lag_s``);
-    one worker only (``--partition`` refuses it, ``EngineConfig``)."""
+    """Whether a track in a formation with a confirmed partner is aided.  Off by default: the
+    aid is the correlation's answers fed back into tracking, so the engine waits for them
+    (``lag_s``); one worker only (``--partition`` refuses it, ``service.config.aid_problems``)."""
     lag_s: float = 10.0
     """A batch at data time ``t`` is aided by the correlation's pairs and registrations as they
     were answered for every table up to ``t - lag_s``, and the engine waits for those answers
