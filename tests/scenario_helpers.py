@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import random
 from dataclasses import replace
+from typing import Any
 
+from service.engine import Engine, EngineConfig
+from service.wire.outgoing import Outgoing
 from topofusion_lab.scenarios.catalog import get_scenario
 from topofusion_lab.scenarios.simulator import wire_messages
 
@@ -35,3 +38,27 @@ def interleaved(stream: list[tuple[str, bytes]], seed: int) -> list[tuple[str, b
         if not queues[rid]:
             del queues[rid]
     return out
+
+
+def run_engine(
+    messages: list[tuple[str, bytes]], process: bool = False, config: EngineConfig | None = None
+) -> tuple[dict[str, Any], list[Outgoing]]:
+    """Every message through an :class:`Engine` (``process``: its correlation in a child
+    process), then its flush: the final snapshot's tracks, pairs, biases, system tracks and
+    correlation updates, and every output in order."""
+    engine = Engine(config or EngineConfig(), correlation_process=process)
+    try:
+        out = []
+        for key, payload in messages:
+            out.extend(engine.ingest(key, payload, receive_time_s=0.0))
+        out.extend(engine.flush())
+        snap = engine.snapshot()
+        return {
+            "tracks": snap.track_batches("all"),
+            "pairs": snap.pair_sets(status="all"),
+            "biases": snap.biases(),
+            "system": snap.system_tracks("all"),
+            "updates": snap.correlation["updates"],
+        }, out
+    finally:
+        engine.close()

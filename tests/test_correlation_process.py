@@ -4,38 +4,18 @@ from __future__ import annotations
 
 import json
 import time
-from typing import Any
 
 from service.engine import Engine, EngineConfig
 from service.pipeline.correlation_process import ChildProcessRunner
 from service.pipeline.correlation_stage import timings_dict
-from tests.scenario_helpers import scenario_messages
+from tests.scenario_helpers import run_engine, scenario_messages
 from topofusion_lab.evaluation.promptness import OutputMonitor
-
-
-def run(messages: list[tuple[str, bytes]], process: bool) -> tuple[dict[str, Any], list[Any]]:
-    engine = Engine(EngineConfig(), correlation_process=process)
-    try:
-        out = []
-        for key, payload in messages:
-            out.extend(engine.ingest(key, payload, receive_time_s=0.0))
-        out.extend(engine.flush())
-        snap = engine.snapshot()
-        return {
-            "tracks": snap.track_batches("all"),
-            "pairs": snap.pair_sets(status="all"),
-            "biases": snap.biases(),
-            "system": snap.system_tracks("all"),
-            "updates": snap.correlation["updates"],
-        }, out
-    finally:
-        engine.close()
 
 
 def test_same_tracks_pairs_and_biases_as_in_process() -> None:
     stream = scenario_messages("three-radar", duration_s=90.0, targets=40)
-    local, out_local = run(stream, process=False)
-    remote, out_remote = run(stream, process=True)
+    local, out_local = run_engine(stream, process=False)
+    remote, out_remote = run_engine(stream, process=True)
     assert remote == local
     assert local["pairs"] and any(ps["pairs"] for ps in local["pairs"]) and local["biases"]
     assert local["system"]["system_tracks"]
@@ -60,8 +40,8 @@ def test_a_site_move_gives_the_same_system_tracks_as_in_process() -> None:
     move_s = json.loads(rest[0][1])["time_s"]
     rest = [(k, p) for k, p in rest if k != "fusion/radar/C/plots" or json.loads(p)["time_s"] > move_s + 20]
     stream = [*stream[:half], ("fusion/radar/C/site", json.dumps(moved).encode()), *rest]
-    local, out_local = run(stream, process=False)
-    remote, out_remote = run(stream, process=True)
+    local, out_local = run_engine(stream, process=False)
+    remote, out_remote = run_engine(stream, process=True)
     assert remote["system"] == local["system"] and local["system"]["system_tracks"]
     assert [(o.key, o.payload) for o in out_remote] == [(o.key, o.payload) for o in out_local]
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from service.config import EngineConfig
+from service.correlation.partner_view import into_view
 from service.tracking import make_tracker
 from service.tracking.base import PlotColumns
 from service.tracking.measurement import plots_to_measurements
@@ -17,7 +18,6 @@ from topofusion_lab.evaluation.formation_bounds import (
     BoundedTracker,
     RadarTruth,
     bounded_factory,
-    into_view,
     main,
     registered_terms,
 )

@@ -25,7 +25,7 @@ from service.tracking.aid import aided_d2
 from service.tracking.base import TrackTable
 from service.tracking.params import AidParams
 from service.wire.models import RadarSite
-from tests.scenario_helpers import interleaved
+from tests.scenario_helpers import interleaved, run_engine
 
 A = Site("A", 50.0, 5.0, 100.0)
 B = Site("B", 51.0, 6.5, 200.0)
@@ -233,20 +233,6 @@ def test_the_aid_needs_one_worker_and_a_lag() -> None:
         Engine(_aided(EngineConfig(), lag_s=0.0))
 
 
-def _run(config: EngineConfig, messages: list[tuple[str, bytes]], process: bool = False) -> tuple[Any, Any]:
-    engine = Engine(config, correlation_process=process)
-    try:
-        out = []
-        for key, payload in messages:
-            out.extend(engine.ingest(key, payload, receive_time_s=0.0))
-        out.extend(engine.flush())
-        snap = engine.snapshot()
-        results = {"tracks": snap.track_batches("all"), "pairs": snap.pair_sets(status="all")}
-        return results, [(o.key, o.payload) for o in out]
-    finally:
-        engine.close()
-
-
 @pytest.fixture(scope="module")
 def formation_in_traffic() -> list[tuple[str, bytes]]:
     """A formation of 12 at twice the cross-range error among 32 other aircraft, 180 s: the
@@ -264,8 +250,8 @@ def test_the_aid_is_the_same_in_a_child_process_and_in_any_arrival_order(
     # a lag of one second: shorter than the batches of a burst of releases and than the child
     # process takes to answer, so without the engine's wait the aid would differ at every turn
     aided = _aided(EngineConfig(), lag_s=1.0)
-    here, out_here = _run(aided, formation_in_traffic)
-    plain, out_plain = _run(EngineConfig(), formation_in_traffic)
+    here, out_here = run_engine(formation_in_traffic, config=aided)
+    plain, out_plain = run_engine(formation_in_traffic)
     # the aid does something here: some plots went to other tracks, so other tracks and pairs
     assert here["tracks"] != plain["tracks"] and out_here != out_plain
     assert any(ps["pairs"] for ps in here["pairs"])
@@ -279,9 +265,9 @@ def test_the_aid_is_the_same_in_a_child_process_and_in_any_arrival_order(
     assert len(sites) + len(plots) == len(formation_in_traffic)
     shuffled = sites + [m for i in range(0, len(plots), 60) for m in interleaved(plots[i : i + 60], 3)]
     assert shuffled != formation_in_traffic
-    again, out_again = _run(aided, shuffled)
+    again, out_again = run_engine(shuffled, config=aided)
     assert again == here and out_again == out_here
-    child, out_child = _run(aided, shuffled, process=True)
+    child, out_child = run_engine(shuffled, process=True, config=aided)
     assert child == here and out_child == out_here
 
 

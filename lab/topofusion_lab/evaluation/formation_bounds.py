@@ -61,7 +61,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.config import EngineConfig
-from service.correlation.registration import remove_bias
+from service.correlation.partner_view import into_view
 from service.evaluation.truth import TruthLabelledTracker
 from service.geo import FloatArray, Site
 from service.pipeline.tracking_stage import TrackerFactory
@@ -305,21 +305,6 @@ class BoundedTracker(TrackManager):
         cov[held, :] = 0.0  # (a term held at zero, a range gain the data do not show: no error)
         cov[:, held] = 0.0
         return terms[at[0]], terms[at[1]], cov
-
-
-def into_view(
-    source: Site,
-    target: Site,
-    ecef: FloatArray,
-    velocity: FloatArray,
-    source_terms: FloatArray,
-    target_terms: FloatArray,
-) -> FloatArray:
-    """ECEF positions as radar ``source`` reports them, as radar ``target`` would: ``source``'s
-    registered terms taken out exactly (:func:`~service.correlation.registration.remove_bias`),
-    ``target``'s put in by the same with the terms' signs turned (the model's inverse to first
-    order: the terms are small).  ``velocity``: ECEF, for the time biases."""
-    return remove_bias(target, remove_bias(source, ecef, source_terms, velocity), -target_terms, velocity)
 
 
 def registered_terms(b: dict[str, Any]) -> FloatArray:
