@@ -219,6 +219,10 @@ def test_references_take_the_most_precise_registered_partner_as_a_plain_loop_doe
     strict.answered(90.0, list(views.items()))
     got = strict.references("A", 100.0)
     assert got is not None and np.isnan(got(cand, times, own)[0]).all()
+    # a radar dropped since (its site removed): its pairs aid nothing, the others go on
+    del stage.tracked["C"]
+    ref, _ = refs(cand, times, own)
+    assert (~np.isnan(ref[:, 0])).tolist() == [True, True, True, False, False, False, False]
 
 
 def _aided(config: EngineConfig, **changes: Any) -> EngineConfig:

@@ -89,13 +89,14 @@ class PartnerAid:
 
     def partners(self, radar_id: str, state: dict[Key, PairSetView]) -> list[_Partner]:
         """What the pair sets of ``state`` give radar ``radar_id``: each registered one with
-        confirmed pairs and its other radar's table not empty."""
+        confirmed pairs whose other radar is still tracked, its table not empty."""
         out = []
         for key, view in state.items():
             if radar_id not in key or not view.confirmed or view.registration is None:
                 continue
             partner = self._partner(key, view, radar_id)
-            if partner is not None and len(self.tracking.tracked[partner.other].table):
+            held = None if partner is None else self.tracking.tracked.get(partner.other)
+            if partner is not None and held is not None and len(held.table):  # (a radar dropped: none)
                 out.append(partner)
         return out
 
