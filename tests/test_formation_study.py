@@ -246,9 +246,13 @@ def test_grid_and_variants() -> None:
     assert fs.engine_config("now").tracking.filter.imm
     assert before.correlation.prompt.min_quality == 0.0 and not before.correlation.swap.enabled
     assert fs.engine_config("now") == EngineConfig()
+    aided = fs.engine_config("aided")
+    assert aided.tracking.aid.enabled and aided.tracking.aid == replace(
+        EngineConfig().tracking.aid, enabled=True
+    )
 
 
-def test_a_tiny_run_reports_both_trackers(tmp_path: Path) -> None:
+def test_a_tiny_run_reports_every_tracker(tmp_path: Path) -> None:
     section = fs.run(
         tmp_path,
         runs=1,
@@ -260,12 +264,13 @@ def test_a_tiny_run_reports_both_trackers(tmp_path: Path) -> None:
         workers=1,
     )
     assert "| 2x (" in section and "| before |" in section and "| now |" in section
-    assert "| goal | before | now |" in section
+    assert "| aided |" in section
+    assert "| goal | before | now | aided |" in section
     assert "pairs on two aircraft now (worst seed) |" in section
     assert "| plots to another aircraft (its own there) |" in section
     assert "| 2x (" in section.split("Pair scores through the whole pipeline")[1]
     runs = json.loads((tmp_path / "formation.json").read_text())["runs"]
-    assert [r["variant"] for r in runs] == ["before", "now"]
+    assert [r["variant"] for r in runs] == ["before", "now", "aided"]
     if fs.variants_equal():  # one run gives both rows
         assert "each run gives both rows" in section
         assert {k: v for k, v in runs[0].items() if k not in ("variant", "shared")} == {

@@ -1,4 +1,4 @@
-"""Formation study: SIAP-style metrics of the radar trackers in formations, before and now.
+"""Formation study: SIAP-style metrics of the radar trackers in formations, before, now and aided.
 
 Entry point :func:`run` (``topofusion evaluate --only formation``); also
 ``python -m topofusion_lab.evaluation.formation [--runs N] [--seed S] [--out DIR]``.
@@ -6,7 +6,7 @@ Entry point :func:`run` (``topofusion evaluate --only formation``); also
 Every run feeds a formation scenario through :class:`service.engine.Engine` in this process,
 exactly as :mod:`topofusion_lab.evaluation.formation_pipeline` does (``topofusion replay
 --offline``: the bytes ``topofusion simulate`` publishes, the service's code path, no Zenoh),
-twice per seed on the same messages: with every formation rule off (*before*: the tracker's
+three times per seed on the same messages: with every formation rule off (*before*: the tracker's
 duplicate rule and its formation's quiet model, ``FormationParams.off()``; its two-model
 filter, ``FilterParams.imm`` off, so one constant-velocity model; its initiator's ranking by velocity support,
 ``LogicParams.support_weight = 0``; its deletion by the radar's detection probability,
@@ -14,8 +14,10 @@ filter, ``FilterParams.imm`` off, so one constant-velocity model; its initiator'
 correlation's caution with low-quality tracks,
 ``correlation.prompt.min_quality = 0``; its swap rule, ``correlation.swap.enabled = False``;
 the published score's tracks' quality, ``correlation.book.quality_exponent = 0``; the hold of
-a contested pair, ``correlation.book.hold_score = 0``) and with
-the default configuration (*now*).  Nothing else of the service is changed or tuned.
+a contested pair, ``correlation.book.hold_score = 0``), with
+the default configuration (*now*), and with the default and the aid of association on
+(*aided*: ``tracking.aid.enabled``, off by default, :mod:`service.tracking.aid`).  Nothing
+else of the service is changed or tuned.
 
 Scenario grid (:data:`POINTS`), each from the catalog's ``formation`` scenario (three en-route
 radars, 30 aircraft at 230 m/s, azimuth biases of 0.3-0.4 deg), its first :data:`DURATION_S`:
@@ -29,7 +31,7 @@ the centre at 300 s, and two groups *merging* (converging at 15 deg each side, e
 2x and 3x *in traffic* (:func:`with_traffic`): 32 more aircraft in two wide groups around it,
 of which only the formation's aircraft, their tracks and pairs are scored; a formation alone is
 the registration's worst case, and in a real sky it flies among others.  :data:`DEFAULT_RUNS`
-seeds each; the same seeds for every point and both trackers.
+seeds each; the same seeds for every point and every tracker.
 
 Sampling: the engine's snapshot every :data:`SAMPLE_S` of data time (a scan of the slowest
 radar) from :data:`WARMUP_S` on, and the final one (after ``flush``).  Truth (evaluation only;
@@ -154,7 +156,7 @@ WARMUP_S = 120.0
 #: Pair metrics from this data time on (the registration of the biases settled).
 PAIR_WARMUP_S = 360.0
 #: The configurations compared: every formation rule off, and the default now.
-VARIANTS = ("before", "now")
+VARIANTS = ("before", "now", "aided")
 GOAL_FALSE_PCT = 2.0
 GOAL_CORRECT_PCT = 92.0
 GOAL_DUPLICATES = 0.02
@@ -686,17 +688,19 @@ def report(
     first = results[0] if results else {"targets": 0, "duration_s": 0.0}
     unit = cross_range_m(get_scenario("formation"))
     lines = [
-        "## Formation: SIAP-style tracker metrics, before and now",
+        "## Formation: SIAP-style tracker metrics, before, now and aided",
         "",
         f"The catalog's `formation` scenario (3 radars, {first['targets']} aircraft, "
-        f"{first['duration_s']:.0f} s) through the engine, per point {n} seed(s), each run twice on "
-        "the same messages: *before*, every formation rule off (the tracker's duplicate rule, "
+        f"{first['duration_s']:.0f} s) through the engine, per point {n} seed(s), each run three times "
+        "on the same messages: *before*, every formation rule off (the tracker's duplicate rule, "
         "formation's quiet model, two-model filter and initiator's velocity support, its "
         "deletion by the radar's detection probability, correlation's caution with "
         "low-quality tracks and its swap rule, the published "
         "score's tracks' quality), and "
         "*now*, the default "
-        "configuration.  Spacing in cross-range "
+        "configuration, and *aided*, the default with the aid of association by the other "
+        "radars' confirmed partners on (`tracking.aid.enabled`, off by default; "
+        "docs/architecture.md, tracks in formations).  Spacing in cross-range "
         f"errors (1x = {unit:.0f} m: radar C's 0.20 deg at 115 km); Pd the catalog's (0.95/0.92/0.75) "
         "unless given; *in traffic*: the lattice among "
         f"{TRAFFIC_AIRCRAFT} more aircraft in two wide groups, of which only the formation's "
@@ -737,8 +741,8 @@ def report(
     if any(r.get("shared") for r in results):
         lines += [
             "",
-            "_The two engine configurations are equal in this tree: each run gives both rows (the "
-            "engine is deterministic)._",
+            "_The configurations before and now are equal in this tree: each run gives both rows "
+            "(the engine is deterministic)._",
         ]
     lines += ["", *reliability(points, summaries, unit)]
     lines += ["", *goals(points, by, summaries)]
@@ -813,11 +817,14 @@ def goals(
         + " |"
     )
     before = pooled.get("before", {}).get("switches_per_h", math.nan)
-    now = pooled.get("now", {}).get("switches_per_h", math.nan)
-    halved = now <= GOAL_SWITCH_RATIO * before if before > 0 else now == 0
+    cells = [_f(before, ".2f")]
+    for variant in VARIANTS[1:]:
+        x = pooled.get(variant, {}).get("switches_per_h", math.nan)
+        cells.append(f"{_f(x, '.2f')} {mark(x <= GOAL_SWITCH_RATIO * before if before > 0 else x == 0)}")
     rows.append(
         "| ID switches at least halved against before (pooled over every point, per aircraft-h) | "
-        f"{_f(before, '.2f')} | {_f(now, '.2f')} {mark(halved)} |"
+        + " | ".join(cells)
+        + " |"
     )
     return rows
 
@@ -840,7 +847,7 @@ def make_jobs(
 
 
 def variants_equal() -> bool:
-    """Whether the two trackers' engine configurations are the same (then one run, the engine
+    """Whether the engine configurations before and now are the same (then one run, the engine
     being deterministic, gives both rows)."""
     return engine_config("before") == engine_config("now")
 
@@ -863,16 +870,17 @@ def run(
     out_dir.mkdir(parents=True, exist_ok=True)
     n = DEFAULT_RUNS if runs is None else max(int(runs), 1)
     same = variants_equal()
-    jobs = make_jobs(n, seed, points, duration_s, targets, ("now",) if same else VARIANTS)
+    variants = tuple(v for v in VARIANTS if not (same and v == "before"))
+    jobs = make_jobs(n, seed, points, duration_s, targets, variants)
     workers = min(2, os.cpu_count() or 1) if workers is None else workers
     progress(
-        f"formation: {len(jobs)} runs ({n} seeds x {len(points)} points x "
-        f"{'1 tracker: before = now' if same else '2 trackers'}), {workers} processes"
+        f"formation: {len(jobs)} runs ({n} seeds x {len(points)} points x {len(variants)} trackers"
+        f"{': before = now' if same else ''}), {workers} processes"
     )
     t0 = time.perf_counter()
     done = run_jobs(run_one, jobs, workers, progress, "formation")
     if same:
-        done += [{**r, "variant": "before", "shared": True} for r in done]
+        done += [{**r, "variant": "before", "shared": True} for r in done if r["variant"] == "now"]
     results = sorted(done, key=lambda r: (r["index"], VARIANTS.index(r["variant"]), r["run"]))
     took = time.perf_counter() - t0
     (out_dir / "formation.json").write_text(
