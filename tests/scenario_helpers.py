@@ -44,8 +44,8 @@ def run_engine(
     messages: list[tuple[str, bytes]], process: bool = False, config: EngineConfig | None = None
 ) -> tuple[dict[str, Any], list[Outgoing]]:
     """Every message through an :class:`Engine` (``process``: its correlation in a child
-    process), then its flush: the final snapshot's tracks, pairs, biases, system tracks and
-    correlation updates, and every output in order."""
+    process), then its flush: the final snapshot's tracks, pairs, biases, system tracks,
+    correlation updates and radars' status, and every output in order."""
     engine = Engine(config or EngineConfig(), correlation_process=process)
     try:
         out = []
@@ -59,6 +59,7 @@ def run_engine(
             "biases": snap.biases(),
             "system": snap.system_tracks("all"),
             "updates": snap.correlation["updates"],
+            "radars": snap.status()["radars"],
         }, out
     finally:
         engine.close()

@@ -256,8 +256,11 @@ def test_the_aid_is_the_same_in_a_child_process_and_in_any_arrival_order(
     aided = _aided(EngineConfig(), lag_s=1.0)
     here, out_here = run_engine(formation_in_traffic, config=aided)
     plain, out_plain = run_engine(formation_in_traffic)
-    # the aid does something here: some plots went to other tracks, so other tracks and pairs
+    # the aid does something here: some plots went to other tracks, so other tracks and pairs;
+    # /status counts the associations it decided, per radar
     assert here["tracks"] != plain["tracks"] and out_here != out_plain
+    assert sum(r["aided_associations"] for r in here["radars"]) > 0
+    assert all(r["aided_associations"] == 0 for r in plain["radars"])
     assert any(ps["pairs"] for ps in here["pairs"])
     # radars' batches interleaved otherwise on arrival, in bursts of some 20 s of data (within
     # the lag the release waits for, ``sequencer.max_lag_s``; longer than the aid's lag): the

@@ -256,6 +256,10 @@ class TruthLabelledTracker(Tracker):
         return self.inner.plots_coincident
 
     @property
+    def aided_associations(self) -> int:
+        return self.inner.aided_associations
+
+    @property
     def pd_measured(self) -> float | None:
         return self.inner.pd_measured
 

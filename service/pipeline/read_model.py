@@ -527,6 +527,7 @@ def build_snapshot(
             plots_coincident=tracking.plots_coincident(rid),
             scan_period_observed_s=tracking.scan_period_observed(rid),
             measurement_sigma_scale=tracking.sigma_scale(rid),
+            aided_associations=tracking.aided_associations(rid),
             pd_measured=None if pd_measured is None else round(pd_measured, 4),
             misses_to_delete=misses_to_delete,
             expired=clock.expired if clock else False,

@@ -178,6 +178,10 @@ class TrackingStage:
         tracker = self.tracked[radar_id].tracker
         return tracker.scan_period_observed_s if tracker is not None else None
 
+    def aided_associations(self, radar_id: str) -> int:
+        tracker = self.tracked[radar_id].tracker
+        return tracker.aided_associations if tracker is not None else 0
+
     def sigma_scale(self, radar_id: str) -> float:
         tracker = self.tracked[radar_id].tracker
         return tracker.measurement_sigma_scale if tracker is not None else 1.0

@@ -205,6 +205,12 @@ class Tracker(ABC):
         return 1.0
 
     @property
+    def aided_associations(self) -> int:
+        """Associations so far decided by the aid of association (:mod:`.aid`; 0 for a tracker
+        that takes no aid)."""
+        return 0
+
+    @property
     def scan_period_observed_s(self) -> float | None:
         """The revisit period the radar's plots show (None: not measured, or not by this
         tracker); the tracker counts in it where it departs from the site's."""

@@ -273,8 +273,11 @@ class TrackManager(Tracker):
         #: time of the last search for formations (``update``).
         self._formation_models = imm.formation_models_of(self.params.filter, self.params.formation)
         self._formations_s = -np.inf
-        #: The references of the next batch (:meth:`take_aid`; None: no aid).
+        #: The references of the next batch (:meth:`take_aid`; None: no aid), the associations
+        #: they decided so far (:attr:`aided_associations`) and in the batch being updated.
         self._aid: PartnerReferences | None = None
+        self._aided = 0
+        self._aided_batch = 0
         self._tracks = _Tracks.empty(self._models.count)
         #: The site rotation that ``_tracks.cov_ecef`` was made with, and the site that the
         #: window's measurements were made with (a site can be replaced, see ``update``).
@@ -322,6 +325,12 @@ class TrackManager(Tracker):
         """Plots dropped so far as repeats of another plot of their batch
         (``measurement.coincident_sigma``)."""
         return self._coincident
+
+    @property
+    def aided_associations(self) -> int:
+        """Associations so far whose plot was chosen by its distance from a confirmed partner
+        (:mod:`.aid`)."""
+        return self._aided
 
     @property
     def scan_period_observed_s(self) -> float | None:
@@ -372,6 +381,7 @@ class TrackManager(Tracker):
         joined: Joined = []
         tracks = self._tracks
         window = self._window.copy()
+        self._aided_batch = 0
         rotation = np.array(site.rotation, dtype=float, copy=True)
         big = _ecef_block(rotation)
         saved: _Saved | None = None
@@ -440,6 +450,7 @@ class TrackManager(Tracker):
         self._formations_s = formations_s
         self.detection = detection
         self._coincident += coincident
+        self._aided += self._aided_batch
         self._ecef_rotation, self._window_site = rotation, site
         self.last_time_s = max(self.last_time_s, float(time_s))
         self.identity.add(joined)
@@ -592,7 +603,11 @@ class TrackManager(Tracker):
         cost = d2.copy()
         cost[near] = np.where(np.isnan(aided), d2[near], aided)
         ok = np.flatnonzero(cost <= gate)
-        return np.sort(ok[assign(rows[ok], cols[ok], cost[ok], gate)])
+        chosen = np.sort(ok[assign(rows[ok], cols[ok], cost[ok], gate)])
+        by_aid = np.zeros(rows.shape[0], dtype=bool)
+        by_aid[near] = ~np.isnan(aided)
+        self._aided_batch = int(np.count_nonzero(by_aid[chosen]))
+        return chosen
 
     # -- formations --------------------------------------------------------------------
     def _hold_velocity(self, tracks: _Tracks, rows: IntArray) -> None:

@@ -569,6 +569,12 @@ class RadarStatus(OutModel):
         description="what the tracker multiplies the site's sigmas by: above 1 where the tracks' "
         "innovations show the radar's errors larger than declared",
     )
+    aided_associations: int = Field(
+        default=0,
+        ge=0,
+        description="associations of the radar's tracks whose plot was chosen by its distance from "
+        "a confirmed partner on another radar (the engine configuration's tracking.aid; 0 with it off)",
+    )
     pd_measured: float | None = Field(
         default=None,
         description="the detection probability the radar's established tracks show: the share of "
