@@ -52,8 +52,13 @@ def assign(rows: IntArray, cols: IntArray, cost: FloatArray, miss_cost: float) -
     """Indices (into the candidate arrays) of the chosen one-to-one pairs.
 
     ``rows``/``cols`` are the track/plot of each gated candidate (no duplicates), ``cost`` its
-    ``d^2`` (all ``<= miss_cost``).
+    ``d^2``; a candidate costing more than ``miss_cost`` is never chosen (a cost other than the
+    gate's own ``d^2``, as the aid of association gives, :mod:`.aid`).
     """
+    over = cost > miss_cost
+    if over.any():
+        keep = np.flatnonzero(~over)
+        return keep[assign(rows[keep], cols[keep], cost[keep], miss_cost)]
     if rows.shape[0] == 0:
         return np.empty(0, dtype=np.intp)
     single = (np.bincount(rows)[rows] == 1) & (np.bincount(cols)[cols] == 1)

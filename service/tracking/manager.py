@@ -589,9 +589,8 @@ class TrackManager(Tracker):
         """The chosen candidates among the gated ones (:func:`.assignment.assign`, a miss
         costing the gate).  A candidate of a track in a formation with a reference
         (:mod:`.aid`) costs its distance from the reference instead, and is none if that is
-        beyond the gate.  One
-        method, so that an evaluation can change the costs it solves and nothing else (the
-        lab's bounds on association in formations, docs/results.md)."""
+        beyond the gate.  One method, so that an evaluation can change the costs it solves and
+        nothing else (the lab's bounds on association in formations, docs/results.md)."""
         gate = self.params.filter.gate_chi2
         aid = self._aid
         near = np.flatnonzero(tracks.formation[rows] >= 0) if aid is not None else rows[:0]
@@ -602,8 +601,7 @@ class TrackManager(Tracker):
         aided = aided_d2(meas.enu_m[c], meas.covariance[c], ref, ref_cov)
         cost = d2.copy()
         cost[near] = np.where(np.isnan(aided), d2[near], aided)
-        ok = np.flatnonzero(cost <= gate)
-        chosen = np.sort(ok[assign(rows[ok], cols[ok], cost[ok], gate)])
+        chosen = assign(rows, cols, cost, gate)
         by_aid = np.zeros(rows.shape[0], dtype=bool)
         by_aid[near] = ~np.isnan(aided)
         self._aided_batch = int(np.count_nonzero(by_aid[chosen]))

@@ -147,8 +147,7 @@ class BoundedTracker(TrackManager):
                 cost[k] = np.where(np.isnan(aided), cost[k], aided)
             else:
                 cost[k] = self.reference_d2(tracks.uid[rows[k]], own[k], meas, cols[k])
-        ok = np.flatnonzero(cost <= gate)  # (the rest: never this track's plot)
-        return np.sort(ok[assign(rows[ok], cols[ok], cost[ok], gate)])
+        return assign(rows, cols, cost, gate)  # (a cost beyond the gate: never this track's plot)
 
     def reference_d2(
         self, uids: NDArray[np.int64], names: NDArray[np.object_], meas: Measurements, cols: IntArray
