@@ -70,8 +70,16 @@ class Proc:
     popen: subprocess.Popen[str]
     lines: queue.Queue[str] = field(default_factory=queue.Queue)
     seen: list[str] = field(default_factory=list)
+    #: The thread that reads the output into ``lines`` (:func:`started`).
+    reader: threading.Thread | None = None
 
     def output(self) -> str:
+        """What the process has written so far; all of it once the process has ended (the
+        reader is given until the pipe's end to put the last lines: read at once, an exit seen
+        before the reader's turn gave none)."""
+        if self.reader is not None and self.popen.poll() is not None:
+            self.reader.join(timeout=5)  # (once: a pipe a child's child still holds waits no more)
+            self.reader = None
         while True:
             try:
                 self.seen.append(self.lines.get_nowait())
@@ -94,7 +102,7 @@ def started(argv: list[str], cwd: Path, env: dict[str, str] | None = None) -> It
     proc = Proc(popen)
     assert popen.stdout is not None
     stream = popen.stdout
-    reader = threading.Thread(target=lambda: [proc.lines.put(x) for x in stream], daemon=True)
+    reader = proc.reader = threading.Thread(target=lambda: [proc.lines.put(x) for x in stream], daemon=True)
     reader.start()
     try:
         yield proc
