@@ -35,11 +35,12 @@ limit: the CPU a worker pays at a live rate, where it idles between messages.  W
 ``--in-process`` runs the engines alone instead, every count's side by side in this process,
 message by message (:func:`in_process`): the division of the engines' own work, which a drift
 of the machine's speed between runs cannot move; ``--breakdown`` splits each engine's CPU by
-what it was for (:class:`Breakdown`).
+what it was for (:class:`Breakdown`).  ``--aid`` runs every worker with the aid of association
+on (``tracking.aid.enabled``), whose partitioned workers track in step.
 
 Run: .venv/bin/python bench/bench_partition.py [--duration 300] [--seed 1] [--scenario national]
      [--workers 1,2] [--repeat 1] [--one-process | --correlation-process] [--balance | --salt S] [--pace X]
-     [--traffic] [--in-process [--breakdown]]
+     [--traffic] [--aid] [--in-process [--breakdown]]
      [--cache FILE] [--compare] [--logs DIR]
 """
 
@@ -162,7 +163,12 @@ def process_setting(args: argparse.Namespace) -> bool | None:
 
 
 def start_workers(
-    n: int, endpoint: str, process: bool | None, log_dir: Path | None = None, salt: int = 0
+    n: int,
+    endpoint: str,
+    process: bool | None,
+    log_dir: Path | None = None,
+    salt: int = 0,
+    aid: bool = False,
 ) -> list[Worker]:
     workers = []
     for k in range(1, n + 1):
@@ -179,6 +185,8 @@ def start_workers(
         )
         if process is not None:  # (None: the service's default)
             env["TOPOFUSION_CORRELATION_PROCESS"] = "true" if process else "false"
+        if aid:  # the aid of association on (off by default)
+            env["TOPOFUSION_ENGINE__TRACKING__AID__ENABLED"] = "true"
         # --logs DIR keeps each worker's log (e.g. "worker 2/2 left" when a session flaps)
         log_path = Path(log_dir) / f"worker-{k}-of-{n}.log" if log_dir else Path(os.devnull)
         with log_path.open("w") as log:
@@ -333,7 +341,7 @@ def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argpar
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(ZenohOptions(mode="router", listen=(endpoint,)))
     salt = worker_salt(n, stream, args)
-    workers = start_workers(n, endpoint, process_setting(args), args.logs, salt)
+    workers = start_workers(n, endpoint, process_setting(args), args.logs, salt, args.aid)
     client = open_session(ZenohOptions(mode="client", connect=(endpoint,)))
     last_pairs = [0.0, 0]
     lock = threading.Lock()
@@ -535,7 +543,11 @@ def in_process(
     for n in counts:
         salt = worker_salt(n, stream, args)
         parts = [Partition(k, n, salt) for k in range(1, n + 1)]
-        groups.append([(part, Engine(EngineConfig(prefix=PREFIX, partition=part))) for part in parts])
+        base = EngineConfig(prefix=PREFIX)
+        if args.aid:
+            aid = replace(base.tracking.aid, enabled=True)
+            base = replace(base, tracking=replace(base.tracking, aid=aid))
+        groups.append([(part, Engine(replace(base, partition=part))) for part in parts])
     cpu = [[0.0] * len(g) for g in groups]
     waiting: list[list[list[tuple[str, bytes]]]] = [[[] for _ in g] for g in groups]
 
@@ -680,6 +692,12 @@ def main() -> None:
         "the workers take it); below the machine's limit every configuration runs unsaturated",
     )
     p.add_argument("--traffic", action="store_true", help="count every message by key kind (slower)")
+    p.add_argument(
+        "--aid",
+        action="store_true",
+        help="every worker with the aid of association on (tracking.aid.enabled): what tracking "
+        "in step across workers costs",
+    )
     p.add_argument(
         "--in-process",
         action="store_true",

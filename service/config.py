@@ -176,7 +176,7 @@ def engine_config_from(data: Mapping[str, Any]) -> EngineConfig:
 
 def aid_problems(config: EngineConfig) -> list[str]:
     """What makes ``tracking.aid`` impossible in ``config`` (none while it is off): the aid is
-    the correlation's answers a lag back, which one worker holds whole."""
+    every pair's links a lag back, which a batch waits for."""
     aid = config.tracking.aid
     if not aid.enabled:
         return []
@@ -185,11 +185,6 @@ def aid_problems(config: EngineConfig) -> list[str]:
         problems.append(
             f"tracking.aid.lag_s: {aid.lag_s} s; the aid needs a lag above zero "
             "(a batch cannot wait for the answer to its own table)"
-        )
-    if not config.partition.whole:
-        problems.append(
-            f"tracking.aid.enabled: needs one worker, not partition {config.partition} (a "
-            "partitioned worker's tracks would be aided by other workers' answers as they arrive)"
         )
     return problems
 

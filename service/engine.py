@@ -35,11 +35,12 @@ from service.pipeline.errors import RejectionError, unknown_radar
 from service.pipeline.feed import FeedWatch
 from service.pipeline.merger import TableMerger
 from service.pipeline.partner_aid import PartnerAid
-from service.pipeline.peers import Peers, finite_or_none
+from service.pipeline.peers import Peers, Released, finite_or_none
 from service.pipeline.publication import Publication
 from service.pipeline.read_model import Snapshot, build_snapshot
 from service.pipeline.restart import EngineState, own_state, read_state, state_when_answered
 from service.pipeline.sequencer import RADAR, REFERENCE, Refused, Release, Sequencer
+from service.pipeline.shared_links import Position
 from service.pipeline.tracking_stage import (
     SiteChange,
     TrackerFactory,
@@ -54,6 +55,13 @@ from service.wire.outgoing import Outgoing
 from service.wire.outputs import bounded, rejection
 
 __all__ = ["Engine", "EngineConfig", "EngineState", "Outgoing", "RejectionError", "Snapshot"]
+
+
+#: Releases held for the aid of association at most (partitioned: while another worker is
+#: waited for and does not progress, at most ``TOPOFUSION_PEER_GRACE_S`` of wall time); beyond,
+#: the oldest is tracked with the aid known, counted in ``aid_forced``.  Half the ingest
+#: queue's default capacity: a stall of a few seconds at ten times real time fits.
+MAX_AID_HELD = 2048
 
 
 class Engine:
@@ -76,14 +84,37 @@ class Engine:
         self.tracking = TrackingStage(tracker_factory or tracker_for(c, lambda: self.epoch), c.site)
         runner = ChildProcessRunner if correlation_process else InProcessRunner
         self.correlation: CorrelationRunner = runner(
-            c.method, c.cadence, c.reference, c.correlation, c.partition
+            c.method, c.cadence, c.reference, c.correlation, c.partition, c.tracking.aid.enabled
         )
         #: Every radar's tables and the references, in release order, into correlation.
         self.merger = TableMerger()
         #: The data time through which the outputs are complete, as last reported (it never
         #: goes back: :attr:`outputs_time_s`).
         self._outputs_through = -math.inf
-        self.peers = Peers(c, self.keys, self.sequencer, self.tracking, self.merger, self.correlation)
+        #: The aid of association (``tracking.aid``; None: off): every pair's links and
+        #: registration by data time, fed back to the trackers (:mod:`.pipeline.partner_aid`).
+        self.aid: PartnerAid | None = None
+        if c.tracking.aid.enabled:
+            problems = aid_problems(c)
+            if problems:
+                raise ValueError("; ".join(problems))
+            self.aid = PartnerAid(c.tracking.aid, self.tracking)
+        #: Released batches waiting for the other workers' links their aid reads (partitioned,
+        #: the aid on: :meth:`_process`), in release order with whatever was released after them.
+        self._held: deque[Release] = deque()
+        #: Batches tracked without waiting for every worker's links and tables, as more than
+        #: :data:`MAX_AID_HELD` waited (their aid may differ from one worker's).
+        self.aid_forced = 0
+        self.peers = Peers(
+            c,
+            self.keys,
+            self.sequencer,
+            self.tracking,
+            self.merger,
+            self.correlation,
+            self._released,
+            self.aid,
+        )
         self.publication = Publication(self.keys)
         #: Tables sent to correlation and not answered yet: (radar, data time, table, own).
         self._unpublished: deque[tuple[str, float, TrackTable, bool]] = deque()
@@ -93,14 +124,6 @@ class Engine:
         self.reference_kinds: dict[str, str] = {}
         self._snapshot: Snapshot | None = None
         self.assessment = AssessmentFeed(c.assessment)  # each radar against the references (§5.3)
-        #: The aid of association (``tracking.aid``; None: off): the correlation's answers by
-        #: data time, fed back to the trackers (:mod:`.pipeline.partner_aid`).
-        self.aid: PartnerAid | None = None
-        if c.tracking.aid.enabled:
-            problems = aid_problems(c)
-            if problems:
-                raise ValueError("; ".join(problems))
-            self.aid = PartnerAid(c.tracking.aid, self.tracking)
         for site in c.sites:
             self._set_site(site)
 
@@ -227,7 +250,9 @@ class Engine:
 
     def flush(self) -> list[Outgoing]:
         """Release every held batch regardless of the watermark (end of a replay or shutdown)."""
-        out = self._report_refused(self.sequencer.drop_held()) + self._process(self.sequencer.flush())
+        out = self._report_refused(self.sequencer.drop_held()) + self._process(
+            self.sequencer.flush(), flushing=True
+        )
         out += self._correlate(self.merger.flush())
         self.correlation.finish()
         out += self._results()
@@ -317,11 +342,38 @@ class Engine:
         return self._reject(key, RejectionError("internal", detail, source_id), None)
 
     # -- released batches: the one path --------------------------------------------------
-    def _process(self, released: Iterable[Release]) -> list[Outgoing]:
+    def _process(self, released: Iterable[Release], flushing: bool = False) -> list[Outgoing]:
         """Released batches through tracking into the merger, then what the merger releases
-        through correlation, then everything the correlation answered."""
+        through correlation, then everything the correlation answered.  With the aid on, a
+        batch waits for every pair's links through its lag (:meth:`_aid_ready`); partitioned,
+        it and what was released after it are held until the other workers' are in
+        (``flushing``: the end of the input, nothing more to wait for)."""
         out: list[Outgoing] = []
-        for rel in released:
+        self._run_held(out, flushing)
+        for rel in released:  # (one at a time: the sequencer releases lazily)
+            self._held.append(rel)
+            self._run_held(out, flushing)
+        self.merger.progress(self.partition.index, self._released_s())
+        out += self._correlate(self.merger.release(self.peers.owners(), self.peers.cap()))
+        return out + self._results()
+
+    def _run_held(self, out: list[Outgoing], flushing: bool) -> None:
+        """The released batches in order, each once its aid is ready (:meth:`_process`)."""
+        held = self._held
+        while held:
+            rel = held[0]
+            if self.aid is not None and rel.kind != REFERENCE and rel.item is not None and not rel.forget:
+                try:
+                    ready = self._aid_ready((rel.time_s, rel.source_id), out) or flushing
+                except Exception as exc:  # a bug costs this batch its aid, never the service
+                    out.append(self._internal(rel.source_id, f"aid failed: {type(exc).__name__}: {exc}"))
+                    ready = True
+                if not ready and len(held) > MAX_AID_HELD:  # (a worker that stalls: not forever)
+                    self.aid_forced += 1
+                    ready = True
+                if not ready:
+                    return
+            held.popleft()
             self._snapshot = None
             try:
                 if rel.forget:
@@ -330,14 +382,42 @@ class Engine:
                     seq = 0 if rel.expiry else rel.item.seq
                     self.merger.push(REFERENCE, rel.source_id, seq, rel.time_s, rel.item, expiry=rel.expiry)
                 else:
-                    if self.aid is not None and rel.item is not None:
-                        out += self._answers_through(self.aid.due_s(rel.time_s))
                     out += self._track(rel.source_id, rel.item, rel.time_s)
             except Exception as exc:  # a bug costs this batch's outputs, never the service
                 out.append(self._internal(rel.source_id, f"processing failed: {type(exc).__name__}: {exc}"))
-        self.merger.progress(self.partition.index, self.sequencer.last_limit)
-        out += self._correlate(self.merger.release(self.peers.owners(), self.peers.cap()))
-        return out + self._results()
+
+    def _released_s(self) -> float:
+        """How far this worker has released its batches into tracking: the sequencer's limit, or
+        just short of the oldest batch held for its aid (the workers it waits for must hear
+        that, or none of them could correlate through its lag)."""
+        limit = self.sequencer.last_limit
+        if self._held:
+            limit = min(limit, math.nextafter(self._held[0].time_s, -math.inf))
+        return limit
+
+    def _released(self) -> Released:
+        """:meth:`_released_s`, the place of the oldest batch held for its aid (every table
+        before it is published) and how many releases wait."""
+        head = self._held[0] if self._held else None  # (a batch: only a batch waits)
+        place = None if head is None else (head.time_s, head.source_id)
+        return Released(self._released_s(), place, len(self._held), self.aid_forced)
+
+    def _aid_ready(self, position: Position, out: list[Outgoing]) -> bool:
+        """Whether the aid of the batch at ``position`` (data time, radar) has all it reads:
+        every pair's links of its lag's time (this worker's correlation through it, correlated
+        now, its answers taken into ``out``, and, partitioned, every other live worker's: their
+        ``correlated_s``, sent after the links they cover) and every other radar's tables
+        before it (partitioned: every other worker has published them)."""
+        assert self.aid is not None
+        due_s = self.aid.due_s(position[0])
+        out += self._answers_through(due_s)
+        if self.partition.whole:
+            return True
+        return (
+            self.merger.through(self.peers.owners()) >= due_s
+            and self.peers.others_correlated() >= due_s
+            and self.peers.others_published_before(position)
+        )
 
     def _track(self, radar_id: str, plots: Any, clock: float) -> list[Outgoing]:
         """A released batch of a radar (``None``: it expired, its tracks coast out)."""
@@ -352,9 +432,10 @@ class Engine:
         return self.peers.own_table(radar_id, table.by_id(), clock, plots is None)
 
     def _answers_through(self, time_s: float) -> list[Outgoing]:
-        """Every table up to data time ``time_s`` correlated and its answer taken (the aid of
-        association: a batch's aid is the answers a fixed data time before it, whichever way
-        the correlation runs; one worker, whose released tables are all its own)."""
+        """Every table up to data time ``time_s`` that the merge may release correlated and its
+        answer taken (the aid of association: a batch's aid is the links a fixed data time
+        before it, whichever way the correlation runs; this worker's batches before the one
+        that asks are all released)."""
         index = self.partition.index
         if time_s > self.merger.released.get(index, -math.inf):
             self.merger.progress(index, time_s)
@@ -394,9 +475,10 @@ class Engine:
         for answer in self.correlation.take_answers():
             if answer.op == "radar":  # the table it answered for, then what the table changed
                 radar = self._unpublished.popleft()
-                if self.aid is not None:
-                    self.aid.answered(radar[1], answer.updated)
                 out += self.publication.tracks(*radar)
+            if self.aid is not None:
+                for crossing in answer.crossings:
+                    self.aid.crossed(crossing)
             out += [self.publication.pairs(key, view) for key, view in answer.updated]
             self.assessment.pairs(answer.updated, self.reference_kinds)
             if answer.system is not None:
@@ -423,14 +505,13 @@ class Engine:
         what the merge then lets through (a worker that left no longer holds it back)."""
         self.peers.wait_for(workers)
         self._snapshot = None
-        out = self._correlate(self.merger.release(self.peers.owners(), self.peers.cap()))
-        return out + self._results()
+        return self._process(())  # (and the batches held for their aid, if it was waited for)
 
     @property
     def outputs_time_s(self) -> float | None:
         """The data time up to which every published output reflects every input processed
         (contract §5.1): what was released, as far as the correlation has answered it."""
-        released = min(self.sequencer.last_limit, self.merger.last_limit)
+        released = min(self._released_s(), self.merger.last_limit)
         # A watermark never goes back: a lagging source's batch released late (the release did
         # not wait for it) does not pull it back while the correlation answers that batch.
         through = self.correlation.correlated_through(released)

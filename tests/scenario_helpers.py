@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import random
+from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
 from service.engine import Engine, EngineConfig
+from service.pipeline.partition import Partition
+from service.wire.keys import Keys
 from service.wire.outgoing import Outgoing
 from topofusion_lab.scenarios.catalog import get_scenario
 from topofusion_lab.scenarios.simulator import wire_messages
@@ -63,3 +67,74 @@ def run_engine(
         }, out
     finally:
         engine.close()
+
+
+# -- N engines as partitioned workers, in one process --------------------------------------
+def is_peer(key: str) -> bool:
+    return Keys("fusion").classify_peer(key) is not None
+
+
+def run_one(
+    msgs: list[tuple[str, bytes]],
+    watch: Callable[[Engine], object] = lambda e: None,
+    config: EngineConfig | None = None,
+) -> tuple[dict[str, list[bytes]], Engine]:
+    """One engine (``config``, default the defaults): its pair updates by key, in order."""
+    engine = Engine(config or EngineConfig())
+    watch(engine)
+    pairs: dict[str, list[bytes]] = defaultdict(list)
+    for key, payload in msgs:
+        for o in engine.ingest(key, payload):
+            if "/pairs/" in o.key:
+                pairs[o.key].append(o.payload)
+    return pairs, engine
+
+
+def run_partitioned(
+    msgs: list[tuple[str, bytes]],
+    n: int,
+    seed: int,
+    watch: Callable[[Engine], object] = lambda e: None,
+    salt: int = 0,
+    lagging: int | None = None,
+    heard: Callable[[int, Outgoing], object] = lambda k, o: None,
+    config: EngineConfig | None = None,
+) -> tuple[dict[str, list[bytes]], dict[str, set[int]], list[Engine]]:
+    """N engines, each message delivered to each in its own random batches, the peers'
+    messages to the others in the order they were produced, at random later moments;
+    ``lagging``: that worker (1..N) takes its messages seldom, so it falls far behind;
+    ``heard``: every output of worker K (1..N), in the order it puts them; ``config``: the
+    engines' (default the defaults), each with its partition."""
+    rng = random.Random(seed)
+    base = config or EngineConfig()
+    engines = [Engine(replace(base, partition=Partition(k, n, salt))) for k in range(1, n + 1)]
+    for engine in engines:
+        watch(engine)
+    queues: list[list[tuple[str, bytes]]] = [[] for _ in engines]
+    pairs: dict[str, list[bytes]] = defaultdict(list)
+    publishers: dict[str, set[int]] = defaultdict(set)
+
+    def run(j: int, upto: int) -> None:
+        batch, queues[j] = queues[j][:upto], queues[j][upto:]
+        for key, payload in batch:
+            out: list[Outgoing] = engines[j].ingest(key, payload)
+            for o in out:
+                heard(j + 1, o)
+                if "/pairs/" in o.key:
+                    pairs[o.key].append(o.payload)
+                    publishers[o.key].add(j + 1)
+                elif is_peer(o.key):
+                    for other in range(n):
+                        if other != j:
+                            queues[other].append((o.key, o.payload))
+
+    for key, payload in msgs:
+        for j in range(n):
+            queues[j].append((key, payload))
+        for j in rng.sample(range(n), n):
+            if j + 1 != lagging or rng.random() < 0.02:
+                run(j, rng.randint(0, len(queues[j])))
+    while any(queues):
+        for j in range(n):
+            run(j, len(queues[j]))
+    return pairs, publishers, engines

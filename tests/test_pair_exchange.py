@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import struct
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -25,7 +26,7 @@ from service.pipeline.pair_exchange import (
     rows_frame,
 )
 from service.pipeline.partition import Partition
-from service.pipeline.shared_links import SharedLinks
+from service.pipeline.shared_links import PairRegistration, SharedLinks
 from service.wire.frames import MAX_ID_CHARS, decode_frame, encode_frame
 from service.wire.keys import Keys
 from service.wire.outputs import encode
@@ -127,13 +128,20 @@ def _frame_cases() -> list[tuple[str, bytes]]:
 
 @pytest.mark.parametrize(("name", "payload"), _frame_cases(), ids=[c[0] for c in _frame_cases()])
 def test_a_links_frame_is_read_whole_or_rejected(name: str, payload: bytes) -> None:
+    got = _read_whole_or_rejected(name, payload)
+    if got is not None:
+        _same(got, _shared(5))
+
+
+def _read_whole_or_rejected(name: str, payload: bytes) -> SharedLinks | None:
+    """``payload`` read when the case is the valid one, else rejected (then None)."""
     try:
         got = decode_links(payload, KEY)
     except RejectionError:
         assert name != "valid", name
-        return
+        return None
     assert name == "valid", name
-    _same(got, _shared(5))
+    return got
 
 
 @pytest.mark.parametrize(
@@ -174,6 +182,67 @@ def test_a_broken_links_frame_is_rejected_counted_and_reported() -> None:
     assert [o.key for o in out] == ["fusion/errors"]
     assert b"links frame" in out[0].payload
     engine.close()
+
+
+# -- the pair's registration with its links (the aid of association) ----------------------------
+def _registered(n: int, seed: int = 3) -> SharedLinks:
+    rng = np.random.default_rng(seed)
+    m = rng.normal(size=(10, 10))
+    reg = PairRegistration(("A", "B"), rng.normal(size=(2, 5)) * [30.0, 1e-3, 1e-3, 20.0, 1.0], m @ m.T)
+    return replace(_shared(n), registration=reg)
+
+
+@pytest.mark.parametrize("form", ["json", "frame"])
+def test_the_registration_reads_back_bit_for_bit(form: str) -> None:
+    sent = _registered(6)
+    payload = links_frame(sent) if form == "frame" else encode(links_body(sent))
+    assert payload.startswith(b"{") == (form == "json")
+    got = decode_links(payload, KEY)
+    _same(got, sent)
+    assert got.registration is not None and sent.registration is not None
+    assert got.registration.radar_ids == ("A", "B")
+    assert got.registration.terms.tobytes() == sent.registration.terms.tobytes()
+    assert got.registration.covariance.tobytes() == sent.registration.covariance.tobytes()
+    assert decode_links(links_frame(_shared(2)), KEY).registration is None  # (the aid off: none)
+
+
+def _registration_cases() -> list[tuple[str, Any]]:
+    good = links_body(_registered(3))["registration"]
+    cases: list[tuple[str, Any]] = [("valid", good)]
+
+    def variant(name: str, change: Callable[[dict[str, Any]], None]) -> None:
+        reg = json.loads(json.dumps(good))
+        change(reg)
+        cases.append((name, reg))
+
+    variant("a radar not of the pair", lambda r: r["radar_ids"].__setitem__(1, "C"))
+    variant("a radar twice", lambda r: r["radar_ids"].__setitem__(1, "A"))
+    variant("three radars", lambda r: r["radar_ids"].append("C"))
+    variant("no radar", lambda r: r.update(radar_ids=[], terms=[], covariance=[]))
+    variant("four terms", lambda r: r["terms"][0].pop())
+    variant("a row of terms missing", lambda r: r["terms"].pop())
+    variant("a term not a number", lambda r: r["terms"][1].__setitem__(2, "x"))
+    variant("a term infinite", lambda r: r["terms"][1].__setitem__(2, float("inf")))
+    variant("a covariance row short", lambda r: r["covariance"][4].pop())
+    variant("a covariance row missing", lambda r: r["covariance"].pop())
+    variant("a covariance NaN", lambda r: r["covariance"][0].__setitem__(0, float("nan")))
+    variant("not an object", lambda r: r.clear())
+    return cases
+
+
+@pytest.mark.parametrize(("name", "reg"), _registration_cases(), ids=[c[0] for c in _registration_cases()])
+@pytest.mark.parametrize("form", ["json", "frame"])
+def test_a_links_message_s_registration_is_read_whole_or_rejected(name: str, reg: Any, form: str) -> None:
+    if form == "json":
+        body = {**links_body(_shared(3)), "registration": reg}
+        payload = json.dumps(body, allow_nan=True).encode()
+    else:
+        header, cols = _parts(_shared(3))
+        header["registration"] = reg
+        payload = encode_frame(header, b"".join(c.tobytes() for c in cols.values()))
+    got = _read_whole_or_rejected(name, payload)
+    if got is not None:
+        assert got.registration is not None and got.registration.terms.shape == (2, 5)
 
 
 # -- registration rows -------------------------------------------------------------------------

@@ -8,11 +8,9 @@ import hashlib
 import itertools
 import json
 import os
-import random
 import subprocess
 import sys
-from collections import defaultdict, deque
-from collections.abc import Callable
+from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +42,7 @@ from service.wire.models import TrackStates
 from service.wire.outgoing import Outgoing
 from service.wire.outputs import encode
 from service.wire.packed import pack_floats
-from tests.scenario_helpers import scenario_messages
+from tests.scenario_helpers import is_peer, run_one, run_partitioned, scenario_messages
 from tests.support import random_track_table
 from topofusion_lab.evaluation.promptness import OutputMonitor
 
@@ -363,7 +361,7 @@ def _sent_forms(exchange: tuple[ExchangeParams, ...], kind: str = "/track-states
 
     def take(j: int, out: list[Outgoing], late: bool) -> None:
         for o in out:
-            if _is_peer(o.key):
+            if is_peer(o.key):
                 pending.append((j, o.key, o.payload))
                 if kind in o.key and late:
                     forms[j].add(_form_of(o.payload))
@@ -404,70 +402,6 @@ def test_links_and_rows_go_as_frames_once_every_other_worker_reads_them(kind: st
 
 
 # -- N engines give the pair updates of one --------------------------------------------------
-def _is_peer(key: str) -> bool:
-    return Keys("fusion").classify_peer(key) is not None
-
-
-def _run_one(
-    msgs: list[tuple[str, bytes]], watch: Callable[[Engine], object] = lambda e: None
-) -> tuple[dict[str, list[bytes]], Engine]:
-    engine = Engine(EngineConfig())
-    watch(engine)
-    pairs: dict[str, list[bytes]] = defaultdict(list)
-    for key, payload in msgs:
-        for o in engine.ingest(key, payload):
-            if "/pairs/" in o.key:
-                pairs[o.key].append(o.payload)
-    return pairs, engine
-
-
-def _run_partitioned(
-    msgs: list[tuple[str, bytes]],
-    n: int,
-    seed: int,
-    watch: Callable[[Engine], object] = lambda e: None,
-    salt: int = 0,
-    lagging: int | None = None,
-    heard: Callable[[int, Outgoing], object] = lambda k, o: None,
-) -> tuple[dict[str, list[bytes]], dict[str, set[int]], list[Engine]]:
-    """N engines, each message delivered to each in its own random batches, the peers'
-    messages to the others in the order they were produced, at random later moments;
-    ``lagging``: that worker (1..N) takes its messages seldom, so it falls far behind;
-    ``heard``: every output of worker K (1..N), in the order it puts them."""
-    rng = random.Random(seed)
-    engines = [Engine(EngineConfig(partition=Partition(k, n, salt))) for k in range(1, n + 1)]
-    for engine in engines:
-        watch(engine)
-    queues: list[list[tuple[str, bytes]]] = [[] for _ in engines]
-    pairs: dict[str, list[bytes]] = defaultdict(list)
-    publishers: dict[str, set[int]] = defaultdict(set)
-
-    def run(j: int, upto: int) -> None:
-        batch, queues[j] = queues[j][:upto], queues[j][upto:]
-        for key, payload in batch:
-            out: list[Outgoing] = engines[j].ingest(key, payload)
-            for o in out:
-                heard(j + 1, o)
-                if "/pairs/" in o.key:
-                    pairs[o.key].append(o.payload)
-                    publishers[o.key].add(j + 1)
-                elif _is_peer(o.key):
-                    for other in range(n):
-                        if other != j:
-                            queues[other].append((o.key, o.payload))
-
-    for key, payload in msgs:
-        for j in range(n):
-            queues[j].append((key, payload))
-        for j in rng.sample(range(n), n):
-            if j + 1 != lagging or rng.random() < 0.02:
-                run(j, rng.randint(0, len(queues[j])))
-    while any(queues):
-        for j in range(n):
-            run(j, len(queues[j]))
-    return pairs, publishers, engines
-
-
 def _chains(engine: Engine) -> list[int]:
     """The number of implied pairs each of ``engine``'s radar-pair updates takes from now on."""
     counts: list[int] = []
@@ -491,7 +425,7 @@ def _reference() -> tuple[list[tuple[str, bytes]], dict[str, list[bytes]], Engin
     msgs = scenario_messages("three-radar", duration_s=150.0, seed=2)
     drawn: list[list[SystemTrackView]] = []
     chains: list[list[int]] = []
-    pairs, engine = _run_one(msgs, lambda e: (drawn.append(_drawn(e)), chains.append(_chains(e))))
+    pairs, engine = run_one(msgs, lambda e: (drawn.append(_drawn(e)), chains.append(_chains(e))))
     assert sum(n > 0 for n in chains[0]) > 0.5 * len(chains[0]) > 10
     return msgs, pairs, engine, drawn[0]
 
@@ -504,7 +438,7 @@ def test_n_engines_give_the_pair_updates_of_one(n: int, seed: int, salt: int, la
     the triangle, also when one worker falls far behind the others (its chains are then read
     from links it sent long before)."""
     msgs, one, single, _ = _reference()
-    many, publishers, engines = _run_partitioned(msgs, n, seed, salt=salt, lagging=lagging)
+    many, publishers, engines = run_partitioned(msgs, n, seed, salt=salt, lagging=lagging)
     assert sorted(many) == sorted(one)
     for key in one:
         assert len(publishers[key]) == 1, f"{key} correlated by workers {publishers[key]}"
@@ -550,7 +484,7 @@ def test_worker_1_draws_the_system_tracks_one_worker_draws(n: int, seed: int) ->
     from the same inputs as one worker's, so the same groups, numbers, states and members."""
     msgs, _, _, one = _reference()
     pictures: dict[int, list[SystemTrackView]] = {}
-    _, _, engines = _run_partitioned(
+    _, _, engines = run_partitioned(
         msgs, n, seed, lambda e: pictures.setdefault(e.partition.index, _drawn(e))
     )
     many = pictures[1]
@@ -601,7 +535,7 @@ def test_worker_1s_pictures_name_only_tracks_its_radars_latest_batches_hold(n: i
             dropped += len(last.get(body["radar_id"], set()) - ids)
             last[body["radar_id"]] = ids
 
-    _run_partitioned(msgs, n, seed, heard=heard)
+    run_partitioned(msgs, n, seed, heard=heard)
     assert own and pictures > 50 and dropped >= 5  # worker 1's radars do drop tracks
     dangling = monitor.report().dangling
     assert dangling.references == 0, dangling.examples
@@ -819,7 +753,7 @@ def test_a_gone_worker_s_radars_expire_also_after_a_gap_in_their_track_states() 
     one, not its tracks from the merge: if the owner goes then, the radar expires all the
     same (it was left out, and its last tracks stayed for good); the owner back calls it off."""
     msgs, *_ = _reference()
-    _, _, engines = _run_partitioned(msgs, 2, 0)
+    _, _, engines = run_partitioned(msgs, 2, 0)
     one = engines[0]
     theirs = [r for r in "ABC" if Partition(1, 2).owner(r) == 2]
     assert theirs and all(r in one.peers.receiver.radars() for r in theirs)
@@ -839,7 +773,7 @@ def test_a_late_table_never_takes_a_pair_back_in_data_time() -> None:
     it would update: they keep their book and publish nothing older than they have published
     (a subscriber sees every pair's updates in data-time order)."""
     msgs = scenario_messages("three-radar", duration_s=60.0, seed=2)
-    _, engine = _run_one(msgs)
+    _, engine = run_one(msgs)
     stage = engine.correlation.stage  # type: ignore[attr-defined]
     assert stage.views
     key = next(iter(sorted(stage.views)))
@@ -889,9 +823,9 @@ def test_a_radar_s_pairs_with_a_reference_go_with_the_radar_and_so_does_its_asse
     msgs = scenario_messages(
         "three-radar", duration_s=120.0, seed=3, adsb=(lab.AdsbSpec("ads-b", identity=True),)
     )
-    one, single = _run_one(msgs)
+    one, single = run_one(msgs)
     single.flush()
-    many, publishers, engines = _run_partitioned(msgs, n, seed)
+    many, publishers, engines = run_partitioned(msgs, n, seed)
     for engine in engines:
         engine.flush()
     with_reference = [k for k in one if k.endswith("/ads-b")]
@@ -973,7 +907,7 @@ def test_workers_owning_one_radar_each_confirm_each_others_first_clocks() -> Non
         if o.key.endswith("/tracks"):
             got.append(o.key)
 
-    _, _, engines = _run_partitioned(msgs, 2, seed=7, salt=salt, heard=heard)
+    _, _, engines = run_partitioned(msgs, 2, seed=7, salt=salt, heard=heard)
     assert all(not e.sequencer._lone for e in engines)
     for rid in "AB":
         mine = [k for k in want if f"/{rid}/" in k]

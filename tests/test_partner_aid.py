@@ -1,6 +1,6 @@
 """The aid of association by the correlation's confirmed partners (service/tracking/aid.py,
 service/correlation/partner_view.py, service/pipeline/partner_aid.py): each vectorised form
-against a plain one, and the aid's determinism through the engine."""
+against a plain one, and the aid's determinism through the engine, with one worker and N."""
 
 from __future__ import annotations
 
@@ -16,16 +16,18 @@ import pytest
 
 from service.correlation.partner_view import into_view, view_with_covariance
 from service.engine import Engine, EngineConfig
+from service.fusion.members import Links
 from service.geo import Site
 from service.pipeline.partition import Partition
 from service.pipeline.partner_aid import PartnerAid
-from service.pipeline.read_model import PairRegistration, PairSetView
+from service.pipeline.shared_links import Crossing, PairRegistration, SharedLinks
 from service.pipeline.tracking_stage import TrackedRadar, TrackingStage
 from service.tracking.aid import aided_d2
 from service.tracking.base import TrackTable
 from service.tracking.params import AidParams
+from service.wire.keys import Keys
 from service.wire.models import RadarSite
-from tests.scenario_helpers import interleaved, run_engine
+from tests.scenario_helpers import interleaved, run_engine, run_one, run_partitioned
 
 A = Site("A", 50.0, 5.0, 100.0)
 B = Site("B", 51.0, 6.5, 200.0)
@@ -126,16 +128,10 @@ def _table(site: Site, ids: list[str], seed: int, spread_m: float) -> TrackTable
     )
 
 
-def _view(a: str, b: str, pairs: list[tuple[str, str]], reg: PairRegistration | None) -> PairSetView:
+def _links(a: str, b: str, pairs: list[tuple[str, str]], reg: PairRegistration | None) -> SharedLinks:
     ta = np.array([p[0] for p in pairs])
     tb = np.array([p[1] for p in pairs])
-    cols = {
-        "track_a": ta,
-        "track_b": tb,
-        "confirmed": np.ones(len(pairs), bool),
-        "held": np.zeros(len(pairs), bool),
-    }
-    return PairSetView(a, b, 100.0, "svd-topology", cols, len(pairs), 0, 0, reg)
+    return SharedLinks((a, b), 88.0, a, Links(a, b, ta, tb, np.ones(len(pairs))), reg)
 
 
 def test_references_take_the_most_precise_registered_partner_as_a_plain_loop_does() -> None:
@@ -151,13 +147,13 @@ def test_references_take_the_most_precise_registered_partner_as_a_plain_loop_doe
         stage.tracked[r] = radar
     tight = np.diag((SIGMAS / 4) ** 2)  # (within 50 m at every track)
     views = {
-        ("A", "B"): _view(
+        ("A", "B"): _links(
             "A",
             "B",
             [(f"A-{k}", f"B-{k}") for k in (1, 2, 3, 5)],
             PairRegistration(("A", "B"), TERMS.reshape(2, 5), tight),
         ),
-        ("C", "A"): _view(
+        ("C", "A"): _links(
             "C",
             "A",
             [(f"C-{k}", f"A-{k}") for k in (2, 4, 6)],
@@ -166,8 +162,8 @@ def test_references_take_the_most_precise_registered_partner_as_a_plain_loop_doe
     }
     params = AidParams(enabled=True, lag_s=10.0, registration_sigma_m=50.0)
     aid = PartnerAid(params, stage)
-    aid.answered(90.0, list(views.items()))
-    assert aid.references("A", 95.0) is None  # (answers up to 85 s: none yet)
+    aid.crossed(Crossing((90.0, "B"), tuple(views.values())))
+    assert aid.references("A", 95.0) is None  # (crossings up to 85 s: none yet)
     refs = aid.references("A", 100.0)
     assert refs is not None
     cand = np.array(["A-1", "A-2", "A-2", "A-4", "A-6", "A-7", "A-5"])
@@ -179,12 +175,12 @@ def test_references_take_the_most_precise_registered_partner_as_a_plain_loop_doe
     for k, tid in enumerate(cand):
         best = (own[k], None)
         for (ra, rb), view in views.items():
-            mine = "track_a" if ra == "A" else "track_b"
+            mine, theirs = (view.links.track_a, view.links.track_b)[:: 1 if ra == "A" else -1]
             other = rb if ra == "A" else ra
-            hit = np.flatnonzero(view.columns[mine] == tid)
+            hit = np.flatnonzero(mine == tid)
             if not hit.shape[0]:
                 continue
-            pid = view.columns["track_b" if mine == "track_a" else "track_a"][hit[0]]
+            pid = theirs[hit[0]]
             reg = view.registration
             assert reg is not None
             order = [reg.radar_ids.index(x) for x in ("A", other)]
@@ -216,7 +212,7 @@ def test_references_take_the_most_precise_registered_partner_as_a_plain_loop_doe
     assert np.trace(cov[1, :2, :2]) < np.trace(cov[3, :2, :2])
     # a registration looser than the limit aids nothing
     strict = PartnerAid(replace(params, registration_sigma_m=5.0), stage)
-    strict.answered(90.0, list(views.items()))
+    strict.crossed(Crossing((90.0, "B"), tuple(views.values())))
     got = strict.references("A", 100.0)
     assert got is not None and np.isnan(got(cand, times, own)[0]).all()
     # a radar dropped since (its site removed): its pairs aid nothing, the others go on
@@ -230,11 +226,12 @@ def _aided(config: EngineConfig, **changes: Any) -> EngineConfig:
     return replace(config, tracking=replace(config.tracking, aid=aid))
 
 
-def test_the_aid_needs_one_worker_and_a_lag() -> None:
-    with pytest.raises(ValueError, match="needs one worker"):
-        Engine(replace(_aided(EngineConfig()), partition=Partition(1, 2)))
+def test_the_aid_needs_a_lag() -> None:
     with pytest.raises(ValueError, match="lag above zero"):
         Engine(_aided(EngineConfig(), lag_s=0.0))
+    with pytest.raises(ValueError, match="lag above zero"):
+        Engine(replace(_aided(EngineConfig(), lag_s=0.0), partition=Partition(1, 2)))
+    Engine(replace(_aided(EngineConfig()), partition=Partition(1, 2))).close()  # (partitioned: fine)
 
 
 @pytest.fixture(scope="module")
@@ -314,7 +311,7 @@ def test_every_aided_batch_waits_for_the_answers_through_its_lag(
         engine.close()
 
 
-def test_the_command_line_refuses_the_aid_with_partitioned_workers() -> None:
+def test_the_command_line_refuses_an_aid_without_a_lag_and_takes_it_partitioned() -> None:
     env = {
         **os.environ,
         "TOPOFUSION_ENGINE__TRACKING__AID__ENABLED": "true",
@@ -323,8 +320,13 @@ def test_the_command_line_refuses_the_aid_with_partitioned_workers() -> None:
     got = subprocess.run(
         [sys.executable, "-m", "service", "config"], capture_output=True, text=True, env=env, timeout=60
     )
+    assert got.returncode == 0, got.stderr
+    env["TOPOFUSION_ENGINE__TRACKING__AID__LAG_S"] = "0"
+    got = subprocess.run(
+        [sys.executable, "-m", "service", "config"], capture_output=True, text=True, env=env, timeout=60
+    )
     assert got.returncode == 2
-    assert "tracking.aid.enabled: needs one worker, not partition 1/2" in got.stderr
+    assert "tracking.aid.lag_s: 0.0 s; the aid needs a lag above zero" in got.stderr
 
 
 def test_a_restarted_engine_aids_again_from_its_restored_registration() -> None:
@@ -357,3 +359,127 @@ def test_a_restarted_engine_aids_again_from_its_restored_registration() -> None:
         assert sum(r["aided_associations"] for r in again.snapshot().status()["radars"]) > 0
     finally:
         again.close()
+
+
+@pytest.mark.parametrize(("n", "seed", "lagging"), [(2, 0, None), (3, 1, 3)])
+def test_partitioned_workers_aid_their_tracks_as_one_worker_does(
+    formation_in_traffic: list[tuple[str, bytes]], n: int, seed: int, lagging: int | None
+) -> None:
+    """Each worker's trackers read every pair's links and registration, its own and the other
+    workers', as one worker's do: every pair update is one worker's, also when one worker
+    falls far behind (the others hold their batches until it has sent its links)."""
+    aided = _aided(EngineConfig())
+    one, single = run_one(formation_in_traffic, config=aided)
+    plain, _ = run_one(formation_in_traffic)
+    assert one != plain  # (the aid changes the pairs here)
+    assert sum(r["aided_associations"] for r in single.snapshot().status()["radars"]) > 0
+    many, publishers, engines = run_partitioned(formation_in_traffic, n, seed, lagging=lagging, config=aided)
+    assert sorted(many) == sorted(one)
+    for key in one:
+        assert len(publishers[key]) == 1
+        # (at the end of the input the newest update of a pair may still be held back)
+        assert len(one[key]) - 1 <= len(many[key]) <= len(one[key]), key
+        assert many[key] == one[key][: len(many[key])], key
+    owners = {Partition(1, n).owner(r) for r in "ABC"}
+    assert len(owners) > 1  # (two workers track radars of one pair)
+    aided_by = [sum(r["aided_associations"] for r in e.snapshot().status()["radars"]) for e in engines]
+    assert sum(aided_by) > 0
+    for engine in engines:
+        assert engine.rejected == {}
+        assert engine.peers.progress()["reordered"] == 0
+    single.close()
+    for engine in engines:
+        engine.close()
+
+
+def test_another_workers_radar_is_read_as_it_was_before_the_batch_in_release_order() -> None:
+    """A radar another worker tracks: its table as its owner sent it last before the batch's
+    place (data time, then radar id, as one worker releases them), whatever came since."""
+    stage = TrackingStage(lambda site, rid: None)  # type: ignore[arg-type,return-value]
+    aid = PartnerAid(AidParams(enabled=True), stage)
+    sent = [(10.0, _table(B, ["B-1"], 1, 50.0)), (12.0, _table(B, ["B-2"], 2, 50.0))]
+    sent += [(12.0, _table(B, ["B-3"], 3, 50.0)), (15.0, _table(B, ["B-4"], 4, 50.0))]
+    for time_s, table in sent:
+        aid.foreign("B", time_s, table)  # (all of them there before the batches: a worker ahead)
+    for position in [
+        (9.0, "A"),
+        (10.0, "A"),
+        (10.0, "C"),
+        (12.0, "A"),
+        (12.0, "C"),
+        (14.0, "Z"),
+        (16.0, "A"),
+    ]:
+        aid.references(position[1], position[0])
+        before = [t for time_s, t in sent if (time_s, "B") < position]
+        got = aid.table("B", position)[0]
+        want = before[-1].track_id.tolist() if before else []
+        assert got.track_id.tolist() == want, position
+
+
+def test_a_worker_waits_for_every_table_before_its_batch_from_every_other_worker() -> None:
+    """Another worker's progress: every table up to ``released_s``, or, while it holds a batch
+    for its aid, every table before that batch's place (data time, then radar id)."""
+    engine = Engine(replace(_aided(EngineConfig()), partition=Partition(1, 2)))
+    key = Keys("fusion").worker_progress(2)
+
+    def told(released_s: float, held: list[Any] | None = None) -> None:
+        body = {"partition": "2/2", "released_s": released_s, **({"held": held} if held else {})}
+        engine.ingest(key, json.dumps(body).encode())
+        assert engine.rejected == {}
+
+    try:
+        before = engine.peers.others_published_before
+        assert not before((0.0, "A"))  # (nothing heard: nothing published)
+        told(100.0)
+        assert before((100.0, "A")) and before((100.0, "Z")) and before((99.0, "A"))
+        assert not before((100.5, "A"))
+        told(float(np.nextafter(100.0, 0.0)), [100.0, "B"])
+        assert before((100.0, "A")) and before((99.5, "Z"))  # (A's batch at 100 comes before B's)
+        assert not before((100.0, "C")) and not before((100.5, "A"))
+        engine.wait_for({1})  # worker 2 gone: no one to wait for
+        assert before((1e9, "A"))
+    finally:
+        engine.close()
+
+
+def test_a_partitioned_worker_holds_its_batches_until_the_others_are_through_or_gone(
+    formation_in_traffic: list[tuple[str, bytes]],
+) -> None:
+    """No other worker's progress yet: the batches wait, counted in ``/status``, and the
+    progress says so; the other worker gone, they are tracked."""
+    engine = Engine(replace(_aided(EngineConfig()), partition=Partition(1, 2)))
+    try:
+        out = []
+        for key, payload in formation_in_traffic[:200]:
+            out += engine.ingest(key, payload, receive_time_s=0.0)
+        progress = engine.peers.progress()
+        assert progress["aid_held"] > 0 and engine.snapshot().progress == progress
+        sent = [json.loads(o.payload) for o in out if o.key == Keys("fusion").worker_progress(1)]
+        held = engine._held[0]
+        assert sent and sent[-1]["held"] == [held.time_s, held.source_id]
+        assert sent[-1]["released_s"] < held.time_s
+        tracked_before = sum(len(r.table) for r in engine.tracking.tracked.values())
+        engine.wait_for({1})
+        assert engine.peers.progress()["aid_held"] == 0
+        assert sum(len(r.table) for r in engine.tracking.tracked.values()) > tracked_before
+    finally:
+        engine.close()
+
+
+def test_a_worker_holds_a_bounded_number_of_batches_for_a_worker_that_does_not_progress(
+    formation_in_traffic: list[tuple[str, bytes]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import service.engine
+
+    monkeypatch.setattr(service.engine, "MAX_AID_HELD", 8)
+    engine = Engine(replace(_aided(EngineConfig()), partition=Partition(1, 2)))
+    try:
+        for key, payload in formation_in_traffic[:300]:
+            engine.ingest(key, payload, receive_time_s=0.0)
+            assert engine.peers.progress()["aid_held"] <= 8
+        progress = engine.peers.progress()
+        assert progress["aid_forced"] > 0 and progress["aid_held"] == 8
+        assert sum(len(r.table) for r in engine.tracking.tracked.values()) > 0
+    finally:
+        engine.close()

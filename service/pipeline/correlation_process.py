@@ -91,10 +91,11 @@ class ChildProcessRunner(Answers):
         reference: ReferenceParams | None = None,
         correlation: CorrelationParams | None = None,
         partition: Partition | None = None,
+        aid: bool = False,
         max_in_flight: int = 64,
     ) -> None:
         super().__init__((correlation or CorrelationParams()).prediction)
-        self._args = (method, cadence, reference, correlation, partition)
+        self._args = (method, cadence, reference, correlation, partition, aid)
         self.max_in_flight = max_in_flight
         #: The child's latest ``timings()`` (its update time histogram with them).
         self._timings: dict[str, Any] = timings_dict()

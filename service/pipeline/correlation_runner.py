@@ -24,7 +24,7 @@ from service.correlation.registration import RegistrationRowsData
 from service.geo import Site
 from service.pipeline.correlation_stage import CorrelationStage, SharedRows
 from service.pipeline.read_model import PairSetView, SystemTrackView
-from service.pipeline.shared_links import SharedLinks
+from service.pipeline.shared_links import Crossing, SharedLinks
 from service.pipeline.system_stage import Drawing, SystemDrawer
 from service.tracking.base import TrackTable
 
@@ -45,6 +45,8 @@ class Answer:
     system: SystemTrackView | None = None  # new system tracks, if the call made them (drawn)
     result: Any = None  # what the stage's call returned (``export_state``; None for the others)
     drawings: list[Drawing] = field(default_factory=list)  # pictures to draw, oldest first
+    #: The aid of association on: the links' grid's crossings, with the owned pairs' links
+    crossings: list[Crossing] = field(default_factory=list)
 
 
 def answer(stage: CorrelationStage, op: str, args: tuple[Any, ...]) -> Answer:
@@ -72,6 +74,7 @@ def answer(stage: CorrelationStage, op: str, args: tuple[Any, ...]) -> Answer:
         None,
         result,
         stage.take_drawings(),
+        stage.take_crossings(),
     )
 
 

@@ -50,7 +50,7 @@ from service.fusion.members import Links
 from service.geo import Site
 from service.pipeline.partition import Partition
 from service.pipeline.read_model import PairSetView
-from service.pipeline.shared_links import SharedLinks
+from service.pipeline.shared_links import Crossing, PairRegistration, SharedLinks
 from service.pipeline.system_stage import LAST, Drawing, Picture, SystemStage, take_picture
 from service.reference import ReferenceKind, ReferenceParams, ReferenceTracks
 from service.tracking.base import TrackTable
@@ -180,7 +180,10 @@ class CorrelationStage:
         reference: ReferenceParams | None = None,
         correlation: CorrelationParams | None = None,
         partition: Partition | None = None,
+        aid: bool = False,
     ) -> None:
+        """``aid``: the aid of association is on; every crossing of the links' grid is handed
+        out with the owned pairs' links and registrations (:meth:`take_crossings`)."""
         self.method = method
         self.partition = partition or Partition()
         self.params = params or CadenceParams()
@@ -228,6 +231,7 @@ class CorrelationStage:
             self.params.system_interval_s,
             self.partition,
             self.correlation_params.cycles,
+            aid,
         )
 
     # -- the sources ---------------------------------------------------------------------------
@@ -460,7 +464,8 @@ class CorrelationStage:
     def _changed(self, key: tuple[str, str], corr: PairCorrelator, time_s: float, release: str) -> None:
         """A pair's book changed at the release of ``release``'s table at ``time_s``."""
         self.views[key] = PairSetView.of(key, corr, time_s)
-        self.system.updated(key, lambda: _links(key, corr), time_s, release)
+        registration = lambda: PairRegistration.of(corr)  # noqa: E731  (read at the crossing)
+        self.system.updated(key, lambda: _links(key, corr), time_s, release, registration)
 
     def _prompt(
         self,
@@ -495,6 +500,11 @@ class CorrelationStage:
     def take_links(self) -> list[SharedLinks]:
         """Links of the owned pairs updated since the last call (partitioned, not worker 1)."""
         return self.system.take_links()
+
+    def take_crossings(self) -> list[Crossing]:
+        """The links' grid's crossings since the last call, with the owned pairs' links and
+        registrations (the aid of association on; none otherwise)."""
+        return self.system.take_crossings()
 
     def mirror_links(self, shared: SharedLinks) -> None:
         """Another worker's pair's links (worker 1 draws the picture from them)."""

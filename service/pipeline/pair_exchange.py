@@ -29,9 +29,17 @@ from service.correlation.registration import RegistrationRowsData
 from service.fusion.members import Links
 from service.pipeline.decode import parse
 from service.pipeline.errors import RejectionError
-from service.pipeline.shared_links import SharedLinks
+from service.pipeline.shared_links import PairRegistration, SharedLinks
 from service.wire.frames import columns_frame, is_frame, read_columns
-from service.wire.models import MAX_ECEF_M, MAX_TRACKS, PairLinks, RegistrationRows, rejection_reason
+from service.wire.models import (
+    MAX_ECEF_M,
+    MAX_TRACKS,
+    REGISTRATION_TERMS,
+    LinksRegistration,
+    PairLinks,
+    RegistrationRows,
+    rejection_reason,
+)
 from service.wire.outputs import encode
 
 #: A frame's id columns (links and rows alike).
@@ -62,12 +70,24 @@ def links_frame(shared: SharedLinks) -> bytes:
 
 
 def _links_fields(shared: SharedLinks) -> dict[str, Any]:
-    links = shared.links
+    links, reg = shared.links, shared.registration
+    registration = (
+        {}
+        if reg is None
+        else {
+            "registration": {
+                "radar_ids": list(reg.radar_ids),
+                "terms": reg.terms.tolist(),
+                "covariance": reg.covariance.tolist(),
+            }
+        }
+    )
     return {
         "source_a": links.source_a,
         "source_b": links.source_b,
         "time_s": shared.time_s,
         "release": shared.release,
+        **registration,
     }
 
 
@@ -150,7 +170,17 @@ def decode_links(payload: bytes, ids: tuple[str, str]) -> SharedLinks:
         score = np.asarray(got.score, dtype=float)
     _check_sources(got.source_a, got.source_b, ids)
     links = Links(got.source_a, got.source_b, track_a, track_b, score)
-    return SharedLinks((ids[0], ids[1]), got.time_s, got.release, links)
+    return SharedLinks((ids[0], ids[1]), got.time_s, got.release, links, _registration(got.registration, ids))
+
+
+def _registration(got: LinksRegistration | None, ids: tuple[str, str]) -> PairRegistration | None:
+    """A links message's registration (its shapes checked by the model), its radars the pair's."""
+    if got is None:
+        return None
+    if not set(got.radar_ids) <= set(ids):
+        raise RejectionError("schema", f"registration radars {got.radar_ids} not of the pair {ids}", ids[0])
+    terms = np.asarray(got.terms, dtype=float).reshape(len(got.radar_ids), REGISTRATION_TERMS)
+    return PairRegistration(tuple(got.radar_ids), terms, np.asarray(got.covariance, dtype=float))
 
 
 def _check_sources(source_a: str, source_b: str, ids: tuple[str, str]) -> None:

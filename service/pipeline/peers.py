@@ -17,8 +17,9 @@ works on the stages it is given and returns what to publish.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
@@ -37,7 +38,9 @@ from service.pipeline.pair_exchange import (
     rows_frame,
 )
 from service.pipeline.partition import Partition
+from service.pipeline.partner_aid import PartnerAid
 from service.pipeline.sequencer import RADAR, Sequencer
+from service.pipeline.shared_links import Position
 from service.pipeline.track_exchange import (
     ExchangeParams,
     StatesForm,
@@ -88,6 +91,18 @@ class PeerInput:
     moved: bool = False
 
 
+class Released(NamedTuple):
+    """How far a worker has released its batches into tracking (every table up to
+    ``released_s`` published), the release order's place (data time, radar) of the oldest batch
+    it holds for the aid of association (None: none; every table before it is published), and
+    how many batches wait behind it."""
+
+    released_s: float
+    held: Position | None = None
+    held_batches: int = 0
+    forced: int = 0  # batches tracked without waiting, as too many waited
+
+
 class Peers:
     """This worker's exchange with the others (nothing at all when it is the only one)."""
 
@@ -99,8 +114,18 @@ class Peers:
         tracking: TrackingStage,
         merger: TableMerger,
         correlation: CorrelationRunner,
+        released: Callable[[], Released] | None = None,
+        aid: PartnerAid | None = None,
     ) -> None:
+        """``released``: how far this worker has released its batches into tracking, and the
+        place of the oldest batch it holds for its aid (default: the sequencer's limit, none);
+        ``aid``: the aid of association, which takes every other worker's links and tables
+        (:mod:`.partner_aid`)."""
         self.partition = partition = config.partition
+        self.released = released or (lambda: Released(sequencer.last_limit))
+        self.aid = aid
+        #: Each other worker's oldest batch held for its aid, as its latest progress says.
+        self._held_by: dict[int, Position | None] = {}
         self.keys = keys
         self.exchange = exchange = config.exchange
         self.cadence = config.cadence
@@ -209,9 +234,7 @@ class Peers:
             lags.append(self.cadence.bias_lag_s)
         if self.alone or not lags:
             return np.inf
-        others = self.waited - {self.partition.index}
-        cap = min((self._correlated_by.get(k, -np.inf) for k in others), default=np.inf)
-        return cap + min(lags)
+        return self.others_correlated() + min(lags)
 
     def wait_for(self, workers: set[int]) -> None:
         self.waited = set(workers) | {self.partition.index}
@@ -233,13 +256,30 @@ class Peers:
         due = max(time_s + self.sequencer.params.source_expiry_s, self.merger.last_limit)
         self.merger.expire(radar_id, due, TrackTable.empty())
 
+    def others_correlated(self) -> float:
+        """How far every other live worker has correlated (and sent its links; none: no limit)."""
+        others = self.waited - {self.partition.index}
+        return min((self._correlated_by.get(k, -np.inf) for k in others), default=np.inf)
+
+    def others_published_before(self, position: Position) -> bool:
+        """Whether every other live worker has published every table before ``position`` (data
+        time, radar id) in the release order: its oldest batch held for its aid is not before
+        it, or it has released every table up to that data time."""
+        for k in self.waited - {self.partition.index}:
+            held = self._held_by.get(k)
+            if held is not None:
+                if held < position:
+                    return False
+            elif self.merger.released.get(k, -np.inf) < position[0]:
+                return False
+        return True
+
     def _others_through(self) -> None:
         """Worker 1: tell the correlation how far every other live worker has correlated (it
         draws the system tracks up to there, :mod:`.system_stage`)."""
         if self.alone or not self.partition.solves_biases:
             return
-        others = self.waited - {self.partition.index}
-        through = min((self._correlated_by.get(k, -np.inf) for k in others), default=np.inf)
+        through = self.others_correlated()
         if through != self._through:
             self._through = through
             self.correlation.others_through(through)
@@ -249,8 +289,10 @@ class Peers:
         if self.alone:
             return {}
         return {
-            "released_s": finite_or_none(self.sequencer.last_limit),
+            "released_s": finite_or_none(self.released().released_s),
             "merged_s": finite_or_none(self.merger.last_limit),
+            "aid_held": self.released().held_batches,
+            "aid_forced": self.released().forced,
             "held": len(self.merger),
             "state_gaps": sum(self.receiver.gaps.values()),
             "reordered": self.merger.reordered,
@@ -271,7 +313,7 @@ class Peers:
         return (
             not self.alone
             and self._progress_sent is not None
-            and self._progress_sent["released_s"] != finite_or_none(self.sequencer.last_limit)
+            and self._progress_sent["released_s"] != finite_or_none(self.released().released_s)
         )
 
     # -- what goes to the others -----------------------------------------------------------------
@@ -350,11 +392,13 @@ class Peers:
         # How far everything is released: the merge's limit, or just short of the oldest
         # table it holds back (:meth:`cap`: a worker waiting for this one must hear it).
         merged = self.merger.through(self.owners())
+        released, held, _, _ = self.released()
         salted = {"salt": self.partition.salt} if self.partition.salt else {}
         progress: dict[str, Any] = {
             "partition": str(self.partition),
             **salted,
-            "released_s": finite_or_none(self.sequencer.last_limit),
+            "released_s": finite_or_none(released),
+            **({"held": list(held)} if held is not None else {}),
             "correlated_s": finite_or_none(self.correlation.correlated_through(merged)),
             **({"packed_states": True} if self.exchange.packed else {}),
             **(
@@ -378,7 +422,8 @@ class Peers:
             **({"lone_clocks": lone} if lone else {}),
         }
         out = []
-        if self._due(progress, self._progress_sent, ("released_s", "correlated_s"), idle):
+        moved_held = progress.get("held") != (self._progress_sent or {}).get("held")
+        if moved_held or self._due(progress, self._progress_sent, ("released_s", "correlated_s"), idle):
             self._progress_sent = progress
             out.append(Outgoing(self.keys.worker_progress(self.partition.index), lambda: progress))
         if self._due(clocks, self._clock_sent, tuple(clocks["clocks"]), idle) or self._lone_moved(lone):
@@ -425,6 +470,7 @@ class Peers:
                 self._correlated_by[worker] = (
                     clock.correlated_s if clock.correlated_s is not None else -np.inf
                 )
+                self._held_by[worker] = clock.held
                 self._others_through()
             return PeerInput(moved=True)
         if kind == "registration":
@@ -480,9 +526,13 @@ class Peers:
 
     def _links(self, ids: tuple[str, ...], payload: bytes) -> None:
         wanted = self.partition.solves_biases or self.cycles.enabled
-        if not wanted or self._ours(ids[0], ids[1]):
+        if not (wanted or self.aid is not None) or self._ours(ids[0], ids[1]):
             return  # (our own pair's links, e.g. a former session's of this worker: not even parsed)
-        self.correlation.mirror_links(decode_links(payload, (ids[0], ids[1])))
+        shared = decode_links(payload, (ids[0], ids[1]))
+        if wanted:
+            self.correlation.mirror_links(shared)
+        if self.aid is not None:
+            self.aid.mirror(shared)
 
     def _hold_states(self, radar_id: str, msg: Any, size: int) -> tuple[tuple[str, RejectionError], ...]:
         """Hold a radar's track states until its site comes; beyond the bounds the oldest held
@@ -500,6 +550,8 @@ class Peers:
 
     def _apply_states(self, radar_id: str, msg: Any) -> None:
         table = self.receiver.apply(msg)
+        if table is not None and self.aid is not None:
+            self.aid.foreign(radar_id, msg.time_s, table)
         if table is not None:
             self.merger.push(RADAR, radar_id, msg.seq, msg.time_s, table, expiry=msg.expiry)
             self._heard.add(radar_id)

@@ -64,26 +64,6 @@ def track_columns(tracks: TrackTable) -> dict[str, np.ndarray]:
 
 
 @dataclass(frozen=True)
-class PairRegistration:
-    """A pair correlator's own registration as it stood at a view (the aid of association,
-    :mod:`.partner_aid`): its radars, their five terms ``(n, 5)`` and their relative covariance
-    ``(5 n, 5 n)`` (:class:`~service.correlation.registration.BiasSolution`)."""
-
-    radar_ids: tuple[str, ...]
-    terms: np.ndarray
-    covariance: np.ndarray
-
-    @staticmethod
-    def of(corr: Any) -> PairRegistration | None:
-        """``corr``'s registration (a :class:`~service.correlation.PairCorrelator`); None while it
-        is not registered or its solution has no relative covariance."""
-        sol = corr.solution
-        if sol is None or sol.terms is None or sol.relative_covariance is None or not corr.registered:
-            return None
-        return PairRegistration(tuple(sol.radar_ids), sol.terms, sol.relative_covariance)
-
-
-@dataclass(frozen=True)
 class PairSetView:
     """One radar pair's book at one update: copied columns, the ``PairSet`` built when read."""
 
@@ -96,8 +76,6 @@ class PairSetView:
     tentative: int
     #: Of the tentative pairs, those held (``PairBook.held``).
     held_pairs: int = 0
-    #: The pair correlator's registration at this update (None: not registered).
-    registration: PairRegistration | None = field(default=None, compare=False, repr=False)
     _cache: dict[str, dict[str, Any]] = field(default_factory=dict, compare=False, repr=False)
     #: The identity counts of the confirmed pairs with the Mode S sources they were last
     #: counted against, one entry once counted (:meth:`Snapshot.identity`): a view outlives
@@ -133,7 +111,6 @@ class PairSetView:
             n_conf,
             len(order) - n_conf,
             n_held,
-            PairRegistration.of(corr),
         )
 
     def held(self, side: int, held_ids: np.ndarray) -> PairSetView:
@@ -161,7 +138,6 @@ class PairSetView:
             n_conf,
             len(cols["confirmed"]) - n_conf,
             int(np.count_nonzero(cols["held"])),
-            self.registration,
         )
 
     def body(self, status: str = "all") -> dict[str, Any]:

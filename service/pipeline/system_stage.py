@@ -50,9 +50,10 @@ from service.geo import Site
 from service.pipeline.cycle_links import CycleLinks
 from service.pipeline.partition import Partition
 from service.pipeline.read_model import SystemTrackView
-from service.pipeline.shared_links import Key, LinksHistory, SharedLinks
+from service.pipeline.shared_links import Crossing, Key, LinksHistory, PairRegistration, SharedLinks
 from service.tracking.base import TrackTable
 
+Registration = PairRegistration | None
 #: A release after every radar's at its data time (the end of the input).
 LAST = "\U0010ffff"
 #: Pictures taken and waiting for the other workers' links; beyond, the oldest is drawn with
@@ -85,22 +86,31 @@ class SystemStage:
         interval_s: float,
         partition: Partition,
         cycles: CycleParams | None = None,
+        aid: bool = False,
     ) -> None:
         self.interval_s = interval_s
         self.partition = partition
         #: The cycle step's chains on the links' grid (None: the step is off).
         self.cycles = CycleLinks(cycles) if cycles is not None and cycles.enabled else None
+        #: The aid of association reads every pair's links and registration at the crossings
+        #: (:meth:`take_crossings`: the tracking stage's, :mod:`.partner_aid`).
+        self.aid = aid
         self.grid_s = interval_s if interval_s > 0 else LINKS_GRID_S
         #: This worker draws the picture: the only worker, or worker 1 of N.
         self.draws = interval_s > 0 and (partition.whole or partition.solves_biases)
-        #: This worker sends its pairs' links: to worker 1, and to every worker for the cycles.
-        self.shares = not partition.whole and ((interval_s > 0 and not self.draws) or self.cycles is not None)
+        #: This worker sends its pairs' links: to worker 1, and to every worker for the cycles
+        #: and the aid.
+        self.shares = not partition.whole and (
+            (interval_s > 0 and not self.draws) or self.cycles is not None or aid
+        )
+        self._crossings_out: list[Crossing] = []
         self.forced = 0
         self._next_s = -np.inf
         self._out: list[Drawing] = []
         self._links_out: list[SharedLinks] = []
-        #: Owned pairs updated since the last crossing: their latest update's release and links.
-        self._updated: dict[Key, tuple[float, str, Callable[[], Links]]] = {}
+        #: Owned pairs updated since the last crossing: their latest update's release, and its
+        #: links and registration as they are (read at the crossing).
+        self._updated: dict[Key, tuple[float, str, Callable[[], Links], Callable[[], Registration]]] = {}
         self._pending: deque[Picture] = deque()
         #: The picture taken by the current :meth:`due` (drawn at once unless it must wait).
         self._taking: Picture | None = None
@@ -110,15 +120,28 @@ class SystemStage:
         self._others_s = np.inf if partition.whole else -np.inf
 
     # -- every worker ------------------------------------------------------------------------
-    def updated(self, key: Key, links: Callable[[], Links], time_s: float, release: str) -> None:
+    def updated(
+        self,
+        key: Key,
+        links: Callable[[], Links],
+        time_s: float,
+        release: str,
+        registration: Callable[[], Registration] = lambda: None,
+    ) -> None:
         """An owned pair's book changed at the release ``(time_s, release)``: its links as they
         are at the next crossing (:meth:`due`; the book changes only by its updates) go out
-        then and feed the cycle step."""
-        if self.shares or self.cycles is not None:
-            self._updated[key] = (time_s, release, links)
+        then and feed the cycle step, and the aid with its ``registration`` then."""
+        if self.shares or self.cycles is not None or self.aid:
+            self._updated[key] = (time_s, release, links, registration)
 
     def take_links(self) -> list[SharedLinks]:
         out, self._links_out = self._links_out, []
+        return out
+
+    def take_crossings(self) -> list[Crossing]:
+        """The crossings since the last call, oldest first, with the owned pairs' links and
+        registrations (the aid on; none otherwise)."""
+        out, self._crossings_out = self._crossings_out, []
         return out
 
     def take_drawings(self) -> list[Drawing]:
@@ -154,13 +177,15 @@ class SystemStage:
         go out (sharing) and to the cycle step (with ``radars``, whose tables the stage holds),
         and the worker that draws takes the picture's inputs (``take``) and draws what may be
         drawn."""
-        if not (self.draws or self.shares or self.cycles is not None):
+        if not (self.draws or self.shares or self.cycles is not None or self.aid):
             return
         grid = float(np.floor(clock_s / self.grid_s) * self.grid_s)
         if grid < self._next_s:
             return
         self._next_s = grid + self.grid_s
         own = self._own()
+        if self.aid:
+            self._crossings_out.append(Crossing((clock_s, release), tuple(own)))
         if self.cycles is not None:
             self.cycles.crossed((clock_s, release), own, radars)
         if self.draws:
@@ -172,7 +197,10 @@ class SystemStage:
     def _own(self) -> list[SharedLinks]:
         """The owned pairs updated since the previous crossing, with their links now (sent
         when sharing)."""
-        own = [SharedLinks(k, t, r, links()) for k, (t, r, links) in sorted(self._updated.items())]
+        own = [
+            SharedLinks(k, t, r, links(), registration() if self.aid else None)
+            for k, (t, r, links, registration) in sorted(self._updated.items())
+        ]
         self._updated = {}
         if self.shares:
             self._links_out.extend(own)

@@ -442,6 +442,12 @@ class WorkerClock(WireModel):
         default=None,
         description="every correlation update up to this data time is done and its rows are published",
     )
+    held: tuple[TimeS, SourceId] | None = Field(
+        default=None,
+        description="(progress) the release order's place (data time, radar id) of the oldest batch "
+        "this worker holds for the aid of association: every table before it is published, none "
+        "after (released_s is then just short of its data time)",
+    )
     clocks: Annotated[dict[SourceId, TimeS], Field(max_length=MAX_TRACKS)] = Field(default_factory=dict)
     lone_clocks: Annotated[dict[SourceId, tuple[TimeS, TimeS]], Field(max_length=MAX_TRACKS)] = Field(
         default_factory=dict,
@@ -514,6 +520,38 @@ class RegistrationRows(WireModel):
         return _equal_lengths(self, ("track_a", "track_b", "p_a", "p_b", "s", "v"))
 
 
+#: A pair correlator's registration holds its two radars' terms (one: a radar whose partner
+#: is held as the reference).
+MAX_REGISTRATION_RADARS = 2
+#: Terms a radar's registration has: range offset (m), azimuth offset (rad), elevation offset
+#: (rad), range gain (ppm), time bias (s).
+REGISTRATION_TERMS = 5
+
+
+class LinksRegistration(WireModel):
+    """A pair correlator's own registration after the update its links follow (the aid of
+    association): each of its radars' five terms (range offset m, azimuth offset rad,
+    elevation offset rad, range gain ppm, time bias s) and their relative covariance, ``5 n``
+    rows of ``5 n`` for ``n`` radars, in the order of ``radar_ids`` (each one of the pair's
+    sources, once)."""
+
+    radar_ids: Annotated[list[SourceId], Field(min_length=1, max_length=MAX_REGISTRATION_RADARS)]
+    terms: list[Annotated[list[Finite], Field(min_length=REGISTRATION_TERMS, max_length=REGISTRATION_TERMS)]]
+    covariance: list[list[Finite]]
+
+    @model_validator(mode="after")
+    def _check_shapes(self) -> LinksRegistration:
+        n = len(self.radar_ids)
+        if len(set(self.radar_ids)) != n:
+            raise ValueError("registration: radar_ids must differ")
+        if len(self.terms) != n:
+            raise ValueError(f"registration: {len(self.terms)} rows of terms for {n} radars")
+        size = REGISTRATION_TERMS * n
+        if len(self.covariance) != size or any(len(row) != size for row in self.covariance):
+            raise ValueError(f"registration: the covariance must be {size} rows of {size}")
+        return self
+
+
 class PairLinks(WireModel):
     """A pair's confirmed pairs after one of its updates, for the worker that draws the system
     tracks (worker 1 of a partitioned network): pair ``k`` is track ``track_a[k]`` of
@@ -527,6 +565,9 @@ class PairLinks(WireModel):
     track_a: Annotated[list[str], Field(max_length=MAX_TRACKS)]
     track_b: Annotated[list[str], Field(max_length=MAX_TRACKS)]
     score: Annotated[list[Probability], Field(max_length=MAX_TRACKS)]
+    #: The pair's registration then, sent while the aid of association is on (absent: not
+    #: registered, or the aid is off).
+    registration: LinksRegistration | None = None
 
     @model_validator(mode="after")
     def _check_lengths(self) -> PairLinks:
@@ -632,7 +673,10 @@ class PartitionStatus(OutModel):
         description="this worker's data clocks: released_s (its tables), merged_s (every worker's, in "
         "order), correlated_s, held (tables waiting for a slower worker), state_gaps (track-state messages "
         "that could not be applied), reordered (tables that came after the merge had released a later "
-        "one, from a worker no longer waited for, and were released out of order)",
+        "one, from a worker no longer waited for, and were released out of order), aid_held (this "
+        "worker's batches held until every worker's links and tables their aid of association reads "
+        "are in: tracking.aid), aid_forced (batches tracked without waiting, as more than 2048 "
+        "waited)",
     )
 
 
