@@ -1,11 +1,12 @@
 """Partitioned workers on a real Zenoh router: two workers give one worker's results.
 
 One worker runs on prefix ``one``, workers 1/2 and 2/2 on prefix ``two``; a client puts the
-same stream under both prefixes.  Each pair's PairSet updates on ``two`` are those on ``one``
-(the newest may still be held back at the end of the input), including the pairs whose two
-radars the two workers track; the joint bias estimate is one the single worker made, and every
-worker serves it; worker 1 draws the system tracks the single worker draws, and both serve
-them; ``/status``, ``/pairs`` and ``get {prefix}/...`` describe the whole network.
+same stream under both prefixes (also with the aid of association on).  Each pair's PairSet
+updates on ``two`` are those on ``one`` (the newest may still be held back at the end of the
+input), including the pairs whose two radars the two workers track; the joint bias estimate is
+one the single worker made, and every worker serves it; worker 1 draws the system tracks the
+single worker draws, and both serve them; ``/status``, ``/pairs`` and ``get {prefix}/...``
+describe the whole network.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import subprocess
 import threading
 from collections import defaultdict
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -59,17 +61,48 @@ class Collector:
 
 
 @contextlib.contextmanager
-def network(router: str) -> Iterator[tuple[RunningService, RunningService, RunningService]]:
+def network(
+    router: str, config: EngineConfig | None = None
+) -> Iterator[tuple[RunningService, RunningService, RunningService]]:
+    base = config or EngineConfig()
     with (
-        running_service(router, EngineConfig(prefix="one"), correlation_process=False) as one,
+        running_service(router, replace(base, prefix="one"), correlation_process=False) as one,
         running_service(
-            router, EngineConfig(prefix="two", partition=Partition(1, 2)), correlation_process=False
+            router, replace(base, prefix="two", partition=Partition(1, 2)), correlation_process=False
         ) as w1,
         running_service(
-            router, EngineConfig(prefix="two", partition=Partition(2, 2))
+            router, replace(base, prefix="two", partition=Partition(2, 2))
         ) as w2,  # its own process
     ):
         yield one, w1, w2
+
+
+def _put_both(
+    client: zenoh.Session, services: tuple[RunningService, ...], stream: list[tuple[str, bytes]]
+) -> None:
+    """The stream under both prefixes: the sites first, until every worker has them (then all
+    hear the plots), then the rest."""
+    for prefix in ("one", "two"):
+        wait_subscribed(client, f"{prefix}/radar/A/plots")
+    wait_for(lambda: not services[1].http.get("/status").json()["partition"]["missing"], timeout=15)
+    sites = [(k, p) for k, p in stream if k.endswith("/site")]
+    for key, payload in sites:
+        for prefix in ("one", "two"):
+            put_json(client, prefix + key.removeprefix("fusion"), payload)
+    for svc in services:
+        wait_for(lambda svc=svc: len(svc.http.get("/radars").json()) == len(sites), timeout=15)
+    for key, payload in stream[len(sites) :]:
+        for prefix in ("one", "two"):
+            put_json(client, prefix + key.removeprefix("fusion"), payload)
+
+
+def _same_updates(one_pairs: dict[str, list[bytes]], two_pairs: dict[str, list[bytes]]) -> None:
+    """Every pair's updates on ``two`` are those on ``one`` (the newest may be held back)."""
+    assert sorted(two_pairs) == [k.replace("one/", "two/", 1) for k in sorted(one_pairs)] and one_pairs
+    for key, want in one_pairs.items():
+        got = two_pairs[key.replace("one/", "two/", 1)]
+        assert len(want) - 1 <= len(got) <= len(want), key
+        assert got == want[: len(got)], key
 
 
 def _batches(svc: RunningService) -> int:
@@ -96,18 +129,7 @@ def test_two_workers_give_the_results_of_one(router: str, client: zenoh.Session)
     system_one, system_two = Collector(client, "one/system/tracks"), Collector(client, "two/system/tracks")
     try:
         with network(router) as (one, w1, w2):
-            for prefix in ("one", "two"):
-                wait_subscribed(client, f"{prefix}/radar/A/plots")
-            wait_for(lambda: not w1.http.get("/status").json()["partition"]["missing"], timeout=15)
-            sites = [(k, p) for k, p in stream if k.endswith("/site")]
-            for key, payload in sites:  # first, until every worker has them: then all hear the plots
-                for prefix in ("one", "two"):
-                    put_json(client, prefix + key.removeprefix("fusion"), payload)
-            for svc in (one, w1, w2):
-                wait_for(lambda svc=svc: len(svc.http.get("/radars").json()) == 3, timeout=15)
-            for key, payload in stream[len(sites) :]:
-                for prefix in ("one", "two"):
-                    put_json(client, prefix + key.removeprefix("fusion"), payload)
+            _put_both(client, (one, w1, w2), stream)
             wait_for(lambda: _batches(one) == n_batches, timeout=120)
             wait_for(lambda: _batches(w1) == n_batches, timeout=120)  # w1's /status: the whole network
             wait_for(_settled([pairs_one, pairs_two, biases_two, system_two]), timeout=60, interval=1.0)
@@ -137,11 +159,7 @@ def test_two_workers_give_the_results_of_one(router: str, client: zenoh.Session)
             c.close()
 
     # Pair updates: the same, update for update, each pair from one worker only.
-    assert sorted(two_pairs) == [k.replace("one/", "two/", 1) for k in sorted(one_pairs)] and one_pairs
-    for key, want in one_pairs.items():
-        got = two_pairs[key.replace("one/", "two/", 1)]
-        assert len(want) - 1 <= len(got) <= len(want), key
-        assert got == want[: len(got)], key
+    _same_updates(one_pairs, two_pairs)
     owner = Partition(1, 2).owner
     crossing = [k for k in one_pairs if len({owner(r) for r in k.split("/")[-2:]}) == 2]
     assert crossing, "no pair whose radars two workers track"
@@ -187,6 +205,37 @@ def test_two_workers_give_the_results_of_one(router: str, client: zenoh.Session)
             members = {(m["radar_id"], m["track_id"]) for m in b["members"]}
             # a picture published later holds to the tables then: members may only have gone
             assert members <= {(m["radar_id"], m["track_id"]) for m in a["members"]}
+
+
+def test_two_workers_aid_their_tracks_as_one_worker_does(router: str, client: zenoh.Session) -> None:
+    """With the aid of association on (a formation among other traffic, where it decides
+    associations), the workers exchange their pairs' registrations with their links and track
+    in step: every pair update is one worker's."""
+    from topofusion_lab.evaluation import formation
+    from topofusion_lab.scenarios.simulator import wire_messages
+
+    point = next(p for p in formation.POINTS if p.label == "2x in traffic")
+    stream = list(wire_messages(formation.scenario(point, 180.0, 12), 1))
+    n_batches = sum(k.endswith("/plots") for k, _ in stream)
+    config = EngineConfig()
+    config = replace(
+        config, tracking=replace(config.tracking, aid=replace(config.tracking.aid, enabled=True))
+    )
+    pairs_one, pairs_two = Collector(client, "one/pairs/**"), Collector(client, "two/pairs/**")
+    try:
+        with network(router, config) as (one, w1, w2):
+            _put_both(client, (one, w1, w2), stream)
+            wait_for(lambda: _batches(one) == n_batches, timeout=120)
+            wait_for(lambda: _batches(w1) == n_batches, timeout=120)
+            wait_for(_settled([pairs_one, pairs_two]), timeout=60, interval=1.0)
+            statuses = [s.http.get("/status").json() for s in (one, w1, w2)]
+    finally:
+        pairs_one.close()
+        pairs_two.close()
+    _same_updates(pairs_one.snapshot(), pairs_two.snapshot())
+    aided = [sum(r["aided_associations"] for r in st["radars"]) for st in statuses]
+    assert aided[0] > 0 and aided[1] == aided[2] == aided[0]  # (each worker's /status: the network's)
+    assert all(st["rejected"] == {} for st in statuses)
 
 
 def test_the_cat062_bridge_works_against_partitioned_workers(router: str, tmp_path: Path) -> None:
