@@ -362,7 +362,7 @@ class Engine:
         held = self._held
         while held:
             rel = held[0]
-            if self.aid is not None and rel.kind != REFERENCE and rel.item is not None and not rel.forget:
+            if self._asks_aid(rel):
                 try:
                     ready = self._aid_ready((rel.time_s, rel.source_id), out) or flushing
                 except Exception as exc:  # a bug costs this batch its aid, never the service
@@ -385,6 +385,14 @@ class Engine:
                     out += self._track(rel.source_id, rel.item, rel.time_s)
             except Exception as exc:  # a bug costs this batch's outputs, never the service
                 out.append(self._internal(rel.source_id, f"processing failed: {type(exc).__name__}: {exc}"))
+
+    def _asks_aid(self, rel: Release) -> bool:
+        """Whether a release is a batch whose tracker may ask for the aid of association (a
+        track of it in a formation, or the search for formations due): only those wait for
+        what the aid reads (on the national network about a batch in four)."""
+        if self.aid is None or rel.kind == REFERENCE or rel.item is None or rel.forget:
+            return False
+        return rel.source_id in self.tracking.tracked and self.tracking.wants_aid(rel.source_id, rel.time_s)
 
     def _released_s(self) -> float:
         """How far this worker has released its batches into tracking: the sequencer's limit, or
@@ -426,7 +434,11 @@ class Engine:
                 return []
             table = self.tracking.tracked[radar_id].table
         else:
-            aid = self.aid.references(radar_id, clock) if self.aid is not None else None
+            aid = None
+            if self.aid is not None:
+                self.aid.passed((clock, radar_id))
+                if self.tracking.wants_aid(radar_id, clock):
+                    aid = self.aid.references(radar_id, clock)
             table = self.tracking.update(radar_id, plots, clock, aid)
             self.assessment.plots(radar_id, self.tracking.tracked[radar_id].geometry, plots, clock)
         return self.peers.own_table(radar_id, table.by_id(), clock, plots is None)

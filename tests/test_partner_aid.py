@@ -483,3 +483,65 @@ def test_a_worker_holds_a_bounded_number_of_batches_for_a_worker_that_does_not_p
         assert sum(len(r.table) for r in engine.tracking.tracked.values()) > 0
     finally:
         engine.close()
+
+
+def test_only_a_batch_that_may_ask_waits_and_every_batch_that_asks_was_waited_for(
+    formation_in_traffic: list[tuple[str, bytes]],
+) -> None:
+    """A batch waits for what the aid reads only if its tracker may ask (a track in a
+    formation, or the search for formations due): every batch whose tracker asked had said
+    so before it, and the others go through without waiting."""
+    engine = Engine(_aided(EngineConfig()))
+    stage = engine.tracking
+    wanted: list[bool] = []
+    asked: list[bool] = []
+    update = stage.update
+
+    def watched(radar_id: str, plots: Any, time_s: float, aid: Any = None) -> Any:
+        wanted.append(stage.wants_aid(radar_id, time_s))
+        calls = [0]
+
+        def counted(track_ids: Any, times_s: Any, spread: Any) -> Any:
+            calls[0] += 1
+            if aid is not None:
+                return aid(track_ids, times_s, spread)
+            n = track_ids.shape[0]  # (not asked for: a tracker that asks anyway is caught here)
+            return np.full((n, 3), np.nan), np.full((n, 3, 3), np.nan)
+
+        out = update(radar_id, plots, time_s, counted)
+        asked.append(calls[0] > 0)
+        return out
+
+    stage.update = watched  # type: ignore[method-assign]
+    try:
+        for key, payload in formation_in_traffic:
+            engine.ingest(key, payload, receive_time_s=0.0)
+    finally:
+        engine.close()
+    assert sum(asked) > 20 and all(w for w, a in zip(wanted, asked, strict=True) if a)
+    assert 0 < sum(wanted) < len(wanted)
+    # the rule itself: a batch at which the search for formations is due may ask whatever the
+    # formations were (the search comes before the assignment); between searches, only a
+    # tracker with a track in a formation
+    tracker = stage.tracked["A"].tracker
+    inner = getattr(tracker, "inner", tracker)
+    scan_s = inner.scan_period_s * inner.params.formation.formation_interval_scans
+    last = inner._formations_s
+    tracks = inner._tracks
+    assert len(tracks)
+    inner._tracks = replace(tracks, formation=np.full(len(tracks), -1))
+    assert tracker.wants_aid(last + scan_s) and not tracker.wants_aid(last + 0.5 * scan_s)
+    inner._tracks = replace(tracks, formation=np.where(np.arange(len(tracks)) == 0, 3, -1))
+    assert tracker.wants_aid(last + 0.5 * scan_s)
+    # with the formation rule off no tracker ever asks: a partitioned worker holds nothing,
+    # though no other worker has said how far it is
+    rule = replace(EngineConfig().tracking.formation, hold_formations=False)
+    tracking = replace(EngineConfig().tracking, formation=rule)
+    off = Engine(replace(_aided(replace(EngineConfig(), tracking=tracking)), partition=Partition(1, 2)))
+    try:
+        for key, payload in formation_in_traffic[:300]:
+            off.ingest(key, payload, receive_time_s=0.0)
+        assert off.peers.progress()["aid_held"] == 0
+        assert sum(len(r.table) for r in off.tracking.tracked.values()) > 0
+    finally:
+        off.close()

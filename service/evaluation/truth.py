@@ -231,6 +231,9 @@ class TruthLabelledTracker(Tracker):
     def take_aid(self, partners: PartnerReferences | None) -> None:
         self.inner.take_aid(partners)
 
+    def wants_aid(self, time_s: float) -> bool:
+        return self.inner.wants_aid(time_s)
+
     def drop_tracks(self) -> None:
         self.inner.drop_tracks()
         self.tally.keep(self.inner.uids)

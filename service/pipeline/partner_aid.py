@@ -81,6 +81,13 @@ class PartnerAid:
         """A table of a radar another worker tracks, as its owner sent it (in its order)."""
         self._foreign.setdefault(radar_id, deque()).append((time_s, table))
 
+    def passed(self, position: Position) -> None:
+        """The batch at ``position`` is tracked (batches come in release order): the other
+        workers' tables that no later batch reads go, the latest before it stays."""
+        for other, queue in self._foreign.items():
+            while len(queue) > 1 and (queue[1][0], other) < position:
+                queue.popleft()
+
     def due_s(self, time_s: float) -> float:
         """The data time through which a batch at ``time_s`` needs every pair's links."""
         return time_s - self.params.lag_s
@@ -101,9 +108,7 @@ class PartnerAid:
         crossing that old yet).  Its pairs are looked at only if the tracker asks (a track of
         it in a formation has candidates)."""
         position = (time_s, radar_id)
-        for other, queue in self._foreign.items():  # (batches come in release order)
-            while len(queue) > 1 and (queue[1][0], other) < position:
-                queue.popleft()
+        self.passed(position)
         state = self._take(time_s)
         return _References(self, position, state) if state is not None else None
 

@@ -137,6 +137,12 @@ class TrackingStage:
         radar.time_s = time_s
         return radar.table
 
+    def wants_aid(self, radar_id: str, time_s: float) -> bool:
+        """Whether the radar's batch at ``time_s`` may ask for the aid of association (its
+        tracker's :meth:`~service.tracking.base.Tracker.wants_aid`; none before its first)."""
+        tracker = self.tracked[radar_id].tracker
+        return tracker is not None and tracker.wants_aid(time_s)
+
     def expire(self, radar_id: str, time_s: float) -> bool:
         """A silent radar (expired in data time, or on the wall clock while the data clock
         stood still): data time moves on without plots (its window empties by time) and its

@@ -173,6 +173,12 @@ class Tracker(ABC):
         (:mod:`.aid`; None: no aid).  A tracker that takes no aid ignores them."""
         return None
 
+    def wants_aid(self, time_s: float) -> bool:
+        """Whether a batch at ``time_s`` may ask for the references (:meth:`take_aid`): only
+        then does the engine wait for what they are read from.  A tracker that takes no aid
+        never asks."""
+        return False
+
     @abstractmethod
     def tracks(self) -> TrackTable:
         """All live tracks (tentative and confirmed) as of the last update."""

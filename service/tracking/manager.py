@@ -583,6 +583,15 @@ class TrackManager(Tracker):
     def take_aid(self, partners: PartnerReferences | None) -> None:
         self._aid = partners
 
+    def wants_aid(self, time_s: float) -> bool:
+        """Only the candidates of a track in a formation are aided (:meth:`_assign`): a batch
+        asks if a track is in one, or if the search for formations is due at it (:meth:`update`
+        searches before it assigns)."""
+        if self._formation_models is None or not len(self._tracks):
+            return False
+        interval_s = self.params.formation.formation_interval_scans * self.scan_period_s
+        return time_s - self._formations_s >= interval_s or bool(np.any(self._tracks.formation >= 0))
+
     def _assign(
         self, tracks: _Tracks, meas: Measurements, rows: IntArray, cols: IntArray, d2: FloatArray
     ) -> IntArray:

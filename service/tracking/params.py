@@ -575,7 +575,7 @@ class AidParams:
     enabled: bool = False
     """Whether a track in a formation with a confirmed partner is aided.  Off by default: the
     aid is every pair's links fed back into tracking, so each batch waits for them
-    (``lag_s``), and partitioned workers then track in step (a replay at full speed at half
+    (``lag_s``), and partitioned workers then track in step (a replay at full speed at about half
     the speed without the aid, docs/scale-out.md)."""
     lag_s: float = 10.0
     """A batch at data time ``t`` is aided by every pair's confirmed pairs and registration as
