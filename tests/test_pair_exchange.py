@@ -345,3 +345,24 @@ def test_worker_1_takes_a_reference_pair_s_rows_before_it_has_heard_the_referenc
     stage = engine.correlation.stage  # type: ignore[attr-defined]
     assert (radar, ref) in stage.mirrors and len(stage.mirrors[(radar, ref)].memory) > 0
     engine.close()
+
+
+def test_a_registration_with_a_number_not_finite_is_not_taken_so_its_links_go_without_it() -> None:
+    """The wire takes finite numbers only: a pair whose registration holds another sends its
+    links alone (a peer would reject the whole message, and the picture and cycles lose the
+    pair)."""
+
+    class Solved:
+        radar_ids = ("A", "B")
+        terms = np.zeros((2, 5))
+        relative_covariance = np.eye(10)
+
+    class Pair:
+        registered = True
+        solution = Solved()
+
+    assert PairRegistration.of(Pair()) is not None
+    Solved.relative_covariance = np.where(np.eye(10) > 0, np.inf, 0.0)
+    assert PairRegistration.of(Pair()) is None
+    Solved.relative_covariance, Solved.terms = np.eye(10), np.full((2, 5), np.nan)
+    assert PairRegistration.of(Pair()) is None

@@ -36,9 +36,12 @@ class PairRegistration:
     @staticmethod
     def of(corr: Any) -> PairRegistration | None:
         """``corr``'s registration (a :class:`~service.correlation.PairCorrelator`); None while it
-        is not registered or its solution has no relative covariance."""
+        is not registered, its solution has no relative covariance, or a number of it is not
+        finite (the wire takes finite numbers only: such links go without it)."""
         sol = corr.solution
         if sol is None or sol.terms is None or sol.relative_covariance is None or not corr.registered:
+            return None
+        if not (np.all(np.isfinite(sol.terms)) and np.all(np.isfinite(sol.relative_covariance))):
             return None
         return PairRegistration(tuple(sol.radar_ids), sol.terms, sol.relative_covariance)
 
