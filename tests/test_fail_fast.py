@@ -8,18 +8,20 @@ router".  They are started together and must all end with status 2 well before t
 from __future__ import annotations
 
 import os
-import time
 from contextlib import ExitStack
 from pathlib import Path
 
 import pytest
 
-from tests.doc_commands import TOPOFUSION, started
+from tests.doc_commands import PROCESS_S, TOPOFUSION, started
 from tests.support import free_port, wait_for
 
-#: Each refusal comes within this long (s): the interpreter's start and the imports, no
-#: connection attempt (which would take the tools' 30 s wait for their router).
-FAIL_FAST_S = 15.0
+#: What says a command was refused before connecting is its output (no "waiting for the Zenoh
+#: router"), not how fast it came: the cases start together, a score of interpreters on two
+#: loaded cores, and their imports alone took more than 15 s in a clean-clone CI run.  Each
+#: ends within a started command's bound (:data:`~tests.doc_commands.PROCESS_S`); one that
+#: tried to connect says so, and exits otherwise than 2, after the tools' 30 s wait.
+FAIL_FAST_S = PROCESS_S
 
 
 def _bad_inputs(tmp_path: Path) -> dict[str, tuple[list[str], list[str]]]:
@@ -145,15 +147,13 @@ def _bad_inputs(tmp_path: Path) -> dict[str, tuple[list[str], list[str]]]:
 def test_bad_input_is_refused_before_connecting(tmp_path: Path) -> None:
     nobody = f"tcp/127.0.0.1:{free_port()}"
     cases = _bad_inputs(tmp_path)
-    t0 = time.monotonic()
     with ExitStack() as stack:
         procs = {
             name: stack.enter_context(started([TOPOFUSION, *argv, "--connect", nobody], tmp_path))
             for name, (argv, _) in cases.items()
         }
         for name, proc in procs.items():
-            left = FAIL_FAST_S - (time.monotonic() - t0)
-            code = proc.popen.wait(timeout=max(left, 0.1))
+            code = proc.popen.wait(timeout=FAIL_FAST_S)
             out = proc.output()
             assert code == 2, f"{name}: exit {code}\n{out}"
             assert "waiting for the Zenoh router" not in out, f"{name} tried to connect:\n{out}"
