@@ -88,6 +88,7 @@ from typing import Any
 import numpy as np
 from checkout import warn_if_elsewhere
 
+from service.config import with_aid
 from service.engine import Engine, EngineConfig, Snapshot
 from topofusion_lab.evaluation.promptness import OutputMonitor, PromptnessReport, watch_engine
 from topofusion_lab.scenarios.catalog import get_scenario
@@ -436,8 +437,7 @@ def no_history_config() -> EngineConfig:
 
 def aided_config() -> EngineConfig:
     """The full pipeline with the aid of association on (``tracking.aid``)."""
-    cfg = EngineConfig()
-    return replace(cfg, tracking=replace(cfg.tracking, aid=replace(cfg.tracking.aid, enabled=True)))
+    return with_aid(EngineConfig())
 
 
 def all_variants() -> list[Variant]:

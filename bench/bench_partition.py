@@ -67,7 +67,7 @@ import httpx
 import zenoh
 from checkout import warn_if_elsewhere
 
-from service.config import EngineConfig
+from service.config import EngineConfig, with_aid
 from service.engine import Engine
 from service.pipeline.partition import PAIR_KM, Partition, balanced_salt, candidate_pairs, pair_name
 from service.transport.session import ZenohOptions, open_session
@@ -543,10 +543,7 @@ def in_process(
     for n in counts:
         salt = worker_salt(n, stream, args)
         parts = [Partition(k, n, salt) for k in range(1, n + 1)]
-        base = EngineConfig(prefix=PREFIX)
-        if args.aid:
-            aid = replace(base.tracking.aid, enabled=True)
-            base = replace(base, tracking=replace(base.tracking, aid=aid))
+        base = with_aid(EngineConfig(prefix=PREFIX)) if args.aid else EngineConfig(prefix=PREFIX)
         groups.append([(part, Engine(replace(base, partition=part))) for part in parts])
     cpu = [[0.0] * len(g) for g in groups]
     waiting: list[list[list[tuple[str, bytes]]]] = [[[] for _ in g] for g in groups]

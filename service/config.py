@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import MISSING, dataclass, field, fields, is_dataclass
+from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -55,6 +55,7 @@ __all__ = [
     "load_file",
     "load_sites",
     "merge",
+    "with_aid",
 ]
 
 
@@ -172,6 +173,13 @@ def engine_config_from(data: Mapping[str, Any]) -> EngineConfig:
     if problems:
         raise _error(problems)
     return config
+
+
+def with_aid(config: EngineConfig, **changes: Any) -> EngineConfig:
+    """``config`` with the aid of association on (``tracking.aid.enabled``), and ``changes`` to
+    its other settings (``lag_s``, ``registration_sigma_m``)."""
+    aid = replace(config.tracking.aid, enabled=True, **changes)
+    return replace(config, tracking=replace(config.tracking, aid=aid))
 
 
 def aid_problems(config: EngineConfig) -> list[str]:

@@ -24,6 +24,7 @@ from typing import Any
 import orjson
 import zenoh
 
+from service.config import with_aid
 from service.engine import EngineConfig
 from service.pipeline.partition import Partition
 from service.transport.node import ServiceNode
@@ -217,10 +218,7 @@ def test_two_workers_aid_their_tracks_as_one_worker_does(router: str, client: ze
     point = next(p for p in formation.POINTS if p.label == "2x in traffic")
     stream = list(wire_messages(formation.scenario(point, 180.0, 12), 1))
     n_batches = sum(k.endswith("/plots") for k, _ in stream)
-    config = EngineConfig()
-    config = replace(
-        config, tracking=replace(config.tracking, aid=replace(config.tracking.aid, enabled=True))
-    )
+    config = with_aid(EngineConfig())
     pairs_one, pairs_two = Collector(client, "one/pairs/**"), Collector(client, "two/pairs/**")
     try:
         with network(router, config) as (one, w1, w2):

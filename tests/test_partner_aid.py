@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from service.config import with_aid
 from service.correlation.partner_view import into_view, view_with_covariance
 from service.engine import Engine, EngineConfig
 from service.fusion.members import Links
@@ -222,8 +223,7 @@ def test_references_take_the_most_precise_registered_partner_as_a_plain_loop_doe
 
 
 def _aided(config: EngineConfig, **changes: Any) -> EngineConfig:
-    aid = replace(config.tracking.aid, enabled=True, **changes)
-    return replace(config, tracking=replace(config.tracking, aid=aid))
+    return with_aid(config, **changes)
 
 
 def test_the_aid_needs_a_lag() -> None:

@@ -288,11 +288,12 @@ class Peers:
         """How far this worker has got (``/status`` ``partition.progress``; none alone)."""
         if self.alone:
             return {}
+        released = self.released()
         return {
-            "released_s": finite_or_none(self.released().released_s),
+            "released_s": finite_or_none(released.released_s),
             "merged_s": finite_or_none(self.merger.last_limit),
-            "aid_held": self.released().held_batches,
-            "aid_forced": self.released().forced,
+            "aid_held": released.held_batches,
+            "aid_forced": released.forced,
             "held": len(self.merger),
             "state_gaps": sum(self.receiver.gaps.values()),
             "reordered": self.merger.reordered,

@@ -102,16 +102,7 @@ class PairSetView:
         }
         n_conf = int(np.count_nonzero(cols["confirmed"]))
         n_held = int(np.count_nonzero(cols["held"]))
-        return PairSetView(
-            key[0],
-            key[1],
-            time_s,
-            corr.method,
-            cols,
-            n_conf,
-            len(order) - n_conf,
-            n_held,
-        )
+        return PairSetView(key[0], key[1], time_s, corr.method, cols, n_conf, len(order) - n_conf, n_held)
 
     def held(self, side: int, held_ids: np.ndarray) -> PairSetView:
         """The view without the pairs whose track of side ``side`` (0: A, 1: B) is not among

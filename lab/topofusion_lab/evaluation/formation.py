@@ -123,7 +123,7 @@ from typing import Any
 
 import numpy as np
 
-from service.config import EngineConfig
+from service.config import EngineConfig, with_aid
 from service.evaluation.truth import TruthLabelledTracker
 from service.geo import Site, ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from service.tracking.params import FormationParams
@@ -291,7 +291,7 @@ def engine_config(variant: str) -> EngineConfig:
     if variant == "now":
         return cfg
     if variant == "aided":
-        return replace(cfg, tracking=replace(cfg.tracking, aid=replace(cfg.tracking.aid, enabled=True)))
+        return with_aid(cfg)
     raise ValueError(f"unknown variant {variant!r}")
 
 
@@ -500,8 +500,7 @@ def run_one(job: Job) -> dict[str, Any]:
     if not job.hold:
         config = no_hold(config)
     if job.variant == "aided" and job.aid_lag_s > 0:
-        aid = replace(config.tracking.aid, lag_s=job.aid_lag_s)
-        config = replace(config, tracking=replace(config.tracking, aid=aid))
+        config = with_aid(config, lag_s=job.aid_lag_s)
     factory = None
     ref = EngineRef(job.aid_lag_s)
     if job.variant in BOUNDS:
