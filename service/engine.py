@@ -41,6 +41,7 @@ from service.pipeline.read_model import Snapshot, build_snapshot
 from service.pipeline.restart import EngineState, own_state, read_state, state_when_answered
 from service.pipeline.sequencer import RADAR, REFERENCE, Refused, Release, Sequencer
 from service.pipeline.shared_links import Position
+from service.pipeline.system_stage import links_grid_s
 from service.pipeline.tracking_stage import (
     SiteChange,
     TrackerFactory,
@@ -98,7 +99,7 @@ class Engine:
             problems = aid_problems(c)
             if problems:
                 raise ValueError("; ".join(problems))
-            self.aid = PartnerAid(c.tracking.aid, self.tracking)
+            self.aid = PartnerAid(c.tracking.aid, self.tracking, links_grid_s(c.cadence.system_interval_s))
         #: Released batches waiting for the other workers' links their aid reads (partitioned,
         #: the aid on: :meth:`_process`), in release order with whatever was released after them.
         self._held: deque[Release] = deque()
@@ -291,6 +292,8 @@ class Engine:
             self.tracking.clear(sid) if keep_site else self.tracking.drop(sid)
             self.correlation.forget(sid)
             self.peers.forget(sid)
+            if self.aid is not None:
+                self.aid.forget(sid)
             self.feed.forget(sid)
             self.assessment.forget(sid)
             out += self.publication.forget(sid)
@@ -412,20 +415,16 @@ class Engine:
 
     def _aid_ready(self, position: Position, out: list[Outgoing]) -> bool:
         """Whether the aid of the batch at ``position`` (data time, radar) has all it reads:
-        every pair's links of its lag's time (this worker's correlation through it, correlated
-        now, its answers taken into ``out``, and, partitioned, every other live worker's: their
-        ``correlated_s``, sent after the links they cover) and every other radar's tables
-        before it (partitioned: every other worker has published them)."""
+        every pair's links and every radar's table through its lag's time (this worker's
+        correlation through it, correlated now, its answers taken into ``out``, and,
+        partitioned, every other live worker's tables, released through it to the merge, and
+        links: their ``correlated_s``, sent after the links they cover)."""
         assert self.aid is not None
         due_s = self.aid.due_s(position[0])
         out += self._answers_through(due_s)
         if self.partition.whole:
             return True
-        return (
-            self.merger.through(self.peers.owners()) >= due_s
-            and self.peers.others_correlated() >= due_s
-            and self.peers.others_published_before(position)
-        )
+        return self.merger.through(self.peers.owners()) >= due_s and self.peers.others_correlated() >= due_s
 
     def _track(self, radar_id: str, plots: Any, clock: float) -> list[Outgoing]:
         """A released batch of a radar (``None``: it expired, its tracks coast out)."""
@@ -441,7 +440,10 @@ class Engine:
                     aid = self.aid.references(radar_id, clock)
             table = self.tracking.update(radar_id, plots, clock, aid)
             self.assessment.plots(radar_id, self.tracking.tracked[radar_id].geometry, plots, clock)
-        return self.peers.own_table(radar_id, table.by_id(), clock, plots is None)
+        table = table.by_id()
+        if self.aid is not None:
+            self.aid.record(radar_id, clock, table)  # (the table the other workers are sent)
+        return self.peers.own_table(radar_id, table, clock, plots is None)
 
     def _answers_through(self, time_s: float) -> list[Outgoing]:
         """Every table up to data time ``time_s`` that the merge may release correlated and its
@@ -469,6 +471,8 @@ class Engine:
                     self.assessment.reference(rel.source_id, kind, cols, rel.item, rel.time_s)
                     self.correlation.reference(rel.source_id, rel.time_s, *cols, kind)
                 elif rel.source_id in self.tracking.tracked:
+                    if self.aid is not None:  # (no later batch of this worker comes before it)
+                        self.aid.passed((rel.time_s, rel.source_id))
                     # published with what the correlation answers for it (:meth:`_results`)
                     own = self.partition.owns(rel.source_id)
                     self._unpublished.append((rel.source_id, rel.time_s, rel.item, own))

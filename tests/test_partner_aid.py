@@ -23,7 +23,7 @@ from service.pipeline.partition import Partition
 from service.pipeline.partner_aid import PartnerAid
 from service.pipeline.shared_links import Crossing, PairRegistration, SharedLinks
 from service.pipeline.tracking_stage import TrackedRadar, TrackingStage
-from service.tracking.aid import aided_d2
+from service.tracking.aid import aided_d2, moved
 from service.tracking.base import TrackTable
 from service.tracking.params import AidParams
 from service.wire.keys import Keys
@@ -114,14 +114,35 @@ def test_aided_d2_matches_a_plain_loop() -> None:
             assert got[k] == pytest.approx(float(y @ np.linalg.inv(cz[k] + cr[k]) @ y), rel=1e-9)
 
 
-def _table(site: Site, ids: list[str], seed: int, spread_m: float) -> TrackTable:
+def test_moved_matches_the_constant_velocity_prediction_one_state_at_a_time() -> None:
+    rng = np.random.default_rng(5)
+    n = 9
+    pos, vel = rng.normal(0, 1e5, (n, 3)), rng.normal(0, 200, (n, 3))
+    m = rng.normal(size=(n, 6, 6))
+    cov = m @ np.swapaxes(m, 1, 2) * 100.0
+    dt = rng.uniform(-2.0, 25.0, n)
+    got_pos, got_cov = moved(pos, vel, cov, dt, 4.0)
+    for k in range(n):
+        f = np.eye(6)
+        f[:3, 3:] = dt[k] * np.eye(3)
+        q = np.zeros((6, 6))  # Bar-Shalom Eq. 6.2.2-12, per axis [[dt^3/3, dt^2/2], [dt^2/2, dt]]
+        q[:3, :3] = 4.0 * abs(dt[k]) ** 3 / 3 * np.eye(3)
+        want = f @ cov[k] @ f.T + q
+        np.testing.assert_allclose(got_pos[k], pos[k] + vel[k] * dt[k])
+        np.testing.assert_allclose(got_cov[k], want[:3, :3], rtol=1e-12, atol=1e-9)
+
+
+def _table(site: Site, ids: list[str], seed: int, spread_m: float, time_s: float = 100.0) -> TrackTable:
+    """Tracks of ``spread_m`` 1-sigma per axis, 3 m/s in velocity, the two correlated by 0.5."""
     ecef, vel, _ = _positions(site, len(ids), seed)
     cov = np.zeros((len(ids), 6, 6))
     cov[:, :3, :3] = np.eye(3) * spread_m**2
+    cov[:, 3:, 3:] = np.eye(3) * 9.0
+    cov[:, :3, 3:] = cov[:, 3:, :3] = np.eye(3) * 0.5 * spread_m * 3.0
     return TrackTable(
         np.array(ids),
         np.ones(len(ids), bool),
-        np.full(len(ids), 100.0),
+        np.full(len(ids), time_s),
         ecef,
         vel,
         cov,
@@ -144,7 +165,7 @@ def test_references_take_the_most_precise_registered_partner_as_a_plain_loop_doe
         radar = TrackedRadar(
             RadarSite(radar_id=r, latitude_deg=site.latitude_deg, longitude_deg=site.longitude_deg), site
         )
-        radar.table = _table(site, ids[r], seed=ord(r), spread_m=spreads[r])
+        radar.table = _table(site, ids[r], seed=ord(r), spread_m=spreads[r], time_s=88.0)
         stage.tracked[r] = radar
     tight = np.diag((SIGMAS / 4) ** 2)  # (within 50 m at every track)
     views = {
@@ -163,6 +184,9 @@ def test_references_take_the_most_precise_registered_partner_as_a_plain_loop_doe
     }
     params = AidParams(enabled=True, lag_s=10.0, registration_sigma_m=50.0)
     aid = PartnerAid(params, stage)
+    for r, radar in stage.tracked.items():  # (the tables at the crossing; a later one is not read)
+        aid.record(r, 88.0, radar.table)
+        aid.record(r, 91.0, _table(sites[r], ids[r], seed=7, spread_m=1.0, time_s=91.0))
     aid.crossed(Crossing((90.0, "B"), tuple(views.values())))
     assert aid.references("A", 95.0) is None  # (crossings up to 85 s: none yet)
     refs = aid.references("A", 100.0)
@@ -189,13 +213,16 @@ def test_references_take_the_most_precise_registered_partner_as_a_plain_loop_doe
             idx = np.concatenate([np.arange(5 * i, 5 * i + 5) for i in order])
             t = stage.tracked[other].table
             i = int(np.flatnonzero(t.track_id == pid)[0])
-            p = t.position_ecef_m[i] + t.velocity_ecef_mps[i] * (times[k] - t.time_s[i])
+            dt = times[k] - t.time_s[i]
+            p = t.position_ecef_m[i] + t.velocity_ecef_mps[i] * dt
+            f = np.block([[np.eye(3), dt * np.eye(3)], [np.zeros((3, 3)), np.eye(3)]])
+            pc = (f @ t.covariance[i] @ f.T)[:3, :3] + params.reference_psd * dt**3 / 3 * np.eye(3)
             pos, c, r = view_with_covariance(
                 sites[other],
                 A,
                 p[None],
                 t.velocity_ecef_mps[i][None],
-                t.covariance[i, :3, :3][None],
+                pc[None],
                 terms,
                 reg.covariance[np.ix_(idx, idx)],
             )
@@ -213,6 +240,8 @@ def test_references_take_the_most_precise_registered_partner_as_a_plain_loop_doe
     assert np.trace(cov[1, :2, :2]) < np.trace(cov[3, :2, :2])
     # a registration looser than the limit aids nothing
     strict = PartnerAid(replace(params, registration_sigma_m=5.0), stage)
+    for r, radar in stage.tracked.items():
+        strict.record(r, 88.0, radar.table)
     strict.crossed(Crossing((90.0, "B"), tuple(views.values())))
     got = strict.references("A", 100.0)
     assert got is not None and np.isnan(got(cand, times, own)[0]).all()
@@ -392,53 +421,91 @@ def test_partitioned_workers_aid_their_tracks_as_one_worker_does(
         engine.close()
 
 
-def test_another_workers_radar_is_read_as_it_was_before_the_batch_in_release_order() -> None:
-    """A radar another worker tracks: its table as its owner sent it last before the batch's
-    place (data time, then radar id, as one worker releases them), whatever came since."""
+def test_every_radar_is_read_as_it_was_at_the_crossing_in_release_order() -> None:
+    """A radar's table, this worker's or another's: the latest recorded at or before the
+    crossing read (data time, then radar id, as one worker releases them), whatever came since;
+    before any, none."""
     stage = TrackingStage(lambda site, rid: None)  # type: ignore[arg-type,return-value]
-    aid = PartnerAid(AidParams(enabled=True), stage)
+    aid = PartnerAid(AidParams(enabled=True, lag_s=10.0), stage)
     sent = [(10.0, _table(B, ["B-1"], 1, 50.0)), (12.0, _table(B, ["B-2"], 2, 50.0))]
     sent += [(12.0, _table(B, ["B-3"], 3, 50.0)), (15.0, _table(B, ["B-4"], 4, 50.0))]
     for time_s, table in sent:
-        aid.foreign("B", time_s, table)  # (all of them there before the batches: a worker ahead)
-    for position in [
-        (9.0, "A"),
-        (10.0, "A"),
-        (10.0, "C"),
-        (12.0, "A"),
-        (12.0, "C"),
-        (14.0, "Z"),
-        (16.0, "A"),
-    ]:
-        aid.references(position[1], position[0])
-        before = [t for time_s, t in sent if (time_s, "B") < position]
-        got = aid.table("B", position)[0]
+        aid.record("B", time_s, table)  # (all of them there before the batches: a worker ahead)
+    crossings = [(9.0, "A"), (10.0, "A"), (10.0, "C"), (12.0, "A"), (12.0, "C"), (14.0, "Z"), (16.0, "A")]
+    for crossing in crossings:
+        aid.crossed(Crossing(crossing, ()))
+    for batch_s in [19.0, 20.0, 21.0, 22.0, 23.9, 24.0, 26.0]:
+        refs = aid.references("A", batch_s)
+        assert refs is not None
+        crossing = refs.crossing  # type: ignore[attr-defined]
+        assert crossing == [c for c in crossings if c[0] <= batch_s - 10.0][-1]
+        before = [t for time_s, t in sent if (time_s, "B") <= crossing]
+        got = aid.table("B", crossing)[0]
         want = before[-1].track_id.tolist() if before else []
-        assert got.track_id.tolist() == want, position
+        assert got.track_id.tolist() == want, crossing
+    aid.forget("B")
+    assert len(aid.table("B", crossings[-1])[0]) == 0
 
 
-def test_a_worker_waits_for_every_table_before_its_batch_from_every_other_worker() -> None:
-    """Another worker's progress: every table up to ``released_s``, or, while it holds a batch
-    for its aid, every table before that batch's place (data time, then radar id)."""
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_the_tables_kept_give_every_crossing_what_all_of_them_would(seed: int) -> None:
+    """Tables recorded at every release of three radars, the crossings the first release of
+    each cell of the grid (as the system stage finds them): at every batch, each radar's table
+    read at its crossing is the latest of all that were recorded at or before it, although only
+    a cell's first and last are kept, and the reads move on."""
+    rng = np.random.default_rng(seed)
+    stage = TrackingStage(lambda site, rid: None)  # type: ignore[arg-type,return-value]
+    aid = PartnerAid(AidParams(enabled=True, lag_s=5.0), stage, grid_s=2.0)
+    times = np.sort(rng.uniform(0.0, 60.0, 300).round(1))  # (ties between radars too)
+    releases = sorted({(float(t), str(rng.choice(["A", "B", "C"]))) for t in times})  # (one batch a place)
+    recorded: list[tuple[tuple[float, str], str]] = []
+    next_cell = -np.inf
+    read = 0
+    for k, (time_s, radar) in enumerate(releases):
+        if k % 7 == 3:  # a batch of this radar asks before it is tracked
+            refs = aid.references(radar, time_s)
+            if refs is not None:
+                crossing = refs.crossing  # type: ignore[attr-defined]
+                for other in "ABC":
+                    before = [name for place, name in recorded if place <= crossing and place[1] == other]
+                    got = aid.table(other, crossing)[0].track_id.tolist()
+                    assert got == before[-1:], (k, other, crossing)
+                read += 1
+        aid.passed((time_s, radar))
+        name = f"{radar}-{k}"
+        aid.record(radar, time_s, _table(B, [name], k, 50.0, time_s))
+        recorded.append(((time_s, radar), name))
+        if np.floor(time_s / 2.0) * 2.0 >= next_cell:  # (the system stage's rule)
+            next_cell = np.floor(time_s / 2.0) * 2.0 + 2.0
+            aid.crossed(Crossing((time_s, radar), ()))
+    assert read > 30
+    assert sum(len(q) for q in aid._tables.values()) < 30  # (what a read may still need)
+
+
+def test_a_worker_waits_for_the_others_only_through_its_lag(
+    formation_in_traffic: list[tuple[str, bytes]],
+) -> None:
+    """Partitioned, a batch at ``t`` waits for the other workers' tables and links through
+    ``t - lag_s`` only, not up to ``t``: the workers track up to ``lag_s`` apart, not in step."""
     engine = Engine(replace(_aided(EngineConfig()), partition=Partition(1, 2)))
+    lag = engine.config.tracking.aid.lag_s
     key = Keys("fusion").worker_progress(2)
-
-    def told(released_s: float, held: list[Any] | None = None) -> None:
-        body = {"partition": "2/2", "released_s": released_s, **({"held": held} if held else {})}
-        engine.ingest(key, json.dumps(body).encode())
-        assert engine.rejected == {}
-
+    told = -np.inf
     try:
-        before = engine.peers.others_published_before
-        assert not before((0.0, "A"))  # (nothing heard: nothing published)
-        told(100.0)
-        assert before((100.0, "A")) and before((100.0, "Z")) and before((99.0, "A"))
-        assert not before((100.5, "A"))
-        told(float(np.nextafter(100.0, 0.0)), [100.0, "B"])
-        assert before((100.0, "A")) and before((99.5, "Z"))  # (A's batch at 100 comes before B's)
-        assert not before((100.0, "C")) and not before((100.5, "A"))
-        engine.wait_for({1})  # worker 2 gone: no one to wait for
-        assert before((1e9, "A"))
+        for k, (topic, payload) in enumerate(formation_in_traffic):
+            if topic.endswith("/plots") and k % 25 == 0:
+                told = json.loads(payload)["time_s"] - lag - 5.0  # (worker 2: 5 s short of it)
+                body = {"partition": "2/2", "released_s": told, "correlated_s": told}
+                engine.ingest(key, json.dumps(body).encode())
+            engine.ingest(topic, payload, receive_time_s=0.0)
+        assert engine.rejected == {}
+        asking = [r for r in engine._held if engine._asks_aid(r)]
+        assert asking, "no batch waits"  # (the aid is asked for here)
+        # a batch waits only while its lag reaches past what worker 2 said ...
+        assert all(r.time_s - lag > told for r in asking)
+        # ... and batches after the place worker 2 has reached were tracked all the same
+        tracked = [r.time_s for r in engine.tracking.tracked.values() if r.time_s is not None]
+        assert max(tracked) > told + 0.5 * lag
     finally:
         engine.close()
 

@@ -14,16 +14,24 @@ every other live worker's (their ``correlated_s``, sent after the links it cover
 is the same whether the correlation runs in this process, in its own, or in other workers, and
 however the batches arrive and group.
 
-A partner is looked up in its radar's table as the tracking stage holds it at the batch (the
-merge's data-time order decides that, not arrival), moved to each plot's time on its velocity
-and into the aided radar's view by the pair's registration
-(:func:`~service.correlation.partner_view.view_with_covariance`).  Cost: at each crossing, a
-reference to each updated pair's links; nothing more unless the tracker asks, which it does for
-the candidates of its tracks in a formation; then, for each other radar with confirmed pairs
-with this one, a search of those tracks among its confirmed pairs and of their partners in its
-table (each sorted once per links and table), and one vectorised transform of the candidates
-with a partner; no loop over tracks or pairs.  Memory: each pair's links from the crossing read
-last on (about ``lag_s`` plus a grid step of data time).
+A partner is looked up in its radar's table as it was at that same crossing: the latest table
+at or before the crossing's place in the release order, this worker's own after each of its
+batches, another worker's as its owner sent it.  Its links and its table then agree (a track
+the links name is in it unless it was deleted before), and a batch waits only for what was
+released through ``t - lag_s``, never for the other workers' tables up to ``t``: partitioned
+workers then track ``lag_s`` apart at most, not in step.  The partner is moved from its
+table's time to each plot's on its velocity, its position covariance with it (:func:`~service.
+tracking.aid.moved`: the velocity's uncertainty and ``AidParams.reference_psd`` of white-noise
+acceleration over the ``lag_s`` or more), and into the aided radar's view by the pair's
+registration (:func:`~service.correlation.partner_view.view_with_covariance`).  Cost: at each
+crossing, a reference to each updated pair's links; at each batch and each table released to
+the correlation, a look whether the reads move on to a newer crossing; nothing more unless the
+tracker asks, which it does for the candidates of its tracks in a formation; then, for each
+other radar with confirmed pairs with this one, a search of those tracks among its confirmed
+pairs and of their partners in its table (each sorted once per links and table), and one
+vectorised transform of the candidates with a partner; no loop over tracks or pairs.  Memory:
+each pair's links and each radar's tables from the crossing read last on: ``lag_s``, a grid
+step, and how far this worker's tracking runs ahead of its merge, of data time.
 """
 
 from __future__ import annotations
@@ -39,8 +47,9 @@ from service.correlation.partner_view import view_with_covariance
 from service.correlation.registration import N_TERMS
 from service.geo import FloatArray
 from service.pipeline.shared_links import Crossing, Key, LinksHistory, PairRegistration, Position, SharedLinks
+from service.pipeline.system_stage import LINKS_GRID_S
 from service.pipeline.tracking_stage import TrackingStage
-from service.tracking.aid import PartnerReferences, horizontal_spread
+from service.tracking.aid import PartnerReferences, horizontal_spread, moved
 from service.tracking.base import TrackTable
 from service.tracking.params import AidParams
 
@@ -49,22 +58,26 @@ class PartnerAid:
     """Every pair's links and registration at the links' grid's crossings, and the references
     they give a radar's tracks."""
 
-    def __init__(self, params: AidParams, tracking: TrackingStage) -> None:
+    def __init__(self, params: AidParams, tracking: TrackingStage, grid_s: float = LINKS_GRID_S) -> None:
         self.params = params
         self.tracking = tracking
+        #: The links' grid (data s): the crossings are the first releases of its cells.
+        self.grid_s = grid_s
         #: Every pair's links (this worker's at its crossings, the others' as they come) ...
         self.history = LinksHistory()
-        #: ... the crossings not read yet, oldest first ...
+        #: ... the crossings not reached yet, oldest first ...
         self._crossings: deque[Position] = deque()
-        #: ... and every pair's links at the crossing read last (None: none yet).
-        self._state: dict[Key, SharedLinks] | None = None
-        #: What each pair's links give each of its radars (:meth:`_partner`), and each radar's
-        #: table with its ids sorted (:meth:`table`): made once per links and table.
+        #: ... the crossing the reads are at (None: none yet) ...
+        self._crossing: Position | None = None
+        #: ... and every pair's links there, once read (for ``_crossing``).
+        self._state: tuple[Position, dict[Key, SharedLinks]] | None = None
+        #: Every radar's tables, (data time, table), oldest first, from the one at or before the
+        #: crossing on: this worker's after each of its batches, the others' as sent.
+        self._tables: dict[str, deque[tuple[float, TrackTable]]] = {}
+        #: What each pair's links give each of its radars (:meth:`_partner`), and each table's
+        #: ids sorted (:meth:`table`): made once per links and table.
         self._partners: dict[tuple[Key, str], tuple[SharedLinks, _Partner | None]] = {}
-        self._tables: dict[str, tuple[TrackTable, NDArray[np.str_], NDArray[np.intp]]] = {}
-        #: The tables of the radars other workers track, as their owners sent them (data time,
-        #: table), oldest first: from the one before the batch read last on.
-        self._foreign: dict[str, deque[tuple[float, TrackTable]]] = {}
+        self._sorted: dict[str, tuple[TrackTable, NDArray[np.str_], NDArray[np.intp]]] = {}
 
     def crossed(self, crossing: Crossing) -> None:
         """A crossing of this worker's correlation (in release order), with its own pairs'
@@ -77,52 +90,67 @@ class PartnerAid:
         """Another worker's pair's links (in the order its owner updated it)."""
         self.history.record(shared)
 
-    def foreign(self, radar_id: str, time_s: float, table: TrackTable) -> None:
-        """A table of a radar another worker tracks, as its owner sent it (in its order)."""
-        self._foreign.setdefault(radar_id, deque()).append((time_s, table))
+    def record(self, radar_id: str, time_s: float, table: TrackTable) -> None:
+        """A radar's table after its batch at ``time_s``: this worker's own, or another
+        worker's as its owner sent it (each radar's in its order).  Of the tables in one cell
+        of the grid only the first and the last are kept: a crossing is the first release of
+        its cell, so it comes before every other table of the cell (or is the first), and the
+        latest table at or before it is that first one or the last of an earlier cell."""
+        queue = self._tables.setdefault(radar_id, deque())
+        if len(queue) >= 2:
+            cell = np.floor(time_s / self.grid_s)
+            if np.floor(queue[-1][0] / self.grid_s) == cell == np.floor(queue[-2][0] / self.grid_s):
+                queue.pop()  # (neither its cell's first nor, now, its last: never read)
+        queue.append((time_s, table))
+
+    def forget(self, radar_id: str) -> None:
+        """A radar forgotten or dropped: its tables go (its tracks are gone with it)."""
+        self._tables.pop(radar_id, None)
+        self._sorted.pop(radar_id, None)
 
     def passed(self, position: Position) -> None:
-        """The batch at ``position`` is tracked (batches come in release order): the other
-        workers' tables that no later batch reads go, the latest before it stays."""
-        for other, queue in self._foreign.items():
-            while len(queue) > 1 and (queue[1][0], other) < position:
-                queue.popleft()
+        """Release order has reached ``position`` (a batch to track, or a table released to the
+        correlation; never a place after a batch still to come): the reads move on to the
+        latest crossing known at or before its lag, and what no later read needs goes."""
+        due = self.due_s(position[0])
+        moved = False
+        while self._crossings and self._crossings[0][0] <= due:
+            self._crossing = self._crossings.popleft()
+            moved = True
+        if moved and self._crossing is not None:
+            self.history.shared_at(self._crossing)  # (each pair's latest links there stay)
+            for radar_id, queue in self._tables.items():
+                _drop_before(queue, radar_id, self._crossing)
 
     def due_s(self, time_s: float) -> float:
         """The data time through which a batch at ``time_s`` needs every pair's links."""
         return time_s - self.params.lag_s
 
-    def _take(self, time_s: float) -> dict[Key, SharedLinks] | None:
-        """Every pair's links at the latest crossing at or before ``due_s(time_s)`` (batches
-        come in data-time order, so the reads only move on)."""
-        due = self.due_s(time_s)
-        taken = None
-        while self._crossings and self._crossings[0][0] <= due:
-            taken = self._crossings.popleft()
-        if taken is not None:
-            self._state = self.history.shared_at(taken)
-        return self._state
-
     def references(self, radar_id: str, time_s: float) -> PartnerReferences | None:
         """The references of radar ``radar_id``'s tracks for its batch at ``time_s`` (None: no
-        crossing that old yet).  Its pairs are looked at only if the tracker asks (a track of
-        it in a formation has candidates)."""
-        position = (time_s, radar_id)
-        self.passed(position)
-        state = self._take(time_s)
-        return _References(self, position, state) if state is not None else None
+        crossing that old yet).  Every pair's links and every table through its lag must be in
+        (the engine waits for them).  Its pairs are looked at only if the tracker asks (a track
+        of it in a formation has candidates)."""
+        self.passed((time_s, radar_id))
+        crossing = self._crossing
+        if crossing is None:
+            return None
+        if self._state is None or self._state[0] != crossing:
+            self._state = (crossing, self.history.shared_at(crossing))
+        return _References(self, radar_id, crossing, self._state[1])
 
-    def partners(self, position: Position, state: dict[Key, SharedLinks]) -> list[_Partner]:
-        """What the pairs' links of ``state`` give the radar of the batch at ``position``: each
+    def partners(self, radar_id: str, crossing: Position, state: dict[Key, SharedLinks]) -> list[_Partner]:
+        """What the pairs' links of ``state`` (at ``crossing``) give radar ``radar_id``: each
         registered one with confirmed pairs whose other radar is tracked, its table then not
         empty."""
-        radar_id = position[1]
         out = []
         for key, shared in state.items():
             if radar_id not in key or not shared.links.track_a.shape[0] or shared.registration is None:
                 continue
             partner = self._partner(key, shared, radar_id)
-            if partner is not None and len(self.table(partner.other, position)[0]):  # (dropped: none)
+            if partner is None or partner.other not in self.tracking.tracked:  # (dropped since: none)
+                continue
+            if len(self.table(partner.other, crossing)[0]):
                 out.append(partner)
         return out
 
@@ -146,27 +174,31 @@ class PartnerAid:
         return partner
 
     def table(
-        self, radar_id: str, position: Position
+        self, radar_id: str, crossing: Position
     ) -> tuple[TrackTable, NDArray[np.str_], NDArray[np.intp]]:
-        """Radar ``radar_id``'s table as it was before the batch at ``position`` in the release
-        order (the tracking stage's, when this worker tracks it; else the latest its owner sent
-        from before), its ids sorted and their rows (sorted once per table)."""
-        queue = self._foreign.get(radar_id)
-        if queue is None:
-            radar = self.tracking.tracked.get(radar_id)
-            table = radar.table if radar is not None else _EMPTY  # (a radar dropped: none)
-        elif queue and (queue[0][0], radar_id) < position:
-            table = queue[0][1]
-        else:
-            table = _EMPTY
-        kept = self._tables.get(radar_id)
+        """Radar ``radar_id``'s table as it was at ``crossing`` in the release order (the
+        latest at or before it; none: empty), its ids sorted and their rows (sorted once per
+        table)."""
+        queue = self._tables.get(radar_id)
+        table = _EMPTY
+        if queue:
+            _drop_before(queue, radar_id, crossing)
+            if (queue[0][0], radar_id) <= crossing:
+                table = queue[0][1]
+        kept = self._sorted.get(radar_id)
         if kept is None or kept[0] is not table:
             order = np.argsort(table.track_id, kind="stable")
-            kept = self._tables[radar_id] = (table, table.track_id[order], order)
+            kept = self._sorted[radar_id] = (table, table.track_id[order], order)
         return kept
 
 
-#: A radar's table before its owner sent any.
+def _drop_before(queue: deque[tuple[float, TrackTable]], radar_id: str, crossing: Position) -> None:
+    """A radar's tables from the latest at or before ``crossing`` on (the reads only move on)."""
+    while len(queue) > 1 and (queue[1][0], radar_id) <= crossing:
+        queue.popleft()
+
+
+#: A radar's table before any was recorded.
 _EMPTY = TrackTable.empty()
 
 
@@ -192,12 +224,15 @@ def _pair_terms(reg: PairRegistration, own: str, other: str) -> tuple[FloatArray
 
 
 class _References:
-    """:class:`~service.tracking.aid.PartnerReferences` of one radar for one batch."""
+    """:class:`~service.tracking.aid.PartnerReferences` of one radar for one batch, from every
+    pair's links and every table at one crossing."""
 
-    def __init__(self, aid: PartnerAid, position: Position, state: dict[Key, SharedLinks]) -> None:
+    def __init__(
+        self, aid: PartnerAid, radar_id: str, crossing: Position, state: dict[Key, SharedLinks]
+    ) -> None:
         self.aid = aid
-        self.position = position
-        self.radar_id = position[1]
+        self.radar_id = radar_id
+        self.crossing = crossing
         self.state = state
 
     def __call__(
@@ -209,25 +244,26 @@ class _References:
         tracked = self.aid.tracking.tracked
         target = tracked[self.radar_id].geometry
         limit = self.aid.params.registration_sigma_m**2
-        for p in self.aid.partners(self.position, self.state):
+        for p in self.aid.partners(self.radar_id, self.crossing, self.state):
             at = find(p.own_ids, track_ids)
             has = np.flatnonzero(at >= 0)
             if not has.shape[0]:
                 continue
-            table, ids, order = self.aid.table(p.other, self.position)
+            table, ids, order = self.aid.table(p.other, self.crossing)
             j = find(ids, p.their_ids[at[has]])
             sel, r = has[j >= 0], order[j[j >= 0]]
             if not sel.shape[0]:
                 continue
             vel = table.velocity_ecef_mps[r]
-            pos, cov, reg = view_with_covariance(
-                tracked[p.other].geometry,
-                target,
-                table.position_ecef_m[r] + vel * (times_s[sel] - table.time_s[r])[:, None],
+            position, position_cov = moved(
+                table.position_ecef_m[r],
                 vel,
-                table.covariance[r, :3, :3],
-                p.terms,
-                p.terms_cov,
+                table.covariance[r],
+                times_s[sel] - table.time_s[r],
+                self.aid.params.reference_psd,
+            )
+            pos, cov, reg = view_with_covariance(
+                tracked[p.other].geometry, target, position, vel, position_cov, p.terms, p.terms_cov
             )
             spread = horizontal_spread(cov)
             take = (horizontal_spread(reg) <= limit) & (spread < best[sel])

@@ -124,8 +124,6 @@ class Peers:
         self.partition = partition = config.partition
         self.released = released or (lambda: Released(sequencer.last_limit))
         self.aid = aid
-        #: Each other worker's oldest batch held for its aid, as its latest progress says.
-        self._held_by: dict[int, Position | None] = {}
         self.keys = keys
         self.exchange = exchange = config.exchange
         self.cadence = config.cadence
@@ -260,19 +258,6 @@ class Peers:
         """How far every other live worker has correlated (and sent its links; none: no limit)."""
         others = self.waited - {self.partition.index}
         return min((self._correlated_by.get(k, -np.inf) for k in others), default=np.inf)
-
-    def others_published_before(self, position: Position) -> bool:
-        """Whether every other live worker has published every table before ``position`` (data
-        time, radar id) in the release order: its oldest batch held for its aid is not before
-        it, or it has released every table up to that data time."""
-        for k in self.waited - {self.partition.index}:
-            held = self._held_by.get(k)
-            if held is not None:
-                if held < position:
-                    return False
-            elif self.merger.released.get(k, -np.inf) < position[0]:
-                return False
-        return True
 
     def _others_through(self) -> None:
         """Worker 1: tell the correlation how far every other live worker has correlated (it
@@ -423,8 +408,7 @@ class Peers:
             **({"lone_clocks": lone} if lone else {}),
         }
         out = []
-        moved_held = progress.get("held") != (self._progress_sent or {}).get("held")
-        if moved_held or self._due(progress, self._progress_sent, ("released_s", "correlated_s"), idle):
+        if self._due(progress, self._progress_sent, ("released_s", "correlated_s"), idle):
             self._progress_sent = progress
             out.append(Outgoing(self.keys.worker_progress(self.partition.index), lambda: progress))
         if self._due(clocks, self._clock_sent, tuple(clocks["clocks"]), idle) or self._lone_moved(lone):
@@ -471,7 +455,6 @@ class Peers:
                 self._correlated_by[worker] = (
                     clock.correlated_s if clock.correlated_s is not None else -np.inf
                 )
-                self._held_by[worker] = clock.held
                 self._others_through()
             return PeerInput(moved=True)
         if kind == "registration":
@@ -552,7 +535,7 @@ class Peers:
     def _apply_states(self, radar_id: str, msg: Any) -> None:
         table = self.receiver.apply(msg)
         if table is not None and self.aid is not None:
-            self.aid.foreign(radar_id, msg.time_s, table)
+            self.aid.record(radar_id, msg.time_s, table)
         if table is not None:
             self.merger.push(RADAR, radar_id, msg.seq, msg.time_s, table, expiry=msg.expiry)
             self._heard.add(radar_id)

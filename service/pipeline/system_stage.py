@@ -63,6 +63,12 @@ MAX_PENDING_PICTURES = 30
 #: needs one (data s).
 LINKS_GRID_S = 2.0
 
+
+def links_grid_s(interval_s: float) -> float:
+    """The links' grid (data s): the picture's ``system_interval_s``, or :data:`LINKS_GRID_S`."""
+    return interval_s if interval_s > 0 else LINKS_GRID_S
+
+
 log = logging.getLogger(__name__)
 
 
@@ -95,7 +101,7 @@ class SystemStage:
         #: The aid of association reads every pair's links and registration at the crossings
         #: (:meth:`take_crossings`: the tracking stage's, :mod:`.partner_aid`).
         self.aid = aid
-        self.grid_s = interval_s if interval_s > 0 else LINKS_GRID_S
+        self.grid_s = links_grid_s(interval_s)
         #: This worker draws the picture: the only worker, or worker 1 of N.
         self.draws = interval_s > 0 and (partition.whole or partition.solves_biases)
         #: This worker sends its pairs' links: to worker 1, and to every worker for the cycles

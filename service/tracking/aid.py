@@ -65,3 +65,18 @@ def aided_d2(z: FloatArray, cov_z: FloatArray, ref: FloatArray, ref_cov: FloatAr
         s = cov_z[ok] + ref_cov[ok]
         out[ok] = np.einsum("ni,ni->n", y, np.linalg.solve(s, y[:, :, None])[:, :, 0])
     return out
+
+
+def moved(
+    position: FloatArray, velocity: FloatArray, covariance: FloatArray, dt_s: FloatArray, psd: float
+) -> tuple[FloatArray, FloatArray]:
+    """States ``(n, 3)`` positions, velocities and their ``(n, 6, 6)`` covariances, each moved
+    ``dt_s[k]`` on a constant velocity: the positions and their ``(n, 3, 3)`` covariances, the
+    prediction of the constant-velocity model ``F = [[I, dt I], [0, I]]``, ``F P F^T`` with the
+    white-noise acceleration of spectral density ``psd`` (m^2/s^3) per axis, ``psd |dt|^3 / 3``
+    on the position (Bar-Shalom, Li, Kirubarajan 2001, Eq. 6.2.2-12, as :mod:`.kalman`)."""
+    dt = np.asarray(dt_s, dtype=float)[:, None, None]
+    p = covariance
+    cov = p[:, :3, :3] + dt * (p[:, :3, 3:] + p[:, 3:, :3]) + dt**2 * p[:, 3:, 3:]
+    cov = cov + (psd * np.abs(dt) ** 3 / 3.0) * np.eye(3)
+    return position + velocity * dt[:, :, 0], cov
