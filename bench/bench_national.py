@@ -88,7 +88,7 @@ from typing import Any
 import numpy as np
 from checkout import warn_if_elsewhere
 
-from service.config import with_aid
+from service.config import without_aid
 from service.engine import Engine, EngineConfig, Snapshot
 from topofusion_lab.evaluation.promptness import OutputMonitor, PromptnessReport, watch_engine
 from topofusion_lab.scenarios.catalog import get_scenario
@@ -435,9 +435,9 @@ def no_history_config() -> EngineConfig:
     return replace(cfg, correlation=corr)
 
 
-def aided_config() -> EngineConfig:
-    """The full pipeline with the aid of association on (``tracking.aid``)."""
-    return with_aid(EngineConfig())
+def unaided_config() -> EngineConfig:
+    """The full pipeline with the aid of association off (``tracking.aid``, on by default)."""
+    return without_aid(EngineConfig())
 
 
 def all_variants() -> list[Variant]:
@@ -446,14 +446,14 @@ def all_variants() -> list[Variant]:
         Variant("B", "full, one process", EngineConfig(), False),
         Variant("C", "full, correlation process", EngineConfig(), True),
         Variant("H", "full, one process, no history evidence", no_history_config(), False),
-        Variant("E", "full, correlation process, aid of association", aided_config(), True),
+        Variant("E", "full, correlation process, no aid of association", unaided_config(), True),
     ]
 
 
 def variants(full_only: bool, history_ab: bool = False, aid_ab: bool = False) -> list[Variant]:
     """The runs compared side by side; ``history_ab``: B against H, the same without the
     history evidence (what the evidence costs and gives); ``aid_ab``: C against E, the same
-    with the aid of association (what the aid costs and gives)."""
+    without the aid of association (what the aid costs and gives)."""
     out = all_variants()
     if history_ab:
         return [out[1], out[3]]

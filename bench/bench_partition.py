@@ -35,12 +35,13 @@ limit: the CPU a worker pays at a live rate, where it idles between messages.  W
 ``--in-process`` runs the engines alone instead, every count's side by side in this process,
 message by message (:func:`in_process`): the division of the engines' own work, which a drift
 of the machine's speed between runs cannot move; ``--breakdown`` splits each engine's CPU by
-what it was for (:class:`Breakdown`).  ``--aid`` runs every worker with the aid of association
-on (``tracking.aid.enabled``), whose partitioned workers track in step.
+what it was for (:class:`Breakdown`).  ``--no-aid`` runs every worker with the aid of
+association off (``tracking.aid.enabled``, on by default; ``--aid``, the default, stays for
+the commands of earlier measurements).
 
 Run: .venv/bin/python bench/bench_partition.py [--duration 300] [--seed 1] [--scenario national]
      [--workers 1,2] [--repeat 1] [--one-process | --correlation-process] [--balance | --salt S] [--pace X]
-     [--traffic] [--aid] [--in-process [--breakdown]]
+     [--traffic] [--no-aid] [--in-process [--breakdown]]
      [--cache FILE] [--compare] [--logs DIR]
 """
 
@@ -67,7 +68,7 @@ import httpx
 import zenoh
 from checkout import warn_if_elsewhere
 
-from service.config import EngineConfig, with_aid
+from service.config import EngineConfig, without_aid
 from service.engine import Engine
 from service.pipeline.partition import PAIR_KM, Partition, balanced_salt, candidate_pairs, pair_name
 from service.transport.session import ZenohOptions, open_session
@@ -168,7 +169,7 @@ def start_workers(
     process: bool | None,
     log_dir: Path | None = None,
     salt: int = 0,
-    aid: bool = False,
+    aid: bool = True,
 ) -> list[Worker]:
     workers = []
     for k in range(1, n + 1):
@@ -185,8 +186,8 @@ def start_workers(
         )
         if process is not None:  # (None: the service's default)
             env["TOPOFUSION_CORRELATION_PROCESS"] = "true" if process else "false"
-        if aid:  # the aid of association on (off by default)
-            env["TOPOFUSION_ENGINE__TRACKING__AID__ENABLED"] = "true"
+        if not aid:  # the aid of association off (on by default)
+            env["TOPOFUSION_ENGINE__TRACKING__AID__ENABLED"] = "false"
         # --logs DIR keeps each worker's log (e.g. "worker 2/2 left" when a session flaps)
         log_path = Path(log_dir) / f"worker-{k}-of-{n}.log" if log_dir else Path(os.devnull)
         with log_path.open("w") as log:
@@ -341,7 +342,7 @@ def one_run(n: int, stream: list[tuple[str, bytes]], data_s: float, args: argpar
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(ZenohOptions(mode="router", listen=(endpoint,)))
     salt = worker_salt(n, stream, args)
-    workers = start_workers(n, endpoint, process_setting(args), args.logs, salt, args.aid)
+    workers = start_workers(n, endpoint, process_setting(args), args.logs, salt, not args.no_aid)
     client = open_session(ZenohOptions(mode="client", connect=(endpoint,)))
     last_pairs = [0.0, 0]
     lock = threading.Lock()
@@ -543,7 +544,7 @@ def in_process(
     for n in counts:
         salt = worker_salt(n, stream, args)
         parts = [Partition(k, n, salt) for k in range(1, n + 1)]
-        base = with_aid(EngineConfig(prefix=PREFIX)) if args.aid else EngineConfig(prefix=PREFIX)
+        base = without_aid(EngineConfig(prefix=PREFIX)) if args.no_aid else EngineConfig(prefix=PREFIX)
         groups.append([(part, Engine(replace(base, partition=part))) for part in parts])
     cpu = [[0.0] * len(g) for g in groups]
     waiting: list[list[list[tuple[str, bytes]]]] = [[[] for _ in g] for g in groups]
@@ -689,11 +690,16 @@ def main() -> None:
         "the workers take it); below the machine's limit every configuration runs unsaturated",
     )
     p.add_argument("--traffic", action="store_true", help="count every message by key kind (slower)")
-    p.add_argument(
+    aid = p.add_mutually_exclusive_group()
+    aid.add_argument(
         "--aid",
         action="store_true",
-        help="every worker with the aid of association on (tracking.aid.enabled): what tracking "
-        "in step across workers costs",
+        help="every worker with the aid of association on (tracking.aid.enabled), as by default",
+    )
+    aid.add_argument(
+        "--no-aid",
+        action="store_true",
+        help="every worker with the aid of association off: what the aid costs",
     )
     p.add_argument(
         "--in-process",

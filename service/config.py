@@ -56,6 +56,7 @@ __all__ = [
     "load_sites",
     "merge",
     "with_aid",
+    "without_aid",
 ]
 
 
@@ -179,6 +180,12 @@ def with_aid(config: EngineConfig, **changes: Any) -> EngineConfig:
     """``config`` with the aid of association on (``tracking.aid.enabled``), and ``changes`` to
     its other settings (``lag_s``, ``registration_sigma_m``)."""
     aid = replace(config.tracking.aid, enabled=True, **changes)
+    return replace(config, tracking=replace(config.tracking, aid=aid))
+
+
+def without_aid(config: EngineConfig) -> EngineConfig:
+    """``config`` with the aid of association off (``tracking.aid.enabled``; on by default)."""
+    aid = replace(config.tracking.aid, enabled=False)
     return replace(config, tracking=replace(config.tracking, aid=aid))
 
 

@@ -32,10 +32,10 @@ def _run(variant: str) -> dict[str, float]:
 
 
 def test_the_truth_bound_takes_no_plot_of_another_aircraft_and_the_tracker_does() -> None:
-    """10 aircraft 806 m apart, 180 s: the default tracker gives some of its tracks' plots to
-    the wrong track; told the truth, none; told the true positions, or aided by the other
-    radars' tracks, fewer than the tracker."""
-    now, truth = _run("now"), _run("truth")
+    """10 aircraft 806 m apart, 180 s: the tracker alone (the default without the aid of
+    association) gives some of its tracks' plots to the wrong track; told the truth, none; told
+    the true positions, or aided by the other radars' tracks, fewer than the tracker."""
+    now, truth = _run("unaided"), _run("truth")
     assert now["joined_led"] > 100 and now["joined_other"] > 0
     assert truth["joined_led"] > 100 and truth["joined_other"] == 0
     for bound in ("true-position", "other-radar"):
@@ -154,7 +154,7 @@ def test_an_aid_from_further_back_than_the_run_is_no_aid() -> None:
     """``paired-covariance`` in traffic (10 aircraft in formation among 32 others, 240 s) with
     the correlation's answers as they come changes the association; taken an hour back
     (``aid_lag_s``) it has nothing to go by, and its tracks, plots and pairs are the default
-    tracker's, to the count."""
+    tracker's (the default without the aid of association), to the count."""
     point = fs.Point("2x in traffic", "lattice", 2.0, traffic=32)
     keys = ("joined_led", "joined_other", "switches", "tracked", "pairs_found", "pairs_false", "err2")
 
@@ -162,6 +162,6 @@ def test_an_aid_from_further_back_than_the_run_is_no_aid() -> None:
         got = fs.run_one(fs.Job(0, point, variant, 0, 1, 240.0, 10, aid_lag_s=lag_s))
         return [got[k] for k in keys]
 
-    now = run("now", 0.0)
+    now = run("unaided", 0.0)
     assert run("paired-covariance", 0.0) != now
     assert run("paired-covariance", 3600.0) == now

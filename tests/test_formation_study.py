@@ -245,11 +245,14 @@ def test_grid_and_variants() -> None:
     assert before.tracking.formation == FormationParams.off() and not before.tracking.filter.imm
     assert fs.engine_config("now").tracking.filter.imm
     assert before.correlation.prompt.min_quality == 0.0 and not before.correlation.swap.enabled
-    assert fs.engine_config("now") == EngineConfig()
-    aided = fs.engine_config("aided")
-    assert aided.tracking.aid.enabled and aided.tracking.aid == replace(
-        EngineConfig().tracking.aid, enabled=True
+    assert fs.engine_config("now") == EngineConfig() and EngineConfig().tracking.aid.enabled
+    assert not before.tracking.aid.enabled
+    unaided = fs.engine_config("unaided")
+    assert not unaided.tracking.aid.enabled and unaided.tracking.aid == replace(
+        EngineConfig().tracking.aid, enabled=False
     )
+    default_aid = EngineConfig().tracking.aid
+    assert replace(unaided, tracking=replace(unaided.tracking, aid=default_aid)) == EngineConfig()
 
 
 def test_a_tiny_run_reports_every_tracker(tmp_path: Path) -> None:
@@ -264,17 +267,17 @@ def test_a_tiny_run_reports_every_tracker(tmp_path: Path) -> None:
         workers=1,
     )
     assert "| 2x (" in section and "| before |" in section and "| now |" in section
-    assert "| aided |" in section
-    assert "| goal | before | now | aided |" in section
+    assert "| unaided |" in section
+    assert "| goal | before | unaided | now |" in section
     assert "pairs on two aircraft now (worst seed) |" in section
     assert "| plots to another aircraft (its own there) |" in section
     assert "| 2x (" in section.split("Pair scores through the whole pipeline")[1]
     runs = json.loads((tmp_path / "formation.json").read_text())["runs"]
-    assert [r["variant"] for r in runs] == ["before", "now", "aided"]
+    assert [r["variant"] for r in runs] == ["before", "unaided", "now"]
     if fs.variants_equal():  # one run gives both rows
         assert "each run gives both rows" in section
         assert {k: v for k, v in runs[0].items() if k not in ("variant", "shared")} == {
-            k: v for k, v in runs[1].items() if k != "variant"
+            k: v for k, v in runs[2].items() if k != "variant"
         }
     for r in runs:
         s = fs.summarize([r])

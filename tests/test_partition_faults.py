@@ -179,8 +179,9 @@ def test_a_killed_worker_leaves_the_rest_going_and_a_restarted_one_rebuilds(
             wait_for(lambda: _batches(p2, theirs) == n_theirs, timeout=60)
             wait_for(lambda: _latest_pair_time(p1, *across) > stalled, timeout=60)
             wait_for(lambda: sorted(r["radar_id"] for r in _get(p1, "/status")["radars"]) == radars)
-            tracks = _get(p2, f"/radars/{theirs[0]}/tracks")
-            assert tracks["tracks"], "the restarted worker has confirmed tracks again"
+            # (it tracks what came, with the aid of association a lag behind worker 1 at most:
+            # at a replay's full speed both catch up over some seconds, not at once)
+            wait_for(lambda: _get(p2, f"/radars/{theirs[0]}/tracks")["tracks"], timeout=30)
             # and worker 1 holds them too, once their track states have reached it
             wait_for(lambda: _get(p1, f"/radars/{theirs[0]}/tracks")["tracks"], timeout=30)
 

@@ -24,7 +24,6 @@ from typing import Any
 import orjson
 import zenoh
 
-from service.config import with_aid
 from service.engine import EngineConfig
 from service.pipeline.partition import Partition
 from service.transport.node import ServiceNode
@@ -209,16 +208,17 @@ def test_two_workers_give_the_results_of_one(router: str, client: zenoh.Session)
 
 
 def test_two_workers_aid_their_tracks_as_one_worker_does(router: str, client: zenoh.Session) -> None:
-    """With the aid of association on (a formation among other traffic, where it decides
-    associations), the workers exchange their pairs' registrations with their links and track
-    in step: every pair update is one worker's."""
+    """With the aid of association (on by default; a formation among other traffic, where it
+    decides associations), the workers exchange their pairs' registrations with their links and
+    track at most its lag apart: every pair update is one worker's."""
     from topofusion_lab.evaluation import formation
     from topofusion_lab.scenarios.simulator import wire_messages
 
     point = next(p for p in formation.POINTS if p.label == "2x in traffic")
     stream = list(wire_messages(formation.scenario(point, 180.0, 12), 1))
     n_batches = sum(k.endswith("/plots") for k, _ in stream)
-    config = with_aid(EngineConfig())
+    config = EngineConfig()
+    assert config.tracking.aid.enabled
     pairs_one, pairs_two = Collector(client, "one/pairs/**"), Collector(client, "two/pairs/**")
     try:
         with network(router, config) as (one, w1, w2):

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from service.config import with_aid
+from service.config import with_aid, without_aid
 from service.correlation.partner_view import into_view, view_with_covariance
 from service.engine import Engine, EngineConfig
 from service.fusion.members import Links
@@ -281,7 +281,7 @@ def test_the_aid_is_the_same_in_a_child_process_and_in_any_arrival_order(
     # process takes to answer, so without the engine's wait the aid would differ at every turn
     aided = _aided(EngineConfig(), lag_s=1.0)
     here, out_here = run_engine(formation_in_traffic, config=aided)
-    plain, out_plain = run_engine(formation_in_traffic)
+    plain, out_plain = run_engine(formation_in_traffic, config=without_aid(EngineConfig()))
     # the aid does something here: some plots went to other tracks, so other tracks and pairs;
     # /status counts the associations it decided, per radar
     assert here["tracks"] != plain["tracks"] and out_here != out_plain
@@ -399,7 +399,7 @@ def test_partitioned_workers_aid_their_tracks_as_one_worker_does(
     falls far behind (the others hold their batches until it has sent its links)."""
     aided = _aided(EngineConfig())
     one, single = run_one(formation_in_traffic, config=aided)
-    plain, _ = run_one(formation_in_traffic)
+    plain, _ = run_one(formation_in_traffic, config=without_aid(EngineConfig()))
     assert one != plain  # (the aid changes the pairs here)
     assert sum(r["aided_associations"] for r in single.snapshot().status()["radars"]) > 0
     many, publishers, engines = run_partitioned(formation_in_traffic, n, seed, lagging=lagging, config=aided)

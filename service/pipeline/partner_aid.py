@@ -113,11 +113,11 @@ class PartnerAid:
         correlation; never a place after a batch still to come): the reads move on to the
         latest crossing known at or before its lag, and what no later read needs goes."""
         due = self.due_s(position[0])
-        moved = False
+        advanced = False
         while self._crossings and self._crossings[0][0] <= due:
             self._crossing = self._crossings.popleft()
-            moved = True
-        if moved and self._crossing is not None:
+            advanced = True
+        if advanced and self._crossing is not None:
             self.history.shared_at(self._crossing)  # (each pair's latest links there stay)
             for radar_id, queue in self._tables.items():
                 _drop_before(queue, radar_id, self._crossing)

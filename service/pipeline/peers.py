@@ -408,7 +408,13 @@ class Peers:
             **({"lone_clocks": lone} if lone else {}),
         }
         out = []
-        if self._due(progress, self._progress_sent, ("released_s", "correlated_s"), idle):
+        # Workers holding batches for their aid wait on each other a step at a time (each the
+        # other's released_s and correlated_s through its lag): while this one or another holds,
+        # every move goes out at once, not after a step of data time or when idle.
+        sent = self._progress_sent
+        holding = progress.get("held") is not None or (sent or {}).get("held") is not None
+        holding = holding or any(c.held is not None for k, c in self._progress_of.items() if k in self.waited)
+        if (holding and progress != sent) or self._due(progress, sent, ("released_s", "correlated_s"), idle):
             self._progress_sent = progress
             out.append(Outgoing(self.keys.worker_progress(self.partition.index), lambda: progress))
         if self._due(clocks, self._clock_sent, tuple(clocks["clocks"]), idle) or self._lone_moved(lone):

@@ -572,8 +572,13 @@ class AidParams:
     docs/evaluation/formation-bounds.md): false pairs at 2x and 3x spacing cut from 4.3 and
     3.4 % to 1.1 and 1.8 %; a formation alone about as it was."""
 
-    enabled: bool = False
-    """Whether a track in a formation with a confirmed partner is aided (off by default)."""
+    enabled: bool = True
+    """Whether a track in a formation with a confirmed partner is aided.  On by default: it acts
+    only on tracks in a formation whose partner's registration is known (where it halves the
+    false pairs in traffic), the rest of a network pays a look per batch, one worker's national
+    replay was as fast with it, and partitioned workers stay ``lag_s`` apart, not in step
+    (docs/results.md, "The aid of another radar").  Off: each radar's association rests on its
+    own plots alone."""
     lag_s: float = 10.0
     """A batch at data time ``t`` is aided by every pair's confirmed pairs and registration as
     they were at the latest crossing of the links' grid at or before ``t - lag_s``, and the

@@ -1,4 +1,4 @@
-"""Formation study: SIAP-style metrics of the radar trackers in formations, before, now and aided.
+"""Formation study: SIAP-style metrics of the radar trackers in formations, before, unaided and now.
 
 Entry point :func:`run` (``topofusion evaluate --only formation``); also
 ``python -m topofusion_lab.evaluation.formation [--runs N] [--seed S] [--out DIR]``.
@@ -14,10 +14,10 @@ filter, ``FilterParams.imm`` off, so one constant-velocity model; its initiator'
 correlation's caution with low-quality tracks,
 ``correlation.prompt.min_quality = 0``; its swap rule, ``correlation.swap.enabled = False``;
 the published score's tracks' quality, ``correlation.book.quality_exponent = 0``; the hold of
-a contested pair, ``correlation.book.hold_score = 0``), with
-the default configuration (*now*), and with the default and the aid of association on
-(*aided*: ``tracking.aid.enabled``, off by default, :mod:`service.tracking.aid`).  Nothing
-else of the service is changed or tuned.
+a contested pair, ``correlation.book.hold_score = 0``; the aid of association,
+``tracking.aid.enabled = False``), with the default and the aid of association off
+(*unaided*: :mod:`service.tracking.aid`, on by default), and with the default configuration
+(*now*).  Nothing else of the service is changed or tuned.
 
 Scenario grid (:data:`POINTS`), each from the catalog's ``formation`` scenario (three en-route
 radars, 30 aircraft at 230 m/s, azimuth biases of 0.3-0.4 deg), its first :data:`DURATION_S`:
@@ -123,7 +123,7 @@ from typing import Any
 
 import numpy as np
 
-from service.config import EngineConfig, with_aid
+from service.config import EngineConfig, with_aid, without_aid
 from service.evaluation.truth import TruthLabelledTracker
 from service.geo import Site, ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from service.tracking.params import FormationParams
@@ -156,7 +156,7 @@ WARMUP_S = 120.0
 #: Pair metrics from this data time on (the registration of the biases settled).
 PAIR_WARMUP_S = 360.0
 #: The configurations compared: every formation rule off, and the default now.
-VARIANTS = ("before", "now", "aided")
+VARIANTS = ("before", "unaided", "now")
 GOAL_FALSE_PCT = 2.0
 GOAL_CORRECT_PCT = 92.0
 GOAL_DUPLICATES = 0.02
@@ -267,19 +267,21 @@ def engine_config(variant: str) -> EngineConfig:
     rule off (the tracker's duplicate rule, formation's quiet model, two-model filter and
     initiator's velocity support, deletion by the radar's detection probability, correlation's
     caution with low-quality tracks and its swap rule, the published score's tracks' quality,
-    the hold of a contested pair), *now* is the default, *aided* the default with the aid of
-    association on (``tracking.aid``, :mod:`service.tracking.aid`; the bounds' study)."""
+    the hold of a contested pair, the aid of association), *unaided* the default with the aid of
+    association off (``tracking.aid``, :mod:`service.tracking.aid`; the bounds' tracker),
+    *now* is the default."""
     cfg = EngineConfig()
     if variant == "before":
-        corr = cfg.correlation
+        base = without_aid(cfg)
+        corr = base.correlation
         return replace(
-            cfg,
+            base,
             tracking=replace(
-                cfg.tracking,
+                base.tracking,
                 formation=FormationParams.off(),
-                filter=replace(cfg.tracking.filter, imm=False),
-                logic=replace(cfg.tracking.logic, support_weight=0.0),
-                manager=replace(cfg.tracking.manager, deletion_miss_probability=0.0),
+                filter=replace(base.tracking.filter, imm=False),
+                logic=replace(base.tracking.logic, support_weight=0.0),
+                manager=replace(base.tracking.manager, deletion_miss_probability=0.0),
             ),
             correlation=replace(
                 corr,
@@ -290,8 +292,8 @@ def engine_config(variant: str) -> EngineConfig:
         )
     if variant == "now":
         return cfg
-    if variant == "aided":
-        return with_aid(cfg)
+    if variant == "unaided":
+        return without_aid(cfg)
     raise ValueError(f"unknown variant {variant!r}")
 
 
@@ -496,10 +498,10 @@ def run_one(job: Job) -> dict[str, Any]:
     at = list(np.arange(warmup, sc.duration_s - 1e-9, SAMPLE_S))
     truth = TruthLog(sc)
     focus = focus_of(job.point, sc)
-    config = engine_config("now" if job.variant in BOUNDS else job.variant)
+    config = engine_config("unaided" if job.variant in BOUNDS else job.variant)
     if not job.hold:
         config = no_hold(config)
-    if job.variant == "aided" and job.aid_lag_s > 0:
+    if job.variant == "now" and job.aid_lag_s > 0:
         config = with_aid(config, lag_s=job.aid_lag_s)
     factory = None
     ref = EngineRef(job.aid_lag_s)
@@ -687,7 +689,7 @@ def report(
     first = results[0] if results else {"targets": 0, "duration_s": 0.0}
     unit = cross_range_m(get_scenario("formation"))
     lines = [
-        "## Formation: SIAP-style tracker metrics, before, now and aided",
+        "## Formation: SIAP-style tracker metrics, before, unaided and now",
         "",
         f"The catalog's `formation` scenario (3 radars, {first['targets']} aircraft, "
         f"{first['duration_s']:.0f} s) through the engine, per point {n} seed(s), each run three times "
@@ -695,11 +697,10 @@ def report(
         "formation's quiet model, two-model filter and initiator's velocity support, its "
         "deletion by the radar's detection probability, correlation's caution with "
         "low-quality tracks and its swap rule, the published "
-        "score's tracks' quality), and "
-        "*now*, the default "
-        "configuration, and *aided*, the default with the aid of association by the other "
-        "radars' confirmed partners on (`tracking.aid.enabled`, off by default; "
-        "docs/architecture.md, tracks in formations).  Spacing in cross-range "
+        "score's tracks' quality, the aid of association), *unaided*, the default with the aid "
+        "of association by the other radars' confirmed partners off (`tracking.aid.enabled`, on "
+        "by default; docs/architecture.md, tracks in formations), and *now*, the default "
+        "configuration.  Spacing in cross-range "
         f"errors (1x = {unit:.0f} m: radar C's 0.20 deg at 115 km); Pd the catalog's (0.95/0.92/0.75) "
         "unless given; *in traffic*: the lattice among "
         f"{TRAFFIC_AIRCRAFT} more aircraft in two wide groups, of which only the formation's "

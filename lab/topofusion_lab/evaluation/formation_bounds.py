@@ -1,10 +1,12 @@
 """What right association is worth in formations: the study's points with each radar's tracker
 told whose plots are whose (evaluation only: the simulator's truth).
 
-Each bound is the default tracker (:class:`~service.tracking.manager.TrackManager`) with one
-change: the costs its one-to-one assignment solves (``TrackManager._assign``, the gated
-candidates of a batch).  The gate, the filter, the tracks' quality (the clarity of the real
-``d^2``), initiation and the life cycle are the tracker's own, and so is everything after it.
+Each bound is the default tracker (:class:`~service.tracking.manager.TrackManager`) without
+the aid of association (``tracking.aid``, on by default; ``--bound aided`` is the service's aid,
+the default itself), with one change: the costs its one-to-one assignment solves
+(``TrackManager._assign``, the gated candidates of a batch).  The gate, the filter, the
+tracks' quality (the clarity of the real ``d^2``), initiation and the life cycle are the
+tracker's own, and so is everything after it.
 
 * ``truth``: a track takes no plot of another aircraft than its own (the aircraft of most of
   its plots so far, its ``truth_id``; a track with none yet, or a plot with none, as the
@@ -451,7 +453,8 @@ def main(argv: list[str] | None = None) -> int:
         "--bound",
         action="append",
         choices=(*BOUNDS, "aided"),
-        help="only these bounds (default every one); aided: the service's own aid (tracking.aid)",
+        help="only these bounds (default every one); aided: the service's own aid (tracking.aid, "
+        "on by default; the tracker of every other row is the default with it off)",
     )
     p.add_argument("--offset-m", type=float, default=0.0, help="true-position: each track's reference error")
     p.add_argument("--no-hold", action="store_true", help="the correlation's hold of contested pairs off")
@@ -468,7 +471,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.offset_m < 0 or args.aid_lag_s < 0:
         p.error("--offset-m and --aid-lag-s must be >= 0")
     points = [x for x in formation.POINTS if not args.point or x.label in args.point]
-    variants = ("now", *(args.bound or BOUNDS))
+    # the tracker alone is the default without the aid; the service's aid is the default
+    variants = ("unaided", *("now" if b == "aided" else b for b in args.bound or BOUNDS))
     jobs = [
         replace(j, offset_m=args.offset_m, hold=not args.no_hold, aid_lag_s=args.aid_lag_s)
         for j in formation.make_jobs(args.runs, args.seed, points, args.duration, args.targets, variants)
@@ -484,7 +488,8 @@ def main(argv: list[str] | None = None) -> int:
         for v in variants:
             runs = [r for r in done if r["index"] == i and r["variant"] == v]
             name = v if v != "true-position" or args.offset_m == 0 else f"{v}, {args.offset_m:g} m off"
-            rows.append((point.label, "tracker" if v == "now" else name, formation.summarize(runs)))
+            label = {"unaided": "tracker", "now": "aided"}.get(v, name)
+            rows.append((point.label, label, formation.summarize(runs)))
     print(table(rows))
     return 0
 
