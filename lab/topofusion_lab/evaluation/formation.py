@@ -155,7 +155,8 @@ SAMPLE_S = 10.0
 WARMUP_S = 120.0
 #: Pair metrics from this data time on (the registration of the biases settled).
 PAIR_WARMUP_S = 360.0
-#: The configurations compared: every formation rule off, and the default now.
+#: The configurations compared: every formation rule off, the default without the aid of
+#: association, and the default now.
 VARIANTS = ("before", "unaided", "now")
 GOAL_FALSE_PCT = 2.0
 GOAL_CORRECT_PCT = 92.0
