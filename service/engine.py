@@ -434,10 +434,8 @@ class Engine:
             table = self.tracking.tracked[radar_id].table
         else:
             aid = None
-            if self.aid is not None:
-                self.aid.passed((clock, radar_id))
-                if self.tracking.wants_aid(radar_id, clock):
-                    aid = self.aid.references(radar_id, clock)
+            if self.aid is not None and self.tracking.wants_aid(radar_id, clock):
+                aid = self.aid.references(radar_id, clock)
             table = self.tracking.update(radar_id, plots, clock, aid)
             self.assessment.plots(radar_id, self.tracking.tracked[radar_id].geometry, plots, clock)
         table = table.by_id()

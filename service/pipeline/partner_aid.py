@@ -24,8 +24,8 @@ table's time to each plot's on its velocity, its position covariance with it (:f
 tracking.aid.moved`: the velocity's uncertainty and ``AidParams.reference_psd`` of white-noise
 acceleration over the ``lag_s`` or more), and into the aided radar's view by the pair's
 registration (:func:`~service.correlation.partner_view.view_with_covariance`).  Cost: at each
-crossing, a reference to each updated pair's links; at each batch and each table released to
-the correlation, a look whether the reads move on to a newer crossing; nothing more unless the
+crossing, a reference to each updated pair's links; at each table released to the correlation
+(and each batch that asks), a look whether the reads move on to a newer crossing; nothing more unless the
 tracker asks, which it does for the candidates of its tracks in a formation; then, for each
 other radar with confirmed pairs with this one, a search of those tracks among its confirmed
 pairs and of their partners in its table (each sorted once per links and table), and one
@@ -36,6 +36,7 @@ step, and how far this worker's tracking runs ahead of its merge, of data time.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -98,8 +99,8 @@ class PartnerAid:
         latest table at or before it is that first one or the last of an earlier cell."""
         queue = self._tables.setdefault(radar_id, deque())
         if len(queue) >= 2:
-            cell = np.floor(time_s / self.grid_s)
-            if np.floor(queue[-1][0] / self.grid_s) == cell == np.floor(queue[-2][0] / self.grid_s):
+            cell = math.floor(time_s / self.grid_s)
+            if math.floor(queue[-1][0] / self.grid_s) == cell == math.floor(queue[-2][0] / self.grid_s):
                 queue.pop()  # (neither its cell's first nor, now, its last: never read)
         queue.append((time_s, table))
 
