@@ -16,6 +16,14 @@ from service.transport.session import ZenohOptions, open_session
 from tests.support import zenoh_router
 
 
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The tests marked ``slow`` first, each group in its collected order: two test processes
+    handed one test at a time (``--maxschedchunk 1`` in the Makefile) then start on the long
+    ones together and end on short ones, instead of one finishing a long test alone at the
+    end.  A stable sort: every process collects the same order."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+
+
 @pytest.fixture
 def router() -> Iterator[str]:
     """A router-mode Zenoh session on a free loopback port; yields its endpoint."""

@@ -195,6 +195,7 @@ def test_worst_of_a_run_without_an_estimate_is_missing() -> None:
     assert adsb._worst([0.97, 0.99], low=True) == 0.97
 
 
+@pytest.mark.slow
 def test_a_tiny_study_end_to_end(tmp_path: Path) -> None:
     lone = replace(adsb.CONDITIONS[0], label="lone, 30 aircraft", targets=30)
     network = replace(adsb.CONDITIONS[-2], label="A, B, 30 aircraft", targets=30)

@@ -14,6 +14,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
+import pytest
 
 from service.transport.session import ZenohOptions, open_session
 from tests.doc_commands import PROCESS_S, started
@@ -227,6 +228,7 @@ def test_the_start_names_the_http_port_it_bound(tmp_path: Path) -> None:
         assert svc.popen.wait(timeout=PROCESS_S) == 0, svc.output()
 
 
+@pytest.mark.slow
 def test_bad_settings_are_one_line_that_never_shows_a_secret(tmp_path: Path) -> None:
     """A settings error, whether ``config`` or ``run`` finds it: status 2, one line, no
     traceback, and the API token never in it (a rule over several settings used to quote every

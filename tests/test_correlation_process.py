@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import time
 
+import pytest
+
 from service.engine import Engine, EngineConfig
 from service.pipeline.correlation_process import ChildProcessRunner
 from service.pipeline.correlation_stage import timings_dict
@@ -12,6 +14,7 @@ from tests.scenario_helpers import run_engine, scenario_messages
 from topofusion_lab.evaluation.promptness import OutputMonitor
 
 
+@pytest.mark.slow
 def test_same_tracks_pairs_and_biases_as_in_process() -> None:
     stream = scenario_messages("three-radar", duration_s=90.0, targets=40)
     local, out_local = run_engine(stream, process=False)

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import pytest
 
 from tests.doc_commands import (
     PROCESS_S,
@@ -48,6 +49,7 @@ def _status(url: str) -> dict[str, Any]:
     return body
 
 
+@pytest.mark.slow
 def test_demo_with_two_workers_serves_the_whole_network_and_stops_cleanly() -> None:
     env = {k: v for k, v in os.environ.items() if not k.startswith("TOPOFUSION_")}
     env["PYTHONUNBUFFERED"] = "1"
@@ -222,6 +224,7 @@ def _run_line(line: str) -> tuple[list[str], dict[str, str]]:
     return [TOPOFUSION, *words[1:]], settings
 
 
+@pytest.mark.slow
 def test_the_two_workers_by_hand_of_the_docs(tmp_path: Path) -> None:
     """docs/scale-out.md, "Running N workers by hand": the block as written, free ports for
     the fixed ones."""

@@ -161,6 +161,7 @@ def test_goal_from_is_the_smallest_ratio_after_which_every_ratio_meets_the_goal(
     assert dense.goal_from([ok, ok, bad], (1.0, 2.0, 3.0)) == "not met up to 3"
 
 
+@pytest.mark.slow
 def test_score_is_calibrated_on_held_out_formations() -> None:
     """The calibration was fitted on other seeds (EvidenceParams): on these formations the
     scores of the pairs with accumulated evidence match how often they are right."""

@@ -278,6 +278,7 @@ _ODD_VALUES += [[], {}, [1]]
     how=st.sampled_from(["set", "delete", "grow", "shrink", "extra"]),
     value=st.sampled_from(_ODD_VALUES),
 )
+@pytest.mark.slow
 def test_a_real_message_changed_anywhere_is_taken_or_rejected_whole(
     stream: list[tuple[str, bytes]],
     baseline: tuple[Engine, list[Any]],
@@ -401,6 +402,7 @@ def test_ais_reference_registers_a_biased_radar() -> None:
     assert abs(bias["azimuth_bias_deg"] - 0.5) < 0.05
 
 
+@pytest.mark.slow
 def test_paper_level_biases_estimated_within_ten_percent() -> None:
     """The paper's small biases (100 m / 0.1 deg on both radars, random 200 m / 0.2 deg) from
     the whole engine after 10 minutes: every component within 10 % of the truth and within 3

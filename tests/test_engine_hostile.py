@@ -303,6 +303,7 @@ def _confirmed(engine: Engine) -> tuple[dict[str, int], dict[tuple[str, str], in
     return tracks, {(p["radar_a"], p["radar_b"]): len(p["pairs"]) for p in snap.pair_sets(status="confirmed")}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("period_s", "after"), [(1.0, None), (1.0, 30), (2.0, None), (6.0, 30)])
 def test_a_site_declaring_the_wrong_scan_period_does_not_cost_the_radar_its_tracks(
     period_s: float, after: int | None
@@ -342,6 +343,7 @@ def test_an_honest_site_keeps_the_tracker_exactly_as_it_was() -> None:
     assert _confirmed(blind)[0].get("B", 0) == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("share", [1 / 2, 1 / 3])
 def test_a_site_declaring_sigmas_too_small_does_not_cost_the_radar_its_tracks(share: float) -> None:
     """Radar B's site declares its range, azimuth and elevation sigmas at ``share`` of the
@@ -365,6 +367,7 @@ def test_a_site_declaring_sigmas_too_small_does_not_cost_the_radar_its_tracks(sh
     assert _confirmed(blind)[0]["B"] < tracks["B"]
 
 
+@pytest.mark.slow
 def test_heavy_clutter_does_not_set_the_site_checks_off() -> None:
     """Radar B's batches each carry 400 clutter plots spread over its sector (3 200 a scan):
     the gaps between plots show no period (the declared one stands) and the clutter its gates
@@ -405,6 +408,7 @@ def test_heavy_clutter_does_not_set_the_site_checks_off() -> None:
     assert set(pairs) == set(blind_pairs) and all(pairs[k] >= 0.9 * blind_pairs[k] for k in pairs)
 
 
+@pytest.mark.slow
 def test_a_site_updated_to_a_longer_scan_period_widens_the_tracker_s_window() -> None:
     """Every radar's site said 4 s for its first four batches and then the true period (8, 10
     and 6 s: the formation scene).  The tracker's window was sized once, when its first batch

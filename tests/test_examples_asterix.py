@@ -158,6 +158,7 @@ def test_the_sample_is_what_its_documented_command_makes(tmp_path: Path) -> None
         assert _close(c.longitude_deg, d.longitude_deg, LATLON_STEP_DEG)
 
 
+@pytest.mark.slow
 def test_the_readme_walkthrough_gives_pairs_and_cat062(tmp_path: Path) -> None:
     block = code_block(ROOT / "README.md", "### ASTERIX in five minutes", language="bash")
     ports = free_ports()

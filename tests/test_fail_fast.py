@@ -144,6 +144,7 @@ def _bad_inputs(tmp_path: Path) -> dict[str, tuple[list[str], list[str]]]:
     }
 
 
+@pytest.mark.slow
 def test_bad_input_is_refused_before_connecting(tmp_path: Path) -> None:
     nobody = f"tcp/127.0.0.1:{free_port()}"
     cases = _bad_inputs(tmp_path)

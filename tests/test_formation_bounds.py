@@ -31,6 +31,7 @@ def _run(variant: str) -> dict[str, float]:
     return fs.run_one(fs.Job(0, POINT, variant, 0, 1, 180.0, 10))
 
 
+@pytest.mark.slow
 def test_the_truth_bound_takes_no_plot_of_another_aircraft_and_the_tracker_does() -> None:
     """10 aircraft 806 m apart, 180 s: the tracker alone (the default without the aid of
     association) gives some of its tracks' plots to the wrong track; told the truth, none; told
@@ -150,6 +151,7 @@ def test_the_formation_in_traffic_keeps_its_aircraft_and_only_they_are_scored() 
     assert runs[1]["pairs_common"] <= runs[0]["pairs_common"] + 3 * 10
 
 
+@pytest.mark.slow
 def test_an_aid_from_further_back_than_the_run_is_no_aid() -> None:
     """``paired-covariance`` in traffic (10 aircraft in formation among 32 others, 240 s) with
     the correlation's answers as they come changes the association; taken an hour back

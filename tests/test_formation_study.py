@@ -298,13 +298,15 @@ def test_a_tiny_run_reports_every_tracker(tmp_path: Path) -> None:
         assert math.isnan(s["brier"]) or 0.0 <= s["brier"] <= 1.0
 
 
+@pytest.mark.slow
 def test_the_formation_s_common_velocity_holds_the_tracks_on_their_aircraft(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """The 2x lattice (806 m apart, radar C 403 m across) through the engine, 300 s, seeds 1-2,
+    """The 2x lattice (806 m apart, radar C 403 m across) through the engine, 300 s, seed 1,
     with the formation's common velocity (the default) and without it
     (``formation_velocity_sigma_mps`` 0): the tracks' position error, their share astray on a
-    neighbour and the duplicates fall by at least a fifth, and no aircraft is lost."""
+    neighbour and the duplicates fall by at least a fifth, and no aircraft is lost.  (Each of
+    seeds 1 and 2 alone gave 0.43-0.59 of before; 200 s, 0.59-0.76: too close to 0.8.)"""
     default = EngineConfig()
     off = replace(
         default,
@@ -315,10 +317,7 @@ def test_the_formation_s_common_velocity_holds_the_tracks_on_their_aircraft(
     )
     monkeypatch.setattr(fs, "engine_config", lambda variant: off if variant == "before" else default)
     point = next(p for p in fs.POINTS if p.label == "2x")
-    got = {
-        v: fs.summarize([fs.run_one(fs.Job(0, point, v, 0, seed, 300.0, None)) for seed in (1, 2)])
-        for v in ("before", "now")
-    }
+    got = {v: fs.summarize([fs.run_one(fs.Job(0, point, v, 0, 1, 300.0, None))]) for v in ("before", "now")}
     before, now = got["before"], got["now"]
     for key in ("position_mean_m", "astray", "duplicates"):
         assert now[key] < 0.8 * before[key], (key, now[key], before[key])

@@ -246,6 +246,7 @@ def test_requests_past_the_concurrency_limit_are_refused_but_probes_are_not(serv
     assert len(probes) == 2 * PROBES and kubelet_content(probes), probes
 
 
+@pytest.mark.slow
 def test_a_flood_past_the_open_file_limit_leaves_the_probes_answering(router: str) -> None:
     """The service under a 1 024-file limit with the default limits: it fits its cap under the
     limit (saying so), and a flood of 1 500 connections kept open never exhausts it."""

@@ -84,6 +84,7 @@ def test_a_service_started_after_the_simulator_learns_every_site(
     assert took <= SITE_EVERY_S + DELIVERY_S
 
 
+@pytest.mark.slow
 def test_a_recorder_started_after_the_simulator_records_every_site(router: str, tmp_path: Path) -> None:
     out = tmp_path / "late.mcap"
     with simulator(router, tmp_path):

@@ -90,6 +90,7 @@ def stream() -> list[tuple[str, bytes]]:
     return scenario_messages(SCENARIO, duration_s=DURATION_S)
 
 
+@pytest.mark.slow
 def test_metrics_of_a_running_service(
     router: str, client: zenoh.Session, stream: list[tuple[str, bytes]]
 ) -> None:
@@ -223,6 +224,7 @@ def test_metrics_of_a_running_service(
         }
 
 
+@pytest.mark.slow
 def test_bias_sigma_is_honest(router: str, client: zenoh.Session, stream: list[tuple[str, bytes]]) -> None:
     """The service's bias estimates against the simulator's true biases (evaluation only: the
     service never sees them): every component within 3 of its reported sigma, and the sigma

@@ -358,6 +358,7 @@ def heavy_stream() -> list[tuple[str, bytes]]:
     return scenario_messages("two-radar", duration_s=400.0)
 
 
+@pytest.mark.slow
 def test_sigterm_under_load_drains_the_queue_and_publishes_the_final_outputs(
     heavy_stream: list[tuple[str, bytes]], tmp_path: Path
 ) -> None:

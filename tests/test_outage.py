@@ -74,6 +74,7 @@ def confirmed_pairs(engine: Any) -> set[tuple[str, str, Any, Any]]:
     }
 
 
+@pytest.mark.slow
 def test_whole_feed_outage_is_taken_counted_and_the_picture_renews(stream: Stream) -> None:
     gapped, later = with_gap(stream)
     engine, out = run_engine(gapped)
@@ -138,6 +139,7 @@ def test_one_radar_jumping_alone_is_still_refused(stream: Stream) -> None:
     assert not [e for e in errors(out) if e["radar_id"] != "A"]
 
 
+@pytest.mark.slow
 def test_over_zenoh_the_outage_is_taken_and_a_silent_feed_is_reported_stale(
     router: str, client: zenoh.Session, caplog: pytest.LogCaptureFixture
 ) -> None:

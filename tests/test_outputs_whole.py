@@ -8,6 +8,7 @@ import json
 import threading
 from typing import Any
 
+import pytest
 import zenoh
 
 from service.recording.completion import RecordingEnd
@@ -28,6 +29,7 @@ def _end(stream: list[tuple[str, bytes]]) -> float:
     return target
 
 
+@pytest.mark.slow
 def test_every_output_names_only_tracks_the_latest_tables_hold(router: str, client: zenoh.Session) -> None:
     stream = scenario_messages("three-radar", duration_s=150.0, seed=3)
     scans = {
@@ -88,6 +90,7 @@ def test_every_output_names_only_tracks_the_latest_tables_hold(router: str, clie
     assert named and all(tid in tables[rid] for rid, tid in named)
 
 
+@pytest.mark.slow
 def test_a_track_that_goes_leaves_its_pairs_in_the_same_release() -> None:
     """Engine level, message by message: after a radar's table drops tracks, no pair set or
     system track of that release or later names them (the pair's own update may be scans away)."""

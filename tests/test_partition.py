@@ -811,6 +811,7 @@ def test_the_merge_says_how_far_it_has_released_when_a_cap_holds_tables_back() -
     assert merger.through({1}) == np.nextafter(35.0, -np.inf)  # not released yet: held
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("n", "seed"), [(2, 7), (3, 8)])
 def test_a_radar_s_pairs_with_a_reference_go_with_the_radar_and_so_does_its_assessment(
     n: int, seed: int

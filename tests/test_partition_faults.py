@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import pytest
 import zenoh
 
 from service.pipeline.partition import Partition
@@ -115,6 +116,7 @@ def _stream_in_thirds() -> tuple[Messages, list[str], list[str], list[str], tupl
     return sites, radars, mine, theirs, across, thirds
 
 
+@pytest.mark.slow
 def test_a_killed_worker_leaves_the_rest_going_and_a_restarted_one_rebuilds(
     router: str, client: zenoh.Session
 ) -> None:
@@ -186,6 +188,7 @@ def test_a_killed_worker_leaves_the_rest_going_and_a_restarted_one_rebuilds(
             wait_for(lambda: _get(p1, f"/radars/{theirs[0]}/tracks")["tracks"], timeout=30)
 
 
+@pytest.mark.slow
 def test_a_worker_stopped_for_30_s_comes_back_without_disordering_the_picture(
     router: str, client: zenoh.Session
 ) -> None:

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import orjson
+import pytest
 import zenoh
 
 from service.engine import EngineConfig
@@ -121,6 +122,7 @@ def _settled(collectors: list[Collector]) -> Any:
     return same_twice
 
 
+@pytest.mark.slow
 def test_two_workers_give_the_results_of_one(router: str, client: zenoh.Session) -> None:
     stream = scenario_messages("three-radar", duration_s=150.0, seed=2)
     n_batches = sum(k.endswith("/plots") for k, _ in stream)
@@ -207,6 +209,7 @@ def test_two_workers_give_the_results_of_one(router: str, client: zenoh.Session)
             assert members <= {(m["radar_id"], m["track_id"]) for m in a["members"]}
 
 
+@pytest.mark.slow
 def test_two_workers_aid_their_tracks_as_one_worker_does(router: str, client: zenoh.Session) -> None:
     """With the aid of association (on by default; a formation among other traffic, where it
     decides associations), the workers exchange their pairs' registrations with their links and
@@ -236,6 +239,7 @@ def test_two_workers_aid_their_tracks_as_one_worker_does(router: str, client: ze
     assert all(st["rejected"] == {} for st in statuses)
 
 
+@pytest.mark.slow
 def test_the_cat062_bridge_works_against_partitioned_workers(router: str, tmp_path: Path) -> None:
     """The ASTERIX bridge as against one worker (the README's walkthrough), but against workers
     1/2 and 2/2: it feeds the capture to both, and writes out as CAT062 the system tracks

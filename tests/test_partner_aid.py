@@ -274,6 +274,7 @@ def formation_in_traffic() -> list[tuple[str, bytes]]:
     return list(wire_messages(formation.scenario(point, 180.0, 12), 1))
 
 
+@pytest.mark.slow
 def test_the_aid_is_the_same_in_a_child_process_and_in_any_arrival_order(
     formation_in_traffic: list[tuple[str, bytes]],
 ) -> None:
@@ -390,6 +391,7 @@ def test_a_restarted_engine_aids_again_from_its_restored_registration() -> None:
         again.close()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("n", "seed", "lagging"), [(2, 0, None), (3, 1, 3)])
 def test_partitioned_workers_aid_their_tracks_as_one_worker_does(
     formation_in_traffic: list[tuple[str, bytes]], n: int, seed: int, lagging: int | None

@@ -133,6 +133,7 @@ def _watch_all(
     asyncio.run(run())
 
 
+@pytest.mark.slow
 def test_many_viewers_share_snapshots_and_status_stays_quick(live: Live) -> None:
     svc = live.service
     intervals = (0.2, 0.3, 0.5, 0.7, 1.0, 1.5, 2.0)
@@ -245,6 +246,7 @@ def test_a_viewer_that_never_reads_is_dropped_and_the_service_goes_on(live: Live
     assert "Traceback" not in log and "ASGI callable" not in log, log[-3000:]
 
 
+@pytest.mark.slow
 def test_viewers_past_the_bytes_budget_get_longer_intervals() -> None:
     """With ``TOPOFUSION_HTTP_PICTURE_MAX_BYTES_S`` below what one viewer asks for, its
     interval is stretched by the power of two that brings it under the budget."""

@@ -10,6 +10,8 @@ import signal
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from service.engine import EngineConfig
 from tests.doc_commands import PROCESS_S, TOPOFUSION, started
 from tests.support import RunningService, running_service, wait_for
@@ -72,6 +74,7 @@ def _simulate(router: str, cwd: Path, start: str, status: int = 0) -> str:
     return sim.output()
 
 
+@pytest.mark.slow
 def test_simulate_resume_starts_after_the_service_s_data_clock(router: str, tmp_path: Path) -> None:
     with running_service(router, EngineConfig(), correlation_process=False) as svc:
         first = _simulate(router, tmp_path, str(T0))

@@ -663,6 +663,7 @@ def test_a_fifo_for_a_state_file_does_not_hang_the_service(router: str, tmp_path
     assert decode(read_file(directory / STATE), "fusion", "1/1")[0].epoch == 0
 
 
+@pytest.mark.slow
 def test_a_second_process_on_one_state_directory_is_refused(router: str, tmp_path: Path) -> None:
     """Two processes on one directory (shared by mistake, or an old one still running beside
     its replacement) would take the same track-id epoch and give the same ids: the second is

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import pytest
 import zenoh
 
 from service.state.fileformat import decode
@@ -36,6 +37,7 @@ def _biases(url: str) -> dict[str, dict[str, Any]]:
     return {b["radar_id"]: b for b in httpx.get(url + "/biases", timeout=5).json()}
 
 
+@pytest.mark.slow
 def test_a_killed_service_comes_back_with_sites_biases_and_fresh_track_ids(
     router: str, client: zenoh.Session, tmp_path: Path
 ) -> None:

@@ -88,6 +88,7 @@ def pair_ids(pair_sets: list[dict[str, Any]]) -> set[tuple[str, str, str, str, s
     }
 
 
+@pytest.mark.slow
 def test_a_scenario_through_asterix_over_udp_equals_its_json_input(router: str, tmp_path: Path) -> None:
     sc = scenario()
     sim = list(generate(sc, seed=4))

@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import pathlib
 
+import pytest
+
 from topofusion_lab.evaluation.correlation import run
 
 
+@pytest.mark.slow
 def test_run_small(tmp_path: pathlib.Path) -> None:
     lines: list[str] = []
     md = run(tmp_path, runs=40, seed=1, progress=lines.append)

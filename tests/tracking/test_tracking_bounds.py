@@ -342,6 +342,7 @@ def test_a_window_of_several_full_batches_hits_the_pair_bounds(dense: bool) -> N
     assert max(r["seconds"]) < 10.0, r  # type: ignore[arg-type]
 
 
+@pytest.mark.slow
 def test_a_dense_batch_over_many_tracks_keeps_association_bounded() -> None:
     """2 000 targets in a 10 km wide annulus make tracks over four scans; then 100 000 plots
     fall in a 10 km x 10 deg patch of it.  The unbounded association search formed every
