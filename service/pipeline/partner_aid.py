@@ -31,7 +31,8 @@ other radar with confirmed pairs with this one, a search of those tracks among i
 pairs and of their partners in its table (each sorted once per links and table), and one
 vectorised transform of the candidates with a partner; no loop over tracks or pairs.  Memory:
 each pair's links and each radar's tables from the crossing read last on: ``lag_s``, a grid
-step, and how far this worker's tracking runs ahead of its merge, of data time.
+step, and how far this worker's tracking runs ahead of its merge, of data time; of a radar's
+tables one a cell of the grid once the cell's crossing is known (:meth:`PartnerAid.record`).
 """
 
 from __future__ import annotations
@@ -75,6 +76,8 @@ class PartnerAid:
         #: Every radar's tables, (data time, table), oldest first, from the one at or before the
         #: crossing on: this worker's after each of its batches, the others' as sent.
         self._tables: dict[str, deque[tuple[float, TrackTable]]] = {}
+        #: The crossing of each cell of the grid from the one read last on, by cell.
+        self._cell_crossings: dict[int, Position] = {}
         #: What each pair's links give each of its radars (:meth:`_partner`), and each table's
         #: ids sorted (:meth:`table`): made once per links and table.
         self._partners: dict[tuple[Key, str], tuple[SharedLinks, _Partner | None]] = {}
@@ -82,10 +85,20 @@ class PartnerAid:
 
     def crossed(self, crossing: Crossing) -> None:
         """A crossing of this worker's correlation (in release order), with its own pairs'
-        links as they were then."""
+        links as they were then.  Each radar's first table of the crossing's cell goes unless
+        it is the crossing's own (:meth:`record`)."""
         for shared in crossing.own:
             self.history.record(shared)
         self._crossings.append(crossing.position)
+        cell = self._cell(crossing.position[0])
+        self._cell_crossings[cell] = crossing.position
+        for radar_id, queue in self._tables.items():
+            i = len(queue) - 1
+            while i >= 2 and self._cell(queue[i][0]) > cell:  # (tables of later cells already)
+                i -= 1
+            both = i >= 2 and self._cell(queue[i - 1][0]) == self._cell(queue[i][0]) == cell
+            if both and not self._at_crossing(queue[i - 1][0], radar_id, cell):
+                del queue[i - 1]
 
     def mirror(self, shared: SharedLinks) -> None:
         """Another worker's pair's links (in the order its owner updated it)."""
@@ -93,16 +106,28 @@ class PartnerAid:
 
     def record(self, radar_id: str, time_s: float, table: TrackTable) -> None:
         """A radar's table after its batch at ``time_s``: this worker's own, or another
-        worker's as its owner sent it (each radar's in its order).  Of the tables in one cell
-        of the grid only the first and the last are kept: a crossing is the first release of
-        its cell, so it comes before every other table of the cell (or is the first), and the
-        latest table at or before it is that first one or the last of an earlier cell."""
+        worker's as its owner sent it (each radar's in its order).  Of a radar's tables in one
+        cell of the grid only the last is kept, and the first while it may be the cell's
+        crossing: a crossing is the first release of its cell, so the latest table at or
+        before it is the crossing's own table or the last of an earlier cell.  So at most one
+        table a cell once its crossing is known (:meth:`crossed`), two before."""
         queue = self._tables.setdefault(radar_id, deque())
-        if len(queue) >= 2:
-            cell = math.floor(time_s / self.grid_s)
-            if math.floor(queue[-1][0] / self.grid_s) == cell == math.floor(queue[-2][0] / self.grid_s):
-                queue.pop()  # (neither its cell's first nor, now, its last: never read)
+        cell = self._cell(time_s)
+        if len(queue) >= 2 and self._cell(queue[-1][0]) == cell:
+            first = self._cell(queue[-2][0]) != cell
+            if not (first and self._at_crossing(queue[-1][0], radar_id, cell)):
+                queue.pop()  # (not, now, its cell's last, and not its crossing: never read)
         queue.append((time_s, table))
+
+    def _cell(self, time_s: float) -> int:
+        """The cell of the links' grid that data time ``time_s`` falls in."""
+        return math.floor(time_s / self.grid_s)
+
+    def _at_crossing(self, time_s: float, radar_id: str, cell: int) -> bool:
+        """Whether radar ``radar_id``'s table at ``time_s`` (the first of its ``cell``) may be
+        read at that cell's crossing: it is at or before it, or the crossing is not known yet."""
+        crossing = self._cell_crossings.get(cell)
+        return crossing is None or (time_s, radar_id) <= crossing
 
     def forget(self, radar_id: str) -> None:
         """A radar forgotten or dropped: its tables go (its tracks are gone with it)."""
@@ -120,6 +145,9 @@ class PartnerAid:
             advanced = True
         if advanced and self._crossing is not None:
             self.history.shared_at(self._crossing)  # (each pair's latest links there stay)
+            read = self._cell(self._crossing[0])
+            for cell in [c for c in self._cell_crossings if c < read]:
+                del self._cell_crossings[cell]
             for radar_id, queue in self._tables.items():
                 _drop_before(queue, radar_id, self._crossing)
 

@@ -583,9 +583,11 @@ class AidParams:
     """A batch at data time ``t`` is aided by every pair's confirmed pairs and registration as
     they were at the latest crossing of the links' grid at or before ``t - lag_s``, and the
     engine waits for them before the batch: the same aid whether the correlation runs here, in
-    its own process or in other workers, and however the input arrives.  From 2 to 20 s the
-    lab's false pairs in a formation in traffic move by less than its seeds do (2x 1.0 to
-    2.1 %, 3x 1.2 to 1.6 %); more than zero, so a batch never waits on its own answer."""
+    its own process or in other workers, and however the input arrives.  From 2 to 10 s the
+    lab's false pairs in a formation in traffic move by less than its seeds do (2x 1.05 to
+    1.87 %, 3x 1.38 to 1.81 %), at 20 s they are the worst (2.32 and 2.24 %:
+    docs/evaluation/formation-bounds.md); more than zero, so a batch never waits on its own
+    answer."""
     registration_sigma_m: float = 50.0
     """A partner aids only while the pair's registration, through the transform into this
     radar's view, puts it within this horizontal 1-sigma (m): without this limit, a formation
