@@ -13,9 +13,9 @@ PYPROJECTS := pyproject.toml lab/pyproject.toml
 LINTED := service tests bench lab
 # Two test processes (pytest-xdist): the end-to-end tests mostly wait, so two halve the wall
 # time on a 2-core machine; every test uses its own free ports and processes.  `-n 0` runs
-# them in one process.  One test handed out at a time, the `slow` ones first
-# (tests/conftest.py), so that both processes end together.
-PYTEST_ARGS ?= -n 2 --maxschedchunk 1
+# them in one process.  A file's tests go to one process (its module fixtures are made once),
+# the files with `slow` tests first (tests/conftest.py), so that both processes end together.
+PYTEST_ARGS ?= -n 2 --dist loadfile
 
 .PHONY: install install-demo demo run test lint imports typecheck unit bench evaluate schemas clean
 

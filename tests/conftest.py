@@ -17,10 +17,10 @@ from tests.support import zenoh_router
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The tests marked ``slow`` first, each group in its collected order: two test processes
-    handed one test at a time (``--maxschedchunk 1`` in the Makefile) then start on the long
-    ones together and end on short ones, instead of one finishing a long test alone at the
-    end.  A stable sort: every process collects the same order."""
+    """The tests marked ``slow`` first, each group in its collected order: with a file's tests
+    handed to one process (``--dist loadfile`` in the Makefile) the files that hold them go
+    first, and the two test processes end on short ones instead of one finishing a long file
+    alone.  A stable sort: every process collects the same order."""
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)
 
 
