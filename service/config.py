@@ -179,13 +179,17 @@ def engine_config_from(data: Mapping[str, Any]) -> EngineConfig:
 def with_aid(config: EngineConfig, **changes: Any) -> EngineConfig:
     """``config`` with the aid of association on (``tracking.aid.enabled``), and ``changes`` to
     its other settings (``lag_s``, ``registration_sigma_m``)."""
-    aid = replace(config.tracking.aid, enabled=True, **changes)
-    return replace(config, tracking=replace(config.tracking, aid=aid))
+    return _aid_set(config, enabled=True, **changes)
 
 
 def without_aid(config: EngineConfig) -> EngineConfig:
     """``config`` with the aid of association off (``tracking.aid.enabled``; on by default)."""
-    aid = replace(config.tracking.aid, enabled=False)
+    return _aid_set(config, enabled=False)
+
+
+def _aid_set(config: EngineConfig, **changes: Any) -> EngineConfig:
+    """``config`` with ``changes`` to its ``tracking.aid`` settings."""
+    aid = replace(config.tracking.aid, **changes)
     return replace(config, tracking=replace(config.tracking, aid=aid))
 
 

@@ -25,11 +25,12 @@ tracking.aid.moved`: the velocity's uncertainty and ``AidParams.reference_psd`` 
 acceleration over the ``lag_s`` or more), and into the aided radar's view by the pair's
 registration (:func:`~service.correlation.partner_view.view_with_covariance`).  Cost: at each
 crossing, a reference to each updated pair's links; at each table released to the correlation
-(and each batch that asks), a look whether the reads move on to a newer crossing; nothing more unless the
-tracker asks, which it does for the candidates of its tracks in a formation; then, for each
-other radar with confirmed pairs with this one, a search of those tracks among its confirmed
-pairs and of their partners in its table (each sorted once per links and table), and one
-vectorised transform of the candidates with a partner; no loop over tracks or pairs.  Memory:
+(and each batch that asks), a look whether the reads move on to a newer crossing; nothing more
+unless the tracker asks, which it does for the candidates of its tracks in a formation; then,
+for each other radar with confirmed pairs with this one, a search of those tracks among its
+confirmed pairs and of their partners in its table (each sorted once per links and table), and
+one vectorised transform of the candidates with a partner; no loop over tracks or pairs.
+Memory:
 each pair's links and each radar's tables from the crossing read last on: ``lag_s``, a grid
 step, and how far this worker's tracking runs ahead of its merge, of data time; of a radar's
 tables one a cell of the grid once the cell's crossing is known (:meth:`PartnerAid.record`).
