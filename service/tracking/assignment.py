@@ -93,3 +93,20 @@ def clarity(rows: IntArray, cols: IntArray, d2: FloatArray, chosen: IntArray) ->
     r, c = rows[chosen], cols[chosen]
     own = like[chosen]
     return np.asarray(own / (by_row[r] + by_col[c] - own))
+
+
+def weighted_covariance(cov: FloatArray, clear: FloatArray, floor: float) -> FloatArray:
+    """The covariances ``(n, k, k)`` of plots each weighed by its association's clarity
+    ``clear`` (:func:`clarity`): ``cov / max(clear, floor)``.
+
+    A plot that only partly belongs to its track (its likelihood shared with rivals) updates
+    it as a plot of that much less information: the Kalman gain shrinks with the share, as the
+    probabilistic data association's combined update weighs its one plot by its association
+    probability (Bar-Shalom and Fortmann 1988, the probabilistic data association filter; there
+    with the spread of the rivals added; here the track moves only towards its own plot, so two
+    tracks never draw together, JPDA's coalescence).  ``floor`` in (0, 1]: the least weight; 1
+    returns ``cov`` itself."""
+    if floor >= 1.0 or clear.shape[0] == 0:
+        return cov
+    w = np.clip(clear, floor, 1.0)
+    return np.asarray(cov / w[:, None, None])

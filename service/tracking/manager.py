@@ -44,7 +44,7 @@ from scipy.spatial import cKDTree
 from service.geo import FloatArray, Site
 from service.tracking import imm, kalman
 from service.tracking.aid import PartnerReferences, aided_d2, horizontal_spread
-from service.tracking.assignment import assign, clarity
+from service.tracking.assignment import assign, clarity, weighted_covariance
 from service.tracking.base import PlotColumns, Tracker, TrackTable
 from service.tracking.coincident import first_in_cell
 from service.tracking.detection import DetectionMeter
@@ -416,7 +416,11 @@ class TrackManager(Tracker):
                 if r.shape[0]:
                     z, cov_z = meas.enu_m[c], meas.covariance[c]
                     x_new, p_new, xm_new, pm_new, mu_new = imm.update(
-                        xp[chosen], pp[chosen], cw[chosen], z, cov_z
+                        xp[chosen],
+                        pp[chosen],
+                        cw[chosen],
+                        z,
+                        self._update_covariance(tracks, r, clear, cov_z),
                     )
                     saved = (tracks, r, {name: getattr(tracks, name)[r] for name in _WRITTEN})
                     tracks.x[r], tracks.P[r], tracks.t[r] = x_new, p_new, meas.time_s[c]
@@ -695,6 +699,24 @@ class TrackManager(Tracker):
         free_until[rows] = time_s + fm.formation_release_s
         mu[rows] = self._models.stationary
         return replace(tracks, free_until=free_until, mu=mu)
+
+    def _update_covariance(
+        self, tracks: _Tracks, r: IntArray, clear: FloatArray, cov_z: FloatArray
+    ) -> FloatArray:
+        """The covariances the assigned plots ``cov_z`` update their tracks ``r`` with: a member
+        of a formation's weighed by its association's clarity ``clear``
+        (:func:`.assignment.weighted_covariance`, ``update_clarity_floor``), every other's as
+        measured.  The gate, the assignment and the formation's manoeuvre test keep the plots'
+        own."""
+        floor = self.params.formation.update_clarity_floor
+        if floor >= 1.0 or self._formation_models is None:
+            return cov_z
+        grouped = np.flatnonzero((tracks.formation[r] >= 0) & (clear < 1.0))
+        if grouped.shape[0] == 0:
+            return cov_z
+        out = cov_z.copy()
+        out[grouped] = weighted_covariance(cov_z[grouped], clear[grouped], floor)
+        return out
 
     def _quality(self, quality: FloatArray, rows: IntArray, clear: FloatArray) -> FloatArray:
         """``Track.quality`` after this batch: each associated track's moves by

@@ -411,6 +411,18 @@ class FormationParams:
     between two close aircraft shows within a few scans and fades after about this many clear
     ones; a track's first association sets it."""
 
+    update_clarity_floor: float = 0.25
+    """A track flying in a formation (``hold_formations``' search) is updated by its plot of
+    clarity ``w`` < 1 (:func:`service.tracking.assignment.clarity`) as by a plot of covariance
+    ``R / max(w, update_clarity_floor)`` (:func:`service.tracking.assignment.weighted_covariance`):
+    a plot its neighbour's gate held as well pulls the track by the share of the association
+    the chosen one holds, as JPDA weighs it, so one neighbour's plot moves it a fraction of the
+    spacing instead of the filter's full gain, and the next scan's prediction stays on its own
+    aircraft.  The floor keeps the most ambiguous plot's weight at a quarter, so a track whose
+    plots are all contested still follows them.  1: the plain update (a track out of every
+    formation always has it: lone aircraft and national traffic are untouched).  Measured in
+    the formation study (docs/evaluation/formation.md)."""
+
     merge_duplicates: bool = True
     """Whether duplicate tracks are looked for, and the weaker of each duplicate pair dropped."""
 
@@ -502,7 +514,7 @@ class FormationParams:
     def off() -> FormationParams:
         """The tracker as it was before these rules: no duplicate search, every track the
         filter's models.  (Quality is reported either way; association does not read it.)"""
-        return FormationParams(merge_duplicates=False, hold_formations=False)
+        return FormationParams(merge_duplicates=False, hold_formations=False, update_clarity_floor=1.0)
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ from dataclasses import replace
 import numpy as np
 
 from service.tracking import make_tracker
-from service.tracking.assignment import assign, clarity
+from service.tracking.assignment import assign, clarity, weighted_covariance
 from service.tracking.base import PlotColumns
 from service.tracking.duplicates import duplicate_losers, shared_plot_pairs
 from service.tracking.formation import (
@@ -412,3 +412,56 @@ def test_a_member_flying_otherwise_comes_back_to_its_own_velocity() -> None:
     assert got[True].shape == (3,) and got[False].shape == (3,)
     assert got[False][1] - got[False][0] > 35.0  # the plots do say 40 m/s faster
     np.testing.assert_allclose(got[True], got[False], atol=1.0)
+
+
+# -- the weighted update of a member of a formation -----------------------------------------------
+def test_weighted_covariance_against_a_plain_loop() -> None:
+    rng = np.random.default_rng(17)
+    cov = rng.normal(size=(40, 3, 3))
+    cov = cov @ cov.transpose(0, 2, 1) + np.eye(3)
+    clear = rng.uniform(0.01, 1.0, 40)
+    clear[:5] = 1.0
+    for floor in (0.1, 0.25, 0.9):
+        got = weighted_covariance(cov, clear, floor)
+        for k in range(40):
+            np.testing.assert_allclose(got[k], cov[k] / max(clear[k], floor), rtol=1e-14)
+    assert weighted_covariance(cov, clear, 1.0) is cov  # the floor at 1: the plain update
+
+
+def _track_azimuths(m: TrackManager) -> tuple[np.ndarray, np.ndarray]:
+    """Each track's azimuth (deg) and quality, rows in track-id order."""
+    tab = m.tracks()
+    order = np.argsort(tab.track_id)
+    enu = (tab.position_ecef_m[order] - SITE.origin_ecef) @ SITE.rotation
+    return np.degrees(np.arctan2(enu[:, 0], enu[:, 1])), tab.quality[order]
+
+
+def test_a_contested_plot_pulls_a_member_of_a_formation_less() -> None:
+    """Two aircraft abreast 1 deg apart (a formation), then one scan in which the left one's plot
+    lies halfway to the right one, in both tracks' gates: it moves its track less
+    with the weighted update (the default ``update_clarity_floor``) than with the plain one
+    (1); the isolated aircraft's tracks move exactly alike."""
+    weighted = make_tracker(SITE)
+    plain = make_tracker(
+        SITE, params=replace(TrackerParams(), formation=FormationParams(update_clarity_floor=1.0))
+    )
+    moves, contested = [], []
+    for m in (weighted, plain):
+        _abreast(m, 20)
+        before, _ = _track_azimuths(m)
+        t = 1_000.0 + 20 * SCAN_S
+        r = 60_000.0 + 150.0 * (t - 1_000.0)
+        az = [45.5, 46.0, *ANCHORS_DEG]
+        rg = [r, r] + [80_000.0 - 100.0 * (t - 1_000.0)] * len(ANCHORS_DEG)
+        m.update(_plots(t, az, rg, ["X", "Y"] + ["A"] * len(ANCHORS_DEG)), t)
+        after, quality = _track_azimuths(m)
+        assert len(after) == 2 + len(ANCHORS_DEG)
+        moves.append(after - before)
+        contested.append(quality)
+    left = int(np.argmin(np.abs(before - 45.0)))
+    pair = np.abs(before - 45.5) < 2.0
+    assert np.count_nonzero(pair) == 2
+    # the plot was in both gates: its clarity about a half drew the quality (memory 5) down
+    assert contested[0][left] < 0.95 and contested[1][left] < 0.95
+    assert 0.0 < moves[0][left] < 0.7 * moves[1][left]  # towards the plot, less far
+    np.testing.assert_array_equal(moves[0][~pair], moves[1][~pair])

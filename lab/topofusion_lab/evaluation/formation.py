@@ -7,7 +7,7 @@ Every run feeds a formation scenario through :class:`service.engine.Engine` in t
 exactly as :mod:`topofusion_lab.evaluation.formation_pipeline` does (``topofusion replay
 --offline``: the bytes ``topofusion simulate`` publishes, the service's code path, no Zenoh),
 three times per seed on the same messages: with every formation rule off (*before*: the tracker's
-duplicate rule and its formation's quiet model, ``FormationParams.off()``; its two-model
+duplicate rule, its formation's quiet model and weighted update, ``FormationParams.off()``; its two-model
 filter, ``FilterParams.imm`` off, so one constant-velocity model; its initiator's ranking by velocity support,
 ``LogicParams.support_weight = 0``; its deletion by the radar's detection probability,
 ``ManagerParams.deletion_miss_probability = 0``, so three misses whatever the radar;
@@ -265,7 +265,7 @@ def focus_of(point: Point, sc: Scenario) -> frozenset[str] | None:
 
 def engine_config(variant: str) -> EngineConfig:
     """The engine's configuration of a variant (:data:`VARIANTS`): *before* has every formation
-    rule off (the tracker's duplicate rule, formation's quiet model, two-model filter and
+    rule off (the tracker's duplicate rule, formation's quiet model and weighted update, two-model filter and
     initiator's velocity support, deletion by the radar's detection probability, correlation's
     caution with low-quality tracks and its swap rule, the published score's tracks' quality,
     the hold of a contested pair, the aid of association), *unaided* the default with the aid of
@@ -695,7 +695,7 @@ def report(
         f"The catalog's `formation` scenario (3 radars, {first['targets']} aircraft, "
         f"{first['duration_s']:.0f} s) through the engine, per point {n} seed(s), each run three times "
         "on the same messages: *before*, every formation rule off (the tracker's duplicate rule, "
-        "formation's quiet model, two-model filter and initiator's velocity support, its "
+        "formation's quiet model and weighted update, two-model filter and initiator's velocity support, its "
         "deletion by the radar's detection probability, correlation's caution with "
         "low-quality tracks and its swap rule, the published "
         "score's tracks' quality, the aid of association), *unaided*, the default with the aid "
