@@ -411,7 +411,7 @@ class FormationParams:
     between two close aircraft shows within a few scans and fades after about this many clear
     ones; a track's first association sets it."""
 
-    update_clarity_floor: float = 0.25
+    update_clarity_floor: Annotated[float, Gt(0)] = 0.25
     """A track flying in a formation (``hold_formations``' search) is updated by its plot of
     clarity ``w`` < 1 (:func:`service.tracking.assignment.clarity`) as by a plot of covariance
     ``R / max(w, update_clarity_floor)`` (:func:`service.tracking.assignment.weighted_covariance`):
@@ -513,7 +513,8 @@ class FormationParams:
     @staticmethod
     def off() -> FormationParams:
         """The tracker as it was before these rules: no duplicate search, every track the
-        filter's models.  (Quality is reported either way; association does not read it.)"""
+        filter's models and the plain update.  (Quality is reported either way; association
+        does not read it.)"""
         return FormationParams(merge_duplicates=False, hold_formations=False, update_clarity_floor=1.0)
 
 

@@ -13,7 +13,9 @@ import math
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
+from service.config import engine_config_from
 from service.tracking import make_tracker
 from service.tracking.assignment import assign, clarity, weighted_covariance
 from service.tracking.base import PlotColumns
@@ -465,3 +467,11 @@ def test_a_contested_plot_pulls_a_member_of_a_formation_less() -> None:
     assert contested[0][left] < 0.95 and contested[1][left] < 0.95
     assert 0.0 < moves[0][left] < 0.7 * moves[1][left]  # towards the plot, less far
     np.testing.assert_array_equal(moves[0][~pair], moves[1][~pair])
+
+
+def test_the_update_clarity_floor_is_a_setting_above_zero() -> None:
+    got = engine_config_from({"tracking": {"formation": {"update_clarity_floor": 1.0}}})
+    assert got.tracking.formation.update_clarity_floor == 1.0
+    for bad in (0, -0.5):
+        with pytest.raises(ValueError, match="update_clarity_floor"):
+            engine_config_from({"tracking": {"formation": {"update_clarity_floor": bad}}})
