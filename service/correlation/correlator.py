@@ -518,6 +518,8 @@ class PairCorrelator:
                     # The looks were compensated with an estimate the new one refutes: their
                     # residuals carry its error, and would reject right pairs for minutes.
                     ev.clear()
+                elif ev is not None and was is not None and ev.params.recompensate:
+                    self._recompensate(was, raw_a, raw_b)
         self.last_decisions = dec
         #: Nothing left to settle: registered, no tentative pair but held ones (they wait for
         #: their evidence, which the pair's usual cadence brings), no candidate accepted but
@@ -529,6 +531,26 @@ class PairCorrelator:
         self.time_s = time_s
         self.updates += 1
         self.last_update_ms = (time.perf_counter() - t0) * 1e3
+
+    def _recompensate(self, was: BiasSolution, raw_a: PredictedTracks, raw_b: PredictedTracks) -> None:
+        """The remembered looks of the pairs of present tracks moved from ``was`` to the new
+        solution (``EvidenceParams.recompensate``): by the change of each track's compensated
+        position, in the looks' frame (:func:`.evidence.registered_residuals`)."""
+        ev, new = self.evidence, self.solution
+        if ev is None or new is None or len(ev) == 0:
+            return
+        ia = find(raw_a.keys, ev.track_a)
+        ib = find(raw_b.keys, ev.track_b)
+        ok = (ia >= 0) & (ib >= 0)
+        if not ok.any():
+            return
+        ia, ib = ia[ok], ib[ok]
+        sa, sb = self.site_a.site_id, self.site_b.site_id if self.site_b else None
+        da = compensate(raw_a, *new.of(sa))[0].position - compensate(raw_a, *was.of(sa))[0].position
+        db = compensate(raw_b, *new.of(sb))[0].position - compensate(raw_b, *was.of(sb))[0].position
+        site = raw_b.site if raw_b.site is not None else raw_a.site
+        rot = np.eye(3) if site is None else site.rotation
+        ev.shift(ev.track_a[ok], ev.track_b[ok], (da[ia] - db[ib]) @ rot)
 
     def _jumps(
         self, checked: Decisions | None, n: int, a: PredictedTracks, b: PredictedTracks, ctx: DecisionContext

@@ -21,6 +21,14 @@ own uncertainty: it does not average out):
   true pairs' ``t`` several times over, so its looks accepted every lattice neighbour.)
   Elsewhere before registration there is no look, and the update decides alone.
 
+A re-solve of the registration moves every remembered mean residual ``rbar`` of two present
+tracks by the change the new estimate makes to their compensated positions (at their present
+positions, the registration's Jacobian there; ``recompensate``): the looks are a mean of
+differences each compensated with the estimate of its time, and a drifting estimate would
+otherwise leave its old error in the history for a horizon (a false pair that the estimate of
+its time favoured kept defending itself).  A re-solve that moves a bias by more than
+``reset_sigma`` of its sigmas forgets every look instead.
+
 **Accumulation** (per entry, data time; ``dt`` since the entry's previous observation)::
 
     d = exp(-dt / horizon_s)                        forgetting of old evidence
@@ -103,6 +111,11 @@ class EvidenceParams:
     #: previous sigmas forgets every look: they were compensated with an estimate the new
     #: one refutes (the two radars' first estimate rests on a few pairs of one area).
     reset_sigma: float = 4.0
+    #: Re-compensate the remembered looks whenever the registration is re-solved: each entry's
+    #: mean residual moves by the change the new estimate makes to its two tracks' compensated
+    #: positions (at their present positions), so the history tests every pair with the latest
+    #: registration, not with the mix of the estimates its looks were taken with.
+    recompensate: bool = True
     #: Once registered, every pair of tracks closer than this (m, compensated ECEF) is looked
     #: at on every update (a true pair's compensated difference is a few hundred metres).
     registered_search_m: float = 5_000.0
@@ -283,6 +296,24 @@ class EvidenceBook:
         self.common[e] = common[upd]
         self.res_time_s[e] = time_s
         self.looks[e] += 1
+        rbar, sbar, n_eff = self.rbar[e], self.sbar[e], self.n_eff[e]
+        self.q[e] = accumulated_chi2(rbar, sbar, n_eff, self.common[e])
+        self.q_rel[e] = accumulated_chi2(rbar, sbar, n_eff, np.zeros_like(sbar))
+
+    def shift(self, track_a: NDArray[Any], track_b: NDArray[Any], delta: FloatArray) -> None:
+        """Move the mean residual of the entries ``(track_a[k], track_b[k])`` (those known) by
+        ``delta[k]`` and test them again: the registration their looks were compensated with
+        was re-solved (``recompensate``)."""
+        if len(self) == 0 or len(track_a) == 0:
+            return
+        idx = find(self.keys, pair_keys(track_a, track_b))
+        have = idx >= 0
+        e = idx[have]
+        if e.size == 0:
+            return
+        np.add.at(self.rbar, e, delta[have])
+        seen = self.looks[e] > 0
+        e = e[seen]
         rbar, sbar, n_eff = self.rbar[e], self.sbar[e], self.n_eff[e]
         self.q[e] = accumulated_chi2(rbar, sbar, n_eff, self.common[e])
         self.q_rel[e] = accumulated_chi2(rbar, sbar, n_eff, np.zeros_like(sbar))

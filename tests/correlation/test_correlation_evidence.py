@@ -3,7 +3,7 @@ offset against their plain reference forms; the pair fields and the dense-format
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import numpy as np
 import pytest
@@ -14,6 +14,7 @@ from service.correlation.base import PredictedTracks
 from service.correlation.evidence import EvidenceBook, EvidenceParams
 from service.correlation.group_offset import GroupOffsetParams, group_residuals
 from service.geo import Site
+from service.tracking.base import TrackTable
 from tests.reference_forms import evidence_reference, group_offset_reference, joint_regret_reference
 
 
@@ -143,14 +144,18 @@ def test_group_offset_matches_the_reference_and_finds_the_offset() -> None:
     assert np.median(q[true_pairs]) < 4.0 < np.median(q[~true_pairs])
 
 
-def _formation_run(evidence: bool, seed: int) -> tuple[float, float, list]:
+def _formation_correlator(
+    seed: int, scans: int = 40, evidence: bool = True
+) -> tuple[PairCorrelator, TrackTable, TrackTable, float]:
+    """A 5 x 5 lattice at 3 cross-range errors seen by two biased radars, correlated for
+    ``scans`` scans: the correlator, the last tables and the last update's time."""
     from topofusion_lab.evaluation.correlation_scenario import make_sites
     from topofusion_lab.evaluation.correlation_stream import RadarBias, RadarTrackSim, StreamScenario
 
     rng = np.random.default_rng(seed)
     a, b = make_sites()
     sc = StreamScenario(
-        scans=40, scan_period_s=10.0, bias_a=RadarBias(300, 0.5, 0.05), bias_b=RadarBias(-200, -0.4, -0.05)
+        scans=scans, scan_period_s=10.0, bias_a=RadarBias(300, 0.5, 0.05), bias_b=RadarBias(-200, -0.4, -0.05)
     )
     cross = 120_000.0 * np.radians(a.azimuth_sigma_deg) * sc.track_noise_factor
     n = 25
@@ -166,6 +171,12 @@ def _formation_run(evidence: bool, seed: int) -> tuple[float, float, list]:
     for k in range(sc.scans):
         ta, tb = ra.table(a, pos, vel, 10.0 * k), rb.table(a, pos, vel, 10.0 * k)
         corr.update(ta, tb, 10.0 * k + 10.0)
+    return corr, ta, tb, 10.0 * k + 10.0
+
+
+def _formation_run(evidence: bool, seed: int) -> tuple[float, float, list]:
+    corr, ta, tb, _ = _formation_correlator(seed, evidence=evidence)
+    n = len(ta)
     truth_a = dict(zip(ta.track_id, ta.truth_id, strict=True))
     truth_b = dict(zip(tb.track_id, tb.truth_id, strict=True))
     conf = [p for p in corr.pairs() if p.status == "confirmed"]
@@ -212,3 +223,73 @@ def test_group_offset_work_is_bounded_in_a_hostile_blob() -> None:
     assert len(ia) == n * n
     ok, r, _s, _c = group_residuals(sa, sb, ia, ib, GroupOffsetParams(max_comparisons=1_000_000))
     assert not ok.any() and len(r) == 0
+
+
+def test_shifted_evidence_equals_the_looks_taken_with_the_shift() -> None:
+    # A re-solved registration moves every look of a pair by the same compensation change:
+    # the mean residual moves by it, and the test is taken again (the plain weighted sums).
+    rng = np.random.default_rng(4)
+    prm = EvidenceParams()
+    book = EvidenceBook(prm)
+    looks, t = [], 0.0
+    for _ in range(6):
+        t += float(rng.uniform(5.0, 30.0))
+        look = (t, rng.normal(0, 300, 3), _spd(rng, 150.0), _spd(rng, 60.0))
+        looks.append(look)
+        book.observe(t, np.array(["A-1"]), np.array(["B-1"]), look[1][None], look[2][None], look[3][None])
+    delta = np.array([[-700.0, 250.0, 40.0], [5.0, 5.0, 5.0]])
+    book.shift(np.array(["A-1", "A-9"]), np.array(["B-1", "B-9"]), delta)  # (A-9, B-9): no entry
+    rbar, _, q = evidence_reference([(t, r + delta[0], s, c) for t, r, s, c in looks], 300.0, 45.0)
+    assert len(book) == 1
+    np.testing.assert_allclose(book.rbar[0], rbar, rtol=1e-9, atol=1e-9)
+    assert book.q[0] == pytest.approx(q, rel=1e-9)
+    without_c = [(t, r + delta[0], s, np.zeros((3, 3))) for t, r, s, _ in looks]
+    assert book.q_rel[0] == pytest.approx(evidence_reference(without_c, 300.0, 45.0)[2], rel=1e-9)
+
+
+def _one_row(p: PredictedTracks, i: int) -> PredictedTracks:
+    rows = {
+        f.name: getattr(p, f.name)[i : i + 1]
+        for f in fields(p)
+        if isinstance(getattr(p, f.name), np.ndarray) and getattr(p, f.name).shape[:1] == (len(p),)
+    }
+    return replace(p, **rows)
+
+
+def test_recompensation_matches_a_plain_reference() -> None:
+    # A registered formation's evidence, moved from another estimate to the correlator's own:
+    # each present pair's mean residual moves by the change of its two tracks' compensated
+    # positions (track by track, in B's ENU frame), an absent track's pairs not at all.
+    from service.correlation.prediction import predict_tracks
+    from service.correlation.registration import BiasSolution, compensate
+
+    corr, ta, tb, t = _formation_correlator(seed=3, scans=16)
+    ev, new = corr.evidence, corr.solution
+    assert ev is not None and new is not None and len(ev) > 20
+    terms, cov = new.full
+    was = BiasSolution.of_terms(
+        new.radar_ids, terms + np.array([150.0, 2e-3, 1e-3, 0.0, 0.0]), cov, new.pairs_used
+    )
+    keep = np.arange(len(ta)) != 0  # A's first track has left this snapshot
+    ta = ta.take(keep)
+    prm = corr.params.prediction
+    keys_a, keys_b = corr._keys(ta, tb)
+    raw_a = predict_tracks(ta, corr.site_a, t, prm, keys_a)
+    raw_b = predict_tracks(tb, corr.site_b, t, prm, keys_b)
+    before = ev.rbar.copy()
+    corr._recompensate(was, raw_a, raw_b)
+    moved = 0
+    for e in range(len(ev)):
+        ia = [i for i, k in enumerate(raw_a.keys) if k == ev.track_a[e]]
+        ib = [i for i, k in enumerate(raw_b.keys) if k == ev.track_b[e]]
+        if not ia or not ib:
+            np.testing.assert_array_equal(ev.rbar[e], before[e])
+            continue
+        row_a, row_b = _one_row(raw_a, ia[0]), _one_row(raw_b, ib[0])
+        sa, sb = corr.site_a.site_id, corr.site_b.site_id
+        da = compensate(row_a, *new.of(sa))[0].position - compensate(row_a, *was.of(sa))[0].position
+        db = compensate(row_b, *new.of(sb))[0].position - compensate(row_b, *was.of(sb))[0].position
+        change = ((da - db) @ corr.site_b.rotation)[0]
+        np.testing.assert_allclose(ev.rbar[e] - before[e], change, atol=1e-6)
+        moved += bool(np.linalg.norm(change) > 10.0)
+    assert moved > 20
