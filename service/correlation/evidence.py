@@ -27,7 +27,9 @@ positions, the registration's Jacobian there; ``recompensate``): the looks are a
 differences each compensated with the estimate of its time, and a drifting estimate would
 otherwise leave its old error in the history for a horizon (a false pair that the estimate of
 its time favoured kept defending itself).  A re-solve that moves a bias by more than
-``reset_sigma`` of its sigmas forgets every look instead.
+``reset_sigma`` of its sigmas forgets every look instead.  (Looks taken before the first
+registration, against a group's offset, are moved alike; the registered looks soon outweigh
+them.)
 
 **Accumulation** (per entry, data time; ``dt`` since the entry's previous observation)::
 
@@ -296,6 +298,11 @@ class EvidenceBook:
         self.common[e] = common[upd]
         self.res_time_s[e] = time_s
         self.looks[e] += 1
+        self._test(e)
+
+    def _test(self, e: NDArray[np.intp]) -> None:
+        """The accumulated chi-squares of the entries ``e`` (observed at least once), with the
+        common part and without it."""
         rbar, sbar, n_eff = self.rbar[e], self.sbar[e], self.n_eff[e]
         self.q[e] = accumulated_chi2(rbar, sbar, n_eff, self.common[e])
         self.q_rel[e] = accumulated_chi2(rbar, sbar, n_eff, np.zeros_like(sbar))
@@ -311,12 +318,8 @@ class EvidenceBook:
         e = idx[have]
         if e.size == 0:
             return
-        np.add.at(self.rbar, e, delta[have])
-        seen = self.looks[e] > 0
-        e = e[seen]
-        rbar, sbar, n_eff = self.rbar[e], self.sbar[e], self.n_eff[e]
-        self.q[e] = accumulated_chi2(rbar, sbar, n_eff, self.common[e])
-        self.q_rel[e] = accumulated_chi2(rbar, sbar, n_eff, np.zeros_like(sbar))
+        self.rbar[e] += delta[have]  # (entries are unique pairs: ``e`` holds no repeats)
+        self._test(e[self.looks[e] > 0])
 
     def prune(
         self,
