@@ -550,7 +550,7 @@ class PairCorrelator:
         db = compensate(raw_b, *new.of(sb))[0].position - compensate(raw_b, *was.of(sb))[0].position
         site = raw_b.site if raw_b.site is not None else raw_a.site
         rot = np.eye(3) if site is None else site.rotation
-        ev.shift(ev.track_a[ok], ev.track_b[ok], (da[ia] - db[ib]) @ rot)
+        ev.shift(np.flatnonzero(ok), (da[ia] - db[ib]) @ rot)
 
     def _jumps(
         self, checked: Decisions | None, n: int, a: PredictedTracks, b: PredictedTracks, ctx: DecisionContext

@@ -307,19 +307,14 @@ class EvidenceBook:
         self.q[e] = accumulated_chi2(rbar, sbar, n_eff, self.common[e])
         self.q_rel[e] = accumulated_chi2(rbar, sbar, n_eff, np.zeros_like(sbar))
 
-    def shift(self, track_a: NDArray[Any], track_b: NDArray[Any], delta: FloatArray) -> None:
-        """Move the mean residual of the entries ``(track_a[k], track_b[k])`` (those known) by
-        ``delta[k]`` and test them again: the registration their looks were compensated with
-        was re-solved (``recompensate``)."""
-        if len(self) == 0 or len(track_a) == 0:
+    def shift(self, entries: NDArray[np.intp], delta: FloatArray) -> None:
+        """Move the mean residual of the entries ``entries`` (unique) by ``delta[k]`` and test
+        them again: the registration their looks were compensated with was re-solved
+        (``recompensate``)."""
+        if len(entries) == 0:
             return
-        idx = find(self.keys, pair_keys(track_a, track_b))
-        have = idx >= 0
-        e = idx[have]
-        if e.size == 0:
-            return
-        self.rbar[e] += delta[have]  # (entries are unique pairs: ``e`` holds no repeats)
-        self._test(e[self.looks[e] > 0])
+        self.rbar[entries] += delta
+        self._test(entries)
 
     def prune(
         self,

@@ -237,8 +237,8 @@ def test_shifted_evidence_equals_the_looks_taken_with_the_shift() -> None:
         look = (t, rng.normal(0, 300, 3), _spd(rng, 150.0), _spd(rng, 60.0))
         looks.append(look)
         book.observe(t, np.array(["A-1"]), np.array(["B-1"]), look[1][None], look[2][None], look[3][None])
-    delta = np.array([[-700.0, 250.0, 40.0], [5.0, 5.0, 5.0]])
-    book.shift(np.array(["A-1", "A-9"]), np.array(["B-1", "B-9"]), delta)  # (A-9, B-9): no entry
+    delta = np.array([[-700.0, 250.0, 40.0]])
+    book.shift(np.array([0]), delta)
     rbar, _, q = evidence_reference([(t, r + delta[0], s, c) for t, r, s, c in looks], 300.0, 45.0)
     assert len(book) == 1
     np.testing.assert_allclose(book.rbar[0], rbar, rtol=1e-9, atol=1e-9)
