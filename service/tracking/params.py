@@ -583,7 +583,8 @@ class AidParams:
     """Association aided by another radar's track of the same aircraft (:mod:`.aid`).
     Measured in a formation among other traffic (the lab's formation bounds, ``--bound aided``,
     docs/evaluation/formation-bounds.md): false pairs at 2x and 3x spacing cut from 4.3 and
-    3.4 % to 1.1 and 1.8 %; a formation alone about as it was."""
+    3.4 % to 1.1 and 1.8 %; a formation alone about as it was until ``registration_sigma_m``
+    let it act there too (below)."""
 
     enabled: bool = True
     """Whether a track in a formation with a confirmed partner is aided.  On by default: it acts
@@ -601,10 +602,20 @@ class AidParams:
     1.87 %, 3x 1.38 to 1.81 %), at 20 s they are the worst (2.32 and 2.24 %:
     docs/evaluation/formation-bounds.md); more than zero, so a batch never waits on its own
     answer."""
-    registration_sigma_m: float = 50.0
+    registration_sigma_m: float = 300.0
     """A partner aids only while the pair's registration, through the transform into this
-    radar's view, puts it within this horizontal 1-sigma (m): without this limit, a formation
-    alone (the registration's worst case, a transform up to 1 km off) got worse."""
+    radar's view, puts it within this horizontal 1-sigma (m); the partner must also be more
+    precise than the track, its covariance with the registration's, so a looser limit lets
+    the comparison decide.  A formation alone is the registration's worst case: its
+    registration rests on the formation's pairs only, 90-140 m 1-sigma through the transform
+    there (in traffic within 50 m for 94 % of the candidates, docs/results.md), so at 50 m the
+    aid never acted on it.  Formation study (3 seeds, docs/evaluation/formation.md), false
+    pairs % (worst seed) / correct % at 50 -> 300:
+    2x 2.97 (3.67) / 38.7 -> 1.81 (1.93) / 39.5; 3x 4.97 (12.35) / 77.8 -> 2.55 (6.82) / 80.2;
+    4x 0.28 (0.42) / 95.6 -> 0.03 (0.09) / 97.6; 3x in traffic 1.47 (3.31) / 87.9 -> 0.61
+    (0.85) / 90.6; at Pd 0.7 7.87 -> 9.16 (13.06 both) / 22.9 -> 22.6, merging 17.0 -> 18.8.
+    150 gained about half as much at 2x and 3x; 600 and no limit gave 300's figures to the
+    digit (no registration there was looser)."""
     reference_psd: Annotated[float, Ge(0)] = 1.0
     """A partner's table is of the crossing ``lag_s`` or more before the plot (the pipeline's
     partner aid): its position is moved to the plot's time on its velocity, its covariance
