@@ -609,13 +609,14 @@ class AidParams:
     the comparison decide.  A formation alone is the registration's worst case: its
     registration rests on the formation's pairs only, 90-140 m 1-sigma through the transform
     there (in traffic within 50 m for 94 % of the candidates, docs/results.md), so at 50 m the
-    aid never acted on it.  Formation study (3 seeds, docs/evaluation/formation.md), false
-    pairs % (worst seed) / correct % at 50 -> 300:
+    aid seldom acted on it (one 2x run: 79 of 5 147 candidates, none of the noisiest radar's).
+    Formation study (3 seeds, docs/evaluation/formation.md), false pairs % (worst seed) /
+    correct % at 50 -> 300:
     2x 2.97 (3.67) / 38.7 -> 1.81 (1.93) / 39.5; 3x 4.97 (12.35) / 77.8 -> 2.55 (6.82) / 80.2;
     4x 0.28 (0.42) / 95.6 -> 0.03 (0.09) / 97.6; 3x in traffic 1.47 (3.31) / 87.9 -> 0.61
     (0.85) / 90.6; at Pd 0.7 7.87 -> 9.16 (13.06 both) / 22.9 -> 22.6, merging 17.0 -> 18.8.
     150 gained about half as much at 2x and 3x; 600 and no limit gave 300's figures to the
-    digit (no registration there was looser)."""
+    digit (none was refused at 300 there)."""
     reference_psd: Annotated[float, Ge(0)] = 1.0
     """A partner's table is of the crossing ``lag_s`` or more before the plot (the pipeline's
     partner aid): its position is moved to the plot's time on its velocity, its covariance
