@@ -519,7 +519,8 @@ class PairCorrelator:
                     # residuals carry its error, and would reject right pairs for minutes.
                     ev.clear()
                 elif ev is not None and was is not None and ev.params.recompensate:
-                    self._recompensate(was, raw_a, raw_b)
+                    # (a, b: this update's snapshots, compensated with ``was``)
+                    self._recompensate(a, b, raw_a, raw_b)
         self.last_decisions = dec
         #: Nothing left to settle: registered, no tentative pair but held ones (they wait for
         #: their evidence, which the pair's usual cadence brings), no candidate accepted but
@@ -532,10 +533,13 @@ class PairCorrelator:
         self.updates += 1
         self.last_update_ms = (time.perf_counter() - t0) * 1e3
 
-    def _recompensate(self, was: BiasSolution, raw_a: PredictedTracks, raw_b: PredictedTracks) -> None:
-        """The remembered looks of the pairs of present tracks moved from ``was`` to the new
-        solution (``EvidenceParams.recompensate``): by the change of each track's compensated
-        position, in the looks' frame (:func:`.evidence.registered_residuals`)."""
+    def _recompensate(
+        self, was_a: PredictedTracks, was_b: PredictedTracks, raw_a: PredictedTracks, raw_b: PredictedTracks
+    ) -> None:
+        """The remembered looks of the pairs of present tracks moved to the new solution
+        (``EvidenceParams.recompensate``) from the one ``was_a``/``was_b`` were compensated
+        with (``raw_a``/``raw_b`` uncompensated, the same rows): by the change of each track's
+        compensated position, in the looks' frame (:func:`.evidence.registered_residuals`)."""
         ev, new = self.evidence, self.solution
         if ev is None or new is None or len(ev) == 0:
             return
@@ -546,8 +550,8 @@ class PairCorrelator:
             return
         ia, ib = ia[ok], ib[ok]
         sa, sb = self.site_a.site_id, self.site_b.site_id if self.site_b else None
-        da = compensate(raw_a, *new.of(sa))[0].position - compensate(raw_a, *was.of(sa))[0].position
-        db = compensate(raw_b, *new.of(sb))[0].position - compensate(raw_b, *was.of(sb))[0].position
+        da = compensate(raw_a, *new.of(sa))[0].position - was_a.position
+        db = compensate(raw_b, *new.of(sb))[0].position - was_b.position
         site = raw_b.site if raw_b.site is not None else raw_a.site
         rot = np.eye(3) if site is None else site.rotation
         ev.shift(np.flatnonzero(ok), (da[ia] - db[ib]) @ rot)

@@ -277,7 +277,9 @@ def test_recompensation_matches_a_plain_reference() -> None:
     raw_a = predict_tracks(ta, corr.site_a, t, prm, keys_a)
     raw_b = predict_tracks(tb, corr.site_b, t, prm, keys_b)
     before = ev.rbar.copy()
-    corr._recompensate(was, raw_a, raw_b)
+    sa, sb = corr.site_a.site_id, corr.site_b.site_id
+    was_a, was_b = compensate(raw_a, *was.of(sa))[0], compensate(raw_b, *was.of(sb))[0]
+    corr._recompensate(was_a, was_b, raw_a, raw_b)
     moved = 0
     for e in range(len(ev)):
         ia = [i for i, k in enumerate(raw_a.keys) if k == ev.track_a[e]]
@@ -286,7 +288,6 @@ def test_recompensation_matches_a_plain_reference() -> None:
             np.testing.assert_array_equal(ev.rbar[e], before[e])
             continue
         row_a, row_b = _one_row(raw_a, ia[0]), _one_row(raw_b, ib[0])
-        sa, sb = corr.site_a.site_id, corr.site_b.site_id
         da = compensate(row_a, *new.of(sa))[0].position - compensate(row_a, *was.of(sa))[0].position
         db = compensate(row_b, *new.of(sb))[0].position - compensate(row_b, *was.of(sb))[0].position
         change = ((da - db) @ corr.site_b.rotation)[0]
