@@ -14,23 +14,31 @@ update's chosen single decisions, a miss otherwise.
   one of its tracks has vanished from the input.
 * A confirmed pair whose evidence turns against it while one of its tracks is contested is
   *held* (:meth:`PairBook.hold_ambiguous`): back to tentative, so that neither its fused
-  picture nor the confirmed bonus defends it, and confirmed again only once its published
+  picture nor the confirmed bonus defends it, and confirmed again only once its discounted
   score has recovered to ``release_score`` (hysteresis: not on its hits alone, which a track
   following two aircraft in turn keeps scoring), or once it has scored ``release_hits`` hits
   since the hold and its evidence alone is at ``release_probability`` (a lasting formation,
-  whose tracks stay contested: its published score cannot recover).
+  whose tracks stay contested: its discounted score cannot recover).
 
 ``hit_fraction = hits in the window / window`` drives the logic above.  ``score`` is the
 pair's probability of being right from its accumulated evidence (:mod:`.evidence`, set by the
 caller in ``probability``) where the method gives one, the hit fraction otherwise: the
-correlation's own figure, which the cycle step and the system tracks read.  The *published*
-score (:attr:`PairBook.published_score`) also counts the tracks themselves: a pair is right
-only if both its tracks follow their aircraft, and a track whose recent plots were contested
-(``TrackTable.quality``, the tracker's likelihood share of its associations) may have swapped
-onto a neighbour, which no correlation evidence shows.  It is ``score * quality``, where a
-pair's ``quality`` is ``(q_a q_b) ** quality_exponent`` of its tracks' qualities at its latest
-hit (a quality not known counts as 1).  ``basis`` records what the pair's latest hit rested on
-(:class:`~.base.Basis`, -1: not given).  Stored columnar (numpy), updated with set
+correlation's own figure, which the cycle step and the system tracks read.  Two figures also
+count the tracks themselves: a pair is right only if both its tracks follow their aircraft,
+and a track whose recent plots were contested (``TrackTable.quality``, the tracker's
+likelihood share of its associations) may have swapped onto a neighbour, which no
+correlation evidence shows.  A pair's ``quality`` is ``(q_a q_b) ** quality_exponent`` of its
+tracks' qualities at its latest hit (a quality not known counts as 1).  The *discounted*
+score (:attr:`PairBook.discounted_score`), ``score * quality``, is what the hold reads; the
+*published* score (:attr:`PairBook.published_score`), the one a ``PairSet`` carries, is the
+score with its odds multiplied by ``quality ** published_quality_power``,
+
+    ``published = s f / (s f + 1 - s)``,  ``s = min(score, 1 - 1e-9)``,  ``f = quality ** k``,
+
+a calibration of the score by the tracks' quality through the whole pipeline (measured in
+:class:`PairBookParams`): a pair of unambiguous tracks (quality 1) publishes its score.
+``basis`` records what the pair's latest hit rested on (:class:`~.base.Basis`, -1: not
+given).  Stored columnar (numpy), updated with set
 operations on keys: no Python loop over pairs.  The book identifies tracks by what it is
 given, track keys or track ids (:mod:`.pairkeys`; the correlation gives keys, and the track ids
 as the pairs' names, ``track_a``/``track_b``, which is what it publishes).
@@ -51,6 +59,11 @@ from service.correlation.pairkeys import comparable, find, isin_few, joined
 from service.correlation.pairkeys import isin_sorted as _isin
 from service.correlation.pairkeys import pair_keys as _keys
 
+#: The published score never takes the score as more certain than this: a probability of
+#: exactly 1 (the evidence's exponentials can round to it) would make its odds infinite and the
+#: tracks' quality count for nothing.
+_MOST_CERTAIN = 1.0 - 1e-9
+
 
 @dataclass(frozen=True)
 class PairBookParams:
@@ -62,17 +75,32 @@ class PairBookParams:
     confirm_hits: int = 3
     #: Consecutive misses after which a confirmed pair is dropped.
     drop_misses: int = 4
-    #: The published score is ``score * (q_a q_b) ** quality_exponent`` (module docstring; 0:
-    #: the score alone).  0.5, the geometric mean of the two qualities: through the whole
+    #: A pair's quality is ``(q_a q_b) ** quality_exponent`` (module docstring; 0: always 1).
+    #: 0.5, the geometric mean of the two qualities: through the whole
     #: pipeline in formations (``topofusion evaluate --only formation``, 8 points, seeds 4-5,
-    #: 6 167 judged confirmed pairs) the Brier score of the published scores was 0.254 with the
+    #: 6 167 judged confirmed pairs) the Brier score of ``score * quality`` (then the published
+    #: score) was 0.254 with the
     #: score alone, 0.181 / 0.178 / 0.199 / 0.226 with exponents 0.25 / 0.5 / 0.75 / 1 (taken
     #: on seeds 1-3 beforehand, where 0.25 and 0.5 were equal: 0.232 -> 0.159 / 0.161), and the
     #: pairs published at 0.95 or more were right 96 % of the time (scored so by the score
-    #: alone: 81 %).  National network: the qualities are about 1, the published scores 0.4 %
+    #: alone: 81 %).  National network: the qualities are about 1, the discounted scores 0.4 %
     #: below the score alone on average.
     quality_exponent: float = 0.5
-    #: A confirmed pair is held (module docstring) when its published score falls below this
+    #: The published score is the score with its odds multiplied by ``quality`` (above) to
+    #: this power (module docstring; 0: the score alone).  Fitted by the likelihood of the
+    #: pairs' truth through the whole pipeline in formations (``topofusion evaluate --only
+    #: formation``'s points but 1x, seeds 4-6, every confirmed and held pair every 10 s from
+    #: 360 s: 30 113 samples, 2.93) and checked on seeds 1-3 (30 396 samples, not used to fit
+    #: it), where the Brier score of the confirmed pairs' published scores was 0.038 with
+    #: ``score * quality`` (the published score before, under-confident once the trackers held
+    #: their formations: pairs published at 0.5-0.8 were right 98 % of the time), 0.0096 with
+    #: the score alone and 0.0094 with this, lower at 8 of the 9 points (2x 0.092 -> 0.013, 2x
+    #: at Pd 0.7 0.119 -> 0.067, Pd 0.95 0.101 -> 0.000, crossing 0.084 -> 0.015) and higher at
+    #: merging (0.383 -> 0.622: there the trackers lose half their tracks to neighbours, and
+    #: the pairs confirmed are mostly false at any quality).  National network: the qualities
+    #: are about 1, so the published score is the score (docs/correlation.md).
+    published_quality_power: Annotated[float, Ge(0)] = 3.0
+    #: A confirmed pair is held (module docstring) when its discounted score falls below this
     #: while its quality (``(q_a q_b) ** quality_exponent`` at its latest hit) is below
     #: ``hold_quality`` (0: never held): a track contested by a neighbour's plots may have
     #: swapped onto it, and the evidence finds a rival hypothesis about as likely.  0.6 of
@@ -87,7 +115,7 @@ class PairBookParams:
     #: (:mod:`.prompt`) has too little history for its evidence to judge it (on the national
     #: network 131 of the 135 pairs held in 120 s had 1-2 hits, and none was false).
     hold_after_hits: int = 3
-    #: A held pair is confirmed again only once its published score is at least this (and it
+    #: A held pair is confirmed again only once its discounted score is at least this (and it
     #: has the hits of a confirmation): a held pair confirmed again on its hits alone flapped
     #: between the two (306 pairs in 120 s of national data, docs/results.md).
     release_score: float = 0.65
@@ -95,7 +123,7 @@ class PairBookParams:
     #: is at least this and it has scored ``release_hits`` hits since it was held (> 1: never);
     #: a pair so vouched for (``release_hits`` hits since its hold, or in all if never held) is
     #: not held while its evidence stays there.  A formation that stays one keeps its
-    #: tracks contested, so the published score of a right pair stays below ``release_score``
+    #: tracks contested, so the discounted score of a right pair stays below ``release_score``
     #: for good.  Formation study (4 seeds, held pairs only on ``release_score`` against these):
     #: (0.999, 12): correct / false pairs at 2x 38.1 / 1.59 % -> 42.5 / 1.45 %, 2x at Pd 0.95
     #: 34.5 / 1.76 -> 43.3 / 1.09, at Pd 0.7 13.3 / 24.6 -> 15.4 / 22.7, 3x 67.3 / 6.65 ->
@@ -204,15 +232,26 @@ class PairBook:
 
     @property
     def score(self) -> FloatArray:
-        """The published score: the evidence probability where set, else the hit fraction."""
+        """The pair's score: the evidence probability where set, else the hit fraction."""
         p = self.cols["probability"]
         return np.where(np.isfinite(p), p, self.hit_fraction)
 
     @property
-    def published_score(self) -> FloatArray:
-        """``score`` times the pair's tracks' quality (module docstring)."""
+    def discounted_score(self) -> FloatArray:
+        """``score`` times the pair's tracks' quality (module docstring): what the hold reads."""
         q = self.cols["quality"]
         return np.asarray(self.score * np.where(np.isfinite(q), q, 1.0))
+
+    @property
+    def published_score(self) -> FloatArray:
+        """``score`` with its odds multiplied by the pair's tracks' quality to the power
+        ``published_quality_power`` (module docstring): what a ``PairSet`` publishes."""
+        q = self.cols["quality"]
+        f = np.where(np.isfinite(q), q, 1.0) ** self.params.published_quality_power
+        s = np.minimum(self.score, _MOST_CERTAIN)
+        num = s * f
+        den = num + (1.0 - s)
+        return np.asarray(np.where(den > 0.0, num / np.where(den > 0.0, den, 1.0), 0.0))
 
     def pair_quality(self, n: int, quality_a: FloatArray | None, quality_b: FloatArray | None) -> FloatArray:
         """``(q_a q_b) ** quality_exponent`` of ``n`` pairs from their tracks' qualities (row for
@@ -342,15 +381,15 @@ class PairBook:
 
     def hold_ambiguous(self) -> None:
         """Hold the confirmed pairs the evidence has turned against while a track is contested,
-        and confirm again the held pairs whose published score has recovered or whose evidence
+        and confirm again the held pairs whose discounted score has recovered or whose evidence
         vouches for them (module docstring; called once the pairs' probability is set)."""
         prm = self.params
         if prm.hold_score <= 0.0 or len(self) == 0:
             return
-        score = self.published_score
+        score = self.discounted_score
         quality = self.cols["quality"]
         # Evidence that vouches for the pair whatever its tracks' quality: a pair in a formation
-        # that stays one has contested tracks for good, so its published score cannot recover.
+        # that stays one has contested tracks for good, so its discounted score cannot recover.
         vouched = (self.cols["probability"] >= prm.release_probability) & (  # (NaN: not)
             self.hits - self.held_hits >= prm.release_hits
         )

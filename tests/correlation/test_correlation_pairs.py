@@ -90,11 +90,20 @@ def test_set_membership_forms_equal_numpy(x: list[str], y: list[str]) -> None:
     assert isin_sorted(ys, xs).tolist() == np.isin(ys, xs).tolist()
 
 
+def _published(score: float, quality: float, power: float) -> float:
+    """The published score as the contract's docs say it, one pair at a time: the score's odds
+    times ``quality ** power``."""
+    s = min(score, 1.0 - 1e-9)
+    odds = s / (1.0 - s) * quality**power
+    return odds / (1.0 + odds)
+
+
 def test_published_score_counts_the_tracks_quality() -> None:
     """A pair is right only if both its tracks follow their aircraft: the published score is
-    the correlation's score times the geometric mean of the tracks' qualities at the pair's
-    latest look (not known: 1), the book's own score (read by the cycles and the system
-    tracks) is not."""
+    the correlation's score with its odds multiplied by the geometric mean of the tracks'
+    qualities at the pair's latest look (not known: 1) to ``published_quality_power``; the
+    hold reads the score times that mean; the book's own score (read by the cycles and the
+    system tracks) is neither."""
     book = PairBook(PairBookParams(window=4, confirm_hits=2))
     pairs = [("a1", "b1"), ("a2", "b2"), ("a3", "b3")]
     present = (tuple(p[0] for p in pairs), tuple(p[1] for p in pairs))
@@ -107,11 +116,37 @@ def test_published_score_counts_the_tracks_quality() -> None:
         )  # fmt: skip
     score = {(s.track_a, s.track_b): s.score for s in book.states()}
     own = dict(zip(zip(book.track_a, book.track_b, strict=True), book.score, strict=True))
+    power = book.params.published_quality_power
+    assert power > 0
     assert score[("a1", "b1")] == own[("a1", "b1")] > 0
-    assert np.isclose(score[("a2", "b2")], own[("a2", "b2")] * 0.8)  # the latest look's: sqrt(0.64)
-    assert np.isclose(score[("a3", "b3")], own[("a3", "b3")] * 0.9)  # NaN counts as 1
+    a2, a3 = own[("a2", "b2")], own[("a3", "b3")]
+    assert np.isclose(score[("a2", "b2")], _published(a2, 0.8, power))  # the latest look's: sqrt(0.64)
+    assert np.isclose(score[("a3", "b3")], _published(a3, 0.9, power))  # NaN counts as 1
+    assert score[("a2", "b2")] < score[("a3", "b3")] < a3
+    discounted = dict(zip(zip(book.track_a, book.track_b, strict=True), book.discounted_score, strict=True))
+    assert np.isclose(discounted[("a2", "b2")], a2 * 0.8)
     plain = PairBook(PairBookParams(quality_exponent=0.0))
     assert np.array_equal(plain.pair_quality(2, np.array([0.1, np.nan]), None), np.ones(2))
+
+
+def test_published_scores_vectorised_equal_the_plain_form() -> None:
+    """Every pair's published score equals the plain form's, at scores of exactly 0 and 1 and
+    qualities of 0 and 1 too; a quality of 1 publishes the score itself."""
+    rng = np.random.default_rng(7)
+    n = 64
+    p = np.concatenate([[0.0, 1.0, 1.0, 0.5, 0.999999], rng.uniform(0.0, 1.0, n - 5)])
+    q = np.concatenate([[0.3, 0.0, 1.0, 0.0, 0.6], rng.uniform(0.0, 1.0, n - 5)])
+    for power in (0.0, 1.0, 3.0):
+        book = PairBook(PairBookParams(published_quality_power=power))
+        book.admit(
+            1.0, None, None, np.array([f"a{i}" for i in range(n)]), np.array([f"b{i}" for i in range(n)]),
+            np.ones(n), np.ones(n), np.ones(n), np.full(n, 4), np.ones(n, dtype=np.int8), p, q,
+        )  # fmt: skip
+        got = dict(zip(book.track_a, book.published_score, strict=True))
+        for i in range(n):
+            assert np.isclose(got[f"a{i}"], _published(p[i], q[i], power), rtol=1e-12, atol=1e-12), (i, power)
+        ones = book.published_score[np.isclose(book.cols["quality"], 1.0)]
+        assert np.allclose(ones, np.minimum(book.score[np.isclose(book.cols["quality"], 1.0)], 1 - 1e-9))
 
 
 def test_a_pair_confirmed_at_its_first_look_publishes_its_tracks_quality() -> None:
@@ -123,7 +158,9 @@ def test_a_pair_confirmed_at_its_first_look_publishes_its_tracks_quality() -> No
         np.array([4]), np.array([1], dtype=np.int8), np.array([0.99]), quality,
     )  # fmt: skip
     (state,) = book.states()
-    assert state.status == "confirmed" and np.isclose(state.score, 0.99 * 0.5)
+    power = book.params.published_quality_power
+    assert state.status == "confirmed" and np.isclose(state.score, _published(0.99, 0.5, power))
+    assert state.score < 0.99
     assert np.isclose(book.score[0], 0.99)
 
 
@@ -139,9 +176,9 @@ def _look(book: PairBook, t: float, quality: float, probability: float) -> None:
 
 
 def test_a_contested_pair_the_evidence_turned_against_is_held_until_its_score_recovers() -> None:
-    """A confirmed pair whose published score falls below ``hold_score`` while a track is
+    """A confirmed pair whose discounted score falls below ``hold_score`` while a track is
     contested goes back to tentative, keeps scoring hits, and is confirmed again only once its
-    published score reaches ``release_score``: its hits alone do not (hysteresis)."""
+    discounted score reaches ``release_score``: its hits alone do not (hysteresis)."""
     prm = PairBookParams(window=4, confirm_hits=2)
     book = PairBook(prm)
     for t in (1.0, 2.0):
@@ -149,7 +186,7 @@ def test_a_contested_pair_the_evidence_turned_against_is_held_until_its_score_re
     assert _status(book) == {("a1", "b1"): "confirmed"}
     _look(book, 3.0, 1.0, 0.3)  # the evidence is against it, but no track is contested: kept
     assert _status(book) == {("a1", "b1"): "confirmed"}
-    _look(book, 4.0, 0.64, 0.6)  # published 0.6 * 0.8 = 0.48 < hold_score, quality 0.8 < 0.9, 4 hits: held
+    _look(book, 4.0, 0.64, 0.6)  # discounted 0.6 * 0.8 = 0.48 < hold_score, quality 0.8 < 0.9, 4 hits: held
     assert _status(book) == {("a1", "b1"): "tentative"} and book.held.all()
     for t in (5.0, 6.0, 7.0):  # every update a hit, the score between the two thresholds
         _look(book, t, 1.0, (prm.hold_score + prm.release_score) / 2)
@@ -167,7 +204,7 @@ def test_a_contested_pair_the_evidence_turned_against_is_held_until_its_score_re
 
 
 def test_a_held_pair_in_a_lasting_formation_is_released_by_its_evidence_alone() -> None:
-    """A held pair whose tracks stay contested (published score never back at
+    """A held pair whose tracks stay contested (discounted score never back at
     ``release_score``) is confirmed again once its evidence is at least ``release_probability``
     and it has scored ``release_hits`` hits since the hold; it is then not held again while
     that lasts, and is held again once its evidence falls."""
@@ -175,7 +212,7 @@ def test_a_held_pair_in_a_lasting_formation_is_released_by_its_evidence_alone() 
     book = PairBook(prm)
     for t in (1.0, 2.0, 3.0):
         _look(book, t, 1.0, 0.95)
-    _look(book, 4.0, 0.25, 0.9)  # published 0.9 * 0.5 < hold_score, quality 0.5: held
+    _look(book, 4.0, 0.25, 0.9)  # discounted 0.9 * 0.5 < hold_score, quality 0.5: held
     assert book.held.all()
     for k in range(1, prm.release_hits):  # strong evidence, low quality: 4 hits since the hold
         _look(book, 4.0 + k, 0.25, 0.9999)
@@ -184,7 +221,7 @@ def test_a_held_pair_in_a_lasting_formation_is_released_by_its_evidence_alone() 
     assert _status(book) == {("a1", "b1"): "tentative"}
     _look(book, 10.0, 0.25, 0.9995)
     assert _status(book) == {("a1", "b1"): "confirmed"} and not book.held.any()
-    _look(book, 11.0, 0.25, 0.9999)  # published still below hold_score: not held again
+    _look(book, 11.0, 0.25, 0.9999)  # discounted still below hold_score: not held again
     assert _status(book) == {("a1", "b1"): "confirmed"}
     _look(book, 12.0, 0.25, 0.99)  # the evidence falls: held again, its count from now
     assert _status(book) == {("a1", "b1"): "tentative"} and book.held.all()
