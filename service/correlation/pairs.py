@@ -38,8 +38,8 @@ score with its odds multiplied by ``quality ** published_quality_power``,
 a calibration of the score by the tracks' quality through the whole pipeline (measured in
 :class:`PairBookParams`): a pair of unambiguous tracks (quality 1) publishes its score.
 ``basis`` records what the pair's latest hit rested on (:class:`~.base.Basis`, -1: not
-given).  Stored columnar (numpy), updated with set
-operations on keys: no Python loop over pairs.  The book identifies tracks by what it is
+given).  Stored columnar (numpy), updated with set operations on keys: no Python loop over
+pairs.  The book identifies tracks by what it is
 given, track keys or track ids (:mod:`.pairkeys`; the correlation gives keys, and the track ids
 as the pairs' names, ``track_a``/``track_b``, which is what it publishes).
 """
@@ -76,14 +76,13 @@ class PairBookParams:
     #: Consecutive misses after which a confirmed pair is dropped.
     drop_misses: int = 4
     #: A pair's quality is ``(q_a q_b) ** quality_exponent`` (module docstring; 0: always 1).
-    #: 0.5, the geometric mean of the two qualities: through the whole
-    #: pipeline in formations (``topofusion evaluate --only formation``, 8 points, seeds 4-5,
-    #: 6 167 judged confirmed pairs) the Brier score of ``score * quality`` (then the published
-    #: score) was 0.254 with the
-    #: score alone, 0.181 / 0.178 / 0.199 / 0.226 with exponents 0.25 / 0.5 / 0.75 / 1 (taken
-    #: on seeds 1-3 beforehand, where 0.25 and 0.5 were equal: 0.232 -> 0.159 / 0.161), and the
-    #: pairs published at 0.95 or more were right 96 % of the time (scored so by the score
-    #: alone: 81 %).  National network: the qualities are about 1, the discounted scores 0.4 %
+    #: 0.5, the geometric mean of the two qualities: through the whole pipeline in formations
+    #: (``topofusion evaluate --only formation``, 8 points, seeds 4-5, 6 167 judged confirmed
+    #: pairs) the Brier score of ``score * quality`` (then the published score) was 0.254 with
+    #: the score alone, 0.181 / 0.178 / 0.199 / 0.226 with exponents 0.25 / 0.5 / 0.75 / 1
+    #: (taken on seeds 1-3 beforehand, where 0.25 and 0.5 were equal: 0.232 -> 0.159 / 0.161),
+    #: and the pairs so scored at 0.95 or more were right 96 % of the time (scored so by the
+    #: score alone: 81 %).  National network: the qualities are about 1, the discounted scores 0.4 %
     #: below the score alone on average.
     quality_exponent: float = 0.5
     #: The published score is the score with its odds multiplied by ``quality`` (above) to
