@@ -236,21 +236,24 @@ class PairBook:
         return np.where(np.isfinite(p), p, self.hit_fraction)
 
     @property
+    def _known_quality(self) -> FloatArray:
+        """The pairs' quality, 1 where not known (module docstring)."""
+        q = self.cols["quality"]
+        return np.where(np.isfinite(q), q, 1.0)
+
+    @property
     def discounted_score(self) -> FloatArray:
         """``score`` times the pair's tracks' quality (module docstring): what the hold reads."""
-        q = self.cols["quality"]
-        return np.asarray(self.score * np.where(np.isfinite(q), q, 1.0))
+        return np.asarray(self.score * self._known_quality)
 
     @property
     def published_score(self) -> FloatArray:
         """``score`` with its odds multiplied by the pair's tracks' quality to the power
-        ``published_quality_power`` (module docstring): what a ``PairSet`` publishes."""
-        q = self.cols["quality"]
-        f = np.where(np.isfinite(q), q, 1.0) ** self.params.published_quality_power
+        ``published_quality_power`` (module docstring): what a ``PairSet`` publishes.  The
+        score is capped below 1, so ``1 - s`` and the denominator are never 0."""
         s = np.minimum(self.score, _MOST_CERTAIN)
-        num = s * f
-        den = num + (1.0 - s)
-        return np.asarray(np.where(den > 0.0, num / np.where(den > 0.0, den, 1.0), 0.0))
+        num = s * self._known_quality**self.params.published_quality_power
+        return np.asarray(num / (num + (1.0 - s)))
 
     def pair_quality(self, n: int, quality_a: FloatArray | None, quality_b: FloatArray | None) -> FloatArray:
         """``(q_a q_b) ** quality_exponent`` of ``n`` pairs from their tracks' qualities (row for
